@@ -1,0 +1,184 @@
+"""Configuration: one small pydantic model per stage, composed into ``ShgmConfig``.
+
+Classes elsewhere take plain values; factories take these models. The effective config is written
+into every results folder (``config.yaml``) and ``shgm-slam dump-config`` prints the defaults.
+Defaults follow the paper and the authors' release (ARCHITECTURE.md, "The algorithm").
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+from pathlib import Path
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from shgm_slam.errors import ConfigError
+from shgm_slam.labels import DEFAULT_GRAPH_LABELS
+
+
+class _Stage(BaseModel):
+    model_config = ConfigDict(extra="forbid", use_enum_values=False)
+
+
+class ExtractionConfig(_Stage):
+    """Object extraction from depth + labels (Sec. III-A; authors' release defaults)."""
+
+    max_depth_m: float = Field(30.0, gt=0, description="ignore pixels farther than this")
+    min_depth_m: float = Field(0.5, ge=0)
+    depth_step_m: float = Field(1.0, gt=0, description="4-neighbours closer than this in depth join a region")
+    min_blob_fraction: float = Field(
+        5000.0 / (1024 * 576), gt=0, lt=1, description="minimum region size as a fraction of image area"
+    )
+    labels: tuple[int, ...] = Field(DEFAULT_GRAPH_LABELS, description="train ids that become nodes")
+
+
+class GraphConfig(_Stage):
+    """Incremental semantic graph: node merging and edges."""
+
+    merge_radius_m: float = Field(5.0, ge=0, description="same-label nodes closer than this merge")
+    connectivity_m: float = Field(10.0, gt=0, description="edge between nodes closer than this (paper best: 10)")
+
+
+class DescriptorKind(str, Enum):
+    HISTOGRAM = "histogram"
+    NEIGHBOR_VECTOR = "neighbor-vector"
+    RANDOM_WALK = "random-walk"
+
+
+class DescriptorConfig(_Stage):
+    """Node descriptors (Alg. 1 and the baselines)."""
+
+    kind: DescriptorKind = DescriptorKind.HISTOGRAM
+    path_length: int = Field(3, ge=2, le=4, description="labels per histogram path (Alg. 1 uses 3)")
+    count_backtracking: bool = Field(True, description="count i->m->i paths, as the authors' release does")
+    num_walks: int = Field(400, ge=1, description="random-walk baseline: walks per node (X-view)")
+    walk_length: int = Field(3, ge=1, description="random-walk baseline: steps per walk")
+    seed: int = 0
+
+
+class CandidateMode(str, Enum):
+    ALL = "all"  # every pair above the score threshold (Alg. 2, first loop)
+    BEST = "best"  # best per node of B (authors' release)
+    MUTUAL = "mutual"  # mutual best
+    TOP_K = "top-k"  # k best per node of B
+
+
+class OutlierMode(str, Enum):
+    RANSAC = "ransac"  # the paper's ICP-RANSAC (Alg. 2)
+    CLIQUE = "clique"  # pairwise consistency + maximum clique (beyond the paper)
+
+
+class MatchingConfig(_Stage):
+    """Candidate matching (Eq. 1), outlier rejection (Alg. 2 / max clique) and the weighted pose (Eq. 2)."""
+
+    score_threshold: float = Field(0.5, ge=0, le=1)
+    same_label_only: bool = True
+    candidate_mode: CandidateMode = CandidateMode.TOP_K
+    top_k: int = Field(5, ge=1)
+    outlier_mode: OutlierMode = OutlierMode.CLIQUE
+    ransac_iterations: int = Field(1000, ge=1)
+    inlier_threshold_m: float = Field(10.0, gt=0, description="RANSAC inlier distance (authors: 10 m)")
+    consistency_threshold_m: float = Field(2.0, gt=0, description="clique mode: |d_a - d_b| tolerance")
+    gravity_aligned: bool = Field(False, description="4-DoF (yaw + translation) fit for ground robots")
+    min_inliers: int = Field(5, ge=3, description="success needs at least this many consistent inliers")
+    max_rmse_m: float = Field(3.0, gt=0, description="success needs a fit residual below this")
+    weighted_pose: bool = Field(True, description="Eq. 2 weights from object size")
+    refine_iterations: int = Field(3, ge=0)
+    seed: int = 0
+
+
+class OdometryKind(str, Enum):
+    KISS_ICP = "kiss-icp"
+    GT = "gt"
+    FILE = "file"
+
+
+class OdometryConfig(_Stage):
+    """Front-end odometry (KISS-ICP tuned for dense pseudo-LiDAR, REFERENCE.md §1.2)."""
+
+    kind: OdometryKind = OdometryKind.KISS_ICP
+    poses_file: Path | None = None
+    voxel_size_m: float = Field(0.4, gt=0)
+    max_points_per_voxel: int = Field(10, ge=1)
+    min_range_m: float = Field(0.5, ge=0)
+    max_range_m: float = Field(30.0, gt=0)
+    cloud_stride: int = Field(2, ge=1, description="back-project every n-th pixel")
+    max_icp_iterations: int = Field(100, ge=1)
+
+    @model_validator(mode="after")
+    def _file_needs_path(self) -> OdometryConfig:
+        if self.kind is OdometryKind.FILE and self.poses_file is None:
+            raise ValueError("odometry kind 'file' needs poses_file")
+        return self
+
+
+class KeyframeConfig(_Stage):
+    """Keyframe selection: a new keyframe every X metres or Y degrees."""
+
+    distance_m: float = Field(2.0, gt=0)
+    angle_deg: float = Field(15.0, gt=0)
+
+
+class BackendConfig(_Stage):
+    """Map server: periodic cross-robot matching and the iSAM2 pose graph."""
+
+    match_every_keyframes: int = Field(10, ge=1)
+    submap_keyframes: int = Field(30, ge=1, description="recent keyframes forming a robot's submap")
+    odometry_sigma_rot_rad: float = Field(0.01, gt=0)
+    odometry_sigma_trans_m: float = Field(0.1, gt=0)
+    closure_sigma_rot_rad: float = Field(0.05, gt=0)
+    closure_sigma_trans_m: float = Field(1.0, gt=0)
+    robust_kernel: str = Field("cauchy", description="huber | cauchy | tukey | none")
+    consistency_trans_m: float = Field(5.0, gt=0, description="pairwise closure consistency, translation")
+    consistency_rot_deg: float = Field(10.0, gt=0, description="pairwise closure consistency, rotation")
+
+
+class PerceptionConfig(_Stage):
+    """ONNX perception (optional): depth and segmentation models."""
+
+    depth_model: Path | None = None
+    seg_model: Path | None = None
+    threads: int = Field(2, ge=0)
+
+
+class ShgmConfig(_Stage):
+    """The whole system's configuration."""
+
+    extraction: ExtractionConfig = ExtractionConfig()
+    graph: GraphConfig = GraphConfig()
+    descriptor: DescriptorConfig = DescriptorConfig()
+    matching: MatchingConfig = MatchingConfig()
+    odometry: OdometryConfig = OdometryConfig()
+    keyframes: KeyframeConfig = KeyframeConfig()
+    backend: BackendConfig = BackendConfig()
+    perception: PerceptionConfig = PerceptionConfig()
+
+    def to_yaml(self) -> str:
+        """The config as YAML text (enums and paths as plain strings)."""
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+
+def load_config(path: Path | str | None) -> ShgmConfig:
+    """Load a YAML config (partial configs fill in defaults); ``None`` gives the defaults.
+
+    Raises:
+        ConfigError: the file is missing, is not YAML, or holds unknown or invalid fields.
+    """
+    if path is None:
+        return ShgmConfig()
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {path} does not exist (write one with `shgm-slam dump-config > {path}`)")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {path} must hold a mapping of stages, got {type(data).__name__}")
+    try:
+        return ShgmConfig.model_validate(data)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise ConfigError(f"config file {path}: {where}: {first['msg']} ({exc.error_count()} error(s))") from None

@@ -1,0 +1,76 @@
+"""Cityscapes train-id label space, the one label space every stage speaks.
+
+Segmentation models map into it (``perception/``), the simulator renders it (``sim/``), the graph
+keeps a configurable subset of it (``graph/``) and the viewer colours it (``viz/``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+IGNORE_ID = 255
+"""Label id of pixels that carry no class (unlabelled, invalid)."""
+
+CITYSCAPES_CLASSES: tuple[str, ...] = (
+    "road", "sidewalk", "building", "wall", "fence", "pole", "traffic light", "traffic sign",
+    "vegetation", "terrain", "sky", "person", "rider", "car", "truck", "bus", "train",
+    "motorcycle", "bicycle",
+)  # fmt: skip
+"""Class names indexed by Cityscapes train id (0..18)."""
+
+NUM_CLASSES = len(CITYSCAPES_CLASSES)
+
+CITYSCAPES_COLORS_RGB = np.array(
+    [
+        (128, 64, 128), (244, 35, 232), (70, 70, 70), (102, 102, 156), (190, 153, 153),
+        (153, 153, 153), (250, 170, 30), (220, 220, 0), (107, 142, 35), (152, 251, 152),
+        (70, 130, 180), (220, 20, 60), (255, 0, 0), (0, 0, 142), (0, 0, 70), (0, 60, 100),
+        (0, 80, 100), (0, 0, 230), (119, 11, 32),
+    ],
+    dtype=np.uint8,
+)  # fmt: skip
+"""Official Cityscapes palette, (19, 3) uint8 RGB, indexed by train id."""
+
+
+class Label:
+    """Named Cityscapes train ids (plain ints, usable as array indices)."""
+
+    ROAD = 0
+    SIDEWALK = 1
+    BUILDING = 2
+    WALL = 3
+    FENCE = 4
+    POLE = 5
+    TRAFFIC_LIGHT = 6
+    TRAFFIC_SIGN = 7
+    VEGETATION = 8
+    TERRAIN = 9
+    SKY = 10
+    PERSON = 11
+    RIDER = 12
+    CAR = 13
+    TRUCK = 14
+    BUS = 15
+    TRAIN = 16
+    MOTORCYCLE = 17
+    BICYCLE = 18
+
+
+DEFAULT_GRAPH_LABELS: tuple[int, ...] = tuple(
+    i for i in range(NUM_CLASSES) if i not in (Label.SKY, Label.PERSON, Label.RIDER)
+)
+"""Train ids that become graph nodes by default: everything except sky, person and rider."""
+
+
+def label_name(label_id: int) -> str:
+    """Human-readable class name of a train id (``"ignore"`` for 255, ``"class<id>"`` otherwise)."""
+    if 0 <= label_id < NUM_CLASSES:
+        return CITYSCAPES_CLASSES[label_id]
+    return "ignore" if label_id == IGNORE_ID else f"class{label_id}"
+
+
+def colorize_labels(label_ids: np.ndarray) -> np.ndarray:
+    """Map an (H, W) uint8 train-id image to an (H, W, 3) uint8 RGB image (ignore -> black)."""
+    lut = np.zeros((256, 3), dtype=np.uint8)
+    lut[:NUM_CLASSES] = CITYSCAPES_COLORS_RGB
+    return lut[np.asarray(label_ids, dtype=np.uint8)]
