@@ -120,6 +120,15 @@ class KeyframeConfig(_Stage):
     angle_deg: float = Field(15.0, gt=0)
 
 
+class RobustKernel(str, Enum):
+    """M-estimator on inter-robot closure factors (gtsam.noiseModel.mEstimator)."""
+
+    NONE = "none"
+    HUBER = "huber"
+    CAUCHY = "cauchy"
+    TUKEY = "tukey"
+
+
 class BackendConfig(_Stage):
     """Map server: periodic cross-robot matching and the iSAM2 pose graph."""
 
@@ -129,9 +138,15 @@ class BackendConfig(_Stage):
     odometry_sigma_trans_m: float = Field(0.1, gt=0)
     closure_sigma_rot_rad: float = Field(0.05, gt=0)
     closure_sigma_trans_m: float = Field(1.0, gt=0)
-    robust_kernel: str = Field("cauchy", description="huber | cauchy | tukey | none")
+    robust_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="huber | cauchy | tukey | none")
     consistency_trans_m: float = Field(5.0, gt=0, description="pairwise closure consistency, translation")
     consistency_rot_deg: float = Field(10.0, gt=0, description="pairwise closure consistency, rotation")
+    consistency_trans_per_m: float = Field(
+        0.05, ge=0, description="consistency translation tolerance growth per metre of odometry in the loop"
+    )
+    consistency_rot_deg_per_m: float = Field(
+        0.05, ge=0, description="consistency rotation tolerance growth (deg) per metre of odometry in the loop"
+    )
 
 
 class PerceptionConfig(_Stage):

@@ -1,0 +1,130 @@
+"""Opening sequences: ``path[:start-end]`` specs, layout detection, the reader registry, frame-range views.
+
+A spec is a sequence folder optionally followed by a frame range, ``start`` inclusive and ``end``
+exclusive: ``data/08:0-1500`` (frames 0..1499), ``data/08:100-`` (frame 100 to the end),
+``data/08:-500`` (the first 500). A range gives a view whose frames are re-indexed from 0 while
+``Frame.source_index`` keeps the file index; ``timestamps_s``/``gt_poses`` are sliced alike.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator
+from enum import Enum
+from pathlib import Path
+
+import numpy as np
+
+from shgm_slam.data.kitti import KittiSequence
+from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, ShgmSequence
+from shgm_slam.errors import DataError
+from shgm_slam.types import Frame, Intrinsics, Sequence
+
+_RANGE = re.compile(r"^(\d*)-(\d*)$")
+
+
+class SequenceLayout(str, Enum):
+    KITTI = "kitti"
+    """KITTI odometry: image_2/ or image_0/, calib.txt, times.txt, optional poses (extra rows tolerated)."""
+    SHGM = "shgm"
+    """Ours: KITTI plus depth/ and/or semantic/; all counts must agree exactly."""
+
+
+SEQUENCE_READERS: dict[SequenceLayout, type[KittiSequence]] = {
+    SequenceLayout.KITTI: KittiSequence,
+    SequenceLayout.SHGM: ShgmSequence,
+}
+"""Reader class per layout; each takes the sequence folder and satisfies ``types.Sequence``."""
+
+
+def parse_sequence_spec(spec: str | Path) -> tuple[Path, int, int | None]:
+    """Split ``path[:start-end]`` into (folder, start, end or None = to the end).
+
+    A suffix after the last ':' that is not ``start-end`` is a DataError unless the whole spec is an
+    existing path (folders whose names contain ':').
+    """
+    if isinstance(spec, Path):
+        return spec, 0, None
+    head, sep, tail = spec.rpartition(":")
+    if not sep or Path(spec).exists():
+        return Path(spec), 0, None
+    if not head:
+        raise DataError(f"sequence spec '{spec}' has no folder before ':'; use path:start-end")
+    m = _RANGE.match(tail.strip())
+    if m is None:
+        raise DataError(
+            f"bad frame range '{tail}' in sequence spec '{spec}'; use path:start-end, "
+            "e.g. data/08:0-1500 or data/08:100-"
+        )
+    start = int(m.group(1)) if m.group(1) else 0
+    end = int(m.group(2)) if m.group(2) else None
+    if end is not None and start >= end:
+        raise DataError(f"empty frame range in sequence spec '{spec}': need start < end (end is exclusive)")
+    return Path(head), start, end
+
+
+def detect_layout(root: Path) -> SequenceLayout:
+    """SHGM when ``root`` has ``depth/`` or ``semantic/``, else KITTI."""
+    ours = (root / DEPTH_DIR).is_dir() or (root / LABEL_DIR).is_dir()
+    return SequenceLayout.SHGM if ours else SequenceLayout.KITTI
+
+
+class SequenceView:
+    """Frames ``start`` (inclusive) to ``end`` (exclusive) of another sequence, re-indexed from 0."""
+
+    def __init__(self, base: Sequence, start: int, end: int) -> None:
+        n = len(base)
+        if not 0 <= start < end <= n:
+            raise DataError(
+                f"frame range {start}-{end} does not fit {base.name} with {n} frames; "
+                f"use 0 <= start < end <= {n}"
+            )
+        self.base, self.start, self.end = base, start, end
+        self.name = f"{base.name}:{start}-{end}"
+        self.intrinsics: Intrinsics = base.intrinsics
+
+    def __len__(self) -> int:
+        return self.end - self.start
+
+    def __iter__(self) -> Iterator[Frame]:
+        return (self[i] for i in range(len(self)))
+
+    def __getitem__(self, index: int) -> Frame:
+        n = len(self)
+        if not -n <= index < n:
+            raise IndexError(f"frame {index} out of range for {self.name} with {n} frames")
+        i = index % n
+        frame = self.base[self.start + i]
+        frame.index = i
+        return frame
+
+    @property
+    def timestamps_s(self) -> np.ndarray:
+        return self.base.timestamps_s[self.start : self.end]
+
+    @property
+    def gt_poses(self) -> np.ndarray | None:
+        gt = self.base.gt_poses
+        return None if gt is None else gt[self.start : self.end]
+
+    @property
+    def has_depth(self) -> bool:
+        return self.base.has_depth
+
+    @property
+    def has_labels(self) -> bool:
+        return self.base.has_labels
+
+
+def open_sequence(spec: str | Path, layout: SequenceLayout | None = None) -> Sequence:
+    """Open ``path[:start-end]`` (see the module doc) with the detected (or given) layout's reader.
+
+    Returns the whole sequence, or a ``SequenceView`` of it when a range is given.
+    """
+    root, start, end = parse_sequence_spec(spec)
+    if not root.is_dir():
+        raise DataError(f"sequence folder {root} does not exist; check the path (spec '{spec}')")
+    sequence: Sequence = SEQUENCE_READERS[layout or detect_layout(root)](root)
+    if start == 0 and end is None:
+        return sequence
+    return SequenceView(sequence, start, len(sequence) if end is None else end)

@@ -1,0 +1,221 @@
+"""KITTI odometry sequences: ``image_2/`` (RGB) or ``image_0/`` (gray), ``calib.txt``, ``times.txt``, poses.
+
+Ground truth is ``<seq>/poses.txt`` or, for ``<root>/sequences/<seq>``, ``<root>/poses/<seq>.txt``
+(KITTI rows of ``T_world_cam0``). Poses are moved onto the camera that is read using the calib ``P``
+line (``T_world_cam = T_world_cam0 @ T_cam0_cam``, about 6 cm for KITTI's image_2; nothing for P = [K|0]).
+
+Frame counts: the images define the frames and must be named ``000000.png``, ``000001.png``, … without
+gaps. ``times.txt`` (and poses when present) must have at least one row per image. KITTI downloads
+are often partial (the shared sequence 07 holds the first 160 images but 1101 times and poses), so
+extra trailing rows are accepted with a logged warning and ignored; fewer rows are a ``DataError``.
+Frames load lazily in ``__getitem__``; only the small index arrays are kept.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from shgm_slam.errors import DataError
+from shgm_slam.io.trajectories import read_kitti_poses
+from shgm_slam.types import Frame, Intrinsics
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ImageSource:
+    """An image folder and the calib line holding its projection matrix."""
+
+    folder: str
+    calib_key: str
+    grayscale: bool
+
+
+IMAGE_SOURCES = (ImageSource("image_2", "P2", False), ImageSource("image_0", "P0", True))
+"""Preferred first: the left colour camera, then the left grayscale camera."""
+
+
+def frame_file(folder: Path, index: int) -> Path:
+    """Path of frame ``index`` in ``folder`` (``%06d.png``)."""
+    return folder / f"{index:06d}.png"
+
+
+def count_frame_files(folder: Path) -> int:
+    """Number of frames in ``folder``; DataError when empty or when ``%06d.png`` names have gaps."""
+    names = sorted(p.name for p in folder.iterdir() if p.suffix.lower() == ".png")
+    if not names:
+        raise DataError(f"image folder {folder} has no .png frames; expected 000000.png, 000001.png, ...")
+    expected = [f"{i:06d}.png" for i in range(len(names))]
+    if names != expected:
+        first = next(e for n, e in zip(names, expected, strict=True) if n != e)
+        raise DataError(
+            f"frames in {folder} must be numbered 000000.png ... without gaps; {folder / first} is missing "
+            "(rename the files or remove the strays)"
+        )
+    return len(names)
+
+
+def read_png(path: Path, flags: int) -> np.ndarray:
+    """``cv2.imread`` that raises a DataError naming the file when it is missing or corrupt."""
+    image = cv2.imread(str(path), flags)
+    if image is None:
+        raise DataError(f"cannot read image {path} (missing or corrupt PNG); re-export or remove that frame")
+    return image
+
+
+def read_projection(calib_path: Path, key: str) -> np.ndarray:
+    """(3, 4) projection matrix of the ``key:`` line (``P0`` … ``P3``) of a KITTI calib.txt."""
+    if not calib_path.is_file():
+        raise DataError(f"{calib_path} is missing; a sequence needs a KITTI calib.txt with a {key} line")
+    for line in calib_path.read_text().splitlines():
+        head, _, rest = line.partition(":")
+        if head.strip() == key:
+            try:
+                values = np.array(rest.split(), dtype=np.float64)
+            except ValueError:
+                values = np.zeros(0)
+            if values.size == 12 and np.isfinite(values).all():
+                return values.reshape(3, 4)
+            break
+    raise DataError(
+        f"{calib_path} has no {key} line with 12 numbers; add '{key}: fx 0 cx 0 0 fy cy 0 0 0 1 0'"
+    )
+
+
+def read_times(path: Path) -> np.ndarray:
+    """(N,) float64 seconds from a times.txt (one number a line)."""
+    if not path.is_file():
+        raise DataError(f"{path} is missing; write one timestamp (seconds) per frame")
+    try:
+        with warnings.catch_warnings():  # an empty file is reported below as a count mismatch
+            warnings.simplefilter("ignore", UserWarning)
+            times = np.loadtxt(path, dtype=np.float64, ndmin=1, comments="#")
+    except ValueError as e:
+        raise DataError(f"{path} must hold one number per line: {e}") from e
+    if times.ndim != 1 or not np.isfinite(times).all():
+        raise DataError(f"{path} must hold one finite number per line (got shape {times.shape})")
+    return times
+
+
+def find_gt_file(root: Path) -> Path | None:
+    """``root/poses.txt``, else ``<kitti>/poses/<seq>.txt`` when ``root`` is ``<kitti>/sequences/<seq>``."""
+    if (root / "poses.txt").is_file():
+        return root / "poses.txt"
+    kitti_file = root.parent.parent / "poses" / f"{root.name}.txt"
+    return kitti_file if root.parent.name == "sequences" and kitti_file.is_file() else None
+
+
+def fit_count(values: np.ndarray, count: int, path: Path, allow_extra: bool) -> np.ndarray:
+    """First ``count`` rows of ``values``; DataError when too few (or too many and not ``allow_extra``)."""
+    n = values.shape[0]
+    if n == count:
+        return values
+    if n < count or not allow_extra:
+        raise DataError(
+            f"{path} has {n} rows but there are {count} images; every frame needs exactly one row "
+            "(fix the file or remove the extra images)"
+        )
+    log.warning("%s has %d rows for %d images; using the first %d (partial download?)", path, n, count, count)
+    return values[:count]
+
+
+class KittiSequence:
+    """A KITTI odometry sequence folder (see the module doc for the layout and the count policy)."""
+
+    allow_extra_rows = True
+
+    def __init__(self, root: Path | str) -> None:
+        self.root = Path(root).absolute()
+        if not self.root.is_dir():
+            raise DataError(f"sequence folder {self.root} does not exist; check the path")
+        source = next((s for s in IMAGE_SOURCES if (self.root / s.folder).is_dir()), None)
+        if source is None:
+            raise DataError(
+                f"{self.root} has neither image_2/ nor image_0/; point at a KITTI-style sequence folder"
+            )
+        self.name = self.root.name
+        self._source = source
+        self._image_dir = self.root / source.folder
+        count = count_frame_files(self._image_dir)
+        P = read_projection(self.root / "calib.txt", source.calib_key)
+        first = self._read_image(0, check_size=False)
+        self.intrinsics = Intrinsics.from_K(P[:, :3], first.shape[1], first.shape[0])
+        self._times = fit_count(read_times(self.root / "times.txt"), count, self.root / "times.txt",
+                                self.allow_extra_rows)
+        self._times.flags.writeable = False
+        self._gt: np.ndarray | None = None
+        gt_file = find_gt_file(self.root)
+        if gt_file is not None:
+            T_cam0_cam = np.eye(4)
+            T_cam0_cam[:3, 3] = -np.linalg.solve(P[:, :3], P[:, 3])  # P = K [I | t], t = p_cam of cam0 origin
+            T_world_cam0 = fit_count(read_kitti_poses(gt_file), count, gt_file, self.allow_extra_rows)
+            self._gt = T_world_cam0 @ T_cam0_cam
+            self._gt.flags.writeable = False
+
+    def __len__(self) -> int:
+        return int(self._times.shape[0])
+
+    def __iter__(self) -> Iterator[Frame]:
+        return (self[i] for i in range(len(self)))
+
+    @property
+    def timestamps_s(self) -> np.ndarray:
+        """(N,) seconds, read-only."""
+        return self._times
+
+    @property
+    def gt_poses(self) -> np.ndarray | None:
+        """(N, 4, 4) ground-truth ``T_world_cam`` (read-only), or None."""
+        return self._gt
+
+    @property
+    def has_depth(self) -> bool:
+        return False
+
+    @property
+    def has_labels(self) -> bool:
+        return False
+
+    def _index(self, index: int) -> int:
+        n = len(self)
+        if not -n <= index < n:
+            raise IndexError(f"frame {index} out of range for {self.name} with {n} frames")
+        return index % n
+
+    def _check_size(self, image: np.ndarray, path: Path) -> None:
+        wh = (image.shape[1], image.shape[0])
+        if wh != self.intrinsics.size_wh:
+            raise DataError(
+                f"{path} is {wh[0]}x{wh[1]} but the sequence's first frame is "
+                f"{self.intrinsics.width}x{self.intrinsics.height}; all frames must share one size"
+            )
+
+    def _read_image(self, index: int, check_size: bool = True) -> np.ndarray:
+        """(H, W, 3) uint8 RGB of file ``index`` (grayscale replicated to 3 channels)."""
+        path = frame_file(self._image_dir, index)
+        if self._source.grayscale:
+            image = cv2.cvtColor(read_png(path, cv2.IMREAD_GRAYSCALE), cv2.COLOR_GRAY2RGB)
+        else:
+            image = cv2.cvtColor(read_png(path, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        if check_size:
+            self._check_size(image, path)
+        return image
+
+    def __getitem__(self, index: int) -> Frame:
+        """Frame ``index`` (negative indices count from the end), loaded from disk now."""
+        i = self._index(index)
+        return Frame(
+            index=i,
+            timestamp_s=float(self._times[i]),
+            intrinsics=self.intrinsics,
+            image_rgb=self._read_image(i),
+            T_world_cam=None if self._gt is None else self._gt[i].copy(),
+            source_index=i,
+        )

@@ -1,0 +1,86 @@
+"""Sparse linear algebra of a semantic graph: adjacency, one-hot labels, directed edges.
+
+Every descriptor is built from these matrices with sparse products, so no descriptor loops over
+nodes or paths in Python. Rows are the graph's row indices (not node ids).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from shgm_slam.errors import GraphError
+from shgm_slam.labels import NUM_CLASSES
+from shgm_slam.types import GraphArrays
+
+
+def check_labels(graph: GraphArrays, num_classes: int = NUM_CLASSES) -> np.ndarray:
+    """The graph's (N,) int64 label ids, validated to lie in ``[0, num_classes)``.
+
+    Raises:
+        GraphError: a label is outside the label space (e.g. 255 = ignore slipped into the graph).
+    """
+    labels = np.asarray(graph.label_ids, dtype=np.int64)
+    if labels.size and (labels.min() < 0 or labels.max() >= num_classes):
+        bad = labels[(labels < 0) | (labels >= num_classes)][0]
+        raise GraphError(
+            f"graph node label {bad} is outside the {num_classes} Cityscapes train ids; "
+            "drop ignore/unknown labels (255) before building descriptors"
+        )
+    return labels
+
+
+def adjacency_matrix(graph: GraphArrays) -> sp.csr_matrix:
+    """Symmetric binary (N, N) float64 CSR adjacency from ``graph.edges`` (duplicates merged).
+
+    Raises:
+        GraphError: an edge references a row outside ``[0, N)`` or is a self loop.
+    """
+    n = len(graph)
+    edges = np.asarray(graph.edges, dtype=np.int64).reshape(-1, 2)
+    if edges.size and (edges.min() < 0 or edges.max() >= n):
+        raise GraphError(f"graph edge references row {int(edges.max())} but the graph has {n} nodes")
+    if edges.size and np.any(edges[:, 0] == edges[:, 1]):
+        raise GraphError("graph has a self-loop edge (i, i); edges must join two different nodes")
+    rows = np.concatenate([edges[:, 0], edges[:, 1]])
+    cols = np.concatenate([edges[:, 1], edges[:, 0]])
+    A = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
+    A.sum_duplicates()
+    A.data[:] = 1.0
+    return A
+
+
+def one_hot(labels: np.ndarray, num_classes: int = NUM_CLASSES) -> sp.csr_matrix:
+    """(N, C) float64 CSR with a single 1 per row at the row's label."""
+    n = labels.shape[0]
+    return sp.csr_matrix((np.ones(n), (np.arange(n), labels)), shape=(n, num_classes))
+
+
+def prepend_label(counts: sp.csr_matrix, labels: np.ndarray, num_classes: int = NUM_CLASSES) -> sp.csr_matrix:
+    """Shift each row's bins into the block of that row's label: (R, D) -> (R, C * D).
+
+    Column ``c`` of row ``r`` moves to ``labels[r] * D + c``: a label path ``s`` becomes the path
+    ``(labels[r], s)`` with the prepended label as the most significant digit.
+    """
+    counts = sp.csr_matrix(counts)
+    dim = counts.shape[1]
+    row_of = np.repeat(np.arange(counts.shape[0]), np.diff(counts.indptr))
+    cols = counts.indices.astype(np.int64) + labels[row_of] * dim
+    return sp.csr_matrix((counts.data, cols, counts.indptr), shape=(counts.shape[0], num_classes * dim))
+
+
+def directed_edges(A: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Both directions of every edge of a symmetric adjacency.
+
+    Returns:
+        src, dst: (2E,) int64 rows of directed edges u -> v, sorted by (src, dst).
+        reverse: (2E,) int64 index of the opposite edge v -> u for each edge.
+    """
+    n = A.shape[0]
+    src = np.repeat(np.arange(n), np.diff(A.indptr))
+    dst = A.indices.astype(np.int64)
+    key = src * n + dst
+    order = np.argsort(key, kind="stable")
+    src, dst, key = src[order], dst[order], key[order]
+    reverse = np.searchsorted(key, dst * n + src)
+    return src, dst, reverse

@@ -1,0 +1,500 @@
+"""The incremental semantic graph of one robot (Sec. III-A): nodes anchored to keyframes, merges, edges.
+
+Each node is an object (label + 3D centre). A node is *anchored* to the keyframe that first saw it:
+its position is stored in that keyframe's camera frame, so when the pose graph corrects keyframe
+poses (``set_keyframe_poses``) the nodes move with them. A new observation merges into the nearest
+node of the same label closer than ``merge_radius_m`` (paper: "nodes with the same semantic label
+should be merged if they are highly close"; authors: 5 m) as a running mean in the anchor frame,
+otherwise it becomes a new node. Edges join nodes closer than ``connectivity_m`` (paper: 10 m best).
+
+Incremental cost: a hash grid of cell size max(connectivity, merge radius) over world positions finds
+the nodes near a keyframe's objects, so merges and edge updates touch only the changed nodes and
+their neighbourhoods; ``set_keyframe_poses`` moves everything and rebuilds grid and edges once.
+
+The robot -> map-server boundary is ``GraphUpdate``: the keyframe pose and the full state of every
+new or updated node. ``SemanticGraph.apply_update`` rebuilds an identical graph from these messages.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from shgm_slam.errors import GraphError
+from shgm_slam.geometry.se3 import inverse
+from shgm_slam.graph.extraction import ObjectObservations
+from shgm_slam.types import GraphArrays
+
+_CELL_OFFSETS = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing="ij"), -1).reshape(-1, 3)
+
+
+def edges_within_radius(positions_xyz: np.ndarray, radius_m: float) -> np.ndarray:
+    """All pairs of points closer than ``radius_m`` (strictly).
+
+    Args:
+        positions_xyz: (N, 3) points, metres.
+        radius_m: connectivity threshold, metres.
+
+    Returns:
+        (E, 2) int64 row-index pairs, i < j, sorted lexicographically.
+    """
+    p = np.asarray(positions_xyz, dtype=np.float64).reshape(-1, 3)
+    if p.shape[0] < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    pairs = cKDTree(p).query_pairs(radius_m, output_type="ndarray").astype(np.int64)
+    if pairs.size == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    pairs = pairs[np.linalg.norm(p[pairs[:, 0]] - p[pairs[:, 1]], axis=1) < radius_m]
+    pairs = np.sort(pairs, axis=1)
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+@dataclass(frozen=True)
+class NodeState:
+    """Full state of one node, as sent from a robot to the map server (plain, JSON-friendly values).
+
+    ``position_kf`` is the node position (x, y, z metres) in the camera frame of keyframe ``anchor_kf``;
+    ``size`` is the accumulated pixel count; ``num_observations`` counts the keyframes that saw it.
+    """
+
+    node_id: int
+    label_id: int
+    anchor_kf: int
+    position_kf: tuple[float, float, float]
+    size: float
+    num_observations: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "id": self.node_id, "label": self.label_id, "anchor_kf": self.anchor_kf,
+            "position_kf": list(self.position_kf), "size": self.size,
+            "num_observations": self.num_observations,
+        }  # fmt: skip
+
+    @staticmethod
+    def from_dict(d: Mapping[str, Any]) -> NodeState:
+        try:
+            x, y, z = (float(v) for v in d["position_kf"])
+            return NodeState(
+                int(d["id"]), int(d["label"]), int(d["anchor_kf"]), (x, y, z), float(d["size"]),
+                int(d["num_observations"]),
+            )  # fmt: skip
+        except (KeyError, TypeError, ValueError) as exc:
+            raise GraphError(f"malformed node state {dict(d)!r}: {exc!r}") from None
+
+
+@dataclass(frozen=True, eq=False)
+class GraphUpdate:
+    """What one keyframe changed in a robot's graph: the message a front end sends to the map server.
+
+    Attributes:
+        kf_id: the keyframe's id.
+        T_world_kf: (4, 4) keyframe pose (camera -> robot world) used when the update was made.
+        new_nodes: nodes first seen (and anchored) at this keyframe.
+        updated_nodes: existing nodes this keyframe re-observed (merged), with their new state.
+    """
+
+    kf_id: int
+    T_world_kf: np.ndarray
+    new_nodes: tuple[NodeState, ...]
+    updated_nodes: tuple[NodeState, ...]
+
+    @property
+    def observed_node_ids(self) -> list[int]:
+        """Ids of every node this keyframe observed (new and merged)."""
+        return [s.node_id for s in self.new_nodes] + [s.node_id for s in self.updated_nodes]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kf_id": self.kf_id,
+            "T_world_kf": np.asarray(self.T_world_kf, dtype=np.float64).tolist(),
+            "new_nodes": [s.to_dict() for s in self.new_nodes],
+            "updated_nodes": [s.to_dict() for s in self.updated_nodes],
+        }
+
+    @staticmethod
+    def from_dict(d: Mapping[str, Any]) -> GraphUpdate:
+        try:
+            T = np.asarray(d["T_world_kf"], dtype=np.float64)
+            new = tuple(NodeState.from_dict(s) for s in d["new_nodes"])
+            upd = tuple(NodeState.from_dict(s) for s in d["updated_nodes"])
+            kf_id = int(d["kf_id"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise GraphError(f"malformed graph update: {exc!r}") from None
+        return GraphUpdate(kf_id, T, new, upd)
+
+
+PoseLookup = Mapping[int, np.ndarray] | Sequence[np.ndarray] | np.ndarray | None
+"""Keyframe poses by id: a mapping kf id -> (4, 4), or a list / (K, 4, 4) array indexed by kf id."""
+
+
+def _lookup_pose(lookup: PoseLookup, kf_id: int, default: np.ndarray) -> np.ndarray:
+    """Pose of ``kf_id`` from a mapping or an id-indexed list/array, else ``default``."""
+    if lookup is None:
+        return default
+    if isinstance(lookup, Mapping):
+        return lookup.get(kf_id, default)
+    return lookup[kf_id] if 0 <= kf_id < len(lookup) else default
+
+
+def _check_pose(T: np.ndarray, what: str) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise GraphError(f"{what} must be a finite (4, 4) pose, got shape {T.shape}")
+    return T
+
+
+class SemanticGraph:
+    """Incremental semantic graph of one robot (nodes anchored to keyframes, Sec. III-A).
+
+    Args:
+        merge_radius_m: a new object merges into the nearest same-label node closer than this (0: never).
+        connectivity_m: nodes closer than this are joined by an edge.
+        first_node_id: id of the first node created here (give robots disjoint id ranges if needed).
+    """
+
+    def __init__(self, merge_radius_m: float = 5.0, connectivity_m: float = 10.0, first_node_id: int = 0):
+        if not (merge_radius_m >= 0 and connectivity_m > 0):
+            raise GraphError(
+                f"need merge_radius_m >= 0 and connectivity_m > 0, got {merge_radius_m} and {connectivity_m}"
+            )
+        self.merge_radius_m = float(merge_radius_m)
+        self.connectivity_m = float(connectivity_m)
+        self._cell_m = max(self.connectivity_m, self.merge_radius_m)
+        self._next_id = int(first_node_id)
+        # nodes (rows 0.._n-1 of capacity-doubling arrays)
+        self._n = 0
+        self._node_ids = np.zeros(0, np.int64)
+        self._labels = np.zeros(0, np.int64)
+        self._anchor_slot = np.zeros(0, np.int64)
+        self._pos_kf = np.zeros((0, 3))
+        self._pos_world = np.zeros((0, 3))
+        self._sizes = np.zeros(0)
+        self._num_obs = np.zeros(0, np.int64)
+        self._cells = np.zeros((0, 3), np.int64)
+        self._row_of_id: dict[int, int] = {}
+        # keyframes
+        self._kf_slot: dict[int, int] = {}
+        self._kf_ids: list[int] = []
+        self._kf_poses = np.zeros((0, 4, 4))
+        # observation log (node row, keyframe slot)
+        self._obs_rows: list[np.ndarray] = []
+        self._obs_slots: list[np.ndarray] = []
+        # spatial hash and edges
+        self._grid: dict[tuple[int, int, int], set[int]] = {}
+        self._adj: list[set[int]] = []
+        self._edge_keys: set[int] = set()
+        self._arrays_cache: GraphArrays | None = None
+
+    # ------------------------------------------------------------------ queries
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def num_edges(self) -> int:
+        return len(self._edge_keys)
+
+    @property
+    def node_ids(self) -> np.ndarray:
+        """(N,) int64 node ids in row order (creation order)."""
+        return self._node_ids[: self._n].copy()
+
+    @property
+    def keyframe_ids(self) -> list[int]:
+        """Keyframe ids in insertion order."""
+        return list(self._kf_ids)
+
+    def keyframe_pose(self, kf_id: int) -> np.ndarray:
+        """(4, 4) current ``T_world_kf`` of a keyframe."""
+        return self._kf_poses[self._slot(kf_id)].copy()
+
+    def node_state(self, node_id: int) -> NodeState:
+        """The current state of one node."""
+        if node_id not in self._row_of_id:
+            raise GraphError(f"node id {node_id} is not in this graph")
+        return self._state(self._row_of_id[node_id])
+
+    def anchor_keyframes(self, node_ids: Iterable[int]) -> np.ndarray:
+        """(K,) int64 id of the keyframe each node is anchored to (the keyframe that first saw it)."""
+        try:
+            rows = [self._row_of_id[int(i)] for i in node_ids]
+        except KeyError as exc:
+            raise GraphError(f"node id {exc.args[0]} is not in this graph") from None
+        kf_ids = np.asarray(self._kf_ids, dtype=np.int64)
+        return kf_ids[self._anchor_slot[np.asarray(rows, dtype=np.int64)]] if rows else np.zeros(0, np.int64)
+
+    def arrays(self) -> GraphArrays:
+        """The whole graph as arrays (positions in the world frame, edges as row indices i < j, sorted)."""
+        if self._arrays_cache is None:
+            n = self._n
+            keys = np.sort(np.fromiter(self._edge_keys, dtype=np.int64, count=len(self._edge_keys)))
+            edges = np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1).reshape(-1, 2)
+            self._arrays_cache = GraphArrays(
+                self._node_ids[:n].copy(), self._labels[:n].copy(), self._pos_world[:n].copy(),
+                self._sizes[:n].copy(), edges,
+            )  # fmt: skip
+        c = self._arrays_cache
+        return GraphArrays(
+            c.node_ids.copy(), c.label_ids.copy(), c.positions_xyz.copy(), c.sizes.copy(), c.edges.copy()
+        )
+
+    def submap(self, kf_ids: Iterable[int]) -> GraphArrays:
+        """Induced subgraph of the nodes *observed* from any of ``kf_ids`` (anchored there or merged there).
+
+        Rows keep the graph's row order; edges are those of the whole graph between kept nodes.
+        """
+        slots = np.array([self._slot(k) for k in kf_ids], dtype=np.int64)
+        if not self._obs_rows or slots.size == 0:
+            return self.arrays().subset(np.zeros(0, np.int64))
+        rows = np.concatenate(self._obs_rows)[np.isin(np.concatenate(self._obs_slots), slots)]
+        return self.arrays().subset(np.unique(rows))
+
+    # ------------------------------------------------------------------ building
+    def add_keyframe(self, kf_id: int, T_world_kf: np.ndarray, objects: ObjectObservations) -> GraphUpdate:
+        """Insert one keyframe's objects; merge each into a close same-label node or create a node.
+
+        Args:
+            kf_id: new keyframe id (unique in this graph).
+            T_world_kf: (4, 4) keyframe camera pose in the robot's world frame.
+            objects: objects seen from the keyframe; ``objects.centroids_cam`` are in its camera frame.
+
+        Returns:
+            The update message (keyframe pose, new and merged node states), already applied here.
+        """
+        T = _check_pose(T_world_kf, f"pose of keyframe {kf_id}")
+        if kf_id in self._kf_slot:
+            raise GraphError(f"keyframe {kf_id} was already added to this graph; keyframe ids must be unique")
+        M = len(objects)
+        p_kf = np.asarray(objects.centroids_cam, dtype=np.float64).reshape(M, 3)
+        p_world = p_kf @ T[:3, :3].T + T[:3, 3]
+        labels = np.asarray(objects.label_ids, dtype=np.int64)
+        pix = np.asarray(objects.pixel_counts, dtype=np.float64)
+
+        # 1. nearest same-label existing node within the merge radius (vectorized over objects)
+        target = np.full(M, -1, dtype=np.int64)
+        cand = self._candidate_rows(p_world) if M else np.zeros(0, np.int64)
+        if cand.size and self.merge_radius_m > 0:
+            d = np.linalg.norm(p_world[:, None, :] - self._pos_world[cand][None], axis=2)
+            d[labels[:, None] != self._labels[cand][None]] = np.inf
+            best = np.argmin(d, axis=1)
+            hit = d[np.arange(M), best] < self.merge_radius_m
+            target[hit] = cand[best[hit]]
+
+        # 2. the rest become new nodes; same-label objects of this keyframe within the radius share one
+        fresh = np.flatnonzero(target < 0)
+        fresh = fresh[np.argsort(-pix[fresh], kind="stable")]
+        new_rows: list[int] = []
+        for i in fresh:  # few objects per keyframe
+            for r in new_rows:
+                first = int(np.flatnonzero(target == r)[0])
+                if labels[first] == labels[i] and np.linalg.norm(p_kf[first] - p_kf[i]) < self.merge_radius_m:
+                    target[i] = r
+                    break
+            else:
+                target[i] = self._n + len(new_rows)
+                new_rows.append(int(target[i]))
+
+        # 3. running means in each node's anchor frame
+        rows, inv = np.unique(target, return_inverse=True)
+        is_new = rows >= self._n
+        old = rows[~is_new]
+        T_anchor = np.broadcast_to(T, (rows.size, 4, 4)).copy()
+        T_anchor[~is_new] = self._kf_poses[self._anchor_slot[old]]
+        T_anchor_world = inverse(T_anchor)[inv]
+        p_anchor = np.einsum("mij,mj->mi", T_anchor_world[:, :3, :3], p_world) + T_anchor_world[:, :3, 3]
+        cnt = np.bincount(inv, minlength=rows.size)
+        p_sum = np.stack([np.bincount(inv, p_anchor[:, k], minlength=rows.size) for k in range(3)], 1)
+        size_sum = np.bincount(inv, pix, minlength=rows.size)
+        n_prev = np.zeros(rows.size, np.int64)
+        pos_prev = np.zeros((rows.size, 3))
+        size_prev = np.zeros(rows.size)
+        n_prev[~is_new], pos_prev[~is_new] = self._num_obs[old], self._pos_kf[old]
+        size_prev[~is_new] = self._sizes[old]
+        pos_new = (pos_prev * n_prev[:, None] + p_sum) / (n_prev + cnt)[:, None]
+        label_of_row = np.zeros(rows.size, np.int64)
+        label_of_row[inv] = labels
+
+        new_states, upd_states = [], []
+        for k, r in enumerate(rows.tolist()):
+            if is_new[k]:
+                nid, anchor = self._next_id + (r - self._n), kf_id
+            else:
+                nid, anchor = int(self._node_ids[r]), self._kf_ids[self._anchor_slot[r]]
+            state = NodeState(
+                nid, int(label_of_row[k]), int(anchor), tuple(pos_new[k].tolist()),
+                float(size_prev[k] + size_sum[k]), int(n_prev[k] + cnt[k]),
+            )  # fmt: skip
+            (new_states if is_new[k] else upd_states).append(state)
+        update = GraphUpdate(int(kf_id), T.copy(), tuple(new_states), tuple(upd_states))
+        self.apply_update(update)
+        return update
+
+    def apply_update(
+        self,
+        update: GraphUpdate,
+        T_world_kfs: PoseLookup = None,
+    ) -> None:
+        """Apply a ``GraphUpdate`` (e.g. a robot's message on the map server): register the keyframe and
+        insert or overwrite the node states it carries, then refresh edges around them.
+
+        Args:
+            update: the message; node states are upserted by id.
+            T_world_kfs: optional keyframe-pose lookup overriding ``update.T_world_kf``, e.g. the server's
+                poses: a mapping kf id -> (4, 4), or a list / (K, 4, 4) array indexed by kf id. Keyframes
+                the lookup lacks use the message's pose.
+        """
+        kf_id = int(update.kf_id)
+        if kf_id in self._kf_slot:
+            raise GraphError(f"keyframe {kf_id} is already in this graph; was the update applied twice?")
+        T = _lookup_pose(T_world_kfs, kf_id, update.T_world_kf)
+        slot = self._add_keyframe_slot(kf_id, _check_pose(T, f"pose of keyframe {kf_id}"))
+        states = list(update.new_nodes) + list(update.updated_nodes)
+        for s in states:
+            if s.anchor_kf not in self._kf_slot:
+                raise GraphError(
+                    f"update of keyframe {kf_id}: node {s.node_id} is anchored to unknown keyframe "
+                    f"{s.anchor_kf}; apply a robot's updates in order"
+                )
+        rows = np.array([self._upsert_row(s) for s in states], dtype=np.int64)
+        if rows.size:
+            self._obs_rows.append(rows)
+            self._obs_slots.append(np.full(rows.size, slot, np.int64))
+        self._refresh_rows(rows)
+
+    def set_keyframe_poses(self, kf_ids: Iterable[int], T_world_kfs: np.ndarray) -> None:
+        """Replace keyframe poses (e.g. pose-graph corrections); nodes move with their anchor keyframes.
+
+        Args:
+            kf_ids: K keyframe ids already in the graph.
+            T_world_kfs: (K, 4, 4) their new poses. Edges and the spatial grid are rebuilt once.
+        """
+        ids = list(kf_ids)
+        T = np.asarray(T_world_kfs, dtype=np.float64)
+        if T.shape != (len(ids), 4, 4) or not np.isfinite(T).all():
+            raise GraphError(f"need finite ({len(ids)}, 4, 4) poses for the keyframe ids, got {T.shape}")
+        slots = np.array([self._slot(k) for k in ids], dtype=np.int64)
+        self._kf_poses[slots] = T
+        self._rebuild()
+
+    # ------------------------------------------------------------------ internals
+    def _slot(self, kf_id: int) -> int:
+        try:
+            return self._kf_slot[int(kf_id)]
+        except KeyError:
+            raise GraphError(f"keyframe {kf_id} is not in this graph (add it with add_keyframe)") from None
+
+    def _state(self, r: int) -> NodeState:
+        return NodeState(
+            int(self._node_ids[r]), int(self._labels[r]), self._kf_ids[self._anchor_slot[r]],
+            tuple(self._pos_kf[r].tolist()), float(self._sizes[r]), int(self._num_obs[r]),
+        )  # fmt: skip
+
+    def _add_keyframe_slot(self, kf_id: int, T: np.ndarray) -> int:
+        slot = len(self._kf_ids)
+        if slot == self._kf_poses.shape[0]:
+            grown = np.zeros((max(16, 2 * slot), 4, 4))
+            grown[:slot] = self._kf_poses
+            self._kf_poses = grown
+        self._kf_poses[slot] = T
+        self._kf_slot[kf_id] = slot
+        self._kf_ids.append(kf_id)
+        return slot
+
+    def _grow(self) -> None:
+        cap = max(64, 2 * self._node_ids.shape[0])
+
+        def grow(a: np.ndarray) -> np.ndarray:
+            g = np.zeros((cap, *a.shape[1:]), dtype=a.dtype)
+            g[: a.shape[0]] = a
+            return g
+
+        self._node_ids, self._labels = grow(self._node_ids), grow(self._labels)
+        self._anchor_slot, self._pos_kf = grow(self._anchor_slot), grow(self._pos_kf)
+        self._pos_world, self._cells = grow(self._pos_world), grow(self._cells)
+        self._sizes, self._num_obs = grow(self._sizes), grow(self._num_obs)
+
+    def _upsert_row(self, s: NodeState) -> int:
+        r = self._row_of_id.get(s.node_id)
+        if r is None:
+            if self._n == self._node_ids.shape[0]:
+                self._grow()
+            r = self._n
+            self._n += 1
+            self._row_of_id[s.node_id] = r
+            self._node_ids[r] = s.node_id
+            self._adj.append(set())
+            self._cells[r] = np.iinfo(np.int64).min  # not in the grid yet
+            self._next_id = max(self._next_id, s.node_id + 1)
+        self._labels[r] = s.label_id
+        self._anchor_slot[r] = self._kf_slot[s.anchor_kf]
+        self._pos_kf[r] = s.position_kf
+        self._sizes[r] = s.size
+        self._num_obs[r] = s.num_observations
+        return r
+
+    def _world_positions(self, rows: np.ndarray) -> np.ndarray:
+        T = self._kf_poses[self._anchor_slot[rows]]
+        return np.einsum("nij,nj->ni", T[:, :3, :3], self._pos_kf[rows]) + T[:, :3, 3]
+
+    def _candidate_rows(self, points_world: np.ndarray) -> np.ndarray:
+        """Rows of grid nodes in the 3x3x3 cells around each point (superset of all within one cell size)."""
+        cells = np.floor(points_world / self._cell_m).astype(np.int64)
+        keys = np.unique((cells[:, None, :] + _CELL_OFFSETS[None]).reshape(-1, 3), axis=0)
+        found = [self._grid[k] for k in map(tuple, keys.tolist()) if k in self._grid]
+        if not found:
+            return np.zeros(0, np.int64)
+        return np.fromiter((r for s in found for r in s), dtype=np.int64)
+
+    def _refresh_rows(self, rows: np.ndarray) -> None:
+        """Recompute world positions, grid cells and edges of the changed ``rows``."""
+        self._arrays_cache = None
+        if rows.size == 0:
+            return
+        p = self._world_positions(rows)
+        self._pos_world[rows] = p
+        cells = np.floor(p / self._cell_m).astype(np.int64)
+        old_cells = map(tuple, self._cells[rows].tolist())
+        for r, old, new in zip(rows.tolist(), old_cells, map(tuple, cells.tolist()), strict=True):
+            if old != new:
+                if old in self._grid:
+                    self._grid[old].discard(r)
+                    if not self._grid[old]:
+                        del self._grid[old]
+                self._grid.setdefault(new, set()).add(r)
+        self._cells[rows] = cells
+        for r in rows.tolist():  # drop the changed nodes' old edges
+            for nb in self._adj[r]:
+                self._adj[nb].discard(r)
+                self._edge_keys.discard((min(r, nb) << 32) | max(r, nb))
+            self._adj[r].clear()
+        cand = self._candidate_rows(p)
+        d = np.linalg.norm(p[:, None, :] - self._pos_world[cand][None], axis=2)
+        ii, jj = np.nonzero((d < self.connectivity_m) & (rows[:, None] != cand[None]))
+        a, b = rows[ii], cand[jj]
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        for i, j in zip(lo.tolist(), hi.tolist(), strict=True):
+            self._adj[i].add(j)
+            self._adj[j].add(i)
+            self._edge_keys.add((i << 32) | j)
+
+    def _rebuild(self) -> None:
+        """Recompute every world position, the grid and all edges (after pose corrections)."""
+        n = self._n
+        self._arrays_cache = None
+        rows = np.arange(n)
+        p = self._world_positions(rows) if n else np.zeros((0, 3))
+        self._pos_world[:n] = p
+        self._cells[:n] = np.floor(p / self._cell_m).astype(np.int64)
+        self._grid = {}
+        for r, c in enumerate(map(tuple, self._cells[:n].tolist())):
+            self._grid.setdefault(c, set()).add(r)
+        edges = edges_within_radius(p, self.connectivity_m)
+        self._adj = [set() for _ in range(n)]
+        for i, j in edges.tolist():
+            self._adj[i].add(j)
+            self._adj[j].add(i)
+        self._edge_keys = set(((edges[:, 0] << 32) | edges[:, 1]).tolist())

@@ -1,0 +1,104 @@
+"""Results folder of a run: trajectories evo reads, graphs, matches, the pose graph, config, metrics.
+
+Layout of ``--out DIR`` (default ``results/<time>/`` plus a ``latest`` symlink)::
+
+    <robot>_fused_tum.txt  <robot>_fused_kitti.txt   every localized robot in ONE shared frame (robot 0's)
+    <robot>_odometry_tum.txt                          the robot's own odometry (its first camera frame)
+    graph_<robot>.json                                shgm-graph/1, robot's odometry frame
+    matches.json  pose_graph.g2o  config.yaml  metrics.json  run.rrd (when saving)
+
+Every file is written atomically (temp file + rename) so an interrupted run never leaves half files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Iterable
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from shgm_slam.errors import DataError
+from shgm_slam.io.graph_json import write_graph
+from shgm_slam.io.trajectories import write_kitti_poses, write_tum
+from shgm_slam.types import GraphArrays
+
+
+def make_results_dir(out: Path | None, base: Path = Path("results")) -> Path:
+    """Create the results folder: ``out`` if given, else ``base/<YYYYmmdd_HHMMSS>`` plus ``base/latest``."""
+    if out is not None:
+        path = Path(out)
+    else:
+        path = base / datetime.now().strftime("%Y%m%d_%H%M%S")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DataError(f"cannot create results folder {path}: {exc.strerror}") from None
+    if out is None:
+        latest = base / "latest"
+        if latest.is_symlink() or latest.exists():
+            latest.unlink()
+        latest.symlink_to(path.name)
+    return path
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def _valid_rows(poses: np.ndarray) -> np.ndarray:
+    return np.isfinite(poses.reshape(len(poses), -1)).all(axis=1)
+
+
+class ResultsWriter:
+    """Writes one run's outputs into ``root``; every method can be called again to overwrite."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def path(self, name: str) -> Path:
+        return self.root / name
+
+    def write_trajectories(
+        self, robot: str, timestamps_s: np.ndarray, T_odom_cam: np.ndarray, T_shared_cam: np.ndarray | None
+    ) -> None:
+        """Odometry (TUM) and, when the robot is localized, fused (TUM + KITTI) trajectories.
+
+        Frames with NaN poses (skipped) are left out of TUM files; the KITTI file (no timestamps)
+        holds only the frames that have a fused pose, in order.
+        """
+        ok = _valid_rows(T_odom_cam)
+        write_tum(self.path(f"{robot}_odometry_tum.txt"), timestamps_s[ok], T_odom_cam[ok])
+        if T_shared_cam is not None:
+            ok = _valid_rows(T_shared_cam)
+            write_tum(self.path(f"{robot}_fused_tum.txt"), timestamps_s[ok], T_shared_cam[ok])
+            write_kitti_poses(self.path(f"{robot}_fused_kitti.txt"), T_shared_cam[ok])
+
+    def write_graph(self, robot: str, graph: GraphArrays) -> None:
+        write_graph(self.path(f"graph_{robot}.json"), graph)
+
+    def write_json(self, name: str, data: object) -> None:
+        _atomic_write(self.path(name), json.dumps(data, indent=1, default=_json_default) + "\n")
+
+    def write_matches(self, records: Iterable) -> None:
+        self.write_json("matches.json", [r.to_json_dict() for r in records])
+
+    def write_text(self, name: str, text: str) -> None:
+        _atomic_write(self.path(name), text)
+
+
+def _json_default(o: object) -> object:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"cannot serialize {type(o).__name__}")

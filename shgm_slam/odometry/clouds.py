@@ -1,0 +1,67 @@
+"""Depth map -> pseudo-LiDAR point cloud in the camera frame (the input of KISS-ICP).
+
+Ranges are Euclidean distances from the camera centre, the same measure KISS-ICP's own range filter
+uses, so the odometry sees exactly the points this module keeps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from shgm_slam.errors import DataError
+from shgm_slam.geometry.camera import backproject
+from shgm_slam.types import Intrinsics
+
+
+def depth_to_cloud(
+    depth_m: np.ndarray,
+    intrinsics: Intrinsics,
+    *,
+    stride: int,
+    min_range_m: float,
+    max_range_m: float,
+    label_ids: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Back-project every ``stride``-th pixel of a depth map into camera-frame points.
+
+    Args:
+        depth_m: (H, W) z-depth in metres; 0, negative, NaN and inf pixels are invalid and skipped.
+        intrinsics: pinhole intrinsics of this (H, W) depth map.
+        stride: keep every ``stride``-th pixel in both directions (>= 1).
+        min_range_m, max_range_m: keep points whose Euclidean range |p| is in [min, max], metres.
+        label_ids: optional (H, W) uint8 Cityscapes train ids aligned with ``depth_m``.
+
+    Returns:
+        points_cam: (N, 3) float64 points in the camera frame (x right, y down, z forward), metres;
+        label_ids: (N,) uint8 label of each point, or None when no labels were given.
+        N may be 0 (an all-invalid depth map); the caller decides what an empty cloud means.
+
+    Raises:
+        DataError: the depth map is not 2-D, its size disagrees with the intrinsics or the labels, or
+            the stride/ranges are invalid.
+    """
+    depth = np.asarray(depth_m)
+    if depth.ndim != 2:
+        raise DataError(f"depth map must be (H, W), got shape {depth.shape}")
+    H, W = depth.shape
+    if (W, H) != intrinsics.size_wh:
+        raise DataError(
+            f"depth map is {W}x{H} but the intrinsics describe {intrinsics.width}x{intrinsics.height} "
+            "images; rescale them with Intrinsics.scaled(width, height)"
+        )
+    if label_ids is not None and np.shape(label_ids) != depth.shape:
+        raise DataError(f"label image {np.shape(label_ids)} and depth map {depth.shape} differ in size")
+    if stride < 1:
+        raise DataError(f"cloud stride must be >= 1, got {stride}")
+    if not 0.0 <= min_range_m < max_range_m:
+        raise DataError(f"need 0 <= min_range_m < max_range_m, got {min_range_m} and {max_range_m}")
+
+    # |p| >= z, so z <= max_range is necessary; the exact Euclidean cut follows.
+    points_cam, pixel_index = backproject(depth, intrinsics, stride=stride, max_depth_m=max_range_m)
+    range_m = np.linalg.norm(points_cam, axis=1)
+    keep = (range_m >= min_range_m) & (range_m <= max_range_m)
+    points_cam = points_cam[keep]
+    if label_ids is None:
+        return points_cam, None
+    labels = np.asarray(label_ids).reshape(-1)[pixel_index[keep]].astype(np.uint8, copy=False)
+    return points_cam, labels

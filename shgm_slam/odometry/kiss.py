@@ -1,0 +1,182 @@
+"""KISS-ICP adapter tuned for dense pseudo-LiDAR clouds from depth images (REFERENCE.md §1).
+
+The KISS-ICP config is built explicitly, field by field: ``kiss_icp.config.KISSConfig`` is a
+pydantic-settings class, so ``kiss_icp_*`` environment variables would otherwise silently change it.
+Frames whose cloud is too small for ICP are not registered: the pose follows the constant-velocity
+prediction and the frame is reported as degenerate.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from shgm_slam.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+MIN_POINTS = 300
+"""Clouds with fewer points (after range filtering) are not registered."""
+
+
+class OdometryStatus(str, Enum):
+    """Outcome of registering one frame."""
+
+    OK = "ok"
+    DEGENERATE_CLOUD = "degenerate-cloud"  # too few points: constant-velocity prediction used
+    ICP_FAILED = "icp-failed"  # ICP returned a non-finite pose: constant-velocity prediction used
+
+
+@dataclass(frozen=True)
+class Registration:
+    """Result of ``KissOdometry.register``.
+
+    Attributes:
+        T_odom_cam: (4, 4) pose of the camera in the odometry frame (the first camera frame).
+        status: whether ICP ran and succeeded.
+        num_points: points of the input cloud inside the range limits.
+    """
+
+    T_odom_cam: np.ndarray
+    status: OdometryStatus
+    num_points: int
+
+    @property
+    def ok(self) -> bool:
+        return self.status is OdometryStatus.OK
+
+
+def _kiss_config(
+    *,
+    voxel_size_m: float,
+    max_points_per_voxel: int,
+    min_range_m: float,
+    max_range_m: float,
+    max_icp_iterations: int,
+    convergence_criterion: float,
+    max_threads: int,
+    fixed_threshold_m: float | None,
+    initial_threshold_m: float,
+    min_motion_m: float,
+):  # -> kiss_icp.config.KISSConfig
+    """Every KISS-ICP field set from arguments; ``kiss_icp_*`` environment variables are ignored."""
+    from kiss_icp.config import KISSConfig
+    from kiss_icp.config.config import AdaptiveThresholdConfig, DataConfig, MappingConfig, RegistrationConfig
+
+    stray = sorted(k for k in os.environ if k.lower().startswith("kiss_icp_"))
+    if stray:
+        log.warning("ignoring environment variables %s: shgm_slam sets the KISS-ICP config explicitly", stray)
+    # model_construct skips pydantic-settings' environment source; every field is given, so nothing
+    # is left at None (the reason kiss_icp.config.load_config exists).
+    return KISSConfig.model_construct(
+        out_dir="results",
+        data=DataConfig(max_range=max_range_m, min_range=min_range_m, deskew=False),
+        mapping=MappingConfig(voxel_size=voxel_size_m, max_points_per_voxel=max_points_per_voxel),
+        registration=RegistrationConfig(
+            max_num_iterations=max_icp_iterations,
+            convergence_criterion=convergence_criterion,
+            max_num_threads=max_threads,
+        ),
+        adaptive_threshold=AdaptiveThresholdConfig(
+            fixed_threshold=fixed_threshold_m, initial_threshold=initial_threshold_m, min_motion_th=min_motion_m
+        ),
+    )
+
+
+class KissOdometry:
+    """Frame-to-map ICP odometry (KISS-ICP) over camera-frame point clouds.
+
+    The odometry frame is the camera frame of the first registered frame. Defaults follow the tuning
+    table in REFERENCE.md §1.2 for dense, short-range pseudo-LiDAR.
+
+    Note: KISS-ICP's thread count is a process-wide setting fixed by the first instance built.
+    """
+
+    def __init__(
+        self,
+        voxel_size_m: float = 0.4,
+        max_points_per_voxel: int = 10,
+        min_range_m: float = 0.5,
+        max_range_m: float = 30.0,
+        max_icp_iterations: int = 100,
+        *,
+        convergence_criterion: float = 1e-4,
+        max_threads: int = 0,
+        fixed_threshold_m: float | None = None,
+        initial_threshold_m: float = 2.0,
+        min_motion_m: float = 0.1,
+        min_points: int = MIN_POINTS,
+    ) -> None:
+        from kiss_icp.kiss_icp import KissICP
+
+        if not 0.0 <= min_range_m < max_range_m:
+            raise ConfigError(f"KISS-ICP needs 0 <= min_range_m < max_range_m, got {min_range_m}, {max_range_m}")
+        if voxel_size_m <= 0 or max_points_per_voxel < 1 or max_icp_iterations < 1:
+            raise ConfigError(
+                "KISS-ICP needs voxel_size_m > 0, max_points_per_voxel >= 1 and max_icp_iterations >= 1"
+            )
+        self.min_range_m = min_range_m
+        self.max_range_m = max_range_m
+        self.min_points = min_points
+        self.config = _kiss_config(
+            voxel_size_m=voxel_size_m,
+            max_points_per_voxel=max_points_per_voxel,
+            min_range_m=min_range_m,
+            max_range_m=max_range_m,
+            max_icp_iterations=max_icp_iterations,
+            convergence_criterion=convergence_criterion,
+            max_threads=max_threads,
+            fixed_threshold_m=fixed_threshold_m,
+            initial_threshold_m=initial_threshold_m,
+            min_motion_m=min_motion_m,
+        )
+        self._icp = KissICP(self.config)
+        self._no_stamps = np.array([])  # KISS-ICP needs an array; empty = no deskew
+        self.num_frames = 0
+
+    @property
+    def T_odom_cam(self) -> np.ndarray:
+        """(4, 4) copy of the latest camera pose in the odometry frame."""
+        return self._icp.last_pose.copy()
+
+    def local_map_points(self) -> np.ndarray:
+        """(M, 3) float64 points of KISS-ICP's local voxel map, odometry frame."""
+        return np.asarray(self._icp.local_map.point_cloud(), dtype=np.float64)
+
+    def register(self, points_cam: np.ndarray) -> Registration:
+        """Register one cloud against the local map and return the new camera pose.
+
+        Args:
+            points_cam: (N, 3) points in the camera frame, metres (float32/float64; non-finite rows
+                are dropped). N may be 0.
+
+        Returns:
+            ``Registration`` with a copy of ``T_odom_cam`` (4, 4). Clouds with fewer than
+            ``min_points`` points in range are not registered: the pose advances by the last
+            motion (constant velocity) and the status is DEGENERATE_CLOUD.
+        """
+        pts = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        r = np.linalg.norm(pts, axis=1)
+        num_in_range = int(np.count_nonzero((r >= self.min_range_m) & (r <= self.max_range_m)))
+        self.num_frames += 1
+        if num_in_range < self.min_points:
+            return Registration(self._coast(), OdometryStatus.DEGENERATE_CLOUD, num_in_range)
+
+        last_pose, last_delta = self._icp.last_pose.copy(), self._icp.last_delta.copy()
+        self._icp.register_frame(np.ascontiguousarray(pts), self._no_stamps)
+        if not np.isfinite(self._icp.last_pose).all():
+            # the map may now hold points placed with a non-finite pose: restart it from the next frame
+            self._icp.local_map.clear()
+            self._icp.last_pose, self._icp.last_delta = last_pose, last_delta
+            return Registration(self._coast(), OdometryStatus.ICP_FAILED, num_in_range)
+        return Registration(self._icp.last_pose.copy(), OdometryStatus.OK, num_in_range)
+
+    def _coast(self) -> np.ndarray:
+        """Advance the pose by the last frame-to-frame motion without touching the map."""
+        self._icp.last_pose = self._icp.last_pose @ self._icp.last_delta
+        return self._icp.last_pose.copy()

@@ -1,0 +1,121 @@
+"""Odometry sources behind one protocol: KISS-ICP, ground truth, or a poses file.
+
+Every source reports ``T_odom_cam``: the camera pose in the robot's odometry frame, which is the
+camera frame of the robot's first frame. ``make_odometry`` builds one from ``OdometryConfig``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from shgm_slam.config import OdometryConfig, OdometryKind
+from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.geometry.se3 import inverse
+from shgm_slam.odometry.kiss import KissOdometry
+from shgm_slam.types import Frame
+
+
+@dataclass(frozen=True)
+class OdometryEstimate:
+    """Pose of one frame. ``ok`` is False when the pose is a prediction (e.g. a degenerate cloud)."""
+
+    T_odom_cam: np.ndarray
+    ok: bool
+    note: str = ""
+
+
+@runtime_checkable
+class OdometrySource(Protocol):
+    """Anything that turns frames (and their camera-frame clouds) into ``T_odom_cam`` poses."""
+
+    def update(self, frame: Frame, points_cam: np.ndarray) -> OdometryEstimate:
+        """Pose of ``frame``; ``points_cam`` (N, 3) is its pseudo-LiDAR cloud in the camera frame."""
+        ...
+
+
+class KissIcpSource:
+    """KISS-ICP on the pseudo-LiDAR clouds (frames must arrive in order)."""
+
+    def __init__(self, odometry: KissOdometry) -> None:
+        self.odometry = odometry
+
+    def update(self, frame: Frame, points_cam: np.ndarray) -> OdometryEstimate:
+        reg = self.odometry.register(points_cam)
+        note = "" if reg.ok else f"frame {frame.index}: {reg.status.value} ({reg.num_points} points in range)"
+        return OdometryEstimate(reg.T_odom_cam, reg.ok, note)
+
+
+class GroundTruthSource:
+    """Ground-truth poses re-expressed relative to the first frame seen (odometry frame = its camera)."""
+
+    def __init__(self) -> None:
+        self._T_cam0_world: np.ndarray | None = None
+
+    def update(self, frame: Frame, points_cam: np.ndarray) -> OdometryEstimate:
+        if frame.T_world_cam is None:
+            raise DataError(
+                f"frame {frame.index} has no ground-truth pose: the sequence has no poses.txt "
+                "(or poses/<seq>.txt); use odometry kind 'kiss-icp' or 'file'"
+            )
+        T_world_cam = np.asarray(frame.T_world_cam, dtype=np.float64)
+        if self._T_cam0_world is None:
+            self._T_cam0_world = inverse(T_world_cam)
+        return OdometryEstimate(self._T_cam0_world @ T_world_cam, True)
+
+
+class PoseFileSource:
+    """Poses from a KITTI or TUM file, one per frame, re-expressed relative to the first pose."""
+
+    def __init__(self, path: Path | str, num_frames: int) -> None:
+        from shgm_slam.io.trajectories import read_poses_file
+
+        self.path = Path(path)
+        poses = read_poses_file(self.path).poses
+        if poses.shape[0] != num_frames:
+            raise DataError(
+                f"poses file {self.path} has {poses.shape[0]} poses but the sequence has {num_frames} frames; "
+                "give one pose per frame (for a frame range, cut the file to the same range)"
+            )
+        self.T_odom_cam = inverse(poses[0]) @ poses  # (N, 4, 4)
+
+    def update(self, frame: Frame, points_cam: np.ndarray) -> OdometryEstimate:
+        if not 0 <= frame.index < self.T_odom_cam.shape[0]:
+            raise DataError(
+                f"frame {frame.index} has no pose in {self.path} ({self.T_odom_cam.shape[0]} poses)"
+            )
+        return OdometryEstimate(self.T_odom_cam[frame.index].copy(), True)
+
+
+def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
+    return KissIcpSource(
+        KissOdometry(
+            voxel_size_m=cfg.voxel_size_m,
+            max_points_per_voxel=cfg.max_points_per_voxel,
+            min_range_m=cfg.min_range_m,
+            max_range_m=cfg.max_range_m,
+            max_icp_iterations=cfg.max_icp_iterations,
+        )
+    )
+
+
+def _file(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
+    if cfg.poses_file is None:
+        raise ConfigError("odometry kind 'file' needs odometry.poses_file (a KITTI or TUM poses file)")
+    return PoseFileSource(cfg.poses_file, num_frames)
+
+
+ODOMETRY_SOURCES: dict[OdometryKind, Callable[[OdometryConfig, int], OdometrySource]] = {
+    OdometryKind.KISS_ICP: _kiss,
+    OdometryKind.GT: lambda cfg, num_frames: GroundTruthSource(),
+    OdometryKind.FILE: _file,
+}
+
+
+def make_odometry(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
+    """Build the odometry source ``cfg.kind`` for a sequence of ``num_frames`` frames."""
+    return ODOMETRY_SOURCES[OdometryKind(cfg.kind)](cfg, num_frames)

@@ -1,0 +1,512 @@
+"""ONNX Runtime sessions and the shared adapter: card validation, preprocessing, resize geometry.
+
+``OnnxModel`` opens one session per model (CUDA first when available, else CPU; a few intra-op
+threads, no spinning: the CPU is shared with KISS-ICP), checks the card against the model's real
+inputs and outputs, turns RGB images into the input tensor (resize / pad / crop, colour order,
+scale/mean/std, layout) and records per-call ``PerceptionTimings``. ``DepthModel`` and
+``SegmentationModel`` add the output side.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+import cv2
+import numpy as np
+import onnxruntime as ort
+
+from shgm_slam.errors import DataError, ModelError
+from shgm_slam.perception.card import (
+    ColorOrder,
+    DepthCard,
+    InputDtype,
+    Layout,
+    ResizeMode,
+    SegmentationCard,
+    TaskKind,
+    load_card,
+)
+
+MAX_IR_VERSION_HINT = 10
+MAX_OPSET_HINT = 21
+_FLOAT_TYPES = ("tensor(float)", "tensor(float16)", "tensor(double)")
+_INPUT_TYPES = {InputDtype.FLOAT32: ("tensor(float)", np.float32), InputDtype.UINT8: ("tensor(uint8)", np.uint8)}
+
+
+@dataclass(frozen=True)
+class PerceptionTimings:
+    """Wall-clock milliseconds of one adapter call (a whole batch for ``predict_batch``)."""
+
+    preprocess_ms: float = 0.0
+    inference_ms: float = 0.0
+    postprocess_ms: float = 0.0
+
+    @property
+    def overhead_ms(self) -> float:
+        """Time spent outside the model: preprocessing + postprocessing."""
+        return self.preprocess_ms + self.postprocess_ms
+
+    @property
+    def total_ms(self) -> float:
+        return self.preprocess_ms + self.inference_ms + self.postprocess_ms
+
+    def as_dict(self, prefix: str = "") -> dict[str, float]:
+        """``{prefix}preprocess`` / ``inference`` / ``postprocess`` in ms."""
+        return {
+            f"{prefix}preprocess": self.preprocess_ms,
+            f"{prefix}inference": self.inference_ms,
+            f"{prefix}postprocess": self.postprocess_ms,
+        }
+
+
+@dataclass(frozen=True)
+class TensorSpec:
+    """A model input/output as ONNX Runtime reports it; dims are int, str (symbolic) or None."""
+
+    name: str
+    shape: tuple[int | str | None, ...]
+    type: str
+
+    @staticmethod
+    def of(node: Any) -> TensorSpec:
+        return TensorSpec(node.name, tuple(node.shape), node.type)
+
+
+@dataclass(frozen=True)
+class ResizePlan:
+    """Where an image goes in the model input and back.
+
+    ``src_box`` (x0, y0, x1, y1) is the image region that is fed (all of it unless cropped);
+    ``dst_box`` is where it lands in the model input of size ``target_wh`` (all of it unless padded).
+    """
+
+    image_wh: tuple[int, int]
+    target_wh: tuple[int, int]
+    src_box: tuple[int, int, int, int]
+    dst_box: tuple[int, int, int, int]
+
+    @property
+    def scale_x(self) -> float:
+        """Model-input pixels per image pixel along x."""
+        return (self.dst_box[2] - self.dst_box[0]) / (self.src_box[2] - self.src_box[0])
+
+    def output_box(self, out_wh: tuple[int, int]) -> tuple[int, int, int, int]:
+        """``dst_box`` in the pixels of a model output of size ``out_wh`` (outputs may be smaller)."""
+        rx, ry = out_wh[0] / self.target_wh[0], out_wh[1] / self.target_wh[1]
+        x0, y0, x1, y1 = self.dst_box
+        bx0, by0 = round(x0 * rx), round(y0 * ry)
+        return bx0, by0, max(bx0 + 1, round(x1 * rx)), max(by0 + 1, round(y1 * ry))
+
+
+def plan_resize(
+    image_wh: tuple[int, int], target_wh: tuple[int, int], mode: ResizeMode, *, fixed_size: bool = True
+) -> ResizePlan:
+    """Plan how an image of ``image_wh`` becomes a model input of ``target_wh`` (both W, H pixels).
+
+    ``fixed_size=False`` (any-size models) pads or crops to the target without rescaling when the
+    image allows it.
+    """
+    W, H = image_wh
+    Wt, Ht = target_wh
+    full_src, full_dst = (0, 0, W, H), (0, 0, Wt, Ht)
+    if mode is ResizeMode.STRETCH:
+        return ResizePlan(image_wh, target_wh, full_src, full_dst)
+    if mode is ResizeMode.KEEP_ASPECT_PAD:
+        s = min(Wt / W, Ht / H) if fixed_size else min(1.0, Wt / W, Ht / H)
+        rw, rh = min(Wt, max(1, round(W * s))), min(Ht, max(1, round(H * s)))
+        ox, oy = (Wt - rw) // 2, (Ht - rh) // 2
+        return ResizePlan(image_wh, target_wh, full_src, (ox, oy, ox + rw, oy + rh))
+    s = max(Wt / W, Ht / H) if fixed_size else max(1.0, Wt / W, Ht / H)
+    cw, ch = min(W, max(1, round(Wt / s))), min(H, max(1, round(Ht / s)))
+    x0, y0 = (W - cw) // 2, (H - ch) // 2
+    return ResizePlan(image_wh, target_wh, (x0, y0, x0 + cw, y0 + ch), full_dst)
+
+
+def any_size_target(image_wh: tuple[int, int], multiple_of: int, mode: ResizeMode) -> tuple[int, int]:
+    """Model input size for an any-size model: the image size rounded to ``multiple_of``
+    (up when padding, down when cropping, to the nearest when stretching)."""
+    m = multiple_of
+    rnd = {ResizeMode.KEEP_ASPECT_PAD: np.ceil, ResizeMode.KEEP_ASPECT_CROP: np.floor}.get(mode, np.round)
+    return tuple(max(m, int(rnd(v / m)) * m) for v in image_wh)  # type: ignore[return-value]
+
+
+def execution_providers() -> list[str]:
+    """CUDA first when this onnxruntime build has it, CPU always."""
+    available = ort.get_available_providers()
+    return [p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in available]
+
+
+def open_session(
+    model_path: Path | str,
+    *,
+    threads: int = 2,
+    free_dims: dict[str, int] | None = None,
+    providers: Sequence[str] | None = None,
+) -> ort.InferenceSession:
+    """Open an ONNX Runtime session tuned for a shared CPU.
+
+    Args:
+        model_path: the .onnx file.
+        threads: intra-op threads (0 = onnxruntime's default, all physical cores).
+        free_dims: symbolic dimension name -> fixed value (pins dynamic axes, e.g. height/width).
+        providers: execution providers; default ``execution_providers()``.
+
+    Raises:
+        ModelError: the file is missing or corrupt, or its IR version / opset is newer than this
+            onnxruntime reads (the message names the re-export fix).
+    """
+    model_path = Path(model_path)
+    if not model_path.is_file():
+        raise ModelError(f"model file {model_path} does not exist (pass the path of an .onnx file)")
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = int(threads)
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    so.log_severity_level = 3
+    for name, value in (free_dims or {}).items():
+        so.add_free_dimension_override_by_name(name, int(value))
+    try:
+        return ort.InferenceSession(
+            str(model_path), sess_options=so, providers=list(providers or execution_providers())
+        )
+    except Exception as exc:  # onnxruntime raises its own pybind classes, all plain Exception subclasses
+        raise ModelError(_explain_load_error(model_path, str(exc))) from None
+
+
+def _explain_load_error(model_path: Path, message: str) -> str:
+    detail = message.split(") ")[-1].strip() if ") " in message else message.strip()
+    fix = (
+        f"re-export it with ir_version <= {MAX_IR_VERSION_HINT} and opset <= {MAX_OPSET_HINT} "
+        f"(onnx: helper.make_model(..., ir_version={MAX_IR_VERSION_HINT}, opset_imports=[make_opsetid('', "
+        f"{MAX_OPSET_HINT})]); torch: torch.onnx.export(..., opset_version={MAX_OPSET_HINT}))"
+    )
+    if "IR version" in message:
+        return f"model {model_path}: its ONNX IR version is newer than onnxruntime {ort.__version__} reads " \
+               f"({detail}): {fix}"
+    if "opset" in message.lower():
+        return f"model {model_path}: its opset is newer than onnxruntime {ort.__version__} reads " \
+               f"({detail[:160]}): {fix}"
+    if "protobuf" in message.lower():
+        return f"model {model_path} is not a valid ONNX file (protobuf parsing failed): re-download or re-export it"
+    return f"model {model_path} cannot be loaded by onnxruntime {ort.__version__}: {detail[:300]}"
+
+
+def check_image(image_rgb: Any, where: str = "image_rgb") -> np.ndarray:
+    """Validate an RGB image: (H, W, 3) uint8 (grayscale (H, W) / (H, W, 1) is replicated to 3 channels).
+
+    Raises:
+        DataError: not an array of that shape and dtype.
+    """
+    if not isinstance(image_rgb, np.ndarray):
+        raise DataError(f"{where} must be an (H, W, 3) uint8 numpy array, got {type(image_rgb).__name__}")
+    img = image_rgb
+    if img.dtype != np.uint8:
+        raise DataError(f"{where} must be uint8 (0..255), got dtype {img.dtype}: convert with .astype(np.uint8)")
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 1 or img.shape[1] < 1:
+        raise DataError(f"{where} must have shape (H, W, 3), got {img.shape}")
+    return img
+
+
+class OnnxModel:
+    """Base adapter: one ONNX model + its card, with validation and preprocessing.
+
+    Args:
+        model_path: the .onnx file.
+        card: a parsed card, a card path, or None for the YAML next to the model.
+        threads: intra-op threads of the session (0 = onnxruntime default).
+        providers: execution providers; default CUDA when available, else CPU.
+
+    Attributes:
+        last_timings: ``PerceptionTimings`` of the latest call.
+        input_spec / output_spec: the model's tensors as the session reports them (after pinning).
+    """
+
+    task: ClassVar[TaskKind]
+
+    def __init__(
+        self,
+        model_path: Path | str,
+        card: DepthCard | SegmentationCard | Path | str | None = None,
+        threads: int = 2,
+        providers: Sequence[str] | None = None,
+    ) -> None:
+        self.model_path = Path(model_path)
+        if not self.model_path.is_file():
+            raise ModelError(f"model file {self.model_path} does not exist (pass the path of an .onnx file)")
+        if card is None or isinstance(card, (str, Path)):
+            card = load_card(self.model_path, card)
+        if card.task is not self.task:
+            raise ModelError(
+                f"the card of {self.model_path} says task '{card.task.value}' but a {self.task.value} model "
+                f"was expected: fix `task:` in the card or pass the model as the right kind"
+            )
+        self.card = card
+        self.where = f"model {self.model_path.name}"
+        session = open_session(self.model_path, threads=threads, providers=providers)
+        self.input_spec = self._select_input(session)
+        self.fixed_wh, free_dims = self._resolve_size()
+        if free_dims:
+            session = open_session(self.model_path, threads=threads, free_dims=free_dims, providers=providers)
+            self.input_spec = self._select_input(session)
+        self.session = session
+        self.output_spec = self._select_output(session, card.output.name)
+        self._check_output(self.output_spec)
+        self.providers: list[str] = session.get_providers()
+        batch = self.input_spec.shape[0]
+        self.batch_size: int | None = batch if isinstance(batch, int) and batch > 0 else None
+        self._input_dtype = _INPUT_TYPES[card.input.dtype][1]
+        self._prepare_normalization()
+        self.last_timings = PerceptionTimings()
+        self.last_input_shape: tuple[int, ...] = ()
+        self.last_output_shape: tuple[int, ...] = ()
+
+    # --- validation ---------------------------------------------------------------------------------
+    def _select_input(self, session: ort.InferenceSession) -> TensorSpec:
+        inputs = [TensorSpec.of(i) for i in session.get_inputs()]
+        spec = self.card.input
+        if spec.name is not None:
+            found = [i for i in inputs if i.name == spec.name]
+            if not found:
+                raise ModelError(
+                    f"{self.where}: card input.name '{spec.name}' is not an input of the model "
+                    f"(inputs: {', '.join(i.name for i in inputs)})"
+                )
+            tensor = found[0]
+        elif len(inputs) == 1:
+            tensor = inputs[0]
+        else:
+            raise ModelError(
+                f"{self.where} has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}): set input.name "
+                "in the card (the adapter feeds one image tensor)"
+            )
+        if len(tensor.shape) != 4:
+            raise ModelError(
+                f"{self.where}: input '{tensor.name}' has rank {len(tensor.shape)} (shape {list(tensor.shape)}); "
+                f"the adapter feeds rank-4 image batches ({spec.layout.value}): export the model with a batch axis"
+            )
+        c_axis = 1 if spec.layout is Layout.NCHW else 3
+        channels = tensor.shape[c_axis]
+        if isinstance(channels, int) and channels != 3:
+            other = Layout.NHWC if spec.layout is Layout.NCHW else Layout.NCHW
+            hint = (
+                f"the card's input.layout is probably wrong: set layout: {other.value}"
+                if tensor.shape[4 - c_axis] == 3
+                else "the adapter feeds 3-channel RGB images: use a 3-channel model"
+            )
+            raise ModelError(
+                f"{self.where}: input '{tensor.name}' has {channels} channel(s) on axis {c_axis} "
+                f"({spec.layout.value}, shape {list(tensor.shape)}); {hint}"
+            )
+        want_type = _INPUT_TYPES[spec.dtype][0]
+        if tensor.type != want_type:
+            raise ModelError(
+                f"{self.where}: input '{tensor.name}' is {tensor.type} but the card says input.dtype "
+                f"{spec.dtype.value} ({want_type}): fix input.dtype in the card (float32 or uint8)"
+            )
+        return tensor
+
+    def _hw_axes(self) -> tuple[int, int]:
+        return (2, 3) if self.card.input.layout is Layout.NCHW else (1, 2)
+
+    def _resolve_size(self) -> tuple[tuple[int, int] | None, dict[str, int]]:
+        """Fixed (W, H) fed to the model (None = any size) and symbolic dims to pin."""
+        spec = self.card.input
+        h_axis, w_axis = self._hw_axes()
+        dims = {"W": self.input_spec.shape[w_axis], "H": self.input_spec.shape[h_axis]}
+        if spec.size is None:
+            if all(isinstance(d, int) for d in dims.values()):
+                return (int(dims["W"]), int(dims["H"])), {}  # type: ignore[arg-type]
+            if spec.multiple_of is not None:
+                return None, {}
+            raise ModelError(
+                f"{self.where}: input '{self.input_spec.name}' has dynamic height/width "
+                f"(shape {list(self.input_spec.shape)}) and the card gives no size: set input.size: [W, H] "
+                "(or input.multiple_of: 32 for a model that takes any image size)"
+            )
+        free: dict[str, int] = {}
+        for axis_name, dim, want in (("W", dims["W"], spec.size[0]), ("H", dims["H"], spec.size[1])):
+            if isinstance(dim, int) and dim != want:
+                raise ModelError(
+                    f"{self.where}: card input.size {list(spec.size)} (W, H) disagrees with the model's fixed "
+                    f"{axis_name} = {dim} (input shape {list(self.input_spec.shape)}): fix input.size"
+                )
+            if isinstance(dim, str) and dim:
+                free[dim] = want
+        return spec.size, free
+
+    def _select_output(self, session: ort.InferenceSession, name: str | None) -> TensorSpec:
+        outputs = [TensorSpec.of(o) for o in session.get_outputs()]
+        names = ", ".join(o.name for o in outputs)
+        if name is not None:
+            found = [o for o in outputs if o.name == name]
+            if not found:
+                raise ModelError(
+                    f"{self.where}: card output.name '{name}' is not an output of the model (outputs: {names})"
+                )
+            return found[0]
+        if len(outputs) == 1:
+            return outputs[0]
+        raise ModelError(f"{self.where} has {len(outputs)} outputs ({names}): set output.name in the card")
+
+    def _check_output(self, output: TensorSpec) -> None:
+        """Subclasses check rank/channels/dtype of their output."""
+
+    # --- preprocessing ------------------------------------------------------------------------------
+    def _prepare_normalization(self) -> None:
+        spec = self.card.input
+        order = [0, 1, 2] if spec.color_order is ColorOrder.RGB else [2, 1, 0]
+        self._channel_order = np.array(order)
+        std = np.asarray(spec.std, dtype=np.float64)
+        self._gain = (spec.effective_scale / std).astype(np.float32)
+        self._bias = (-np.asarray(spec.mean, dtype=np.float64) / std).astype(np.float32)
+        pad = np.full(3, spec.pad_value)
+        self._pad_input = (pad * self._gain + self._bias).astype(self._input_dtype) \
+            if spec.dtype is InputDtype.FLOAT32 else pad.astype(np.uint8)
+
+    def target_size(self, image_wh: tuple[int, int]) -> tuple[int, int]:
+        """(W, H) of the model input for an image of ``image_wh``."""
+        if self.fixed_wh is not None:
+            return self.fixed_wh
+        return any_size_target(image_wh, int(self.card.input.multiple_of or 1), self.card.input.resize)
+
+    def _preprocess(self, images: Sequence[np.ndarray]) -> tuple[np.ndarray, list[ResizePlan]]:
+        """Stack images into one input tensor; returns it and the per-image resize plans."""
+        sizes = {(im.shape[1], im.shape[0]) for im in images}
+        targets = {self.target_size(wh) for wh in sizes}
+        if len(targets) != 1:
+            raise DataError(
+                f"{self.where} takes any image size, so a batch must hold images of one size; got {sorted(sizes)}"
+            )
+        Wt, Ht = targets.pop()
+        nchw = self.card.input.layout is Layout.NCHW
+        shape = (len(images), 3, Ht, Wt) if nchw else (len(images), Ht, Wt, 3)
+        blob = np.empty(shape, dtype=self._input_dtype)
+        plans = []
+        for i, image in enumerate(images):
+            plan = plan_resize(
+                (image.shape[1], image.shape[0]), (Wt, Ht), self.card.input.resize,
+                fixed_size=self.fixed_wh is not None,
+            )
+            plans.append(plan)
+            self._fill(blob[i], image, plan, nchw)
+        return blob, plans
+
+    def _fill(self, out: np.ndarray, image: np.ndarray, plan: ResizePlan, nchw: bool) -> None:
+        sx0, sy0, sx1, sy1 = plan.src_box
+        dx0, dy0, dx1, dy1 = plan.dst_box
+        crop = image[sy0:sy1, sx0:sx1]
+        dw, dh = dx1 - dx0, dy1 - dy0
+        if (dw, dh) != (crop.shape[1], crop.shape[0]):
+            shrink = dw <= crop.shape[1] and dh <= crop.shape[0]
+            crop = cv2.resize(crop, (dw, dh), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+        padded = (dw, dh) != plan.target_wh
+        raw = self.card.input.dtype is InputDtype.UINT8
+        for c, src_c in enumerate(self._channel_order):
+            dst = out[c] if nchw else out[:, :, c]
+            if padded:
+                dst[...] = self._pad_input[c]
+            region = dst[dy0:dy1, dx0:dx1]
+            if raw:
+                region[...] = crop[:, :, src_c]
+            else:
+                np.multiply(crop[:, :, src_c], self._gain[c], out=region, dtype=np.float32)
+                region += self._bias[c]
+
+    # --- inference ----------------------------------------------------------------------------------
+    def _infer(self, blob: np.ndarray) -> np.ndarray:
+        """Run the session on ``blob``, in chunks when the model's batch axis is fixed."""
+        n = blob.shape[0]
+        step = self.batch_size or n
+        outs = []
+        for start in range(0, n, step):
+            chunk = blob[start : start + step]
+            if chunk.shape[0] < step:  # fixed batch axis: pad the last chunk with copies
+                chunk = np.concatenate([chunk, np.repeat(chunk[-1:], step - chunk.shape[0], axis=0)])
+            self.last_input_shape = tuple(chunk.shape)
+            try:
+                (out,) = self.session.run([self.output_spec.name], {self.input_spec.name: chunk})
+            except Exception as exc:  # onnxruntime's own exception classes
+                raise ModelError(
+                    f"{self.where} failed on an input of shape {list(chunk.shape)} ({str(exc)[-300:]}): check "
+                    "input.size / input.multiple_of / input.layout in the card"
+                ) from None
+            outs.append(np.asarray(out))
+        out = outs[0] if len(outs) == 1 else np.concatenate(outs)
+        self.last_output_shape = tuple(out.shape)
+        return out[:n]
+
+    def _run(self, images: Sequence[Any]) -> tuple[np.ndarray, list[ResizePlan], float, float]:
+        """Validate, preprocess and infer; returns raw output, plans, preprocess and inference ms."""
+        if len(images) == 0:
+            raise DataError(f"{self.where}: predict_batch needs at least one image")
+        t0 = time.perf_counter()
+        checked = [check_image(im, f"image {i}") for i, im in enumerate(images)]
+        blob, plans = self._preprocess(checked)
+        t1 = time.perf_counter()
+        out = self._infer(blob)
+        t2 = time.perf_counter()
+        return out, plans, (t1 - t0) * 1e3, (t2 - t1) * 1e3
+
+
+def paste_back(
+    values: np.ndarray, plan: ResizePlan, fill: float, interpolation: int, valid: np.ndarray | None = None
+) -> np.ndarray:
+    """Resize a model-output region back onto the image grid (the inverse of the resize plan).
+
+    Args:
+        values: (h, w) output values of the plan's ``dst_box`` region (already cut out).
+        plan: the plan the input was made with.
+        fill: value of image pixels the model did not see (cropped borders).
+        interpolation: cv2 flag (INTER_NEAREST for labels, INTER_LINEAR for depth).
+        valid: optional (h, w) bool mask of valid values; with linear interpolation invalid values do
+            not bleed into valid ones (normalized interpolation) and pixels mostly covered by
+            invalid ones come out as ``fill``.
+
+    Returns:
+        (H, W) array of ``values.dtype`` on the image grid.
+    """
+    W, H = plan.image_wh
+    x0, y0, x1, y1 = plan.src_box
+    size = (x1 - x0, y1 - y0)
+    if valid is not None and not valid.all():
+        weight = cv2.resize(valid.astype(np.float32), size, interpolation=interpolation)
+        summed = cv2.resize(np.where(valid, values, 0).astype(np.float32), size, interpolation=interpolation)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            region = np.where(weight >= 0.5, summed / np.maximum(weight, 1e-6), fill).astype(values.dtype)
+    elif size != (values.shape[1], values.shape[0]):
+        region = cv2.resize(values, size, interpolation=interpolation)
+    else:
+        region = values
+    if (x0, y0, x1, y1) == (0, 0, W, H):
+        return np.ascontiguousarray(region)
+    full = np.full((H, W), fill, dtype=values.dtype)
+    full[y0:y1, x0:x1] = region
+    return full
+
+
+def measure_overhead(model: OnnxModel, image_rgb: np.ndarray, repeats: int = 10, **kwargs: Any) -> dict[str, float]:
+    """Median per-frame timings of ``model.predict(image_rgb)`` over ``repeats`` runs (after one warm-up).
+
+    Returns:
+        dict with ``preprocess_ms``, ``inference_ms``, ``postprocess_ms``, ``overhead_ms``
+        (pre + post: what the adapter adds to the model) and ``total_ms``; ``repeats``.
+    """
+    model.predict(image_rgb, **kwargs)  # type: ignore[attr-defined]
+    rows = []
+    for _ in range(max(1, repeats)):
+        model.predict(image_rgb, **kwargs)  # type: ignore[attr-defined]
+        t = model.last_timings
+        rows.append((t.preprocess_ms, t.inference_ms, t.postprocess_ms, t.overhead_ms, t.total_ms))
+    med = np.median(np.asarray(rows), axis=0)
+    keys = ("preprocess_ms", "inference_ms", "postprocess_ms", "overhead_ms", "total_ms")
+    return {**{k: float(v) for k, v in zip(keys, med, strict=True)}, "repeats": float(len(rows))}

@@ -1,0 +1,130 @@
+"""Semantic segmentation from an ONNX model: RGB image -> Cityscapes train ids.
+
+The model speaks its own class list (card ``output.classes``); the card's ``mapping`` table
+(``perception/labels.py``) maps it onto Cityscapes train ids, so Cityscapes, ADE20K and custom
+models all feed the same graph extraction. Logits are reduced by argmax over the class axis.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from shgm_slam.errors import ModelError
+from shgm_slam.labels import IGNORE_ID
+from shgm_slam.perception.card import LabelSpace, Layout, SegmentationCard, SegOutputKind, TaskKind
+from shgm_slam.perception.labels import class_lut
+from shgm_slam.perception.onnx_model import (
+    _FLOAT_TYPES,
+    OnnxModel,
+    PerceptionTimings,
+    ResizePlan,
+    TensorSpec,
+    paste_back,
+)
+
+
+class SegmentationModel(OnnxModel):
+    """A semantic segmentation network behind its card.
+
+    Args:
+        model_path: the .onnx file; its card is the YAML with the same stem unless ``card`` is given.
+        card: a ``SegmentationCard``, a card path, or None.
+        threads: intra-op threads (0 = onnxruntime default).
+
+    Attributes:
+        class_to_train_id: (C,) uint8 model class index -> Cityscapes train id (255 = ignore).
+
+    Example:
+        >>> model = SegmentationModel("models/seg.onnx")
+        >>> label_ids = model.predict(frame.image_rgb)   # (H, W) uint8 train ids
+    """
+
+    task = TaskKind.SEGMENTATION
+    card: SegmentationCard
+
+    @property
+    def output_layout(self) -> Layout:
+        return self.card.output.layout or self.card.input.layout
+
+    def _check_output(self, output: TensorSpec) -> None:
+        spec = self.card.output
+        classes = spec.class_names
+        where = f"{self.where}: output '{output.name}' (shape {list(output.shape)})"
+        self.class_to_train_id = class_lut(
+            classes,
+            spec.mapping,
+            spec.classes if isinstance(spec.classes, LabelSpace) else None,
+            where=f"card of {self.model_path.name}: output.mapping",
+        )
+        if spec.kind is SegOutputKind.LOGITS:
+            if len(output.shape) != 4:
+                raise ModelError(
+                    f"{where}: logits must be rank 4 ({self.output_layout.value}); set output.kind: label_map "
+                    "if the model outputs class indices, or output.name to the logits output"
+                )
+            c_axis = 1 if self.output_layout is Layout.NCHW else 3
+            count = output.shape[c_axis]
+            if isinstance(count, int) and count != len(classes):
+                raise ModelError(
+                    f"{where}: {count} classes on axis {c_axis} but the card lists {len(classes)} in "
+                    "output.classes: list every model class in output order (or fix output.layout)"
+                )
+            if output.type not in _FLOAT_TYPES:
+                raise ModelError(f"{where}: logits are {output.type}; expected float (or output.kind: label_map)")
+        elif len(output.shape) not in (3, 4):
+            raise ModelError(f"{where}: a label map must be (N, H, W), (N, 1, H, W) or (N, H, W, 1)")
+
+    def predict(self, image_rgb: np.ndarray) -> np.ndarray:
+        """Labels of one image.
+
+        Args:
+            image_rgb: (H, W, 3) uint8 RGB.
+
+        Returns:
+            (H, W) uint8 Cityscapes train ids on the image grid; 255 = ignore / not seen by the model.
+        """
+        return self.predict_batch([image_rgb])[0]
+
+    def predict_batch(self, images_rgb: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Labels of several images in one session run; list of (H, W) uint8 train ids."""
+        out, plans, pre_ms, inf_ms = self._run(images_rgb)
+        t0 = time.perf_counter()
+        labels = [self._postprocess(out[i], plan) for i, plan in enumerate(plans)]
+        self.last_timings = PerceptionTimings(pre_ms, inf_ms, (time.perf_counter() - t0) * 1e3)
+        return labels
+
+    def _postprocess(self, raw: np.ndarray, plan: ResizePlan) -> np.ndarray:
+        """One image's output (C, h, w) / (h, w, C) logits or (h, w) label map -> (H, W) train ids."""
+        if self.card.output.kind is SegOutputKind.LOGITS:
+            nchw = self.output_layout is Layout.NCHW
+            h, w = raw.shape[1:3] if nchw else raw.shape[0:2]
+            bx0, by0, bx1, by1 = plan.output_box((w, h))
+            region = raw[:, by0:by1, bx0:bx1] if nchw else raw[by0:by1, bx0:bx1]
+            class_idx = argmax_classes(region, axis=0 if nchw else 2)
+        else:
+            label_map = raw.reshape(raw.shape[-2:]) if raw.ndim == 3 and raw.shape[0] == 1 else raw
+            label_map = label_map[..., 0] if label_map.ndim == 3 else label_map
+            bx0, by0, bx1, by1 = plan.output_box((label_map.shape[1], label_map.shape[0]))
+            class_idx = label_map[by0:by1, bx0:bx1]
+        ids = self.map_classes(class_idx)
+        return paste_back(ids, plan, IGNORE_ID, cv2.INTER_NEAREST)
+
+    def map_classes(self, class_idx: np.ndarray) -> np.ndarray:
+        """Model class indices (any int/float dtype) -> uint8 train ids; out-of-range indices -> 255."""
+        lut = self.class_to_train_id
+        idx = np.asarray(class_idx)
+        if idx.dtype.kind == "f":
+            idx = np.rint(np.nan_to_num(idx, nan=-1.0))
+        idx = idx.astype(np.int64, copy=False)
+        valid = (idx >= 0) & (idx < lut.size)
+        return np.where(valid, lut[np.clip(idx, 0, lut.size - 1)], IGNORE_ID).astype(np.uint8)
+
+
+def argmax_classes(logits: np.ndarray, axis: int) -> np.ndarray:
+    """Index of the largest score along ``axis`` as (h, w) uint8 (int16 when there are > 255 classes)."""
+    dtype = np.uint8 if logits.shape[axis] <= 255 else np.int16
+    return np.argmax(logits, axis=axis).astype(dtype)

@@ -1,0 +1,385 @@
+"""Orchestration only: per-robot front ends, the map server, and the interleaved multi-robot run.
+
+Data flow (ARCHITECTURE.md): frames -> perception (files or ONNX) -> pseudo-LiDAR -> odometry ->
+keyframes -> semantic graph (front end, per robot) --KeyframeMessage--> map server: mirrored graphs,
+periodic cross-robot matching, GTSAM pose graph. A robot only emits small ``KeyframeMessage`` objects
+(keyframe pose + new/updated graph nodes); that boundary is where robots become separate processes.
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from shgm_slam.backend.pose_graph import MultiRobotPoseGraph
+from shgm_slam.config import ShgmConfig
+from shgm_slam.descriptors import compute_descriptors
+from shgm_slam.geometry import se3
+from shgm_slam.graph.extraction import extract_objects
+from shgm_slam.graph.semantic_graph import GraphUpdate, SemanticGraph
+from shgm_slam.matching import match_graphs
+from shgm_slam.odometry.clouds import depth_to_cloud
+from shgm_slam.odometry.sources import OdometrySource
+from shgm_slam.perception import PerceptionSource
+from shgm_slam.types import Frame, GraphArrays, Sequence
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------------------------------
+# Front end (one per robot)
+# --------------------------------------------------------------------------------------------------
+
+
+class KeyframeSelector:
+    """A new keyframe every ``distance_m`` metres or ``angle_deg`` degrees of motion (the first frame too)."""
+
+    def __init__(self, distance_m: float, angle_deg: float) -> None:
+        self.distance_m = distance_m
+        self.angle_rad = np.radians(angle_deg)
+        self._T_odom_last: np.ndarray | None = None
+
+    def is_keyframe(self, T_odom_cam: np.ndarray) -> bool:
+        """True when ``T_odom_cam`` (4, 4) moved far enough from the last keyframe (and records it)."""
+        if self._T_odom_last is not None:
+            d = se3.inverse(self._T_odom_last) @ T_odom_cam
+            if np.linalg.norm(d[:3, 3]) < self.distance_m and se3.rotation_angle(d) < self.angle_rad:
+                return False
+        self._T_odom_last = np.array(T_odom_cam, dtype=np.float64)
+        return True
+
+
+@dataclass(frozen=True)
+class KeyframeMessage:
+    """What a robot sends to the map server for each keyframe (small: a pose and graph node states).
+
+    ``T_odom_kf`` is the keyframe's camera pose in the robot's odometry frame (its first camera frame).
+    """
+
+    robot: str
+    kf_index: int
+    frame_index: int
+    timestamp_s: float
+    T_odom_kf: np.ndarray
+    graph_update: GraphUpdate
+
+
+@dataclass
+class FrameResult:
+    """Everything one front-end step produced (for the orchestrator, the viewer and the summary)."""
+
+    robot: str
+    frame: Frame
+    T_odom_cam: np.ndarray
+    depth_m: np.ndarray | None
+    label_ids: np.ndarray | None
+    points_cam: np.ndarray
+    point_labels: np.ndarray | None
+    odometry_ok: bool
+    message: KeyframeMessage | None
+    timings_ms: dict[str, float]
+
+
+class RobotFrontend:
+    """One robot's front end: perception -> pseudo-LiDAR -> odometry -> keyframes -> semantic graph.
+
+    The graph lives in the robot's odometry frame; nodes are anchored to keyframes.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        sequence: Sequence,
+        cfg: ShgmConfig,
+        perception: PerceptionSource,
+        odometry: OdometrySource,
+    ) -> None:
+        self.name = name
+        self.sequence = sequence
+        self.cfg = cfg
+        self.perception = perception
+        self.odometry = odometry
+        self.graph = SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m)
+        self.keyframes = KeyframeSelector(cfg.keyframes.distance_m, cfg.keyframes.angle_deg)
+        self.num_keyframes = 0
+        n = len(sequence)
+        self.T_odom_cam = np.full((n, 4, 4), np.nan)
+        self.frame_kf = np.full(n, -1, dtype=np.int64)  # last keyframe index at or before each frame
+        self.kf_frames: list[int] = []
+        self.kf_poses: list[np.ndarray] = []
+
+    def process(self, index: int) -> FrameResult:
+        """Run frame ``index`` through the front end.
+
+        Raises:
+            DataError: the frame cannot be loaded or has no usable depth (the caller logs and skips it).
+        """
+        t0 = time.perf_counter()
+        frame = self.sequence[index]
+        t_load = time.perf_counter()
+        perceived = self.perception.process(frame)
+        t_perc = time.perf_counter()
+        o = self.cfg.odometry
+        points_cam, point_labels = depth_to_cloud(
+            perceived.depth_m,
+            frame.intrinsics,
+            stride=o.cloud_stride,
+            min_range_m=o.min_range_m,
+            max_range_m=o.max_range_m,
+            label_ids=perceived.label_ids,
+        )
+        t_cloud = time.perf_counter()
+        est = self.odometry.update(frame, points_cam)
+        T_odom_cam = est.T_odom_cam
+        t_odo = time.perf_counter()
+        self.T_odom_cam[index] = T_odom_cam
+        message = None
+        timings = {
+            "load": (t_load - t0) * 1e3,
+            **{f"perception_{k}": v for k, v in perceived.timings_ms.items()},
+            "cloud": (t_cloud - t_perc) * 1e3,
+            "odometry": (t_odo - t_cloud) * 1e3,
+        }
+        if self.keyframes.is_keyframe(T_odom_cam) and perceived.label_ids is not None:
+            ex = self.cfg.extraction
+            objects = extract_objects(
+                perceived.depth_m,
+                perceived.label_ids,
+                frame.intrinsics,
+                T_odom_cam,
+                labels=ex.labels,
+                max_depth_m=ex.max_depth_m,
+                min_depth_m=ex.min_depth_m,
+                depth_step_m=ex.depth_step_m,
+                min_blob_fraction=ex.min_blob_fraction,
+            )
+            t_ex = time.perf_counter()
+            kf = self.num_keyframes
+            update = self.graph.add_keyframe(kf, T_odom_cam, objects)
+            t_graph = time.perf_counter()
+            self.num_keyframes += 1
+            self.kf_frames.append(index)
+            self.kf_poses.append(T_odom_cam.copy())
+            message = KeyframeMessage(self.name, kf, index, frame.timestamp_s, T_odom_cam.copy(), update)
+            timings["extraction"] = (t_ex - t_odo) * 1e3
+            timings["graph"] = (t_graph - t_ex) * 1e3
+        self.frame_kf[index] = self.num_keyframes - 1
+        return FrameResult(
+            self.name, frame, T_odom_cam, perceived.depth_m, perceived.label_ids, points_cam, point_labels,
+            est.ok, message, timings,
+        )  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------------
+# Map server (shared back end)
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class MatchRecord:
+    """One inter-robot match attempt and what the back end decided (a row of ``matches.json``)."""
+
+    step: int
+    robot_a: str
+    robot_b: str
+    query: str  # "submap" | "whole": which part of robot_b's graph was matched against robot_a's graph
+    success: bool
+    accepted: bool
+    reason: str
+    kf_a: int | None
+    kf_b: int | None
+    T_a_b: np.ndarray | None
+    inliers: np.ndarray
+    candidates: int
+    nodes_a: int
+    nodes_b: int
+    timings_ms: dict[str, float]
+    inlier_positions_a: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    inlier_positions_b: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def to_json_dict(self) -> dict:
+        return {
+            "step": self.step,
+            "robot_a": self.robot_a,
+            "robot_b": self.robot_b,
+            "query": self.query,
+            "success": self.success,
+            "accepted": self.accepted,
+            "reason": self.reason,
+            "keyframe_a": self.kf_a,
+            "keyframe_b": self.kf_b,
+            "T_a_b": None if self.T_a_b is None else np.round(self.T_a_b, 9).tolist(),
+            "inliers": self.inliers.tolist(),
+            "candidates": self.candidates,
+            "nodes_a": self.nodes_a,
+            "nodes_b": self.nodes_b,
+            "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
+        }
+
+
+class MapServer:
+    """Mirrors every robot's graph from messages, matches robots periodically, fuses them in iSAM2.
+
+    Every ``match_every_keyframes`` keyframes of a robot r, r's recent submap and r's whole graph are
+    matched against every other robot's whole graph; accepted matches become inter-robot
+    relative-pose factors between keyframes. Shared frame = the first robot's odometry frame.
+    """
+
+    def __init__(self, robot_names: list[str], cfg: ShgmConfig) -> None:
+        self.robot_names = list(robot_names)
+        self.cfg = cfg
+        b = cfg.backend
+        self.pose_graph = MultiRobotPoseGraph(
+            self.robot_names,
+            odometry_sigmas=(b.odometry_sigma_rot_rad, b.odometry_sigma_trans_m),
+            closure_sigmas=(b.closure_sigma_rot_rad, b.closure_sigma_trans_m),
+            robust_kernel=b.robust_kernel,
+            consistency_trans_m=b.consistency_trans_m,
+            consistency_rot_deg=b.consistency_rot_deg,
+        )
+        self.graphs = {r: SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m) for r in robot_names}
+        self.kf_poses: dict[str, list[np.ndarray]] = {r: [] for r in robot_names}
+        self.matches: list[MatchRecord] = []
+        self._since_match = dict.fromkeys(robot_names, 0)
+        self._closures: set[tuple[str, int, str, int]] = set()
+        self._step = 0
+        self.timings_ms: dict[str, list[float]] = {"match": [], "backend": []}
+
+    def receive(self, msg: KeyframeMessage) -> list[MatchRecord]:
+        """Ingest one keyframe message; returns the match attempts it triggered (possibly none)."""
+        t0 = time.perf_counter()
+        self._step += 1
+        self.kf_poses[msg.robot].append(msg.T_odom_kf)
+        self.pose_graph.add_keyframe(msg.robot, msg.kf_index, msg.T_odom_kf)
+        self.graphs[msg.robot].apply_update(msg.graph_update, self.kf_poses[msg.robot])
+        self.timings_ms["backend"].append((time.perf_counter() - t0) * 1e3)
+        self._since_match[msg.robot] += 1
+        if self._since_match[msg.robot] < self.cfg.backend.match_every_keyframes:
+            return []
+        self._since_match[msg.robot] = 0
+        return self.match_robot(msg.robot)
+
+    def finalize(self) -> list[MatchRecord]:
+        """Match every robot once more at the end of the run (whole graphs)."""
+        records: list[MatchRecord] = []
+        for r in self.robot_names:
+            records += self.match_robot(r, submap=False)
+        return records
+
+    def match_robot(self, robot: str, *, submap: bool = True) -> list[MatchRecord]:
+        """Match ``robot``'s recent submap and whole graph against every other robot's whole graph."""
+        records = []
+        queries: list[tuple[str, GraphArrays]] = []
+        n_kf = len(self.kf_poses[robot])
+        if submap and n_kf > self.cfg.backend.submap_keyframes:
+            kfs = np.arange(n_kf - self.cfg.backend.submap_keyframes, n_kf)
+            queries.append(("submap", self.graphs[robot].submap(kfs)))
+        queries.append(("whole", self.graphs[robot].arrays()))
+        for other in self.robot_names:
+            if other == robot or len(self.graphs[other]) == 0:
+                continue
+            graph_a = self.graphs[other].arrays()
+            desc_a = compute_descriptors(graph_a, self.cfg.descriptor)
+            for query, graph_b in queries:
+                records.append(self._match_pair(other, robot, query, graph_a, graph_b, desc_a))
+        self.matches += records
+        return records
+
+    def _match_pair(
+        self, robot_a: str, robot_b: str, query: str, graph_a: GraphArrays, graph_b: GraphArrays, desc_a
+    ) -> MatchRecord:
+        t0 = time.perf_counter()
+        result = match_graphs(graph_a, graph_b, self.cfg.descriptor, self.cfg.matching, descriptors_a=desc_a)
+        self.timings_ms["match"].append((time.perf_counter() - t0) * 1e3)
+        rec = MatchRecord(
+            self._step, robot_a, robot_b, query, result.success, False, result.reason, None, None,
+            result.T_a_b, result.inliers, result.candidates, len(graph_a), len(graph_b), dict(result.timings_ms),
+        )  # fmt: skip
+        if not result.success:
+            return rec
+        rows_a = _rows_of(graph_a, result.inliers[:, 0])
+        rows_b = _rows_of(graph_b, result.inliers[:, 1])
+        rec.inlier_positions_a = graph_a.positions_xyz[rows_a]
+        rec.inlier_positions_b = graph_b.positions_xyz[rows_b]
+        kf_a = self._anchor_keyframe(robot_a, result.inliers[:, 0], rec.inlier_positions_a)
+        kf_b = self._anchor_keyframe(robot_b, result.inliers[:, 1], rec.inlier_positions_b)
+        rec.kf_a, rec.kf_b = kf_a, kf_b
+        key = (robot_a, kf_a, robot_b, kf_b)
+        if key in self._closures:
+            rec.reason = "duplicate of an earlier closure between the same keyframes"
+            return rec
+        T_akf_bkf = se3.inverse(self.kf_poses[robot_a][kf_a]) @ result.T_a_b @ self.kf_poses[robot_b][kf_b]
+        t1 = time.perf_counter()
+        decision = self.pose_graph.add_inter_robot_closure(
+            robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=len(result.inliers)
+        )
+        self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
+        rec.accepted, rec.reason = decision.accepted, decision.reason
+        if decision.accepted:
+            self._closures.add(key)
+        return rec
+
+    def _anchor_keyframe(self, robot: str, node_ids: np.ndarray, positions: np.ndarray) -> int:
+        """The keyframe anchoring the inlier node nearest to the inliers' centroid (a local closure)."""
+        anchors = self.graphs[robot].anchor_keyframes(node_ids)
+        centre = positions.mean(axis=0)
+        return int(anchors[int(np.argmin(np.linalg.norm(positions - centre, axis=1)))])
+
+    def T_shared_kf(self, robot: str) -> np.ndarray | None:
+        """(K, 4, 4) fused keyframe poses of ``robot`` in the shared frame, or None if not localized."""
+        if not self.pose_graph.is_anchored(robot):
+            return None
+        return self.pose_graph.estimate()[robot]
+
+
+def _rows_of(graph: GraphArrays, node_ids: np.ndarray) -> np.ndarray:
+    """Row indices of ``node_ids`` in ``graph``."""
+    order = np.argsort(graph.node_ids)
+    return order[np.searchsorted(graph.node_ids, node_ids, sorter=order)]
+
+
+def fuse_frames(
+    T_odom_cam: np.ndarray, frame_kf: np.ndarray, T_odom_kf: np.ndarray, T_shared_kf: np.ndarray
+) -> np.ndarray:
+    """Per-frame fused poses: each frame rides on its last keyframe's correction.
+
+    Args:
+        T_odom_cam: (N, 4, 4) odometry poses of all frames (NaN rows for skipped frames).
+        frame_kf: (N,) index of the last keyframe at or before each frame (-1 before the first).
+        T_odom_kf: (K, 4, 4) keyframe poses in the odometry frame.
+        T_shared_kf: (K, 4, 4) optimized keyframe poses in the shared frame.
+
+    Returns:
+        (N, 4, 4) ``T_shared_cam``; NaN where the frame was skipped or precedes the first keyframe.
+    """
+    out = np.full_like(T_odom_cam, np.nan)
+    ok = frame_kf >= 0
+    k = frame_kf[ok]
+    correction = T_shared_kf[k] @ se3.inverse(T_odom_kf[k])
+    out[ok] = correction @ T_odom_cam[ok]
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Interleaving robots in time
+# --------------------------------------------------------------------------------------------------
+
+
+def interleave(sequences: dict[str, Sequence]) -> Iterator[tuple[str, int]]:
+    """Yield ``(robot, frame_index)`` in order of time since each robot's first frame."""
+    heap = []
+    for r_i, (name, seq) in enumerate(sequences.items()):
+        if len(seq):
+            t = np.asarray(seq.timestamps_s, dtype=np.float64)
+            heap.append((0.0, r_i, name, 0, t))
+    heapq.heapify(heap)
+    while heap:
+        _, r_i, name, i, t = heapq.heappop(heap)
+        yield name, i
+        if i + 1 < len(t):
+            heapq.heappush(heap, (float(t[i + 1] - t[0]), r_i, name, i + 1, t))

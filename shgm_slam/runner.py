@@ -1,0 +1,304 @@
+"""The library function behind ``shgm-slam run``: robots in, fused trajectories and a summary out.
+
+``run_slam`` interleaves the robots in time, streams every stage to the viewer, writes the results
+folder as it goes (and once more at the end, also after Ctrl-C), and evaluates against ground truth
+when the sequences have it.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from shgm_slam.config import ShgmConfig
+from shgm_slam.data import open_sequence
+from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.geometry import se3
+from shgm_slam.io.export import ResultsWriter
+from shgm_slam.metrics import ate
+from shgm_slam.odometry.sources import make_odometry
+from shgm_slam.perception import make_perception
+from shgm_slam.pipeline import FrameResult, MapServer, RobotFrontend, fuse_frames, interleave
+from shgm_slam.types import Sequence
+from shgm_slam.viz.rerun_logger import NullLogger, Viz
+
+log = logging.getLogger(__name__)
+
+_ROBOT_RE = re.compile(r"^(?P<name>[A-Za-z][A-Za-z0-9_-]{0,31})=(?P<spec>.+)$")
+
+
+def parse_robot_arg(text: str) -> tuple[str, str]:
+    """Split ``NAME=PATH[:start-end]`` into ``(name, spec)``.
+
+    Raises:
+        ConfigError: the text is not of that form (names: a letter, then letters, digits, ``_`` or ``-``).
+    """
+    m = _ROBOT_RE.match(text.strip())
+    if not m:
+        raise ConfigError(
+            f"--robot {text!r}: expected NAME=PATH[:start-end], e.g. car1=data/seq08:0-1500 "
+            "(names start with a letter; letters, digits, _ and - only)"
+        )
+    return m["name"], m["spec"]
+
+
+def open_robots(robot_args: list[str]) -> dict[str, Sequence]:
+    """Open every ``NAME=PATH[:start-end]`` robot; clear errors for duplicates and empty sequences."""
+    if not robot_args:
+        raise ConfigError("no robots given: pass at least one --robot NAME=PATH[:start-end]")
+    robots: dict[str, Sequence] = {}
+    for arg in robot_args:
+        name, spec = parse_robot_arg(arg)
+        if name in robots:
+            raise ConfigError(f"robot name {name!r} is given twice; every --robot needs its own name")
+        seq = open_sequence(spec)
+        if len(seq) == 0:
+            raise DataError(f"robot {name!r}: sequence {spec} has zero frames (check the frame range)")
+        robots[name] = seq
+    return robots
+
+
+@dataclass
+class RobotReport:
+    """Per-robot outcome of a run (one row of the summary table)."""
+
+    name: str
+    frames: int
+    frames_processed: int
+    frames_skipped: int
+    keyframes: int
+    nodes: int
+    localized: bool
+    path_length_m: float = float("nan")
+    ate_odometry_m: float = float("nan")  # SE(3)-aligned ATE of the robot's own odometry
+    ate_fused_m: float = float("nan")  # ATE in the shared frame, no alignment (needs shared ground truth)
+    ate_fused_aligned_m: float = float("nan")  # SE(3)-aligned ATE of the fused trajectory
+
+
+@dataclass
+class RunSummary:
+    """What ``run_slam`` returns: per-robot reports, closures, timings and where the results are."""
+
+    out_dir: Path
+    robots: list[RobotReport]
+    matches_tried: int
+    closures_accepted: int
+    closures_rejected: int
+    timings_ms: dict[str, float]  # mean per call of each stage
+    per_keyframe_ms: float  # front end + back end (no loading, no perception) per keyframe
+    wall_s: float
+    interrupted: bool = False
+    skipped_reasons: list[str] = field(default_factory=list)
+
+    def to_json_dict(self) -> dict:
+        return {
+            "robots": [vars(r) for r in self.robots],
+            "matches_tried": self.matches_tried,
+            "closures_accepted": self.closures_accepted,
+            "closures_rejected": self.closures_rejected,
+            "timings_ms": self.timings_ms,
+            "per_keyframe_ms": self.per_keyframe_ms,
+            "wall_s": self.wall_s,
+            "interrupted": self.interrupted,
+            "skipped": self.skipped_reasons[:50],
+        }
+
+
+ProgressFn = Callable[[int, int], None]
+
+
+class _Timings:
+    def __init__(self) -> None:
+        self.sums: dict[str, float] = {}
+        self.counts: dict[str, int] = {}
+
+    def add(self, timings: dict[str, float]) -> None:
+        for k, v in timings.items():
+            self.sums[k] = self.sums.get(k, 0.0) + v
+            self.counts[k] = self.counts.get(k, 0) + 1
+
+    def means(self) -> dict[str, float]:
+        return {k: self.sums[k] / self.counts[k] for k in self.sums}
+
+
+def run_slam(
+    robots: dict[str, Sequence],
+    cfg: ShgmConfig,
+    out_dir: Path,
+    *,
+    viz: Viz | None = None,
+    progress: ProgressFn | None = None,
+    gt_shared_frame: bool = True,
+    write_every_keyframes: int = 25,
+) -> RunSummary:
+    """Run the whole multi-robot system and write the results folder.
+
+    Args:
+        robots: robot name -> sequence (order matters: the first robot defines the shared frame).
+        cfg: the effective configuration (written to ``config.yaml``).
+        out_dir: results folder (created).
+        viz: viewer (``NullLogger`` when None).
+        progress: called with (frames done, frames total).
+        gt_shared_frame: the sequences' ground truths share one world frame (true for our simulator and
+            for frame ranges of one KITTI sequence), so fused ATE is measured in the shared frame.
+        write_every_keyframes: rewrite the results folder this often (survives crashes and Ctrl-C).
+    """
+    viz = viz or NullLogger()
+    names = list(robots)
+    writer = ResultsWriter(out_dir)
+    writer.write_text("config.yaml", cfg.to_yaml())
+    fronts = {
+        r: RobotFrontend(
+            r, seq, cfg, make_perception(cfg.perception, seq), make_odometry(cfg.odometry, len(seq))
+        )
+        for r, seq in robots.items()
+    }
+    server = MapServer(names, cfg)
+    viz.setup({r: seq.intrinsics for r, seq in robots.items()})
+    total = sum(len(s) for s in robots.values())
+    timings = _Timings()
+    skipped: list[str] = []
+    processed = dict.fromkeys(names, 0)
+    compute_ms = 0.0
+    t_start = time.perf_counter()
+    done = 0
+    interrupted = False
+    kf_total = 0
+    try:
+        for robot, index in interleave(robots):
+            done += 1
+            try:
+                res = fronts[robot].process(index)
+            except DataError as exc:
+                skipped.append(f"{robot} frame {index}: {exc}")
+                viz.log_text(f"{robot}: skipped frame {index}: {exc}", "WARN")
+                if progress:
+                    progress(done, total)
+                continue
+            processed[robot] += 1
+            t0 = time.perf_counter()
+            records = server.receive(res.message) if res.message is not None else []
+            backend_ms = (time.perf_counter() - t0) * 1e3
+            res.timings_ms["server"] = backend_ms
+            timings.add(res.timings_ms)
+            compute_ms += sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
+            _log_frame(viz, server, fronts[robot], res, records)
+            if res.message is not None:
+                kf_total += 1
+                if kf_total % write_every_keyframes == 0:
+                    _write_results(writer, fronts, server, robots)
+            if progress:
+                progress(done, total)
+    except KeyboardInterrupt:
+        interrupted = True
+    if not interrupted:
+        records = server.finalize()
+        _log_matches(viz, server, records)
+    _write_results(writer, fronts, server, robots)
+    reports = _evaluate(fronts, server, robots, processed, gt_shared_frame)
+    accepted = sum(m.accepted for m in server.matches)
+    summary = RunSummary(
+        out_dir=Path(out_dir),
+        robots=reports,
+        matches_tried=len(server.matches),
+        closures_accepted=accepted,
+        closures_rejected=sum(m.success and not m.accepted for m in server.matches),
+        timings_ms={
+            **timings.means(),
+            "match": float(np.mean(server.timings_ms["match"])) if server.timings_ms["match"] else 0.0,
+        },
+        per_keyframe_ms=compute_ms / max(kf_total, 1),
+        wall_s=time.perf_counter() - t_start,
+        interrupted=interrupted,
+        skipped_reasons=skipped,
+    )
+    writer.write_json("metrics.json", summary.to_json_dict())
+    viz.close()
+    return summary
+
+
+def _fused(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
+    T_shared_kf = server.T_shared_kf(front.name)
+    if T_shared_kf is None or front.num_keyframes == 0:
+        return None
+    return fuse_frames(front.T_odom_cam, front.frame_kf, np.stack(front.kf_poses), T_shared_kf)
+
+
+def _write_results(writer: ResultsWriter, fronts, server: MapServer, robots: dict[str, Sequence]) -> None:
+    for r, front in fronts.items():
+        writer.write_trajectories(r, np.asarray(robots[r].timestamps_s), front.T_odom_cam, _fused(front, server))
+        writer.write_graph(r, front.graph.arrays())
+    writer.write_matches(server.matches)
+    server.pose_graph.write_g2o(writer.path("pose_graph.g2o"))
+
+
+def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: bool) -> list[RobotReport]:
+    names = list(robots)
+    gt0 = robots[names[0]].gt_poses
+    reports = []
+    for r, front in fronts.items():
+        seq = robots[r]
+        fused = _fused(front, server)
+        rep = RobotReport(
+            r, len(seq), processed[r], len(seq) - processed[r], front.num_keyframes, len(front.graph),
+            fused is not None,
+        )  # fmt: skip
+        gt = seq.gt_poses
+        ok = np.isfinite(front.T_odom_cam.reshape(len(seq), -1)).all(axis=1)
+        if gt is not None and ok.sum() >= 3:
+            rep.path_length_m = float(np.linalg.norm(np.diff(gt[ok][:, :3, 3], axis=0), axis=1).sum())
+            rep.ate_odometry_m = ate(gt[ok], front.T_odom_cam[ok], align="se3")["rmse"]
+            if fused is not None:
+                okf = ok & np.isfinite(fused.reshape(len(seq), -1)).all(axis=1)
+                rep.ate_fused_aligned_m = ate(gt[okf], fused[okf], align="se3")["rmse"]
+                if gt_shared_frame and gt0 is not None:
+                    gt_shared = se3.inverse(gt0[0]) @ gt[okf]
+                    rep.ate_fused_m = ate(gt_shared, fused[okf], align="none")["rmse"]
+        reports.append(rep)
+    return reports
+
+
+def _log_frame(viz: Viz, server: MapServer, front: RobotFrontend, res: FrameResult, records) -> None:
+    r = res.robot
+    viz.set_time(r, res.frame.index, res.frame.timestamp_s)
+    T_shared_odom = server.pose_graph.T_shared_odom(r) if server.pose_graph.is_anchored(r) else None
+    T_view = res.T_odom_cam if T_shared_odom is None else T_shared_odom @ res.T_odom_cam
+    pts = se3.transform_points(T_view, res.points_cam)
+    viz.log_frame(r, T_view, res.frame.image_rgb, res.depth_m, res.label_ids, pts, res.point_labels)
+    viz.log_timings(r, res.timings_ms)
+    if res.message is not None:
+        odo_xyz = front.T_odom_cam[: res.frame.index + 1, :3, 3]
+        odo_xyz = odo_xyz[np.isfinite(odo_xyz).all(axis=1)]
+        fused = _fused(front, server)
+        fused_xyz = None
+        if fused is not None:
+            fused_xyz = fused[: res.frame.index + 1, :3, 3]
+            fused_xyz = fused_xyz[np.isfinite(fused_xyz).all(axis=1)]
+        if T_shared_odom is not None:
+            odo_xyz = se3.transform_points(T_shared_odom, odo_xyz)
+        viz.log_trajectories(r, odo_xyz, fused_xyz)
+        graph = server.graphs[r].arrays()
+        viz.log_graph(r, graph.transformed(T_shared_odom) if T_shared_odom is not None else graph)
+    _log_matches(viz, server, records)
+
+
+def _log_matches(viz: Viz, server: MapServer, records) -> None:
+    pg = server.pose_graph
+    for m in records:
+        if not m.success:
+            continue
+        if pg.is_anchored(m.robot_a) and pg.is_anchored(m.robot_b):
+            pa = se3.transform_points(pg.T_shared_odom(m.robot_a), m.inlier_positions_a)
+            pb = se3.transform_points(pg.T_shared_odom(m.robot_b), m.inlier_positions_b)
+            viz.log_matches(m.robot_a, m.robot_b, pa, pb, m.accepted, len(m.inliers))
+        level = "INFO" if m.accepted else "WARN"
+        verdict = "accepted" if m.accepted else "rejected"
+        viz.log_text(
+            f"{m.robot_a}<->{m.robot_b} ({m.query}): {len(m.inliers)} inliers, {verdict}: {m.reason}", level
+        )

@@ -1,0 +1,495 @@
+"""All Rerun logging: one method per data kind, a do-nothing logger when off, and the factory.
+
+The pipeline calls these methods; they never decide anything. Every pose is ``T_shared_X`` (4, 4)
+float64 in the SHARED world frame (robot 0's odometry frame, a camera RDF frame: x right, y down,
+z forward, metres) and every point set is already expressed in that frame. The entity tree is
+documented in ``viz/blueprint.py``.
+
+Timelines: ``frame`` (the robot's frame index), ``step`` (a global counter incremented by every
+``set_time`` call, monotonic even though robots are interleaved) and ``sensor_time`` (the frame's
+timestamp as a duration in seconds). Rerun keeps the time per thread: call ``set_time`` on the thread
+that logs.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from enum import Enum
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import rerun as rr
+
+from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.labels import CITYSCAPES_CLASSES, CITYSCAPES_COLORS_RGB, IGNORE_ID
+from shgm_slam.types import GraphArrays, Intrinsics
+from shgm_slam.viz.blueprint import (
+    LOG,
+    METRICS,
+    WORLD,
+    camera_path,
+    default_blueprint,
+    matches_path,
+    robot_path,
+    timings_path,
+)
+
+DEFAULT_CONNECT_URL = "rerun+http://127.0.0.1:9876/proxy"
+
+ROBOT_COLORS_RGB = np.array(
+    [(0, 150, 255), (255, 140, 0), (200, 60, 255), (0, 210, 200), (255, 215, 0), (255, 90, 170),
+     (140, 90, 60), (150, 150, 255)],
+    dtype=np.uint8,
+)  # fmt: skip
+"""Fixed per-robot palette (robot i gets colour i mod 8); no pure green/red (= match accepted/rejected)."""
+
+STAGE_COLORS_RGB = np.array(
+    [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
+     (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)],
+    dtype=np.uint8,
+)  # fmt: skip
+"""Palette of timing series, assigned to stages in order of first appearance."""
+
+ODOMETRY_COLOR_RGB = (150, 150, 150)
+MATCH_ACCEPTED_RGB = (0, 230, 64)
+MATCH_REJECTED_RGB = (230, 30, 30)
+
+
+class RerunMode(str, Enum):
+    """Where the recording goes: a spawned viewer, an .rrd file, a running viewer/server, or nowhere."""
+
+    SPAWN = "spawn"
+    SAVE = "save"
+    CONNECT = "connect"
+    OFF = "off"
+
+
+class LogLevel(str, Enum):
+    """Severity of a text log line (shown and filterable in the viewer's log view)."""
+
+    DEBUG = "DEBUG"
+    INFO = "INFO"
+    WARN = "WARN"
+    ERROR = "ERROR"
+
+
+def node_radius_m(sizes: np.ndarray) -> np.ndarray:
+    """Display radius of graph nodes, metres: ``0.3 + 0.2 * log1p(size / 1000)`` for (N,) sizes >= 0.
+
+    A 1 px object is 0.3 m, a 5000 px blob about 0.66 m, a 100 kpx building about 1.2 m.
+    """
+    return 0.3 + 0.2 * np.log1p(np.maximum(np.asarray(sizes, dtype=np.float64), 0.0) / 1000.0)
+
+
+class Viz(Protocol):
+    """What the pipeline logs. Implementations: ``RerunLogger`` and ``NullLogger``."""
+
+    def setup(self, robots: dict[str, Intrinsics]) -> None: ...
+
+    def set_time(self, robot: str, frame_index: int, timestamp_s: float) -> None: ...
+
+    def log_frame(
+        self,
+        robot: str,
+        T_shared_cam: np.ndarray,
+        image_rgb: np.ndarray | None,
+        depth_m: np.ndarray | None,
+        label_ids: np.ndarray | None,
+        points_shared: np.ndarray | None = None,
+        point_labels: np.ndarray | None = None,
+    ) -> None: ...
+
+    def log_trajectories(
+        self, robot: str, odometry_xyz: np.ndarray, fused_xyz: np.ndarray | None
+    ) -> None: ...
+
+    def log_graph(self, robot: str, graph: GraphArrays) -> None: ...
+
+    def log_matches(
+        self,
+        robot_a: str,
+        robot_b: str,
+        positions_a: np.ndarray,
+        positions_b: np.ndarray,
+        accepted: bool,
+        num_inliers: int | None = None,
+        score: float | None = None,
+    ) -> None: ...
+
+    def log_text(self, message: str, level: LogLevel | str = LogLevel.INFO) -> None: ...
+
+    def log_timings(self, robot: str, timings_ms: dict[str, float]) -> None: ...
+
+    def log_scalar(self, path: str, value: float) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class NullLogger:
+    """A ``Viz`` that does nothing (``--rerun off``); every call is a cheap no-op."""
+
+    def setup(self, robots: dict[str, Intrinsics]) -> None:
+        pass
+
+    def set_time(self, robot: str, frame_index: int, timestamp_s: float) -> None:
+        pass
+
+    def log_frame(
+        self,
+        robot: str,
+        T_shared_cam: np.ndarray,
+        image_rgb: np.ndarray | None,
+        depth_m: np.ndarray | None,
+        label_ids: np.ndarray | None,
+        points_shared: np.ndarray | None = None,
+        point_labels: np.ndarray | None = None,
+    ) -> None:
+        pass
+
+    def log_trajectories(self, robot: str, odometry_xyz: np.ndarray, fused_xyz: np.ndarray | None) -> None:
+        pass
+
+    def log_graph(self, robot: str, graph: GraphArrays) -> None:
+        pass
+
+    def log_matches(
+        self,
+        robot_a: str,
+        robot_b: str,
+        positions_a: np.ndarray,
+        positions_b: np.ndarray,
+        accepted: bool,
+        num_inliers: int | None = None,
+        score: float | None = None,
+    ) -> None:
+        pass
+
+    def log_text(self, message: str, level: LogLevel | str = LogLevel.INFO) -> None:
+        pass
+
+    def log_timings(self, robot: str, timings_ms: dict[str, float]) -> None:
+        pass
+
+    def log_scalar(self, path: str, value: float) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+def _xyz(name: str, points: np.ndarray) -> np.ndarray:
+    """``points`` as (N, 3) float32, or a DataError naming the argument."""
+    arr = np.asarray(points)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise DataError(f"viz: {name} must be an (N, 3) array of points, got shape {arr.shape}")
+    return arr.astype(np.float32, copy=False)
+
+
+def _pose(name: str, T: np.ndarray) -> np.ndarray:
+    arr = np.asarray(T, dtype=np.float64)
+    if arr.shape != (4, 4):
+        raise DataError(f"viz: {name} must be a (4, 4) rigid transform, got shape {arr.shape}")
+    return arr
+
+
+class RerunLogger:
+    """A ``Viz`` that writes to an explicit ``rr.RecordingStream`` (whose sink the caller attached).
+
+    Args:
+        rec: the recording stream (``make_viz`` creates it and attaches the sink).
+        robots: robot names in display order; robot i gets ``ROBOT_COLORS_RGB[i % 8]``.
+        max_cloud_points: clouds are subsampled with a fixed stride to at most this many points.
+        jpeg_quality: RGB images are JPEG-compressed at this quality (0..100) to keep recordings small.
+        image_plane_distance_m: depth of the camera frustum drawn in the 3D view, metres.
+    """
+
+    def __init__(
+        self,
+        rec: rr.RecordingStream,
+        robots: list[str],
+        *,
+        max_cloud_points: int = 20_000,
+        jpeg_quality: int = 80,
+        image_plane_distance_m: float = 2.0,
+    ) -> None:
+        self.rec = rec
+        self.robots = list(robots)
+        self.max_cloud_points = int(max_cloud_points)
+        self.jpeg_quality = int(jpeg_quality)
+        self.image_plane_distance_m = float(image_plane_distance_m)
+        self._step = 0
+        self._styled_series: set[str] = set()
+        self._stage_colors: dict[str, np.ndarray] = {}
+
+    def robot_color(self, robot: str) -> np.ndarray:
+        """(3,) uint8 RGB display colour of ``robot`` (robots not given at construction are appended)."""
+        if robot not in self.robots:
+            self.robots.append(robot)
+        return ROBOT_COLORS_RGB[self.robots.index(robot) % len(ROBOT_COLORS_RGB)]
+
+    # --- static data ------------------------------------------------------------------------------
+
+    def setup(self, robots: dict[str, Intrinsics]) -> None:
+        """Static scene: RDF world axes, Cityscapes AnnotationContext, a pinhole per robot, the blueprint.
+
+        ``robots`` maps robot name -> intrinsics of the images it will log (in display order).
+        """
+        for robot in robots:
+            self.robot_color(robot)
+        self.rec.log(WORLD, rr.ViewCoordinates.RDF, static=True)
+        infos = [
+            rr.AnnotationInfo(id=i, label=name, color=CITYSCAPES_COLORS_RGB[i])
+            for i, name in enumerate(CITYSCAPES_CLASSES)
+        ]
+        infos.append(rr.AnnotationInfo(id=IGNORE_ID, label="ignore", color=(0, 0, 0, 0)))
+        # At "/" so that every entity (3D under /world and any future 2D root) inherits it.
+        self.rec.log("/", rr.AnnotationContext(infos), static=True)
+        for robot, intr in robots.items():
+            self.rec.log(
+                camera_path(robot),
+                rr.Pinhole(
+                    image_from_camera=intr.K,
+                    resolution=[intr.width, intr.height],
+                    camera_xyz=rr.ViewCoordinates.RDF,
+                    image_plane_distance=self.image_plane_distance_m,
+                    color=self.robot_color(robot),
+                ),
+                static=True,
+            )
+        self.rec.send_blueprint(default_blueprint(self.robots))
+
+    # --- time -------------------------------------------------------------------------------------
+
+    def set_time(self, robot: str, frame_index: int, timestamp_s: float) -> None:
+        """Set ``frame`` = frame_index, ``sensor_time`` = timestamp_s (duration, s) and advance ``step``."""
+        self.rec.set_time("step", sequence=self._step)
+        self._step += 1
+        self.rec.set_time("frame", sequence=int(frame_index))
+        self.rec.set_time("sensor_time", duration=float(timestamp_s))
+
+    # --- per frame --------------------------------------------------------------------------------
+
+    def log_frame(
+        self,
+        robot: str,
+        T_shared_cam: np.ndarray,
+        image_rgb: np.ndarray | None,
+        depth_m: np.ndarray | None,
+        label_ids: np.ndarray | None,
+        points_shared: np.ndarray | None = None,
+        point_labels: np.ndarray | None = None,
+    ) -> None:
+        """One camera frame of ``robot``.
+
+        Args:
+            T_shared_cam: (4, 4) camera pose in the shared world frame.
+            image_rgb: (H, W, 3) uint8 RGB or (H, W) uint8 gray, JPEG-compressed; None to skip.
+            depth_m: (H, W) float32 metres, 0 or non-finite = invalid; None to skip.
+            label_ids: (H, W) uint8 Cityscapes train ids (255 = ignore, drawn transparent); None to skip.
+            points_shared: (N, 3) points in the shared frame, subsampled to ``max_cloud_points``.
+            point_labels: (N,) train ids of ``points_shared`` (colours via the AnnotationContext).
+        """
+        T = _pose("T_shared_cam", T_shared_cam)
+        cam = camera_path(robot)
+        self.rec.log(cam, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+        if image_rgb is not None:
+            rgb = rr.Image(np.asarray(image_rgb)).compress(jpeg_quality=self.jpeg_quality)
+            self.rec.log(f"{cam}/rgb", rgb)
+        if depth_m is not None:
+            depth = np.asarray(depth_m, dtype=np.float32)
+            if not np.isfinite(depth).all():
+                depth = np.where(np.isfinite(depth), depth, np.float32(0.0))
+            self.rec.log(f"{cam}/depth", rr.DepthImage(depth, meter=1.0, colormap="turbo"))
+        if label_ids is not None:
+            self.rec.log(f"{cam}/seg", rr.SegmentationImage(np.asarray(label_ids, dtype=np.uint8)))
+        if points_shared is not None:
+            self._log_cloud(robot, _xyz("points_shared", points_shared), point_labels)
+
+    def _log_cloud(self, robot: str, points: np.ndarray, labels: np.ndarray | None) -> None:
+        stride = max(1, -(-points.shape[0] // self.max_cloud_points))
+        class_ids = None
+        if labels is not None:
+            labels = np.asarray(labels)
+            if labels.shape != (points.shape[0],):
+                raise DataError(f"viz: point_labels must have shape ({points.shape[0]},), got {labels.shape}")
+            class_ids = labels[::stride].astype(np.uint16, copy=False)
+        self.rec.log(
+            f"{robot_path(robot)}/cloud",
+            rr.Points3D(points[::stride], class_ids=class_ids, radii=rr.components.Radius.ui_points(1.5)),
+        )
+
+    def log_trajectories(self, robot: str, odometry_xyz: np.ndarray, fused_xyz: np.ndarray | None) -> None:
+        """The robot's whole trajectory so far, both in the shared frame (re-logged: fused poses change).
+
+        ``odometry_xyz`` (N, 3) odometry-only camera positions: thin grey line. ``fused_xyz`` (M, 3)
+        back-end (corrected) positions: thick line in the robot's colour; None to skip. Each call
+        stores the whole polyline (12 bytes per point), so call it per keyframe rather than per frame
+        on long sequences.
+        """
+        base = f"{robot_path(robot)}/trajectory"
+        odom = _xyz("odometry_xyz", odometry_xyz)
+        self.rec.log(
+            f"{base}/odometry",
+            rr.LineStrips3D([odom], colors=ODOMETRY_COLOR_RGB, radii=rr.components.Radius.ui_points(1.0)),
+        )
+        if fused_xyz is not None:
+            fused = _xyz("fused_xyz", fused_xyz)
+            self.rec.log(
+                f"{base}/fused",
+                rr.LineStrips3D(
+                    [fused], colors=self.robot_color(robot), radii=rr.components.Radius.ui_points(3.0)
+                ),
+            )
+
+    def log_graph(self, robot: str, graph: GraphArrays) -> None:
+        """The robot's semantic graph, positions in the shared frame (``graph.transformed(T_shared_world)``).
+
+        Nodes: spheres coloured by class, radius ``node_radius_m(size)`` metres, node ids attached for
+        hovering. Edges: thin lines in the robot's colour, one (2, 3) strip per edge.
+        """
+        base = f"{robot_path(robot)}/graph"
+        positions = _xyz("graph.positions_xyz", graph.positions_xyz)
+        self.rec.log(
+            f"{base}/nodes",
+            rr.Points3D(
+                positions,
+                class_ids=np.asarray(graph.label_ids).astype(np.uint16),
+                radii=node_radius_m(graph.sizes).astype(np.float32),
+                show_labels=False,
+            ),
+            rr.AnyValues(node_id=np.asarray(graph.node_ids, dtype=np.int64)),
+        )
+        edges = np.asarray(graph.edges, dtype=np.int64).reshape(-1, 2)
+        color = np.append(self.robot_color(robot), 140).astype(np.uint8)
+        self.rec.log(
+            f"{base}/edges",
+            rr.LineStrips3D(positions[edges], colors=color, radii=rr.components.Radius.ui_points(0.75)),
+        )
+
+    def log_matches(
+        self,
+        robot_a: str,
+        robot_b: str,
+        positions_a: np.ndarray,
+        positions_b: np.ndarray,
+        accepted: bool,
+        num_inliers: int | None = None,
+        score: float | None = None,
+    ) -> None:
+        """The latest match attempt between two robots: lines between matched node positions (shared frame).
+
+        ``positions_a``/``positions_b`` are (K, 3) paired positions; ``num_inliers``/``score`` only
+        annotate. Accepted attempts are drawn green at ``.../accepted`` and stay until the next accepted
+        one; rejected attempts are drawn red at ``.../rejected`` and are cleared by the next accepted
+        attempt of the pair. The matched nodes are also drawn as dots (``.../nodes``) so that matches
+        stay visible when both ends coincide (after the robots are aligned).
+        """
+        pa, pb = _xyz("positions_a", positions_a), _xyz("positions_b", positions_b)
+        if pa.shape != pb.shape:
+            raise DataError(f"viz: positions_a {pa.shape} and positions_b {pb.shape} must pair up")
+        base = matches_path(robot_a, robot_b)
+        parts = [f"{robot_a} ↔ {robot_b}", "accepted" if accepted else "rejected"]
+        if num_inliers is not None:
+            parts.append(f"{num_inliers} inliers")
+        if score is not None:
+            parts.append(f"score {score:.2f}")
+        label = ", ".join(parts)
+        kind = "accepted" if accepted else "rejected"
+        if accepted:
+            self.rec.log(f"{base}/rejected", rr.Clear(recursive=True))
+        color = MATCH_ACCEPTED_RGB if accepted else MATCH_REJECTED_RGB
+        self.rec.log(
+            f"{base}/{kind}/nodes",
+            rr.Points3D(np.concatenate([pa, pb]), colors=color, radii=rr.components.Radius.ui_points(4.0)),
+        )
+        self.rec.log(
+            f"{base}/{kind}",
+            rr.LineStrips3D(
+                np.stack([pa, pb], axis=1),
+                colors=color,
+                radii=rr.components.Radius.ui_points(1.5),
+                labels=label if pa.shape[0] else None,
+            ),
+            rr.AnyValues(
+                accepted=bool(accepted),
+                num_inliers=-1 if num_inliers is None else int(num_inliers),
+                score=np.nan if score is None else float(score),
+            ),
+        )
+
+    # --- text and series --------------------------------------------------------------------------
+
+    def log_text(self, message: str, level: LogLevel | str = LogLevel.INFO) -> None:
+        """One line in the viewer's log view (``/log``)."""
+        self.rec.log(LOG, rr.TextLog(message, level=LogLevel(level).value))
+
+    def log_timings(self, robot: str, timings_ms: dict[str, float]) -> None:
+        """Per-stage durations (ms) of the current frame as series ``/timings/<robot>/<stage>``."""
+        for stage, ms in timings_ms.items():
+            path = timings_path(robot, stage)
+            if path not in self._styled_series:
+                color = self._stage_colors.setdefault(
+                    stage, STAGE_COLORS_RGB[len(self._stage_colors) % len(STAGE_COLORS_RGB)]
+                )
+                self.rec.log(path, rr.SeriesLines(names=f"{robot}/{stage}", colors=color), static=True)
+                self._styled_series.add(path)
+            self.rec.log(path, rr.Scalars(float(ms)))
+
+    def log_scalar(self, path: str, value: float) -> None:
+        """A scalar series; a relative ``path`` goes under ``/metrics`` (``"ate_m"``: ``/metrics/ate_m``)."""
+        full = path if path.startswith("/") else f"{METRICS}/{path}"
+        self.rec.log(full, rr.Scalars(float(value)))
+
+    def close(self) -> None:
+        """Flush everything to the sink and disconnect (the stream accepts no more data)."""
+        self.rec.flush()
+        self.rec.disconnect()
+
+
+def _has_display() -> bool:
+    if sys.platform.startswith("linux"):
+        return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    return True
+
+
+def make_viz(
+    mode: RerunMode,
+    *,
+    robots: list[str],
+    app_id: str = "shgm_slam",
+    recording_id: str | None = None,
+    save_path: Path | str | None = None,
+    connect_url: str | None = None,
+) -> Viz:
+    """The ``Viz`` for ``mode``: a ``RerunLogger`` on a fresh stream with its sink, or a ``NullLogger``.
+
+    Processes that log the same run (one per robot, say) must share ``app_id`` and ``recording_id``.
+    ``save_path`` is required for SAVE (parent folders are created); ``connect_url`` defaults to a
+    viewer on this machine (``rerun+http://127.0.0.1:9876/proxy``) for CONNECT.
+    """
+    mode = RerunMode(mode)
+    if mode is RerunMode.OFF:
+        return NullLogger()
+    rec = rr.RecordingStream(app_id, recording_id=recording_id)
+    blueprint = default_blueprint(list(robots))
+    if mode is RerunMode.SAVE:
+        if save_path is None:
+            raise ConfigError("--rerun save needs an output file: pass --rerun-file run.rrd")
+        path = Path(save_path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        rec.save(path, default_blueprint=blueprint)
+    elif mode is RerunMode.CONNECT:
+        rec.connect_grpc(connect_url or DEFAULT_CONNECT_URL, default_blueprint=blueprint)
+    elif mode is RerunMode.SPAWN:
+        if not _has_display():
+            raise ConfigError(
+                "--rerun spawn needs a display (DISPLAY/WAYLAND_DISPLAY are unset): use --rerun save "
+                "and open the .rrd with `rerun run.rrd` on a machine with a screen"
+            )
+        try:
+            rec.spawn(default_blueprint=blueprint)
+        except (OSError, RuntimeError) as exc:
+            raise ConfigError(f"could not spawn the Rerun viewer ({exc}): use --rerun save instead") from exc
+    return RerunLogger(rec, robots)
