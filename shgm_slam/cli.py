@@ -15,6 +15,7 @@ import typer
 from rich.console import Console
 
 from shgm_slam import __version__
+from shgm_slam.config import DescriptorKind, OutlierMode
 from shgm_slam.errors import ShgmError
 
 console = Console()
@@ -119,6 +120,64 @@ def graph(
         f"{seq.name}: {len(sg.keyframe_ids)} keyframes -> {len(sg)} nodes, {sg.num_edges} edges "
         f"(connectivity {cfg.graph.connectivity_m:g} m); wrote [bold]{path}[/]"
     )
+
+
+@app.command("match")
+@handle_errors
+def match(
+    graph_a: Annotated[Path, typer.Argument(help="graph A (shgm-graph/1 JSON): the reference frame")],
+    graph_b: Annotated[Path, typer.Argument(help="graph B: the result maps its coordinates into A's frame")],
+    descriptor: Annotated[
+        DescriptorKind | None, typer.Option("--descriptor", help="node descriptor [config: histogram]")
+    ] = None,
+    mode: Annotated[
+        OutlierMode | None, typer.Option("--mode", help="outlier rejection [config: clique]")
+    ] = None,
+    json_output: Annotated[bool, typer.Option("--json", help="print the match result as JSON")] = False,
+    config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
+) -> None:
+    """Match two semantic graphs: T_a_b (B -> A), the inlier node pairs and the stage timings."""
+    import json
+
+    from shgm_slam.config import load_config
+    from shgm_slam.io.graph_json import read_graph
+    from shgm_slam.matching import match_graphs
+
+    cfg = load_config(config)
+    descriptor_cfg = cfg.descriptor.model_copy(update={"kind": descriptor}) if descriptor else cfg.descriptor
+    matching_cfg = cfg.matching.model_copy(update={"outlier_mode": mode}) if mode else cfg.matching
+    a = read_graph(graph_a, connectivity_m=cfg.graph.connectivity_m)
+    b = read_graph(graph_b, connectivity_m=cfg.graph.connectivity_m)
+    result = match_graphs(a, b, descriptor_cfg, matching_cfg)
+    if json_output:
+        typer.echo(json.dumps(result.to_json_dict()))
+        return
+    _render_match(result, len(a), len(b), descriptor_cfg.kind, matching_cfg.outlier_mode)
+
+
+def _render_match(result, nodes_a: int, nodes_b: int, kind: DescriptorKind, mode: OutlierMode) -> None:
+    """Print a match result as a short rich summary."""
+    import numpy as np
+    from rich.table import Table
+
+    from shgm_slam.geometry.se3 import rotation_angle
+
+    verdict = "[bold green]match[/]" if result.success else f"[bold red]no match[/] ({result.reason})"
+    console.print(f"{verdict}: {nodes_a} and {nodes_b} nodes, {kind.value} descriptors, {mode.value}")
+    t = Table(show_header=False, box=None)
+    t.add_column(style="bold")
+    t.add_column()
+    t.add_row("candidates", str(result.candidates))
+    rmse = f"{result.rmse_m:.2f} m" if np.isfinite(result.rmse_m) else "-"
+    t.add_row("inliers", f"{result.num_inliers} (rmse {rmse}, spread {result.spread_m:.1f} m, "
+                         f"support {result.support} vs rival {result.rival_support})")  # fmt: skip
+    if result.T_a_b is not None:
+        T = result.T_a_b
+        t.add_row("T_a_b", f"translation {np.round(T[:3, 3], 2).tolist()} m, "
+                           f"rotation {np.degrees(rotation_angle(T)):.1f} deg")  # fmt: skip
+        t.add_row("", "\n".join("  ".join(f"{v:9.4f}" for v in row) for row in T))
+    t.add_row("ms", ", ".join(f"{k} {v:.2f}" for k, v in result.timings_ms.items()))
+    console.print(t)
 
 
 # --- run / demo (pipeline.py) -----------------------------------------------------------------------
@@ -254,4 +313,45 @@ def demo(
         console.print(f"open the recording with: [bold].venv/bin/rerun {out / 'run.rrd'}[/]")
 
 # --- check-model (perception/) ----------------------------------------------------------------------
+@app.command("check-model")
+@handle_errors
+def check_model_command(
+    model: Annotated[Path, typer.Argument(help="the .onnx model")],
+    card: Annotated[Path | None, typer.Option("--card", help="card YAML (default: beside model)")] = None,
+    image: Annotated[Path | None, typer.Option("--image", help="image (default: synthetic)")] = None,
+    preview: Annotated[Path | None, typer.Option("--preview", help="write image | output PNG")] = None,
+    runs: Annotated[int, typer.Option(min=1, help="timed runs (median reported)")] = 5,
+    threads: Annotated[int, typer.Option(min=0, help="onnxruntime intra-op threads (0 = all cores)")] = 2,
+) -> None:
+    """Validate a model card against its ONNX model, run it once, show shapes, ranges, speed and a preview."""
+    from rich.table import Table
+
+    from shgm_slam.perception.preview import check_model
+
+    report = check_model(model, card, image, preview, runs=runs, threads=threads)
+    table = Table(title=f"{report.model_path.name}: {report.task.value} model", show_header=False)
+    table.add_column(style="bold")
+    table.add_column()
+    table.add_row("card", str(report.card_path))
+    table.add_row("providers", ", ".join(report.providers))
+    table.add_row("input", f"{report.input_name} {list(report.input_shape)} {report.input_type}")
+    table.add_row("output", f"{report.output_name} {list(report.output_shape)} {report.output_type}")
+    table.add_row("image", f"{report.image_source} ({report.image_wh[0]}x{report.image_wh[1]})")
+    table.add_row("ran on", f"input {list(report.fed_shape)} -> output {list(report.raw_output_shape)}")
+    unit = " m" if report.label_fractions == {} else " (train ids)"
+    table.add_row("values", f"{report.value_min:.3g} .. {report.value_max:.3g}{unit}, "
+                            f"valid {100 * report.valid_fraction:.1f} %")
+    if report.label_fractions:
+        top = list(report.label_fractions.items())[:8]
+        table.add_row("labels", ", ".join(f"{name} {100 * f:.1f} %" for name, f in top))
+    t = report.timings_ms
+    table.add_row("ms/frame", f"{t['total_ms']:.1f} (pre {t['preprocess_ms']:.1f}, model "
+                              f"{t['inference_ms']:.1f}, post {t['postprocess_ms']:.1f}; median of {runs})")
+    for note in report.notes:
+        table.add_row("note", note)
+    if report.preview_path is not None:
+        table.add_row("preview", str(report.preview_path))
+    console.print(table)
+
+
 # --- bench (bench.py) -------------------------------------------------------------------------------

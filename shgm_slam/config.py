@@ -75,7 +75,7 @@ class MatchingConfig(_Stage):
     score_threshold: float = Field(0.5, ge=0, le=1)
     same_label_only: bool = True
     candidate_mode: CandidateMode = CandidateMode.TOP_K
-    top_k: int = Field(5, ge=1)
+    top_k: int = Field(3, ge=1)
     outlier_mode: OutlierMode = OutlierMode.CLIQUE
     ransac_iterations: int = Field(1000, ge=1)
     inlier_threshold_m: float = Field(10.0, gt=0, description="RANSAC inlier distance (authors: 10 m)")
@@ -86,6 +86,18 @@ class MatchingConfig(_Stage):
     weighted_pose: bool = Field(True, description="Eq. 2 weights from object size")
     refine_iterations: int = Field(3, ge=0)
     seed: int = 0
+    max_candidates: int = Field(
+        600, ge=3, description="clique mode: search the clique among this many best-scoring candidates"
+    )
+    min_spread_m: float = Field(
+        5.0, ge=0, description="success needs inliers spanning this much (2nd principal axis; 4-DoF: 1st)"
+    )
+    min_support_ratio: float = Field(
+        2.0, ge=1.0, description="success needs this many times the support of the best rival hypothesis"
+    )
+    up_axis: tuple[float, float, float] = Field(
+        (0.0, -1.0, 0.0), description="vertical axis of the world frames (KITTI camera frame: -y is up)"
+    )
 
 
 class OdometryKind(str, Enum):

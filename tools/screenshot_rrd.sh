@@ -6,8 +6,10 @@
 # The viewer loads the recording with its default blueprint, draws the end of the timeline and quits.
 # It renders on the CPU (Mesa llvmpipe through Vulkan) under a virtual X server; needs
 #   apt-get install -y xvfb mesa-vulkan-drivers libvulkan1
+# The viewer renders at 2x (3200x1800 for 1600x900, ~2.7 MB); the PNG is downscaled to the window size
+# (~0.5 MB) with the repo's Python + OpenCV unless SCREENSHOT_FULL_RES=1.
 # Environment: RERUN (viewer binary; default .venv/bin/rerun, else rerun on PATH),
-#              SCREENSHOT_TIMEOUT_S (default 180).
+#              PYTHON (default .venv/bin/python), SCREENSHOT_TIMEOUT_S (default 180), SCREENSHOT_FULL_RES.
 set -euo pipefail
 
 usage() { echo "usage: $0 IN.rrd OUT.png [WIDTHxHEIGHT]" >&2; exit 2; }
@@ -29,6 +31,15 @@ fi
 command -v xvfb-run >/dev/null || {
   echo "error: xvfb-run not found: apt-get install -y xvfb mesa-vulkan-drivers libvulkan1" >&2; exit 2; }
 
+verify_log=$(mktemp /tmp/screenshot_rrd_verify.XXXXXX.log)
+if ! "$rerun_bin" rrd verify "$in_rrd" >"$verify_log" 2>&1; then
+  echo "error: $in_rrd is not a readable Rerun recording (rerun rrd verify):" >&2
+  tail -n 5 "$verify_log" >&2
+  rm -f "$verify_log"
+  exit 1
+fi
+rm -f "$verify_log"
+
 width=${size%x*}
 height=${size#*x}
 mkdir -p "$(dirname "$out_png")"
@@ -49,4 +60,19 @@ if [[ ! -s $out_abs ]]; then
   exit 1
 fi
 rm -f "$log"
+
+python_bin=${PYTHON:-$repo_root/.venv/bin/python}
+if [[ ${SCREENSHOT_FULL_RES:-0} != 1 && -x $python_bin ]]; then
+  "$python_bin" - "$out_abs" "$width" "$height" <<'PY'
+import sys
+
+import cv2
+
+path, width, height = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+if image is not None and image.shape[1] > width:
+    image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+    cv2.imwrite(path, image, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+PY
+fi
 echo "$out_abs"

@@ -58,7 +58,9 @@ def semantic_histogram(
     return _non_backtracking_histogram(A, labels, steps, num_classes)
 
 
-def with_own_label(histogram: sp.csr_matrix, label_ids: np.ndarray, num_classes: int = NUM_CLASSES) -> sp.csr_matrix:
+def with_own_label(
+    histogram: sp.csr_matrix, label_ids: np.ndarray, num_classes: int = NUM_CLASSES
+) -> sp.csr_matrix:
     """The paper's ``C**L`` layout: (N, C**(L-1)) histograms moved into the block of each node's label."""
     return prepend_label(histogram, np.asarray(label_ids, dtype=np.int64), num_classes)
 

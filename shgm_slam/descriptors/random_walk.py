@@ -72,7 +72,7 @@ def random_walk_descriptors(
     seed: int = 0,
     num_classes: int = NUM_CLASSES,
 ) -> sp.csr_matrix:
-    """X-view descriptors: (N, C**walk_length) float64 CSR counts of each node's walk codes (rows sum to num_walks)."""
+    """X-view descriptors: (N, C**walk_length) float64 CSR walk-code counts (each row sums to num_walks)."""
     labels = check_labels(graph, num_classes)
     n = len(graph)
     codes = encode_walks(random_walks(graph, num_walks, walk_length, seed), labels, num_classes)

@@ -21,15 +21,17 @@ import numpy as np
 
 from shgm_slam.config import ExtractionConfig
 from shgm_slam.errors import ConfigError, DataError
-from shgm_slam.geometry.camera import backproject
 from shgm_slam.geometry.se3 import transform_points
 from shgm_slam.types import Frame, Intrinsics
 
 EXTENT_PERCENTILES = (5.0, 95.0)
 """Robust object extent: the spread between these percentiles of its 3D points, per camera axis."""
 
-MAX_EXTENT_SAMPLES = 20000
-"""Extent percentiles use at most about this many evenly strided object points per frame."""
+MAX_EXTENT_SAMPLES = 16000
+"""Extent percentiles use a pixel grid of about this many samples per frame..."""
+
+MIN_EXTENT_SAMPLES = 32
+"""...and every pixel of objects that the grid hits fewer times than this."""
 
 
 @dataclass
@@ -93,32 +95,38 @@ def _check_inputs(depth_m: np.ndarray, label_ids: np.ndarray, intrinsics: Intrin
 
 def _components(
     depth_m: np.ndarray, labels_u8: np.ndarray, valid: np.ndarray, depth_step_m: float
-) -> tuple[int, np.ndarray]:
+) -> tuple[int, np.ndarray, np.ndarray]:
     """Connected components of the valid, same-label, depth-continuous 4-neighbour pixel graph.
 
-    Returns the number of component ids (0 = background, invalid pixels) and the (H, W) int32 ids.
+    Returns the number of component ids (0 = background, invalid pixels), the (H, W) int32 ids and
+    the (H, W) float32 depth with NaN at invalid pixels.
     """
     H, W = depth_m.shape
-    d = np.where(valid, depth_m, np.float32(0.0))
-    link_h = valid[:, :-1] & valid[:, 1:] & (labels_u8[:, :-1] == labels_u8[:, 1:])
-    link_h &= np.abs(d[:, 1:] - d[:, :-1]) < depth_step_m
-    link_v = valid[:-1, :] & valid[1:, :] & (labels_u8[:-1, :] == labels_u8[1:, :])
-    link_v &= np.abs(d[1:, :] - d[:-1, :]) < depth_step_m
+    depth_nan = np.where(valid, depth_m, np.float32(np.nan))  # NaN never passes the depth-step test
+    link_h = cv2.compare(labels_u8[:, :-1], labels_u8[:, 1:], cv2.CMP_EQ)
+    cv2.bitwise_and(link_h, cv2.compare(cv2.absdiff(depth_nan[:, :-1], depth_nan[:, 1:]), depth_step_m,
+                                        cv2.CMP_LT), dst=link_h)  # fmt: skip
+    link_v = cv2.compare(labels_u8[:-1], labels_u8[1:], cv2.CMP_EQ)
+    cv2.bitwise_and(link_v, cv2.compare(cv2.absdiff(depth_nan[:-1], depth_nan[1:]), depth_step_m,
+                                        cv2.CMP_LT), dst=link_v)  # fmt: skip
     grid = np.zeros((2 * H - 1, 2 * W - 1), dtype=np.uint8)
     grid[::2, ::2] = valid
     grid[::2, 1::2] = link_h
     grid[1::2, ::2] = link_v
     n, comp_grid = cv2.connectedComponentsWithAlgorithm(grid, 4, cv2.CV_32S, cv2.CCL_WU)
-    return int(n), comp_grid[::2, ::2]
+    return int(n), comp_grid[::2, ::2], depth_nan
 
 
-def _group_percentiles(groups: np.ndarray, values: np.ndarray, num_groups: int, q: float) -> np.ndarray:
-    """Per-group nearest-rank percentile ``q`` (0..100) of ``values`` (groups 0..num_groups-1, non-empty)."""
-    order = np.lexsort((values, groups))
+def _group_spread(groups: np.ndarray, values: np.ndarray, num_groups: int) -> np.ndarray:
+    """Per-group spread between the EXTENT_PERCENTILES (nearest rank) of ``values``; groups non-empty."""
+    span = float(values.max() - values.min()) + 1.0 if values.size else 1.0
+    key = np.sort(groups * span + (values - values.min()))  # one sort orders by group, then value
+    sorted_values = key - np.sort(groups) * span + values.min()
     counts = np.bincount(groups, minlength=num_groups)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    idx = starts + np.rint(q / 100.0 * (counts - 1)).astype(np.int64)
-    return values[order][idx]
+    lo = sorted_values[starts + np.rint(EXTENT_PERCENTILES[0] / 100.0 * (counts - 1)).astype(np.int64)]
+    hi = sorted_values[starts + np.rint(EXTENT_PERCENTILES[1] / 100.0 * (counts - 1)).astype(np.int64)]
+    return hi - lo
 
 
 def extract_objects(
@@ -166,47 +174,57 @@ def extract_objects(
         valid = np.isfinite(depth) & (depth > max(min_depth_m, 0.0)) & (depth <= max_depth_m)
     valid &= keep_label[lab]
 
-    n_comp, comp = _components(depth, lab, valid, depth_step_m)
-    counts = np.bincount(comp.ravel(), minlength=n_comp)
+    n_comp, comp, depth_nan = _components(depth, lab, valid, depth_step_m)
+    comp_flat = comp.ravel().astype(np.intp)
+    counts = np.bincount(comp_flat, minlength=n_comp)
     keep = counts >= min_blob_pixels(min_blob_fraction, W, H)
     keep[0] = False
     kept_ids = np.flatnonzero(keep)
     if kept_ids.size == 0:
         return ObjectObservations.empty()
-
-    # Compact ids 0..M-1 for the kept components; back-project only their pixels.
-    compact = np.full(n_comp, -1, dtype=np.int64)
-    compact[kept_ids] = np.arange(kept_ids.size)
-    obj_of_pixel = compact[comp.ravel()]
-    points_cam, pixel_index = backproject(
-        np.where(obj_of_pixel.reshape(H, W) >= 0, depth, np.float32(0.0)), intrinsics,
-        min_depth_m=min_depth_m, max_depth_m=max_depth_m,
-    )  # fmt: skip
-    obj = obj_of_pixel[pixel_index]
     M = kept_ids.size
-    n_points = np.bincount(obj, minlength=M).astype(np.float64)
-    centroids_cam = np.stack([np.bincount(obj, points_cam[:, k], minlength=M) for k in range(3)], 1)
-    centroids_cam /= n_points[:, None]
 
-    step = max(1, obj.size // MAX_EXTENT_SAMPLES)
-    o_s, p_s = obj[::step], points_cam[::step]
-    extents = np.zeros((M, 3))
-    if np.bincount(o_s, minlength=M).min() > 0:
-        for k in range(3):
-            lo = _group_percentiles(o_s, p_s[:, k], M, EXTENT_PERCENTILES[0])
-            hi = _group_percentiles(o_s, p_s[:, k], M, EXTENT_PERCENTILES[1])
-            extents[:, k] = hi - lo
-    else:  # some object lost all samples to the stride: use every point
-        for k in range(3):
-            lo = _group_percentiles(obj, points_cam[:, k], M, EXTENT_PERCENTILES[0])
-            hi = _group_percentiles(obj, points_cam[:, k], M, EXTENT_PERCENTILES[1])
-            extents[:, k] = hi - lo
+    # Centroids = means of back-projected pixels, from per-component sums of z, u*z, v*z (bin 0 = NaN).
+    z_sum = np.bincount(comp_flat, depth_nan.ravel(), minlength=n_comp)[kept_ids]
+    uz_sum = np.bincount(comp_flat, (depth_nan * np.arange(W, dtype=np.float32)).ravel(), n_comp)[kept_ids]
+    vz_sum = np.bincount(comp_flat, (depth_nan * np.arange(H, dtype=np.float32)[:, None]).ravel(), n_comp)
+    n_px = counts[kept_ids].astype(np.float64)
+    z_mean = z_sum / n_px
+    centroids_cam = np.stack(
+        [
+            (uz_sum / n_px - intrinsics.cx * z_mean) / intrinsics.fx,
+            (vz_sum[kept_ids] / n_px - intrinsics.cy * z_mean) / intrinsics.fy,
+            z_mean,
+        ],
+        axis=1,
+    )
 
-    label_of_comp = np.zeros(n_comp, dtype=np.int64)
-    label_of_comp[comp.ravel()] = lab.ravel()
+    # Labels and robust extents from a strided pixel sample (every pixel of objects it barely hits).
+    compact = np.full(n_comp, -1, dtype=np.int64)
+    compact[kept_ids] = np.arange(M)
+    stride = max(1, int(np.sqrt(H * W / MAX_EXTENT_SAMPLES)))
+    v, u = np.mgrid[0:H:stride, 0:W:stride]
+    obj = compact[comp[v, u]]
+    sparse = np.bincount(obj[obj >= 0], minlength=M) < MIN_EXTENT_SAMPLES
+    if sparse.any():
+        add_v, add_u = np.nonzero(np.isin(comp, kept_ids[sparse]))
+        drop = (obj >= 0) & sparse[obj]
+        v, u = np.concatenate([v[~drop], add_v]), np.concatenate([u[~drop], add_u])
+    else:
+        v, u = v.ravel(), u.ravel()
+    obj = compact[comp[v, u]]
+    hit = obj >= 0
+    v, u, obj = v[hit], u[hit], obj[hit]
+    z = depth_nan[v, u].astype(np.float64)
+    x, y = (u - intrinsics.cx) * z / intrinsics.fx, (v - intrinsics.cy) * z / intrinsics.fy
+    points = np.stack([x, y, z], axis=1)
+    extents = np.stack([_group_spread(obj, points[:, k], M) for k in range(3)], axis=1)
+    label_of_obj = np.zeros(M, dtype=np.int64)
+    label_of_obj[obj] = lab[v, u]
+
     T = np.eye(4) if T_world_cam is None else np.asarray(T_world_cam, dtype=np.float64)
     return ObjectObservations(
-        label_ids=label_of_comp[kept_ids],
+        label_ids=label_of_obj,
         centroids_cam=centroids_cam,
         centroids_world=transform_points(T, centroids_cam),
         pixel_counts=counts[kept_ids].astype(np.int64),

@@ -29,7 +29,20 @@ from shgm_slam.geometry.se3 import inverse
 from shgm_slam.graph.extraction import ObjectObservations
 from shgm_slam.types import GraphArrays
 
+_CELL_BITS = 21  # cell coordinates packed into one int64 key: +-2^20 cells per axis
 _CELL_OFFSETS = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing="ij"), -1).reshape(-1, 3)
+_NOT_IN_GRID = -1
+
+
+def _cell_keys(cells: np.ndarray) -> np.ndarray:
+    """Pack (..., 3) integer cell coordinates into (...) int64 keys (>= 0)."""
+    c = cells + (1 << (_CELL_BITS - 1))
+    return (c[..., 0] << (2 * _CELL_BITS)) | (c[..., 1] << _CELL_BITS) | c[..., 2]
+
+
+def _edge_keys(a: np.ndarray, b: np.ndarray) -> list[int]:
+    """Edge keys ``min << 32 | max`` of row pairs (a, b)."""
+    return ((np.minimum(a, b) << 32) | np.maximum(a, b)).tolist()
 
 
 def edges_within_radius(positions_xyz: np.ndarray, radius_m: float) -> np.ndarray:
@@ -175,7 +188,7 @@ class SemanticGraph:
         self._pos_world = np.zeros((0, 3))
         self._sizes = np.zeros(0)
         self._num_obs = np.zeros(0, np.int64)
-        self._cells = np.zeros((0, 3), np.int64)
+        self._cell_key = np.zeros(0, np.int64)  # grid cell key of each node, _NOT_IN_GRID before insertion
         self._row_of_id: dict[int, int] = {}
         # keyframes
         self._kf_slot: dict[int, int] = {}
@@ -185,9 +198,11 @@ class SemanticGraph:
         self._obs_rows: list[np.ndarray] = []
         self._obs_slots: list[np.ndarray] = []
         # spatial hash and edges
-        self._grid: dict[tuple[int, int, int], set[int]] = {}
-        self._adj: list[set[int]] = []
-        self._edge_keys: set[int] = set()
+        self._grid: dict[int, set[int]] = {}
+        self._edge_keys: set[int] = set()  # row_i << 32 | row_j, i < j
+        self._edges_sorted = np.zeros(0, np.int64)  # the edge keys at the last ``arrays()``, sorted...
+        self._edges_added: set[int] = set()  # ...and the net changes since then
+        self._edges_removed: set[int] = set()
         self._arrays_cache: GraphArrays | None = None
 
     # ------------------------------------------------------------------ queries
@@ -231,7 +246,7 @@ class SemanticGraph:
         """The whole graph as arrays (positions in the world frame, edges as row indices i < j, sorted)."""
         if self._arrays_cache is None:
             n = self._n
-            keys = np.sort(np.fromiter(self._edge_keys, dtype=np.int64, count=len(self._edge_keys)))
+            keys = self._sync_sorted_edges()
             edges = np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1).reshape(-1, 2)
             self._arrays_cache = GraphArrays(
                 self._node_ids[:n].copy(), self._labels[:n].copy(), self._pos_world[:n].copy(),
@@ -286,17 +301,17 @@ class SemanticGraph:
 
         # 2. the rest become new nodes; same-label objects of this keyframe within the radius share one
         fresh = np.flatnonzero(target < 0)
-        fresh = fresh[np.argsort(-pix[fresh], kind="stable")]
-        new_rows: list[int] = []
-        for i in fresh:  # few objects per keyframe
-            for r in new_rows:
-                first = int(np.flatnonzero(target == r)[0])
-                if labels[first] == labels[i] and np.linalg.norm(p_kf[first] - p_kf[i]) < self.merge_radius_m:
-                    target[i] = r
-                    break
+        fresh = fresh[np.argsort(-pix[fresh], kind="stable")]  # biggest objects found nodes first
+        d = np.linalg.norm(p_kf[fresh][:, None] - p_kf[fresh][None], axis=2)
+        close = ((d < self.merge_radius_m) & (labels[fresh][:, None] == labels[fresh][None])).tolist()
+        leaders: list[int] = []  # positions in ``fresh`` of the objects that created a node
+        for a in range(fresh.size):  # greedy, in Python: a keyframe has few objects
+            leader = next((b for b in leaders if close[a][b]), None)
+            if leader is None:
+                leaders.append(a)
+                target[fresh[a]] = self._n + len(leaders) - 1
             else:
-                target[i] = self._n + len(new_rows)
-                new_rows.append(int(target[i]))
+                target[fresh[a]] = target[fresh[leader]]
 
         # 3. running means in each node's anchor frame
         rows, inv = np.unique(target, return_inverse=True)
@@ -414,7 +429,7 @@ class SemanticGraph:
 
         self._node_ids, self._labels = grow(self._node_ids), grow(self._labels)
         self._anchor_slot, self._pos_kf = grow(self._anchor_slot), grow(self._pos_kf)
-        self._pos_world, self._cells = grow(self._pos_world), grow(self._cells)
+        self._pos_world, self._cell_key = grow(self._pos_world), grow(self._cell_key)
         self._sizes, self._num_obs = grow(self._sizes), grow(self._num_obs)
 
     def _upsert_row(self, s: NodeState) -> int:
@@ -426,8 +441,7 @@ class SemanticGraph:
             self._n += 1
             self._row_of_id[s.node_id] = r
             self._node_ids[r] = s.node_id
-            self._adj.append(set())
-            self._cells[r] = np.iinfo(np.int64).min  # not in the grid yet
+            self._cell_key[r] = _NOT_IN_GRID
             self._next_id = max(self._next_id, s.node_id + 1)
         self._labels[r] = s.label_id
         self._anchor_slot[r] = self._kf_slot[s.anchor_kf]
@@ -443,58 +457,86 @@ class SemanticGraph:
     def _candidate_rows(self, points_world: np.ndarray) -> np.ndarray:
         """Rows of grid nodes in the 3x3x3 cells around each point (superset of all within one cell size)."""
         cells = np.floor(points_world / self._cell_m).astype(np.int64)
-        keys = np.unique((cells[:, None, :] + _CELL_OFFSETS[None]).reshape(-1, 3), axis=0)
-        found = [self._grid[k] for k in map(tuple, keys.tolist()) if k in self._grid]
+        keys = np.unique(_cell_keys(cells[:, None, :] + _CELL_OFFSETS[None]))
+        found = [s for s in map(self._grid.get, keys.tolist()) if s]
         if not found:
             return np.zeros(0, np.int64)
         return np.fromiter((r for s in found for r in s), dtype=np.int64)
 
+    def _pairs_near(self, rows: np.ndarray, points_world: np.ndarray) -> list[int]:
+        """Edge keys between ``rows`` (at ``points_world``) and grid nodes closer than the connectivity."""
+        cand = self._candidate_rows(points_world)
+        d = np.linalg.norm(points_world[:, None, :] - self._pos_world[cand][None], axis=2)
+        ii, jj = np.nonzero((d < self.connectivity_m) & (rows[:, None] != cand[None]))
+        return _edge_keys(rows[ii], cand[jj])
+
     def _refresh_rows(self, rows: np.ndarray) -> None:
-        """Recompute world positions, grid cells and edges of the changed ``rows``."""
+        """Move the changed ``rows`` to their new world positions: grid cells and incident edges.
+
+        Edges are a pure function of positions, so a moved node's old edges are found geometrically
+        at the old positions (all still in ``_pos_world``) and its new edges at the new ones.
+        """
         self._arrays_cache = None
         if rows.size == 0:
             return
+        old = rows[self._cell_key[rows] != _NOT_IN_GRID]
+        if old.size:
+            self._remove_edges(self._pairs_near(old, self._pos_world[old]))
         p = self._world_positions(rows)
         self._pos_world[rows] = p
-        cells = np.floor(p / self._cell_m).astype(np.int64)
-        old_cells = map(tuple, self._cells[rows].tolist())
-        for r, old, new in zip(rows.tolist(), old_cells, map(tuple, cells.tolist()), strict=True):
-            if old != new:
-                if old in self._grid:
-                    self._grid[old].discard(r)
-                    if not self._grid[old]:
-                        del self._grid[old]
-                self._grid.setdefault(new, set()).add(r)
-        self._cells[rows] = cells
-        for r in rows.tolist():  # drop the changed nodes' old edges
-            for nb in self._adj[r]:
-                self._adj[nb].discard(r)
-                self._edge_keys.discard((min(r, nb) << 32) | max(r, nb))
-            self._adj[r].clear()
-        cand = self._candidate_rows(p)
-        d = np.linalg.norm(p[:, None, :] - self._pos_world[cand][None], axis=2)
-        ii, jj = np.nonzero((d < self.connectivity_m) & (rows[:, None] != cand[None]))
-        a, b = rows[ii], cand[jj]
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        for i, j in zip(lo.tolist(), hi.tolist(), strict=True):
-            self._adj[i].add(j)
-            self._adj[j].add(i)
-            self._edge_keys.add((i << 32) | j)
+        new_keys = _cell_keys(np.floor(p / self._cell_m).astype(np.int64))
+        moves = zip(rows.tolist(), self._cell_key[rows].tolist(), new_keys.tolist(), strict=True)
+        for r, before, after in moves:
+            if before != after:
+                if before != _NOT_IN_GRID:
+                    cell = self._grid[before]
+                    cell.discard(r)
+                    if not cell:
+                        del self._grid[before]
+                self._grid.setdefault(after, set()).add(r)
+        self._cell_key[rows] = new_keys
+        self._add_edges(self._pairs_near(rows, p))
 
     def _rebuild(self) -> None:
         """Recompute every world position, the grid and all edges (after pose corrections)."""
         n = self._n
         self._arrays_cache = None
-        rows = np.arange(n)
-        p = self._world_positions(rows) if n else np.zeros((0, 3))
+        p = self._world_positions(np.arange(n)) if n else np.zeros((0, 3))
         self._pos_world[:n] = p
-        self._cells[:n] = np.floor(p / self._cell_m).astype(np.int64)
-        self._grid = {}
-        for r, c in enumerate(map(tuple, self._cells[:n].tolist())):
-            self._grid.setdefault(c, set()).add(r)
+        keys = _cell_keys(np.floor(p / self._cell_m).astype(np.int64))
+        self._cell_key[:n] = keys
+        order = np.argsort(keys, kind="stable")
+        uniq, starts = np.unique(keys[order], return_index=True)
+        groups = np.split(order, starts[1:]) if n else []
+        self._grid = {k: set(g.tolist()) for k, g in zip(uniq.tolist(), groups, strict=True)}
         edges = edges_within_radius(p, self.connectivity_m)
-        self._adj = [set() for _ in range(n)]
-        for i, j in edges.tolist():
-            self._adj[i].add(j)
-            self._adj[j].add(i)
-        self._edge_keys = set(((edges[:, 0] << 32) | edges[:, 1]).tolist())
+        self._edges_sorted = (edges[:, 0] << 32) | edges[:, 1]  # lexsorted rows -> sorted keys
+        self._edge_keys = set(self._edges_sorted.tolist())
+        self._edges_added, self._edges_removed = set(), set()
+
+    def _remove_edges(self, keys: list[int]) -> None:
+        gone = set(keys)
+        self._edge_keys -= gone
+        undo = gone & self._edges_added
+        self._edges_added -= undo
+        self._edges_removed |= gone - undo
+
+    def _add_edges(self, keys: list[int]) -> None:
+        new = set(keys) - self._edge_keys
+        self._edge_keys |= new
+        undo = new & self._edges_removed
+        self._edges_removed -= undo
+        self._edges_added |= new - undo
+
+    def _sync_sorted_edges(self) -> np.ndarray:
+        """Sorted (E,) edge keys, patched from the last sorted copy with the net changes (O(E) merges)."""
+        keys = self._edges_sorted
+        if self._edges_removed:
+            gone = np.fromiter(self._edges_removed, dtype=np.int64, count=len(self._edges_removed))
+            keys = keys[~np.isin(keys, gone)]
+        if self._edges_added:
+            new = np.sort(np.fromiter(self._edges_added, dtype=np.int64, count=len(self._edges_added)))
+            keys = np.sort(np.concatenate([keys, new]), kind="stable")  # merges two sorted runs
+        self._edges_sorted = keys
+        self._edges_added, self._edges_removed = set(), set()
+        return keys

@@ -47,9 +47,13 @@ class Candidates:
         return Candidates(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
 
 
-def _rank_in_groups(groups: np.ndarray, scores: np.ndarray, other: np.ndarray) -> np.ndarray:
-    """Rank (0 = best) of each entry among the entries of its group, by score then by ``other`` row."""
-    order = np.lexsort((other, -scores, groups))
+def _rank_in_groups(groups: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    """Rank (0 = best) of each entry among the entries of its group by descending score.
+
+    One stable sort of the composite key ``group + (1 - score) / 2`` (scores lie in [0, 1]); ties keep
+    the input order, so the ranking is deterministic.
+    """
+    order = np.argsort(groups + 0.5 * (1.0 - scores), kind="stable")
     sorted_groups = groups[order]
     first = np.searchsorted(sorted_groups, sorted_groups, side="left")
     rank = np.empty(groups.size, dtype=np.int64)
@@ -76,14 +80,14 @@ def select_candidates(
     if mode is CandidateMode.ALL:
         mask = np.ones(s.size, dtype=bool)
     elif mode is CandidateMode.BEST:
-        mask = _rank_in_groups(rows_b, s, rows_a) == 0
+        mask = _rank_in_groups(rows_b, s) == 0
     elif mode is CandidateMode.TOP_K:
-        mask = _rank_in_groups(rows_b, s, rows_a) < top_k
+        mask = _rank_in_groups(rows_b, s) < top_k
     elif mode is CandidateMode.MUTUAL:
-        mask = (_rank_in_groups(rows_b, s, rows_a) == 0) & (_rank_in_groups(rows_a, s, rows_b) == 0)
+        mask = (_rank_in_groups(rows_b, s) == 0) & (_rank_in_groups(rows_a, s) == 0)
     else:  # pragma: no cover - exhaustive over the enum
         raise ValueError(f"unknown candidate mode {mode}")
-    order = np.lexsort((rows_b[mask], rows_a[mask], -s[mask]))
+    order = np.argsort(-s[mask], kind="stable")
     return Candidates(rows_a[mask][order], rows_b[mask][order], s[mask][order])
 
 

@@ -13,20 +13,29 @@ offsets and horizontal distances separately (a much stronger test), and the fit 
 
 from __future__ import annotations
 
-import numpy as np
-from scipy.spatial.distance import cdist
+from dataclasses import replace
 
-from shgm_slam.matching.pose import DEFAULT_UP, Alignment, fit_pose, refine_alignment
+import numpy as np
+
+from shgm_slam.matching.pose import DEFAULT_UP, Alignment, fit_pose, refine_alignment, residuals_m
 
 MAX_SEEDS = 48
 """Maximum number of greedy clique constructions (seeds in decreasing degree order)."""
 
+PATIENCE = 12
+"""Stop after this many consecutive seeds that did not improve the best clique."""
 
-def _pairwise(points: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """(K, K) distances between candidates, computed once per distinct node then gathered."""
-    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)
-    d = cdist(points[first], points[first]).astype(np.float32)
-    return d[inverse][:, inverse]
+
+def pairwise_distances(points: np.ndarray) -> np.ndarray:
+    """(K, K) float32 distances between (K, 3) points (Gram-matrix form, in place: K^2 work dominates)."""
+    x = (points - points.mean(axis=0)).astype(np.float32)
+    sq = np.einsum("ij,ij->i", x, x)
+    d = x @ x.T
+    d *= -2.0
+    d += sq[:, None]
+    d += sq[None, :]
+    np.maximum(d, 0.0, out=d)
+    return np.sqrt(d, out=d)
 
 
 def consistency_matrix(
@@ -56,27 +65,53 @@ def consistency_matrix(
         u = DEFAULT_UP if up is None else np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
         ha, hb = points_a @ u, points_b @ u
         flat_a, flat_b = points_a - np.outer(ha, u), points_b - np.outer(hb, u)
-        ok = np.abs(_pairwise(flat_a, rows_a) - _pairwise(flat_b, rows_b)) < threshold_m
-        ok &= np.abs((ha[:, None] - ha[None, :]) - (hb[:, None] - hb[None, :])) < threshold_m
+        ok = _close(pairwise_distances(flat_a), pairwise_distances(flat_b), threshold_m)
+        dh = (ha - hb).astype(np.float32)  # vertical offsets agree <=> (ha_i - hb_i) - (ha_j - hb_j) small
+        ok &= _close(np.add.outer(dh, np.zeros_like(dh)), dh[None, :], threshold_m)
     else:
-        ok = np.abs(_pairwise(points_a, rows_a) - _pairwise(points_b, rows_b)) < threshold_m
+        ok = _close(pairwise_distances(points_a), pairwise_distances(points_b), threshold_m)
     if distinct_nodes:
-        ok &= rows_a[:, None] != rows_a[None, :]
-        ok &= rows_b[:, None] != rows_b[None, :]
+        for rows in (rows_a, rows_b):
+            ok[_same_node_pairs(rows)] = False
     np.fill_diagonal(ok, False)
     return ok
 
 
-def _prune(adjacency: np.ndarray, alive: np.ndarray, size: int) -> np.ndarray:
-    """Drop vertices that cannot be in a clique larger than ``size`` (degree among alive < size)."""
-    alive = alive.copy()
-    while True:
-        idx = np.flatnonzero(alive)
-        degree = adjacency[np.ix_(idx, idx)].sum(axis=1)
-        drop = degree < size
-        if not drop.any():
-            return alive
-        alive[idx[drop]] = False
+def _close(d_a: np.ndarray, d_b: np.ndarray, threshold_m: float) -> np.ndarray:
+    """|d_a - d_b| < threshold elementwise, overwriting ``d_a`` (no K^2 temporaries)."""
+    d_a -= d_b
+    np.abs(d_a, out=d_a)
+    return d_a < threshold_m
+
+
+def _same_node_pairs(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All (i, j) with ``rows[i] == rows[j]`` as index arrays: O(sum of group sizes^2), not O(K^2)."""
+    order = np.argsort(rows, kind="stable")
+    r = rows[order]
+    starts = np.searchsorted(r, r, side="left")
+    sizes = np.searchsorted(r, r, side="right") - starts
+    i = np.repeat(np.arange(r.size), sizes)
+    offsets = np.arange(i.size) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+    j = np.repeat(starts, sizes) + offsets
+    return order[i], order[j]
+
+
+def _count(adjacency: np.ndarray, axis: int) -> np.ndarray:
+    """Number of True entries along ``axis`` of a bool matrix, as int64 (fast uint8 view reduction)."""
+    acc = np.uint16 if adjacency.shape[axis] < 2**16 else np.int64
+    return adjacency.view(np.uint8).sum(axis=axis, dtype=acc).astype(np.int64)
+
+
+def _prune(adjacency: np.ndarray, alive: np.ndarray, degree: np.ndarray, size: int) -> None:
+    """Drop (in place) vertices that cannot be in a clique larger than ``size``: degree among alive < size.
+
+    ``degree`` holds each vertex's degree among the alive vertices and is kept up to date.
+    """
+    drop = alive & (degree < size)
+    while drop.any():
+        alive &= ~drop
+        degree -= _count(adjacency[drop], axis=0)
+        drop = alive & (degree < size)
 
 
 def _greedy_clique(adjacency: np.ndarray, seed: int, alive: np.ndarray, beat: int) -> np.ndarray:
@@ -86,44 +121,64 @@ def _greedy_clique(adjacency: np.ndarray, seed: int, alive: np.ndarray, beat: in
     """
     clique = [seed]
     cand = np.flatnonzero(adjacency[seed] & alive)
-    sub = adjacency[np.ix_(cand, cand)]
+    sub = adjacency[cand][:, cand]
     while cand.size:
         if len(clique) + cand.size <= beat:
             return np.zeros(0, dtype=np.int64)
-        v = int(np.argmax(sub.sum(axis=1)))
-        clique.append(int(cand[v]))
-        keep = sub[v]
-        cand, sub = cand[keep], sub[np.ix_(keep, keep)]
+        degree = _count(sub, axis=1)
+        universal = degree == cand.size - 1  # adjacent to every other candidate: in any maximal clique
+        if universal.any():
+            clique.extend(cand[universal].tolist())
+            keep = ~universal
+        else:
+            v = int(np.argmax(degree))
+            clique.append(int(cand[v]))
+            keep = sub[v]
+        cand, sub = cand[keep], sub[keep][:, keep]
     return np.asarray(clique, dtype=np.int64) if len(clique) > beat else np.zeros(0, dtype=np.int64)
 
 
-def max_clique(adjacency: np.ndarray, max_seeds: int = MAX_SEEDS) -> np.ndarray:
+def max_clique(
+    adjacency: np.ndarray,
+    within: np.ndarray | None = None,
+    max_seeds: int = MAX_SEEDS,
+    patience: int = PATIENCE,
+) -> np.ndarray:
     """A maximum clique of a (K, K) symmetric bool adjacency (heuristic, usually exact here).
 
-    Greedy max-degree construction from up to ``max_seeds`` seeds in decreasing degree order; after
-    every improvement, vertices whose degree cannot support a larger clique are pruned (k-core), and
-    seeds whose degree cannot beat the best clique end the search.
+    Greedy max-degree construction from up to ``max_seeds`` seeds in decreasing degree order (stopping
+    after ``patience`` seeds without improvement); after every improvement, vertices whose degree
+    cannot support a larger clique are pruned (k-core), and seeds whose degree cannot beat the best
+    clique end the search.
+
+    Args:
+        adjacency: (K, K) bool, symmetric, False diagonal.
+        within: optional (K,) bool mask: search only the subgraph induced by these vertices.
 
     Returns:
-        (M,) int64 sorted vertex indices of the clique (empty for an empty graph).
+        (M,) int64 sorted vertex indices of the clique (empty when no vertex is available).
     """
     k = adjacency.shape[0]
-    if k == 0:
+    alive = np.ones(k, dtype=bool) if within is None else within.copy()
+    if not alive.any():
         return np.zeros(0, dtype=np.int64)
-    degree = adjacency.sum(axis=1)
-    best = np.array([int(np.argmax(degree))], dtype=np.int64)
-    alive = np.ones(k, dtype=bool)
-    tried = 0
-    for seed in np.argsort(-degree, kind="stable"):
-        if tried >= max_seeds or degree[seed] < best.size:
+    degree = _count(adjacency, axis=1)
+    if within is not None and not within.all():
+        degree -= _count(adjacency[~within], axis=0)
+    order = np.flatnonzero(alive)[np.argsort(-degree[alive], kind="stable")]
+    best = order[:1]
+    tried = since_improvement = 0
+    for seed in order:
+        if tried >= max_seeds or since_improvement >= patience or degree[seed] < best.size:
             break
         if not alive[seed]:
             continue
         tried += 1
+        since_improvement += 1
         clique = _greedy_clique(adjacency, int(seed), alive, best.size)
         if clique.size > best.size:
-            best = clique
-            alive = _prune(adjacency, alive, best.size)
+            best, since_improvement = clique, 0
+            _prune(adjacency, alive, degree, best.size)
     return np.sort(best)
 
 
@@ -138,11 +193,16 @@ def clique_alignment(
     refine_iterations: int = 3,
     gravity_aligned: bool = False,
     up: np.ndarray | None = None,
+    max_candidates: int | None = None,
 ) -> Alignment | None:
     """Maximum-clique outlier rejection over K candidates, then the Eq. 2 fit and inlier re-selection.
 
-    The final inliers are the one-to-one candidates whose residual under the clique's fit is below
-    ``2 * consistency_threshold_m`` (re-selected ``refine_iterations`` times).
+    The clique is searched among the first ``max_candidates`` candidates (pass them in decreasing
+    score order; the consistency matrix costs O(max_candidates^2)); the final inliers are selected
+    among *all* K candidates: the one-to-one candidates whose residual under the clique's fit is below
+    ``recheck_threshold_m(consistency_threshold_m)`` (re-selected ``refine_iterations`` times).
+    ``support`` is the clique size; ``rival_support`` the size of the largest clique among the
+    searched candidates that the fit does not explain (residual above twice the re-check threshold).
 
     Args:
         points_b, points_a: (K, 3) candidate positions in B's and A's frames.
@@ -152,15 +212,28 @@ def clique_alignment(
     Returns:
         The alignment, or None when no clique of at least 3 correspondences exists.
     """
+    m = points_b.shape[0] if max_candidates is None else min(max_candidates, points_b.shape[0])
+    pb, pa = points_b[:m], points_a[:m]
     adjacency = consistency_matrix(
-        points_a, points_b, rows_a, rows_b, consistency_threshold_m, True, gravity_aligned, up
+        pa, pb, rows_a[:m], rows_b[:m], consistency_threshold_m, True, gravity_aligned, up
     )
     clique = max_clique(adjacency)
     if clique.size < 3:
         return None
     w = None if weights is None else weights[clique]
-    T = fit_pose(points_b[clique], points_a[clique], w, gravity_aligned, up)
-    return refine_alignment(
-        T, points_b, points_a, rows_a, rows_b, weights,
-        2.0 * consistency_threshold_m, refine_iterations, gravity_aligned, up,
-    )  # fmt: skip
+    T = fit_pose(pb[clique], pa[clique], w, gravity_aligned, up)
+    threshold = recheck_threshold_m(consistency_threshold_m)
+    unexplained = residuals_m(T, pb, pa) >= 2.0 * threshold
+    rival = max_clique(adjacency, within=unexplained).size
+    aligned = refine_alignment(
+        T, points_b, points_a, rows_a, rows_b, weights, threshold, refine_iterations, gravity_aligned, up
+    )
+    return replace(aligned, support=int(clique.size), rival_support=int(rival))
+
+
+def recheck_threshold_m(consistency_threshold_m: float) -> float:
+    """Residual under the clique's fit below which a candidate is an inlier: 2 eps.
+
+    (Residuals below eps / 2 guarantee pairwise consistency; 2 eps tolerates the fit's own error.)
+    """
+    return 2.0 * consistency_threshold_m

@@ -32,11 +32,17 @@ class Alignment:
         T_a_b: (4, 4) float64 maps points of B's frame into A's frame.
         inliers: (K,) bool mask over the candidates: one-to-one correspondences within the threshold.
         rmse_m: root mean square residual of the inliers, metres (inf when there are none).
+        support: evidence of the outlier-rejection stage for this hypothesis (RANSAC inlier count or
+            clique size); 0 when not set.
+        rival_support: the same evidence for the best hypothesis among the candidates this one does
+            not explain (an ambiguity / chance level); 0 when not computed.
     """
 
     T_a_b: np.ndarray
     inliers: np.ndarray
     rmse_m: float
+    support: int = 0
+    rival_support: int = 0
 
     @property
     def num_inliers(self) -> int:

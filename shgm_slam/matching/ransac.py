@@ -5,13 +5,18 @@ closed-form Eq. 2 (Kabsch), and scored against every candidate at once: a candid
 a hypothesis when its residual is below the threshold (authors: 10 m). The hypothesis with the most
 inliers wins (ties: lower truncated residual sum, as MSAC). Its inliers are then refitted with the
 weighted Eq. 2 and re-selected ``refine_iterations`` times (``pose.refine_alignment``).
+
+``rival_support`` is the largest inlier count of any hypothesis among the candidates the winner
+does not explain (residual above twice the threshold): the chance level or a competing alignment.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
-from shgm_slam.matching.pose import Alignment, fit_pose, refine_alignment
+from shgm_slam.matching.pose import Alignment, fit_pose, refine_alignment, residuals_m
 
 SAMPLE_SIZE = 4
 """Correspondences per RANSAC hypothesis (Alg. 2)."""
@@ -29,19 +34,49 @@ def _valid_samples(samples: np.ndarray, rows_a: np.ndarray, rows_b: np.ndarray) 
     return ok
 
 
+def squared_residuals(T_a_b: np.ndarray, points_b: np.ndarray, points_a: np.ndarray) -> np.ndarray:
+    """(H, K) squared residuals |q_k - R_h p_k - t_h|^2 of (H, 4, 4) hypotheses over (K, 3) pairs, m^2.
+
+    Expanded as one (H, 17) x (17, K) matrix product (no (H, K, 3) temporary); the points are centred
+    first so that the expansion does not lose precision.
+    """
+    ca, cb = points_a.mean(axis=0), points_b.mean(axis=0)
+    q, p = points_a - ca, points_b - cb
+    R = T_a_b[:, :3, :3]
+    t = T_a_b[:, :3, 3] + np.einsum("hij,j->hi", R, cb) - ca  # translation between the centred frames
+    h = T_a_b.shape[0]
+    Rt_t = np.einsum("hji,hj->hi", R, t)
+    hyp = np.concatenate([R.reshape(h, 9), t, Rt_t, (t * t).sum(1, keepdims=True), np.ones((h, 1))], axis=1)
+    pair = np.concatenate(
+        [
+            -2.0 * (q[:, :, None] * p[:, None, :]).reshape(-1, 9),
+            -2.0 * q,
+            2.0 * p,
+            np.ones((q.shape[0], 1)),
+            ((q * q).sum(1) + (p * p).sum(1))[:, None],
+        ],
+        axis=1,
+    )
+    d2 = hyp @ pair.T
+    return np.maximum(d2, 0.0, out=d2)
+
+
 def score_hypotheses(
     T_a_b: np.ndarray, points_b: np.ndarray, points_a: np.ndarray, threshold_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Inlier counts (H,) int64 and truncated residual sums (H,) of (H, 4, 4) hypotheses over (K, 3) pairs."""
-    counts = np.empty(T_a_b.shape[0], dtype=np.int64)
+    """Alg. 2 scores of (H, 4, 4) hypotheses over (K, 3) correspondences.
+
+    Returns:
+        (H, K) bool inlier matrix (residual < threshold) and (H,) truncated squared-residual sums.
+    """
+    inliers = np.empty((T_a_b.shape[0], points_b.shape[0]), dtype=bool)
     costs = np.empty(T_a_b.shape[0])
+    t2 = threshold_m**2
     for start in range(0, T_a_b.shape[0], _BATCH):
-        T = T_a_b[start : start + _BATCH]
-        mapped = np.matmul(points_b[None], np.swapaxes(T[:, :3, :3], 1, 2)) + T[:, None, :3, 3]
-        d = np.linalg.norm(mapped - points_a[None], axis=2)
-        counts[start : start + _BATCH] = (d < threshold_m).sum(axis=1)
-        costs[start : start + _BATCH] = np.minimum(d, threshold_m).sum(axis=1)
-    return counts, costs
+        d2 = squared_residuals(T_a_b[start : start + _BATCH], points_b, points_a)
+        inliers[start : start + _BATCH] = d2 < t2
+        costs[start : start + _BATCH] = np.minimum(d2, t2).sum(axis=1)
+    return inliers, costs
 
 
 def ransac_alignment(
@@ -81,9 +116,13 @@ def ransac_alignment(
     if samples.shape[0] == 0:
         return None
     hypotheses = fit_pose(points_b[samples], points_a[samples], None, gravity_aligned, up)
-    counts, costs = score_hypotheses(hypotheses, points_b, points_a, inlier_threshold_m)
-    best = np.lexsort((costs, -counts))[0]
-    return refine_alignment(
+    inliers, costs = score_hypotheses(hypotheses, points_b, points_a, inlier_threshold_m)
+    counts = inliers.sum(axis=1)
+    best = int(np.lexsort((costs, -counts))[0])
+    unexplained = residuals_m(hypotheses[best], points_b, points_a) >= 2.0 * inlier_threshold_m
+    rival = int(inliers[:, unexplained].sum(axis=1).max()) if unexplained.any() else 0
+    aligned = refine_alignment(
         hypotheses[best], points_b, points_a, rows_a, rows_b, weights,
         inlier_threshold_m, refine_iterations, gravity_aligned, up,
     )  # fmt: skip
+    return replace(aligned, support=int(counts[best]), rival_support=rival)

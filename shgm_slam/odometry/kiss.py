@@ -82,7 +82,9 @@ def _kiss_config(
             max_num_threads=max_threads,
         ),
         adaptive_threshold=AdaptiveThresholdConfig(
-            fixed_threshold=fixed_threshold_m, initial_threshold=initial_threshold_m, min_motion_th=min_motion_m
+            fixed_threshold=fixed_threshold_m,
+            initial_threshold=initial_threshold_m,
+            min_motion_th=min_motion_m,
         ),
     )
 
@@ -114,7 +116,9 @@ class KissOdometry:
         from kiss_icp.kiss_icp import KissICP
 
         if not 0.0 <= min_range_m < max_range_m:
-            raise ConfigError(f"KISS-ICP needs 0 <= min_range_m < max_range_m, got {min_range_m}, {max_range_m}")
+            raise ConfigError(
+                f"KISS-ICP needs 0 <= min_range_m < max_range_m, got {min_range_m} and {max_range_m}"
+            )
         if voxel_size_m <= 0 or max_points_per_voxel < 1 or max_icp_iterations < 1:
             raise ConfigError(
                 "KISS-ICP needs voxel_size_m > 0, max_points_per_voxel >= 1 and max_icp_iterations >= 1"

@@ -78,8 +78,8 @@ class PoseFileSource:
         poses = read_poses_file(self.path).poses
         if poses.shape[0] != num_frames:
             raise DataError(
-                f"poses file {self.path} has {poses.shape[0]} poses but the sequence has {num_frames} frames; "
-                "give one pose per frame (for a frame range, cut the file to the same range)"
+                f"poses file {self.path} has {poses.shape[0]} poses but the sequence has {num_frames} "
+                "frames; give one pose per frame (for a frame range, cut the file to the same range)"
             )
         self.T_odom_cam = inverse(poses[0]) @ poses  # (N, 4, 4)
 

@@ -49,15 +49,15 @@ class DepthModel(OnnxModel):
                 f"{self.where}: depth output '{output.name}' has rank {len(shape)} (shape {list(shape)}); "
                 "expected (N, H, W), (N, 1, H, W) or (N, H, W, 1): set output.name to the depth output"
             )
-        if len(shape) == 4:
-            c_axis = 1 if self.card.input.layout is Layout.NCHW else 3
-            if isinstance(shape[c_axis], int) and shape[c_axis] != 1:
-                raise ModelError(
-                    f"{self.where}: depth output '{output.name}' has {shape[c_axis]} channels on axis {c_axis} "
-                    f"(shape {list(shape)}); a depth map has one: check output.name and input.layout"
-                )
+        if len(shape) == 4 and all(isinstance(shape[a], int) and shape[a] != 1 for a in (1, 3)):
+            raise ModelError(
+                f"{self.where}: depth output '{output.name}' (shape {list(shape)}) has no single channel on "
+                "axis 1 (NCHW) or 3 (NHWC); a depth map has one: set output.name to the depth output"
+            )
         if output.type not in _FLOAT_TYPES:
-            raise ModelError(f"{self.where}: depth output '{output.name}' is {output.type}; expected a float tensor")
+            raise ModelError(
+                f"{self.where}: depth output '{output.name}' is {output.type}; expected a float tensor"
+            )
 
     @property
     def needs_intrinsics(self) -> bool:
@@ -86,8 +86,8 @@ class DepthModel(OnnxModel):
         """
         if self.needs_intrinsics and intrinsics is None:
             raise ModelError(
-                f"{self.where}: the card's output.baseline_m needs the image intrinsics (fx): pass intrinsics= "
-                "or give output.focal_x_baseline in the card"
+                f"{self.where}: the card's output.baseline_m needs the image intrinsics (fx): pass "
+                "intrinsics= or give output.focal_x_baseline in the card"
             )
         out, plans, pre_ms, inf_ms = self._run(images_rgb)
         t0 = time.perf_counter()
@@ -97,13 +97,13 @@ class DepthModel(OnnxModel):
         return depths
 
     def _squeeze(self, out: np.ndarray) -> np.ndarray:
-        """(N, h, w) from (N, h, w), (N, 1, h, w) or (N, h, w, 1)."""
+        """(N, h, w) from (N, h, w), (N, 1, h, w) or (N, h, w, 1) (the input layout's axis first)."""
         if out.ndim == 3:
             return out
-        if out.ndim == 4 and out.shape[1] == 1 and self.card.input.layout is Layout.NCHW:
-            return out[:, 0]
-        if out.ndim == 4 and out.shape[3] == 1:
-            return out[..., 0]
+        axes = (1, 3) if self.card.input.layout is Layout.NCHW else (3, 1)
+        for axis in axes:
+            if out.ndim == 4 and out.shape[axis] == 1:
+                return out[:, 0] if axis == 1 else out[..., 0]
         raise ModelError(f"{self.where}: depth output has shape {list(out.shape)}; expected one channel")
 
     def _postprocess(self, raw: np.ndarray, plan: ResizePlan, intrinsics: Intrinsics | None) -> np.ndarray:
@@ -137,6 +137,8 @@ class DepthModel(OnnxModel):
         if spec.focal_x_baseline is not None:
             return spec.focal_x_baseline
         if intrinsics is None or spec.baseline_m is None:
-            raise ModelError(f"{self.where}: disparity needs output.focal_x_baseline or baseline_m + intrinsics")
+            raise ModelError(
+                f"{self.where}: disparity needs output.focal_x_baseline, or baseline_m and intrinsics"
+            )
         fx_image = intrinsics.fx * plan.image_wh[0] / intrinsics.width
         return fx_image * spec.baseline_m

@@ -135,4 +135,3 @@ def class_lut(
             "`class_name_or_index: cityscapes_train_id_or_255` for them"
         )
     return lut.astype(np.uint8)
-

@@ -24,6 +24,7 @@ from shgm_slam.perception.card import (
     ColorOrder,
     DepthCard,
     InputDtype,
+    Interpolation,
     Layout,
     ResizeMode,
     SegmentationCard,
@@ -34,7 +35,16 @@ from shgm_slam.perception.card import (
 MAX_IR_VERSION_HINT = 10
 MAX_OPSET_HINT = 21
 _FLOAT_TYPES = ("tensor(float)", "tensor(float16)", "tensor(double)")
-_INPUT_TYPES = {InputDtype.FLOAT32: ("tensor(float)", np.float32), InputDtype.UINT8: ("tensor(uint8)", np.uint8)}
+_CV_INTERPOLATION = {
+    Interpolation.LINEAR: cv2.INTER_LINEAR,
+    Interpolation.AREA: cv2.INTER_AREA,
+    Interpolation.CUBIC: cv2.INTER_CUBIC,
+    Interpolation.NEAREST: cv2.INTER_NEAREST,
+}
+_INPUT_TYPES = {
+    InputDtype.FLOAT32: ("tensor(float)", np.float32),
+    InputDtype.UINT8: ("tensor(uint8)", np.uint8),
+}
 
 
 @dataclass(frozen=True)
@@ -186,14 +196,13 @@ def _explain_load_error(model_path: Path, message: str) -> str:
         f"(onnx: helper.make_model(..., ir_version={MAX_IR_VERSION_HINT}, opset_imports=[make_opsetid('', "
         f"{MAX_OPSET_HINT})]); torch: torch.onnx.export(..., opset_version={MAX_OPSET_HINT}))"
     )
+    newer = f"is newer than onnxruntime {ort.__version__} reads"
     if "IR version" in message:
-        return f"model {model_path}: its ONNX IR version is newer than onnxruntime {ort.__version__} reads " \
-               f"({detail}): {fix}"
+        return f"model {model_path}: its ONNX IR version {newer} ({detail}): {fix}"
     if "opset" in message.lower():
-        return f"model {model_path}: its opset is newer than onnxruntime {ort.__version__} reads " \
-               f"({detail[:160]}): {fix}"
+        return f"model {model_path}: its opset {newer} ({detail[-90:]}): {fix}"
     if "protobuf" in message.lower():
-        return f"model {model_path} is not a valid ONNX file (protobuf parsing failed): re-download or re-export it"
+        return f"model {model_path} is not a valid ONNX file (protobuf parsing failed): re-export it"
     return f"model {model_path} cannot be loaded by onnxruntime {ort.__version__}: {detail[:300]}"
 
 
@@ -207,7 +216,7 @@ def check_image(image_rgb: Any, where: str = "image_rgb") -> np.ndarray:
         raise DataError(f"{where} must be an (H, W, 3) uint8 numpy array, got {type(image_rgb).__name__}")
     img = image_rgb
     if img.dtype != np.uint8:
-        raise DataError(f"{where} must be uint8 (0..255), got dtype {img.dtype}: convert with .astype(np.uint8)")
+        raise DataError(f"{where} must be uint8 (0..255), got dtype {img.dtype}: convert it to uint8 RGB")
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.ndim == 2:
@@ -286,16 +295,24 @@ class OnnxModel:
             tensor = inputs[0]
         else:
             raise ModelError(
-                f"{self.where} has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}): set input.name "
-                "in the card (the adapter feeds one image tensor)"
+                f"{self.where} has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}): set "
+                "input.name in the card (the adapter feeds one image tensor)"
             )
         if len(tensor.shape) != 4:
             raise ModelError(
-                f"{self.where}: input '{tensor.name}' has rank {len(tensor.shape)} (shape {list(tensor.shape)}); "
-                f"the adapter feeds rank-4 image batches ({spec.layout.value}): export the model with a batch axis"
+                f"{self.where}: input '{tensor.name}' has rank {len(tensor.shape)} (shape "
+                f"{list(tensor.shape)}); the adapter feeds rank-4 image batches ({spec.layout.value}): "
+                "export the model with a batch axis"
             )
         c_axis = 1 if spec.layout is Layout.NCHW else 3
         channels = tensor.shape[c_axis]
+        if not isinstance(channels, int) and tensor.shape[4 - c_axis] == 3:
+            other = Layout.NHWC if spec.layout is Layout.NCHW else Layout.NCHW
+            raise ModelError(
+                f"{self.where}: input '{tensor.name}' (shape {list(tensor.shape)}) has 3 channels on axis "
+                f"{4 - c_axis}, not on axis {c_axis} as input.layout {spec.layout.value} says: set layout: "
+                f"{other.value} in the card"
+            )
         if isinstance(channels, int) and channels != 3:
             other = Layout.NHWC if spec.layout is Layout.NCHW else Layout.NCHW
             hint = (
@@ -337,12 +354,12 @@ class OnnxModel:
         for axis_name, dim, want in (("W", dims["W"], spec.size[0]), ("H", dims["H"], spec.size[1])):
             if isinstance(dim, int) and dim != want:
                 raise ModelError(
-                    f"{self.where}: card input.size {list(spec.size)} (W, H) disagrees with the model's fixed "
-                    f"{axis_name} = {dim} (input shape {list(self.input_spec.shape)}): fix input.size"
+                    f"{self.where}: card input.size {list(spec.size)} (W, H) disagrees with the model's "
+                    f"fixed {axis_name} = {dim} (input shape {list(self.input_spec.shape)}): fix input.size"
                 )
             if isinstance(dim, str) and dim:
-                free[dim] = want
-        return spec.size, free
+                free[dim] = want if free.get(dim, want) == want else -1
+        return spec.size, {name: v for name, v in free.items() if v > 0}  # H, W sharing a name: unpinned
 
     def _select_output(self, session: ort.InferenceSession, name: str | None) -> TensorSpec:
         outputs = [TensorSpec.of(o) for o in session.get_outputs()]
@@ -351,7 +368,8 @@ class OnnxModel:
             found = [o for o in outputs if o.name == name]
             if not found:
                 raise ModelError(
-                    f"{self.where}: card output.name '{name}' is not an output of the model (outputs: {names})"
+                    f"{self.where}: card output.name '{name}' is not an output of the model "
+                    f"(outputs: {names})"
                 )
             return found[0]
         if len(outputs) == 1:
@@ -370,8 +388,11 @@ class OnnxModel:
         self._gain = (spec.effective_scale / std).astype(np.float32)
         self._bias = (-np.asarray(spec.mean, dtype=np.float64) / std).astype(np.float32)
         pad = np.full(3, spec.pad_value)
-        self._pad_input = (pad * self._gain + self._bias).astype(self._input_dtype) \
-            if spec.dtype is InputDtype.FLOAT32 else pad.astype(np.uint8)
+        self._pad_input = (
+            (pad * self._gain + self._bias).astype(self._input_dtype)
+            if spec.dtype is InputDtype.FLOAT32
+            else pad.astype(np.uint8)
+        )
 
     def target_size(self, image_wh: tuple[int, int]) -> tuple[int, int]:
         """(W, H) of the model input for an image of ``image_wh``."""
@@ -385,7 +406,8 @@ class OnnxModel:
         targets = {self.target_size(wh) for wh in sizes}
         if len(targets) != 1:
             raise DataError(
-                f"{self.where} takes any image size, so a batch must hold images of one size; got {sorted(sizes)}"
+                f"{self.where} takes any image size, so a batch must hold images of one size; "
+                f"got {sorted(sizes)}"
             )
         Wt, Ht = targets.pop()
         nchw = self.card.input.layout is Layout.NCHW
@@ -394,7 +416,9 @@ class OnnxModel:
         plans = []
         for i, image in enumerate(images):
             plan = plan_resize(
-                (image.shape[1], image.shape[0]), (Wt, Ht), self.card.input.resize,
+                (image.shape[1], image.shape[0]),
+                (Wt, Ht),
+                self.card.input.resize,
                 fixed_size=self.fixed_wh is not None,
             )
             plans.append(plan)
@@ -402,25 +426,39 @@ class OnnxModel:
         return blob, plans
 
     def _fill(self, out: np.ndarray, image: np.ndarray, plan: ResizePlan, nchw: bool) -> None:
+        """Write one image into its (3, Ht, Wt) / (Ht, Wt, 3) slot of the input tensor."""
         sx0, sy0, sx1, sy1 = plan.src_box
         dx0, dy0, dx1, dy1 = plan.dst_box
         crop = image[sy0:sy1, sx0:sx1]
         dw, dh = dx1 - dx0, dy1 - dy0
         if (dw, dh) != (crop.shape[1], crop.shape[0]):
-            shrink = dw <= crop.shape[1] and dh <= crop.shape[0]
-            crop = cv2.resize(crop, (dw, dh), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
-        padded = (dw, dh) != plan.target_wh
+            flag = self._interpolation(crop.shape[1] / dw, crop.shape[0] / dh)
+            crop = cv2.resize(crop, (dw, dh), interpolation=flag)
+        if (dw, dh) != plan.target_wh:  # padding: fill the borders only
+            Wt, Ht = plan.target_wh
+            strips = ((slice(0, dy0), slice(0, Wt)), (slice(dy1, Ht), slice(0, Wt)),
+                      (slice(dy0, dy1), slice(0, dx0)), (slice(dy0, dy1), slice(dx1, Wt)))  # fmt: skip
+            for rows, cols in strips:
+                if nchw:
+                    out[:, rows, cols] = self._pad_input[:, None, None]
+                else:
+                    out[rows, cols, :] = self._pad_input
+        planes = cv2.split(crop)  # contiguous channel planes (SIMD de-interleave)
         raw = self.card.input.dtype is InputDtype.UINT8
         for c, src_c in enumerate(self._channel_order):
-            dst = out[c] if nchw else out[:, :, c]
-            if padded:
-                dst[...] = self._pad_input[c]
-            region = dst[dy0:dy1, dx0:dx1]
+            region = (out[c] if nchw else out[:, :, c])[dy0:dy1, dx0:dx1]
             if raw:
-                region[...] = crop[:, :, src_c]
+                region[...] = planes[src_c]
             else:
-                np.multiply(crop[:, :, src_c], self._gain[c], out=region, dtype=np.float32)
+                np.multiply(planes[src_c], self._gain[c], out=region, dtype=np.float32)
                 region += self._bias[c]
+
+    def _interpolation(self, shrink_x: float, shrink_y: float) -> int:
+        """cv2 flag for a resize that shrinks by ``shrink_x``, ``shrink_y`` (> 1 = smaller)."""
+        mode = self.card.input.interpolation
+        if mode is Interpolation.AUTO:
+            return cv2.INTER_AREA if min(shrink_x, shrink_y) >= 2.0 else cv2.INTER_LINEAR
+        return _CV_INTERPOLATION[mode]
 
     # --- inference ----------------------------------------------------------------------------------
     def _infer(self, blob: np.ndarray) -> np.ndarray:
@@ -437,8 +475,8 @@ class OnnxModel:
                 (out,) = self.session.run([self.output_spec.name], {self.input_spec.name: chunk})
             except Exception as exc:  # onnxruntime's own exception classes
                 raise ModelError(
-                    f"{self.where} failed on an input of shape {list(chunk.shape)} ({str(exc)[-300:]}): check "
-                    "input.size / input.multiple_of / input.layout in the card"
+                    f"{self.where} failed on an input of shape {list(chunk.shape)} ({str(exc)[-300:]}): "
+                    "check input.size / input.multiple_of / input.layout in the card"
                 ) from None
             outs.append(np.asarray(out))
         out = outs[0] if len(outs) == 1 else np.concatenate(outs)
@@ -494,19 +532,30 @@ def paste_back(
     return full
 
 
-def measure_overhead(model: OnnxModel, image_rgb: np.ndarray, repeats: int = 10, **kwargs: Any) -> dict[str, float]:
+def measure_overhead(
+    model: OnnxModel, image_rgb: np.ndarray, repeats: int = 10, **kwargs: Any
+) -> dict[str, float]:
     """Median per-frame timings of ``model.predict(image_rgb)`` over ``repeats`` runs (after one warm-up).
 
+    Per-step medians are robust to scheduler hiccups on a shared CPU; ``overhead_ms`` (what the adapter
+    adds to the model: preprocessing + postprocessing) and ``total_ms`` are sums of those medians.
+
     Returns:
-        dict with ``preprocess_ms``, ``inference_ms``, ``postprocess_ms``, ``overhead_ms``
-        (pre + post: what the adapter adds to the model) and ``total_ms``; ``repeats``.
+        dict with ``preprocess_ms``, ``inference_ms``, ``postprocess_ms``, ``overhead_ms``, ``total_ms``
+        and ``repeats``.
     """
     model.predict(image_rgb, **kwargs)  # type: ignore[attr-defined]
     rows = []
     for _ in range(max(1, repeats)):
         model.predict(image_rgb, **kwargs)  # type: ignore[attr-defined]
         t = model.last_timings
-        rows.append((t.preprocess_ms, t.inference_ms, t.postprocess_ms, t.overhead_ms, t.total_ms))
-    med = np.median(np.asarray(rows), axis=0)
-    keys = ("preprocess_ms", "inference_ms", "postprocess_ms", "overhead_ms", "total_ms")
-    return {**{k: float(v) for k, v in zip(keys, med, strict=True)}, "repeats": float(len(rows))}
+        rows.append((t.preprocess_ms, t.inference_ms, t.postprocess_ms))
+    pre, inf, post = (float(v) for v in np.median(np.asarray(rows), axis=0))
+    return {
+        "preprocess_ms": pre,
+        "inference_ms": inf,
+        "postprocess_ms": post,
+        "overhead_ms": pre + post,
+        "total_ms": pre + inf + post,
+        "repeats": float(len(rows)),
+    }

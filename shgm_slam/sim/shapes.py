@@ -71,6 +71,7 @@ class Material(IntEnum):
     LIGHT = 4
     ROOF_UNIT = 5
     METAL = 6
+    TYRE = 7
 
 
 class Template(str, Enum):
@@ -135,19 +136,19 @@ KIND_PARTS: dict[ObjectKind, tuple[Part, ...]] = {
     ObjectKind.CAR: (
         Part(Template.BOX, (-0.5, -0.5, -0.36), (0.5, 0.5, 0.08)),
         Part(Template.BOX, (-0.32, -0.46, 0.08), (0.22, 0.46, 0.5), Material.GLASS),
-        Part(Template.BOX, (-0.42, -0.52, -0.5), (0.42, 0.52, -0.36), Material.TRUNK),  # dark wheels band
+        Part(Template.BOX, (-0.42, -0.52, -0.5), (0.42, 0.52, -0.36), Material.TYRE),  # wheels band
     ),
     ObjectKind.TRUCK: (
         Part(Template.BOX, (0.24, -0.5, -0.42), (0.49, 0.5, 0.2)),
         Part(Template.BOX, (0.45, -0.46, -0.05), (0.5, 0.46, 0.17), Material.GLASS),
         Part(Template.BOX, (-0.5, -0.5, -0.42), (0.22, 0.5, 0.5)),
-        Part(Template.BOX, (-0.45, -0.5, -0.5), (0.45, 0.5, -0.42), Material.TRUNK),
+        Part(Template.BOX, (-0.45, -0.5, -0.5), (0.45, 0.5, -0.42), Material.TYRE),
     ),
     ObjectKind.BUS: (
         Part(Template.BOX, (-0.5, -0.5, -0.42), (0.5, 0.5, -0.02)),
         Part(Template.BOX, (-0.49, -0.49, -0.02), (0.49, 0.49, 0.34), Material.GLASS),
         Part(Template.BOX, (-0.5, -0.5, 0.34), (0.5, 0.5, 0.5)),
-        Part(Template.BOX, (-0.4, -0.48, -0.5), (0.4, 0.48, -0.42), Material.TRUNK),
+        Part(Template.BOX, (-0.4, -0.48, -0.5), (0.4, 0.48, -0.42), Material.TYRE),
     ),
 }
 """Parts of every object kind (each kind's parts fill its bounding box)."""

@@ -48,16 +48,16 @@ def matches_path(robot_a: str, robot_b: str) -> str:
     return f"{MATCHES}/{rr.escape_entity_path_part(f'{robot_a}__{robot_b}')}"
 
 
-def _camera_views(robot: str) -> rrb.Horizontal:
+def _camera_views(robot: str, *, side_by_side: bool) -> rrb.Container:
     """RGB with the segmentation overlaid (SegmentationImage draws half-transparent over an Image) + depth."""
     cam = camera_path(robot)
-    return rrb.Horizontal(
+    views = (
         rrb.Spatial2DView(
             origin=cam, contents=[f"{cam}/rgb", f"{cam}/seg"], name=f"{robot}: camera + labels"
         ),
         rrb.Spatial2DView(origin=cam, contents=[f"{cam}/depth"], name=f"{robot}: depth"),
-        column_shares=[1, 1],
     )
+    return rrb.Horizontal(*views) if side_by_side else rrb.Vertical(*views)
 
 
 def default_blueprint(robots: list[str]) -> rrb.Blueprint:
@@ -69,7 +69,9 @@ def default_blueprint(robots: list[str]) -> rrb.Blueprint:
     """
     excluded = [f"- {camera_path(r)}/{kind}" for r in robots for kind in CAMERA_IMAGES]
     world = rrb.Spatial3DView(origin=WORLD, contents=[f"+ {WORLD}/**", *excluded], name="shared world")
-    cameras = rrb.Vertical(*[_camera_views(r) for r in robots], name="cameras")
+    # Wide driving images (KITTI ~3.3:1) are biggest stacked; from 3 robots on, side by side wins.
+    side_by_side = len(robots) >= 3
+    cameras = rrb.Vertical(*[_camera_views(r, side_by_side=side_by_side) for r in robots], name="cameras")
     top = rrb.Horizontal(world, cameras, column_shares=[3, 2])
     bottom = rrb.Horizontal(
         rrb.TimeSeriesView(origin=TIMINGS, name="timings [ms]"),

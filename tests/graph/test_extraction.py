@@ -8,6 +8,7 @@ import pytest
 
 from shgm_slam.config import ExtractionConfig
 from shgm_slam.errors import DataError
+from shgm_slam.geometry.camera import backproject
 from shgm_slam.geometry.se3 import make_pose, rot_y, transform_points
 from shgm_slam.graph.extraction import extract_objects, extract_objects_from_config
 from shgm_slam.labels import Label
@@ -24,7 +25,8 @@ def blank() -> tuple[np.ndarray, np.ndarray]:
 
 
 def extract(depth, labels, T=None, min_px=1, **kw):
-    return extract_objects(depth, labels, INTR, T, labels=LABELS, min_blob_fraction=(min_px - 0.5) / (H * W), **kw)
+    fraction = (min_px - 0.5) / (H * W)
+    return extract_objects(depth, labels, INTR, T, labels=LABELS, min_blob_fraction=fraction, **kw)
 
 
 def test_depth_step_splits_same_label_region():
@@ -131,9 +133,15 @@ def _reference_objects(depth, labels, min_px, step=1.0, max_depth=30.0, min_dept
                 if r2 < H and c2 < W and ok[r, c] and ok[r2, c2] and labels[r, c] == labels[r2, c2]:
                     if abs(float(depth[r, c]) - float(depth[r2, c2])) < step:
                         parent[find(r * W + c)] = find(r2 * W + c2)
-    roots = np.array([find(i) for i in range(depth.size)])[ok.ravel()]
-    _, counts = np.unique(roots, return_counts=True)
-    return sorted(counts[counts >= min_px].tolist())
+    roots = np.array([find(i) for i in range(depth.size)])
+    points, pixel = backproject(np.where(ok, depth, 0.0), INTR, min_depth_m=min_depth, max_depth_m=max_depth)
+    objects = []
+    for root in np.unique(roots[pixel]):
+        mine = roots[pixel] == root
+        if mine.sum() >= min_px:
+            label = labels.ravel()[pixel[mine][0]]
+            objects.append((mine.sum(), label, *points[mine].mean(axis=0)))
+    return np.array(sorted(objects)).reshape(-1, 5)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -146,7 +154,11 @@ def test_matches_reference_flood_fill_on_random_scene(seed):
     depth[rng.random((H, W)) < 0.03] = np.nan
     labels[rng.random((H, W)) < 0.03] = Label.SKY
     objs = extract(depth, labels, min_px=5)
-    assert sorted(objs.pixel_counts.tolist()) == _reference_objects(depth, labels, 5)
+    got = np.array(sorted(zip(objs.pixel_counts, objs.label_ids, *objs.centroids_cam.T, strict=True)))
+    expected = _reference_objects(depth, labels, 5)
+    assert len(objs) == len(expected) > 10
+    np.testing.assert_array_equal(got[:, :2], expected[:, :2])  # pixel counts and labels
+    np.testing.assert_allclose(got[:, 2:], expected[:, 2:], atol=1e-4)  # centroids = mean back-projection
 
 
 def test_bad_shapes_give_data_errors():
@@ -169,3 +181,19 @@ def test_from_config_uses_frame_pose_and_complains_about_missing_inputs():
     frame.label_ids = None
     with pytest.raises(DataError, match="no labels"):
         extract_objects_from_config(frame, ExtractionConfig())
+
+
+def test_sampled_extents_and_thin_objects_on_a_larger_image():
+    """Big images: extents from a strided pixel grid; objects the grid misses use all their pixels."""
+    h, w, z = 300, 400, 10.0
+    intr = Intrinsics(fx=200.0, fy=200.0, cx=199.5, cy=149.5, width=w, height=h)
+    depth = np.full((h, w), z, np.float32)
+    labels = np.full((h, w), Label.SKY, np.uint8)
+    labels[0:200, 0:300] = Label.BUILDING
+    labels[50:250, 351] = Label.POLE  # one pixel wide, on a column the stride-2 grid skips
+    objs = extract_objects(depth, labels, intr, None, labels=LABELS, min_blob_fraction=100 / (h * w))
+    assert objs.label_ids.tolist() == [Label.BUILDING, Label.POLE]
+    px = z / intr.fx
+    np.testing.assert_allclose(objs.extents_m[0], [0.9 * 300 * px, 0.9 * 200 * px, 0.0], atol=2 * px)
+    np.testing.assert_allclose(objs.extents_m[1], [0.0, 0.9 * 200 * px, 0.0], atol=2 * px)
+    np.testing.assert_allclose(objs.centroids_cam[1], [(351 - intr.cx) * px, (149.5 - intr.cy) * px, z])

@@ -1,0 +1,610 @@
+"""Multi-robot pose graph on iSAM2: odometry chains, robust inter-robot closures, deferred anchoring.
+
+The shared frame is the odometry frame of the first robot (index 0): its first keyframe gets a tight
+prior. Every other robot starts *unanchored*: its keyframes are only recorded (no variables, no
+factors) until an accepted closure connects it to an anchored robot. Then the robot's odometry frame
+is placed by that closure,
+
+    T_shared_odomB = T_shared_ai · T_ai_bj · T_odomB_bj⁻¹,
+
+all its keyframes are inserted as ``T_shared_odomB · T_odomB_bk`` with their odometry factors, and
+every accepted closure to an anchored robot is pushed (REFERENCE.md §3, deferred initialisation: no
+gauge prior, so CHOLESKY never meets an indeterminate system). Closures between two unanchored robots
+are kept and replayed as soon as one of them is anchored (anchoring spreads through accepted closures).
+
+Closures between the same two robots are checked for pairwise consistency (``consistency.py``); only
+the maximum consistent set is accepted. When a later, larger consistent set outvotes earlier closures,
+those are removed from iSAM2 (``removeFactorIndices``); if a removed closure was the one that anchored
+a robot, the graph is rebuilt from the recorded odometry and the accepted closures, so one wrong first
+match cannot leave a robot in the wrong place. Accepted closures additionally carry a robust kernel.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+from shgm_slam.backend.consistency import ConsistencyThresholds, consistent_with, max_consistent_set
+from shgm_slam.backend.keys import RobotKeys
+from shgm_slam.config import BackendConfig, RobustKernel
+from shgm_slam.errors import BackendError
+from shgm_slam.geometry.se3 import inverse
+
+PRIOR_SIGMA = 1e-3
+"""Sigma (rad and m) of the prior fixing robot 0's first keyframe: the gauge of the shared frame."""
+
+
+class Factorization(str, Enum):
+    CHOLESKY = "CHOLESKY"
+    QR = "QR"
+
+
+class ClosureStatus(str, Enum):
+    ACCEPTED = "accepted"  # in its robot pair's maximum consistent set
+    REJECTED = "rejected"  # outside it (may come back if the evidence changes)
+
+
+@dataclass(frozen=True)
+class ClosureDecision:
+    """What happened to a closure when it was added (``accepted`` may change with later evidence)."""
+
+    accepted: bool
+    reason: str
+    closure_id: int = -1
+
+
+@dataclass
+class ClosureRecord:
+    """One inter-robot closure, stored in canonical order (robot_a has the lower robot index).
+
+    ``T_a_b`` is ``T_akf_bkf``: it maps points in b's keyframe ``kf_b`` camera frame into a's keyframe
+    ``kf_a`` camera frame. ``in_graph`` tells whether its factor is currently in iSAM2.
+    """
+
+    closure_id: int
+    robot_a: str
+    kf_a: int
+    robot_b: str
+    kf_b: int
+    T_a_b: np.ndarray
+    num_inliers: int
+    status: ClosureStatus = ClosureStatus.REJECTED
+    reason: str = ""
+    in_graph: bool = False
+
+
+@dataclass(frozen=True)
+class PoseGraphStats:
+    """Counters of the pose graph; ``last_update_ms`` is the latest iSAM2 update including extra passes."""
+
+    num_keyframes: int
+    num_variables: int
+    num_factors: int
+    closures_total: int
+    closures_accepted: int
+    closures_rejected: int
+    closures_in_graph: int
+    anchored_robots: tuple[str, ...]
+    rebuilds: int
+    last_update_ms: float
+
+
+@dataclass
+class _Robot:
+    index: int
+    T_odom_kf: list[np.ndarray] = field(default_factory=list)
+    path_m: list[float] = field(default_factory=list)
+    anchor_closure: int | None = None  # closure id that anchored it (None for robot 0 or unanchored)
+    anchored: bool = False
+
+
+def _pose3(T: np.ndarray) -> gtsam.Pose3:
+    """numpy (4, 4) -> gtsam.Pose3 with the rotation projected onto SO(3) (REFERENCE.md §3)."""
+    return gtsam.Pose3(gtsam.Rot3.ClosestTo(T[:3, :3]), T[:3, 3])
+
+
+def _check_pose(T: np.ndarray, what: str) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise BackendError(f"{what} must be a finite (4, 4) pose, got shape {T.shape}")
+    return T
+
+
+def _sigmas6(rot_trans: tuple[float, float]) -> np.ndarray:
+    rot, trans = (float(v) for v in rot_trans)
+    if rot <= 0 or trans <= 0:
+        raise BackendError(f"noise sigmas must be positive, got rotation {rot} rad, translation {trans} m")
+    return np.r_[[rot] * 3, [trans] * 3]  # Pose3 tangent order: [rx ry rz tx ty tz]
+
+
+_KERNELS = {
+    RobustKernel.HUBER: lambda k: gtsam.noiseModel.mEstimator.Huber.Create(k),
+    RobustKernel.CAUCHY: lambda k: gtsam.noiseModel.mEstimator.Cauchy.Create(k),
+    RobustKernel.TUKEY: lambda k: gtsam.noiseModel.mEstimator.Tukey.Create(k),
+}
+_KERNEL_WIDTH = {RobustKernel.HUBER: 1.345, RobustKernel.CAUCHY: 1.0, RobustKernel.TUKEY: 4.685}
+
+
+class MultiRobotPoseGraph:
+    """iSAM2 pose graph of several robots' keyframes in one shared frame (robot 0's odometry frame).
+
+    Args:
+        robot_names: the robots, in order; the first one defines the shared frame.
+        odometry_sigmas: (rotation rad, translation m) sigma of one keyframe-to-keyframe odometry step.
+        closure_sigmas: (rotation rad, translation m) sigma of an inter-robot closure.
+        robust_kernel: M-estimator on closures (string values accepted); ``kernel_width`` overrides
+            its default width (Huber 1.345, Cauchy 1.0, Tukey 4.685, in sigmas).
+        consistency_*: pairwise-consistency tolerances (``ConsistencyThresholds``).
+        min_closures_to_anchor: a robot is anchored through a robot pair only when that pair's
+            consistent set holds at least this many closures (1 = trust a single first match).
+        factorization: iSAM2 linear solver.
+        extra_updates: additional ``isam.update()`` passes after closures change the graph.
+    """
+
+    def __init__(
+        self,
+        robot_names: list[str],
+        *,
+        odometry_sigmas: tuple[float, float] = (0.01, 0.1),
+        closure_sigmas: tuple[float, float] = (0.05, 1.0),
+        robust_kernel: RobustKernel | str = RobustKernel.CAUCHY,
+        kernel_width: float | None = None,
+        consistency_trans_m: float = 5.0,
+        consistency_rot_deg: float = 10.0,
+        consistency_trans_per_m: float = 0.05,
+        consistency_rot_deg_per_m: float = 0.05,
+        min_closures_to_anchor: int = 1,
+        factorization: Factorization | str = Factorization.CHOLESKY,
+        relinearize_threshold: float = 0.01,
+        extra_updates: int = 3,
+    ) -> None:
+        self.keys = RobotKeys(robot_names)
+        try:
+            self.robust_kernel = RobustKernel(robust_kernel)
+            self.factorization = Factorization(str(getattr(factorization, "value", factorization)).upper())
+        except ValueError as exc:
+            raise BackendError(f"pose graph: {exc}; robust kernels: none, huber, cauchy, tukey") from None
+        self._odometry_noise = gtsam.noiseModel.Diagonal.Sigmas(_sigmas6(odometry_sigmas))
+        self._closure_sigmas = _sigmas6(closure_sigmas)
+        self._kernel_width = kernel_width
+        self.thresholds = ConsistencyThresholds(
+            consistency_trans_m, consistency_rot_deg, consistency_trans_per_m, consistency_rot_deg_per_m
+        )
+        if min_closures_to_anchor < 1:
+            raise BackendError(f"min_closures_to_anchor must be >= 1, got {min_closures_to_anchor}")
+        self.min_closures_to_anchor = min_closures_to_anchor
+        self.relinearize_threshold = relinearize_threshold
+        self.extra_updates = extra_updates
+        self._robots = {name: _Robot(i) for i, name in enumerate(self.keys.names)}
+        self._closures: list[ClosureRecord] = []
+        self._closure_noise: list[gtsam.noiseModel.Base] = []
+        self._information: list[np.ndarray] = []  # 6x6 [rot, trans] information, for g2o export
+        self._pair_adjacency: dict[tuple[str, str], tuple[list[int], np.ndarray]] = {}
+        self._rebuilds = 0
+        self._last_update_ms = 0.0
+        self._reset_isam()
+
+    # --- public API ---------------------------------------------------------------------------------
+
+    def add_keyframe(self, robot: str, kf_index: int, T_odom_kf: np.ndarray) -> None:
+        """Add keyframe ``kf_index`` (0, 1, 2, ... per robot) with its pose in the robot's odometry frame.
+
+        Anchored robots get the odometry factor (and robot 0's first keyframe the prior) in iSAM2
+        right away; keyframes of unanchored robots are recorded until the robot is anchored.
+
+        Raises:
+            BackendError: unknown robot, a keyframe index out of order, or a non-finite pose.
+        """
+        r = self._robot(robot)
+        T = _check_pose(T_odom_kf, f"keyframe {kf_index} of {robot}")
+        if kf_index != len(r.T_odom_kf):
+            raise BackendError(
+                f"keyframe {kf_index} of {robot} is out of order: expected keyframe {len(r.T_odom_kf)} "
+                "(keyframes are numbered 0, 1, 2, ... per robot)"
+            )
+        step = 0.0 if not r.T_odom_kf else float(np.linalg.norm(T[:3, 3] - r.T_odom_kf[-1][:3, 3]))
+        r.path_m.append((r.path_m[-1] if r.path_m else 0.0) + step)
+        r.T_odom_kf.append(T)
+        if r.index == 0 and kf_index == 0:
+            self._anchor_first_robot()
+            self._sync()
+        elif r.anchored:
+            self._push_keyframe(robot, kf_index)
+        self._flush(closures_changed=False)
+
+    def add_inter_robot_closure(
+        self,
+        robot_a: str,
+        kf_a: int,
+        robot_b: str,
+        kf_b: int,
+        T_akf_bkf: np.ndarray,
+        *,
+        num_inliers: int = 1,
+        information: np.ndarray | None = None,
+    ) -> ClosureDecision:
+        """Add a relative-pose measurement between keyframes of two different robots.
+
+        Args:
+            robot_a, kf_a, robot_b, kf_b: the two keyframes (already added with ``add_keyframe``).
+            T_akf_bkf: (4, 4) pose of b's keyframe camera in a's keyframe camera frame.
+            num_inliers: evidence behind the closure (matched objects); breaks ties between
+                equally large consistent sets.
+            information: optional (6, 6) information matrix in gtsam order [rot, trans]; the
+                configured closure sigmas otherwise.
+
+        Returns:
+            ``ClosureDecision``: accepted when the closure is in its robot pair's maximum consistent
+            set. The reason says why, and whether the closure waits for an anchored robot.
+
+        Raises:
+            BackendError: unknown robots, the same robot twice, a keyframe not added yet, bad matrices.
+        """
+        ia, ib = self.keys.index(robot_a), self.keys.index(robot_b)
+        if ia == ib:
+            raise BackendError(
+                f"closure between {robot_a} and itself: only inter-robot closures are supported"
+            )
+        T = _check_pose(T_akf_bkf, f"closure {robot_a}{kf_a}-{robot_b}{kf_b}")
+        for name, kf in ((robot_a, kf_a), (robot_b, kf_b)):
+            if not 0 <= kf < len(self._robots[name].T_odom_kf):
+                raise BackendError(
+                    f"closure refers to keyframe {kf} of {name}, which has only "
+                    f"{len(self._robots[name].T_odom_kf)} keyframes; add keyframes before closures"
+                )
+        if ia > ib:  # canonical order: lower robot index first
+            robot_a, kf_a, robot_b, kf_b, T = robot_b, kf_b, robot_a, kf_a, inverse(T)
+            if information is not None:
+                information = self._inverse_information(information, T)
+        noise, info = self._closure_noise_model(information)
+        rec = ClosureRecord(len(self._closures), robot_a, kf_a, robot_b, kf_b, T, int(num_inliers))
+        self._closures.append(rec)
+        self._closure_noise.append(noise)
+        self._information.append(info)
+        self._update_pair(rec)
+        self._sync()
+        self._flush(closures_changed=True)
+        reason = rec.reason
+        if rec.status is ClosureStatus.ACCEPTED and not rec.in_graph:
+            reason += f"; stored until {rec.robot_a} or {rec.robot_b} is anchored to {self.keys.names[0]}"
+        return ClosureDecision(rec.status is ClosureStatus.ACCEPTED, reason, rec.closure_id)
+
+    def is_anchored(self, robot: str) -> bool:
+        """True when ``robot``'s keyframes are in the shared frame (it has variables in iSAM2)."""
+        return self._robot(robot).anchored
+
+    def estimate(self) -> dict[str, np.ndarray]:
+        """Current ``T_shared_kf`` of every anchored robot: name -> (K, 4, 4), keyframe order."""
+        values = self._isam.calculateEstimate()
+        out = {}
+        for name, r in self._robots.items():
+            if r.anchored:
+                out[name] = np.stack(
+                    [values.atPose3(self.keys.key(name, k)).matrix() for k in range(len(r.T_odom_kf))]
+                )
+        return out
+
+    def T_shared_kf(self, robot: str, kf_index: int) -> np.ndarray:
+        """(4, 4) current estimate of one keyframe of an anchored robot in the shared frame."""
+        r = self._require_anchored(robot)
+        if not 0 <= kf_index < len(r.T_odom_kf):
+            raise BackendError(f"{robot} has no keyframe {kf_index} ({len(r.T_odom_kf)} keyframes)")
+        return self._isam.calculateEstimatePose3(self.keys.key(robot, kf_index)).matrix()
+
+    def T_shared_odom(self, robot: str, kf_index: int | None = None) -> np.ndarray:
+        """(4, 4) alignment of ``robot``'s odometry frame in the shared frame.
+
+        Computed at one keyframe as ``T_shared_kf · T_odom_kf⁻¹``; by default the latest keyframe,
+        which is the right correction for the robot's current (non-keyframe) poses and new points.
+        """
+        r = self._require_anchored(robot)
+        k = len(r.T_odom_kf) - 1 if kf_index is None else kf_index
+        return self.T_shared_kf(robot, k) @ inverse(r.T_odom_kf[k])
+
+    def closures(self) -> list[ClosureRecord]:
+        """Every closure so far (canonical robot order) with its current status and reason."""
+        return list(self._closures)
+
+    def stats(self) -> PoseGraphStats:
+        """Counters: keyframes, iSAM2 variables and factors, closures by status, rebuilds, timing."""
+        accepted = sum(c.status is ClosureStatus.ACCEPTED for c in self._closures)
+        return PoseGraphStats(
+            num_keyframes=sum(len(r.T_odom_kf) for r in self._robots.values()),
+            num_variables=int(self._isam.getLinearizationPoint().size()),
+            num_factors=int(self._isam.getFactorsUnsafe().nrFactors()),
+            closures_total=len(self._closures),
+            closures_accepted=accepted,
+            closures_rejected=len(self._closures) - accepted,
+            closures_in_graph=sum(c.in_graph for c in self._closures),
+            anchored_robots=tuple(n for n, r in self._robots.items() if r.anchored),
+            rebuilds=self._rebuilds,
+            last_update_ms=self._last_update_ms,
+        )
+
+    def to_g2o(self) -> str:
+        """The current graph as g2o text: VERTEX_SE3:QUAT (estimates) and EDGE_SE3:QUAT lines.
+
+        Vertex ids are the gtsam keys (``gtsam.readG2o`` restores ``a0, b3, ...``); edges are the
+        odometry factors and the closures in the graph, information matrices in g2o order
+        [trans, rot]. Robust kernels and robot 0's prior are not part of the format.
+        """
+        values = self._isam.calculateEstimate()
+        lines = []
+        for k in sorted(values.keys()):
+            lines.append(f"VERTEX_SE3:QUAT {k} " + _g2o_pose(values.atPose3(k)))
+        odo_info = np.diag(1.0 / np.asarray(self._odometry_noise.sigmas()) ** 2)
+        for name, r in self._robots.items():
+            if not r.anchored:
+                continue
+            for k in range(1, len(r.T_odom_kf)):
+                T = inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k]
+                lines.append(_g2o_edge(self.keys.key(name, k - 1), self.keys.key(name, k), T, odo_info))
+        for c in self._closures:
+            if c.in_graph:
+                k_a, k_b = self.keys.key(c.robot_a, c.kf_a), self.keys.key(c.robot_b, c.kf_b)
+                lines.append(_g2o_edge(k_a, k_b, c.T_a_b, self._information[c.closure_id]))
+        return "\n".join(lines) + "\n"
+
+    def write_g2o(self, path: Path | str) -> None:
+        """Write ``to_g2o()`` to ``path`` (creating the parent folder)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(self.to_g2o())
+
+    # --- consistency: which closures are accepted -------------------------------------------------
+
+    def _update_pair(self, rec: ClosureRecord) -> None:
+        """Grow the pair's consistency graph by ``rec`` and re-select its maximum consistent set."""
+        pair = (rec.robot_a, rec.robot_b)
+        ids, A_old = self._pair_adjacency.get(pair, ([], np.zeros((0, 0), dtype=bool)))
+        ra, rb = self._robots[rec.robot_a], self._robots[rec.robot_b]
+        others = [self._closures[i] for i in ids]
+        row = consistent_with(
+            rec.T_a_b, rec.kf_a, rec.kf_b,
+            np.array([c.T_a_b for c in others]).reshape(-1, 4, 4),
+            np.array([c.kf_a for c in others], dtype=np.int64),
+            np.array([c.kf_b for c in others], dtype=np.int64),
+            np.stack(ra.T_odom_kf), np.stack(rb.T_odom_kf),
+            np.asarray(ra.path_m), np.asarray(rb.path_m), self.thresholds,
+        )  # fmt: skip
+        n = len(ids) + 1
+        A = np.zeros((n, n), dtype=bool)
+        A[:-1, :-1] = A_old
+        A[-1, :-1] = A[:-1, -1] = row
+        ids = [*ids, rec.closure_id]
+        self._pair_adjacency[pair] = (ids, A)
+
+        members = [self._closures[i] for i in ids]
+        preferred = np.array([c.status is ClosureStatus.ACCEPTED for c in members])
+        weights = np.array([c.num_inliers for c in members], dtype=np.float64)
+        chosen = set(max_consistent_set(A, weights, preferred).tolist())
+        size = len(chosen)
+        where = f"{rec.robot_a}-{rec.robot_b}"
+        for j, c in enumerate(members):
+            if j in chosen:
+                c.status = ClosureStatus.ACCEPTED
+                c.reason = (
+                    f"accepted: only closure between {where} so far (unconfirmed, a larger consistent set "
+                    "can replace it)"
+                    if n == 1
+                    else f"accepted: in the maximum consistent set ({size} of {n} closures between {where})"
+                )
+            else:
+                c.status = ClosureStatus.REJECTED
+                c.reason = (
+                    f"rejected: inconsistent with the maximum consistent set ({size} of {n} closures "
+                    f"between {where})"
+                )
+
+    # --- anchoring and iSAM2 bookkeeping ---------------------------------------------------------
+
+    def _reset_isam(self) -> None:
+        p = gtsam.ISAM2Params()
+        p.setFactorization(self.factorization.value)
+        p.setRelinearizeThreshold(self.relinearize_threshold)
+        p.relinearizeSkip = 1
+        self._isam = gtsam.ISAM2(p)
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self._new_tags: list[int | None] = []  # closure id of each pending factor (None: odometry/prior)
+        self._factor_index: dict[int, int] = {}  # closure id -> iSAM2 factor index
+        self._to_remove: list[int] = []
+
+    def _anchor_first_robot(self) -> None:
+        name = self.keys.names[0]
+        r = self._robots[name]
+        r.anchored = True
+        k0 = self.keys.key(name, 0)
+        prior_noise = gtsam.noiseModel.Isotropic.Sigma(6, PRIOR_SIGMA)
+        self._add_factor(gtsam.PriorFactorPose3(k0, _pose3(r.T_odom_kf[0]), prior_noise))
+        self._new_values.insert(k0, _pose3(r.T_odom_kf[0]))
+        for k in range(1, len(r.T_odom_kf)):
+            self._push_keyframe(name, k)
+
+    def _push_keyframe(self, robot: str, k: int) -> None:
+        """Odometry factor (k-1 -> k) and initial value of keyframe k of an anchored robot."""
+        r = self._robots[robot]
+        k_prev, k_new = self.keys.key(robot, k - 1), self.keys.key(robot, k)
+        delta = inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k]
+        if self._new_values.exists(k_prev):
+            prev = self._new_values.atPose3(k_prev).matrix()
+        else:
+            prev = self._isam.calculateEstimatePose3(k_prev).matrix()
+        self._add_factor(gtsam.BetweenFactorPose3(k_prev, k_new, _pose3(delta), self._odometry_noise))
+        self._new_values.insert(k_new, _pose3(prev @ delta))
+
+    def _anchor_robot(self, robot: str, closure: ClosureRecord) -> None:
+        """Insert all keyframes of unanchored ``robot`` placed through ``closure`` to an anchored robot."""
+        r = self._robots[robot]
+        if robot == closure.robot_b:  # T_shared_odomB = T_shared_ai · T_ai_bj · T_odomB_bj⁻¹
+            T_shared_kf = self._current_pose(closure.robot_a, closure.kf_a) @ closure.T_a_b
+            kf = closure.kf_b
+        else:  # the anchored robot is b: T_shared_odomA = T_shared_bj · T_ai_bj⁻¹ · T_odomA_ai⁻¹
+            T_shared_kf = self._current_pose(closure.robot_b, closure.kf_b) @ inverse(closure.T_a_b)
+            kf = closure.kf_a
+        T_shared_odom = T_shared_kf @ inverse(r.T_odom_kf[kf])
+        r.anchored, r.anchor_closure = True, closure.closure_id
+        self._new_values.insert(self.keys.key(robot, 0), _pose3(T_shared_odom @ r.T_odom_kf[0]))
+        for k in range(1, len(r.T_odom_kf)):
+            self._push_keyframe(robot, k)
+
+    def _current_pose(self, robot: str, k: int) -> np.ndarray:
+        key = self.keys.key(robot, k)
+        if self._new_values.exists(key):
+            return self._new_values.atPose3(key).matrix()
+        return self._isam.calculateEstimatePose3(key).matrix()
+
+    def _sync(self) -> None:
+        """Bring iSAM2 in line with the accepted closures: anchor robots, add and remove closure factors."""
+        accepted = [c for c in self._closures if c.status is ClosureStatus.ACCEPTED]
+        broken = [
+            n for n, r in self._robots.items()
+            if r.anchor_closure is not None
+            and self._closures[r.anchor_closure].status is not ClosureStatus.ACCEPTED
+        ]  # fmt: skip
+        if broken:
+            self._rebuild()
+            return
+        pair_size: dict[tuple[str, str], int] = {}
+        for c in accepted:
+            pair_size[(c.robot_a, c.robot_b)] = pair_size.get((c.robot_a, c.robot_b), 0) + 1
+        grown = True
+        while grown:  # anchoring spreads through accepted closures (replays closures of unanchored robots)
+            grown = False
+            candidates = [
+                c for c in accepted
+                if self._robots[c.robot_a].anchored != self._robots[c.robot_b].anchored
+                and pair_size[(c.robot_a, c.robot_b)] >= self.min_closures_to_anchor
+            ]  # fmt: skip
+            if candidates:
+                c = max(candidates, key=lambda c: (c.num_inliers, -c.closure_id))
+                self._anchor_robot(c.robot_b if self._robots[c.robot_a].anchored else c.robot_a, c)
+                grown = True
+        for c in self._closures:
+            both = self._robots[c.robot_a].anchored and self._robots[c.robot_b].anchored
+            if c.status is ClosureStatus.ACCEPTED and both and not c.in_graph:
+                k_a, k_b = self.keys.key(c.robot_a, c.kf_a), self.keys.key(c.robot_b, c.kf_b)
+                self._add_factor(
+                    gtsam.BetweenFactorPose3(k_a, k_b, _pose3(c.T_a_b), self._closure_noise[c.closure_id]),
+                    c.closure_id,
+                )
+                c.in_graph = True
+            elif c.status is ClosureStatus.REJECTED and c.in_graph:
+                idx = self._factor_index.pop(c.closure_id, None)
+                if idx is None:  # still pending in this batch: cannot happen after a flush, be safe
+                    raise BackendError(f"closure {c.closure_id} was rejected before its factor was added")
+                self._to_remove.append(idx)
+                c.in_graph = False
+
+    def _rebuild(self) -> None:
+        """Start iSAM2 afresh from the recorded odometry and the accepted closures (anchor changed)."""
+        self._rebuilds += 1
+        self._reset_isam()
+        for r in self._robots.values():
+            r.anchored, r.anchor_closure = False, None
+        for c in self._closures:
+            c.in_graph = False
+        if self._robots[self.keys.names[0]].T_odom_kf:
+            self._anchor_first_robot()
+            self._sync()
+
+    def _add_factor(self, factor: gtsam.NonlinearFactor, closure_id: int | None = None) -> None:
+        self._new_factors.add(factor)
+        self._new_tags.append(closure_id)
+
+    def _flush(self, *, closures_changed: bool) -> None:
+        """Run iSAM2 on the pending factors/values/removals (plus extra passes after closure changes)."""
+        if self._new_factors.size() == 0 and not self._to_remove:
+            return
+        t0 = time.perf_counter()
+        try:
+            result = self._isam.update(self._new_factors, self._new_values, self._to_remove)
+            for idx, tag in zip(result.getNewFactorsIndices(), self._new_tags, strict=True):
+                if tag is not None:
+                    self._factor_index[tag] = int(idx)
+            if closures_changed:
+                for _ in range(self.extra_updates):
+                    self._isam.update()
+        except RuntimeError as exc:
+            raise BackendError(
+                f"iSAM2 update failed ({exc}); the graph is underconstrained or a pose is invalid - "
+                "try factorization='QR'"
+            ) from None
+        finally:
+            self._new_factors = gtsam.NonlinearFactorGraph()
+            self._new_values = gtsam.Values()
+            self._new_tags = []
+            self._to_remove = []
+        self._last_update_ms = (time.perf_counter() - t0) * 1e3
+
+    # --- helpers ---------------------------------------------------------------------------------
+
+    def _robot(self, robot: str) -> _Robot:
+        self.keys.index(robot)  # raises BackendError naming the known robots
+        return self._robots[robot]
+
+    def _require_anchored(self, robot: str) -> _Robot:
+        r = self._robot(robot)
+        if not r.anchored:
+            raise BackendError(
+                f"{robot} is not anchored yet: no accepted closure connects it to the shared frame"
+            )
+        return r
+
+    def _closure_noise_model(
+        self, information: np.ndarray | None
+    ) -> tuple[gtsam.noiseModel.Base, np.ndarray]:
+        if information is None:
+            base = gtsam.noiseModel.Diagonal.Sigmas(self._closure_sigmas)
+            info = np.diag(1.0 / self._closure_sigmas**2)
+        else:
+            info = np.asarray(information, dtype=np.float64)
+            if info.shape != (6, 6) or not np.isfinite(info).all() or np.linalg.eigvalsh(info).min() <= 0:
+                raise BackendError("closure information must be a finite, positive definite (6, 6) matrix")
+            base = gtsam.noiseModel.Gaussian.Information(info)
+        if self.robust_kernel is RobustKernel.NONE:
+            return base, info
+        width = self._kernel_width or _KERNEL_WIDTH[self.robust_kernel]
+        return gtsam.noiseModel.Robust.Create(_KERNELS[self.robust_kernel](width), base), info
+
+    @staticmethod
+    def _inverse_information(information: np.ndarray, T_b_a: np.ndarray) -> np.ndarray:
+        """Information of the flipped measurement ``T_b_a`` given that of ``T_a_b = T_b_a⁻¹``.
+
+        With right perturbations, ``T_a_b·Exp(ξ)`` inverts to ``T_b_a·Exp(-Ad(T_a_b)·ξ)``, so the
+        information becomes ``Ad(T_b_a)ᵀ · I · Ad(T_b_a)`` (gtsam [rot, trans] order).
+        """
+        Ad = _pose3(T_b_a).AdjointMap()
+        return Ad.T @ np.asarray(information, dtype=np.float64) @ Ad
+
+
+def _g2o_pose(p: gtsam.Pose3) -> str:
+    t = p.translation()
+    q = p.rotation().toQuaternion()
+    return f"{t[0]:.9f} {t[1]:.9f} {t[2]:.9f} {q.x():.9f} {q.y():.9f} {q.z():.9f} {q.w():.9f}"
+
+
+def _g2o_edge(k1: int, k2: int, T: np.ndarray, info_rot_trans: np.ndarray) -> str:
+    perm = np.r_[3, 4, 5, 0, 1, 2]  # gtsam [rot, trans] -> g2o [trans, rot]
+    I = info_rot_trans[np.ix_(perm, perm)]
+    upper = I[np.triu_indices(6)]
+    return f"EDGE_SE3:QUAT {k1} {k2} " + _g2o_pose(_pose3(T)) + " " + " ".join(f"{v:.6g}" for v in upper)
+
+
+def make_pose_graph(robot_names: list[str], cfg: BackendConfig) -> MultiRobotPoseGraph:
+    """Build the pose graph from the back-end configuration."""
+    return MultiRobotPoseGraph(
+        robot_names,
+        odometry_sigmas=(cfg.odometry_sigma_rot_rad, cfg.odometry_sigma_trans_m),
+        closure_sigmas=(cfg.closure_sigma_rot_rad, cfg.closure_sigma_trans_m),
+        robust_kernel=cfg.robust_kernel,
+        consistency_trans_m=cfg.consistency_trans_m,
+        consistency_rot_deg=cfg.consistency_rot_deg,
+        consistency_trans_per_m=cfg.consistency_trans_per_m,
+        consistency_rot_deg_per_m=cfg.consistency_rot_deg_per_m,
+    )

@@ -1,0 +1,87 @@
+"""depth_to_cloud: exact back-projection, Euclidean range limits, invalid pixels, labels, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shgm_slam.errors import DataError
+from shgm_slam.geometry.camera import project
+from shgm_slam.odometry.clouds import depth_to_cloud
+from shgm_slam.types import Intrinsics
+
+INTR = Intrinsics(50.0, 50.0, 15.5, 11.5, 32, 24)
+
+
+def _depth(rng: np.random.Generator) -> np.ndarray:
+    return rng.uniform(1.0, 20.0, (INTR.height, INTR.width)).astype(np.float32)
+
+
+def test_points_reproject_to_their_pixels_with_their_depth():
+    rng = np.random.default_rng(0)
+    depth = _depth(rng)
+    pts, labels = depth_to_cloud(depth, INTR, stride=1, min_range_m=0.0, max_range_m=100.0)
+    assert labels is None
+    assert pts.shape == (INTR.width * INTR.height, 3) and pts.dtype == np.float64
+    uv, in_front = project(pts, INTR)
+    assert in_front.all()
+    u, v = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+    np.testing.assert_allclose(uv, np.c_[u, v], atol=1e-9)
+    np.testing.assert_allclose(pts[:, 2], depth[v, u], rtol=1e-6)
+
+
+def test_invalid_depth_is_skipped_and_range_is_euclidean():
+    rng = np.random.default_rng(1)
+    depth = _depth(rng)
+    depth[0, :4] = [np.nan, np.inf, -3.0, 0.0]
+    pts, _ = depth_to_cloud(depth, INTR, stride=1, min_range_m=0.0, max_range_m=100.0)
+    assert pts.shape[0] == INTR.width * INTR.height - 4
+    assert np.isfinite(pts).all() and (pts[:, 2] > 0).all()
+
+    pts, _ = depth_to_cloud(depth, INTR, stride=1, min_range_m=5.0, max_range_m=12.0)
+    r = np.linalg.norm(pts, axis=1)
+    assert r.min() >= 5.0 and r.max() <= 12.0
+    # a corner pixel with z just under the limit has a Euclidean range above it and must be dropped
+    corner = np.full((INTR.height, INTR.width), 11.9, np.float32)
+    kept, _ = depth_to_cloud(corner, INTR, stride=1, min_range_m=0.0, max_range_m=12.0)
+    assert 0 < kept.shape[0] < corner.size
+
+
+def test_stride_and_labels_follow_the_kept_pixels():
+    rng = np.random.default_rng(2)
+    depth = _depth(rng)
+    depth[2, 4] = 0.0  # one invalid pixel on the stride-2 grid
+    labels = (np.arange(depth.size) % 19).reshape(depth.shape).astype(np.uint8)
+    pts, lab = depth_to_cloud(depth, INTR, stride=2, min_range_m=0.0, max_range_m=100.0, label_ids=labels)
+    assert pts.shape[0] == (INTR.height // 2) * (INTR.width // 2) - 1 == lab.shape[0]
+    uv, _ = project(pts, INTR)
+    u, v = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+    assert (u % 2 == 0).all() and (v % 2 == 0).all()
+    np.testing.assert_array_equal(lab, labels[v, u])
+
+
+def test_all_invalid_depth_gives_an_empty_cloud():
+    pts, lab = depth_to_cloud(
+        np.zeros((INTR.height, INTR.width), np.float32), INTR, stride=2, min_range_m=0.5, max_range_m=30.0,
+        label_ids=np.zeros((INTR.height, INTR.width), np.uint8),
+    )  # fmt: skip
+    assert pts.shape == (0, 3) and lab.shape == (0,)
+
+
+@pytest.mark.parametrize(
+    ("depth_shape", "labels_shape", "stride", "ranges", "message"),
+    [
+        ((24, 30), None, 1, (0.0, 10.0), "intrinsics"),
+        ((24, 32), (24, 30), 1, (0.0, 10.0), "label image"),
+        ((24, 32), None, 0, (0.0, 10.0), "stride"),
+        ((24, 32), None, 1, (10.0, 5.0), "min_range_m"),
+        ((24,), None, 1, (0.0, 10.0), "(H, W)"),
+    ],
+)
+def test_bad_input_raises_data_error(depth_shape, labels_shape, stride, ranges, message):
+    labels = None if labels_shape is None else np.zeros(labels_shape, np.uint8)
+    with pytest.raises(DataError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        depth_to_cloud(
+            np.ones(depth_shape, np.float32), INTR, stride=stride, min_range_m=ranges[0], max_range_m=ranges[1],
+            label_ids=labels,
+        )  # fmt: skip

@@ -1,0 +1,117 @@
+"""check_model (library) and ``shgm-slam check-model`` (CLI): report, preview PNG, clear errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from shgm_slam.cli import app
+from shgm_slam.errors import DataError
+from shgm_slam.perception.card import TaskKind
+from shgm_slam.perception.preview import check_model, read_image_rgb, render_preview, synthetic_test_image
+from tests.perception.onnx_builders import channel_model, conv_model, write_card
+
+
+@pytest.fixture
+def depth_model(tmp_path: Path) -> Path:
+    path = conv_model(tmp_path / "depth.onnx", out_channels=1)
+    write_card(
+        tmp_path / "depth.yaml",
+        {
+            "task": "depth",
+            "input": {"size": [160, 48]},
+            "output": {"kind": "relative", "scale": 10, "shift": 1},
+        },
+    )
+    return path
+
+
+@pytest.fixture
+def seg_model(tmp_path: Path) -> Path:
+    path = conv_model(tmp_path / "seg.onnx", out_channels=19)
+    write_card(tmp_path / "seg.yaml", {"task": "segmentation", "input": {"size": [160, 48]}})
+    return path
+
+
+def test_check_depth_model_writes_preview(tmp_path: Path, depth_model: Path) -> None:
+    report = check_model(depth_model, preview_path=tmp_path / "out" / "preview.png", runs=2, threads=1)
+    assert report.task is TaskKind.DEPTH
+    assert report.card_path == tmp_path / "depth.yaml"
+    assert tuple(report.input_shape[1:]) == (3, 48, 160)
+    assert report.fed_shape == (1, 3, 48, 160) and report.raw_output_shape == (1, 1, 48, 160)
+    assert report.image_wh == (1242, 375) and "synthetic" in report.image_source
+    assert 1.0 <= report.value_min <= report.value_max and report.valid_fraction == 1.0
+    assert report.timings_ms["total_ms"] >= report.timings_ms["inference_ms"] > 0
+    preview = read_image_rgb(report.preview_path)
+    assert preview.shape == (375, 2 * 1242, 3)
+    np.testing.assert_array_equal(preview[:, :1242], synthetic_test_image())  # left panel is the image
+
+
+def test_check_segmentation_model_reports_label_fractions(tmp_path: Path, seg_model: Path) -> None:
+    report = check_model(seg_model, preview_path=tmp_path / "seg.png", runs=1, threads=1)
+    assert report.task is TaskKind.SEGMENTATION
+    assert sum(report.label_fractions.values()) == pytest.approx(1.0)
+    assert 0 <= report.value_min <= report.value_max <= 18
+    assert read_image_rgb(tmp_path / "seg.png").shape == (375, 2 * 1242, 3)
+
+
+def test_check_model_on_an_image_file_and_nominal_intrinsics(tmp_path: Path) -> None:
+    model = channel_model(tmp_path / "disp.onnx")
+    card = {
+        "task": "depth",
+        "input": {"size": [32, 16], "scale": 1},
+        "output": {"kind": "disparity", "baseline_m": 0.5},
+    }
+    write_card(tmp_path / "card.yaml", card)
+    image = np.full((40, 80, 3), 20, dtype=np.uint8)
+    cv2.imwrite(str(tmp_path / "img.png"), image)
+    report = check_model(model, tmp_path / "card.yaml", tmp_path / "img.png", runs=1, threads=1)
+    assert report.image_wh == (80, 40) and report.preview_path is None
+    assert any("nominal intrinsics" in n for n in report.notes)
+    fx = 718.856 / 1242 * 80
+    assert report.value_min == pytest.approx(fx * 0.5 / (20 * 80 / 32), rel=1e-4)  # 20 px at 32/80 scale
+
+
+def test_corrupt_or_missing_images_are_data_errors(tmp_path: Path, depth_model: Path) -> None:
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    with pytest.raises(DataError, match=r"bad\.png cannot be decoded"):
+        check_model(depth_model, image_path=tmp_path / "bad.png", runs=1)
+    with pytest.raises(DataError, match="does not exist"):
+        check_model(depth_model, image_path=tmp_path / "none.png", runs=1)
+
+
+def test_render_preview_panels() -> None:
+    img = synthetic_test_image(64, 20)
+    depth = np.linspace(0, 30, 64 * 20, dtype=np.float32).reshape(20, 64)
+    labels = np.full((20, 64), 255, dtype=np.uint8)
+    panel = render_preview(img, depth, labels)
+    assert panel.shape == (20, 3 * 64, 3)
+    assert (panel[0, 64] == 0).all()  # invalid depth (0 m) is black
+    assert (panel[:, 128:] == 0).all()  # ignore labels are black
+
+
+def test_cli_check_model_smoke(tmp_path: Path, depth_model: Path) -> None:
+    runner = CliRunner()
+    out = tmp_path / "cli.png"
+    result = runner.invoke(app, ["check-model", str(depth_model), "--preview", str(out), "--runs", "1"])
+    assert result.exit_code == 0, result.output
+    assert "depth model" in result.output and "ms/frame" in result.output
+    assert out.is_file()
+    orphan = channel_model(tmp_path / "orphan.onnx")
+    result = runner.invoke(app, ["check-model", str(orphan)])
+    assert result.exit_code == 2
+    assert "orphan.yaml not found" in result.output.replace("\n", " ")
+
+
+def test_check_model_on_a_real_kitti_frame(tmp_path: Path, depth_model: Path, shared_data: Path) -> None:
+    image = shared_data / "kitti" / "frames06" / "kitti06-12-color.png"
+    report = check_model(
+        depth_model, image_path=image, preview_path=tmp_path / "kitti.png", runs=1, threads=1
+    )
+    H, W = read_image_rgb(image).shape[:2]
+    assert report.image_wh == (W, H) and report.valid_fraction == 1.0
+    assert read_image_rgb(tmp_path / "kitti.png").shape == (H, 2 * W, 3)
