@@ -85,9 +85,9 @@ def graph(
     sequence: Annotated[str, typer.Argument(help="SEQ[:start-end] with depth/, semantic/ and poses.txt")],
     out: Annotated[Path, typer.Option("--out", "-o", help="graph file to write (shgm-graph/1 JSON)")],
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
-    connectivity: Annotated[float | None, typer.Option(help="edge threshold, metres [config: 10]")] = None,
-    merge_radius: Annotated[float | None, typer.Option(help="same-label merge radius, m [config: 5]")] = None,
-    keyframe_every: Annotated[float | None, typer.Option(help="keyframe spacing, metres [config: 2]")] = None,
+    connectivity: Annotated[float | None, typer.Option(help="edge threshold, metres (config: 10)")] = None,
+    merge_radius: Annotated[float | None, typer.Option(help="same-label merge radius, m (config: 5)")] = None,
+    keyframe_every: Annotated[float | None, typer.Option(help="keyframe spacing, metres (config: 2)")] = None,
 ) -> None:
     """Build a sequence's semantic graph from its ground-truth poses, depth and labels; write it as JSON."""
     from pydantic import ValidationError

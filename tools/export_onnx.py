@@ -56,7 +56,9 @@ DEFAULT_OPSET = 17
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 INPUT_NAME = "pixel_values"
-DEFAULT_TEST_IMAGE = Path(__file__).resolve().parents[1].parent / "shared/data/kitti/frames06/kitti06-12-color.png"
+DEFAULT_TEST_IMAGE = (
+    Path(__file__).resolve().parents[1].parent / "shared/data/kitti/frames06/kitti06-12-color.png"
+)
 
 
 def _require_torch() -> tuple[Any, Any]:
@@ -90,7 +92,7 @@ class Provenance:
 
 def checkpoint_provenance(checkpoint: str, license_: str) -> Provenance:
     """Provenance of a real checkpoint, with the normalization of its preprocessor config when it has one
-    (``preprocessor_config.json`` next to the weights), else the ImageNet defaults both recipes' models use."""
+    (``preprocessor_config.json`` next to the weights), else the ImageNet defaults of both recipes."""
     source = checkpoint if Path(checkpoint).exists() else f"https://huggingface.co/{checkpoint}"
     try:
         from transformers import AutoImageProcessor
@@ -107,7 +109,11 @@ def checkpoint_provenance(checkpoint: str, license_: str) -> Provenance:
         return Provenance(source, license_)
     scale = float(getattr(proc, "rescale_factor", 1 / 255)) if getattr(proc, "do_rescale", True) else 1.0
     return Provenance(
-        source, license_, tuple(float(v) for v in mean), tuple(float(v) for v in std), scale,  # type: ignore[arg-type]
+        source,
+        license_,
+        tuple(float(v) for v in mean),
+        tuple(float(v) for v in std),
+        scale,  # type: ignore[arg-type]
         normalization_from=f"{checkpoint} preprocessor config",
     )
 
@@ -115,7 +121,12 @@ def checkpoint_provenance(checkpoint: str, license_: str) -> Provenance:
 def _input_spec(size_wh: tuple[int, int], prov: Provenance) -> InputSpec:
     """Both recipes: RGB NCHW float32 at a fixed size, stretched (the size keeps KITTI's aspect ratio)."""
     return InputSpec(
-        name=INPUT_NAME, size=size_wh, resize=ResizeMode.STRETCH, scale=prov.scale, mean=prov.mean, std=prov.std
+        name=INPUT_NAME,
+        size=size_wh,
+        resize=ResizeMode.STRETCH,
+        scale=prov.scale,
+        mean=prov.mean,
+        std=prov.std,
     )
 
 
@@ -151,20 +162,41 @@ def _depth_config(tiny: bool) -> Any:
 
     if tiny:
         backbone = Dinov2Config(
-            hidden_size=32, num_hidden_layers=4, num_attention_heads=2, mlp_ratio=2, image_size=56,
-            patch_size=14, out_indices=[1, 2, 3, 4], reshape_hidden_states=False,
+            hidden_size=32,
+            num_hidden_layers=4,
+            num_attention_heads=2,
+            mlp_ratio=2,
+            image_size=56,
+            patch_size=14,
+            out_indices=[1, 2, 3, 4],
+            reshape_hidden_states=False,
         )
         return DepthAnythingConfig(
-            backbone_config=backbone, reassemble_hidden_size=32, neck_hidden_sizes=[8, 16, 32, 32],
-            fusion_hidden_size=16, head_hidden_size=8, depth_estimation_type="metric", max_depth=80,
+            backbone_config=backbone,
+            reassemble_hidden_size=32,
+            neck_hidden_sizes=[8, 16, 32, 32],
+            fusion_hidden_size=16,
+            head_hidden_size=8,
+            depth_estimation_type="metric",
+            max_depth=80,
         )
     backbone = Dinov2Config(
-        hidden_size=384, num_hidden_layers=12, num_attention_heads=6, image_size=518, patch_size=14,
-        out_indices=[3, 6, 9, 12], reshape_hidden_states=False,
+        hidden_size=384,
+        num_hidden_layers=12,
+        num_attention_heads=6,
+        image_size=518,
+        patch_size=14,
+        out_indices=[3, 6, 9, 12],
+        reshape_hidden_states=False,
     )
     return DepthAnythingConfig(
-        backbone_config=backbone, reassemble_hidden_size=384, neck_hidden_sizes=[48, 96, 192, 384],
-        fusion_hidden_size=64, head_hidden_size=32, depth_estimation_type="metric", max_depth=80,
+        backbone_config=backbone,
+        reassemble_hidden_size=384,
+        neck_hidden_sizes=[48, 96, 192, 384],
+        fusion_hidden_size=64,
+        head_hidden_size=32,
+        depth_estimation_type="metric",
+        max_depth=80,
     )
 
 
@@ -209,11 +241,17 @@ def _seg_config(tiny: bool) -> Any:
     labels = {i: name for i, name in enumerate(CITYSCAPES_CLASSES)}
     if tiny:
         return SegformerConfig(
-            hidden_sizes=[8, 16, 24, 32], depths=[1, 1, 1, 1], num_attention_heads=[1, 1, 1, 1],
-            decoder_hidden_size=16, num_labels=NUM_CLASSES, id2label=labels,
+            hidden_sizes=[8, 16, 24, 32],
+            depths=[1, 1, 1, 1],
+            num_attention_heads=[1, 1, 1, 1],
+            decoder_hidden_size=16,
+            num_labels=NUM_CLASSES,
+            id2label=labels,
             label2id={v: k for k, v in labels.items()},
         )
-    return SegformerConfig(num_labels=NUM_CLASSES, id2label=labels, label2id={v: k for k, v in labels.items()})
+    return SegformerConfig(
+        num_labels=NUM_CLASSES, id2label=labels, label2id={v: k for k, v in labels.items()}
+    )
 
 
 def _seg_random(tiny: bool) -> Any:
@@ -263,7 +301,9 @@ def _seg_card(model: Any, size_wh: tuple[int, int], prov: Provenance) -> Segment
         license=prov.license,
         input=_input_spec(size_wh, prov),
         output=SegOutputSpec(
-            name="logits", kind=SegOutputKind.LOGITS, classes=classes,
+            name="logits",
+            kind=SegOutputKind.LOGITS,
+            classes=classes,
             mapping={i: i for i in range(NUM_CLASSES)},  # train-id order: identity
         ),
     )
@@ -297,7 +337,7 @@ RECIPES: dict[str, Recipe] = {
             tiny_size_wh=(128, 64),
             multiple_of=32,
             output_name="logits",
-            license="NVIDIA Source Code License for SegFormer (non-commercial; see the checkpoint's model card)",
+            license="NVIDIA Source Code License for SegFormer (non-commercial; see the model card)",
             build_random=_seg_random,
             load_pretrained=_seg_pretrained,
             forward=lambda m, x: m(pixel_values=x).logits,
@@ -361,7 +401,9 @@ def build_module(recipe: Recipe, checkpoint: str | None, random_init: bool, tiny
     """
     torch, _ = _require_torch()
     if tiny and not random_init:
-        raise ConfigError("--tiny builds a small random network: add --random-init (tiny real checkpoints do not exist)")
+        raise ConfigError(
+            "--tiny builds a small random network: add --random-init (tiny real checkpoints do not exist)"
+        )
     if random_init and checkpoint is not None:
         raise ConfigError("--checkpoint and --random-init exclude each other: drop one of them")
     torch.manual_seed(seed)
@@ -375,8 +417,8 @@ def build_module(recipe: Recipe, checkpoint: str | None, random_init: bool, tiny
             raise
         except Exception as exc:  # transformers/huggingface_hub raise many unrelated classes (OSError, HTTP)
             raise ModelError(
-                f"cannot load checkpoint {ckpt!r} ({type(exc).__name__}: {str(exc)[:300]}): check the id or local "
-                "path and your internet access (or use --random-init to export the architecture offline)"
+                f"cannot load checkpoint {ckpt!r} ({type(exc).__name__}: {str(exc)[:300]}): check the id or "
+                "local path and your internet access (or export offline with --random-init)"
             ) from None
     return _wrap(recipe, hf_model.float())
 
@@ -385,13 +427,16 @@ def _check_size(recipe: Recipe, size_wh: tuple[int, int]) -> None:
     m = recipe.multiple_of
     if min(size_wh) < m or any(v % m for v in size_wh):
         raise ConfigError(
-            f"--size {size_wh[0]} {size_wh[1]}: {recipe.title} needs W and H that are positive multiples of {m}"
+            f"--size {size_wh[0]} {size_wh[1]}: {recipe.title} needs W and H that are multiples of {m}; "
+            f"try --size {max(m, round(size_wh[0] / m) * m)} {max(m, round(size_wh[1] / m) * m)}"
         )
 
 
 def _check_opset(opset: int) -> None:
     if not OPSET_RANGE[0] <= opset <= OPSET_RANGE[1]:
-        raise ConfigError(f"--opset {opset}: choose {OPSET_RANGE[0]}..{OPSET_RANGE[1]} (onnxruntime >= 1.20 runs them)")
+        raise ConfigError(
+            f"--opset {opset}: choose {OPSET_RANGE[0]}..{OPSET_RANGE[1]} (onnxruntime >= 1.20 runs them)"
+        )
 
 
 def export_module(
@@ -425,12 +470,20 @@ def export_module(
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")  # TracerWarnings: H/W are fixed on purpose
             torch.onnx.export(
-                module, (example,), str(onnx_path), dynamo=False, opset_version=opset,
-                input_names=[INPUT_NAME], output_names=[output_name],
-                dynamic_axes={INPUT_NAME: {0: "batch"}, output_name: {0: "batch"}}, do_constant_folding=True,
+                module,
+                (example,),
+                str(onnx_path),
+                dynamo=False,
+                opset_version=opset,
+                input_names=[INPUT_NAME],
+                output_names=[output_name],
+                dynamic_axes={INPUT_NAME: {0: "batch"}, output_name: {0: "batch"}},
+                do_constant_folding=True,
             )
     except Exception as exc:  # torch's exporter raises many classes
-        raise ModelError(f"torch.onnx.export failed for {onnx_path} ({type(exc).__name__}: {str(exc)[:300]})") from None
+        raise ModelError(
+            f"torch.onnx.export failed for {onnx_path} ({type(exc).__name__}: {str(exc)[:300]})"
+        ) from None
     export_s = time.perf_counter() - t0
 
     probe = torch.from_numpy(np.random.default_rng(0).normal(size=(2, 3, H, W)).astype(np.float32))
@@ -461,7 +514,7 @@ def _set_output_shape(model: Any, dims: tuple[int | str, ...]) -> None:
     shape = model.graph.output[0].type.tensor_type.shape
     while len(shape.dim) < len(dims):
         shape.dim.add()
-    del shape.dim[len(dims):]
+    del shape.dim[len(dims) :]
     for dim, value in zip(shape.dim, dims, strict=True):
         dim.Clear()
         if isinstance(value, str):
@@ -499,7 +552,9 @@ def export_recipe(
     recipe = RECIPES[name]
     onnx_path = Path(out)
     if onnx_path.suffix != ".onnx":
-        raise ConfigError(f"--out {onnx_path}: give a path ending in .onnx (the card goes next to it as .yaml)")
+        raise ConfigError(
+            f"--out {onnx_path}: give a path ending in .onnx (the card goes next to it as .yaml)"
+        )
     size = tuple(size_wh) if size_wh is not None else (recipe.tiny_size_wh if tiny else recipe.size_wh)
     _check_size(recipe, size)  # type: ignore[arg-type]
     _check_opset(opset)
@@ -515,7 +570,16 @@ def export_recipe(
     card = recipe.make_card(module.model, size, prov)
     card_path = write_full_card(card, onnx_path)
     return ExportResult(  # type: ignore[arg-type]
-        onnx_path, card_path, card, module, size, ir_version, opset_used, diff, export_s, prov.normalization_from
+        onnx_path,
+        card_path,
+        card,
+        module,
+        size,
+        ir_version,
+        opset_used,
+        diff,
+        export_s,
+        prov.normalization_from,
     )
 
 
@@ -532,7 +596,9 @@ def write_full_card(card: DepthCard | SegmentationCard, onnx_path: Path) -> Path
     card_path = onnx_path.with_suffix(".yaml")
     card_path.write_text(yaml.safe_dump(data, sort_keys=False, width=110))
     if load_card(onnx_path) != card:
-        raise ModelError(f"{card_path} does not read back as the card that was written (a card schema change?)")
+        raise ModelError(
+            f"{card_path} does not read back as the card that was written (a card schema change?)"
+        )
     return card_path
 
 
@@ -558,7 +624,7 @@ def verify_with_adapter(result: ExportResult, image_rgb: np.ndarray, repeats: in
 
     Returns:
         dict with the output ``shape``, ``dtype``, value ``range`` (depth, metres) or ``labels`` (train ids
-        present), and the median ``ms_per_frame`` (preprocess + inference + postprocess) over ``repeats`` runs.
+        present), and the median ``ms_per_frame`` (pre + inference + postprocess) over ``repeats`` runs.
     """
     from shgm_slam.perception.depth import DepthModel
     from shgm_slam.perception.onnx_model import measure_overhead
@@ -568,16 +634,22 @@ def verify_with_adapter(result: ExportResult, image_rgb: np.ndarray, repeats: in
     adapter = cls(result.onnx_path, threads=2)
     out = adapter.predict(image_rgb)
     timings = measure_overhead(adapter, image_rgb, repeats=repeats)
-    report: dict[str, Any] = {"shape": out.shape, "dtype": str(out.dtype), "ms_per_frame": timings["total_ms"],
-                              "inference_ms": timings["inference_ms"]}
+    report: dict[str, Any] = {
+        "shape": out.shape,
+        "dtype": str(out.dtype),
+        "ms_per_frame": timings["total_ms"],
+        "inference_ms": timings["inference_ms"],
+    }
     if result.card.task is TaskKind.DEPTH:
         valid = out > 0
         report["range"] = (float(out[valid].min()), float(out[valid].max())) if valid.any() else None
         report["valid_fraction"] = float(valid.mean())
     else:
         ids, counts = np.unique(out, return_counts=True)
-        report["labels"] = {CITYSCAPES_CLASSES[i] if i < NUM_CLASSES else "ignore": round(c / out.size, 3)
-                            for i, c in zip(ids.tolist(), counts.tolist(), strict=True)}
+        report["labels"] = {
+            CITYSCAPES_CLASSES[i] if i < NUM_CLASSES else "ignore": round(c / out.size, 3)
+            for i, c in zip(ids.tolist(), counts.tolist(), strict=True)
+        }
     return report
 
 
@@ -590,12 +662,16 @@ def _parser() -> argparse.ArgumentParser:
         description="Export a real network to ONNX with its shgm_slam model card (see docs/real_models.md).",
     )
     p.add_argument("recipe", choices=sorted(RECIPES), help="which network")
-    p.add_argument("--out", type=Path, required=True, help="output .onnx path; the card is written next to it")
+    p.add_argument(
+        "--out", type=Path, required=True, help="output .onnx path; the card is written next to it"
+    )
     p.add_argument("--checkpoint", help="Hugging Face id or local folder (default: the recipe's)")
     p.add_argument("--random-init", action="store_true", help="random weights, no download")
     p.add_argument("--tiny", action="store_true", help="with --random-init: a tiny architecture (tests)")
     p.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="fixed model input size in pixels")
-    p.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ai.onnx opset {OPSET_RANGE} (default 17)")
+    p.add_argument(
+        "--opset", type=int, default=DEFAULT_OPSET, help=f"ai.onnx opset {OPSET_RANGE} (default 17)"
+    )
     p.add_argument("--image", type=Path, help="test image for the adapter check (default: a KITTI frame)")
     p.add_argument("--no-verify", action="store_true", help="skip the adapter check on the test image")
     return p
@@ -606,12 +682,19 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         result = export_recipe(
-            args.recipe, args.out, checkpoint=args.checkpoint, random_init=args.random_init, tiny=args.tiny,
-            size_wh=tuple(args.size) if args.size else None, opset=args.opset,
+            args.recipe,
+            args.out,
+            checkpoint=args.checkpoint,
+            random_init=args.random_init,
+            tiny=args.tiny,
+            size_wh=tuple(args.size) if args.size else None,
+            opset=args.opset,
         )
         size_mb = result.onnx_path.stat().st_size / 1e6
-        print(f"wrote {result.onnx_path} ({size_mb:.1f} MB, IR {result.ir_version}, opset {result.opset}, "
-              f"input 1x3x{result.size_wh[1]}x{result.size_wh[0]}, export {result.export_s:.1f} s)")
+        print(
+            f"wrote {result.onnx_path} ({size_mb:.1f} MB, IR {result.ir_version}, opset {result.opset}, "
+            f"input 1x3x{result.size_wh[1]}x{result.size_wh[0]}, export {result.export_s:.1f} s)"
+        )
         print(f"wrote {result.card_path} (normalization: {result.normalization_from})")
         print(f"onnxruntime vs torch: max |diff| = {result.max_abs_diff:.2e}")
         if not args.no_verify:

@@ -27,7 +27,7 @@ from shgm_slam.types import Frame, Intrinsics
 EXTENT_PERCENTILES = (5.0, 95.0)
 """Robust object extent: the spread between these percentiles of its 3D points, per camera axis."""
 
-MAX_EXTENT_SAMPLES = 16000
+MAX_EXTENT_SAMPLES = 8000
 """Extent percentiles use a pixel grid of about this many samples per frame..."""
 
 MIN_EXTENT_SAMPLES = 32
@@ -175,8 +175,16 @@ def extract_objects(
     valid &= keep_label[lab]
 
     n_comp, comp, depth_nan = _components(depth, lab, valid, depth_step_m)
-    comp_flat = comp.ravel().astype(np.intp)
-    counts = np.bincount(comp_flat, minlength=n_comp)
+    # Per-component sums over row runs of equal id (a few thousand runs instead of H*W scattered adds).
+    comp_flat = comp.ravel()
+    starts = np.flatnonzero(np.concatenate(([True], comp_flat[1:] != comp_flat[:-1])))
+    run_comp = comp_flat[starts]
+
+    def component_sums(per_pixel: np.ndarray) -> np.ndarray:
+        return np.bincount(run_comp, np.add.reduceat(per_pixel.ravel(), starts), minlength=n_comp)
+
+    counts = np.bincount(run_comp, np.diff(np.append(starts, comp_flat.size)), minlength=n_comp)
+    counts = counts.astype(np.int64)
     keep = counts >= min_blob_pixels(min_blob_fraction, W, H)
     keep[0] = False
     kept_ids = np.flatnonzero(keep)
@@ -184,16 +192,17 @@ def extract_objects(
         return ObjectObservations.empty()
     M = kept_ids.size
 
-    # Centroids = means of back-projected pixels, from per-component sums of z, u*z, v*z (bin 0 = NaN).
-    z_sum = np.bincount(comp_flat, depth_nan.ravel(), minlength=n_comp)[kept_ids]
-    uz_sum = np.bincount(comp_flat, (depth_nan * np.arange(W, dtype=np.float32)).ravel(), n_comp)[kept_ids]
-    vz_sum = np.bincount(comp_flat, (depth_nan * np.arange(H, dtype=np.float32)[:, None]).ravel(), n_comp)
+    # Centroids = means of the back-projected pixels (the pinhole model of geometry.camera.backproject),
+    # from per-component sums of z, u*z and v*z; invalid pixels (NaN) all sit in component 0.
+    z = depth_nan.astype(np.float64)
     n_px = counts[kept_ids].astype(np.float64)
-    z_mean = z_sum / n_px
+    z_mean = component_sums(z)[kept_ids] / n_px
+    uz_mean = component_sums(z * np.arange(W, dtype=np.float64))[kept_ids] / n_px
+    vz_mean = component_sums(z * np.arange(H, dtype=np.float64)[:, None])[kept_ids] / n_px
     centroids_cam = np.stack(
         [
-            (uz_sum / n_px - intrinsics.cx * z_mean) / intrinsics.fx,
-            (vz_sum[kept_ids] / n_px - intrinsics.cy * z_mean) / intrinsics.fy,
+            (uz_mean - intrinsics.cx * z_mean) / intrinsics.fx,
+            (vz_mean - intrinsics.cy * z_mean) / intrinsics.fy,
             z_mean,
         ],
         axis=1,
@@ -215,9 +224,9 @@ def extract_objects(
     obj = compact[comp[v, u]]
     hit = obj >= 0
     v, u, obj = v[hit], u[hit], obj[hit]
-    z = depth_nan[v, u].astype(np.float64)
-    x, y = (u - intrinsics.cx) * z / intrinsics.fx, (v - intrinsics.cy) * z / intrinsics.fy
-    points = np.stack([x, y, z], axis=1)
+    z_s = z[v, u]
+    x_s, y_s = (u - intrinsics.cx) * z_s / intrinsics.fx, (v - intrinsics.cy) * z_s / intrinsics.fy
+    points = np.stack([x_s, y_s, z_s], axis=1)
     extents = np.stack([_group_spread(obj, points[:, k], M) for k in range(3)], axis=1)
     label_of_obj = np.zeros(M, dtype=np.int64)
     label_of_obj[obj] = lab[v, u]

@@ -39,7 +39,8 @@ def _ransac(
 ) -> Alignment | None:
     return ransac_alignment(
         points_b, points_a, cands.rows_a, cands.rows_b, weights,
-        iterations=cfg.ransac_iterations, inlier_threshold_m=cfg.inlier_threshold_m, refine_iterations=0,
+        iterations=cfg.ransac_iterations, inlier_threshold_m=cfg.inlier_threshold_m,
+        refine_iterations=cfg.refine_iterations,
         gravity_aligned=cfg.gravity_aligned, up=np.asarray(cfg.up_axis), seed=cfg.seed,
     )  # fmt: skip
 
@@ -53,7 +54,7 @@ def _clique(
 ) -> Alignment | None:
     return clique_alignment(
         points_b, points_a, cands.rows_a, cands.rows_b, weights,
-        consistency_threshold_m=cfg.consistency_threshold_m, refine_iterations=0,
+        consistency_threshold_m=cfg.consistency_threshold_m, refine_iterations=cfg.refine_iterations,
         gravity_aligned=cfg.gravity_aligned, up=np.asarray(cfg.up_axis), max_candidates=cfg.max_candidates,
     )  # fmt: skip
 

@@ -6,8 +6,9 @@ a hypothesis when its residual is below the threshold (authors: 10 m). The hypot
 inliers wins (ties: lower truncated residual sum, as MSAC). Its inliers are then refitted with the
 weighted Eq. 2 and re-selected ``refine_iterations`` times (``pose.refine_alignment``).
 
-``rival_support`` is the largest inlier count of any hypothesis among the candidates the winner
-does not explain (residual above twice the threshold): the chance level or a competing alignment.
+``support`` is the refined winner's one-to-one inlier count; ``rival_support`` the same for the best
+hypothesis among the candidates the winner does not explain (residual above twice the threshold),
+refined the same way: the chance level, or a competing alignment in an ambiguous scene.
 """
 
 from __future__ import annotations
@@ -119,10 +120,18 @@ def ransac_alignment(
     inliers, costs = score_hypotheses(hypotheses, points_b, points_a, inlier_threshold_m)
     counts = inliers.sum(axis=1)
     best = int(np.lexsort((costs, -counts))[0])
-    unexplained = residuals_m(hypotheses[best], points_b, points_a) >= 2.0 * inlier_threshold_m
-    rival = int(inliers[:, unexplained].sum(axis=1).max()) if unexplained.any() else 0
     aligned = refine_alignment(
         hypotheses[best], points_b, points_a, rows_a, rows_b, weights,
         inlier_threshold_m, refine_iterations, gravity_aligned, up,
     )  # fmt: skip
-    return replace(aligned, support=int(counts[best]), rival_support=rival)
+    support = aligned.num_inliers
+    unexplained = residuals_m(aligned.T_a_b, points_b, points_a) >= 2.0 * inlier_threshold_m
+    rival = 0
+    if unexplained.sum() >= 3:
+        other = int(np.argmax(inliers[:, unexplained].sum(axis=1)))
+        rival = refine_alignment(
+            hypotheses[other], points_b[unexplained], points_a[unexplained], rows_a[unexplained],
+            rows_b[unexplained], None if weights is None else weights[unexplained],
+            inlier_threshold_m, refine_iterations, gravity_aligned, up,
+        ).num_inliers  # fmt: skip
+    return replace(aligned, support=support, rival_support=rival)

@@ -19,10 +19,9 @@ from shgm_slam.perception.onnx_model import (
     _FLOAT_TYPES,
     OnnxModel,
     PerceptionTimings,
-    ResizePlan,
     TensorSpec,
-    paste_back,
 )
+from shgm_slam.perception.resize import ResizePlan, paste_back
 from shgm_slam.types import Intrinsics
 
 

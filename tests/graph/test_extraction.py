@@ -10,7 +10,7 @@ from shgm_slam.config import ExtractionConfig
 from shgm_slam.errors import DataError
 from shgm_slam.geometry.camera import backproject
 from shgm_slam.geometry.se3 import make_pose, rot_y, transform_points
-from shgm_slam.graph.extraction import extract_objects, extract_objects_from_config
+from shgm_slam.graph.extraction import MAX_EXTENT_SAMPLES, extract_objects, extract_objects_from_config
 from shgm_slam.labels import Label
 from shgm_slam.types import Frame, Intrinsics
 
@@ -186,14 +186,18 @@ def test_from_config_uses_frame_pose_and_complains_about_missing_inputs():
 def test_sampled_extents_and_thin_objects_on_a_larger_image():
     """Big images: extents from a strided pixel grid; objects the grid misses use all their pixels."""
     h, w, z = 300, 400, 10.0
+    stride = int(np.sqrt(h * w / MAX_EXTENT_SAMPLES))
+    assert stride > 1
+    pole_u = 350 - 350 % stride + 1  # a column the sampling grid skips
     intr = Intrinsics(fx=200.0, fy=200.0, cx=199.5, cy=149.5, width=w, height=h)
     depth = np.full((h, w), z, np.float32)
     labels = np.full((h, w), Label.SKY, np.uint8)
     labels[0:200, 0:300] = Label.BUILDING
-    labels[50:250, 351] = Label.POLE  # one pixel wide, on a column the stride-2 grid skips
+    labels[50:250, pole_u] = Label.POLE  # one pixel wide
     objs = extract_objects(depth, labels, intr, None, labels=LABELS, min_blob_fraction=100 / (h * w))
     assert objs.label_ids.tolist() == [Label.BUILDING, Label.POLE]
     px = z / intr.fx
-    np.testing.assert_allclose(objs.extents_m[0], [0.9 * 300 * px, 0.9 * 200 * px, 0.0], atol=2 * px)
-    np.testing.assert_allclose(objs.extents_m[1], [0.0, 0.9 * 200 * px, 0.0], atol=2 * px)
-    np.testing.assert_allclose(objs.centroids_cam[1], [(351 - intr.cx) * px, (149.5 - intr.cy) * px, z])
+    grid_step = (stride + 1) * px
+    np.testing.assert_allclose(objs.extents_m[0], [0.9 * 300 * px, 0.9 * 200 * px, 0.0], atol=grid_step)
+    np.testing.assert_allclose(objs.extents_m[1], [0.0, 0.9 * 200 * px, 0.0], atol=px)  # every pixel: exact
+    np.testing.assert_allclose(objs.centroids_cam[1], [(pole_u - intr.cx) * px, (149.5 - intr.cy) * px, z])

@@ -82,6 +82,6 @@ def test_bad_input_raises_data_error(depth_shape, labels_shape, stride, ranges, 
     labels = None if labels_shape is None else np.zeros(labels_shape, np.uint8)
     with pytest.raises(DataError, match=message.replace("(", r"\(").replace(")", r"\)")):
         depth_to_cloud(
-            np.ones(depth_shape, np.float32), INTR, stride=stride, min_range_m=ranges[0], max_range_m=ranges[1],
-            label_ids=labels,
+            np.ones(depth_shape, np.float32), INTR, stride=stride,
+            min_range_m=ranges[0], max_range_m=ranges[1], label_ids=labels,
         )  # fmt: skip

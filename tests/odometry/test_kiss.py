@@ -15,10 +15,10 @@ INTR = Intrinsics(370.0, 370.0, 319.5, 95.5, 640, 192)  # KITTI-like 640x192
 GROUND_Y = 1.7  # camera 1.7 m above the ground (KITTI frame: y down)
 
 
-def street(rng: np.random.Generator, length_m: float = 60.0, n_boxes: int = 160) -> tuple[np.ndarray, np.ndarray]:
+def street(rng: np.random.Generator, length_m: float = 60.0, n_boxes: int = 160) -> tuple[np.ndarray, ...]:
     """Axis-aligned boxes (lo (B,3), hi (B,3)) along a street: random objects plus facades with gaps."""
     side = rng.choice([-1.0, 1.0], n_boxes)
-    centre = np.c_[side * rng.uniform(3.0, 8.0, n_boxes), np.zeros(n_boxes), rng.uniform(-10, length_m, n_boxes)]
+    centre = np.c_[side * rng.uniform(3, 8, n_boxes), np.zeros(n_boxes), rng.uniform(-10, length_m, n_boxes)]
     w, h, d = rng.uniform(0.3, 2.5, n_boxes), rng.uniform(0.5, 4.0, n_boxes), rng.uniform(0.3, 4.0, n_boxes)
     lo = np.c_[centre[:, 0] - w / 2, GROUND_Y - h, centre[:, 2] - d / 2]
     hi = np.c_[centre[:, 0] + w / 2, np.full(n_boxes, GROUND_Y), centre[:, 2] + d / 2]

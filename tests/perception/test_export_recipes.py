@@ -103,6 +103,68 @@ def test_depth_card_is_metric_80m(exported):
     assert card.input.mean == export_onnx.IMAGENET_MEAN and card.input.std == export_onnx.IMAGENET_STD
 
 
+@pytest.mark.parametrize("name", [DEPTH, SEG])
+def test_random_init_cards_use_imagenet_normalization(exported, name):
+    from transformers.utils.constants import IMAGENET_DEFAULT_MEAN, IMAGENET_DEFAULT_STD
+
+    spec = exported[name].card.input
+    np.testing.assert_allclose(spec.mean, IMAGENET_DEFAULT_MEAN)
+    np.testing.assert_allclose(spec.std, IMAGENET_DEFAULT_STD)
+    assert spec.effective_scale == pytest.approx(1 / 255)
+
+
+def _save_checkpoint(name: str, folder: Path, mean, std, **config) -> None:
+    """A local Hugging Face checkpoint folder (tiny random weights + preprocessor config), no download."""
+    from transformers import DPTImageProcessor, SegformerImageProcessor
+
+    model = export_onnx.RECIPES[name].build_random(True)
+    for key, value in config.items():
+        setattr(model.config, key, value)
+    model.save_pretrained(folder)
+    processor = DPTImageProcessor if name == DEPTH else SegformerImageProcessor
+    processor(image_mean=list(mean), image_std=list(std)).save_pretrained(folder)
+
+
+@pytest.mark.parametrize("name", [DEPTH, SEG])
+def test_export_from_local_checkpoint_uses_its_weights_and_processor(tmp_path, name):
+    mean, std = (0.5, 0.4, 0.3), (0.2, 0.25, 0.3)
+    ckpt = tmp_path / "ckpt"
+    _save_checkpoint(name, ckpt, mean, std)
+    result = export_onnx.export_recipe(name, tmp_path / "m.onnx", checkpoint=str(ckpt))
+    card = load_card(result.onnx_path)
+    assert card.source == str(ckpt)
+    np.testing.assert_allclose(card.input.mean, mean)
+    np.testing.assert_allclose(card.input.std, std)
+    assert "preprocessor" in result.normalization_from
+    # the exported weights are the checkpoint's: same output as the saved model loaded on its own
+    W, H = result.size_wh
+    blob = _normalize(_street_image(W, H, seed=5), card)
+    reference = export_onnx.RECIPES[name].load_pretrained(str(ckpt)).eval()
+    with torch.no_grad():
+        expected = export_onnx.RECIPES[name].forward(reference, torch.from_numpy(blob)).numpy()
+    adapter = _adapter(result)
+    (got,) = adapter.session.run(None, {adapter.input_spec.name: blob})
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-4)
+
+
+def test_relative_depth_checkpoint_is_rejected(tmp_path):
+    ckpt = tmp_path / "relative"
+    _save_checkpoint(
+        DEPTH, ckpt, export_onnx.IMAGENET_MEAN, export_onnx.IMAGENET_STD, depth_estimation_type="relative"
+    )
+    with pytest.raises(ConfigError, match="relative"):
+        export_onnx.export_recipe(DEPTH, tmp_path / "m.onnx", checkpoint=str(ckpt))
+    assert not (tmp_path / "m.onnx").exists()
+
+
+def test_missing_checkpoint_is_a_model_error(tmp_path):
+    from shgm_slam.errors import ModelError
+
+    # an absolute path with several slashes is neither a folder nor a valid hub id: no network call
+    with pytest.raises(ModelError, match="cannot load checkpoint"):
+        export_onnx.export_recipe(SEG, tmp_path / "m.onnx", checkpoint=str(tmp_path / "no-such-folder"))
+
+
 def test_seg_card_lists_cityscapes_identity(exported):
     result = exported[SEG]
     card = load_card(result.onnx_path)
@@ -185,8 +247,9 @@ def test_cli_exports_and_verifies(tmp_path, capsys):
     image_path = tmp_path / "frame.png"
     cv2.imwrite(str(image_path), _street_image(160, 48)[:, :, ::-1])
     out = tmp_path / "models" / "seg.onnx"
-    code = export_onnx.main([SEG, "--out", str(out), "--random-init", "--tiny", "--size", "96", "32",
-                             "--image", str(image_path)])
+    code = export_onnx.main(
+        [SEG, "--out", str(out), "--random-init", "--tiny", "--size", "96", "32", "--image", str(image_path)]
+    )
     assert code == 0
     assert out.is_file() and out.with_suffix(".yaml").is_file()
     assert load_card(out).input.size == (96, 32)

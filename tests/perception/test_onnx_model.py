@@ -12,7 +12,8 @@ from onnx import TensorProto
 from shgm_slam.errors import DataError, ModelError
 from shgm_slam.perception.card import ResizeMode, parse_card
 from shgm_slam.perception.depth import DepthModel
-from shgm_slam.perception.onnx_model import any_size_target, measure_overhead, open_session, plan_resize
+from shgm_slam.perception.onnx_model import measure_overhead, open_session
+from shgm_slam.perception.resize import any_size_target, plan_resize
 from shgm_slam.perception.segmentation import SegmentationModel
 from tests.perception.onnx_builders import channel_model, coordinate_image, rank3_model, write_card
 

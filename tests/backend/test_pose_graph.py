@@ -1,0 +1,224 @@
+"""Multi-robot pose graph: fusion beats odometry, wrong closures are rejected, deferred anchoring, g2o."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from shgm_slam.backend.pose_graph import ClosureStatus, Factorization, MultiRobotPoseGraph, make_pose_graph
+from shgm_slam.config import BackendConfig
+from shgm_slam.errors import BackendError
+from shgm_slam.geometry.se3 import inverse, make_pose, pose_error, rot_y, so3_exp
+from shgm_slam.metrics import ate
+
+N = 60  # keyframes per robot
+
+
+def route(n: int, start: np.ndarray, step_m: float = 2.0, yaw_rad: float = 0.03) -> np.ndarray:
+    """(n, 4, 4) ground-truth T_world_kf: forward steps while turning about the camera's y (down) axis."""
+    poses = [start]
+    for _ in range(n - 1):
+        poses.append(poses[-1] @ make_pose(rot_y(yaw_rad), [0.0, 0.0, step_m]))
+    return np.stack(poses)
+
+
+def noisy_odometry(gt: np.ndarray, rng: np.random.Generator, sig_rad=0.004, sig_m=0.02) -> np.ndarray:
+    """Integrated noisy relative motions; the odometry frame is the first keyframe (identity)."""
+    delta = inverse(gt[:-1]) @ gt[1:]
+    delta = delta @ make_pose(so3_exp(rng.normal(0, sig_rad, (len(delta), 3))), rng.normal(0, sig_m, (len(delta), 3)))
+    out = [np.eye(4)]
+    for D in delta:
+        out.append(out[-1] @ D)
+    return np.stack(out)
+
+
+def true_closures(gt_a, gt_b, rng, every=3, radius_m=6.0, sig_rad=0.02, sig_m=0.2) -> list:
+    """(kf_a, kf_b, T_akf_bkf) with small noise for keyframes of a near some keyframe of b."""
+    out = []
+    for i in range(0, len(gt_a), every):
+        dist = np.linalg.norm(gt_b[:, :3, 3] - gt_a[i, :3, 3], axis=1)
+        j = int(np.argmin(dist))
+        if dist[j] < radius_m:
+            noise = make_pose(so3_exp(rng.normal(0, sig_rad, 3)), rng.normal(0, sig_m, 3))
+            out.append((i, j, inverse(gt_a[i]) @ gt_b[j] @ noise))
+    return out
+
+
+def wrong_closure(rng, n_a: int, n_b: int) -> tuple:
+    """A gross outlier: random keyframes, random yaw, random offset of up to 30 m."""
+    t = rng.uniform(-30, 30, 3)
+    t[1] = rng.normal(0, 1)
+    return int(rng.integers(n_a)), int(rng.integers(n_b)), make_pose(rot_y(rng.uniform(-np.pi, np.pi)), t)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Robot a drives a curve; robot b drives it back in the other lane (its frame is unknown to a)."""
+    rng = np.random.default_rng(0)
+    gt_a = route(N, np.eye(4))
+    gt_b = gt_a[::-1] @ make_pose(rot_y(np.pi), [3.0, 0.0, 0.0])
+    return {
+        "gt_a": gt_a, "gt_b": gt_b,
+        "odo_a": noisy_odometry(gt_a, rng), "odo_b": noisy_odometry(gt_b, rng),
+        "closures": true_closures(gt_a, gt_b, rng),
+        "T_shared_odomb": inverse(gt_a[0]) @ gt_b[0],
+    }  # fmt: skip
+
+
+def run(scene, closures, **kwargs):
+    """Interleave keyframes of a and b with closures as soon as both keyframes exist."""
+    pg = MultiRobotPoseGraph(["a", "b"], **kwargs)
+    decisions = []
+    for k in range(N):
+        pg.add_keyframe("a", k, scene["odo_a"][k])
+        pg.add_keyframe("b", k, scene["odo_b"][k])
+        for i, j, T in closures:
+            if max(i, j) == k:
+                decisions.append(pg.add_inter_robot_closure("a", i, "b", j, T, num_inliers=8))
+    return pg, decisions
+
+
+def fused_ate(scene, pg) -> float:
+    est = pg.estimate()
+    gt = inverse(scene["gt_a"][0]) @ np.r_[scene["gt_a"], scene["gt_b"]]
+    return ate(gt, np.r_[est["a"], est["b"]], align="none").rmse
+
+
+def test_two_robots_fuse_better_than_odometry_and_recover_the_frame(scene):
+    pg, decisions = run(scene, scene["closures"])
+    assert len(decisions) >= 15 and all(d.accepted for d in decisions)
+    assert pg.is_anchored("a") and pg.is_anchored("b")
+    T_true = scene["T_shared_odomb"]
+    assert np.linalg.norm(T_true[:3, 3]) > 50 and np.degrees(np.arccos(T_true[0, 0])) > 45  # far apart
+    err_m, err_deg = pose_error(pg.T_shared_odom("b", 0), T_true)
+    assert err_m < 3.0 and err_deg < 4.0
+    # odometry only, even with b placed by the TRUE frame, is worse than the fused estimate
+    gt = inverse(scene["gt_a"][0]) @ np.r_[scene["gt_a"], scene["gt_b"]]
+    odometry_ate = ate(gt, np.r_[scene["odo_a"], T_true @ scene["odo_b"]], align="none").rmse
+    fused = fused_ate(scene, pg)
+    assert fused < 0.8 * odometry_ate, (fused, odometry_ate)
+    # the alignment maps the latest odometry pose onto the latest fused keyframe
+    est = pg.estimate()
+    np.testing.assert_allclose(pg.T_shared_odom("b") @ scene["odo_b"][-1], est["b"][-1], atol=1e-9)
+    s = pg.stats()
+    assert s.closures_in_graph == s.closures_accepted == len(decisions) and s.rebuilds == 0
+    assert s.num_variables == 2 * N and s.num_factors == 1 + 2 * (N - 1) + len(decisions)
+
+
+def test_wrong_closures_are_rejected_and_do_not_bend_the_map(scene):
+    rng = np.random.default_rng(5)
+    closures = list(scene["closures"])
+    n_wrong = len(closures) // 3  # 25 % of all closures
+    wrong = [wrong_closure(rng, N, N) for _ in range(n_wrong)]
+    wrong[0] = (0, 59, wrong[0][2])  # the very first closure is wrong: it anchors b in the wrong place
+    mixed = [wrong[0]] + sorted(closures + wrong[1:], key=lambda c: rng.random())
+    pg, decisions = run(scene, mixed)
+    clean, _ = run(scene, closures)
+    assert abs(fused_ate(scene, pg) - fused_ate(scene, clean)) < 0.05
+    wrong_ids = {id(c[2]) for c in wrong}
+    records = pg.closures()
+    for rec, c in zip(records, [c for k in range(N) for c in mixed if max(c[0], c[1]) == k], strict=True):
+        expected = ClosureStatus.REJECTED if id(c[2]) in wrong_ids else ClosureStatus.ACCEPTED
+        assert rec.status is expected, rec.reason
+        if expected is ClosureStatus.REJECTED:
+            assert "inconsistent" in rec.reason
+    assert sum(not d.accepted for d in decisions) >= n_wrong - 1  # rejected on arrival (all but the first)
+    assert pg.stats().rebuilds >= 1 and pg.stats().closures_rejected == n_wrong
+    # the same outliers without consistency checks or robust kernel do bend the map
+    naive, _ = run(scene, mixed, robust_kernel="none", consistency_trans_m=1e6, consistency_rot_deg=1e6)
+    assert fused_ate(scene, naive) > 5 * fused_ate(scene, clean)
+
+
+def test_closures_between_unanchored_robots_are_replayed():
+    rng = np.random.default_rng(3)
+    gt_a = route(N, np.eye(4))
+    gt_c = gt_a[::-1] @ make_pose(rot_y(np.pi), [3.0, 0.0, 0.0])  # c meets a
+    gt_b = route(N, gt_c[0] @ make_pose(np.eye(3), [-3.0, 0.0, -20.0]), yaw_rad=-0.03)  # b meets only c
+    odo = {r: noisy_odometry(g, rng) for r, g in (("a", gt_a), ("b", gt_b), ("c", gt_c))}
+    pg = MultiRobotPoseGraph(["a", "b", "c"])
+    for r in ("a", "b", "c"):
+        for k in range(N):
+            pg.add_keyframe(r, k, odo[r][k])
+    bc = true_closures(gt_b, gt_c, rng)
+    assert len(bc) >= 3 and not true_closures(gt_a, gt_b, rng)
+    for i, j, T in bc:
+        d = pg.add_inter_robot_closure("b", i, "c", j, T)
+        assert d.accepted and "stored until" in d.reason
+    assert not pg.is_anchored("b") and not pg.is_anchored("c") and set(pg.estimate()) == {"a"}
+    with pytest.raises(BackendError, match="not anchored"):
+        pg.T_shared_odom("b")
+    for i, j, T in true_closures(gt_a, gt_c, rng)[:4]:
+        # given in (c, a) order: the graph stores it the other way round
+        assert pg.add_inter_robot_closure("c", j, "a", i, inverse(T)).accepted
+    assert pg.is_anchored("b") and pg.is_anchored("c")
+    est = pg.estimate()
+    for r, gt in (("b", gt_b), ("c", gt_c)):
+        assert ate(inverse(gt_a[0]) @ gt, est[r], align="none").rmse < 2.0
+    assert pg.stats().closures_in_graph == len(bc) + 4
+
+
+@pytest.mark.parametrize("factorization", [Factorization.CHOLESKY, Factorization.QR])
+def test_deferred_initialisation_works_with_either_factorization(scene, factorization):
+    pg = MultiRobotPoseGraph(["a", "b"], factorization=factorization)
+    for k in range(N):  # all of b's keyframes arrive before any closure
+        pg.add_keyframe("a", k, scene["odo_a"][k])
+        pg.add_keyframe("b", k, scene["odo_b"][k])
+    assert not pg.is_anchored("b") and pg.stats().num_variables == N
+    for i, j, T in scene["closures"]:
+        pg.add_inter_robot_closure("a", i, "b", j, T)
+    assert pg.stats().num_variables == 2 * N
+    assert fused_ate(scene, pg) < 1.0
+
+
+def test_flipped_closures_with_information_give_the_same_graph(scene):
+    info = np.diag([400.0, 900.0, 100.0, 4.0, 1.0, 9.0])  # anisotropic, gtsam order [rot, trans]
+    ab = MultiRobotPoseGraph(["a", "b"], robust_kernel="none")
+    ba = MultiRobotPoseGraph(["a", "b"], robust_kernel="none")
+    for k in range(N):
+        for pg in (ab, ba):
+            pg.add_keyframe("a", k, scene["odo_a"][k])
+            pg.add_keyframe("b", k, scene["odo_b"][k])
+    for i, j, T in scene["closures"]:
+        ab.add_inter_robot_closure("a", i, "b", j, T, information=info)
+        Ad = gtsam.Pose3(gtsam.Rot3.ClosestTo(T[:3, :3]), T[:3, 3]).AdjointMap()  # info of T⁻¹
+        info_inv = np.linalg.inv(Ad @ np.linalg.inv(info) @ Ad.T)
+        ba.add_inter_robot_closure("b", j, "a", i, inverse(T), information=info_inv)
+    for r in ("a", "b"):
+        np.testing.assert_allclose(ab.estimate()[r], ba.estimate()[r], atol=1e-6)
+
+
+def test_g2o_file_is_readable_by_gtsam(scene, tmp_path):
+    pg, decisions = run(scene, scene["closures"][:5])
+    path = tmp_path / "out" / "graph.g2o"
+    pg.write_g2o(path)
+    graph, values = gtsam.readG2o(str(path), True)
+    assert values.size() == 2 * N
+    assert graph.size() == 2 * (N - 1) + len(decisions)
+    assert {gtsam.Symbol(k).string() for k in values.keys()} >= {"a0", "a59", "b0", "b59"}
+    np.testing.assert_allclose(
+        values.atPose3(gtsam.symbol("b", 7)).matrix(), pg.estimate()["b"][7], atol=1e-6
+    )
+
+
+def test_factory_and_bad_input():
+    pg = make_pose_graph(["x", "y"], BackendConfig(robust_kernel="huber"))
+    assert pg.robust_kernel.value == "huber"
+    pg.add_keyframe("x", 0, np.eye(4))
+    pg.add_keyframe("y", 0, np.eye(4))
+    with pytest.raises(BackendError, match="out of order: expected keyframe 1"):
+        pg.add_keyframe("x", 2, np.eye(4))
+    with pytest.raises(BackendError, match="unknown robot 'z'"):
+        pg.add_keyframe("z", 0, np.eye(4))
+    with pytest.raises(BackendError, match="finite"):
+        pg.add_keyframe("x", 1, np.full((4, 4), np.nan))
+    with pytest.raises(BackendError, match="keyframe 3 of y, which has only 1"):
+        pg.add_inter_robot_closure("x", 0, "y", 3, np.eye(4))
+    with pytest.raises(BackendError, match="itself"):
+        pg.add_inter_robot_closure("x", 0, "x", 0, np.eye(4))
+    with pytest.raises(BackendError, match="positive definite"):
+        pg.add_inter_robot_closure("x", 0, "y", 0, np.eye(4), information=-np.eye(6))
+    with pytest.raises(BackendError, match="robust kernels"):
+        MultiRobotPoseGraph(["x"], robust_kernel="l1")
+    with pytest.raises(BackendError, match="at least one robot"):
+        MultiRobotPoseGraph([])

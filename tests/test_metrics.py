@@ -1,0 +1,125 @@
+"""Trajectory metrics: alignment invariance, hand-computed RMSE, evo cross-check, short and bad input."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from shgm_slam.errors import DataError
+from shgm_slam.geometry.se3 import make_pose, rot_y, rot_z, so3_exp
+from shgm_slam.metrics import AlignMode, RelationKind, ate, rpe, trajectory_length
+
+
+def _trajectory(n: int = 50, seed: int = 0) -> np.ndarray:
+    """A curvy 3-D trajectory of (n, 4, 4) poses."""
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0, 4 * np.pi, n)
+    xyz = np.c_[20 * np.sin(s / 2), 0.5 * np.sin(3 * s), 3 * s]
+    return make_pose(so3_exp(rng.normal(0, 0.3, (n, 3))), xyz)
+
+
+def _noisy(poses: np.ndarray, sigma_m: float, seed: int = 1) -> np.ndarray:
+    out = poses.copy()
+    out[:, :3, 3] += np.random.default_rng(seed).normal(0, sigma_m, (len(poses), 3))
+    return out
+
+
+def test_rigidly_moved_copy_has_zero_error_after_se3_alignment():
+    gt = _trajectory()
+    T = make_pose(rot_z(0.7) @ rot_y(-0.4), [12.0, -3.0, 40.0])
+    moved = T @ gt
+    stats = ate(gt, moved, align=AlignMode.SE3)
+    assert stats.valid and stats.rmse < 1e-6 and stats["max"] < 1e-6
+    assert ate(gt, moved, align=AlignMode.NONE).rmse > 10.0
+    # scaled copies need Sim(3)
+    scaled = moved.copy()
+    scaled[:, :3, 3] *= 0.6
+    assert ate(gt, scaled, align=AlignMode.SE3).rmse > 1.0
+    assert ate(gt, scaled, align=AlignMode.SIM3).rmse < 1e-6
+
+
+def test_unaligned_ate_matches_hand_computed_statistics():
+    gt = _trajectory()
+    est = _noisy(gt, 0.3)
+    e = np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1)
+    stats = ate(gt, est, align="none")
+    assert stats.rmse == pytest.approx(np.sqrt(np.mean(e**2)), rel=1e-12)
+    assert stats.mean == pytest.approx(e.mean(), rel=1e-12)
+    assert stats.median == pytest.approx(np.median(e), rel=1e-12)
+    assert stats.std == pytest.approx(e.std(), rel=1e-12)
+    assert stats.max == pytest.approx(e.max(), rel=1e-12)
+    assert stats.as_dict()["num_poses"] == len(gt)
+
+
+def test_matches_evo_main_ape_and_does_not_modify_inputs():
+    from evo.core import metrics as evo_metrics
+    from evo.core.trajectory import PoseTrajectory3D
+    from evo.main_ape import ape as evo_ape
+
+    gt = _trajectory()
+    est = make_pose(rot_z(0.3), [1.0, 2.0, 3.0]) @ _noisy(gt, 0.2)
+    est[:, :3, 3] *= 1.3
+    before = est.copy()
+    t = np.arange(len(gt), dtype=float)
+    for align, scale in ((AlignMode.SE3, False), (AlignMode.SIM3, True)):
+        ref = PoseTrajectory3D(poses_se3=list(gt), timestamps=t)
+        traj = PoseTrajectory3D(poses_se3=list(est), timestamps=t)
+        res = evo_ape(ref, copy.deepcopy(traj), evo_metrics.PoseRelation.translation_part, align=True,
+                      correct_scale=scale)  # fmt: skip
+        ours = ate(gt, est, align=align)
+        for key in ("rmse", "mean", "median", "std", "max"):
+            assert ours[key] == pytest.approx(res.stats[key], rel=1e-9)
+    np.testing.assert_array_equal(est, before)
+
+
+def test_rpe_is_frame_independent_and_sees_relative_errors():
+    gt = _trajectory()
+    moved = make_pose(rot_z(1.0), [5.0, 5.0, 5.0]) @ gt
+    assert rpe(gt, moved).rmse < 1e-9
+    assert rpe(gt, moved, relation=RelationKind.ROTATION_DEG).rmse < 1e-6
+    est = gt.copy()
+    est[10:, :3, 3] += [0.5, 0.0, 0.0]  # one jump of 0.5 m between frames 9 and 10
+    stats = rpe(gt, est, delta_frames=1)
+    assert stats.max == pytest.approx(0.5, rel=1e-9)
+    assert stats.median < 1e-9
+
+
+def test_straight_line_trajectories_are_still_aligned():
+    gt = np.repeat(np.eye(4)[None], 20, axis=0)
+    gt[:, 2, 3] = np.arange(20.0)  # collinear positions: evo's Umeyama refuses them
+    moved = make_pose(rot_y(0.5), [3.0, 0.0, 1.0]) @ gt
+    assert ate(gt, moved, align="se3").rmse < 1e-9
+    scaled = moved.copy()
+    scaled[:, :3, 3] *= 2.0
+    assert ate(gt, scaled, align="sim3").rmse < 1e-9
+
+
+def test_short_or_non_finite_trajectories_give_nan_with_a_reason():
+    gt = _trajectory(2)
+    stats = ate(gt, gt)
+    assert not stats.valid and np.isnan(stats.rmse) and "only 2 poses" in stats.reason
+    assert np.isnan(rpe(gt, gt).rmse)
+    assert "delta" in rpe(_trajectory(5), _trajectory(5), delta_frames=5).reason
+    bad = _trajectory()
+    bad[3, 0, 3] = np.nan
+    assert "NaN" in ate(_trajectory(), bad).reason
+    still = np.repeat(np.eye(4)[None], 5, axis=0)
+    assert "coincide" in ate(still, still, align="sim3").reason
+
+
+def test_bad_input_raises_data_error():
+    with pytest.raises(DataError, match="10 ground-truth poses but 9 estimated"):
+        ate(_trajectory(10), _trajectory(9))
+    with pytest.raises(DataError, match=r"\(N, 4, 4\)"):
+        ate(np.zeros((5, 3, 4)), np.zeros((5, 3, 4)))
+    with pytest.raises(DataError, match="unknown AlignMode"):
+        ate(_trajectory(), _trajectory(), align="umeyama")
+
+
+def test_trajectory_length():
+    poses = np.repeat(np.eye(4)[None], 4, axis=0)
+    poses[:, :3, 3] = [[0, 0, 0], [3, 4, 0], [3, 4, 2], [3, 4, 2]]
+    assert trajectory_length(poses) == pytest.approx(7.0)
+    assert trajectory_length(poses[:1]) == 0.0
