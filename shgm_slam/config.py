@@ -157,7 +157,7 @@ class BackendConfig(_Stage):
         0.05, ge=0, description="consistency translation tolerance growth per metre of odometry in the loop"
     )
     consistency_rot_deg_per_m: float = Field(
-        0.05, ge=0, description="consistency rotation tolerance growth (deg) per metre of odometry in the loop"
+        0.05, ge=0, description="consistency rotation tolerance growth, degrees per metre of odometry in the loop"
     )
 
 

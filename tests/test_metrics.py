@@ -123,3 +123,13 @@ def test_trajectory_length():
     poses[:, :3, 3] = [[0, 0, 0], [3, 4, 0], [3, 4, 2], [3, 4, 2]]
     assert trajectory_length(poses) == pytest.approx(7.0)
     assert trajectory_length(poses[:1]) == 0.0
+
+
+def test_on_kitti_ground_truth(shared_data):
+    from shgm_slam.io.trajectories import read_kitti_poses
+
+    gt = read_kitti_poses(shared_data / "kitti" / "poses" / "07.txt")
+    assert trajectory_length(gt) == pytest.approx(694.7, abs=0.5)  # the published length of sequence 07
+    moved = make_pose(rot_y(1.2), [100.0, -2.0, 50.0]) @ gt
+    assert ate(gt, moved).rmse < 1e-6
+    assert ate(gt, moved, align="none").rmse > 50.0

@@ -79,6 +79,15 @@ class ClosureRecord:
 
 
 @dataclass(frozen=True)
+class Anchor:
+    """How a robot entered the shared frame: the closure used (None for robot 0) and the odometry-frame
+    alignment ``T_shared_odom`` (4, 4) its buffered keyframes were inserted with."""
+
+    closure_id: int | None
+    T_shared_odom: np.ndarray
+
+
+@dataclass(frozen=True)
 class PoseGraphStats:
     """Counters of the pose graph; ``last_update_ms`` is the latest iSAM2 update including extra passes."""
 
@@ -101,6 +110,7 @@ class _Robot:
     path_m: list[float] = field(default_factory=list)
     anchor_closure: int | None = None  # closure id that anchored it (None for robot 0 or unanchored)
     anchored: bool = False
+    T_shared_odom_init: np.ndarray | None = None  # alignment used when it was anchored
 
 
 def _pose3(T: np.ndarray) -> gtsam.Pose3:
@@ -306,6 +316,11 @@ class MultiRobotPoseGraph:
         k = len(r.T_odom_kf) - 1 if kf_index is None else kf_index
         return self.T_shared_kf(robot, k) @ inverse(r.T_odom_kf[k])
 
+    def anchor(self, robot: str) -> Anchor:
+        """The closure that anchored ``robot`` and the alignment its keyframes were initialised with."""
+        r = self._require_anchored(robot)
+        return Anchor(r.anchor_closure, r.T_shared_odom_init.copy())
+
     def closures(self) -> list[ClosureRecord]:
         """Every closure so far (canonical robot order) with its current status and reason."""
         return list(self._closures)
@@ -418,7 +433,7 @@ class MultiRobotPoseGraph:
     def _anchor_first_robot(self) -> None:
         name = self.keys.names[0]
         r = self._robots[name]
-        r.anchored = True
+        r.anchored, r.T_shared_odom_init = True, np.eye(4)
         k0 = self.keys.key(name, 0)
         prior_noise = gtsam.noiseModel.Isotropic.Sigma(6, PRIOR_SIGMA)
         self._add_factor(gtsam.PriorFactorPose3(k0, _pose3(r.T_odom_kf[0]), prior_noise))
@@ -448,7 +463,7 @@ class MultiRobotPoseGraph:
             T_shared_kf = self._current_pose(closure.robot_b, closure.kf_b) @ inverse(closure.T_a_b)
             kf = closure.kf_a
         T_shared_odom = T_shared_kf @ inverse(r.T_odom_kf[kf])
-        r.anchored, r.anchor_closure = True, closure.closure_id
+        r.anchored, r.anchor_closure, r.T_shared_odom_init = True, closure.closure_id, T_shared_odom
         self._new_values.insert(self.keys.key(robot, 0), _pose3(T_shared_odom @ r.T_odom_kf[0]))
         for k in range(1, len(r.T_odom_kf)):
             self._push_keyframe(robot, k)
@@ -506,7 +521,7 @@ class MultiRobotPoseGraph:
         self._rebuilds += 1
         self._reset_isam()
         for r in self._robots.values():
-            r.anchored, r.anchor_closure = False, None
+            r.anchored, r.anchor_closure, r.T_shared_odom_init = False, None, None
         for c in self._closures:
             c.in_graph = False
         if self._robots[self.keys.names[0]].T_odom_kf:

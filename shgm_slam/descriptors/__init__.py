@@ -45,6 +45,7 @@ class NodeDescriptors:
     counts: sp.csr_matrix
     label_ids: np.ndarray
     _unit: sp.csr_matrix | None = field(default=None, init=False, repr=False)
+    _unit_by_label: sp.csr_matrix | None = field(default=None, init=False, repr=False)
 
     def __len__(self) -> int:
         return int(self.counts.shape[0])
@@ -57,6 +58,13 @@ class NodeDescriptors:
             scale = np.divide(1.0, norms, out=np.zeros_like(norms), where=norms > 0)
             self._unit = sp.csr_matrix(sp.diags(scale) @ self.counts)
         return self._unit
+
+    @property
+    def unit_by_label(self) -> sp.csr_matrix:
+        """(N, C * D) unit rows moved into the block of each node's label (the same-label mask); cached."""
+        if self._unit_by_label is None:
+            self._unit_by_label = prepend_label(self.unit, self.label_ids, NUM_CLASSES)
+        return self._unit_by_label
 
 
 def compute_descriptors(graph: GraphArrays, cfg: DescriptorConfig) -> NodeDescriptors:
@@ -75,10 +83,7 @@ def similarity(a: NodeDescriptors, b: NodeDescriptors, same_label_only: bool = T
     """
     if a.kind is not b.kind:
         raise ValueError(f"cannot compare {a.kind.value} descriptors with {b.kind.value} descriptors")
-    ua, ub = a.unit, b.unit
-    if same_label_only:
-        ua = prepend_label(ua, a.label_ids, NUM_CLASSES)
-        ub = prepend_label(ub, b.label_ids, NUM_CLASSES)
+    ua, ub = (a.unit_by_label, b.unit_by_label) if same_label_only else (a.unit, b.unit)
     scores = (ua @ ub.T).tocsr()
     scores.data = np.minimum(scores.data, 1.0)  # round-off above 1
     scores.eliminate_zeros()

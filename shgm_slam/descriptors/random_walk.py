@@ -24,6 +24,40 @@ from shgm_slam.labels import NUM_CLASSES
 from shgm_slam.types import GraphArrays
 
 
+def _walk_steps(
+    graph: GraphArrays, num_walks: int, walk_length: int, seed: int, avoid_backtracking: bool
+) -> list[np.ndarray]:
+    """``walk_length`` arrays of (N * num_walks,) int32 rows; walk w of node i sits at i * num_walks + w."""
+    A = adjacency_matrix(graph)
+    indptr, neighbors = A.indptr.astype(np.int32), A.indices.astype(np.int32)
+    n = len(graph)
+    rng = np.random.default_rng(seed)
+    current = np.repeat(np.arange(n, dtype=np.int32), num_walks)
+    previous: np.ndarray | None = None
+    has_isolated = bool(np.any(np.diff(indptr) == 0))
+    last_slot = max(neighbors.size - 1, 0)
+    steps = []
+    for _ in range(walk_length):  # loop over the few steps; all walks advance together
+        start = indptr[current]
+        degree = indptr[current + 1] - start
+        avoid = None
+        choices = degree
+        if avoid_backtracking and previous is not None:
+            avoid = degree > 1
+            choices = degree - avoid
+        pick = (rng.random(current.size) * np.maximum(choices, 1)).astype(np.int32)
+        pick += start
+        nxt = neighbors[np.minimum(pick, last_slot)] if neighbors.size else current.copy()
+        if avoid is not None:  # uniform over the neighbours other than `previous`: it yields the last slot
+            hit = np.flatnonzero(avoid & (nxt == previous))
+            nxt[hit] = neighbors[start[hit] + degree[hit] - 1]
+        if has_isolated:
+            nxt = np.where(degree == 0, current, nxt)
+        steps.append(nxt)
+        previous, current = current, nxt
+    return steps
+
+
 def random_walks(
     graph: GraphArrays,
     num_walks: int = 400,
@@ -36,33 +70,22 @@ def random_walks(
     Returns:
         (N, num_walks, walk_length) int64 row indices of the nodes visited after each start node.
     """
-    A = adjacency_matrix(graph)
-    indptr, neighbors = A.indptr.astype(np.int64), A.indices.astype(np.int64)
-    n = len(graph)
-    rng = np.random.default_rng(seed)
-    current = np.repeat(np.arange(n, dtype=np.int64), num_walks)
-    previous = np.full_like(current, -1)
-    walks = np.empty((current.size, walk_length), dtype=np.int64)
-    last_slot = max(neighbors.size - 1, 0)
-    for step in range(walk_length):  # loop over the few steps; all walks advance together
-        start, degree = indptr[current], indptr[current + 1] - indptr[current]
-        avoid = (previous >= 0) & (degree > 1) if avoid_backtracking else np.zeros(current.size, bool)
-        choices = np.maximum(degree - avoid, 1)
-        pick = (rng.random(current.size) * choices).astype(np.int64)
-        nxt = neighbors[np.minimum(start + pick, last_slot)] if neighbors.size else current.copy()
-        # uniform over the neighbours other than `previous`: a draw of `previous` takes the last slot
-        hit_previous = avoid & (nxt == previous)
-        nxt[hit_previous] = neighbors[start[hit_previous] + degree[hit_previous] - 1]
-        nxt = np.where(degree == 0, current, nxt)
-        walks[:, step] = nxt
-        previous, current = current, nxt
-    return walks.reshape(n, num_walks, walk_length)
+    steps = _walk_steps(graph, num_walks, walk_length, seed, avoid_backtracking)
+    return np.stack(steps, axis=-1).astype(np.int64).reshape(len(graph), num_walks, walk_length)
 
 
 def encode_walks(walks: np.ndarray, label_ids: np.ndarray, num_classes: int = NUM_CLASSES) -> np.ndarray:
-    """(..., L) walks of row indices -> (...) int64 codes of their label sequences."""
-    place = num_classes ** np.arange(walks.shape[-1] - 1, -1, -1, dtype=np.int64)
-    return (np.asarray(label_ids, dtype=np.int64)[walks] * place).sum(axis=-1)
+    """(..., L) walks of row indices -> (...) int64 label-sequence codes, first step most significant."""
+    return _encode([walks[..., k] for k in range(walks.shape[-1])], label_ids, num_classes)
+
+
+def _encode(steps: list[np.ndarray], label_ids: np.ndarray, num_classes: int) -> np.ndarray:
+    labels = np.asarray(label_ids, dtype=np.int64)
+    code = labels[steps[0]]
+    for step in steps[1:]:
+        code *= num_classes
+        code += labels[step]
+    return code
 
 
 def random_walk_descriptors(
@@ -75,11 +98,14 @@ def random_walk_descriptors(
     """X-view descriptors: (N, C**walk_length) float64 CSR walk-code counts (each row sums to num_walks)."""
     labels = check_labels(graph, num_classes)
     n = len(graph)
-    codes = encode_walks(random_walks(graph, num_walks, walk_length, seed), labels, num_classes)
-    rows = np.repeat(np.arange(n), num_walks)
-    return sp.csr_matrix(
-        (np.ones(rows.size), (rows, codes.ravel())), shape=(n, num_classes**walk_length)
-    )
+    codes = _encode(_walk_steps(graph, num_walks, walk_length, seed, True), labels, num_classes)
+    codes = np.sort(codes.reshape(n, num_walks), axis=1)  # run-length count each node's walk codes
+    first = np.ones(codes.shape, dtype=bool)
+    first[:, 1:] = codes[:, 1:] != codes[:, :-1]
+    starts = np.flatnonzero(first)
+    counts = np.diff(np.append(starts, codes.size)).astype(np.float64)
+    indptr = np.concatenate([[0], np.cumsum(first.sum(axis=1))])
+    return sp.csr_matrix((counts, codes.ravel()[starts], indptr), shape=(n, num_classes**walk_length))
 
 
 def shared_walk_counts(descriptors_a: sp.csr_matrix, descriptors_b: sp.csr_matrix) -> sp.csr_matrix:

@@ -50,10 +50,9 @@ class Candidates:
 def _rank_in_groups(groups: np.ndarray, scores: np.ndarray) -> np.ndarray:
     """Rank (0 = best) of each entry among the entries of its group by descending score.
 
-    One stable sort of the composite key ``group + (1 - score) / 2`` (scores lie in [0, 1]); ties keep
-    the input order, so the ranking is deterministic.
+    One sort of the composite key ``group + (1 - score) / 2`` (scores lie in [0, 1]).
     """
-    order = np.argsort(groups + 0.5 * (1.0 - scores), kind="stable")
+    order = np.argsort(groups + 0.5 * (1.0 - scores))
     sorted_groups = groups[order]
     first = np.searchsorted(sorted_groups, sorted_groups, side="left")
     rank = np.empty(groups.size, dtype=np.int64)

@@ -26,16 +26,30 @@ PATIENCE = 12
 """Stop after this many consecutive seeds that did not improve the best clique."""
 
 
+_BLOCK_ROWS = 128
+"""Rows of the consistency matrix computed at once (keeps the float temporaries in cache)."""
+
+
+class _Centred:
+    """(K, 3) points centred in float32 with their squared norms, for blocks of pairwise distances."""
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.x = (points - points.mean(axis=0)).astype(np.float32)
+        self.sq = np.einsum("ij,ij->i", self.x, self.x)
+
+    def distances(self, start: int, stop: int) -> np.ndarray:
+        """(stop - start, K) float32 distances from points ``start:stop`` to all points (Gram form)."""
+        d = self.x[start:stop] @ self.x.T
+        d *= -2.0
+        d += self.sq[start:stop, None]
+        d += self.sq[None, :]
+        np.maximum(d, 0.0, out=d)
+        return np.sqrt(d, out=d)
+
+
 def pairwise_distances(points: np.ndarray) -> np.ndarray:
-    """(K, K) float32 distances between (K, 3) points (Gram-matrix form, in place: K^2 work dominates)."""
-    x = (points - points.mean(axis=0)).astype(np.float32)
-    sq = np.einsum("ij,ij->i", x, x)
-    d = x @ x.T
-    d *= -2.0
-    d += sq[:, None]
-    d += sq[None, :]
-    np.maximum(d, 0.0, out=d)
-    return np.sqrt(d, out=d)
+    """(K, K) float32 distances between (K, 3) points."""
+    return _Centred(points).distances(0, points.shape[0])
 
 
 def consistency_matrix(
@@ -48,7 +62,7 @@ def consistency_matrix(
     gravity_aligned: bool = False,
     up: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Pairwise consistency of K candidate correspondences, vectorised by broadcasting.
+    """Pairwise consistency of K candidate correspondences, vectorised by broadcasting (in row blocks).
 
     Args:
         points_a, points_b: (K, 3) candidate positions in A's and B's frames, metres.
@@ -61,15 +75,20 @@ def consistency_matrix(
     Returns:
         (K, K) symmetric bool matrix with a False diagonal.
     """
+    k = points_a.shape[0]
+    dh = None
     if gravity_aligned:
         u = DEFAULT_UP if up is None else np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
         ha, hb = points_a @ u, points_b @ u
-        flat_a, flat_b = points_a - np.outer(ha, u), points_b - np.outer(hb, u)
-        ok = _close(pairwise_distances(flat_a), pairwise_distances(flat_b), threshold_m)
+        points_a, points_b = points_a - np.outer(ha, u), points_b - np.outer(hb, u)
         dh = (ha - hb).astype(np.float32)  # vertical offsets agree <=> (ha_i - hb_i) - (ha_j - hb_j) small
-        ok &= _close(np.add.outer(dh, np.zeros_like(dh)), dh[None, :], threshold_m)
-    else:
-        ok = _close(pairwise_distances(points_a), pairwise_distances(points_b), threshold_m)
+    ca, cb = _Centred(points_a), _Centred(points_b)
+    ok = np.empty((k, k), dtype=bool)
+    for start in range(0, k, _BLOCK_ROWS):
+        stop = min(start + _BLOCK_ROWS, k)
+        ok[start:stop] = _close(ca.distances(start, stop), cb.distances(start, stop), threshold_m)
+        if dh is not None:
+            ok[start:stop] &= _close(dh[start:stop, None] - dh[None, :], 0.0, threshold_m)
     if distinct_nodes:
         for rows in (rows_a, rows_b):
             ok[_same_node_pairs(rows)] = False
@@ -77,7 +96,7 @@ def consistency_matrix(
     return ok
 
 
-def _close(d_a: np.ndarray, d_b: np.ndarray, threshold_m: float) -> np.ndarray:
+def _close(d_a: np.ndarray, d_b: np.ndarray | float, threshold_m: float) -> np.ndarray:
     """|d_a - d_b| < threshold elementwise, overwriting ``d_a`` (no K^2 temporaries)."""
     d_a -= d_b
     np.abs(d_a, out=d_a)

@@ -14,7 +14,7 @@ import numpy as np
 
 from shgm_slam.config import DescriptorConfig, MatchingConfig, OutlierMode
 from shgm_slam.descriptors import NodeDescriptors, compute_descriptors
-from shgm_slam.errors import GraphError
+from shgm_slam.errors import ConfigError, GraphError
 from shgm_slam.matching.candidates import Candidates, match_candidates
 from shgm_slam.matching.clique import clique_alignment, recheck_threshold_m
 from shgm_slam.matching.pose import Alignment, correspondence_weights, refine_alignment, spread_m
@@ -132,8 +132,11 @@ def match_graphs(
 
     Raises:
         GraphError: malformed graph arrays or descriptors that do not fit their graph.
+        ConfigError: a gravity-aligned match with a zero ``up_axis``.
     """
     cfg = matching_cfg
+    if cfg.gravity_aligned and not np.linalg.norm(cfg.up_axis) > 0:
+        raise ConfigError(f"matching.up_axis {cfg.up_axis} must be non-zero (KITTI camera frame: [0, -1, 0])")
     timings = {"descriptors": 0.0, "matching": 0.0, "ransac": 0.0, "pose": 0.0, "total": 0.0}
     t_start = time.perf_counter()
 
@@ -167,9 +170,10 @@ def match_graphs(
         return MatchResult.failure(reason, len(cands), timings)
 
     up = np.asarray(cfg.up_axis)
+    # pose (Sec. III-D): the Eq. 2 weighted fit on the hypothesis' inliers, inliers re-selected once more
     final = refine_alignment(
         hypothesis.T_a_b, points_b, points_a, cands.rows_a, cands.rows_b, weights,
-        inlier_threshold_m(cfg), max(cfg.refine_iterations, 1), cfg.gravity_aligned, up,
+        inlier_threshold_m(cfg), 1, cfg.gravity_aligned, up,
     )  # fmt: skip
     spread = spread_m(points_a[final.inliers], cfg.gravity_aligned, up)
     lap("pose", t)

@@ -1,6 +1,6 @@
 """Ray-cast renderer: RGB, metric z-depth, semantic labels and object ids of a ``World`` from a pose.
 
-One embree ray per pixel, cast for the whole image in one call per thread (embree releases the GIL).
+One embree ray per pixel; each thread casts (embree releases the GIL) and shades a band of image rows.
 Rays are built in the camera frame with z = 1, so the hit distance embree returns *is* the z-depth.
 Colour: per-triangle albedo (realistic class colours with per-object jitter, precomputed), Lambertian
 sun + sky light from triangle normals, world-anchored texture noise, procedural facade windows, a sky
@@ -9,6 +9,7 @@ gradient and aerial perspective. Everything stays deterministic.
 
 from __future__ import annotations
 
+import itertools
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -116,19 +117,17 @@ class Renderer:
         self.obj_windows = np.stack(  # per building: column width, floor height, window fraction (m, m, -)
             [2.4 + 1.6 * hash01(ids, 1), 3.0 + 0.7 * hash01(ids, 2), 0.35 + 0.3 * hash01(ids, 3)], 1
         ).astype(np.float32)
-        self.rays_cam = pixel_rays(intrinsics).reshape(-1, 3).astype(np.float32)  # z = 1
-        self.ray_norm = np.linalg.norm(self.rays_cam, axis=1)
-        n = self.rays_cam.shape[0]
-        self._origins = np.empty((n, 3), np.float32)
-        self._tfar = np.empty(n, np.float32)
-        self._prim = np.empty(n, np.int32)
+        rays = pixel_rays(intrinsics).astype(np.float32)  # (H, W, 3) camera frame, z = 1
+        self._ray_x, self._ray_y = rays[0, :, 0], rays[:, 0, 1]  # (W,), (H,): rays are separable
+        self.ray_norm = np.linalg.norm(rays, axis=2).reshape(-1)
         self.threads = max(1, int(threads))
-        bounds = np.linspace(0, n, self.threads + 1).astype(int)
-        self._chunks = [slice(int(a), int(c)) for a, c in zip(bounds[:-1], bounds[1:], strict=True)]
+        rows = np.linspace(0, intrinsics.height, self.threads + 1).astype(int)
+        W = intrinsics.width
+        self._bands = [slice(int(a) * W, int(c) * W) for a, c in itertools.pairwise(rows) if c > a]
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
 
     def close(self) -> None:
-        """Stop the ray-casting threads."""
+        """Stop the rendering threads."""
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
@@ -139,50 +138,64 @@ class Renderer:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def cast(self, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Cast every pixel ray: (H*W,) float32 z-depth (inf on miss), (H*W,) int32 triangle (-1 on miss),
-        and (H*W, 3) float32 world-frame ray directions (camera z component = 1)."""
+    def ray_directions(self, T_world_cam: np.ndarray) -> np.ndarray:
+        """(H*W, 3) float32 world-frame directions of the pixel rays (camera z component = 1)."""
+        R = np.asarray(T_world_cam, dtype=np.float64)[:3, :3].astype(np.float32)
+        # d_world = R (x, y, 1) = x R[:, 0] + y R[:, 1] + R[:, 2]: one broadcast sum (and no BLAS call,
+        # whose spinning worker threads would steal the cores from embree)
+        cols = self._ray_x[:, None] * R[:, 0]
+        rows = self._ray_y[:, None] * R[:, 1] + R[:, 2]
+        return (rows[:, None, :] + cols[None, :, :]).reshape(-1, 3)
+
+    def render(self, T_world_cam: np.ndarray) -> RenderedFrame:
+        """Render the view of a camera at ``T_world_cam`` ((4, 4), camera KITTI frame -> world, z up).
+
+        Each thread casts and shades one band of image rows (embree and most numpy kernels release the GIL).
+        """
         T = np.asarray(T_world_cam, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise SimulationError(f"camera pose must be a finite 4x4 matrix, got shape {T.shape}")
-        # einsum, not matmul: a BLAS call here wakes spinning BLAS threads that steal the cores from embree
-        dirs = np.einsum("ij,kj->ik", self.rays_cam, T[:3, :3].astype(np.float32))
-        self._origins[:] = (T[:3, 3] - self.origin).astype(np.float32)
+        H, W = self.intrinsics.height, self.intrinsics.width
+        dirs = self.ray_directions(T)
+        out = (np.empty((H * W, 3), np.uint8), np.empty(H * W, np.float32), np.empty(H * W, np.uint8),
+               np.empty(H * W, np.int32))
 
-        def run(sl: slice) -> None:
-            r = self.scene.run(self._origins[sl], dirs[sl], output=1)
-            self._tfar[sl] = r["tfar"]
-            self._prim[sl] = r["primID"]
+        def band(sl: slice) -> None:
+            self._render_rays(T, dirs[sl], self.ray_norm[sl], *(o[sl] for o in out))
 
         if self._pool is None:
-            run(slice(None))
+            band(slice(None))
         else:
-            list(self._pool.map(run, self._chunks))
-        prim = self._prim.copy()
-        tfar = np.where(prim >= 0, self._tfar, np.inf).astype(np.float32)
-        return tfar, prim, dirs
+            list(self._pool.map(band, self._bands))
+        rgb, depth, labels, objects = out
+        return RenderedFrame(rgb.reshape(H, W, 3), depth.reshape(H, W), labels.reshape(H, W), objects.reshape(H, W))
 
-    def render(self, T_world_cam: np.ndarray) -> RenderedFrame:
-        """Render the view of a camera at ``T_world_cam`` ((4, 4), camera KITTI frame -> world, z up)."""
-        H, W = self.intrinsics.height, self.intrinsics.width
-        z, prim, dirs = self.cast(T_world_cam)
+    def _render_rays(
+        self, T: np.ndarray, dirs: np.ndarray, norms: np.ndarray, rgb_out: np.ndarray, depth_out: np.ndarray,
+        label_out: np.ndarray, object_out: np.ndarray,
+    ) -> None:
+        """Cast N rays from camera pose T and fill the (N, 3) uint8, (N,) float32 z-depth, (N,) uint8
+        label and (N,) int32 object outputs."""
+        n = len(dirs)
+        origins = np.empty((n, 3), np.float32)
+        origins[:] = (T[:3, 3] - self.origin).astype(np.float32)
+        r = self.scene.run(origins, dirs, output=1)
+        prim, z = r["primID"], r["tfar"]  # tfar is the z-depth because the rays have camera z = 1
         hit = np.flatnonzero(prim >= 0)
         miss = np.flatnonzero(prim < 0)
-        tri = prim[hit]
-        zh = z[hit]
-        depth = np.zeros(H * W, np.float32)
-        depth[hit] = np.where(zh <= self.max_depth_m, zh, 0.0)
-        labels = np.full(H * W, Label.SKY, np.uint8)
-        labels[hit] = self.world.tri_label[tri]
-        objects = np.full(H * W, -1, np.int32)
-        objects[hit] = self.world.tri_object[tri]
-        rgb = np.empty((H * W, 3), np.float32)
-        rgb[miss] = self._sky(dirs[miss], self.ray_norm[miss])
-        rgb[hit] = self._shade(tri, dirs[hit], zh, self.ray_norm[hit], np.asarray(T_world_cam)[:3, 3])
+        tri, zh = prim[hit], z[hit]
+        depth_out[:] = 0.0
+        depth_out[hit] = np.where(zh <= self.max_depth_m, zh, 0.0)
+        label_out[:] = Label.SKY
+        label_out[hit] = self.world.tri_label[tri]
+        object_out[:] = -1
+        object_out[hit] = self.world.tri_object[tri]
+        rgb = np.empty((n, 3), np.float32)
+        rgb[miss] = self._sky(dirs[miss], norms[miss])
+        rgb[hit] = self._shade(tri, dirs[hit], zh, norms[hit], T[:3, 3])
         rgb *= 255.0
         np.clip(rgb, 0.0, 255.0, out=rgb)
-        image = rgb.astype(np.uint8).reshape(H, W, 3)
-        return RenderedFrame(image, depth.reshape(H, W), labels.reshape(H, W), objects.reshape(H, W))
+        rgb_out[:] = rgb
 
     def _sky(self, dirs: np.ndarray, norms: np.ndarray) -> np.ndarray:
         """(M, 3) float32 sky colours of M world-frame ray directions with lengths ``norms``."""

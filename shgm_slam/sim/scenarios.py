@@ -124,7 +124,7 @@ def airsim_like(opt: ScenarioOptions) -> ScenarioPlan:
     car2 = car_trajectories(lane2, {"car2": False}, opt.car_speed_mps, opt.fps, rng)[0]
     # the UAV's own approach flies ``own`` metres across the blocks, perpendicular to the street
     s_join = 0.1 * car_len
-    along = _cut(centre, s_join, s_join + uav_len - own)[::20]
+    along = _cut(centre, s_join, s_join + 1.06 * (uav_len - own))[::20]  # +6 %: smoothing cuts corners
     t = along[1] - along[0]
     side = 1.0 if rng.random() < 0.5 else -1.0
     start = along[0] + side * own * np.array([-t[1], t[0]]) / np.linalg.norm(t)

@@ -26,7 +26,8 @@ def route(n: int, start: np.ndarray, step_m: float = 2.0, yaw_rad: float = 0.03)
 def noisy_odometry(gt: np.ndarray, rng: np.random.Generator, sig_rad=0.004, sig_m=0.02) -> np.ndarray:
     """Integrated noisy relative motions; the odometry frame is the first keyframe (identity)."""
     delta = inverse(gt[:-1]) @ gt[1:]
-    delta = delta @ make_pose(so3_exp(rng.normal(0, sig_rad, (len(delta), 3))), rng.normal(0, sig_m, (len(delta), 3)))
+    n = len(delta)
+    delta = delta @ make_pose(so3_exp(rng.normal(0, sig_rad, (n, 3))), rng.normal(0, sig_m, (n, 3)))
     out = [np.eye(4)]
     for D in delta:
         out.append(out[-1] @ D)
@@ -111,8 +112,8 @@ def test_wrong_closures_are_rejected_and_do_not_bend_the_map(scene):
     closures = list(scene["closures"])
     n_wrong = len(closures) // 3  # 25 % of all closures
     wrong = [wrong_closure(rng, N, N) for _ in range(n_wrong)]
-    wrong[0] = (0, 59, wrong[0][2])  # the very first closure is wrong: it anchors b in the wrong place
-    mixed = [wrong[0]] + sorted(closures + wrong[1:], key=lambda c: rng.random())
+    wrong[0] = (2, 3, wrong[0][2])  # arrives first (k = 3): it anchors b in the wrong place
+    mixed = [wrong[0], *sorted(closures + wrong[1:], key=lambda c: rng.random())]
     pg, decisions = run(scene, mixed)
     clean, _ = run(scene, closures)
     assert abs(fused_ate(scene, pg) - fused_ate(scene, clean)) < 0.05
@@ -133,29 +134,55 @@ def test_wrong_closures_are_rejected_and_do_not_bend_the_map(scene):
 def test_closures_between_unanchored_robots_are_replayed():
     rng = np.random.default_rng(3)
     gt_a = route(N, np.eye(4))
-    gt_c = gt_a[::-1] @ make_pose(rot_y(np.pi), [3.0, 0.0, 0.0])  # c meets a
-    gt_b = route(N, gt_c[0] @ make_pose(np.eye(3), [-3.0, 0.0, -20.0]), yaw_rad=-0.03)  # b meets only c
-    odo = {r: noisy_odometry(g, rng) for r, g in (("a", gt_a), ("b", gt_b), ("c", gt_c))}
+    # c drives a's curve back in the other lane and goes on beyond a's start; b only meets c out there
+    gt_c = route(2 * N, gt_a[-1] @ make_pose(rot_y(np.pi), [3.0, 0.0, 0.0]), yaw_rad=-0.03)
+    gt_b = route(40, gt_c[N + 15] @ make_pose(np.eye(3), [-2.0, 0.0, 0.0]), yaw_rad=-0.03)
+    gt = {"a": gt_a, "b": gt_b, "c": gt_c}
+    odo = {r: noisy_odometry(g, rng) for r, g in gt.items()}
     pg = MultiRobotPoseGraph(["a", "b", "c"])
     for r in ("a", "b", "c"):
-        for k in range(N):
+        for k in range(len(odo[r])):
             pg.add_keyframe(r, k, odo[r][k])
     bc = true_closures(gt_b, gt_c, rng)
-    assert len(bc) >= 3 and not true_closures(gt_a, gt_b, rng)
+    assert len(bc) >= 5 and not true_closures(gt_a, gt_b, rng)
     for i, j, T in bc:
         d = pg.add_inter_robot_closure("b", i, "c", j, T)
         assert d.accepted and "stored until" in d.reason
     assert not pg.is_anchored("b") and not pg.is_anchored("c") and set(pg.estimate()) == {"a"}
     with pytest.raises(BackendError, match="not anchored"):
         pg.T_shared_odom("b")
-    for i, j, T in true_closures(gt_a, gt_c, rng)[:4]:
+    ac = true_closures(gt_a, gt_c, rng)[:6]
+    for i, j, T in ac:
         # given in (c, a) order: the graph stores it the other way round
         assert pg.add_inter_robot_closure("c", j, "a", i, inverse(T)).accepted
     assert pg.is_anchored("b") and pg.is_anchored("c")
     est = pg.estimate()
-    for r, gt in (("b", gt_b), ("c", gt_c)):
-        assert ate(inverse(gt_a[0]) @ gt, est[r], align="none").rmse < 2.0
-    assert pg.stats().closures_in_graph == len(bc) + 4
+    for r in ("b", "c"):
+        err = ate(inverse(gt_a[0]) @ gt[r], est[r], align="none").rmse
+        assert err < 3.0, (r, err)
+    assert pg.stats().closures_in_graph == len(bc) + len(ac)
+
+
+def test_anchoring_places_the_buffered_keyframes_through_the_closure(scene):
+    """T_shared_odomB = T_shared_ai · T_ai_bj · T_odomB_bj⁻¹, whichever side of the closure is anchored."""
+    pg = MultiRobotPoseGraph(["a", "b", "c"], extra_updates=0)
+    odo = {"a": scene["odo_a"], "b": scene["odo_b"], "c": scene["odo_b"] @ make_pose(rot_y(0.3), [1.0, 0, 0])}
+    for r in "abc":
+        for k in range(10):
+            pg.add_keyframe(r, k, odo[r][k])
+    assert pg.anchor("a").closure_id is None
+    T_ac = make_pose(rot_y(2.0), [5.0, 0.5, -7.0])
+    T_shared_odomc = pg.T_shared_kf("a", 4) @ T_ac @ inverse(odo["c"][6])
+    d = pg.add_inter_robot_closure("a", 4, "c", 6, T_ac)  # c anchored through a (c: the b side)
+    assert pg.anchor("c").closure_id == d.closure_id
+    np.testing.assert_allclose(pg.anchor("c").T_shared_odom, T_shared_odomc, atol=1e-9)
+    np.testing.assert_allclose(pg.estimate()["c"], T_shared_odomc @ odo["c"][:10], atol=1e-6)
+    T_bc = make_pose(rot_y(-1.0), [2.0, 0.0, 3.0])
+    T_shared_odomb = pg.T_shared_kf("c", 8) @ inverse(T_bc) @ inverse(odo["b"][2])
+    pg.add_inter_robot_closure("b", 2, "c", 8, T_bc)  # b anchored through c (b: the a side)
+    np.testing.assert_allclose(pg.anchor("b").T_shared_odom, T_shared_odomb, atol=1e-9)
+    np.testing.assert_allclose(pg.estimate()["b"], T_shared_odomb @ odo["b"][:10], atol=1e-6)
+    np.testing.assert_allclose(pg.T_shared_odom("b", 0), T_shared_odomb, atol=1e-6)
 
 
 @pytest.mark.parametrize("factorization", [Factorization.CHOLESKY, Factorization.QR])
@@ -222,3 +249,31 @@ def test_factory_and_bad_input():
         MultiRobotPoseGraph(["x"], robust_kernel="l1")
     with pytest.raises(BackendError, match="at least one robot"):
         MultiRobotPoseGraph([])
+
+
+def test_kitti00_geometry_two_robots_with_outliers(shared_data):
+    """Real KITTI 00 ground truth split into two robots that revisit the same streets (noisy odometry)."""
+    from shgm_slam.io.trajectories import read_kitti_poses
+
+    kf = read_kitti_poses(shared_data / "kitti" / "poses" / "00.txt")[::5]  # a keyframe every ~4 m
+    gt_a, gt_b = kf[0:300], kf[640:]  # frames 0-1495 and 3200-4540
+    rng = np.random.default_rng(0)
+    odo_a, odo_b = noisy_odometry(gt_a, rng), noisy_odometry(gt_b, rng)
+    closures = true_closures(gt_a, gt_b, rng, every=5, radius_m=8.0)
+    wrong = [wrong_closure(rng, len(gt_a), len(gt_b)) for _ in range(len(closures) // 3)]
+    mixed = sorted(closures + wrong, key=lambda c: rng.random())
+    pg = MultiRobotPoseGraph(["a", "b"])
+    for k in range(max(len(gt_a), len(gt_b))):
+        for r, odo in (("a", odo_a), ("b", odo_b)):
+            if k < len(odo):
+                pg.add_keyframe(r, k, odo[k])
+        for i, j, T in mixed:
+            if max(i, j) == k:
+                pg.add_inter_robot_closure("a", i, "b", j, T)
+    assert len(closures) >= 20 and pg.stats().closures_rejected == len(wrong)
+    est = pg.estimate()
+    gt = inverse(gt_a[0]) @ np.r_[gt_a, gt_b]
+    fused = ate(gt, np.r_[est["a"], est["b"]], align="none").rmse
+    odometry = ate(gt, np.r_[odo_a, inverse(gt_a[0]) @ gt_b[0] @ odo_b], align="none").rmse
+    assert fused < 0.7 * odometry, (fused, odometry)
+    assert ate(gt_b, est["b"]).rmse < ate(gt_b, odo_b).rmse  # b's shape improves too

@@ -17,7 +17,9 @@ C = NUM_CLASSES
 def _graph(labels, edges, positions=None) -> GraphArrays:
     n = len(labels)
     pos = np.zeros((n, 3)) if positions is None else positions
-    return GraphArrays(np.arange(n) + 10, np.asarray(labels), pos, np.ones(n), np.asarray(edges).reshape(-1, 2))
+    return GraphArrays(
+        np.arange(n) + 10, np.asarray(labels), pos, np.ones(n), np.asarray(edges).reshape(-1, 2)
+    )
 
 
 # 0 building - 1 pole; 1 - 2 vegetation; 1 - 3 car; 2 - 3
@@ -26,7 +28,10 @@ B, P, V, K = Label.BUILDING, Label.POLE, Label.VEGETATION, Label.CAR
 
 HAND_COUNTS = {  # (path_length, backtracking) -> {node: {labels after node i: count}}
     (2, True): {0: {(P,): 1}, 1: {(B,): 1, (V,): 1, (K,): 1}},
-    (3, True): {0: {(P, B): 1, (P, V): 1, (P, K): 1}, 1: {(B, P): 1, (V, P): 1, (V, K): 1, (K, P): 1, (K, V): 1}},
+    (3, True): {
+        0: {(P, B): 1, (P, V): 1, (P, K): 1},
+        1: {(B, P): 1, (V, P): 1, (V, K): 1, (K, P): 1, (K, V): 1},
+    },
     (3, False): {0: {(P, V): 1, (P, K): 1}, 1: {(V, K): 1, (K, V): 1}},
     (4, True): {0: {(P, B, P): 1, (P, V, P): 1, (P, V, K): 1, (P, K, P): 1, (P, K, V): 1}},
     (4, False): {0: {(P, V, K): 1, (P, K, V): 1}},
@@ -112,7 +117,9 @@ def test_histogram_is_invariant_to_rigid_motion_and_permutation():
     moved = pos @ R.T + np.array([100.0, -5.0, 30.0])
     np.testing.assert_array_equal(semantic_histogram(_radius_graph(labels, moved)).toarray(), H)
     perm = rng.permutation(n)
-    np.testing.assert_array_equal(semantic_histogram(_radius_graph(labels[perm], moved[perm])).toarray(), H[perm])
+    np.testing.assert_array_equal(
+        semantic_histogram(_radius_graph(labels[perm], moved[perm])).toarray(), H[perm]
+    )
 
 
 def test_path_length_two_is_the_neighbor_vector():

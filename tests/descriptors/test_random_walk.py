@@ -16,7 +16,9 @@ from shgm_slam.types import GraphArrays
 
 def _graph(labels, edges) -> GraphArrays:
     n = len(labels)
-    return GraphArrays(np.arange(n), np.asarray(labels), np.zeros((n, 3)), np.ones(n), np.asarray(edges).reshape(-1, 2))
+    return GraphArrays(
+        np.arange(n), np.asarray(labels), np.zeros((n, 3)), np.ones(n), np.asarray(edges).reshape(-1, 2)
+    )
 
 
 def test_walks_follow_edges_and_do_not_backtrack():

@@ -9,11 +9,15 @@ from shgm_slam.geometry.se3 import inverse, make_pose, rot_x, rot_y, rot_z
 from shgm_slam.labels import Label
 from shgm_slam.types import GraphArrays
 
-CITY_LABELS = np.array([Label.BUILDING, Label.POLE, Label.TRAFFIC_SIGN, Label.VEGETATION, Label.CAR, Label.FENCE])
+CITY_LABELS = np.array(
+    [Label.BUILDING, Label.POLE, Label.TRAFFIC_SIGN, Label.VEGETATION, Label.CAR, Label.FENCE]
+)
 CITY_PROBS = np.array([0.2, 0.2, 0.1, 0.2, 0.25, 0.05])
 
 
-def random_pose(rng: np.random.Generator, gravity_aligned: bool = False, translation_m: float = 80.0) -> np.ndarray:
+def random_pose(
+    rng: np.random.Generator, gravity_aligned: bool = False, translation_m: float = 80.0
+) -> np.ndarray:
     """A random rigid transform: yaw about -y (KITTI up) only, or a full 3D rotation."""
     R = rot_y(rng.uniform(-np.pi, np.pi))
     if not gravity_aligned:
@@ -68,16 +72,20 @@ def city_pair(
 
 
 def correspondence_problem(
-    num_inliers: int, outlier_fraction: float, seed: int = 0, noise_m: float = 0.2, extent_m: float = 100.0,
+    num_inliers: int,
+    outlier_fraction: float,
+    seed: int = 0,
+    noise_m: float = 0.2,
+    extent_m: float = 100.0,
     gravity_aligned: bool = False,
 ) -> dict[str, np.ndarray]:
-    """Candidate correspondences with a known ``T_a_b``: inliers map exactly (plus noise), outliers are random.
+    """Candidate correspondences with a known ``T_a_b``: inliers map exactly (plus noise), outliers not.
 
     Outliers pair random B points with random A points (distinct nodes), so their fraction of all
     candidates is ``outlier_fraction``.
     """
     rng = np.random.default_rng(seed)
-    num_outliers = int(round(num_inliers * outlier_fraction / (1.0 - outlier_fraction)))
+    num_outliers = round(num_inliers * outlier_fraction / (1.0 - outlier_fraction))
     k = num_inliers + num_outliers
     T_a_b = random_pose(rng, gravity_aligned)
     points_b = rng.uniform(0.0, extent_m, (k, 3)) * [1.0, 0.1, 1.0]

@@ -67,7 +67,9 @@ def test_same_label_option(same_label_only):
     # a star: centre label 2 with leaves labelled 5; a second star with centre label 8, same leaves
     g = _graph([2, 5, 5, 5, 8, 5, 5, 5], [[0, 1], [0, 2], [0, 3], [4, 5], [4, 6], [4, 7]])
     d = compute_descriptors(g, DescriptorConfig(path_length=2))
-    cfg = MatchingConfig(candidate_mode=CandidateMode.ALL, same_label_only=same_label_only, score_threshold=0.5)
+    cfg = MatchingConfig(
+        candidate_mode=CandidateMode.ALL, same_label_only=same_label_only, score_threshold=0.5
+    )
     c = match_candidates(d, d, cfg)
     cross = g.label_ids[c.rows_a] != g.label_ids[c.rows_b]
     assert cross.any() != same_label_only  # centres 0 and 4 (labels 2, 8) match only across labels

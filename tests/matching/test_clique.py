@@ -25,7 +25,10 @@ def test_consistency_matrix_equals_pairwise_loops(gravity_aligned):
             da, db = pa[i] - pa[j], pb[i] - pb[j]
             if gravity_aligned:
                 ha, hb = da @ up, db @ up
-                ok = abs(np.linalg.norm(da - ha * up) - np.linalg.norm(db - hb * up)) < 3.0 and abs(ha - hb) < 3.0
+                ok = (
+                    abs(np.linalg.norm(da - ha * up) - np.linalg.norm(db - hb * up)) < 3.0
+                    and abs(ha - hb) < 3.0
+                )
             else:
                 ok = abs(np.linalg.norm(da) - np.linalg.norm(db)) < 3.0
             ok = ok and i != j and rows_a[i] != rows_a[j] and rows_b[i] != rows_b[j]

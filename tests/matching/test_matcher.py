@@ -9,8 +9,8 @@ import pytest
 
 from shgm_slam.config import DescriptorConfig, DescriptorKind, MatchingConfig, OutlierMode
 from shgm_slam.descriptors import compute_descriptors
-from shgm_slam.errors import GraphError
-from shgm_slam.geometry.se3 import pose_error
+from shgm_slam.errors import ConfigError, GraphError
+from shgm_slam.geometry.se3 import pose_error, transform_points
 from shgm_slam.matching import match_graphs
 from shgm_slam.matching.result import TIMING_KEYS
 from shgm_slam.types import GraphArrays
@@ -18,6 +18,12 @@ from shgm_slam.types import GraphArrays
 from .synthetic import city_pair
 
 MODES = [OutlierMode.CLIQUE, OutlierMode.RANSAC]
+
+
+def _displacement_m(T_est: np.ndarray, T_true: np.ndarray, b: GraphArrays) -> float:
+    """Mean distance between B's nodes mapped by the estimate and by the truth (metres)."""
+    p = b.positions_xyz
+    return float(np.linalg.norm(transform_points(T_est, p) - transform_points(T_true, p), axis=1).mean())
 
 
 @pytest.fixture(scope="module")
@@ -30,12 +36,12 @@ def test_overlapping_graphs_match_with_the_true_transform(overlapping, mode):
     a, b, T_a_b = overlapping
     r = match_graphs(a, b, DescriptorConfig(), MatchingConfig(outlier_mode=mode))
     assert r.success, r.reason
-    dt, dr = pose_error(r.T_a_b, T_a_b)
-    assert dt < 0.5 and dr < 0.5
+    _, dr = pose_error(r.T_a_b, T_a_b)
+    assert dr < 1.0 and _displacement_m(r.T_a_b, T_a_b, b) < 1.0  # node noise: 0.3 m per axis and graph
     assert r.inliers.shape[1] == 2 and r.inliers.shape[0] == r.num_inliers >= 20
     true_pair = r.inliers[:, 1] - 100_000 == r.inliers[:, 0]  # city_pair ids: b = a + 100000
-    assert true_pair.mean() > 0.95
-    assert r.rmse_m < 1.0 and r.spread_m > 20
+    assert true_pair.mean() > (0.95 if mode is OutlierMode.CLIQUE else 0.8)  # RANSAC: 10 m admits neighbours
+    assert r.rmse_m < (1.0 if mode is OutlierMode.CLIQUE else 3.0) and r.spread_m > 20
     assert r.support >= 2 * r.rival_support
     assert set(r.timings_ms) == set(TIMING_KEYS)
     assert r.timings_ms["total"] >= r.timings_ms["ransac"] >= 0
@@ -47,8 +53,7 @@ def test_baseline_descriptors_run_end_to_end(overlapping, kind):
     r = match_graphs(a, b, DescriptorConfig(kind=kind), MatchingConfig())
     assert r.candidates > 0
     if r.success:  # the baselines may fail, but must never succeed wrongly
-        dt, dr = pose_error(r.T_a_b, T_a_b)
-        assert dt < 1.0 and dr < 1.0
+        assert _displacement_m(r.T_a_b, T_a_b, b) < 1.0
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -117,3 +122,14 @@ def test_json_form_is_the_architecture_one(overlapping):
     assert all(isinstance(x, int) for pair in back["inliers"] for x in pair)
     assert isinstance(back["candidates"], int)
     assert set(back["timings_ms"]) == set(TIMING_KEYS)
+
+
+def test_gravity_aligned_matching(overlapping):
+    a, b, T_a_b = overlapping
+    r = match_graphs(a, b, DescriptorConfig(), MatchingConfig(gravity_aligned=True))
+    assert r.success, r.reason
+    up = np.array([0.0, -1.0, 0.0])
+    np.testing.assert_allclose(r.T_a_b[:3, :3] @ up, up, atol=1e-12)  # a yaw about the shared up axis
+    assert _displacement_m(r.T_a_b, T_a_b, b) < 1.0
+    with pytest.raises(ConfigError, match="up_axis"):
+        match_graphs(a, b, DescriptorConfig(), MatchingConfig(gravity_aligned=True, up_axis=(0.0, 0.0, 0.0)))

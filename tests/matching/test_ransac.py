@@ -17,7 +17,9 @@ def test_squared_residuals_match_direct_evaluation():
     p = rng.uniform(-300, 300, (50, 3))
     q = rng.uniform(-300, 300, (50, 3))
     T = np.stack([random_pose(rng, translation_m=500) for _ in range(7)])
-    direct = np.linalg.norm(q[None] - (np.einsum("hij,kj->hki", T[:, :3, :3], p) + T[:, None, :3, 3]), axis=2) ** 2
+    direct = (
+        np.linalg.norm(q[None] - (np.einsum("hij,kj->hki", T[:, :3, :3], p) + T[:, None, :3, 3]), axis=2) ** 2
+    )
     np.testing.assert_allclose(squared_residuals(T, p, q), direct, rtol=1e-9, atol=1e-6)
 
 

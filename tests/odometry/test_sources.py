@@ -90,3 +90,11 @@ def test_kiss_source_reports_degenerate_frames():
     est = src.update(Frame(0, 0.0, INTR), np.zeros((10, 3)))
     assert not est.ok and "degenerate" in est.note
     np.testing.assert_allclose(est.T_odom_cam, np.eye(4))
+
+
+def test_pose_file_source_on_kitti_ground_truth(shared_data):
+    path = shared_data / "kitti" / "poses" / "07.txt"
+    src = PoseFileSource(path, 1101)  # sequence 07 has 1101 frames
+    np.testing.assert_allclose(src.T_odom_cam[0], np.eye(4), atol=1e-9)
+    with pytest.raises(DataError, match="1101 poses but the sequence has 160 frames"):
+        PoseFileSource(path, 160)  # e.g. only the 160 images that are on disk

@@ -1,0 +1,71 @@
+"""``shgm-slam match`` smoke tests: JSON output, rich summary, clean errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from shgm_slam.cli import app
+from shgm_slam.geometry.se3 import pose_error
+from shgm_slam.io.graph_json import write_graph
+
+from .synthetic import city_pair
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def graph_files(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("graphs")
+    a, b, T_a_b = city_pair(seed=1)
+    return write_graph(folder / "a.json", a), write_graph(folder / "b.json", b), T_a_b
+
+
+@pytest.mark.parametrize(
+    "options", [[], ["--mode", "ransac"], ["--descriptor", "histogram", "--mode", "clique"]]
+)
+def test_match_json(graph_files, options):
+    path_a, path_b, T_a_b = graph_files
+    result = runner.invoke(app, ["match", str(path_a), str(path_b), "--json", *options])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    assert list(doc)[:5] == ["success", "T_a_b", "inliers", "candidates", "timings_ms"]
+    assert doc["success"] is True
+    _, dr = pose_error(np.asarray(doc["T_a_b"]), T_a_b)
+    assert dr < 1.0
+
+
+def test_match_summary_and_no_match(graph_files, tmp_path):
+    path_a, path_b, _ = graph_files
+    result = runner.invoke(app, ["match", str(path_a), str(path_b)])
+    assert result.exit_code == 0 and "match" in result.output and "T_a_b" in result.output
+    _, other, _ = city_pair(seed=20, overlap=False)
+    path_c = write_graph(tmp_path / "c.json", other)
+    result = runner.invoke(
+        app, ["match", str(path_a), str(path_c), "--json", "--descriptor", "neighbor-vector"]
+    )
+    assert result.exit_code == 0
+    doc = json.loads(result.output)
+    assert doc["success"] is False and doc["T_a_b"] is None and doc["inliers"] == []
+
+
+def test_match_bad_files_exit_cleanly(graph_files, tmp_path):
+    path_a, _, _ = graph_files
+    broken = tmp_path / "broken.json"
+    broken.write_text("{not json")
+    empty = tmp_path / "empty.json"
+    empty.write_text(json.dumps({"format": "shgm-graph/1", "classes": [], "nodes": [], "edges": []}))
+    for path in (broken, tmp_path / "missing.json"):
+        result = runner.invoke(app, ["match", str(path_a), str(path)])
+        assert result.exit_code == 2 and "error" in result.output, result.output
+    result = runner.invoke(app, ["match", str(path_a), str(empty), "--json"])
+    if result.exit_code == 0:  # an empty graph is a valid file: an unsuccessful match with a reason
+        doc = json.loads(result.output)
+        assert doc["success"] is False and "node" in doc["reason"]
+    else:
+        assert result.exit_code == 2 and "error" in result.output
+    result = runner.invoke(app, ["match", str(path_a), str(path_a), "--mode", "magic"])
+    assert result.exit_code != 0
