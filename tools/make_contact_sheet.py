@@ -18,7 +18,7 @@ import numpy as np
 from shgm_slam.geometry.camera import project
 from shgm_slam.geometry.se3 import inverse, transform_points
 from shgm_slam.labels import colorize_labels
-from shgm_slam.sim.render import Renderer, make_intrinsics
+from shgm_slam.sim.render import Lighting, Renderer, make_intrinsics
 from shgm_slam.sim.scenarios import ScenarioOptions, build_scenario
 from shgm_slam.sim.trajectories import camera_poses
 
@@ -48,16 +48,23 @@ def birds_eye(plan, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     K = make_intrinsics(width, height, hfov_deg=50.0)
     altitude = max(span_x, span_y * width / height) / (2 * np.tan(np.radians(25.0)))  # image x = east
     T = camera_poses(np.array([[*centre, altitude]]), np.array([[0.0, 1.0, 0.0]]), np.pi / 2)[0]
-    with Renderer(plan.world, K, max_depth_m=5000.0) as renderer:
+    no_haze = Lighting(fog_distance_m=1e9, shadow_range_m=1e9)
+    with Renderer(plan.world, K, max_depth_m=5000.0, lighting=no_haze) as renderer:
         view = renderer.render(T)
     rgb, lab = view.image_rgb.copy(), colorize_labels(view.label_ids)
-    for r in plan.robots:
+    for width_px, r in zip(
+        (7, 4, 2), reversed(plan.robots), strict=False
+    ):  # uav wide below, car1 thin on top
         uv, ok = project(transform_points(inverse(T), r.positions_xyz), K)
         pts = uv[ok].round().astype(np.int32)
         for img in (rgb, lab):
-            cv2.polylines(img, [pts], False, TRACK_BGR.get(r.name, (255, 255, 255))[::-1], 2, cv2.LINE_AA)
+            cv2.polylines(
+                img, [pts], False, TRACK_BGR.get(r.name, (255, 255, 255))[::-1], width_px, cv2.LINE_AA
+            )
             cv2.circle(img, tuple(int(v) for v in pts[0]), 4, (255, 255, 255), -1, cv2.LINE_AA)
-    return caption(rgb, "bird's eye: car1 red, car2 yellow, uav magenta (dot = start)"), caption(lab, "labels")
+    return caption(rgb, "bird's eye: car1 red, car2 yellow, uav magenta (dot = start)"), caption(
+        lab, "labels"
+    )
 
 
 def main() -> None:
@@ -66,23 +73,30 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=192)
-    parser.add_argument("--frames", type=float, nargs="+", default=[0.25, 0.7], help="positions along each track")
+    parser.add_argument(
+        "--frames", type=float, nargs="+", default=[0.25, 0.7], help="positions along each track"
+    )
     args = parser.parse_args()
     plan = build_scenario("airsim-like", ScenarioOptions(seed=args.seed))
     W, H = args.width, args.height
     rows = []
-    top_rgb, top_lab = birds_eye(plan, 3 * W // 2, 2 * H)
+    top_rgb, top_lab = birds_eye(plan, 3 * W // 2, 8 * H // 5)
     rows.append(np.concatenate([top_rgb, top_lab], 1))
     with Renderer(plan.world, make_intrinsics(W, H)) as renderer:
         for r in plan.robots:
             for f in args.frames:
                 k = int(f * (len(r) - 1))
                 view = renderer.render(r.T_world_cam[k])
-                rows.append(np.concatenate([
-                    caption(view.image_rgb, f"{r.name} frame {k}  t={r.timestamps_s[k]:.1f} s"),
-                    caption(depth_image(view.depth_m), "depth 0-80 m"),
-                    caption(colorize_labels(view.label_ids), "labels (Cityscapes train ids)"),
-                ], 1))
+                rows.append(
+                    np.concatenate(
+                        [
+                            caption(view.image_rgb, f"{r.name} frame {k}  t={r.timestamps_s[k]:.1f} s"),
+                            caption(depth_image(view.depth_m), "depth 0-80 m"),
+                            caption(colorize_labels(view.label_ids), "labels (Cityscapes train ids)"),
+                        ],
+                        1,
+                    )
+                )
     sheet = np.concatenate(rows, 0)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(args.out), sheet[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 9])

@@ -33,7 +33,9 @@ def _run(scenario: str, out: Path, resolution: tuple[int, int], max_frames: int,
             peak[0] = max(peak[0], proc.memory_info().rss)
 
     cpu0 = time.process_time()
-    result = simulate(scenario, out, seed=seed, resolution=resolution, max_frames=max_frames, progress=progress)
+    result = simulate(
+        scenario, out, seed=seed, resolution=resolution, max_frames=max_frames, progress=progress
+    )
     cpu = time.process_time() - cpu0
     frames = result.total_frames
     t = result.timings_s
@@ -60,8 +62,12 @@ def _render_only(scenario: str, resolution: tuple[int, int], frames: int, seed: 
         for T in poses:
             renderer.render(T)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {"frames": len(poses), "fps": round(len(poses) / wall, 2),
-            "ms_per_frame": round(1000 * wall / len(poses), 2), "cpu_ms_per_frame": round(1000 * cpu / len(poses), 2)}
+    return {
+        "frames": len(poses),
+        "fps": round(len(poses) / wall, 2),
+        "ms_per_frame": round(1000 * wall / len(poses), 2),
+        "cpu_ms_per_frame": round(1000 * cpu / len(poses), 2),
+    }
 
 
 def run_simulate_benchmark(
@@ -117,10 +123,17 @@ def simulate_markdown(results: dict) -> str:
     ]
     for key, label in (("short", "render + write (short)"), ("long", "render + write (long)")):
         r = results[key]
-        rows.append(f"| {label} | {r['frames']} | {r['fps']} | {r['ms_per_frame']} | {r['cpu_ms_per_frame']} "
-                    f"| {r['peak_rss_mb']} |")
+        rows.append(
+            f"| {label} | {r['frames']} | {r['fps']} | {r['ms_per_frame']} | {r['cpu_ms_per_frame']} "
+            f"| {r['peak_rss_mb']} |"
+        )
     r = results["render_only"]
-    rows.append(f"| render only | {r['frames']} | {r['fps']} | {r['ms_per_frame']} | {r['cpu_ms_per_frame']} | |")
-    rows += ["", f"target {results['target_fps']} fps: {'met' if results['meets_target'] else 'NOT met'}; "
-             f"RSS growth long vs short: {results['rss_growth_mb']} MB"]
+    rows.append(
+        f"| render only | {r['frames']} | {r['fps']} | {r['ms_per_frame']} | {r['cpu_ms_per_frame']} | |"
+    )
+    rows += [
+        "",
+        f"target {results['target_fps']} fps: {'met' if results['meets_target'] else 'NOT met'}; "
+        f"RSS growth long vs short: {results['rss_growth_mb']} MB",
+    ]
     return "\n".join(rows) + "\n"

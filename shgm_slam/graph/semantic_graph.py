@@ -348,11 +348,7 @@ class SemanticGraph:
         self.apply_update(update)
         return update
 
-    def apply_update(
-        self,
-        update: GraphUpdate,
-        T_world_kfs: PoseLookup = None,
-    ) -> None:
+    def apply_update(self, update: GraphUpdate, T_world_kfs: PoseLookup = None) -> None:
         """Apply a ``GraphUpdate`` (e.g. a robot's message on the map server): register the keyframe and
         insert or overwrite the node states it carries, then refresh edges around them.
 
@@ -365,15 +361,15 @@ class SemanticGraph:
         kf_id = int(update.kf_id)
         if kf_id in self._kf_slot:
             raise GraphError(f"keyframe {kf_id} is already in this graph; was the update applied twice?")
-        T = _lookup_pose(T_world_kfs, kf_id, update.T_world_kf)
-        slot = self._add_keyframe_slot(kf_id, _check_pose(T, f"pose of keyframe {kf_id}"))
+        T = _check_pose(_lookup_pose(T_world_kfs, kf_id, update.T_world_kf), f"pose of keyframe {kf_id}")
         states = list(update.new_nodes) + list(update.updated_nodes)
-        for s in states:
-            if s.anchor_kf not in self._kf_slot:
+        for s in states:  # validate everything before changing anything
+            if s.anchor_kf != kf_id and s.anchor_kf not in self._kf_slot:
                 raise GraphError(
                     f"update of keyframe {kf_id}: node {s.node_id} is anchored to unknown keyframe "
                     f"{s.anchor_kf}; apply a robot's updates in order"
                 )
+        slot = self._add_keyframe_slot(kf_id, T)
         rows = np.array([self._upsert_row(s) for s in states], dtype=np.int64)
         if rows.size:
             self._obs_rows.append(rows)

@@ -9,6 +9,10 @@ candidates per node (TOP_K), find a maximum clique, fit Eq. 2 on it and re-selec
 
 Gravity-aligned robots share the vertical axis, so their consistency test also compares vertical
 offsets and horizontal distances separately (a much stronger test), and the fit is 4-DoF.
+
+Chance cliques of 5-8 correspondences exist among hundreds of candidates even between places that
+do not overlap, so a clique is only evidence when it clearly beats the best clique among the
+candidates its fit does not explain (``rival_support``; the matcher's ``min_support_ratio`` test).
 """
 
 from __future__ import annotations
@@ -184,13 +188,14 @@ def max_clique(
     degree = _count(adjacency, axis=1)
     if within is not None and not within.all():
         degree -= _count(adjacency[~within], axis=0)
-    order = np.flatnonzero(alive)[np.argsort(-degree[alive], kind="stable")]
+    initial = degree.copy()
+    order = np.flatnonzero(alive)[np.argsort(-initial[alive], kind="stable")]
     best = order[:1]
     tried = since_improvement = 0
     for seed in order:
-        if tried >= max_seeds or since_improvement >= patience or degree[seed] < best.size:
-            break
-        if not alive[seed]:
+        if tried >= max_seeds or since_improvement >= patience or initial[seed] < best.size:
+            break  # seeds come in decreasing initial degree: none of the rest can beat the best
+        if not alive[seed] or degree[seed] < best.size:
             continue
         tried += 1
         since_improvement += 1

@@ -120,9 +120,12 @@ def match_graphs(
 ) -> MatchResult:
     """Find ``T_a_b`` (B's frame -> A's frame) from the semantic graphs of two robots.
 
-    Success needs at least ``min_inliers`` one-to-one inliers, an inlier RMSE of at most ``max_rmse_m``
-    and inliers spanning at least ``min_spread_m`` (``pose.spread_m``). Empty, tiny or edgeless graphs
-    give an unsuccessful result with a reason, never an exception.
+    Success needs (1) an unambiguous hypothesis: its support (clique size or RANSAC inliers) at least
+    ``min_support_ratio`` times that of the best hypothesis among the candidates it does not explain
+    (chance level or a competing alignment), (2) at least ``min_inliers`` one-to-one inliers, (3) an
+    inlier RMSE of at most ``max_rmse_m`` and (4) inliers spanning at least ``min_spread_m``
+    (``pose.spread_m``). Empty, tiny or edgeless graphs give an unsuccessful result with a reason,
+    never an exception.
 
     Args:
         a, b: the two graphs (positions in each robot's world frame, metres).

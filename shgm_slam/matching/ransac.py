@@ -23,7 +23,7 @@ SAMPLE_SIZE = 4
 """Correspondences per RANSAC hypothesis (Alg. 2)."""
 
 _BATCH = 256
-"""Hypotheses scored per chunk (bounds the (batch, K, 3) temporary)."""
+"""Hypotheses scored per chunk (bounds the (batch, K) squared-residual temporary)."""
 
 
 def _valid_samples(samples: np.ndarray, rows_a: np.ndarray, rows_b: np.ndarray) -> np.ndarray:

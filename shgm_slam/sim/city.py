@@ -61,7 +61,9 @@ def _street_lines(length_m: float, p: CityParams, rng: np.random.Generator) -> t
     pos = np.concatenate([[0.0], np.cumsum(blocks[:-1] + 0.5 * (widths[:-1] + widths[1:]))])
     keep = pos <= length_m
     if keep.sum() < 2:
-        raise SimulationError(f"city of {length_m:.0f} m is too small for blocks of {p.block_min_m:.0f} m or more")
+        raise SimulationError(
+            f"city of {length_m:.0f} m is too small for blocks of {p.block_min_m:.0f} m or more"
+        )
     return pos[keep], widths[keep]
 
 
@@ -76,9 +78,9 @@ def _network(xs, wx, ys, wy, p: CityParams, rng) -> tuple[StreetNetwork, np.ndar
     e_v = np.stack([idx[:, :-1].ravel(), idx[:, 1:].ravel()], 1)  # along y, width wx[i]
     w_v = np.broadcast_to(wx[:, None], (nx, ny - 1)).ravel()
     edges, widths = np.concatenate([e_h, e_v]), np.concatenate([w_h, w_v])
-    on_border = np.all(
-        (nodes[edges][..., 0] == xs[0]) | (nodes[edges][..., 0] == xs[-1]), axis=1
-    ) | np.all((nodes[edges][..., 1] == ys[0]) | (nodes[edges][..., 1] == ys[-1]), axis=1)
+    on_border = np.all((nodes[edges][..., 0] == xs[0]) | (nodes[edges][..., 0] == xs[-1]), axis=1) | np.all(
+        (nodes[edges][..., 1] == ys[0]) | (nodes[edges][..., 1] == ys[-1]), axis=1
+    )
     closed = (rng.random(len(edges)) < p.closed_street_fraction) & ~on_border & (widths < p.avenue_width_m)
     for e in np.flatnonzero(closed):  # re-open closures that would disconnect the network
         keep = ~closed
@@ -100,13 +102,16 @@ class _CityBuilder:
 
     # -- helpers ----------------------------------------------------------------------------------
     def slab(self, kind: ObjectKind, x0, x1, y0, y1, top_m: float, bottom_m: float = -0.05) -> int:
-        return self.obj.add(kind, ((x0 + x1) / 2, (y0 + y1) / 2, (top_m + bottom_m) / 2),
-                            (x1 - x0, y1 - y0, top_m - bottom_m))
+        return self.obj.add(
+            kind, ((x0 + x1) / 2, (y0 + y1) / 2, (top_m + bottom_m) / 2), (x1 - x0, y1 - y0, top_m - bottom_m)
+        )
 
     def tree(self, x: float, y: float, z0: float = SIDEWALK_TOP_M, scale: float = 1.0) -> None:
         h = self.rng.uniform(6.0, 11.0) * scale
         d = self.rng.uniform(3.5, 6.0) * scale
-        self.obj.add_on_ground(K.TREE, x, y, (d, d * self.rng.uniform(0.85, 1.0), h), self.rng.uniform(0, 2 * np.pi), z0)
+        self.obj.add_on_ground(
+            K.TREE, x, y, (d, d * self.rng.uniform(0.85, 1.0), h), self.rng.uniform(0, 2 * np.pi), z0
+        )
 
     def building_height(self, x: float, y: float) -> float:
         p = self.p
@@ -119,7 +124,7 @@ class _CityBuilder:
         p, rng = self.p, self.rng
         xs, wx = _street_lines(p.size_x_m, p, rng)
         ys, wy = _street_lines(p.size_y_m, p, rng)
-        net, closed_edges, closed_widths = _network(xs, wx, ys, wy, p, rng)
+        net, closed_edges, _ = _network(xs, wx, ys, wy, p, rng)
         gx0, gx1, gy0, gy1 = xs[0] - wx[0] / 2, xs[-1] + wx[-1] / 2, ys[0] - wy[0] / 2, ys[-1] + wy[-1] / 2
         margin = 700.0
         self.slab(K.TERRAIN, gx0 - margin, gx1 + margin, gy0 - margin, gy1 + margin, -0.02, -0.12)
@@ -139,8 +144,13 @@ class _CityBuilder:
                 self.tree(xa, 0.5 * (y0 + y1))
         for i in range(len(xs) - 1):
             for j in range(len(ys) - 1):
-                self.block(i, j, (xs[i] + wx[i] / 2, xs[i + 1] - wx[i + 1] / 2),
-                           (ys[j] + wy[j] / 2, ys[j + 1] - wy[j + 1] / 2), (wx[i], wx[i + 1], wy[j], wy[j + 1]))
+                self.block(
+                    i,
+                    j,
+                    (xs[i] + wx[i] / 2, xs[i + 1] - wx[i + 1] / 2),
+                    (ys[j] + wy[j] / 2, ys[j + 1] - wy[j + 1] / 2),
+                    (wx[i], wx[i + 1], wy[j], wy[j + 1]),
+                )
         for i in range(len(xs)):
             for j in range(len(ys)):
                 self.intersection(i, j, xs, wx, ys, wy)
@@ -154,8 +164,12 @@ class _CityBuilder:
             sizes = np.stack([m[:, 2], m[:, 3], np.full(len(m), 0.012)], 1)
             pieces.append(box_piece(centres, sizes, m[:, 4], Label.ROAD, self.road_id, Material.MARKING))
         world = assemble_world(self.obj.objects, pieces, streets=net, seed=self.seed)
-        world.meta["city"] = {"streets_x": xs.round(3).tolist(), "streets_y": ys.round(3).tolist(),
-                              "widths_x": wx.tolist(), "widths_y": wy.tolist()}
+        world.meta["city"] = {
+            "streets_x": xs.round(3).tolist(),
+            "streets_y": ys.round(3).tolist(),
+            "widths_x": wx.tolist(),
+            "widths_y": wy.tolist(),
+        }
         return world
 
     def block(self, i, j, xr, yr, widths) -> None:
@@ -182,8 +196,14 @@ class _CityBuilder:
             ((x0, y1), (0, -1), (1, 0), y1 - y0, wx0, (i * ny + j, i * ny + j + 1)),
         ]
         for start, t, n, length, width, edge in sides:
-            self.curb_side(np.array(start, float), np.array(t, float), np.array(n, float), length, width,
-                           edge in self.open_edges)
+            self.curb_side(
+                np.array(start, float),
+                np.array(t, float),
+                np.array(n, float),
+                length,
+                width,
+                edge in self.open_edges,
+            )
 
     def building_rows(self, ix0, ix1, iy0, iy1) -> None:
         rng = self.rng
@@ -206,7 +226,9 @@ class _CityBuilder:
                 if rng.random() < 0.22 and b - s > 16:
                     g = rng.uniform(4, 12)
                     kind = K.FENCE if rng.random() < 0.55 else K.WALL
-                    thick, hgt = (0.08, rng.uniform(1.2, 2.0)) if kind is K.FENCE else (0.3, rng.uniform(1.0, 2.4))
+                    thick, hgt = (
+                        (0.08, rng.uniform(1.2, 2.0)) if kind is K.FENCE else (0.3, rng.uniform(1.0, 2.4))
+                    )
                     c = start + (s + g / 2) * t + 0.3 * n
                     self.obj.add_on_ground(kind, c[0], c[1], (g, thick, hgt), yaw, TERRAIN_TOP_M)
                     s += g
@@ -232,8 +254,12 @@ class _CityBuilder:
             if not kept or np.min(np.linalg.norm(np.array(kept) - q, axis=1)) > 6.0:
                 kept.append(q)
                 self.tree(q[0], q[1], TERRAIN_TOP_M, rng.uniform(0.8, 1.3))
-        for (ax, ay), (bx, by) in [((ix0, iy0), (ix1, iy0)), ((ix1, iy0), (ix1, iy1)),
-                                   ((ix1, iy1), (ix0, iy1)), ((ix0, iy1), (ix0, iy0))]:
+        for (ax, ay), (bx, by) in [
+            ((ix0, iy0), (ix1, iy0)),
+            ((ix1, iy0), (ix1, iy1)),
+            ((ix1, iy1), (ix0, iy1)),
+            ((ix0, iy1), (ix0, iy0)),
+        ]:
             length = np.hypot(bx - ax, by - ay)
             yaw = np.arctan2(by - ay, bx - ax)
             seg = (length - 6.0) / 2  # two fence runs with a gate in the middle
@@ -248,8 +274,10 @@ class _CityBuilder:
             for x in np.arange(ix0 + 2.0, ix1 - 2.0, 2.7):
                 if rng.random() < 0.7:
                     self.car(x, y, np.pi / 2 + (np.pi if rng.random() < 0.5 else 0.0), SIDEWALK_TOP_M + 0.01)
-        for (ax, ay), (bx, by) in [((ix0, iy0), (ix1, iy0)), ((ix1, iy1), (ix0, iy1))]:
-            self.obj.add_on_ground(K.WALL, (ax + bx) / 2, ay, (abs(bx - ax) - 12, 0.3, 1.0), 0.0, SIDEWALK_TOP_M)
+        for (ax, ay), (bx, _) in [((ix0, iy0), (ix1, iy0)), ((ix1, iy1), (ix0, iy1))]:
+            self.obj.add_on_ground(
+                K.WALL, (ax + bx) / 2, ay, (abs(bx - ax) - 12, 0.3, 1.0), 0.0, SIDEWALK_TOP_M
+            )
 
     def car(self, x, y, yaw, z0=0.0) -> float:
         rng = self.rng
@@ -267,7 +295,9 @@ class _CityBuilder:
         leafy = rng.random() < p.leafy_street_fraction
         if leafy and length > 2 * m + 8:
             c = start + 0.5 * length * t + 1.3 * n
-            obj.add_on_ground(K.TERRAIN, c[0], c[1], (length - 2 * m, 1.4, 0.05), yaw_t, SIDEWALK_TOP_M - 0.02)
+            obj.add_on_ground(
+                K.TERRAIN, c[0], c[1], (length - 2 * m, 1.4, 0.05), yaw_t, SIDEWALK_TOP_M - 0.02
+            )
             spacing = rng.uniform(8, 12)
             for s in np.arange(m + 2, length - m - 1, spacing):
                 if rng.random() > 0.15:
@@ -317,8 +347,11 @@ class _CityBuilder:
         """Traffic lights, signs and crosswalks at a crossing of at least three open streets."""
         rng, ny = self.rng, self.ny
         node = i * ny + j
-        arms = [e for e in ((node, node + ny), (node - ny, node), (node, node + 1), (node - 1, node))
-                if e in self.open_edges]
+        arms = [
+            e
+            for e in ((node, node + ny), (node - ny, node), (node, node + 1), (node - 1, node))
+            if e in self.open_edges
+        ]
         if len(arms) < 3:
             return
         x, y = xs[i], ys[j]
@@ -333,16 +366,24 @@ class _CityBuilder:
                 reach = wx[i] / 2 + 0.8
                 d = np.array([-qx, 0.0])
                 c = pole + d * reach / 2
-                self.obj.add(K.SIGNAL_POLE, (c[0], c[1], SIDEWALK_TOP_M + 2.75), (reach, 0.3, 5.5), np.arctan2(0, -qx))
+                self.obj.add(
+                    K.SIGNAL_POLE, (c[0], c[1], SIDEWALK_TOP_M + 2.75), (reach, 0.3, 5.5), np.arctan2(0, -qx)
+                )
                 h = pole + d * (reach - 0.4)
-                self.obj.add(K.TRAFFIC_LIGHT, (h[0], h[1], SIDEWALK_TOP_M + 4.7), (0.35, 0.4, 1.0), np.arctan2(-qy, 0))
-                self.obj.add(K.TRAFFIC_LIGHT, (pole[0] + 0.3 * qx, pole[1], SIDEWALK_TOP_M + 3.2),
-                             (0.35, 0.4, 1.0), np.arctan2(0, -qx))
+                self.obj.add(
+                    K.TRAFFIC_LIGHT, (h[0], h[1], SIDEWALK_TOP_M + 4.7), (0.35, 0.4, 1.0), np.arctan2(-qy, 0)
+                )
+                self.obj.add(
+                    K.TRAFFIC_LIGHT,
+                    (pole[0] + 0.3 * qx, pole[1], SIDEWALK_TOP_M + 3.2),
+                    (0.35, 0.4, 1.0),
+                    np.arctan2(0, -qx),
+                )
             elif rng.random() < 0.6:
                 self.sign(corner + np.array([qx * 0.9, qy * 1.6]), np.arctan2(qy, 0))
         if not signalized:
             return
-        for (a, b) in arms:  # crosswalk stripes across each arm, just outside the crossing
+        for a, b in arms:  # crosswalk stripes across each arm, just outside the crossing
             along_x = abs(b - a) == ny
             sgn = 1.0 if (b if a == node else a) > node else -1.0
             if along_x:
@@ -393,5 +434,7 @@ def build_city(params: CityParams | None = None, seed: int = 0) -> World:
     """Lay out and mesh a procedural city (see module docstring); deterministic for a given seed."""
     p = params or CityParams()
     if p.size_x_m < 150 or p.size_y_m < 150:
-        raise SimulationError(f"city size {p.size_x_m:.0f} x {p.size_y_m:.0f} m is too small; use at least 150 m")
+        raise SimulationError(
+            f"city size {p.size_x_m:.0f} x {p.size_y_m:.0f} m is too small; use at least 150 m"
+        )
     return _CityBuilder(p, seed).build()

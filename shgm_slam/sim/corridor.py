@@ -50,7 +50,10 @@ class _Corridor:
         """True when all (P, 2) footprint samples are >= ``min_road_m`` from every road centreline and
         ``min_path_m`` from every drive path, and a circle of ``radius_m`` around their mean does not hit
         an object placed before."""
-        if self.road_tree.query(pts_xy)[0].min() < min_road_m or self.path_tree.query(pts_xy)[0].min() < min_path_m:
+        if (
+            self.road_tree.query(pts_xy)[0].min() < min_road_m
+            or self.path_tree.query(pts_xy)[0].min() < min_path_m
+        ):
             return False
         c = pts_xy.mean(0)
         if self.placed_xy:
@@ -74,8 +77,10 @@ class _Corridor:
         self.obj.add(K.TERRAIN, ((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, -0.07), (*(hi - lo), 0.1))
         pieces: list[MeshPiece] = []
         for centre in self.centres:
-            for kind, half, z, label in ((K.SIDEWALK, ROAD_HALF_M + SIDEWALK_M, 0.0, Label.SIDEWALK),
-                                         (K.ROAD, ROAD_HALF_M, 0.02, Label.ROAD)):
+            for kind, half, z, label in (
+                (K.SIDEWALK, ROAD_HALF_M + SIDEWALK_M, 0.0, Label.SIDEWALK),
+                (K.ROAD, ROAD_HALF_M, 0.02, Label.ROAD),
+            ):
                 v, f = _ribbon(centre, half, z)
                 bb0, bb1 = v.min(0), v.max(0)
                 oid = self.obj.add(kind, (bb0 + bb1) / 2, np.maximum(bb1 - bb0, 0.02))
@@ -84,7 +89,9 @@ class _Corridor:
             tt = tangents(centre)[::9][::2]
             for p, t in zip(dashes, tt, strict=True):
                 v, f = _ribbon(np.stack([p - 1.5 * t, p, p + 1.5 * t]), 0.08, 0.03)
-                pieces.append(MeshPiece(v, f, Label.ROAD, np.full(len(f), pieces[-1].object_ids[0]), Material.MARKING))
+                pieces.append(
+                    MeshPiece(v, f, Label.ROAD, np.full(len(f), pieces[-1].object_ids[0]), Material.MARKING)
+                )
         for centre in self.centres:
             tang = tangents(centre)
             for side in (1.0, -1.0):
@@ -105,8 +112,13 @@ class _Corridor:
                 kind = K.FENCE if rng.random() < 0.6 else K.WALL
                 c = centre[k] + normal[k] * (ROAD_HALF_M + SIDEWALK_M + 0.8)
                 if self.clear(self.box_samples(c, tang[k], normal[k], g, 0.3), ROAD_HALF_M + 2.0, 0.5):
-                    obj.add_on_ground(kind, c[0], c[1], (g, 0.1 if kind is K.FENCE else 0.3, rng.uniform(1.2, 2.2)),
-                                      np.arctan2(tang[k, 1], tang[k, 0]))
+                    obj.add_on_ground(
+                        kind,
+                        c[0],
+                        c[1],
+                        (g, 0.1 if kind is K.FENCE else 0.3, rng.uniform(1.2, 2.2)),
+                        np.arctan2(tang[k, 1], tang[k, 0]),
+                    )
                 s += int(g) + 1
                 continue
             f, d = rng.uniform(12, 28), rng.uniform(10, 20)
@@ -114,8 +126,13 @@ class _Corridor:
             setback = ROAD_HALF_M + SIDEWALK_M + 1.0 + rng.uniform(0, 4)
             c = centre[k] + normal[k] * (setback + d / 2)
             if self.clear(self.box_samples(c, tang[k], normal[k], f, d), ROAD_HALF_M + 2.0, 0.3 * min(f, d)):
-                obj.add_on_ground(K.BUILDING, c[0], c[1], (f, d, float(np.clip(rng.lognormal(2.5, 0.35), 5, 30))),
-                                  np.arctan2(tang[k, 1], tang[k, 0]))
+                obj.add_on_ground(
+                    K.BUILDING,
+                    c[0],
+                    c[1],
+                    (f, d, float(np.clip(rng.lognormal(2.5, 0.35), 5, 30))),
+                    np.arctan2(tang[k, 1], tang[k, 0]),
+                )
             s += int(f) + int(rng.integers(0, 3))
         # street furniture on the sidewalk, parked cars on the road edge
         for s in np.arange(rng.uniform(0, 8), M - 1, 9.0):
@@ -130,7 +147,12 @@ class _Corridor:
             pole = centre[k] + normal[k] * (ROAD_HALF_M + 0.5)
             if self.clear(pole[None], ROAD_HALF_M - 0.5, 0.4):
                 c = pole - 0.9 * normal[k]
-                obj.add(K.STREET_LAMP, (c[0], c[1], 4.0), (1.8, 0.3, 8.0), np.arctan2(-normal[k, 1], -normal[k, 0]))
+                obj.add(
+                    K.STREET_LAMP,
+                    (c[0], c[1], 4.0),
+                    (1.8, 0.3, 8.0),
+                    np.arctan2(-normal[k, 1], -normal[k, 0]),
+                )
         for s in np.arange(rng.uniform(0, 60), M - 1, 60.0):
             k = int(s)
             q = centre[k] + normal[k] * (ROAD_HALF_M + 0.8)
@@ -147,8 +169,13 @@ class _Corridor:
                 c = centre[k] + normal[k] * (ROAD_HALF_M - 1.2)
                 pts = self.box_samples(c, tang[k], normal[k], length, 1.8)
                 if self.clear(pts, 0.0, 2.2, min_path_m=2.0):
-                    obj.add_on_ground(K.CAR, c[0], c[1], (length, 1.8, rng.uniform(1.4, 1.6)),
-                                      np.arctan2(tang[k, 1], tang[k, 0]))
+                    obj.add_on_ground(
+                        K.CAR,
+                        c[0],
+                        c[1],
+                        (length, 1.8, rng.uniform(1.4, 1.6)),
+                        np.arctan2(tang[k, 1], tang[k, 0]),
+                    )
             s += rng.uniform(5.5, 9)
 
 

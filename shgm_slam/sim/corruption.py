@@ -76,7 +76,11 @@ class CorruptionLevels:
 
 
 def corrupt_depth(
-    depth_m: np.ndarray, rng: np.random.Generator, *, noise_rel: float = 0.0, scale_error: float = 0.0,
+    depth_m: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    noise_rel: float = 0.0,
+    scale_error: float = 0.0,
     correlation_px: float = 0.0,
 ) -> np.ndarray:
     """(H, W) float32 depth with error ``d * (scale_error + noise_rel * e)``, e a unit Gaussian field
@@ -91,7 +95,11 @@ def corrupt_depth(
 
 
 def corrupt_labels(
-    label_ids: np.ndarray, rng: np.random.Generator, *, confusion_prob: float = 0.0, boundary_px: int = 0,
+    label_ids: np.ndarray,
+    rng: np.random.Generator,
+    *,
+    confusion_prob: float = 0.0,
+    boundary_px: int = 0,
     segments: np.ndarray | None = None,
 ) -> np.ndarray:
     """(H, W) uint8 labels with whole-segment confusions and ragged class boundaries.
@@ -140,18 +148,27 @@ def corrupt_labels(
 
 
 def apply_corruption(
-    depth_m: np.ndarray, label_ids: np.ndarray, levels: CorruptionLevels, rng: np.random.Generator,
+    depth_m: np.ndarray,
+    label_ids: np.ndarray,
+    levels: CorruptionLevels,
+    rng: np.random.Generator,
     segments: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Corrupt one frame's depth and labels by ``levels`` (returns the inputs unchanged when inactive)."""
     if not levels.active:
         return depth_m, label_ids
     depth = corrupt_depth(
-        depth_m, rng, noise_rel=levels.depth_noise, scale_error=levels.depth_scale_error,
+        depth_m,
+        rng,
+        noise_rel=levels.depth_noise,
+        scale_error=levels.depth_scale_error,
         correlation_px=levels.depth_correlation_px,
     )
     labels = corrupt_labels(
-        label_ids, rng, confusion_prob=levels.label_confusion, boundary_px=levels.label_boundary_px,
+        label_ids,
+        rng,
+        confusion_prob=levels.label_confusion,
+        boundary_px=levels.label_boundary_px,
         segments=segments,
     )
     return depth, labels

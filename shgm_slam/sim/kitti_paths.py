@@ -66,7 +66,9 @@ def load_drive(root: Path, drive: KittiDrive) -> np.ndarray:
     except DataError as exc:
         raise SimulationError(f"cannot use {path}: {exc}") from None
     if drive.end >= len(poses):
-        raise SimulationError(f"{path} has {len(poses)} poses; frame range {drive.start}-{drive.end} is outside it")
+        raise SimulationError(
+            f"{path} has {len(poses)} poses; frame range {drive.start}-{drive.end} is outside it"
+        )
     T = poses[drive.start : drive.end + 1].copy()
     T_world_kitti = make_pose(R_WORLD_KITTI, np.zeros(3))
     T = T_world_kitti @ T
@@ -107,7 +109,7 @@ def align_drive(T_ref: np.ndarray, T_src: np.ndarray, min_overlap: float = 0.3) 
     tree = cKDTree(ref)
     best = None
     for yaw0 in np.radians(np.arange(0.0, 360.0, 10.0)):  # coarse search, then ICP refines
-        T, ok = _icp_yaw(src, tree, ref, yaw0)
+        T, _ = _icp_yaw(src, tree, ref, yaw0)
         moved = src @ T[:2, :2].T + T[:2, 3]
         d = tree.query(moved)[0]
         score = int((d < 3.0).sum())
@@ -148,6 +150,7 @@ def kitti_trajectories(
         poses[k] = T @ poses[k]
         notes[drives[k].name] = {**stats, "frames": [drives[k].start, drives[k].end]}
     robots = [
-        Trajectory(d.name, RobotKind.CAR, T, np.arange(len(T)) / fps) for d, T in zip(drives, poses, strict=True)
+        Trajectory(d.name, RobotKind.CAR, T, np.arange(len(T)) / fps)
+        for d, T in zip(drives, poses, strict=True)
     ]
     return robots, notes

@@ -38,8 +38,12 @@ CAR_PAINTS = np.array(
     [(0.88, 0.88, 0.88), (0.10, 0.10, 0.11), (0.66, 0.67, 0.69), (0.40, 0.41, 0.43), (0.62, 0.10, 0.09),
      (0.14, 0.24, 0.52), (0.17, 0.30, 0.22), (0.80, 0.80, 0.78), (0.25, 0.25, 0.27)], np.float32,
 )  # fmt: skip
-BUS_PAINTS = np.array([(0.82, 0.70, 0.18), (0.20, 0.40, 0.70), (0.75, 0.16, 0.14), (0.90, 0.90, 0.88)], np.float32)
-SIGN_PAINTS = np.array([(0.88, 0.88, 0.88), (0.15, 0.30, 0.70), (0.80, 0.12, 0.10), (0.90, 0.75, 0.10)], np.float32)
+BUS_PAINTS = np.array(
+    [(0.82, 0.70, 0.18), (0.20, 0.40, 0.70), (0.75, 0.16, 0.14), (0.90, 0.90, 0.88)], np.float32
+)
+SIGN_PAINTS = np.array(
+    [(0.88, 0.88, 0.88), (0.15, 0.30, 0.70), (0.80, 0.12, 0.10), (0.90, 0.75, 0.10)], np.float32
+)
 MATERIAL_ALBEDO = {
     Material.GLASS: (0.11, 0.13, 0.16),
     Material.TRUNK: (0.33, 0.24, 0.16),
@@ -69,7 +73,11 @@ def triangle_albedo(world: World, tri_normal: np.ndarray) -> np.ndarray:
     albedo[sel] = _pick(FACADES, u[sel, 4]) * (0.92 + 0.16 * u[sel, 5])[:, None]
     roof = sel & (tri_normal[:, 2] > 0.7)
     albedo[roof] = np.array([0.42, 0.41, 0.40], np.float32) * (0.85 + 0.3 * u[roof, 6])[:, None]
-    for label, palette in ((Label.CAR, CAR_PAINTS), (Label.BUS, BUS_PAINTS), (Label.TRAFFIC_SIGN, SIGN_PAINTS)):
+    for label, palette in (
+        (Label.CAR, CAR_PAINTS),
+        (Label.BUS, BUS_PAINTS),
+        (Label.TRAFFIC_SIGN, SIGN_PAINTS),
+    ):
         sel = base & (lab == label)
         albedo[sel] = _pick(palette, u[sel, 7])
     sel = base & (lab == Label.TERRAIN)  # some lawns dry and brownish

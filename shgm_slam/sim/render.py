@@ -30,7 +30,7 @@ SKY_HORIZON_RGB = np.array([0.80, 0.86, 0.92], dtype=np.float32)
 
 
 def make_intrinsics(width: int, height: int, hfov_deg: float = 82.0) -> Intrinsics:
-    """KITTI-like pinhole intrinsics: square pixels, ``fx = 0.5 W / tan(hfov / 2)``, centred principal point."""
+    """KITTI-like pinhole intrinsics: square pixels, ``fx = 0.5 W / tan(hfov / 2)``, centred cx, cy."""
     if width < 8 or height < 8:
         raise SimulationError(f"image size {width}x{height} is too small; use at least 8x8 pixels")
     if not 10.0 <= hfov_deg <= 150.0:
@@ -58,13 +58,16 @@ class RenderedFrame:
 
 @dataclass(frozen=True)
 class Lighting:
-    """Sun direction (azimuth from +x towards +y, elevation above the horizon) and light strengths."""
+    """Sun direction (azimuth from +x towards +y, elevation above the horizon), light strengths, cast
+    shadows (one occlusion ray per sunlit pixel closer than ``shadow_range_m``) and aerial perspective."""
 
     sun_azimuth_deg: float = 35.0
-    sun_elevation_deg: float = 48.0
+    sun_elevation_deg: float = 52.0
     sun: float = 0.62
     sky: float = 0.48
     fog_distance_m: float = 900.0
+    shadows: bool = True
+    shadow_range_m: float = 150.0
 
     @property
     def sun_dir_world(self) -> np.ndarray:
@@ -83,7 +86,12 @@ class Renderer:
     """
 
     def __init__(
-        self, world: World, intrinsics: Intrinsics, *, max_depth_m: float = 200.0, threads: int = 2,
+        self,
+        world: World,
+        intrinsics: Intrinsics,
+        *,
+        max_depth_m: float = 200.0,
+        threads: int = 2,
         lighting: Lighting | None = None,
     ) -> None:
         if world.num_triangles == 0:
@@ -105,10 +113,18 @@ class Renderer:
         albedo = triangle_albedo(world, n)
         lit, sun = self.lighting, self.lighting.sun_dir_world
         # Lambert from the sun + sky light; meshes are closed, so only front faces are ever seen
-        self.tri_light = (lit.sky * (0.72 + 0.28 * n[:, 2]) + lit.sun * np.clip(n @ sun, 0.0, None)).astype(np.float32)
+        sky_light = lit.sky * (0.72 + 0.28 * n[:, 2])
+        sun_light = lit.sun * np.clip(n @ sun, 0.0, None)
+        self.tri_light = (sky_light + sun_light).astype(np.float32)
         self.tri_rgb = albedo * self.tri_light[:, None]  # (F, 3) lit colour
+        self.tri_shadow = (sky_light / np.maximum(self.tri_light, 1e-6)).astype(
+            np.float32
+        )  # dimming in shadow
+        self.tri_sunlit = sun_light > 0.05 * lit.sun
         self.tri_facade = (
-            (world.tri_label == Label.BUILDING) & (world.tri_material == Material.BASE) & (np.abs(n[:, 2]) < 0.3)
+            (world.tri_label == Label.BUILDING)
+            & (world.tri_material == Material.BASE)
+            & (np.abs(n[:, 2]) < 0.3)
         )
         self.tri_noise = _noise_strength(world)
         self.tri_axis = np.argmax(np.abs(n), axis=1).astype(np.int8)  # triplanar texture projection
@@ -157,8 +173,12 @@ class Renderer:
             raise SimulationError(f"camera pose must be a finite 4x4 matrix, got shape {T.shape}")
         H, W = self.intrinsics.height, self.intrinsics.width
         dirs = self.ray_directions(T)
-        out = (np.empty((H * W, 3), np.uint8), np.empty(H * W, np.float32), np.empty(H * W, np.uint8),
-               np.empty(H * W, np.int32))
+        out = (
+            np.empty((H * W, 3), np.uint8),
+            np.empty(H * W, np.float32),
+            np.empty(H * W, np.uint8),
+            np.empty(H * W, np.int32),
+        )
 
         def band(sl: slice) -> None:
             self._render_rays(T, dirs[sl], self.ray_norm[sl], *(o[sl] for o in out))
@@ -168,11 +188,19 @@ class Renderer:
         else:
             list(self._pool.map(band, self._bands))
         rgb, depth, labels, objects = out
-        return RenderedFrame(rgb.reshape(H, W, 3), depth.reshape(H, W), labels.reshape(H, W), objects.reshape(H, W))
+        return RenderedFrame(
+            rgb.reshape(H, W, 3), depth.reshape(H, W), labels.reshape(H, W), objects.reshape(H, W)
+        )
 
     def _render_rays(
-        self, T: np.ndarray, dirs: np.ndarray, norms: np.ndarray, rgb_out: np.ndarray, depth_out: np.ndarray,
-        label_out: np.ndarray, object_out: np.ndarray,
+        self,
+        T: np.ndarray,
+        dirs: np.ndarray,
+        norms: np.ndarray,
+        rgb_out: np.ndarray,
+        depth_out: np.ndarray,
+        label_out: np.ndarray,
+        object_out: np.ndarray,
     ) -> None:
         """Cast N rays from camera pose T and fill the (N, 3) uint8, (N,) float32 z-depth, (N,) uint8
         label and (N,) int32 object outputs."""
@@ -218,13 +246,30 @@ class Renderer:
         tex = self.texture[u.astype(np.int32) & 255, v.astype(np.int32) & 255]
         fac = np.flatnonzero(self.tri_facade[tri])
         if fac.size:
-            win, glass = _facade_windows(p[fac], self.tri_normal[tri[fac]], self.world.tri_object[tri[fac]],
-                                         self.obj_windows)
+            win, glass = _facade_windows(
+                p[fac], self.tri_normal[tri[fac]], self.world.tri_object[tri[fac]], self.obj_windows
+            )
             rgb[fac[win]] = glass * self.tri_light[tri[fac[win]], None]
-        fog = np.exp(-(z * norms) / self.lighting.fog_distance_m)  # transmittance of the air
-        rgb *= (fog * (1.0 + self.tri_noise[tri] * tex))[:, None]
+        dist = z * norms
+        fog = np.exp(-dist / self.lighting.fog_distance_m)  # transmittance of the air
+        gain = fog * (1.0 + self.tri_noise[tri] * tex)
+        if self.lighting.shadows:
+            gain *= self._shadow_factor(tri, p, dist)
+        rgb *= gain[:, None]
         rgb += SKY_HORIZON_RGB * (1.0 - fog)[:, None]
         return rgb
+
+    def _shadow_factor(self, tri: np.ndarray, p_world: np.ndarray, dist_m: np.ndarray) -> np.ndarray:
+        """(M,) light factor: 1 where the sun reaches the hit point, the sky-only share where blocked."""
+        factor = np.ones(len(tri), np.float32)
+        test = np.flatnonzero(self.tri_sunlit[tri] & (dist_m < self.lighting.shadow_range_m))
+        if test.size == 0:
+            return factor
+        start = p_world[test] - self.origin.astype(np.float32) + 0.03 * self.tri_normal[tri[test]]
+        sun = np.broadcast_to(self.lighting.sun_dir_world, start.shape).copy()
+        blocked = self.scene.run(start.astype(np.float32), sun, query="OCCLUDED") >= 0
+        factor[test[blocked]] = self.tri_shadow[tri[test[blocked]]]
+        return factor
 
 
 def _noise_strength(world: World) -> np.ndarray:
@@ -250,6 +295,8 @@ def _facade_windows(
     fz = (p[:, 2] - 0.4) / floor_h
     rel_a, rel_z = fa - np.floor(fa), fz - np.floor(fz)
     win = (np.abs(rel_a - 0.5) < frac_w / 2) & (rel_z > 0.28) & (rel_z < 0.85) & (p[:, 2] > 1.2)
-    v = hash01(obj[win], np.floor(fa[win]).astype(np.int64), np.floor(fz[win]).astype(np.int64)).astype(np.float32)
+    v = hash01(obj[win], np.floor(fa[win]).astype(np.int64), np.floor(fz[win]).astype(np.int64)).astype(
+        np.float32
+    )
     glass = np.stack([0.16 + 0.18 * v, 0.20 + 0.18 * v, 0.26 + 0.2 * v], 1)
     return win, glass

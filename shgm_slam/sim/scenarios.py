@@ -1,11 +1,13 @@
 """Named multi-robot scenarios, deterministic by seed: a world plus one trajectory per robot (camera).
 
-| name | robots | modelled on |
-|---|---|---|
-| ``synthia-like`` | ``forward``, ``backward``: one car's ~950 m drive seen by a forward and a backward camera | SYNTHIA 04-spring, the paper's viewpoint study |
-| ``airsim-like`` | ``car1``, ``car2`` (~420 m each, the shared street in opposite directions), ``uav`` (~600 m at 44-54 m, 50 deg oblique camera) | the paper's AirSim Neighborhood set |
-| ``disjoint`` | ``car_a``, ``car_b`` in opposite corners of the city, never within 2x the depth range | negative control |
-| ``kitti-paths`` | ``kitti00``, ``kitti07``: real KITTI GT drives (00 frames 2600-2900, 07 frames 0-350) aligned into one world, city grown around them | a real two-robot overlap |
+- ``synthia-like``: robots ``forward`` and ``backward``, one car's ~950 m drive seen by a forward and a
+  backward camera (SYNTHIA 04-spring, the paper's viewpoint study).
+- ``airsim-like``: ``car1`` and ``car2`` (~420 m each; ~250 m of shared street driven in opposite
+  directions) and ``uav`` (~600 m at 44-54 m, 50 deg oblique camera), the paper's AirSim set.
+- ``disjoint``: ``car_a`` and ``car_b`` in opposite corners, never within 2x the depth range (a negative
+  control).
+- ``kitti-paths``: ``kitti00`` and ``kitti07``, real KITTI GT drives (00 frames 2600-2900, 07 frames 0-350)
+  aligned into one world with a city grown around them: a real two-robot overlap.
 
 Every scenario's poses share one world frame: the ground-truth inter-robot transform is identity.
 """
@@ -79,7 +81,9 @@ def _city(opt: ScenarioOptions, default_m: float, compact_m: float) -> World:
     size = opt.world_size_m or (compact_m if opt.compact else default_m)
     params = CityParams(size_x_m=size, size_y_m=size)
     if opt.compact:
-        params = CityParams(size_x_m=size, size_y_m=size, block_min_m=45.0, block_max_m=80.0, outskirts_m=20.0)
+        params = CityParams(
+            size_x_m=size, size_y_m=size, block_min_m=45.0, block_max_m=80.0, outskirts_m=20.0
+        )
     return build_city(params, seed=opt.seed)
 
 
@@ -152,8 +156,13 @@ def disjoint(opt: ScenarioOptions) -> ScenarioPlan:
             robots += car_trajectories(lane, {name: False}, opt.car_speed_mps, opt.fps, rng)
         gap = min_distance_m(robots[0], robots[1])
         if gap > need:
-            return ScenarioPlan("disjoint", world, robots, {"car_a": length, "car_b": length},
-                                {"min_distance_m": round(gap, 1), "required_m": need})
+            return ScenarioPlan(
+                "disjoint",
+                world,
+                robots,
+                {"car_a": length, "car_b": length},
+                {"min_distance_m": round(gap, 1), "required_m": need},
+            )
     raise SimulationError(
         f"disjoint: robots came within {gap:.0f} m (need > {need:.0f} m = 2x depth range); "
         "use a larger --world-size or a smaller depth range"

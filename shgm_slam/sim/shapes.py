@@ -135,7 +135,8 @@ KIND_PARTS: dict[ObjectKind, tuple[Part, ...]] = {
     ObjectKind.TRAFFIC_SIGN: (Part(Template.BOX, *_FULL),),
     ObjectKind.CAR: (
         Part(Template.BOX, (-0.5, -0.5, -0.36), (0.5, 0.5, 0.08)),
-        Part(Template.BOX, (-0.32, -0.46, 0.08), (0.22, 0.46, 0.5), Material.GLASS),
+        Part(Template.BOX, (-0.32, -0.46, 0.08), (0.22, 0.46, 0.42), Material.GLASS),
+        Part(Template.BOX, (-0.3, -0.44, 0.42), (0.18, 0.44, 0.5)),
         Part(Template.BOX, (-0.42, -0.52, -0.5), (0.42, 0.52, -0.36), Material.TYRE),  # wheels band
     ),
     ObjectKind.TRUCK: (
@@ -201,7 +202,9 @@ def instance_parts(
         faces = f[None] + (len(v) * np.arange(len(ids)))[:, None, None]
         label = KIND_LABEL[kind] if part.label is None else part.label
         pieces.append(
-            MeshPiece(world.reshape(-1, 3), faces.reshape(-1, 3), label, np.repeat(ids, len(f)), part.material)
+            MeshPiece(
+                world.reshape(-1, 3), faces.reshape(-1, 3), label, np.repeat(ids, len(f)), part.material
+            )
         )
     return pieces
 
@@ -218,7 +221,11 @@ class MeshPiece:
 
 
 def box_piece(
-    centres_xyz: np.ndarray, sizes_xyz: np.ndarray, yaws_rad: np.ndarray, label: int, object_id: int,
+    centres_xyz: np.ndarray,
+    sizes_xyz: np.ndarray,
+    yaws_rad: np.ndarray,
+    label: int,
+    object_id: int,
     material: Material,
 ) -> MeshPiece:
     """Plain boxes that belong to one existing object (e.g. road markings on the road object)."""

@@ -4,7 +4,7 @@ Output folder::
 
     <out>/world.json       every object's ground truth (shgm-world/1) + robot frames (all identity)
     <out>/scenario.json    name, seed, resolution, fps, intrinsics, corruption, robots, measured overlaps
-    <out>/<robot>/         one sequence per robot (image_2/, depth/, semantic/, calib.txt, times.txt, poses.txt)
+    <out>/<robot>/         one sequence per robot: image_2/ depth/ semantic/ calib.txt times.txt poses.txt
 
 Frames stream to disk one by one (a writer thread encodes PNGs while the next frame renders), so memory
 stays bounded whatever the sequence length.
@@ -88,15 +88,22 @@ def parse_resolution(text: str) -> tuple[int, int]:
 def overlap_stats(robots: list[Trajectory]) -> tuple[dict, dict]:
     """Pairwise shared-view lengths (``shared_view_length_m``, metres of the row robot) and minimum
     camera distances (metres) between every ordered pair of robots."""
-    shared = {a.name: {b.name: round(shared_view_length_m(a, b, OVERLAP_RADIUS_M), 1)
-                       for b in robots if b is not a} for a in robots}
+    shared = {
+        a.name: {b.name: round(shared_view_length_m(a, b, OVERLAP_RADIUS_M), 1) for b in robots if b is not a}
+        for a in robots
+    }
     dist = {a.name: {b.name: round(min_distance_m(a, b), 2) for b in robots if b is not a} for a in robots}
     return shared, dist
 
 
 def _write_robot(
-    renderer: Renderer, traj: Trajectory, folder: Path, corruption: CorruptionLevels, rng: np.random.Generator,
-    progress: ProgressFn | None, overwrite: bool,
+    renderer: Renderer,
+    traj: Trajectory,
+    folder: Path,
+    corruption: CorruptionLevels,
+    rng: np.random.Generator,
+    progress: ProgressFn | None,
+    overwrite: bool,
 ) -> None:
     K = renderer.intrinsics
     with SequenceWriter(folder, K, overwrite=overwrite) as writer, ThreadPoolExecutor(1) as io:
@@ -150,21 +157,35 @@ def simulate(
     if max_frames is not None and max_frames < 1:
         raise SimulationError(f"max_frames must be at least 1, got {max_frames}")
     if (out / "scenario.json").exists() and not overwrite:
-        raise SimulationError(f"{out} already holds a simulated scenario; choose a new folder or pass --overwrite")
+        raise SimulationError(
+            f"{out} already holds a simulated scenario; choose a new folder or pass --overwrite"
+        )
     corruption = corruption or CorruptionLevels()
     intrinsics = make_intrinsics(*resolution, hfov_deg=hfov_deg)
     t0 = time.perf_counter()
-    opts = ScenarioOptions(seed=seed, fps=fps, world_size_m=world_size_m, max_depth_m=max_depth_m,
-                           kitti_root=kitti_root, compact=compact, uav_speed_mps=uav_speed_mps)
+    opts = ScenarioOptions(
+        seed=seed,
+        fps=fps,
+        world_size_m=world_size_m,
+        max_depth_m=max_depth_m,
+        kitti_root=kitti_root,
+        compact=compact,
+        uav_speed_mps=uav_speed_mps,
+    )
     plan: ScenarioPlan = build_scenario(scenario, opts)
     robots = [r.truncated(max_frames) for r in plan.robots]
     t1 = time.perf_counter()
     results = ResultsWriter(out)
     frames_gt = {r.name: {"T_world_robot": np.eye(4).tolist()} for r in robots}
-    results.write_json("world.json", plan.world.to_json({
-        "robots": frames_gt,
-        "ground_truth_T_a_b": "identity for every robot pair: every robot's poses.txt is in this world frame",
-    }))
+    results.write_json(
+        "world.json",
+        plan.world.to_json(
+            {
+                "robots": frames_gt,
+                "ground_truth_T_a_b": "identity for every robot pair: all poses.txt are in this world frame",
+            }
+        ),
+    )
     with Renderer(plan.world, intrinsics, max_depth_m=max_depth_m, threads=threads) as renderer:
         t2 = time.perf_counter()
         for i, traj in enumerate(robots):
@@ -173,18 +194,43 @@ def simulate(
     t3 = time.perf_counter()
     shared, dist = overlap_stats(robots)
     result = ScenarioResult(
-        scenario, out, seed, intrinsics, fps,
-        [RobotResult(r.name, r.kind.value, len(r), round(r.path_length_m, 1), plan.targets_m.get(r.name),
-                     out / r.name) for r in robots],
-        shared, dist, len(plan.world.objects), plan.world.num_triangles,
-        {"build_world": round(t1 - t0, 3), "prepare_renderer": round(t2 - t1, 3), "render_write": round(t3 - t2, 3)},
+        scenario,
+        out,
+        seed,
+        intrinsics,
+        fps,
+        [
+            RobotResult(
+                r.name,
+                r.kind.value,
+                len(r),
+                round(r.path_length_m, 1),
+                plan.targets_m.get(r.name),
+                out / r.name,
+            )
+            for r in robots
+        ],
+        shared,
+        dist,
+        len(plan.world.objects),
+        plan.world.num_triangles,
+        {
+            "build_world": round(t1 - t0, 3),
+            "prepare_renderer": round(t2 - t1, 3),
+            "render_write": round(t3 - t2, 3),
+        },
     )
     results.write_json("scenario.json", scenario_json(result, plan, corruption, max_depth_m, hfov_deg))
     return result
 
 
-def scenario_json(result: ScenarioResult, plan: ScenarioPlan, corruption: CorruptionLevels,
-                  max_depth_m: float, hfov_deg: float) -> dict:
+def scenario_json(
+    result: ScenarioResult,
+    plan: ScenarioPlan,
+    corruption: CorruptionLevels,
+    max_depth_m: float,
+    hfov_deg: float,
+) -> dict:
     """``scenario.json`` content (format ``shgm-scenario/1``)."""
     K = result.intrinsics
     return {
@@ -197,8 +243,14 @@ def scenario_json(result: ScenarioResult, plan: ScenarioPlan, corruption: Corrup
         "max_depth_m": max_depth_m,
         "corruption": corruption.__dict__,
         "robots": [
-            {"name": r.name, "kind": r.kind, "frames": r.frames, "path_length_m": r.path_length_m,
-             "target_length_m": r.target_length_m, "folder": r.name}
+            {
+                "name": r.name,
+                "kind": r.kind,
+                "frames": r.frames,
+                "path_length_m": r.path_length_m,
+                "target_length_m": r.target_length_m,
+                "folder": r.name,
+            }
             for r in result.robots
         ],
         "ground_truth_T_a_b": "identity (all poses.txt share the world frame of world.json)",

@@ -54,7 +54,9 @@ class Trajectory:
         return Trajectory(self.name, self.kind, self.T_world_cam[:max_frames], self.timestamps_s[:max_frames])
 
 
-def camera_poses(positions_xyz: np.ndarray, forward_xyz: np.ndarray, pitch_down_rad=0.0, roll_rad=0.0) -> np.ndarray:
+def camera_poses(
+    positions_xyz: np.ndarray, forward_xyz: np.ndarray, pitch_down_rad=0.0, roll_rad=0.0
+) -> np.ndarray:
     """(N, 4, 4) ``T_world_cam`` of cameras at (N, 3) positions looking along (N, 3) horizontal-ish
     directions, pitched down by ``pitch_down_rad`` and rolled by ``roll_rad`` (scalars or (N,))."""
     f = np.asarray(forward_xyz, float).copy()
@@ -74,8 +76,14 @@ def camera_poses(positions_xyz: np.ndarray, forward_xyz: np.ndarray, pitch_down_
 
 
 def random_route(
-    streets: StreetNetwork, rng: np.random.Generator, min_length_m: float, *, start: int | None = None,
-    allowed: np.ndarray | None = None, straight_bias: float = 0.55, attempts: int = 200,
+    streets: StreetNetwork,
+    rng: np.random.Generator,
+    min_length_m: float,
+    *,
+    start: int | None = None,
+    allowed: np.ndarray | None = None,
+    straight_bias: float = 0.55,
+    attempts: int = 200,
 ) -> list[int]:
     """A walk of intersections (no U-turns, no revisits) at least ``min_length_m`` long.
 
@@ -151,8 +159,15 @@ def lane_path(centre_xy: np.ndarray, offset_m: float) -> np.ndarray:
     return centre_xy + offset_m * np.stack([t[:, 1], -t[:, 0]], 1)
 
 
-def timed_samples(path_xy: np.ndarray, speed_mps: float, fps: float, rng: np.random.Generator, *,
-                  lateral_accel_mps2: float = 2.0, speed_jitter: float = 0.08) -> tuple[np.ndarray, np.ndarray]:
+def timed_samples(
+    path_xy: np.ndarray,
+    speed_mps: float,
+    fps: float,
+    rng: np.random.Generator,
+    *,
+    lateral_accel_mps2: float = 2.0,
+    speed_jitter: float = 0.08,
+) -> tuple[np.ndarray, np.ndarray]:
     """Sample a dense (M, 2) path at ``fps`` for a vehicle cruising at ``speed_mps`` that slows in curves.
 
     Returns (N, 2) positions and (N, 2) unit headings, one per frame.
@@ -176,7 +191,11 @@ def timed_samples(path_xy: np.ndarray, speed_mps: float, fps: float, rng: np.ran
 
 
 def car_trajectories(
-    lane_xy: np.ndarray, names: dict[str, bool], speed_mps: float, fps: float, rng: np.random.Generator,
+    lane_xy: np.ndarray,
+    names: dict[str, bool],
+    speed_mps: float,
+    fps: float,
+    rng: np.random.Generator,
 ) -> list[Trajectory]:
     """Cameras on one car driving ``lane_xy`` (dense (M, 2) path): ``names`` maps camera name to
     ``True`` for a backward-looking camera. Body pitch/roll wobble is shared by all cameras."""
@@ -189,13 +208,22 @@ def car_trajectories(
     for name, backward in names.items():
         f3 = np.column_stack([-fwd if backward else fwd, np.zeros(n)])
         pitch = -wobble[0] if backward else wobble[0]
-        out.append(Trajectory(name, RobotKind.CAR, camera_poses(p3, f3, pitch, wobble[1]), np.arange(n) / fps))
+        out.append(
+            Trajectory(name, RobotKind.CAR, camera_poses(p3, f3, pitch, wobble[1]), np.arange(n) / fps)
+        )
     return out
 
 
 def uav_trajectory(
-    name: str, path_xy: np.ndarray, speed_mps: float, fps: float, rng: np.random.Generator, *,
-    altitude_m: tuple[float, float] = (44.0, 54.0), pitch_down_deg: float = 50.0, smooth_m: float = 12.0,
+    name: str,
+    path_xy: np.ndarray,
+    speed_mps: float,
+    fps: float,
+    rng: np.random.Generator,
+    *,
+    altitude_m: tuple[float, float] = (44.0, 54.0),
+    pitch_down_deg: float = 50.0,
+    smooth_m: float = 12.0,
 ) -> Trajectory:
     """A UAV flying a (K, 2) path (smoothed with a ``smooth_m`` Gaussian) at a slowly varying altitude
     inside ``altitude_m`` with a camera looking ``pitch_down_deg`` below the horizon along its track."""
@@ -209,7 +237,9 @@ def uav_trajectory(
     lo, hi = altitude_m
     z = lo + (hi - lo) * (0.5 + 0.5 * np.sin(2 * np.pi * s / 400 + rng.uniform(0, 2 * np.pi)))
     roll = gaussian_filter1d(rng.normal(0, 1, n), 5.0) * np.radians(1.0)
-    T = camera_poses(np.column_stack([pos, z]), np.column_stack([fwd, np.zeros(n)]), np.radians(pitch_down_deg), roll)
+    T = camera_poses(
+        np.column_stack([pos, z]), np.column_stack([fwd, np.zeros(n)]), np.radians(pitch_down_deg), roll
+    )
     return Trajectory(name, RobotKind.UAV, T, np.arange(n) / fps)
 
 

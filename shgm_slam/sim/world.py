@@ -68,7 +68,9 @@ class StreetNetwork:
 
     def width(self, a: int, b: int) -> float:
         """Curb-to-curb width of the street between nodes ``a`` and ``b`` (metres)."""
-        hit = ((self.edges[:, 0] == a) & (self.edges[:, 1] == b)) | ((self.edges[:, 0] == b) & (self.edges[:, 1] == a))
+        hit = ((self.edges[:, 0] == a) & (self.edges[:, 1] == b)) | (
+            (self.edges[:, 0] == b) & (self.edges[:, 1] == a)
+        )
         return float(self.widths_m[np.flatnonzero(hit)[0]])
 
 
@@ -179,7 +181,9 @@ def assemble_world(
     )
     tri_label = np.concatenate([np.full(len(p.faces), p.label, np.uint8) for p in pieces]) if pieces else []
     tri_object = np.concatenate([p.object_ids for p in pieces]).astype(np.int32) if pieces else []
-    tri_material = np.concatenate([np.full(len(p.faces), int(p.material), np.uint8) for p in pieces]) if pieces else []
+    tri_material = (
+        np.concatenate([np.full(len(p.faces), int(p.material), np.uint8) for p in pieces]) if pieces else []
+    )
     return World(
         objects,
         vertices.astype(np.float64),
@@ -212,8 +216,9 @@ class ObjectList:
         )
         return oid
 
-    def add_on_ground(self, kind: ObjectKind, x: float, y: float, size_xyz, yaw_rad: float = 0.0,
-                      z0: float = 0.0) -> int:
+    def add_on_ground(
+        self, kind: ObjectKind, x: float, y: float, size_xyz, yaw_rad: float = 0.0, z0: float = 0.0
+    ) -> int:
         """Add an object standing on height ``z0`` at (x, y)."""
         return self.add(kind, (x, y, z0 + 0.5 * float(size_xyz[2])), size_xyz, yaw_rad)
 

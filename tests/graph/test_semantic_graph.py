@@ -178,8 +178,10 @@ def test_misuse_gives_graph_errors():
     with pytest.raises(GraphError, match="not in this graph"):
         g.set_keyframe_poses([7], np.eye(4)[None])
     orphan = GraphUpdate(5, np.eye(4), (), (NodeState(9, 2, 3, (0.0, 0.0, 0.0), 1.0, 1),))
+    server = SemanticGraph()
     with pytest.raises(GraphError, match="unknown keyframe 3"):
-        SemanticGraph().apply_update(orphan)
+        server.apply_update(orphan)
+    assert server.keyframe_ids == [] and len(server) == 0  # nothing half-applied
     with pytest.raises(GraphError):
         SemanticGraph(connectivity_m=0.0)
 
