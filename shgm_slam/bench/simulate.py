@@ -24,7 +24,9 @@ from shgm_slam.sim.simulate import simulate
 TARGET_FPS = 20.0
 
 
-def _run(scenario: str, out: Path, resolution: tuple[int, int], max_frames: int, seed: int) -> dict:
+def _run(
+    scenario: str, out: Path, resolution: tuple[int, int], max_frames: int, seed: int, compact: bool
+) -> dict:
     proc = psutil.Process()
     peak = [proc.memory_info().rss]
 
@@ -34,7 +36,13 @@ def _run(scenario: str, out: Path, resolution: tuple[int, int], max_frames: int,
 
     cpu0 = time.process_time()
     result = simulate(
-        scenario, out, seed=seed, resolution=resolution, max_frames=max_frames, progress=progress
+        scenario,
+        out,
+        seed=seed,
+        resolution=resolution,
+        max_frames=max_frames,
+        compact=compact,
+        progress=progress,
     )
     cpu = time.process_time() - cpu0
     frames = result.total_frames
@@ -53,8 +61,8 @@ def _run(scenario: str, out: Path, resolution: tuple[int, int], max_frames: int,
     }
 
 
-def _render_only(scenario: str, resolution: tuple[int, int], frames: int, seed: int) -> dict:
-    plan = build_scenario(scenario, ScenarioOptions(seed=seed))
+def _render_only(scenario: str, resolution: tuple[int, int], frames: int, seed: int, compact: bool) -> dict:
+    plan = build_scenario(scenario, ScenarioOptions(seed=seed, compact=compact))
     poses = plan.robots[0].T_world_cam[:frames]
     with Renderer(plan.world, make_intrinsics(*resolution)) as renderer:
         renderer.render(poses[0])  # embree builds its BVH on the first query
@@ -79,17 +87,19 @@ def run_simulate_benchmark(
     long_frames: int = 300,
     seed: int = 0,
     work_dir: Path | None = None,
+    compact: bool = False,
 ) -> dict:
     """Measure the simulator; returns the results dict and writes it as JSON to ``out`` when given.
 
     ``short_frames``/``long_frames`` are frames *per robot* of the two runs; sequences go to a temporary
-    folder inside ``work_dir`` (default: the system temp folder) that is removed afterwards.
+    folder inside ``work_dir`` (default: the system temp folder) that is removed afterwards. ``compact``
+    uses the small world (for tests).
     """
     load = os.getloadavg()
     with tempfile.TemporaryDirectory(dir=work_dir) as tmp:
-        short = _run(scenario, Path(tmp) / "short", resolution, short_frames, seed)
-        long = _run(scenario, Path(tmp) / "long", resolution, long_frames, seed)
-    render = _render_only(scenario, resolution, short_frames, seed)
+        short = _run(scenario, Path(tmp) / "short", resolution, short_frames, seed, compact)
+        long = _run(scenario, Path(tmp) / "long", resolution, long_frames, seed, compact)
+    render = _render_only(scenario, resolution, short_frames, seed, compact)
     results = {
         "benchmark": "simulate",
         "scenario": scenario,

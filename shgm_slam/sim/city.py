@@ -106,9 +106,11 @@ class _CityBuilder:
             kind, ((x0 + x1) / 2, (y0 + y1) / 2, (top_m + bottom_m) / 2), (x1 - x0, y1 - y0, top_m - bottom_m)
         )
 
-    def tree(self, x: float, y: float, z0: float = SIDEWALK_TOP_M, scale: float = 1.0) -> None:
+    def tree(
+        self, x: float, y: float, z0: float = SIDEWALK_TOP_M, scale: float = 1.0, max_crown_m=6.0
+    ) -> None:
         h = self.rng.uniform(6.0, 11.0) * scale
-        d = self.rng.uniform(3.5, 6.0) * scale
+        d = self.rng.uniform(3.5, max_crown_m) * scale
         self.obj.add_on_ground(
             K.TREE, x, y, (d, d * self.rng.uniform(0.85, 1.0), h), self.rng.uniform(0, 2 * np.pi), z0
         )
@@ -301,8 +303,8 @@ class _CityBuilder:
             spacing = rng.uniform(8, 12)
             for s in np.arange(m + 2, length - m - 1, spacing):
                 if rng.random() > 0.15:
-                    q = start + (s + rng.uniform(-1, 1)) * t + 1.3 * n
-                    self.tree(q[0], q[1], SIDEWALK_TOP_M)
+                    q = start + (s + rng.uniform(-1, 1)) * t + 1.5 * n
+                    self.tree(q[0], q[1], SIDEWALK_TOP_M, max_crown_m=5.0)  # crowns stay off the lanes
         for s in np.arange(m + rng.uniform(0, 10), length - m, rng.uniform(26, 34)):
             pole = start + s * t + 0.45 * n
             c = pole + 0.9 * out
@@ -329,7 +331,7 @@ class _CityBuilder:
             length_v = 4.8 if size is None else size[0]
             if s + length_v > length - m:
                 break
-            c = start + (s + length_v / 2) * t - ((1.25 if size is None else 1.5) + 0.25) * n
+            c = start + (s + length_v / 2) * t - (1.3 if size is None else 1.35) * n  # kerbside
             if size is None:
                 length_v = self.car(c[0], c[1], yaw_t + np.pi)
             else:

@@ -65,8 +65,8 @@ class _Corridor:
         return True
 
     def box_samples(self, c, t, n, length, depth) -> np.ndarray:
-        a = np.linspace(-0.5, 0.5, max(2, int(length / 3) + 1))
-        b = np.linspace(-0.5, 0.5, max(2, int(depth / 3) + 1))
+        a = np.linspace(-0.5, 0.5, max(2, int(length) + 1))  # about 1 m apart
+        b = np.linspace(-0.5, 0.5, max(2, int(depth) + 1))
         A, B = np.meshgrid(a, b)
         return c + length * A.reshape(-1, 1) * t + depth * B.reshape(-1, 1) * n
 
@@ -168,7 +168,7 @@ class _Corridor:
                 length = rng.uniform(3.9, 4.8)
                 c = centre[k] + normal[k] * (ROAD_HALF_M - 1.2)
                 pts = self.box_samples(c, tang[k], normal[k], length, 1.8)
-                if self.clear(pts, 0.0, 2.2, min_path_m=2.0):
+                if self.clear(pts, 0.0, 2.2, min_path_m=2.3):
                     obj.add_on_ground(
                         K.CAR,
                         c[0],

@@ -116,7 +116,7 @@ KIND_PARTS: dict[ObjectKind, tuple[Part, ...]] = {
     ObjectKind.FENCE: (Part(Template.BOX, *_FULL),),
     ObjectKind.TREE: (
         Part(Template.CYLINDER, (-0.05, -0.05, -0.5), (0.05, 0.05, 0.0), Material.TRUNK),
-        Part(Template.BLOB, (-0.5, -0.5, -0.3), (0.5, 0.5, 0.5)),
+        Part(Template.BLOB, (-0.5, -0.5, -0.12), (0.5, 0.5, 0.5)),  # crown from 0.38 h: cars pass below
     ),
     ObjectKind.POLE: (Part(Template.CYLINDER, *_FULL, Material.METAL),),
     ObjectKind.STREET_LAMP: (  # pole at local -x, arm reaching +x over the road, lamp head at the end

@@ -102,7 +102,10 @@ def random_route(
                 break
             if len(route) > 1:
                 heading = xy[route[-1]] - xy[route[-2]]
-                straight = [c for c in cand if np.cross(heading, xy[c] - xy[route[-1]]) == 0]
+                step = xy[cand] - xy[route[-1]]
+                straight = [
+                    c for c, d in zip(cand, step, strict=True) if heading[0] * d[1] - heading[1] * d[0] == 0
+                ]
                 if straight and rng.random() < straight_bias:
                     cand = straight
             nxt = cand[int(rng.integers(len(cand)))]
@@ -172,7 +175,8 @@ def timed_samples(
 
     Returns (N, 2) positions and (N, 2) unit headings, one per frame.
     """
-    step = float(np.median(np.linalg.norm(np.diff(path_xy, axis=0), axis=1)))
+    step = 0.25
+    path_xy = resample_path(path_xy, step)  # uniform spacing (lane offsets stretch the outside of curves)
     t = tangents(path_xy)
     heading = np.unwrap(np.arctan2(t[:, 1], t[:, 0]))
     curvature = np.abs(np.gradient(heading, step))
