@@ -352,8 +352,6 @@ def demo(
     rerun: Annotated[str, typer.Option("--rerun", help="spawn | save | connect | off")] = "save",
 ) -> None:
     """Simulate the airsim-like world (car, car, UAV) once, then run the whole system on it."""
-    from shgm_slam.sim.scenarios import simulate
-
     world = cache / f"airsim-like-seed{seed}"
     if not (world / "scenario.json").is_file():
         console.print(f"simulating the airsim-like world into [bold]{world}[/] (once; cached afterwards)")

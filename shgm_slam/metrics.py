@@ -135,9 +135,7 @@ def _align_degenerate(gt: np.ndarray, est: np.ndarray, *, with_scale: bool) -> n
     return out
 
 
-def ate(
-    poses_gt: np.ndarray, poses_est: np.ndarray, *, align: AlignMode | str = AlignMode.SE3
-) -> ErrorStats:
+def ate(poses_gt: np.ndarray, poses_est: np.ndarray, *, align: AlignMode | str = AlignMode.SE3) -> ErrorStats:
     """Absolute trajectory error of the translation part (evo APE), metres.
 
     Args:

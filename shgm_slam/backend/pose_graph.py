@@ -281,7 +281,13 @@ class MultiRobotPoseGraph:
         self._flush(closures_changed=True)
         reason = rec.reason
         if rec.status is ClosureStatus.ACCEPTED and not rec.in_graph:
-            reason += f"; stored until {rec.robot_a} or {rec.robot_b} is anchored to {self.keys.names[0]}"
+            if self._robots[rec.robot_a].anchored or self._robots[rec.robot_b].anchored:
+                reason += (
+                    f"; waiting for {self.min_closures_to_anchor} consistent closures between "
+                    f"{rec.robot_a}-{rec.robot_b} before anchoring"
+                )
+            else:
+                reason += f"; stored until {rec.robot_a} or {rec.robot_b} is anchored to {self.keys.names[0]}"
         return ClosureDecision(rec.status is ClosureStatus.ACCEPTED, reason, rec.closure_id)
 
     def is_anchored(self, robot: str) -> bool:

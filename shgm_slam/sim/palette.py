@@ -1,6 +1,7 @@
 """Surface colours of the synthetic city: realistic albedos per class and material, jittered per object.
 
-Deliberately *not* the Cityscapes label palette: the RGB images should look like a city (grey asphalt,
+Also the world-anchored texture strength per class and the procedural facade windows. Deliberately *not*
+the Cityscapes label palette: the RGB images should look like a city (grey asphalt,
 beige and brick facades, painted cars), so that image-based perception has something real to chew on.
 Colours are sRGB in [0, 1]; the jitter is a hash of the object id, so it is deterministic.
 """
@@ -105,3 +106,33 @@ def noise_texture(size: int = 256, seed: int = 5) -> np.ndarray:
         rows = g[i0] * (1 - f)[:, None] + g[i1] * f[:, None]
         out += amp * (rows[:, i0] * (1 - f)[None] + rows[:, i1] * f[None])
     return out / out.std() * 0.3
+
+
+def noise_strength(world: World) -> np.ndarray:
+    """(F,) float32 texture-noise amplitude of every triangle (rough ground and foliage, smooth paint)."""
+    amp = np.full(256, 0.12, np.float32)
+    amp[[Label.ROAD, Label.SIDEWALK]] = 0.22
+    amp[[Label.TERRAIN, Label.VEGETATION]] = 0.45
+    amp[[Label.CAR, Label.TRUCK, Label.BUS, Label.TRAFFIC_SIGN]] = 0.04
+    s = amp[world.tri_label]
+    s[world.tri_material == Material.MARKING] = 0.1
+    s[world.tri_material == Material.GLASS] = 0.05
+    return s
+
+
+def facade_windows(
+    p: np.ndarray, n: np.ndarray, obj: np.ndarray, obj_windows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Window grid on facades: (M,) bool window mask of M facade hit points (world p, normals n, building
+    ids) and the (K, 3) glass albedo of the K window pixels (tint varies per window)."""
+    a = p[:, 1] * n[:, 0] - p[:, 0] * n[:, 1]  # horizontal coordinate along the facade
+    col_w, floor_h, frac_w = obj_windows[obj].T
+    fa = a / col_w
+    fz = (p[:, 2] - 0.4) / floor_h
+    rel_a, rel_z = fa - np.floor(fa), fz - np.floor(fz)
+    win = (np.abs(rel_a - 0.5) < frac_w / 2) & (rel_z > 0.28) & (rel_z < 0.85) & (p[:, 2] > 1.2)
+    v = hash01(obj[win], np.floor(fa[win]).astype(np.int64), np.floor(fz[win]).astype(np.int64)).astype(
+        np.float32
+    )
+    glass = np.stack([0.16 + 0.18 * v, 0.20 + 0.18 * v, 0.26 + 0.2 * v], 1)
+    return win, glass

@@ -20,7 +20,7 @@ from embreex.mesh_construction import TriangleMesh
 from shgm_slam.errors import SimulationError
 from shgm_slam.geometry.camera import pixel_rays
 from shgm_slam.labels import Label
-from shgm_slam.sim.palette import noise_texture, triangle_albedo
+from shgm_slam.sim.palette import facade_windows, noise_strength, noise_texture, triangle_albedo
 from shgm_slam.sim.shapes import Material, hash01
 from shgm_slam.sim.world import World
 from shgm_slam.types import Intrinsics
@@ -108,25 +108,25 @@ class Renderer:
             vertices=(world.vertices_xyz - self.origin).astype(np.float32),
             indices=np.ascontiguousarray(world.faces, dtype=np.int32),
         )
+        # embreex commits (builds the BVH) on the first query; do it here, once, before threads share it
+        self.scene.run(np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32))
         n = world.face_normals().astype(np.float32)
         self.tri_normal = n
         albedo = triangle_albedo(world, n)
         lit, sun = self.lighting, self.lighting.sun_dir_world
         # Lambert from the sun + sky light; meshes are closed, so only front faces are ever seen
         sky_light = lit.sky * (0.72 + 0.28 * n[:, 2])
-        sun_light = lit.sun * np.clip(n @ sun, 0.0, None)
+        sun_light = lit.sun * np.clip(np.einsum("ij,j->i", n, sun), 0.0, None)
         self.tri_light = (sky_light + sun_light).astype(np.float32)
         self.tri_rgb = albedo * self.tri_light[:, None]  # (F, 3) lit colour
-        self.tri_shadow = (sky_light / np.maximum(self.tri_light, 1e-6)).astype(
-            np.float32
-        )  # dimming in shadow
+        self.tri_shadow = (sky_light / np.maximum(self.tri_light, 1e-6)).astype(np.float32)  # in shadow
         self.tri_sunlit = sun_light > 0.05 * lit.sun
         self.tri_facade = (
             (world.tri_label == Label.BUILDING)
             & (world.tri_material == Material.BASE)
             & (np.abs(n[:, 2]) < 0.3)
         )
-        self.tri_noise = _noise_strength(world)
+        self.tri_noise = noise_strength(world)
         self.tri_axis = np.argmax(np.abs(n), axis=1).astype(np.int8)  # triplanar texture projection
         self.texture = noise_texture()
         ids = np.arange(len(world.objects) + 1)
@@ -220,7 +220,14 @@ class Renderer:
         object_out[hit] = self.world.tri_object[tri]
         rgb = np.empty((n, 3), np.float32)
         rgb[miss] = self._sky(dirs[miss], norms[miss])
-        rgb[hit] = self._shade(tri, dirs[hit], zh, norms[hit], T[:3, 3])
+        # shadow rays are shared in 2x2 pixel blocks that hit the same triangle (band-local rows)
+        W = self.intrinsics.width
+        rep = np.arange(n) // W // 2 * 2 * W + np.arange(n) % W // 2 * 2
+        pos = np.full(n, -1)
+        pos[hit] = np.arange(hit.size)
+        rep_hit = pos[rep[hit]]
+        share = np.where((rep_hit >= 0) & (prim[rep[hit]] == tri), rep_hit, np.arange(hit.size))
+        rgb[hit] = self._shade(tri, dirs[hit], zh, norms[hit], T[:3, 3], share)
         rgb *= 255.0
         np.clip(rgb, 0.0, 255.0, out=rgb)
         rgb_out[:] = rgb
@@ -233,10 +240,16 @@ class Renderer:
         return (SKY_HORIZON_RGB * (1 - a) + SKY_ZENITH_RGB * a + 0.25 * glow[:, None]).astype(np.float32)
 
     def _shade(
-        self, tri: np.ndarray, dirs: np.ndarray, z: np.ndarray, norms: np.ndarray, cam_xyz: np.ndarray
+        self,
+        tri: np.ndarray,
+        dirs: np.ndarray,
+        z: np.ndarray,
+        norms: np.ndarray,
+        cam_xyz: np.ndarray,
+        share: np.ndarray,
     ) -> np.ndarray:
         """(M, 3) float32 colours of M hits: triangle ids, (M, 3) world ray directions, their (M,) lengths,
-        (M,) z-depths in metres, camera position (3,) in the world."""
+        (M,) z-depths in metres, camera position (3,) in the world, (M,) hit whose shadow ray each reuses."""
         rgb = self.tri_rgb[tri]
         p = dirs * z[:, None]
         p += cam_xyz.astype(np.float32)  # world hit points
@@ -246,7 +259,7 @@ class Renderer:
         tex = self.texture[u.astype(np.int32) & 255, v.astype(np.int32) & 255]
         fac = np.flatnonzero(self.tri_facade[tri])
         if fac.size:
-            win, glass = _facade_windows(
+            win, glass = facade_windows(
                 p[fac], self.tri_normal[tri[fac]], self.world.tri_object[tri[fac]], self.obj_windows
             )
             rgb[fac[win]] = glass * self.tri_light[tri[fac[win]], None]
@@ -254,49 +267,24 @@ class Renderer:
         fog = np.exp(-dist / self.lighting.fog_distance_m)  # transmittance of the air
         gain = fog * (1.0 + self.tri_noise[tri] * tex)
         if self.lighting.shadows:
-            gain *= self._shadow_factor(tri, p, dist)
+            gain *= self._shadow_factor(tri, p, dist, share)
         rgb *= gain[:, None]
         rgb += SKY_HORIZON_RGB * (1.0 - fog)[:, None]
         return rgb
 
-    def _shadow_factor(self, tri: np.ndarray, p_world: np.ndarray, dist_m: np.ndarray) -> np.ndarray:
-        """(M,) light factor: 1 where the sun reaches the hit point, the sky-only share where blocked."""
+    def _shadow_factor(
+        self, tri: np.ndarray, p_world: np.ndarray, dist_m: np.ndarray, share: np.ndarray
+    ) -> np.ndarray:
+        """(M,) light factor: 1 where the sun reaches the hit point, the sky-only share where blocked.
+        Hits with ``share[j] != j`` reuse the shadow ray of hit ``share[j]`` (same triangle, next pixel)."""
+        test = self.tri_sunlit[tri] & (dist_m < self.lighting.shadow_range_m)
+        own = np.flatnonzero(test & (share == np.arange(len(tri))))
+        blocked = np.zeros(len(tri), bool)
+        if own.size:
+            start = p_world[own] - self.origin.astype(np.float32) + 0.03 * self.tri_normal[tri[own]]
+            sun = np.broadcast_to(self.lighting.sun_dir_world, start.shape).copy()
+            blocked[own] = self.scene.run(start.astype(np.float32), sun, query="OCCLUDED") >= 0
+        blocked = blocked[share] & test
         factor = np.ones(len(tri), np.float32)
-        test = np.flatnonzero(self.tri_sunlit[tri] & (dist_m < self.lighting.shadow_range_m))
-        if test.size == 0:
-            return factor
-        start = p_world[test] - self.origin.astype(np.float32) + 0.03 * self.tri_normal[tri[test]]
-        sun = np.broadcast_to(self.lighting.sun_dir_world, start.shape).copy()
-        blocked = self.scene.run(start.astype(np.float32), sun, query="OCCLUDED") >= 0
-        factor[test[blocked]] = self.tri_shadow[tri[test[blocked]]]
+        factor[blocked] = self.tri_shadow[tri[blocked]]
         return factor
-
-
-def _noise_strength(world: World) -> np.ndarray:
-    """(F,) float32 texture-noise amplitude of every triangle (rough ground and foliage, smooth paint)."""
-    amp = np.full(256, 0.12, np.float32)
-    amp[[Label.ROAD, Label.SIDEWALK]] = 0.22
-    amp[[Label.TERRAIN, Label.VEGETATION]] = 0.45
-    amp[[Label.CAR, Label.TRUCK, Label.BUS, Label.TRAFFIC_SIGN]] = 0.04
-    s = amp[world.tri_label]
-    s[world.tri_material == Material.MARKING] = 0.1
-    s[world.tri_material == Material.GLASS] = 0.05
-    return s
-
-
-def _facade_windows(
-    p: np.ndarray, n: np.ndarray, obj: np.ndarray, obj_windows: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Window grid on facades: (M,) bool window mask of M facade hit points (world p, normals n, building
-    ids) and the (K, 3) glass albedo of the K window pixels (tint varies per window)."""
-    a = p[:, 1] * n[:, 0] - p[:, 0] * n[:, 1]  # horizontal coordinate along the facade
-    col_w, floor_h, frac_w = obj_windows[obj].T
-    fa = a / col_w
-    fz = (p[:, 2] - 0.4) / floor_h
-    rel_a, rel_z = fa - np.floor(fa), fz - np.floor(fz)
-    win = (np.abs(rel_a - 0.5) < frac_w / 2) & (rel_z > 0.28) & (rel_z < 0.85) & (p[:, 2] > 1.2)
-    v = hash01(obj[win], np.floor(fa[win]).astype(np.int64), np.floor(fz[win]).astype(np.int64)).astype(
-        np.float32
-    )
-    glass = np.stack([0.16 + 0.18 * v, 0.20 + 0.18 * v, 0.26 + 0.2 * v], 1)
-    return win, glass

@@ -173,7 +173,7 @@ def kitti_paths(opt: ScenarioOptions) -> ScenarioPlan:
     """Real KITTI ground-truth drives, aligned into one world, with a city grown around them."""
     robots, notes = kitti_trajectories(opt.kitti_root, opt.kitti_robots, opt.fps)
     world = build_corridor_city([r.positions_xyz[:, :2] for r in robots], seed=opt.seed)
-    targets = {r.name: r.path_length_m for r in robots}
+    targets = {r.name: round(r.path_length_m, 1) for r in robots}
     return ScenarioPlan("kitti-paths", world, robots, targets, {"kitti_alignment": notes})
 
 

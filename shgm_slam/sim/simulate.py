@@ -65,6 +65,11 @@ class ScenarioResult:
     timings_s: dict[str, float] = field(default_factory=dict)
 
     @property
+    def sequences(self) -> dict[str, Path]:
+        """Robot name -> its sequence folder."""
+        return {r.name: r.folder for r in self.robots}
+
+    @property
     def total_frames(self) -> int:
         return sum(r.frames for r in self.robots)
 
@@ -156,6 +161,8 @@ def simulate(
     out = Path(out_dir)
     if max_frames is not None and max_frames < 1:
         raise SimulationError(f"max_frames must be at least 1, got {max_frames}")
+    if out.exists() and not out.is_dir():
+        raise SimulationError(f"cannot write the scenario to {out}: it is a file; choose a folder")
     if (out / "scenario.json").exists() and not overwrite:
         raise SimulationError(
             f"{out} already holds a simulated scenario; choose a new folder or pass --overwrite"
@@ -175,7 +182,10 @@ def simulate(
     plan: ScenarioPlan = build_scenario(scenario, opts)
     robots = [r.truncated(max_frames) for r in plan.robots]
     t1 = time.perf_counter()
-    results = ResultsWriter(out)
+    try:
+        results = ResultsWriter(out)
+    except OSError as exc:
+        raise SimulationError(f"cannot create {out}: {exc.strerror}; choose a writable folder") from None
     frames_gt = {r.name: {"T_world_robot": np.eye(4).tolist()} for r in robots}
     results.write_json(
         "world.json",

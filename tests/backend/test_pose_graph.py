@@ -185,6 +185,19 @@ def test_anchoring_places_the_buffered_keyframes_through_the_closure(scene):
     np.testing.assert_allclose(pg.T_shared_odom("b", 0), T_shared_odomb, atol=1e-6)
 
 
+def test_anchoring_can_require_confirmation(scene):
+    pg = MultiRobotPoseGraph(["a", "b"], min_closures_to_anchor=2)
+    for k in range(N):
+        pg.add_keyframe("a", k, scene["odo_a"][k])
+        pg.add_keyframe("b", k, scene["odo_b"][k])
+    (i, j, T), (k, l, T2) = scene["closures"][:2]
+    first = pg.add_inter_robot_closure("a", i, "b", j, T)
+    assert first.accepted and "waiting for 2 consistent closures" in first.reason
+    assert not pg.is_anchored("b")
+    assert pg.add_inter_robot_closure("a", k, "b", l, T2).accepted
+    assert pg.is_anchored("b") and pg.stats().closures_in_graph == 2
+
+
 @pytest.mark.parametrize("factorization", [Factorization.CHOLESKY, Factorization.QR])
 def test_deferred_initialisation_works_with_either_factorization(scene, factorization):
     pg = MultiRobotPoseGraph(["a", "b"], factorization=factorization)

@@ -79,9 +79,12 @@ def test_errors_are_clear(tmp_path):
         parse_resolution("640-192")
     with pytest.raises(SimulationError, match="known scenarios"):
         simulate("nope", tmp_path)
-    simulate("disjoint", tmp_path / "d", resolution=(32, 16), max_frames=1, compact=True)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(SimulationError, match="it is a file"):
+        simulate("airsim-like", tmp_path / "file", compact=True)
+    simulate("airsim-like", tmp_path / "d", resolution=(32, 16), max_frames=1, compact=True)
     with pytest.raises(SimulationError, match="--overwrite"):
-        simulate("disjoint", tmp_path / "d", resolution=(32, 16), max_frames=1, compact=True)
+        simulate("airsim-like", tmp_path / "d", resolution=(32, 16), max_frames=1, compact=True)
 
 
 def test_cli_simulate(tmp_path):
