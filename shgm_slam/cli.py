@@ -360,7 +360,7 @@ def demo(
     else:
         import json
 
-        robots = list(json.loads((world / "scenario.json").read_text())["robots"])
+        robots = [r["name"] for r in json.loads((world / "scenario.json").read_text())["robots"]]
         console.print(f"using the cached world in [bold]{world}[/]")
     robot_args = [f"{r}={world / r}" for r in robots]
     depth_model = seg_model = None
