@@ -111,10 +111,10 @@ class OdometryConfig(_Stage):
 
     kind: OdometryKind = OdometryKind.KISS_ICP
     poses_file: Path | None = None
-    voxel_size_m: float = Field(0.4, gt=0)
+    voxel_size_m: float = Field(1.0, gt=0, description="KISS-ICP voxel; its rule of thumb is max_range/100")
     max_points_per_voxel: int = Field(10, ge=1)
     min_range_m: float = Field(0.5, ge=0)
-    max_range_m: float = Field(30.0, gt=0)
+    max_range_m: float = Field(100.0, gt=0, description="outdoor scenes need far points to constrain forward motion")
     cloud_stride: int = Field(2, ge=1, description="back-project every n-th pixel")
     max_icp_iterations: int = Field(100, ge=1)
 

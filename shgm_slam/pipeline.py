@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from shgm_slam.backend.pose_graph import MultiRobotPoseGraph
+from shgm_slam.backend.pose_graph import make_pose_graph
 from shgm_slam.config import ShgmConfig
 from shgm_slam.descriptors import compute_descriptors
 from shgm_slam.geometry import se3
@@ -233,15 +233,7 @@ class MapServer:
     def __init__(self, robot_names: list[str], cfg: ShgmConfig) -> None:
         self.robot_names = list(robot_names)
         self.cfg = cfg
-        b = cfg.backend
-        self.pose_graph = MultiRobotPoseGraph(
-            self.robot_names,
-            odometry_sigmas=(b.odometry_sigma_rot_rad, b.odometry_sigma_trans_m),
-            closure_sigmas=(b.closure_sigma_rot_rad, b.closure_sigma_trans_m),
-            robust_kernel=b.robust_kernel,
-            consistency_trans_m=b.consistency_trans_m,
-            consistency_rot_deg=b.consistency_rot_deg,
-        )
+        self.pose_graph = make_pose_graph(self.robot_names, cfg.backend)
         self.graphs = {r: SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m) for r in robot_names}
         self.kf_poses: dict[str, list[np.ndarray]] = {r: [] for r in robot_names}
         self.matches: list[MatchRecord] = []
