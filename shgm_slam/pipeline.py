@@ -234,7 +234,9 @@ class MapServer:
         self.robot_names = list(robot_names)
         self.cfg = cfg
         self.pose_graph = make_pose_graph(self.robot_names, cfg.backend)
-        self.graphs = {r: SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m) for r in robot_names}
+        self.graphs = {
+            r: SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m) for r in robot_names
+        }
         self.kf_poses: dict[str, list[np.ndarray]] = {r: [] for r in robot_names}
         self.matches: list[MatchRecord] = []
         self._since_match = dict.fromkeys(robot_names, 0)

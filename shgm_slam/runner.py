@@ -187,7 +187,9 @@ def run_slam(
             backend_ms = (time.perf_counter() - t0) * 1e3
             res.timings_ms["server"] = backend_ms
             timings.add(res.timings_ms)
-            compute_ms += sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
+            compute_ms += sum(
+                v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc")
+            )
             _log_frame(viz, server, fronts[robot], res, records)
             if res.message is not None:
                 kf_total += 1
@@ -232,7 +234,9 @@ def _fused(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
 
 def _write_results(writer: ResultsWriter, fronts, server: MapServer, robots: dict[str, Sequence]) -> None:
     for r, front in fronts.items():
-        writer.write_trajectories(r, np.asarray(robots[r].timestamps_s), front.T_odom_cam, _fused(front, server))
+        writer.write_trajectories(
+            r, np.asarray(robots[r].timestamps_s), front.T_odom_cam, _fused(front, server)
+        )
         writer.write_graph(r, front.graph.arrays())
     writer.write_matches(server.matches)
     server.pose_graph.write_g2o(writer.path("pose_graph.g2o"))

@@ -32,7 +32,7 @@ def backproject(
         pixel_index: (M,) int64 flat indices ``v * W + u`` of the kept pixels into the full image.
     """
     depth = np.asarray(depth_m)
-    H, W = depth.shape
+    W = depth.shape[1]
     z = depth[::stride, ::stride]
     ok = np.isfinite(z) & (z > max(min_depth_m, 0.0)) & (z <= max_depth_m)
     v, u = np.nonzero(ok)

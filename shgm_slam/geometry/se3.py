@@ -13,7 +13,7 @@ def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Assemble (…, 4, 4) poses from (…, 3, 3) rotations and (…, 3) translations."""
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)
-    T = np.zeros(R.shape[:-2] + (4, 4))
+    T = np.zeros((*R.shape[:-2], 4, 4))
     T[..., :3, :3] = R
     T[..., :3, 3] = t
     T[..., 3, 3] = 1.0
@@ -58,7 +58,7 @@ def so3_exp(rotvec: np.ndarray) -> np.ndarray:
     """Rodrigues: (…, 3) rotation vectors (radians) to (…, 3, 3) rotation matrices."""
     w = np.asarray(rotvec, dtype=np.float64)
     theta = np.linalg.norm(w, axis=-1)[..., None, None]
-    K = np.zeros(w.shape[:-1] + (3, 3))
+    K = np.zeros((*w.shape[:-1], 3, 3))
     K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
     K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
     small = theta < 1e-9
