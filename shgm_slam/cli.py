@@ -293,9 +293,13 @@ def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool):
 @app.command("run")
 @handle_errors
 def run(
-    robot: Annotated[list[str], typer.Option("--robot", "-r", help="NAME=PATH[:start-end]; repeat per robot. "
-                                             "The first robot defines the shared frame.")],
-    odometry: Annotated[str, typer.Option(help="kiss-icp | gt | PATH to a KITTI/TUM poses file")] = "kiss-icp",
+    robot: Annotated[
+        list[str],
+        typer.Option("--robot", "-r", help="NAME=PATH[:start-end]; repeat per robot (the first is the shared frame)"),
+    ],
+    odometry: Annotated[
+        str, typer.Option(help="kiss-icp | gt | a KITTI/TUM poses file ({robot} in the path = robot name)")
+    ] = "kiss-icp",
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
     out: Annotated[Path | None, typer.Option("--out", help="results folder [default: results/<time>]")] = None,
     rerun: Annotated[str, typer.Option("--rerun", help="spawn | save | connect | off")] = "save",
@@ -305,33 +309,39 @@ def run(
     gt_shared_frame: Annotated[bool, typer.Option(help="ground truths of all robots share one world frame")] = True,
 ) -> None:
     """Run the multi-robot system: odometry, semantic graphs, cross-robot matching, fused trajectories."""
-    summary = _run_command(robot, odometry, config, out, rerun, rerun_url, depth_model, seg_model,
-                           gt_shared_frame)
+    from shgm_slam.config import load_config
+
+    cfg = _apply_run_options(load_config(config), odometry, depth_model, seg_model)
+    summary = _run_command(robot, cfg, out, rerun, rerun_url, gt_shared_frame)
     _render_summary(summary)
     if summary.interrupted:
         raise typer.Exit(130)
 
 
-def _run_command(robot_args, odometry, config, out, rerun_mode, rerun_url, depth_model, seg_model,
-                 gt_shared_frame):
-    from shgm_slam.config import OdometryKind, load_config
+def _apply_run_options(cfg, odometry: str, depth_model: Path | None, seg_model: Path | None):
+    from shgm_slam.config import OdometryKind
     from shgm_slam.errors import ConfigError
-    from shgm_slam.io.export import make_results_dir
-    from shgm_slam.runner import open_robots
-    from shgm_slam.viz.rerun_logger import RerunMode, make_viz
 
-    cfg = load_config(config)
     kinds = {k.value: k for k in OdometryKind if k is not OdometryKind.FILE}
     if odometry in kinds:
         cfg.odometry.kind = kinds[odometry]
     else:
-        if not Path(odometry).is_file():
+        if "{robot}" not in odometry and not Path(odometry).is_file():
             raise ConfigError(f"--odometry {odometry!r}: not kiss-icp, gt, or an existing poses file")
         cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, Path(odometry)
     if depth_model is not None:
         cfg.perception.depth_model = depth_model
     if seg_model is not None:
         cfg.perception.seg_model = seg_model
+    return cfg
+
+
+def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_frame: bool):
+    from shgm_slam.errors import ConfigError
+    from shgm_slam.io.export import make_results_dir
+    from shgm_slam.runner import open_robots
+    from shgm_slam.viz.rerun_logger import RerunMode, make_viz
+
     robots = open_robots(robot_args)
     try:
         mode = RerunMode(rerun_mode)
@@ -352,24 +362,20 @@ def demo(
     rerun: Annotated[str, typer.Option("--rerun", help="spawn | save | connect | off")] = "save",
 ) -> None:
     """Simulate the airsim-like world (car, car, UAV) once, then run the whole system on it."""
-    world = cache / f"airsim-like-seed{seed}"
-    if not (world / "scenario.json").is_file():
-        console.print(f"simulating the airsim-like world into [bold]{world}[/] (once; cached afterwards)")
-        result = _simulate_with_progress("airsim-like", world, seed)
-        robots = list(result.sequences)
-    else:
-        import json
+    from shgm_slam.demo import demo_config, prepare_world
 
-        robots = [r["name"] for r in json.loads((world / "scenario.json").read_text())["robots"]]
-        console.print(f"using the cached world in [bold]{world}[/]")
-    robot_args = [f"{r}={world / r}" for r in robots]
-    depth_model = seg_model = None
-    if rgb_only:
-        depth_model, seg_model = Path("models/demo_depth.onnx"), Path("models/demo_seg.onnx")
-    summary = _run_command(robot_args, "kiss-icp", None, out, rerun, None, depth_model, seg_model, True)
+    def simulate_world(folder: Path) -> None:
+        console.print(f"simulating the airsim-like world into [bold]{folder}[/] (once; cached afterwards)")
+        _simulate_with_progress("airsim-like", folder, seed)
+
+    world, kinds = prepare_world(cache, seed, simulate_world)
+    console.print(f"world: [bold]{world}[/] robots: {', '.join(f'{r} ({k})' for r, k in kinds.items())}")
+    cfg = demo_config(kinds, rgb_only=rgb_only)
+    summary = _run_command([f"{r}={world / r}" for r in kinds], cfg, out, rerun, None, True)
     _render_summary(summary)
     if (out / "run.rrd").is_file():
         console.print(f"open the recording with: [bold].venv/bin/rerun {out / 'run.rrd'}[/]")
+
 
 # --- check-model (perception/) ----------------------------------------------------------------------
 @app.command("check-model")
@@ -433,3 +439,33 @@ def bench_simulate(
                                      long_frames=long_frames, seed=seed)
     console.print(simulate_markdown(results))
     console.print(f"wrote {out}")
+
+
+@bench_app.command("localization")
+@handle_errors
+def bench_localization(
+    out: Annotated[Path, typer.Option("--out", "-o", help="results folder: localization.json, .md, pr_curve.png")]
+    = Path("results/bench_localization"),
+    runs: Annotated[int | None, typer.Option(min=1, help="random transforms per configuration [100; quick 10]")]
+    = None,
+    quick: Annotated[bool, typer.Option("--quick", help="compact worlds at 320x96, fewer runs (~2 min)")] = False,
+    seed: Annotated[int, typer.Option(help="world seed (defaults were tuned on seed 1)")] = 0,
+    cache: Annotated[Path, typer.Option(help="rendered keyframes are cached here")] = Path("cache/bench"),
+    config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
+) -> None:
+    """The paper's localization experiments on simulated worlds: Table I/II, Fig. 5 PR, Fig. 8 ablations,
+    partial overlap and disjoint scenes, all descriptors and both matching modes side by side."""
+    from shgm_slam.bench.localization import BenchOptions, run_localization_benchmark
+    from shgm_slam.bench.localization_report import targets_markdown
+    from shgm_slam.config import load_config
+
+    overrides: dict[str, Any] = {"world_seed": seed, "cache_dir": cache}
+    if runs is not None:
+        overrides["runs"] = runs
+    options = BenchOptions.quick_options(**overrides) if quick else BenchOptions(**overrides)
+    with console.status("starting") as status:
+        results = run_localization_benchmark(out, options, load_config(config),
+                                             progress=lambda msg: status.update(msg))
+    console.print("\n".join(targets_markdown(results)))
+    console.print(f"{results['wall_time_s']:.0f} s; wrote [bold]{out / 'localization.md'}[/], "
+                  f"{out / 'localization.json'} and {out / 'pr_curve.png'}")

@@ -75,13 +75,17 @@ class MatchingConfig(_Stage):
     score_threshold: float = Field(0.5, ge=0, le=1)
     same_label_only: bool = True
     candidate_mode: CandidateMode = CandidateMode.TOP_K
-    top_k: int = Field(3, ge=1)
+    top_k: int = Field(2, ge=1, description="candidates per node of B (tuned: bench localization)")
     outlier_mode: OutlierMode = OutlierMode.CLIQUE
     ransac_iterations: int = Field(1000, ge=1)
     inlier_threshold_m: float = Field(10.0, gt=0, description="RANSAC inlier distance (authors: 10 m)")
-    consistency_threshold_m: float = Field(2.0, gt=0, description="clique mode: |d_a - d_b| tolerance")
+    consistency_threshold_m: float = Field(
+        3.0, gt=0, description="clique mode: |d_a - d_b| tolerance (tuned: bench localization)"
+    )
     gravity_aligned: bool = Field(False, description="4-DoF (yaw + translation) fit for ground robots")
-    min_inliers: int = Field(5, ge=3, description="success needs at least this many consistent inliers")
+    min_inliers: int = Field(
+        15, ge=3, description="success needs at least this many consistent inliers (tuned: bench localization)"
+    )
     max_rmse_m: float = Field(3.0, gt=0, description="success needs a fit residual below this")
     weighted_pose: bool = Field(True, description="Eq. 2 weights from object size")
     refine_iterations: int = Field(3, ge=0)
@@ -93,7 +97,7 @@ class MatchingConfig(_Stage):
         5.0, ge=0, description="success needs inliers spanning this much (2nd principal axis; 4-DoF: 1st)"
     )
     min_support_ratio: float = Field(
-        2.0, ge=1.0, description="success needs this many times the support of the best rival hypothesis"
+        2.5, ge=1.0, description="success needs this many times the support of the best rival hypothesis"
     )
     up_axis: tuple[float, float, float] = Field(
         (0.0, -1.0, 0.0), description="vertical axis of the world frames (KITTI camera frame: -y is up)"
@@ -169,6 +173,18 @@ class PerceptionConfig(_Stage):
     threads: int = Field(2, ge=0)
 
 
+class RobotOverrides(_Stage):
+    """Front-end settings of one robot that differ from the fleet's (e.g. a UAV sees farther).
+
+    Each field is a partial mapping of that stage's fields, e.g. ``extraction: {max_depth_m: 100}``.
+    """
+
+    extraction: dict | None = None
+    odometry: dict | None = None
+    keyframes: dict | None = None
+    perception: dict | None = None
+
+
 class ShgmConfig(_Stage):
     """The whole system's configuration."""
 
@@ -180,6 +196,31 @@ class ShgmConfig(_Stage):
     keyframes: KeyframeConfig = KeyframeConfig()
     backend: BackendConfig = BackendConfig()
     perception: PerceptionConfig = PerceptionConfig()
+    robots: dict[str, RobotOverrides] = Field(
+        default_factory=dict, description="per-robot overrides of front-end stages, by robot name"
+    )
+
+    @model_validator(mode="after")
+    def _overrides_are_valid(self) -> ShgmConfig:
+        for name in self.robots:
+            try:
+                self.for_robot(name)
+            except ValidationError as exc:
+                first = exc.errors()[0]
+                where = ".".join(str(p) for p in first["loc"])
+                raise ValueError(f"robots.{name}.{where}: {first['msg']}") from None
+        return self
+
+    def for_robot(self, name: str) -> ShgmConfig:
+        """The configuration one robot's front end uses: this config with ``robots[name]`` merged in."""
+        override = self.robots.get(name)
+        if override is None:
+            return self
+        data = self.model_dump()
+        for stage, fields in override.model_dump(exclude_none=True).items():
+            data[stage] = {**data[stage], **fields}
+        data["robots"] = {}
+        return ShgmConfig.model_validate(data)
 
     def to_yaml(self) -> str:
         """The config as YAML text (enums and paths as plain strings)."""

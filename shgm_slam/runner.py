@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shgm_slam.config import ShgmConfig
+from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry import se3
@@ -62,6 +62,21 @@ def open_robots(robot_args: list[str]) -> dict[str, Sequence]:
             raise DataError(f"robot {name!r}: sequence {spec} has zero frames (check the frame range)")
         robots[name] = seq
     return robots
+
+
+def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFrontend:
+    """Build one robot's front end from the fleet config (with the robot's overrides merged in).
+
+    A poses-file odometry path may contain ``{robot}``, replaced by the robot name, so every robot
+    reads its own file (e.g. ``orbslam_{robot}.txt``).
+    """
+    rcfg = cfg.for_robot(name)
+    if rcfg.odometry.kind is OdometryKind.FILE and rcfg.odometry.poses_file is not None:
+        path = Path(str(rcfg.odometry.poses_file).replace("{robot}", name))
+        rcfg = rcfg.model_copy(update={"odometry": rcfg.odometry.model_copy(update={"poses_file": path})})
+    perception = make_perception(rcfg.perception, sequence)
+    odometry = make_odometry(rcfg.odometry, len(sequence))
+    return RobotFrontend(name, sequence, rcfg, perception, odometry)
 
 
 @dataclass
@@ -153,12 +168,7 @@ def run_slam(
     names = list(robots)
     writer = ResultsWriter(out_dir)
     writer.write_text("config.yaml", cfg.to_yaml())
-    fronts = {
-        r: RobotFrontend(
-            r, seq, cfg, make_perception(cfg.perception, seq), make_odometry(cfg.odometry, len(seq))
-        )
-        for r, seq in robots.items()
-    }
+    fronts = {r: make_frontend(r, seq, cfg) for r, seq in robots.items()}
     server = MapServer(names, cfg)
     viz.setup({r: seq.intrinsics for r, seq in robots.items()})
     total = sum(len(s) for s in robots.values())

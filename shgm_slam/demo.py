@@ -1,0 +1,62 @@
+"""The built-in demo: the airsim-like world (car, car, UAV) simulated once into a cache, then the system.
+
+``shgm-slam demo`` = ``prepare_world`` + ``demo_config`` + ``runner.run_slam``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+from shgm_slam.config import RobotOverrides, ShgmConfig
+from shgm_slam.errors import DataError
+
+MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
+"""Where the trained demo ONNX models live (a source checkout's ``models/``)."""
+
+UAV_OVERRIDES = RobotOverrides(
+    extraction={"max_depth_m": 100.0, "min_blob_fraction": 0.002},
+)
+"""A UAV at 30-60 m sees the ground 30-90 m away: objects must be taken farther and smaller."""
+
+
+def prepare_world(
+    cache: Path, seed: int, simulate_fn: Callable[[Path], object] | None = None
+) -> tuple[Path, dict[str, str]]:
+    """The cached airsim-like world for ``seed``: ``(folder, {robot: kind})``.
+
+    Args:
+        cache: cache folder; the world goes to ``cache/airsim-like-seed<seed>``.
+        seed: world seed.
+        simulate_fn: called with the folder when the world is not cached yet (renders it).
+    """
+    world = Path(cache) / f"airsim-like-seed{seed}"
+    scenario = world / "scenario.json"
+    if not scenario.is_file():
+        if simulate_fn is None:
+            raise DataError(f"{scenario} is missing: simulate the world first")
+        simulate_fn(world)
+    try:
+        robots = json.loads(scenario.read_text())["robots"]
+        kinds = {r["name"]: r.get("kind", "car") for r in robots}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DataError(f"{scenario} is unreadable ({exc}); delete {world} to simulate it again") from None
+    return world, kinds
+
+
+def demo_config(kinds: dict[str, str], *, rgb_only: bool = False, base: ShgmConfig | None = None) -> ShgmConfig:
+    """The demo's configuration: defaults, UAV overrides, and the demo ONNX models when ``rgb_only``.
+
+    Raises:
+        DataError: ``rgb_only`` but the demo models are not in ``models/``.
+    """
+    cfg = (base or ShgmConfig()).model_copy(deep=True)
+    cfg.robots = {**cfg.robots, **{name: UAV_OVERRIDES for name, kind in kinds.items() if kind == "uav"}}
+    if rgb_only:
+        depth, seg = MODELS_DIR / "demo_depth.onnx", MODELS_DIR / "demo_seg.onnx"
+        for p in (depth, seg):
+            if not p.is_file():
+                raise DataError(f"{p} is missing: train the demo models with `python tools/train_demo_models.py`")
+        cfg.perception.depth_model, cfg.perception.seg_model = depth, seg
+    return ShgmConfig.model_validate(cfg.model_dump())
