@@ -120,6 +120,12 @@ class OdometryConfig(_Stage):
     min_range_m: float = Field(0.5, ge=0)
     max_range_m: float = Field(100.0, gt=0, description="outdoor scenes need far points to constrain forward motion")
     cloud_stride: int = Field(2, ge=1, description="back-project every n-th pixel")
+    max_spacing_m: float | None = Field(
+        0.6,
+        gt=0,
+        description="drop points whose image-grid neighbours are farther apart (sparse far/grazing samples "
+        "move with the camera and stall ICP at zero motion); None keeps all",
+    )
     max_icp_iterations: int = Field(100, ge=1)
 
     @model_validator(mode="after")
@@ -149,6 +155,7 @@ class BackendConfig(_Stage):
     """Map server: periodic cross-robot matching and the iSAM2 pose graph."""
 
     match_every_keyframes: int = Field(10, ge=1)
+    local_closure_m: float = Field(40.0, gt=0, description="one graph match gives one closure per this much overlap")
     submap_keyframes: int = Field(30, ge=1, description="recent keyframes forming a robot's submap")
     odometry_sigma_rot_rad: float = Field(0.01, gt=0)
     odometry_sigma_trans_m: float = Field(0.1, gt=0)

@@ -23,6 +23,7 @@ from shgm_slam.geometry import se3
 from shgm_slam.graph.extraction import extract_objects
 from shgm_slam.graph.semantic_graph import GraphUpdate, SemanticGraph
 from shgm_slam.matching import match_graphs
+from shgm_slam.matching.pose import spread_m
 from shgm_slam.odometry.clouds import depth_to_cloud
 from shgm_slam.odometry.sources import OdometrySource
 from shgm_slam.perception import PerceptionSource
@@ -201,6 +202,7 @@ class MatchRecord:
     timings_ms: dict[str, float]
     inlier_positions_a: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     inlier_positions_b: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    closures: list[dict] = field(default_factory=list)
 
     def to_json_dict(self) -> dict:
         return {
@@ -219,6 +221,7 @@ class MatchRecord:
             "nodes_a": self.nodes_a,
             "nodes_b": self.nodes_b,
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
+            "closures": self.closures,
         }
 
 
@@ -300,29 +303,73 @@ class MapServer:
         rows_b = _rows_of(graph_b, result.inliers[:, 1])
         rec.inlier_positions_a = graph_a.positions_xyz[rows_a]
         rec.inlier_positions_b = graph_b.positions_xyz[rows_b]
-        kf_a = self._anchor_keyframe(robot_a, result.inliers[:, 0], rec.inlier_positions_a)
-        kf_b = self._anchor_keyframe(robot_b, result.inliers[:, 1], rec.inlier_positions_b)
-        rec.kf_a, rec.kf_b = kf_a, kf_b
-        key = (robot_a, kf_a, robot_b, kf_b)
-        if key in self._closures:
-            rec.reason = "duplicate of an earlier closure between the same keyframes"
-            return rec
-        T_akf_bkf = se3.inverse(self.kf_poses[robot_a][kf_a]) @ result.T_a_b @ self.kf_poses[robot_b][kf_b]
-        t1 = time.perf_counter()
-        decision = self.pose_graph.add_inter_robot_closure(
-            robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=len(result.inliers)
-        )
-        self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
-        rec.accepted, rec.reason = decision.accepted, decision.reason
-        if decision.accepted:
-            self._closures.add(key)
+        closures = self._local_closures(robot_a, robot_b, result.inliers, rec.inlier_positions_a,
+                                        rec.inlier_positions_b, result.T_a_b)
+        for kf_a, kf_b, T_akf_bkf, n in closures:
+            key = (robot_a, kf_a, robot_b, kf_b)
+            if key in self._closures:
+                rec.closures.append({"keyframe_a": kf_a, "keyframe_b": kf_b, "inliers": n, "accepted": False,
+                                     "reason": "duplicate of an earlier closure between the same keyframes"})
+                continue
+            t1 = time.perf_counter()
+            decision = self.pose_graph.add_inter_robot_closure(robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n)
+            self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
+            rec.closures.append({"keyframe_a": kf_a, "keyframe_b": kf_b, "inliers": n,
+                                 "accepted": decision.accepted, "reason": decision.reason})
+            if decision.accepted:
+                self._closures.add(key)
+        accepted = [c for c in rec.closures if c["accepted"]]
+        rec.accepted = bool(accepted)
+        shown = accepted[0] if accepted else rec.closures[0]
+        rec.kf_a, rec.kf_b, rec.reason = shown["keyframe_a"], shown["keyframe_b"], shown["reason"]
+        if len(rec.closures) > 1:
+            rec.reason = f"{len(accepted)} of {len(rec.closures)} local closures accepted; {rec.reason}"
         return rec
 
-    def _anchor_keyframe(self, robot: str, node_ids: np.ndarray, positions: np.ndarray) -> int:
-        """The keyframe anchoring the inlier node nearest to the inliers' centroid (a local closure)."""
-        anchors = self.graphs[robot].anchor_keyframes(node_ids)
-        centre = positions.mean(axis=0)
-        return int(anchors[int(np.argmin(np.linalg.norm(positions - centre, axis=1)))])
+    def _local_closures(
+        self,
+        robot_a: str,
+        robot_b: str,
+        inliers: np.ndarray,
+        pos_a: np.ndarray,
+        pos_b: np.ndarray,
+        T_a_b: np.ndarray,
+    ) -> list[tuple[int, int, np.ndarray, int]]:
+        """Turn one graph match into keyframe-to-keyframe closures ``(kf_a, kf_b, T_akf_bkf, inliers)``.
+
+        A whole-graph transform averages over both robots' drift; it is exact only near the inliers.
+        So the inliers are cut into segments of ``local_closure_m`` along robot a's graph, and every
+        segment with enough well-spread inliers gives its own locally refitted closure between the
+        keyframes anchoring its central inlier. Without such segments, one closure at the centre.
+        """
+        seg_m = self.cfg.backend.local_closure_m
+        min_n = self.cfg.matching.min_inliers // 2 + 1
+        anchors_a = self.graphs[robot_a].anchor_keyframes(inliers[:, 0])
+        anchors_b = self.graphs[robot_b].anchor_keyframes(inliers[:, 1])
+        order = np.argsort(anchors_a, kind="stable")
+        groups: list[np.ndarray] = []
+        start = 0
+        for i in range(1, len(order) + 1):
+            if i == len(order) or np.linalg.norm(pos_a[order[i]] - pos_a[order[start]]) > seg_m:
+                groups.append(order[start:i])
+                start = i
+        out = []
+        for g in groups:
+            if len(g) < min_n or spread_m(pos_a[g]) < 0.25 * seg_m:
+                continue
+            T_local = se3.kabsch(pos_b[g], pos_a[g])
+            resid = np.linalg.norm(se3.transform_points(T_local, pos_b[g]) - pos_a[g], axis=1)
+            if np.sqrt(np.mean(resid**2)) > self.cfg.matching.max_rmse_m:
+                continue
+            c = g[int(np.argmin(np.linalg.norm(pos_a[g] - pos_a[g].mean(axis=0), axis=1)))]
+            out.append((int(anchors_a[c]), int(anchors_b[c]), T_local, len(g)))
+        if not out:
+            c = int(np.argmin(np.linalg.norm(pos_a - pos_a.mean(axis=0), axis=1)))
+            out.append((int(anchors_a[c]), int(anchors_b[c]), T_a_b, len(inliers)))
+        return [
+            (kf_a, kf_b, se3.inverse(self.kf_poses[robot_a][kf_a]) @ T @ self.kf_poses[robot_b][kf_b], n)
+            for kf_a, kf_b, T, n in out
+        ]
 
     def T_shared_kf(self, robot: str) -> np.ndarray | None:
         """(K, 4, 4) fused keyframe poses of ``robot`` in the shared frame, or None if not localized."""

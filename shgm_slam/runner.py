@@ -91,9 +91,12 @@ class RobotReport:
     nodes: int
     localized: bool
     path_length_m: float = float("nan")
-    ate_odometry_m: float = float("nan")  # SE(3)-aligned ATE of the robot's own odometry
-    ate_fused_m: float = float("nan")  # ATE in the shared frame, no alignment (needs shared ground truth)
-    ate_fused_aligned_m: float = float("nan")  # SE(3)-aligned ATE of the fused trajectory
+    # ATEs (RMSE, metres). "shared": in the shared frame without alignment (needs shared ground truth);
+    # odometry alone is placed at the robot's TRUE start pose there, the best it could do without matching.
+    ate_odometry_m: float = float("nan")
+    ate_fused_m: float = float("nan")
+    ate_odometry_aligned_m: float = float("nan")  # SE(3)-aligned (shape only)
+    ate_fused_aligned_m: float = float("nan")
 
 
 @dataclass
@@ -267,13 +270,19 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
         ok = np.isfinite(front.T_odom_cam.reshape(len(seq), -1)).all(axis=1)
         if gt is not None and ok.sum() >= 3:
             rep.path_length_m = float(np.linalg.norm(np.diff(gt[ok][:, :3, 3], axis=0), axis=1).sum())
-            rep.ate_odometry_m = ate(gt[ok], front.T_odom_cam[ok], align="se3")["rmse"]
+            odo = front.T_odom_cam[ok]
+            rep.ate_odometry_aligned_m = ate(gt[ok], odo, align="se3")["rmse"]
+            shared = gt_shared_frame and gt0 is not None
+            if shared:
+                gt_shared = se3.inverse(gt0[0]) @ gt
+                first = int(np.flatnonzero(ok)[0])
+                odo_shared = gt_shared[first] @ se3.inverse(odo[0]) @ odo
+                rep.ate_odometry_m = ate(gt_shared[ok], odo_shared, align="none")["rmse"]
             if fused is not None:
                 okf = ok & np.isfinite(fused.reshape(len(seq), -1)).all(axis=1)
                 rep.ate_fused_aligned_m = ate(gt[okf], fused[okf], align="se3")["rmse"]
-                if gt_shared_frame and gt0 is not None:
-                    gt_shared = se3.inverse(gt0[0]) @ gt[okf]
-                    rep.ate_fused_m = ate(gt_shared, fused[okf], align="none")["rmse"]
+                if shared:
+                    rep.ate_fused_m = ate(gt_shared[okf], fused[okf], align="none")["rmse"]
         reports.append(rep)
     return reports
 

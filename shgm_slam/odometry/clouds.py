@@ -65,3 +65,53 @@ def depth_to_cloud(
         return points_cam, None
     labels = np.asarray(label_ids).reshape(-1)[pixel_index[keep]].astype(np.uint8, copy=False)
     return points_cam, labels
+
+
+def sampling_spacing_m(points_cam: np.ndarray, intrinsics: Intrinsics, *, stride: int) -> np.ndarray:
+    """Distance from each pseudo-LiDAR point to its neighbours on the image sampling grid.
+
+    A depth image samples far and grazing surfaces (the road ahead, facades along the street) sparsely,
+    and the sample pattern moves with the camera: two frames of such a surface match best at zero
+    motion, which stalls point-to-point ICP. This spacing tells dense samples (safe for ICP) from sparse
+    ones. Points are put back on the ``stride`` pixel grid they were back-projected from (as made by
+    ``depth_to_cloud``); per point the spacing is max(horizontal, vertical), each the nearer of the two
+    neighbours along that image axis, so a point on an occlusion edge takes the spacing of its surface.
+
+    Args:
+        points_cam: (N, 3) camera-frame points (x right, y down, z forward), metres, z > 0.
+        intrinsics: the intrinsics of the depth map the points came from.
+        stride: the pixel stride used by ``depth_to_cloud`` (>= 1).
+
+    Returns:
+        (N,) float64 spacing in metres; inf for points with no neighbour along an image axis (isolated
+        samples) and for points with z <= 0 or outside the image.
+
+    Raises:
+        DataError: points are not (N, 3) or the stride is invalid.
+    """
+    pts = np.asarray(points_cam, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise DataError(f"points must be (N, 3), got shape {pts.shape}")
+    if stride < 1:
+        raise DataError(f"cloud stride must be >= 1, got {stride}")
+    spacing = np.full(pts.shape[0], np.inf)
+    h, w = -(-intrinsics.height // stride), -(-intrinsics.width // stride)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.rint((intrinsics.fx * pts[:, 0] / pts[:, 2] + intrinsics.cx) / stride)
+        v = np.rint((intrinsics.fy * pts[:, 1] / pts[:, 2] + intrinsics.cy) / stride)
+    on_grid = (pts[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    u, v = u[on_grid].astype(np.intp), v[on_grid].astype(np.intp)
+    grid = np.full((h + 2, w + 2, 3), np.nan)  # one NaN cell of padding on every side
+    grid[v + 1, u + 1] = pts[on_grid]
+    centre = grid[1:-1, 1:-1]
+
+    def dist2(dv: int, du: int) -> np.ndarray:  # (h, w) squared distance to the neighbour (dv, du)
+        diff = grid[1 + dv : h + 1 + dv, 1 + du : w + 1 + du] - centre
+        return np.einsum("ijk,ijk->ij", diff, diff)
+
+    horizontal = np.fmin(dist2(0, -1), dist2(0, 1))  # fmin: a NaN (missing) neighbour is ignored
+    vertical = np.fmin(dist2(-1, 0), dist2(1, 0))
+    spacing2 = np.fmax(horizontal, vertical)
+    spacing2 = np.where(np.isnan(horizontal) | np.isnan(vertical), np.inf, spacing2)
+    spacing[on_grid] = np.sqrt(spacing2[v, u])
+    return spacing

@@ -16,6 +16,7 @@ import numpy as np
 from shgm_slam.config import OdometryConfig, OdometryKind
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry.se3 import inverse
+from shgm_slam.odometry.clouds import sampling_spacing_m
 from shgm_slam.odometry.kiss import KissOdometry
 from shgm_slam.types import Frame
 
@@ -39,12 +40,25 @@ class OdometrySource(Protocol):
 
 
 class KissIcpSource:
-    """KISS-ICP on the pseudo-LiDAR clouds (frames must arrive in order)."""
+    """KISS-ICP on the pseudo-LiDAR clouds (frames must arrive in order).
 
-    def __init__(self, odometry: KissOdometry) -> None:
+    With ``max_spacing_m`` set, points whose image-grid neighbours are farther apart than that are
+    dropped before ICP (``clouds.sampling_spacing_m``): such sparse samples of far or grazing surfaces
+    move with the camera and pull point-to-point ICP toward zero motion (the start-up stall).
+    ``cloud_stride`` must be the stride the clouds were back-projected with.
+    """
+
+    def __init__(self, odometry: KissOdometry, *, cloud_stride: int = 1, max_spacing_m: float | None = None):
+        if max_spacing_m is not None and max_spacing_m <= 0:
+            raise ConfigError(f"odometry max_spacing_m must be > 0 or None, got {max_spacing_m}")
         self.odometry = odometry
+        self.cloud_stride = cloud_stride
+        self.max_spacing_m = max_spacing_m
 
     def update(self, frame: Frame, points_cam: np.ndarray) -> OdometryEstimate:
+        if self.max_spacing_m is not None and len(points_cam):
+            spacing_m = sampling_spacing_m(points_cam, frame.intrinsics, stride=self.cloud_stride)
+            points_cam = points_cam[spacing_m <= self.max_spacing_m]
         reg = self.odometry.register(points_cam)
         note = "" if reg.ok else f"frame {frame.index}: {reg.status.value} ({reg.num_points} points in range)"
         return OdometryEstimate(reg.T_odom_cam, reg.ok, note)
@@ -99,7 +113,9 @@ def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
             min_range_m=cfg.min_range_m,
             max_range_m=cfg.max_range_m,
             max_icp_iterations=cfg.max_icp_iterations,
-        )
+        ),
+        cloud_stride=cfg.cloud_stride,
+        max_spacing_m=cfg.max_spacing_m,
     )
 
 

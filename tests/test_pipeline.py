@@ -1,0 +1,184 @@
+"""End-to-end tests of the multi-robot system (front ends, map server, pose graph, results folder)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shgm_slam.config import OdometryKind, ShgmConfig
+from shgm_slam.data import open_sequence
+from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.geometry import se3
+from shgm_slam.io.trajectories import read_kitti_poses, read_tum, write_kitti_poses
+from shgm_slam.pipeline import KeyframeSelector, fuse_frames, interleave
+from shgm_slam.runner import open_robots, parse_robot_arg, run_slam
+
+
+def drifting_odometry(gt_poses: np.ndarray, yaw_deg_per_frame: float, scale: float) -> np.ndarray:
+    """Odometry that drifts: every ground-truth step is scaled and turned about the camera's y (vertical) axis."""
+    deltas = se3.inverse(gt_poses[:-1]) @ gt_poses[1:]
+    deltas[:, :3, 3] *= scale
+    deltas = se3.make_pose(se3.rot_y(np.radians(yaw_deg_per_frame)), np.zeros(3)) @ deltas
+    out = [np.eye(4)]
+    for d in deltas:
+        out.append(out[-1] @ d)
+    return np.stack(out)
+
+
+@pytest.fixture(scope="module")
+def drifting_run(tiny_scenario: Path, tmp_path_factory: pytest.TempPathFactory):
+    """car1 and car2 of the tiny world with drifting odometry read from per-robot pose files."""
+    tmp = tmp_path_factory.mktemp("drift")
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
+    for name, seq in robots.items():
+        write_kitti_poses(tmp / f"odo_{name}.txt", drifting_odometry(seq.gt_poses, 0.03, 1.01))
+    cfg = ShgmConfig()
+    cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, tmp / "odo_{robot}.txt"
+    cfg.backend.match_every_keyframes = 5
+    out = tmp / "out"
+    summary = run_slam(robots, cfg, out)
+    return summary, robots, out
+
+
+def test_two_robots_are_fused_and_beat_odometry(drifting_run) -> None:
+    summary, robots, _ = drifting_run
+    reports = {r.name: r for r in summary.robots}
+    assert summary.closures_accepted >= 1
+    assert reports["car2"].localized
+    car1, car2 = reports["car1"], reports["car2"]
+    # car2 is placed in car1's frame from graph matches alone (no alignment): within 2 m
+    assert car2.ate_fused_m < 2.0, car2
+    # the reference robot is not bent by the closures, and fusion does not hurt either robot's shape
+    assert car1.ate_fused_m <= car1.ate_odometry_m + 0.05, car1
+    for r in (car1, car2):
+        assert r.ate_fused_aligned_m <= 1.1 * r.ate_odometry_aligned_m, r
+
+
+def test_results_folder_has_every_output(drifting_run) -> None:
+    summary, robots, out = drifting_run
+    for name, seq in robots.items():
+        t, poses = read_tum(out / f"{name}_fused_tum.txt")
+        assert len(t) == len(seq)
+        assert len(read_kitti_poses(out / f"{name}_fused_kitti.txt")) == len(seq)
+        assert (out / f"{name}_odometry_tum.txt").is_file()
+        graph = json.loads((out / f"graph_{name}.json").read_text())
+        assert graph["format"] == "shgm-graph/1" and graph["nodes"]
+    matches = json.loads((out / "matches.json").read_text())
+    assert len(matches) == summary.matches_tried
+    assert {"robot_a", "robot_b", "T_a_b", "inliers", "accepted", "reason"} <= set(matches[0])
+    assert "VERTEX_SE3:QUAT" in (out / "pose_graph.g2o").read_text()
+    assert "extraction:" in (out / "config.yaml").read_text()
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["closures_accepted"] == summary.closures_accepted
+
+
+def test_fused_car2_is_in_car1_frame(drifting_run) -> None:
+    """The recovered inter-robot transform: car2's fused start pose matches its true pose in car1's frame."""
+    _, robots, out = drifting_run
+    _, fused = read_tum(out / "car2_fused_tum.txt")
+    gt1, gt2 = robots["car1"].gt_poses, robots["car2"].gt_poses
+    T_true = se3.inverse(gt1[0]) @ gt2
+    t_err, r_err = se3.pose_error(fused, T_true)
+    assert np.median(t_err) < 3.0
+    assert np.median(r_err) < 5.0
+
+
+def test_disjoint_robots_merge_nothing(tmp_path: Path) -> None:
+    from shgm_slam.sim.simulate import simulate
+
+    world = tmp_path / "disjoint"
+    simulate("disjoint", world, resolution=(320, 96), fps=4.0, compact=True, max_frames=40)
+    robots = open_robots([f"{p.name}={p}" for p in sorted(world.iterdir()) if (p / "times.txt").is_file()])
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    cfg.backend.match_every_keyframes = 5
+    summary = run_slam(robots, cfg, tmp_path / "out")
+    assert summary.matches_tried > 0
+    assert summary.closures_accepted == 0
+    assert [r.localized for r in summary.robots] == [True, False]
+    names = [r.name for r in summary.robots]
+    assert not (tmp_path / "out" / f"{names[1]}_fused_tum.txt").exists()
+
+
+def test_corrupt_frame_is_skipped_and_results_are_written(tiny_scenario: Path, tmp_path: Path) -> None:
+    seq_dir = tmp_path / "car1"
+    shutil.copytree(tiny_scenario / "car1", seq_dir)
+    (seq_dir / "depth" / "000010.png").write_bytes(b"not a png")
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    summary = run_slam(open_robots([f"car1={seq_dir}"]), cfg, tmp_path / "out")
+    assert summary.robots[0].frames_skipped == 1
+    assert "000010.png" in summary.skipped_reasons[0]
+    t, _ = read_tum(tmp_path / "out" / "car1_odometry_tum.txt")
+    assert len(t) == len(open_sequence(seq_dir)) - 1
+
+
+def test_interrupted_run_keeps_what_it_has(tiny_scenario: Path, tmp_path: Path) -> None:
+    def stop_at_30(done: int, total: int) -> None:
+        if done == 30:
+            raise KeyboardInterrupt
+
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
+    summary = run_slam(robots, cfg, tmp_path / "out", progress=stop_at_30)
+    assert summary.interrupted
+    t, _ = read_tum(tmp_path / "out" / "car1_odometry_tum.txt")
+    assert 10 <= len(t) < len(robots["car1"])
+    assert (tmp_path / "out" / "metrics.json").is_file()
+
+
+def test_bad_robot_arguments_give_clear_errors(tiny_scenario: Path, tmp_path: Path) -> None:
+    assert parse_robot_arg("car1=/data/seq:0-10") == ("car1", "/data/seq:0-10")
+    with pytest.raises(ConfigError, match="NAME=PATH"):
+        parse_robot_arg("/data/seq")
+    with pytest.raises(ConfigError, match="twice"):
+        open_robots([f"a={tiny_scenario / 'car1'}", f"a={tiny_scenario / 'car2'}"])
+    with pytest.raises(ConfigError, match="no robots"):
+        open_robots([])
+    with pytest.raises(DataError):
+        open_robots([f"a={tiny_scenario / 'car1'}:5-5"])
+    with pytest.raises(DataError):
+        open_robots([f"a={tmp_path / 'missing'}"])
+
+
+def test_pose_file_with_wrong_count_is_a_clear_error(tiny_scenario: Path, tmp_path: Path) -> None:
+    seq = open_sequence(tiny_scenario / "car1")
+    write_kitti_poses(tmp_path / "short.txt", seq.gt_poses[:5])
+    cfg = ShgmConfig()
+    cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, tmp_path / "short.txt"
+    with pytest.raises(DataError, match="short.txt"):
+        run_slam({"car1": seq}, cfg, tmp_path / "out")
+
+
+def test_keyframe_selector_distance_and_angle() -> None:
+    sel = KeyframeSelector(distance_m=2.0, angle_deg=15.0)
+    assert sel.is_keyframe(np.eye(4))
+    assert not sel.is_keyframe(se3.make_pose(np.eye(3), [0, 0, 1.5]))
+    assert sel.is_keyframe(se3.make_pose(np.eye(3), [0, 0, 2.5]))
+    assert sel.is_keyframe(se3.make_pose(se3.rot_y(np.radians(20)), [0, 0, 2.5]))
+
+
+def test_fuse_frames_rides_on_keyframe_corrections() -> None:
+    T_odom = np.stack([se3.make_pose(np.eye(3), [0, 0, i]) for i in range(6)])
+    frame_kf = np.array([0, 0, 0, 1, 1, 1])
+    T_odom_kf = T_odom[[0, 3]]
+    correction = se3.make_pose(se3.rot_y(0.3), [5.0, 0, 0])
+    fused = fuse_frames(T_odom, frame_kf, T_odom_kf, correction @ T_odom_kf)
+    np.testing.assert_allclose(fused, correction @ T_odom, atol=1e-12)
+
+
+def test_interleave_orders_robots_by_time() -> None:
+    class Seq:
+        def __init__(self, t):
+            self.timestamps_s = np.asarray(t, dtype=float)
+
+        def __len__(self):
+            return len(self.timestamps_s)
+
+    order = list(interleave({"a": Seq([100.0, 100.2, 100.4]), "b": Seq([0.0, 0.1, 0.3])}))
+    assert order == [("a", 0), ("b", 0), ("b", 1), ("a", 1), ("b", 2), ("a", 2)]
