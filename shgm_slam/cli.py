@@ -457,7 +457,9 @@ def bench_localization(
     """The paper's localization experiments on simulated worlds: Table I/II, Fig. 5 PR, Fig. 8 ablations,
     partial overlap and disjoint scenes, all descriptors and both matching modes side by side."""
     from shgm_slam.bench.localization import BenchOptions, run_localization_benchmark
-    from shgm_slam.bench.localization_report import targets_markdown
+    from rich.table import Table
+
+    from shgm_slam.bench.localization_report import targets_rows
     from shgm_slam.config import load_config
 
     overrides: dict[str, Any] = {"world_seed": seed, "cache_dir": cache}
@@ -467,6 +469,33 @@ def bench_localization(
     with console.status("starting") as status:
         results = run_localization_benchmark(out, options, load_config(config),
                                              progress=lambda msg: status.update(msg))
-    console.print("\n".join(targets_markdown(results)))
+    table = Table(title="localization targets")
+    for col in ("target", "measured", "goal", ""):
+        table.add_column(col)
+    for row in targets_rows(results):
+        table.add_row(*row)
+    console.print(table)
     console.print(f"{results['wall_time_s']:.0f} s; wrote [bold]{out / 'localization.md'}[/], "
                   f"{out / 'localization.json'} and {out / 'pr_curve.png'}")
+
+
+@bench_app.command("system")
+@handle_errors
+def bench_system(
+    out: Annotated[Path, typer.Option("--out", "-o", help="results folder")] = Path("results/bench_system"),
+    cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
+    seed: Annotated[int, typer.Option(help="world seed")] = 0,
+    memory: Annotated[bool, typer.Option(help="also the 1000- vs 4000-frame peak-RSS runs")] = True,
+) -> None:
+    """The whole system on airsim-like (fused ATE, closures, ms/keyframe), disjoint (no merges), and memory."""
+    from shgm_slam.bench.system import run_system_benchmark, system_markdown
+
+    with console.status("starting") as status:
+        results = run_system_benchmark(out, cache=cache, seed=seed, memory=memory,
+                                       progress=lambda msg: status.update(msg))
+    console.print(system_markdown(results))
+    console.print(f"wrote {out / 'system.json'} and {out / 'system.md'}")
+
+
+if __name__ == "__main__":
+    app()

@@ -182,3 +182,26 @@ def test_interleave_orders_robots_by_time() -> None:
 
     order = list(interleave({"a": Seq([100.0, 100.2, 100.4]), "b": Seq([0.0, 0.1, 0.3])}))
     assert order == [("a", 0), ("b", 0), ("b", 1), ("a", 1), ("b", 2), ("a", 2)]
+
+
+def test_saved_recording_holds_the_run(tiny_scenario: Path, tmp_path: Path) -> None:
+    from rerun.chunk import RrdReader
+
+    from shgm_slam.viz.rerun_logger import RerunMode, make_viz
+
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}:0-20", f"car2={tiny_scenario / 'car2'}:0-20"])
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    rrd = tmp_path / "run.rrd"
+    viz = make_viz(RerunMode.SAVE, robots=list(robots), save_path=rrd)
+    run_slam(robots, cfg, tmp_path / "out", viz=viz)
+    chunks = RrdReader(str(rrd)).stream().to_chunks()
+    paths = {c.entity_path for c in chunks}
+    for robot in robots:
+        for suffix in ("cam", "cam/rgb", "cam/depth", "cam/seg"):
+            assert any(p.startswith(f"/world/{robot}") and p.endswith(suffix) for p in paths), (robot, suffix)
+        assert any(p.startswith(f"/timings/{robot}") for p in paths)
+        assert any("graph" in p and robot in p for p in paths)
+        assert any("traj" in p and robot in p for p in paths)
+    columns = {f for c in chunks if c.entity_path.endswith("cam/rgb") for f in c.to_record_batch().schema.names}
+    assert "frame" in columns

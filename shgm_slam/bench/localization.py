@@ -102,7 +102,7 @@ class BenchMode(str, Enum):
 
 MODE_OVERRIDES: dict[BenchMode, dict] = {
     BenchMode.PAPER: {"outlier_mode": OutlierMode.RANSAC, "candidate_mode": CandidateMode.BEST,
-                      "min_support_ratio": 4.0, "min_inliers": 15, "max_rmse_m": 5.0},
+                      "min_support_ratio": 2.5, "min_inliers": 18, "max_rmse_m": 5.0},
     BenchMode.ROBUST: {"outlier_mode": OutlierMode.CLIQUE, "candidate_mode": CandidateMode.TOP_K},
 }
 """MatchingConfig fields each mode sets; everything else is the configured default (the robust mode).
@@ -280,6 +280,7 @@ def _summary(locs: list[Localization]) -> dict:
         "inliers_mean": round(float(np.mean([x.num_inliers for x in locs])), 2) if locs else 0.0,
         "total_ms_mean": round(float(total.mean()), 3) if locs else None,
         "total_ms_median": round(float(np.median(total)), 3) if locs else None,
+        "total_ms_min": round(float(total.min()), 3) if locs else None,
         "stage_ms_mean": stage,
     }
 
@@ -631,7 +632,8 @@ def _targets(results: dict) -> dict:
         rw = row("car-car", "random-walk", mode)
         if hc and rw:
             out[f"car_car_histogram_end_to_end_ms_{mode}"] = {
-                "value": hc["total_ms_mean"], "median": hc["total_ms_median"], "nodes": [hc["nodes_a"], hc["nodes_b"]],
+                "value": hc["total_ms_mean"], "median": hc["total_ms_median"], "min": hc["total_ms_min"],
+                "nodes": [hc["nodes_a"], hc["nodes_b"]],
                 "target": "<= 5 ms", "met": hc["total_ms_mean"] <= 5.0}
             speed = {"vs_vectorised_random_walk": round(rw["total_ms_mean"] / max(hc["total_ms_mean"], 1e-9), 1)}
             if "xview_per_pair" in rw:

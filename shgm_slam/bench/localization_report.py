@@ -124,12 +124,26 @@ def disjoint_markdown(results: dict) -> list[str]:
                      "max inliers"], rows)]
 
 
-def targets_markdown(results: dict) -> list[str]:
+def _value(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.3g}"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {_value(x)}" for k, x in v.items()) + "}"
+    return str(v)
+
+
+def targets_rows(results: dict) -> list[list[str]]:
+    """(target, measured, goal, verdict) rows of the issue's targets."""
     rows = []
     for name, t in results["targets"].items():
         value = {k: v for k, v in t.items() if k not in ("met", "target")}
-        rows.append([name, ", ".join(f"{k} {v}" for k, v in value.items()) or "–", t.get("target", ""),
-                     "met" if t["met"] else "**NOT met**"])
+        rows.append([name, ", ".join(f"{k} {_value(v)}" for k, v in value.items()) or "–", t.get("target", ""),
+                     "met" if t["met"] else "NOT met"])
+    return rows
+
+
+def targets_markdown(results: dict) -> list[str]:
+    rows = [[*r[:3], "met" if r[3] == "met" else "**NOT met**"] for r in targets_rows(results)]
     return ["### Targets", "", *_table(["target", "measured", "goal", ""], rows)]
 
 

@@ -1,0 +1,140 @@
+"""System benchmark: the whole multi-robot pipeline on simulated worlds (``shgm-slam bench system``).
+
+Measures the issue's targets in one run:
+
+* airsim-like (car1, car2, UAV; KISS-ICP odometry): which robots are localized, fused ATE in the shared
+  frame vs odometry alone, closures accepted and rejected, front end + back end ms per keyframe;
+* disjoint: the number of accepted inter-robot closures (must be zero);
+* memory: peak RSS of a 1000-frame and a 4000-frame run of one long drive, each in a fresh process.
+
+Worlds are simulated once into ``cache`` and reused. Nothing here prints; the CLI renders the dict.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from shgm_slam.config import ShgmConfig
+from shgm_slam.demo import demo_config, prepare_world
+from shgm_slam.runner import RunSummary, open_robots, run_slam
+from shgm_slam.sim.simulate import simulate
+
+Progress = Callable[[str], None]
+
+
+def _world(cache: Path, name: str, seed: int, progress: Progress, **options) -> Path:
+    out = cache / f"{name}-seed{seed}" if not options else cache / f"{name}-seed{seed}-{_tag(options)}"
+    if not (out / "scenario.json").is_file():
+        progress(f"simulating {name} into {out}")
+        simulate(name, out, seed=seed, overwrite=True, **options)
+    return out
+
+
+def _tag(options: dict) -> str:
+    return "-".join(f"{k}{v}".replace(" ", "").replace(",", "x").strip("()") for k, v in sorted(options.items()))
+
+
+def _robots_of(world: Path) -> list[str]:
+    return [r["name"] for r in json.loads((world / "scenario.json").read_text())["robots"]]
+
+
+def _summary_dict(summary: RunSummary) -> dict:
+    d = summary.to_json_dict()
+    d.pop("skipped", None)
+    return d
+
+
+def _peak_rss_mb(args: list[str]) -> tuple[float, float]:
+    """Run ``shgm-slam`` with ``args`` in a fresh process; returns (its peak RSS in MB, wall seconds)."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "shgm_slam.cli", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    if os.waitstatus_to_exitcode(status) != 0:
+        err = proc.stderr.read().decode(errors="replace")[-500:] if proc.stderr else ""
+        raise RuntimeError(f"shgm-slam {' '.join(args)} failed: {err}")
+    return usage.ru_maxrss / 1024.0, wall  # ru_maxrss is in KiB on Linux
+
+
+def run_system_benchmark(
+    out: Path,
+    *,
+    cache: Path = Path("cache"),
+    seed: int = 0,
+    memory: bool = True,
+    long_frames: int = 4000,
+    progress: Progress | None = None,
+) -> dict:
+    """Run the system benchmark; writes ``out/system.json`` and ``out/system.md`` and returns the dict."""
+    progress = progress or (lambda _msg: None)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    results: dict = {"seed": seed}
+
+    # 1. airsim-like, KISS-ICP odometry (the demo's world and config)
+    world, kinds = prepare_world(cache, seed, lambda folder: _world(cache, "airsim-like", seed, progress))
+    progress("running the system on airsim-like (KISS-ICP)")
+    robots = open_robots([f"{r}={world / r}" for r in kinds])
+    summary = run_slam(robots, demo_config(kinds), out / "airsim-like")
+    results["airsim_like"] = _summary_dict(summary)
+
+    # 2. disjoint: nothing may be merged
+    dis = _world(cache / "bench", "disjoint", seed, progress)
+    progress("running the system on disjoint")
+    cfg = ShgmConfig()
+    summary = run_slam(open_robots([f"{r}={dis / r}" for r in _robots_of(dis)]), cfg, out / "disjoint")
+    results["disjoint"] = _summary_dict(summary)
+
+    # 3. memory: one long drive, 1000 vs long_frames frames, each in a fresh process
+    if memory:
+        fps = 10.0 * long_frames / 940.0  # the synthia-like drive is ~950 m at ~10 m/s
+        long_world = _world(cache / "bench", "synthia-like", seed, progress, fps=round(fps, 1), resolution=(320, 96))
+        seq = long_world / "forward"
+        n_total = sum(1 for _ in open(seq / "times.txt"))
+        mem = {}
+        for n in (1000, min(long_frames, n_total)):
+            progress(f"memory run: {n} frames")
+            rss, wall = _peak_rss_mb(
+                ["run", "--robot", f"car={seq}:0-{n}", "--rerun", "off", "--out", str(out / f"memory_{n}")]
+            )
+            mem[str(n)] = {"peak_rss_mb": round(rss, 1), "wall_s": round(wall, 1)}
+        results["memory"] = mem
+
+    (out / "system.json").write_text(json.dumps(results, indent=1) + "\n")
+    (out / "system.md").write_text(system_markdown(results))
+    return results
+
+
+def system_markdown(results: dict) -> str:
+    """The benchmark's tables as markdown (what the README shows)."""
+    lines = ["| scenario | robot | frames | keyframes | localized | path m | ATE odometry m | ATE fused m |"
+             " aligned ATE odometry / fused m |", "|---|---|---|---|---|---|---|---|---|"]
+    for key in ("airsim_like", "disjoint"):
+        for r in results[key]["robots"]:
+            lines.append(
+                f"| {key.replace('_', '-')} | {r['name']} | {r['frames']} | {r['keyframes']} | "
+                f"{'yes' if r['localized'] else 'no'} | {r['path_length_m']:.0f} | {r['ate_odometry_m']:.2f} | "
+                f"{r['ate_fused_m']:.2f} | {r['ate_odometry_aligned_m']:.2f} / {r['ate_fused_aligned_m']:.2f} |"
+            )
+    lines += ["", "| scenario | matches tried | closures accepted | closures rejected | front+back end ms/keyframe |"
+              " wall s |", "|---|---|---|---|---|---|"]
+    for key in ("airsim_like", "disjoint"):
+        s = results[key]
+        lines.append(
+            f"| {key.replace('_', '-')} | {s['matches_tried']} | {s['closures_accepted']} | "
+            f"{s['closures_rejected']} | {s['per_keyframe_ms']:.1f} | {s['wall_s']:.0f} |"
+        )
+    if "memory" in results:
+        lines += ["", "| frames | peak RSS MB | wall s |", "|---|---|---|"]
+        for n, m in results["memory"].items():
+            lines.append(f"| {n} | {m['peak_rss_mb']:.0f} | {m['wall_s']:.0f} |")
+    return "\n".join(lines) + "\n"
+
