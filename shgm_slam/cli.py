@@ -456,9 +456,9 @@ def bench_localization(
 ) -> None:
     """The paper's localization experiments on simulated worlds: Table I/II, Fig. 5 PR, Fig. 8 ablations,
     partial overlap and disjoint scenes, all descriptors and both matching modes side by side."""
-    from shgm_slam.bench.localization import BenchOptions, run_localization_benchmark
     from rich.table import Table
 
+    from shgm_slam.bench.localization import BenchOptions, run_localization_benchmark
     from shgm_slam.bench.localization_report import targets_rows
     from shgm_slam.config import load_config
 

@@ -126,6 +126,9 @@ class OdometryConfig(_Stage):
         description="drop points whose image-grid neighbours are farther apart (sparse far/grazing samples "
         "move with the camera and stall ICP at zero motion); None keeps all",
     )
+    shuffle_points: bool = Field(
+        False, description="seeded random point order before KISS-ICP's voxel subsampling (helps aerial start-up)"
+    )
     max_icp_iterations: int = Field(100, ge=1)
 
     @model_validator(mode="after")

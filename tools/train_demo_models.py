@@ -73,6 +73,9 @@ MIN_DEPTH_M, MAX_DEPTH_M = 0.5, 80.0
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 WIDTHS = (24, 32, 64, 128)
+THING_CLASSES = (Label.WALL, Label.FENCE, Label.POLE, Label.TRAFFIC_LIGHT, Label.TRAFFIC_SIGN, Label.VEGETATION,
+                 Label.CAR, Label.TRUCK, Label.BUS)
+THING_DEPTH_WEIGHT = 3.0  # depth loss weight of these classes (road, sidewalk, building, terrain: 1)
 LICENSE = "MIT (same as shgm_slam); trained in this repository on synthetic data rendered by shgm_slam.sim"
 MODEL_TABLE = "\n".join((
     "| file | card | task | input | output |",
@@ -147,12 +150,18 @@ def to_model_grid(
     return image, depth, labels
 
 
+def _split_cache(split: Split, cache_dir: Path) -> Path:
+    return cache_dir / f"{split.key}-{INPUT_WH[0]}x{INPUT_WH[1]}.npz"
+
+
 def load_split(split: Split, cache_dir: Path) -> dict[str, np.ndarray]:
-    """Arrays of one training split at the model input size (cached as .npz; raw PNGs removed after)."""
-    path = cache_dir / f"{split.key}-{INPUT_WH[0]}x{INPUT_WH[1]}.npz"
+    """Arrays of one training split at the model input size (cached as .npz; raw PNGs removed after).
+    ``prepare_s`` (scalar) is the wall time it took to render and convert the split when it was cached."""
+    path = _split_cache(split, cache_dir)
     if path.is_file():
         with np.load(path) as data:
             return dict(data)
+    t0 = time.perf_counter()
     raw = render_split(split, cache_dir)
     images, depths, labels = [], [], []
     for folder in robot_folders(raw):
@@ -162,6 +171,7 @@ def load_split(split: Split, cache_dir: Path) -> dict[str, np.ndarray]:
             depths.append(d)
             labels.append(lab)
     data = {"images": np.stack(images), "depth_m": np.stack(depths), "labels": np.stack(labels)}
+    data["prepare_s"] = np.array(time.perf_counter() - t0)
     np.savez(path, **data)
     shutil.rmtree(raw)
     return data
@@ -171,7 +181,21 @@ def load_training_set(cache_dir: Path) -> dict[str, np.ndarray]:
     """All training splits concatenated: images (N, 96, 320, 3) uint8, depth_m (N, 96, 320) float16,
     labels (N, 96, 320) uint8."""
     parts = [load_split(s, cache_dir) for s in TRAIN_SPLITS]
-    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return {k: np.concatenate([p[k] for p in parts]) for k in ("images", "depth_m", "labels")}
+
+
+def uncached_prepare_minutes(cache_dir: Path) -> float | None:
+    """Minutes it took to render + convert all training splits when the cache was built (None if unknown)."""
+    total = 0.0
+    for split in TRAIN_SPLITS:
+        path = _split_cache(split, cache_dir)
+        if not path.is_file():
+            return None
+        with np.load(path) as data:
+            if "prepare_s" not in data.files:
+                return None
+            total += float(data["prepare_s"])
+    return round(total / 60.0, 2)
 
 
 # --- the network --------------------------------------------------------------------------------------
@@ -180,11 +204,11 @@ def load_training_set(cache_dir: Path) -> dict[str, np.ndarray]:
 def build_network(widths: tuple[int, int, int, int] = WIDTHS) -> Any:
     """The joint depth + segmentation encoder-decoder (torch module; imported lazily).
 
-    forward(x (N, 3, H, W) normalized RGB) -> (log_depth (N, 1, H/2, W/2) log metres, logits
-    (N, 19, H/2, W/2)); H, W multiples of 16. The heads work at half the input resolution (the exported
-    models upsample them 2x, bilinear); most of the compute sits at 1/4..1/16 resolution, which is what
-    makes CPU training in minutes possible. A constant y-coordinate channel joins the input: metric depth
-    from one view depends on where a pixel sits relative to the horizon.
+    forward(x (N, 3, H, W) normalized RGB) -> (log_depth (N, 1, H, W) log metres, logits (N, 19, H, W));
+    H, W multiples of 16. Most of the compute sits at 1/4..1/16 resolution (what makes CPU training in
+    minutes possible); a thin full-resolution path (8 channels) sharpens the edges of thin objects. A
+    constant y-coordinate channel joins the input: metric depth from one view depends on where a pixel
+    sits relative to the horizon.
     """
     import torch
     from torch import nn
@@ -213,14 +237,17 @@ def build_network(widths: tuple[int, int, int, int] = WIDTHS) -> Any:
             self.dec3 = sep(d + c, c)
             self.dec2 = sep(c + b, 48)
             self.dec1 = sep(48 + a, a)
-            self.depth_head = nn.Conv2d(a, 1, 1)
-            self.seg_head = nn.Conv2d(a, NUM_CLASSES, 1)
+            self.fine = conv(4, 8)  # full resolution: edges of thin objects
+            self.dec0 = sep(a + 8, 16)
+            self.depth_head = nn.Conv2d(16, 1, 1)
+            self.seg_head = nn.Conv2d(16, NUM_CLASSES, 1)
             nn.init.constant_(self.depth_head.bias, float(np.log(15.0)))
 
         def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
             n, _, h, w = x.shape
             y = torch.linspace(-1.0, 1.0, h, dtype=x.dtype).view(1, 1, h, 1).expand(n, 1, h, w)
-            x1 = self.enc1(torch.cat([x, y], 1))
+            xy = torch.cat([x, y], 1)
+            x1 = self.enc1(xy)
             x2 = self.enc2(x1)
             x3 = self.enc3(x2)
             x4 = self.enc4(x3)
@@ -231,21 +258,17 @@ def build_network(widths: tuple[int, int, int, int] = WIDTHS) -> Any:
             u = self.dec3(torch.cat([up(x4, x3), x3], 1))
             u = self.dec2(torch.cat([up(u, x2), x2], 1))
             u = self.dec1(torch.cat([up(u, x1), x1], 1))
+            u = self.dec0(torch.cat([up(u, xy), self.fine(xy)], 1))
             return self.depth_head(u), self.seg_head(u)
 
     return DemoNet()
 
 
 def export_heads(net: Any) -> tuple[Any, Any]:
-    """Two single-output torch modules around the trained ``net`` for export, both at the input
-    resolution (heads upsampled 2x, bilinear): depth (N, 1, H, W) metres clamped to [0.5, 80], 0 where
-    the class head says sky; labels (N, H, W) int64 train ids."""
+    """Two single-output torch modules around the trained ``net`` for export: depth (N, 1, H, W) metres
+    clamped to [0.5, 80], 0 where the class head says sky; labels (N, H, W) int64 train ids."""
     import torch
     from torch import nn
-    from torch.nn import functional as F  # noqa: N812 (torch's own convention)
-
-    def up2(t: torch.Tensor) -> torch.Tensor:
-        return F.interpolate(t, scale_factor=2.0, mode="bilinear", align_corners=False)
 
     class DepthHead(nn.Module):
         def __init__(self) -> None:
@@ -254,7 +277,6 @@ def export_heads(net: Any) -> tuple[Any, Any]:
 
         def forward(self, x: torch.Tensor) -> torch.Tensor:
             log_depth, logits = self.net(x)
-            log_depth, logits = up2(log_depth), up2(logits)
             depth = torch.exp(log_depth.clamp(float(np.log(MIN_DEPTH_M)), float(np.log(MAX_DEPTH_M))))
             sky = logits[:, Label.SKY : Label.SKY + 1] >= logits.amax(1, keepdim=True)
             return depth * (~sky).to(depth.dtype)
@@ -265,7 +287,7 @@ def export_heads(net: Any) -> tuple[Any, Any]:
             self.net = net
 
         def forward(self, x: torch.Tensor) -> torch.Tensor:
-            return up2(self.net(x)[1]).argmax(1)
+            return self.net(x)[1].argmax(1)
 
     return DepthHead().eval(), LabelHead().eval()
 
@@ -281,6 +303,31 @@ def class_weights(labels: np.ndarray) -> np.ndarray:
     w = np.zeros(NUM_CLASSES)
     w[present] = np.clip(np.sqrt(np.median(freq[present]) / freq[present]), 0.25, 8.0)
     return w.astype(np.float32)
+
+
+def log_depth_loss(log_depth: Any, depth_m: Any, labels: Any, class_weight: Any) -> Any:
+    """Depth loss of (N, H, W) predicted log depth against (N, H, W) true depth in metres (0 = beyond the
+    render range, read as 80 m) over non-sky pixels: class-weighted L1 on log depth (``class_weight``
+    (256,) per label: objects that anchor odometry and graph nodes count more) + 0.5 x scale-invariant
+    log error + gradient matching at 1/1, 1/2 and 1/4 scale (sharp depth edges at object borders)."""
+    import torch
+
+    valid = (labels != Label.SKY) & (labels != IGNORE_ID)
+    target = torch.where(depth_m > 0, depth_m, torch.full_like(depth_m, MAX_DEPTH_M))
+    r = log_depth - target.clamp(MIN_DEPTH_M, MAX_DEPTH_M).log()
+    w = class_weight[labels.long()] * valid
+    l1 = (w * r.abs()).sum() / w.sum().clamp(min=1.0)
+    rv = r[valid]
+    si = torch.sqrt((rv**2).mean() - 0.85 * rv.mean() ** 2 + 1e-8)
+    grad = r.new_zeros(())
+    m = valid.float()
+    for k in (1, 2, 4):
+        rk, mk = r[:, ::k, ::k], m[:, ::k, ::k]
+        mx, my = mk[:, :, 1:] * mk[:, :, :-1], mk[:, 1:] * mk[:, :-1]
+        gx = (rk[:, :, 1:] - rk[:, :, :-1]).abs() * mx
+        gy = (rk[:, 1:] - rk[:, :-1]).abs() * my
+        grad = grad + (gx.sum() + gy.sum()) / (mx.sum() + my.sum()).clamp(min=1.0)
+    return l1 + 0.5 * si + 0.5 * grad
 
 
 def learning_rate(peak: float, progress: float, warmup: float = 0.04) -> float:
@@ -310,6 +357,8 @@ def train(
     depth = torch.from_numpy(data["depth_m"].astype(np.float32))
     labels = torch.from_numpy(data["labels"].astype(np.int64))
     weights = torch.from_numpy(class_weights(data["labels"]))
+    thing_weight = torch.ones(256)
+    thing_weight[list(THING_CLASSES)] = THING_DEPTH_WEIGHT
     mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
     std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
     opt = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-4)
@@ -330,7 +379,6 @@ def train(
         lab = labels[idx, :, x0 : x0 + CROP_W]
         if rng.random() < 0.5:
             x, d, lab = x.flip(3), d.flip(2), lab.flip(2)
-        d, lab = d[:, ::2, ::2], lab[:, ::2, ::2]  # the heads predict at half resolution
         # photometric jitter per image: contrast, gain, per-channel tint, pixel noise
         c = torch.from_numpy(rng.uniform(0.8, 1.2, (batch, 1, 1, 1)).astype(np.float32))
         g = torch.from_numpy(rng.uniform(0.7, 1.3, (batch, 1, 1, 1)).astype(np.float32))
@@ -340,10 +388,7 @@ def train(
         x = ((x.clamp(0.0, 1.0) - mean) / std).contiguous(memory_format=torch.channels_last)
 
         log_depth, logits = net(x)
-        ground = (lab != Label.SKY) & (lab != IGNORE_ID)  # far surfaces (beyond the render range) -> 80 m
-        target = torch.where(d > 0, d, torch.full_like(d, MAX_DEPTH_M)).clamp(MIN_DEPTH_M, MAX_DEPTH_M).log()
-        diff = (log_depth[:, 0] - target)[ground]
-        depth_loss = diff.abs().mean() + 0.5 * torch.sqrt((diff**2).mean() - 0.85 * diff.mean() ** 2 + 1e-8)
+        depth_loss = log_depth_loss(log_depth[:, 0], d, lab, thing_weight)
         seg_loss = F.cross_entropy(logits, lab, weight=weights, ignore_index=IGNORE_ID)
         opt.zero_grad(set_to_none=True)
         (depth_loss + seg_loss).backward()
@@ -457,7 +502,15 @@ def evaluate(models_dir: Path, cache_dir: Path, threads: int = 2) -> dict[str, A
         result["inference_ms_640x192"][name] = {k: round(v, 2) for k, v in
                                                 measure_overhead(model, image, repeats=30).items()}
     result["threads"] = threads
+    result["onnx_params"] = onnx_parameter_count(models_dir / "demo_depth.onnx")
     return result
+
+
+def onnx_parameter_count(path: Path) -> int:
+    """Number of weights stored in an ONNX file (initializers; batch norms are folded into convolutions)."""
+    import onnx
+
+    return int(sum(int(np.prod(t.dims)) for t in onnx.load(str(path)).graph.initializer))
 
 
 def depth_metrics(pairs: np.ndarray) -> dict[str, float]:
@@ -510,9 +563,10 @@ def readme_text(m: dict[str, Any]) -> str:
     sizes = m.get("export", {})
     train_line = (
         f"Training: {tr['frames']} frames, {tr['steps']} steps of batch {tr['batch']} "
-        f"({CROP_W}x{INPUT_WH[1]} crops), {tr['train_minutes']:.1f} min training + "
-        f"{tr['render_minutes']:.1f} min rendering on "
-        f"{tr['threads']} CPU threads ({tr['machine']}); whole script {tr['total_minutes']:.1f} min."
+        f"({CROP_W}x{INPUT_WH[1]} crops): {tr['train_minutes']:.1f} min of training on {tr['threads']} CPU "
+        f"threads ({tr['machine']}, a machine shared with other jobs); the whole script took "
+        f"{tr['total_minutes']:.1f} min with the rendered data already cached. Rendering + caching the "
+        f"training cities from scratch took {tr.get('render_minutes_uncached') or float('nan'):.1f} min."
         if tr else "Training facts: see demo_models_metrics.json."
     )
     size_line = ", ".join(f"`{k}.onnx` {v['size_mb']:.2f} MB" for k, v in sizes.items()) or "see the files"
@@ -532,13 +586,16 @@ shgm-slam run --robot car1=DIR/car1 --robot car2=DIR/car2 \\
 ```
 
 ## What they are and how they were trained
-One encoder-decoder (U-Net style: 3x3 stem, depthwise-separable blocks with 16-32-64-128 channels,
-dilated convolutions at 1/8 and 1/16, bilinear upsampling with skip connections, a constant
-y-coordinate input channel) with two heads, trained jointly from scratch on CPU by
-`tools/train_demo_models.py` (torch {tr.get('torch', '2.13')}, fixed seed) and exported twice:
-the depth export keeps the log-depth head (and zeroes pixels the class head calls sky), the
-segmentation export keeps the class head. Losses: L1 + scale-invariant on log depth (sky masked,
-surfaces beyond the render range clamped to 80 m) and class-weighted cross entropy.
+One encoder-decoder (U-Net style: 3x3 stem, depthwise-separable blocks with 24-32-64-128 channels,
+dilated convolutions at 1/8 and 1/16, bilinear upsampling with skip connections, a thin 8-channel
+full-resolution path for object edges, a constant y-coordinate input channel; {m['onnx_params'] / 1e3:.0f} k
+parameters) with two heads, trained jointly from scratch on CPU by `tools/train_demo_models.py`
+(torch {tr.get('torch', '2.13')}, fixed seed, AdamW, warm-up + cosine schedule over a wall-time budget)
+and exported twice: the depth export keeps the log-depth head (and zeroes pixels the class head
+calls sky), the segmentation export keeps the class head. Losses: on log depth, L1 (3x weight on
+walls, fences, poles, lights, signs, vegetation and vehicles: the objects that anchor odometry and
+graph nodes) + 0.5 scale-invariant + 0.5 gradient matching at three scales (sky masked, surfaces
+beyond the render range clamped to 80 m); class-weighted cross entropy for the labels.
 Augmentation: horizontal flips, x crops, brightness/contrast/tint jitter and pixel noise.
 
 Training data (rendered by `shgm_slam.sim.simulate` at 640x192, 82 deg hfov, 1 frame per second of
@@ -591,13 +648,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-dir", type=Path, default=Path("/tmp/shgm_demo_models"),
                    help="rendered data cache (outside the repository)")
     p.add_argument("--out-dir", type=Path, default=REPO / "models", help="where the .onnx + cards go")
-    p.add_argument("--train-minutes", type=float, default=20.0, help="training wall-time budget")
+    p.add_argument("--train-minutes", type=float, default=22.0, help="training wall-time budget")
     p.add_argument("--max-steps", type=int, default=6000, help="training steps at most")
     p.add_argument("--batch", type=int, default=12, help="crops per step")
     p.add_argument("--lr", type=float, default=3e-3, help="peak learning rate (one-cycle)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2, help="torch and onnxruntime threads")
     p.add_argument("--eval-only", action="store_true", help="only evaluate the models in --out-dir")
+    p.add_argument("--render-only", action="store_true", help="only render + cache the training/held-out data")
     return p
 
 
@@ -616,6 +674,13 @@ def main(argv: list[str] | None = None) -> int:
         if previous.is_file():
             kept = json.loads(previous.read_text())
             metrics = {k: v for k, v in kept.items() if k in ("training", "export")}
+    elif args.render_only:
+        load_training_set(args.cache_dir)
+        for split in HELDOUT_SPLITS:
+            render_split(split, args.cache_dir)
+        print(f"training data: {uncached_prepare_minutes(args.cache_dir)} min to render + convert; "
+              f"this run {(time.perf_counter() - t_start) / 60:.1f} min", flush=True)
+        return 0
     else:
         print("rendering training cities ...", flush=True)
         data = load_training_set(args.cache_dir)
@@ -636,8 +701,12 @@ def main(argv: list[str] | None = None) -> int:
         }
     print("evaluating on held-out cities through the adapters ...", flush=True)
     metrics.update(evaluate(args.out_dir, args.cache_dir, args.threads))
-    if "training" in metrics and not args.eval_only:
-        metrics["training"]["total_minutes"] = round((time.perf_counter() - t_start) / 60, 2)
+    if "training" in metrics:
+        if not args.eval_only:
+            metrics["training"]["total_minutes"] = round((time.perf_counter() - t_start) / 60, 2)
+        prep = uncached_prepare_minutes(args.cache_dir)
+        metrics["training"]["render_minutes_uncached"] = prep if prep is not None else metrics["training"].get(
+            "render_minutes_uncached")
     write_report(metrics, args.out_dir)
     print(json.dumps({k: metrics[k] for k in ("heldout", "inference_ms_640x192")}, indent=1))
     return 0

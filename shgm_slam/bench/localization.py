@@ -102,7 +102,7 @@ class BenchMode(str, Enum):
 
 MODE_OVERRIDES: dict[BenchMode, dict] = {
     BenchMode.PAPER: {"outlier_mode": OutlierMode.RANSAC, "candidate_mode": CandidateMode.BEST,
-                      "min_support_ratio": 2.5, "min_inliers": 18, "max_rmse_m": 5.0},
+                      "min_support_ratio": 3.0, "min_inliers": 18, "max_rmse_m": 5.0},
     BenchMode.ROBUST: {"outlier_mode": OutlierMode.CLIQUE, "candidate_mode": CandidateMode.TOP_K},
 }
 """MatchingConfig fields each mode sets; everything else is the configured default (the robust mode).

@@ -46,19 +46,33 @@ class KissIcpSource:
     dropped before ICP (``clouds.sampling_spacing_m``): such sparse samples of far or grazing surfaces
     move with the camera and pull point-to-point ICP toward zero motion (the start-up stall).
     ``cloud_stride`` must be the stride the clouds were back-projected with.
+    With ``shuffle_points`` the points are put in a random (seeded, reproducible) order: KISS-ICP keeps
+    the first point of every voxel, so image order ties the kept points to the pixel grid, which moves
+    with the camera; a random order breaks that tie (helps oblique aerial views start up).
     """
 
-    def __init__(self, odometry: KissOdometry, *, cloud_stride: int = 1, max_spacing_m: float | None = None):
+    def __init__(
+        self,
+        odometry: KissOdometry,
+        *,
+        cloud_stride: int = 1,
+        max_spacing_m: float | None = None,
+        shuffle_points: bool = False,
+        seed: int = 0,
+    ) -> None:
         if max_spacing_m is not None and max_spacing_m <= 0:
             raise ConfigError(f"odometry max_spacing_m must be > 0 or None, got {max_spacing_m}")
         self.odometry = odometry
         self.cloud_stride = cloud_stride
         self.max_spacing_m = max_spacing_m
+        self._rng = np.random.default_rng(seed) if shuffle_points else None
 
     def update(self, frame: Frame, points_cam: np.ndarray) -> OdometryEstimate:
         if self.max_spacing_m is not None and len(points_cam):
             spacing_m = sampling_spacing_m(points_cam, frame.intrinsics, stride=self.cloud_stride)
             points_cam = points_cam[spacing_m <= self.max_spacing_m]
+        if self._rng is not None:
+            points_cam = points_cam[self._rng.permutation(len(points_cam))]
         reg = self.odometry.register(points_cam)
         note = "" if reg.ok else f"frame {frame.index}: {reg.status.value} ({reg.num_points} points in range)"
         return OdometryEstimate(reg.T_odom_cam, reg.ok, note)
@@ -116,6 +130,7 @@ def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
         ),
         cloud_stride=cfg.cloud_stride,
         max_spacing_m=cfg.max_spacing_m,
+        shuffle_points=cfg.shuffle_points,
     )
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from shgm_slam.errors import DataError
 from shgm_slam.geometry.camera import project
-from shgm_slam.odometry.clouds import depth_to_cloud
+from shgm_slam.odometry.clouds import depth_to_cloud, sampling_spacing_m
 from shgm_slam.types import Intrinsics
 
 INTR = Intrinsics(50.0, 50.0, 15.5, 11.5, 32, 24)
@@ -85,3 +85,41 @@ def test_bad_input_raises_data_error(depth_shape, labels_shape, stride, ranges, 
             np.ones(depth_shape, np.float32), INTR, stride=stride,
             min_range_m=ranges[0], max_range_m=ranges[1], label_ids=labels,
         )  # fmt: skip
+
+
+def test_spacing_of_a_fronto_parallel_wall_is_depth_times_stride_over_f():
+    depth = np.full((INTR.height, INTR.width), 8.0, np.float32)
+    for stride in (1, 2, 3):
+        pts, _ = depth_to_cloud(depth, INTR, stride=stride, min_range_m=0.0, max_range_m=100.0)
+        spacing = sampling_spacing_m(pts, INTR, stride=stride)
+        assert spacing.shape == (pts.shape[0],)
+        np.testing.assert_allclose(spacing, 8.0 * stride / INTR.fx, rtol=1e-9)
+
+
+def test_ground_spacing_grows_with_range_and_edges_take_their_surface_spacing():
+    height_m = 1.5
+    v = np.arange(INTR.height, dtype=np.float64)[:, None] - INTR.cy
+    ground = np.where(v > 0.5, INTR.fy * height_m / np.maximum(v, 1e-9), 0.0) * np.ones((1, INTR.width))
+    depth = ground.astype(np.float32)
+    depth[14:18, 10:14] = 3.0  # a small box standing in front of the ground
+    pts, _ = depth_to_cloud(depth, INTR, stride=1, min_range_m=0.0, max_range_m=1000.0)
+    spacing = sampling_spacing_m(pts, INTR, stride=1)
+    on_box = np.isclose(pts[:, 2], 3.0)
+    np.testing.assert_allclose(spacing[on_box], 3.0 / INTR.fx, rtol=1e-6)  # edges included
+    road = ~on_box
+    order = np.argsort(pts[road, 2])
+    assert np.all(np.diff(spacing[road][order][:: INTR.width]) >= -1e-9)  # farther rows: sparser
+    # on the ground the row-to-row gap dominates: about z^2 / (f * h)
+    far = road & (pts[:, 2] > 20.0)
+    assert np.all(spacing[far] > 0.5 * pts[far, 2] ** 2 / (INTR.fy * height_m))
+
+
+def test_isolated_points_and_points_behind_the_camera_have_infinite_spacing():
+    depth = np.zeros((INTR.height, INTR.width), np.float32)
+    depth[5, 5] = depth[12, 20] = 4.0
+    pts, _ = depth_to_cloud(depth, INTR, stride=1, min_range_m=0.0, max_range_m=100.0)
+    assert np.isinf(sampling_spacing_m(pts, INTR, stride=1)).all()
+    assert np.isinf(sampling_spacing_m(np.array([[0.0, 0.0, -2.0]]), INTR, stride=1)).all()
+    assert sampling_spacing_m(np.zeros((0, 3)), INTR, stride=2).shape == (0,)
+    with pytest.raises(DataError, match="points must be"):
+        sampling_spacing_m(np.zeros((4, 2)), INTR, stride=1)

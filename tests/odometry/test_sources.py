@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from shgm_slam.config import OdometryConfig, OdometryKind
-from shgm_slam.errors import DataError
-from shgm_slam.geometry.se3 import inverse, make_pose, rot_y, so3_exp
+from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.geometry.se3 import inverse, make_pose, pose_error, rot_y, so3_exp
 from shgm_slam.io.trajectories import write_kitti_poses, write_tum
+from shgm_slam.odometry.clouds import depth_to_cloud
 from shgm_slam.odometry.sources import (
     GroundTruthSource,
     KissIcpSource,
@@ -98,3 +99,57 @@ def test_pose_file_source_on_kitti_ground_truth(shared_data):
     np.testing.assert_allclose(src.T_odom_cam[0], np.eye(4), atol=1e-9)
     with pytest.raises(DataError, match="1101 poses but the sequence has 160 frames"):
         PoseFileSource(path, 160)  # e.g. only the 160 images that are on disk
+
+
+def _street_clouds(poses: np.ndarray, seed: int, noise: float = 0.0) -> tuple[list[np.ndarray], Intrinsics]:
+    """Camera-frame clouds (cloud stride 4) of a ray-cast street seen from ``poses`` (T_world_cam)."""
+    from tests.odometry.test_kiss import INTR as STREET_INTR
+    from tests.odometry.test_kiss import render_depth, street
+
+    rng = np.random.default_rng(seed)
+    boxes = street(rng, length_m=100.0, n_boxes=100)
+    clouds = []
+    for T in poses:
+        depth = render_depth(T, boxes, stride=4)
+        depth *= (1 + rng.normal(0, noise, depth.shape)).astype(np.float32)
+        clouds.append(depth_to_cloud(depth, STREET_INTR, stride=4, min_range_m=0.5, max_range_m=100.0)[0])
+    return clouds, STREET_INTR
+
+
+def _run(cfg: OdometryConfig, clouds: list[np.ndarray], intr: Intrinsics) -> np.ndarray:
+    src = make_odometry(cfg, len(clouds))
+    return np.stack([src.update(Frame(i, 0.1 * i, intr), c).T_odom_cam for i, c in enumerate(clouds)])
+
+
+@pytest.mark.parametrize("shuffle", [False, True])
+def test_kiss_tracks_from_the_first_frame_on_a_long_street(shuffle: bool):
+    # 1 m/frame down a street with facades and a ground plane out to 100 m: the sparse far/grazing
+    # samples move with the camera and, unfiltered, hold ICP near zero motion for the first frames
+    gt = np.stack([make_pose(np.eye(3), [0.0, 0.0, 1.0 * i]) for i in range(8)])
+    clouds, intr = _street_clouds(gt, seed=0)
+    cfg = OdometryConfig(cloud_stride=4, shuffle_points=shuffle)
+    est = _run(cfg, clouds, intr)
+    steps_m = np.diff(est[:, :3, 3], axis=0)
+    np.testing.assert_allclose(steps_m[:, 2], 1.0, atol=0.1)  # every step, the first one included
+    assert np.abs(steps_m[:, :2]).max() < 0.15
+    if shuffle:  # the random order is seeded: runs are reproducible
+        np.testing.assert_allclose(_run(cfg, clouds, intr), est, atol=1e-9)  # TBB sums: not bitwise
+    else:
+        stalled = _run(cfg.model_copy(update={"max_spacing_m": None}), clouds, intr)
+        assert stalled[-1, 2, 3] < 0.5 * est[-1, 2, 3]  # the cause: without the filter it stalls
+
+
+@pytest.mark.parametrize(("shuffle", "tol_m", "tol_deg"), [(False, 0.05, 0.2), (True, 0.1, 0.6)])
+def test_kiss_invents_no_motion_for_a_static_robot(shuffle: bool, tol_m: float, tol_deg: float):
+    gt = np.repeat(make_pose(np.eye(3), [0.0, 0.0, 5.0])[None], 15, axis=0)
+    clouds, intr = _street_clouds(gt, seed=1, noise=0.003)  # fresh depth noise every frame
+    est = _run(OdometryConfig(cloud_stride=4, shuffle_points=shuffle), clouds, intr)
+    err_m, err_deg = pose_error(est, np.repeat(np.eye(4)[None], len(est), axis=0))
+    assert err_m.max() < tol_m and err_deg.max() < tol_deg  # a random point order jitters a little
+
+
+def test_spacing_filter_settings_are_validated():
+    with pytest.raises(ConfigError, match="max_spacing_m"):
+        KissIcpSource(make_odometry(OdometryConfig(), 1).odometry, cloud_stride=2, max_spacing_m=0.0)
+    with pytest.raises(ValueError):
+        OdometryConfig(max_spacing_m=-1.0)
