@@ -99,6 +99,12 @@ class MatchingConfig(_Stage):
     min_support_ratio: float = Field(
         2.5, ge=1.0, description="success needs this many times the support of the best rival hypothesis"
     )
+    min_clique_ratio: float = Field(
+        1.5,
+        ge=1.0,
+        description="clique mode: a support below min_support_ratio x the rival's still passes with this "
+        "clique-size ratio when the refined inlier counts meet min_support_ratio (tuned: bench localization)",
+    )
     up_axis: tuple[float, float, float] = Field(
         (0.0, -1.0, 0.0), description="vertical axis of the world frames (KITTI camera frame: -y is up)"
     )

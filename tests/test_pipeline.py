@@ -45,7 +45,7 @@ def drifting_run(tiny_scenario: Path, tmp_path_factory: pytest.TempPathFactory):
 
 
 def test_two_robots_are_fused_and_beat_odometry(drifting_run) -> None:
-    summary, robots, _ = drifting_run
+    summary, _, _ = drifting_run
     reports = {r.name: r for r in summary.robots}
     assert summary.closures_accepted >= 1
     assert reports["car2"].localized
@@ -61,7 +61,7 @@ def test_two_robots_are_fused_and_beat_odometry(drifting_run) -> None:
 def test_results_folder_has_every_output(drifting_run) -> None:
     summary, robots, out = drifting_run
     for name, seq in robots.items():
-        t, poses = read_tum(out / f"{name}_fused_tum.txt")
+        t, _ = read_tum(out / f"{name}_fused_tum.txt")
         assert len(t) == len(seq)
         assert len(read_kitti_poses(out / f"{name}_fused_kitti.txt")) == len(seq)
         assert (out / f"{name}_odometry_tum.txt").is_file()
@@ -151,7 +151,7 @@ def test_pose_file_with_wrong_count_is_a_clear_error(tiny_scenario: Path, tmp_pa
     write_kitti_poses(tmp_path / "short.txt", seq.gt_poses[:5])
     cfg = ShgmConfig()
     cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, tmp_path / "short.txt"
-    with pytest.raises(DataError, match="short.txt"):
+    with pytest.raises(DataError, match=r"short\.txt"):
         run_slam({"car1": seq}, cfg, tmp_path / "out")
 
 

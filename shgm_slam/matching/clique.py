@@ -13,6 +13,12 @@ offsets and horizontal distances separately (a much stronger test), and the fit 
 Chance cliques of 5-8 correspondences exist among hundreds of candidates even between places that
 do not overlap, so a clique is only evidence when it clearly beats the best clique among the
 candidates its fit does not explain (``rival_support``; the matcher's ``min_support_ratio`` test).
+Clique sizes are biased against large graphs: chance cliques grow with the number of candidates while
+the true clique is capped by node noise (|d_a - d_b| < eps fails for noisy pairs). So both hypotheses
+are also scored like RANSAC's: refit and re-select one-to-one inliers within the re-check threshold
+(``inlier_support`` among all candidates, ``rival_inlier_support`` among those the winner does not
+explain); the matcher accepts either a clear clique-size margin or a clear refined-inlier margin
+backed by a smaller clique-size margin (``MatchingConfig.min_clique_ratio``).
 """
 
 from __future__ import annotations
@@ -227,6 +233,8 @@ def clique_alignment(
     ``recheck_threshold_m(consistency_threshold_m)`` (re-selected ``refine_iterations`` times).
     ``support`` is the clique size; ``rival_support`` the size of the largest clique among the
     searched candidates that the fit does not explain (residual above twice the re-check threshold).
+    ``inlier_support`` is the refined inlier count of the result; ``rival_inlier_support`` that of the
+    rival clique's fit, refined among the candidates the result does not explain (0 without a rival).
 
     Args:
         points_b, points_a: (K, 3) candidate positions in B's and A's frames.
@@ -248,11 +256,23 @@ def clique_alignment(
     T = fit_pose(pb[clique], pa[clique], w, gravity_aligned, up)
     threshold = recheck_threshold_m(consistency_threshold_m)
     unexplained = residuals_m(T, pb, pa) >= 2.0 * threshold
-    rival = max_clique(adjacency, within=unexplained).size
+    rival = max_clique(adjacency, within=unexplained)
     aligned = refine_alignment(
         T, points_b, points_a, rows_a, rows_b, weights, threshold, refine_iterations, gravity_aligned, up
     )
-    return replace(aligned, support=int(clique.size), rival_support=int(rival))
+    rival_inliers = 0
+    if rival.size >= 3:
+        w_rival = None if weights is None else weights[:m][rival]
+        T_rival = fit_pose(pb[rival], pa[rival], w_rival, gravity_aligned, up)
+        rest = residuals_m(aligned.T_a_b, points_b, points_a) >= 2.0 * threshold
+        rival_inliers = refine_alignment(
+            T_rival, points_b[rest], points_a[rest], rows_a[rest], rows_b[rest],
+            None if weights is None else weights[rest], threshold, refine_iterations, gravity_aligned, up,
+        ).num_inliers  # fmt: skip
+    return replace(
+        aligned, support=int(clique.size), rival_support=int(rival.size),
+        inlier_support=aligned.num_inliers, rival_inlier_support=int(rival_inliers),
+    )  # fmt: skip
 
 
 def recheck_threshold_m(consistency_threshold_m: float) -> float:

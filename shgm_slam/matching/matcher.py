@@ -202,10 +202,11 @@ def match_graphs(
 
 def _rejection_reason(final: Alignment, spread: float, hypothesis: Alignment, cfg: MatchingConfig) -> str:
     """'' when the alignment is accepted, else why not (the success criteria of ``match_graphs``)."""
-    if hypothesis.support < cfg.min_support_ratio * hypothesis.rival_support:
+    if _ambiguous(hypothesis, cfg):
         return (
-            f"ambiguous: support {hypothesis.support} is less than {cfg.min_support_ratio:g}x the "
-            f"{hypothesis.rival_support} of the best rival hypothesis"
+            f"ambiguous: support {hypothesis.support} (refined inliers {hypothesis.inlier_support}) is less "
+            f"than {cfg.min_support_ratio:g}x the {hypothesis.rival_support} "
+            f"({hypothesis.rival_inlier_support}) of the best rival hypothesis"
         )
     if final.num_inliers < cfg.min_inliers:
         return f"{final.num_inliers} inlier(s), fewer than min_inliers={cfg.min_inliers}"
@@ -214,3 +215,17 @@ def _rejection_reason(final: Alignment, spread: float, hypothesis: Alignment, cf
     if spread < cfg.min_spread_m:
         return f"inliers span only {spread:.1f} m (degenerate), below min_spread_m={cfg.min_spread_m}"
     return ""
+
+
+def _ambiguous(h: Alignment, cfg: MatchingConfig) -> bool:
+    """True unless the hypothesis clearly beats its rival (``min_support_ratio``) in support (clique size
+    or RANSAC inliers), or in refined inlier count while also beating it by ``min_clique_ratio`` in support.
+
+    The second way exists because clique sizes are biased against large graphs (see ``clique``); the
+    support guard keeps chance hypotheses whose refit merely collects chance inliers over a large area out.
+    For RANSAC the refined counts are the support, so the second way adds nothing.
+    """
+    if h.support >= cfg.min_support_ratio * h.rival_support:
+        return False
+    refined_margin = h.inlier_support >= cfg.min_support_ratio * h.rival_inlier_support
+    return not (h.inlier_support > 0 and refined_margin and h.support >= cfg.min_clique_ratio * h.rival_support)

@@ -36,6 +36,10 @@ class Alignment:
             clique size); 0 when not set.
         rival_support: the same evidence for the best hypothesis among the candidates this one does
             not explain (an ambiguity / chance level); 0 when not computed.
+        inlier_support: refined one-to-one inlier count of this hypothesis among all candidates (RANSAC:
+            equal to ``support``); 0 when not computed.
+        rival_inlier_support: refined inlier count of the rival hypothesis among the candidates this one
+            does not explain; 0 when not computed.
     """
 
     T_a_b: np.ndarray
@@ -43,6 +47,8 @@ class Alignment:
     rmse_m: float
     support: int = 0
     rival_support: int = 0
+    inlier_support: int = 0
+    rival_inlier_support: int = 0
 
     @property
     def num_inliers(self) -> int:

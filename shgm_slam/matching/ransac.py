@@ -134,4 +134,6 @@ def ransac_alignment(
             rows_b[unexplained], None if weights is None else weights[unexplained],
             inlier_threshold_m, refine_iterations, gravity_aligned, up,
         ).num_inliers  # fmt: skip
-    return replace(aligned, support=support, rival_support=rival)
+    return replace(
+        aligned, support=support, rival_support=rival, inlier_support=support, rival_inlier_support=rival
+    )

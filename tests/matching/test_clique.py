@@ -84,3 +84,14 @@ def test_no_clique_of_three_gives_none():
     pa = np.array([[0, 0, 0], [10, 0, 0], [0, 0, 10.0]])
     pb = np.array([[0, 0, 0], [30, 0, 0], [0, 0, 55.0]])
     assert clique_alignment(pb, pa, np.arange(3), np.arange(3)) is None
+
+
+def test_refined_supports_are_reported_for_winner_and_rival():
+    prob = correspondence_problem(25, 0.6, seed=4)
+    out = clique_alignment(
+        prob["points_b"], prob["points_a"], prob["rows_a"], prob["rows_b"], consistency_threshold_m=1.0
+    )
+    assert out is not None
+    assert out.inlier_support == out.num_inliers >= 20
+    assert out.rival_inlier_support <= 6  # outliers are random: no competing alignment
+    assert out.inlier_support >= 2.5 * out.rival_inlier_support

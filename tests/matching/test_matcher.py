@@ -11,7 +11,8 @@ from shgm_slam.config import DescriptorConfig, DescriptorKind, MatchingConfig, O
 from shgm_slam.descriptors import compute_descriptors
 from shgm_slam.errors import ConfigError, GraphError
 from shgm_slam.geometry.se3 import pose_error, transform_points
-from shgm_slam.matching import match_graphs
+from shgm_slam.matching import Alignment, match_graphs
+from shgm_slam.matching.matcher import _ambiguous
 from shgm_slam.matching.result import TIMING_KEYS
 from shgm_slam.types import GraphArrays
 
@@ -133,3 +134,19 @@ def test_gravity_aligned_matching(overlapping):
     assert _displacement_m(r.T_a_b, T_a_b, b) < 1.0
     with pytest.raises(ConfigError, match="up_axis"):
         match_graphs(a, b, DescriptorConfig(), MatchingConfig(gravity_aligned=True, up_axis=(0.0, 0.0, 0.0)))
+
+
+@pytest.mark.parametrize(
+    ("support", "rival", "inliers", "rival_inliers", "ambiguous"),
+    [
+        (35, 18, 66, 25, False),  # noise-capped true clique, clear refined margin (bench: airsim car-car)
+        (43, 17, 57, 32, False),  # clear clique margin alone suffices
+        (12, 9, 27, 10, True),  # chance clique collecting chance inliers over a large area (disjoint)
+        (20, 10, 40, 20, True),  # neither margin
+        (10, 0, 0, 0, False),  # no rival at all
+    ],
+)
+def test_ambiguity_test_accepts_a_clique_or_a_refined_margin(support, rival, inliers, rival_inliers, ambiguous):
+    h = Alignment(np.eye(4), np.zeros(0, bool), 1.0, support, rival, inliers, rival_inliers)
+    assert _ambiguous(h, MatchingConfig()) is ambiguous
+    assert _ambiguous(h, MatchingConfig(min_clique_ratio=10.0)) is (support < 2.5 * rival)
