@@ -22,6 +22,7 @@ from shgm_slam.descriptors import compute_descriptors
 from shgm_slam.geometry import se3
 from shgm_slam.graph.extraction import extract_objects
 from shgm_slam.graph.semantic_graph import GraphUpdate, SemanticGraph
+from shgm_slam.labels import Label
 from shgm_slam.matching import match_graphs
 from shgm_slam.matching.pose import spread_m
 from shgm_slam.odometry.clouds import depth_to_cloud
@@ -30,6 +31,42 @@ from shgm_slam.perception import PerceptionSource
 from shgm_slam.types import Frame, GraphArrays, Sequence
 
 log = logging.getLogger(__name__)
+
+
+GROUND_LABELS = (Label.ROAD, Label.SIDEWALK, Label.TERRAIN)
+
+
+def ground_normal(
+    points_cam: np.ndarray, label_ids: np.ndarray | None, *, max_range_m: float = 100.0
+) -> np.ndarray | None:
+    """Unit normal of the ground plane, pointing up (towards the camera), in the camera frame.
+
+    Fitted to the road, sidewalk and terrain points of one pseudo-LiDAR cloud (least squares plane);
+    None when there are too few ground points or they are not planar (RMS distance > 0.3 m).
+    """
+    if label_ids is None:
+        return None
+    ground = np.isin(label_ids, GROUND_LABELS) & (np.linalg.norm(points_cam, axis=1) < max_range_m)
+    pts = points_cam[ground]
+    if len(pts) < 200:
+        return None
+    centre = pts.mean(axis=0)
+    _, sv, vt = np.linalg.svd(pts[:: max(1, len(pts) // 5000)] - centre, full_matrices=False)
+    normal = vt[2]
+    if sv[2] / np.sqrt(len(pts[:: max(1, len(pts) // 5000)])) > 0.3 or sv[1] < 1e-6:
+        return None
+    return normal if normal @ (-centre) > 0 else -normal
+
+
+def rotation_to_z(up: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation taking the unit vector ``up`` onto +z (the gravity-aligned frame's vertical)."""
+    up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(up, z)
+    s, c = np.linalg.norm(axis), float(up @ z)
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else se3.rot_x(np.pi)
+    return se3.so3_exp(axis / s * np.arctan2(s, c))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -68,6 +105,7 @@ class KeyframeMessage:
     timestamp_s: float
     T_odom_kf: np.ndarray
     graph_update: GraphUpdate
+    up_odom: np.ndarray | None = None  # (3,) unit "up" (ground normal) in the odometry frame, if known
 
 
 @dataclass
@@ -113,6 +151,7 @@ class RobotFrontend:
         self.frame_kf = np.full(n, -1, dtype=np.int64)  # last keyframe index at or before each frame
         self.kf_frames: list[int] = []
         self.kf_poses: list[np.ndarray] = []
+        self._up_sum = np.zeros(3)  # sum of keyframe ground normals in the odometry frame
 
     def process(self, index: int) -> FrameResult:
         """Run frame ``index`` through the front end.
@@ -166,7 +205,11 @@ class RobotFrontend:
             self.num_keyframes += 1
             self.kf_frames.append(index)
             self.kf_poses.append(T_odom_cam.copy())
-            message = KeyframeMessage(self.name, kf, index, frame.timestamp_s, T_odom_cam.copy(), update)
+            n_cam = ground_normal(points_cam, point_labels)
+            if n_cam is not None:
+                self._up_sum += T_odom_cam[:3, :3] @ n_cam
+            up = self._up_sum / np.linalg.norm(self._up_sum) if self._up_sum.any() else None
+            message = KeyframeMessage(self.name, kf, index, frame.timestamp_s, T_odom_cam.copy(), update, up)
             timings["extraction"] = (t_ex - t_odo) * 1e3
             timings["graph"] = (t_graph - t_ex) * 1e3
         self.frame_kf[index] = self.num_keyframes - 1
@@ -237,10 +280,9 @@ class MapServer:
         self.robot_names = list(robot_names)
         self.cfg = cfg
         self.pose_graph = make_pose_graph(self.robot_names, cfg.backend)
-        self.graphs = {
-            r: SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m) for r in robot_names
-        }
+        self.graphs = {r: SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m) for r in robot_names}
         self.kf_poses: dict[str, list[np.ndarray]] = {r: [] for r in robot_names}
+        self.up: dict[str, np.ndarray | None] = dict.fromkeys(robot_names)
         self.matches: list[MatchRecord] = []
         self._since_match = dict.fromkeys(robot_names, 0)
         self._closures: set[tuple[str, int, str, int]] = set()
@@ -252,6 +294,8 @@ class MapServer:
         t0 = time.perf_counter()
         self._step += 1
         self.kf_poses[msg.robot].append(msg.T_odom_kf)
+        if msg.up_odom is not None:
+            self.up[msg.robot] = msg.up_odom
         self.pose_graph.add_keyframe(msg.robot, msg.kf_index, msg.T_odom_kf)
         self.graphs[msg.robot].apply_update(msg.graph_update, self.kf_poses[msg.robot])
         self.timings_ms["backend"].append((time.perf_counter() - t0) * 1e3)
@@ -291,7 +335,20 @@ class MapServer:
         self, robot_a: str, robot_b: str, query: str, graph_a: GraphArrays, graph_b: GraphArrays, desc_a
     ) -> MatchRecord:
         t0 = time.perf_counter()
-        result = match_graphs(graph_a, graph_b, self.cfg.descriptor, self.cfg.matching, descriptors_a=desc_a)
+        up_a, up_b = self.up[robot_a], self.up[robot_b]
+        if up_a is not None and up_b is not None:
+            # both robots know where "up" is (their ground plane): a 4-DoF match in gravity-aligned frames
+            R_a, R_b = rotation_to_z(up_a), rotation_to_z(up_b)
+            cfg4 = self.cfg.matching.model_copy(update={"gravity_aligned": True, "up_axis": (0.0, 0.0, 1.0)})
+            result = match_graphs(
+                graph_a.transformed(se3.make_pose(R_a, np.zeros(3))),
+                graph_b.transformed(se3.make_pose(R_b, np.zeros(3))),
+                self.cfg.descriptor, cfg4, descriptors_a=desc_a,
+            )  # fmt: skip
+            if result.T_a_b is not None:
+                result.T_a_b = se3.make_pose(R_a.T, np.zeros(3)) @ result.T_a_b @ se3.make_pose(R_b, np.zeros(3))
+        else:
+            result = match_graphs(graph_a, graph_b, self.cfg.descriptor, self.cfg.matching, descriptors_a=desc_a)
         self.timings_ms["match"].append((time.perf_counter() - t0) * 1e3)
         rec = MatchRecord(
             self._step, robot_a, robot_b, query, result.success, False, result.reason, None, None,
@@ -303,19 +360,34 @@ class MapServer:
         rows_b = _rows_of(graph_b, result.inliers[:, 1])
         rec.inlier_positions_a = graph_a.positions_xyz[rows_a]
         rec.inlier_positions_b = graph_b.positions_xyz[rows_b]
-        closures = self._local_closures(robot_a, robot_b, result.inliers, rec.inlier_positions_a,
-                                        rec.inlier_positions_b, result.T_a_b)
+        closures = self._local_closures(
+            robot_a, robot_b, result.inliers, rec.inlier_positions_a, rec.inlier_positions_b, result.T_a_b
+        )
         for kf_a, kf_b, T_akf_bkf, n in closures:
             key = (robot_a, kf_a, robot_b, kf_b)
             if key in self._closures:
-                rec.closures.append({"keyframe_a": kf_a, "keyframe_b": kf_b, "inliers": n, "accepted": False,
-                                     "reason": "duplicate of an earlier closure between the same keyframes"})
+                rec.closures.append(
+                    {
+                        "keyframe_a": kf_a,
+                        "keyframe_b": kf_b,
+                        "inliers": n,
+                        "accepted": False,
+                        "reason": "duplicate of an earlier closure between the same keyframes",
+                    }
+                )
                 continue
             t1 = time.perf_counter()
             decision = self.pose_graph.add_inter_robot_closure(robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n)
             self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
-            rec.closures.append({"keyframe_a": kf_a, "keyframe_b": kf_b, "inliers": n,
-                                 "accepted": decision.accepted, "reason": decision.reason})
+            rec.closures.append(
+                {
+                    "keyframe_a": kf_a,
+                    "keyframe_b": kf_b,
+                    "inliers": n,
+                    "accepted": decision.accepted,
+                    "reason": decision.reason,
+                }
+            )
             if decision.accepted:
                 self._closures.add(key)
         accepted = [c for c in rec.closures if c["accepted"]]
