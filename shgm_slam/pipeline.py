@@ -34,6 +34,16 @@ log = logging.getLogger(__name__)
 
 
 GROUND_LABELS = (Label.ROAD, Label.SIDEWALK, Label.TERRAIN)
+COMPACT_LABELS = (
+    Label.POLE,
+    Label.TRAFFIC_LIGHT,
+    Label.TRAFFIC_SIGN,
+    Label.VEGETATION,
+    Label.CAR,
+    Label.TRUCK,
+    Label.BUS,
+)
+"""Classes whose object centroid does not depend on the viewpoint (unlike buildings or road patches)."""
 
 
 def ground_normal(
@@ -361,7 +371,13 @@ class MapServer:
         rec.inlier_positions_a = graph_a.positions_xyz[rows_a]
         rec.inlier_positions_b = graph_b.positions_xyz[rows_b]
         closures = self._local_closures(
-            robot_a, robot_b, result.inliers, rec.inlier_positions_a, rec.inlier_positions_b, result.T_a_b
+            robot_a,
+            robot_b,
+            result.inliers,
+            rec.inlier_positions_a,
+            rec.inlier_positions_b,
+            result.T_a_b,
+            graph_a.label_ids[rows_a],
         )
         for kf_a, kf_b, T_akf_bkf, n in closures:
             key = (robot_a, kf_a, robot_b, kf_b)
@@ -406,6 +422,7 @@ class MapServer:
         pos_a: np.ndarray,
         pos_b: np.ndarray,
         T_a_b: np.ndarray,
+        labels: np.ndarray,
     ) -> list[tuple[int, int, np.ndarray, int]]:
         """Turn one graph match into keyframe-to-keyframe closures ``(kf_a, kf_b, T_akf_bkf, inliers)``.
 
@@ -429,7 +446,7 @@ class MapServer:
         for g in groups:
             if len(g) < min_n or spread_m(pos_a[g]) < 0.25 * seg_m:
                 continue
-            T_local = se3.kabsch(pos_b[g], pos_a[g])
+            T_local = self._refit(robot_a, robot_b, pos_a[g], pos_b[g], labels[g])
             resid = np.linalg.norm(se3.transform_points(T_local, pos_b[g]) - pos_a[g], axis=1)
             if np.sqrt(np.mean(resid**2)) > self.cfg.matching.max_rmse_m:
                 continue
@@ -442,6 +459,25 @@ class MapServer:
             (kf_a, kf_b, se3.inverse(self.kf_poses[robot_a][kf_a]) @ T @ self.kf_poses[robot_b][kf_b], n)
             for kf_a, kf_b, T, n in out
         ]
+
+    def _refit(
+        self, robot_a: str, robot_b: str, pos_a: np.ndarray, pos_b: np.ndarray, labels: np.ndarray
+    ) -> np.ndarray:
+        """Eq. 2 refit ``T_a_b`` of one segment's inliers.
+
+        Compact objects (poles, lights, signs, trees, vehicles) have centroids that do not depend on the
+        viewpoint, unlike buildings or road patches seen from different sides, so they alone are used
+        when there are at least 4. With both robots' "up" known the fit is 4-DoF (yaw + translation).
+        """
+        compact = np.isin(labels, COMPACT_LABELS)
+        if compact.sum() >= 4:
+            pos_a, pos_b = pos_a[compact], pos_b[compact]
+        up_a, up_b = self.up[robot_a], self.up[robot_b]
+        if up_a is None or up_b is None:
+            return se3.kabsch(pos_b, pos_a)
+        R_a, R_b = rotation_to_z(up_a), rotation_to_z(up_b)
+        T_g = se3.kabsch_yaw(pos_b @ R_b.T, pos_a @ R_a.T)
+        return se3.make_pose(R_a.T, np.zeros(3)) @ T_g @ se3.make_pose(R_b, np.zeros(3))
 
     def T_shared_kf(self, robot: str) -> np.ndarray | None:
         """(K, 4, 4) fused keyframe poses of ``robot`` in the shared frame, or None if not localized."""
