@@ -249,16 +249,17 @@ def _render_summary(summary) -> None:
     from rich.table import Table
 
     t = Table(title="shgm-slam run", title_style="bold")
-    for col in ("robot", "frames", "keyframes", "nodes", "localized", "path m",
-                "ATE odometry m", "ATE fused m", "aligned: odometry / fused"):
+    for col in ("robot", "frames", "kf", "nodes", "fused", "path m", "ATE odo", "ATE fused", "aligned"):
         t.add_column(col, justify="right" if col != "robot" else "left")
     for r in summary.robots:
         t.add_row(
             r.name, str(r.frames), str(r.keyframes), str(r.nodes),
             "[green]yes[/]" if r.localized else "[red]no[/]", f"{r.path_length_m:.0f}",
             f"{r.ate_odometry_m:.2f}", f"{r.ate_fused_m:.2f}",
-            f"{r.ate_odometry_aligned_m:.2f} / {r.ate_fused_aligned_m:.2f}",
+            f"{r.ate_odometry_aligned_m:.2f}/{r.ate_fused_aligned_m:.2f}",
         )
+    t.caption = ("ATE in metres in the shared frame (odo = odometry alone, started at its true pose); "
+                 "aligned = SE(3)-aligned per robot")
     console.print(t)
     console.print(
         f"inter-robot matches tried {summary.matches_tried}, closures accepted "
