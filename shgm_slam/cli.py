@@ -350,7 +350,8 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
     except ValueError:
         raise ConfigError(f"--rerun {rerun_mode!r}: choose spawn, save, connect or off") from None
     out_dir = make_results_dir(out)
-    viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=rerun_url)
+    viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=rerun_url,
+                   max_cloud_points=8000)
     return _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame)
 
 

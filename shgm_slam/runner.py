@@ -292,8 +292,13 @@ def _log_frame(viz: Viz, server: MapServer, front: RobotFrontend, res: FrameResu
     viz.set_time(r, res.frame.index, res.frame.timestamp_s)
     T_shared_odom = server.pose_graph.T_shared_odom(r) if server.pose_graph.is_anchored(r) else None
     T_view = res.T_odom_cam if T_shared_odom is None else T_shared_odom @ res.T_odom_cam
-    pts = se3.transform_points(T_view, res.points_cam)
-    viz.log_frame(r, T_view, res.frame.image_rgb, res.depth_m, res.label_ids, pts, res.point_labels)
+    # the heavy parts (depth image, point cloud) only at keyframes: keeps recordings ~100 KB per frame
+    key = res.message is not None
+    pts = se3.transform_points(T_view, res.points_cam) if key else None
+    viz.log_frame(
+        r, T_view, res.frame.image_rgb, res.depth_m if key else None, res.label_ids, pts,
+        res.point_labels if key else None,
+    )  # fmt: skip
     viz.log_timings(r, res.timings_ms)
     if res.message is not None:
         odo_xyz = front.T_odom_cam[: res.frame.index + 1, :3, 3]
