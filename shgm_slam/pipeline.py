@@ -256,6 +256,7 @@ class MatchRecord:
     inlier_positions_a: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     inlier_positions_b: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     closures: list[dict] = field(default_factory=list)
+    duplicate: bool = False  # every closure it gave was already in the pose graph (neither new nor rejected)
 
     def to_json_dict(self) -> dict:
         return {
@@ -412,6 +413,9 @@ class MapServer:
         rec.kf_a, rec.kf_b, rec.reason = shown["keyframe_a"], shown["keyframe_b"], shown["reason"]
         if len(rec.closures) > 1:
             rec.reason = f"{len(accepted)} of {len(rec.closures)} local closures accepted; {rec.reason}"
+        rec.duplicate = all(c["reason"].startswith("duplicate") for c in rec.closures if not c["accepted"]) and (
+            not accepted
+        )
         return rec
 
     def _local_closures(

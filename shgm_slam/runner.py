@@ -200,9 +200,7 @@ def run_slam(
             backend_ms = (time.perf_counter() - t0) * 1e3
             res.timings_ms["server"] = backend_ms
             timings.add(res.timings_ms)
-            compute_ms += sum(
-                v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc")
-            )
+            compute_ms += sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
             _log_frame(viz, server, fronts[robot], res, records)
             if res.message is not None:
                 kf_total += 1
@@ -223,7 +221,7 @@ def run_slam(
         robots=reports,
         matches_tried=len(server.matches),
         closures_accepted=accepted,
-        closures_rejected=sum(m.success and not m.accepted for m in server.matches),
+        closures_rejected=sum(m.success and not m.accepted and not m.duplicate for m in server.matches),
         timings_ms={
             **timings.means(),
             "match": float(np.mean(server.timings_ms["match"])) if server.timings_ms["match"] else 0.0,
@@ -247,9 +245,7 @@ def _fused(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
 
 def _write_results(writer: ResultsWriter, fronts, server: MapServer, robots: dict[str, Sequence]) -> None:
     for r, front in fronts.items():
-        writer.write_trajectories(
-            r, np.asarray(robots[r].timestamps_s), front.T_odom_cam, _fused(front, server)
-        )
+        writer.write_trajectories(r, np.asarray(robots[r].timestamps_s), front.T_odom_cam, _fused(front, server))
         writer.write_graph(r, front.graph.arrays())
     writer.write_matches(server.matches)
     server.pose_graph.write_g2o(writer.path("pose_graph.g2o"))
@@ -325,8 +321,6 @@ def _log_matches(viz: Viz, server: MapServer, records) -> None:
             pa = se3.transform_points(pg.T_shared_odom(m.robot_a), m.inlier_positions_a)
             pb = se3.transform_points(pg.T_shared_odom(m.robot_b), m.inlier_positions_b)
             viz.log_matches(m.robot_a, m.robot_b, pa, pb, m.accepted, len(m.inliers))
-        level = "INFO" if m.accepted else "WARN"
-        verdict = "accepted" if m.accepted else "rejected"
-        viz.log_text(
-            f"{m.robot_a}<->{m.robot_b} ({m.query}): {len(m.inliers)} inliers, {verdict}: {m.reason}", level
-        )
+        level = "INFO" if m.accepted or m.duplicate else "WARN"
+        verdict = "accepted" if m.accepted else "already known" if m.duplicate else "rejected"
+        viz.log_text(f"{m.robot_a}<->{m.robot_b} ({m.query}): {len(m.inliers)} inliers, {verdict}: {m.reason}", level)
