@@ -37,7 +37,12 @@ def _world(cache: Path, name: str, seed: int, progress: Progress, **options) -> 
 
 
 def _tag(options: dict) -> str:
-    return "-".join(f"{k}{v}".replace(" ", "").replace(",", "x").strip("()") for k, v in sorted(options.items()))
+    """Folder-name tag of simulation options, e.g. ``fps42.6-resolution320x96``."""
+
+    def text(v: object) -> str:
+        return "x".join(map(str, v)) if isinstance(v, tuple | list) else str(v)
+
+    return "-".join(f"{k}{text(v)}" for k, v in sorted(options.items()))
 
 
 def _robots_of(world: Path) -> list[str]:
@@ -115,8 +120,11 @@ def run_system_benchmark(
 
 def system_markdown(results: dict) -> str:
     """The benchmark's tables as markdown (what the README shows)."""
-    lines = ["| scenario | robot | frames | keyframes | localized | path m | ATE odometry m | ATE fused m |"
-             " aligned ATE odometry / fused m |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| scenario | robot | frames | keyframes | localized | path m | ATE odometry m | ATE fused m |"
+        " aligned ATE odometry / fused m |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for key in ("airsim_like", "disjoint"):
         for r in results[key]["robots"]:
             lines.append(
@@ -124,8 +132,11 @@ def system_markdown(results: dict) -> str:
                 f"{'yes' if r['localized'] else 'no'} | {r['path_length_m']:.0f} | {r['ate_odometry_m']:.2f} | "
                 f"{r['ate_fused_m']:.2f} | {r['ate_odometry_aligned_m']:.2f} / {r['ate_fused_aligned_m']:.2f} |"
             )
-    lines += ["", "| scenario | matches tried | closures accepted | closures rejected | front+back end ms/keyframe |"
-              " wall s |", "|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| scenario | matches tried | closures accepted | closures rejected | front+back end ms/keyframe | wall s |",
+        "|---|---|---|---|---|---|",
+    ]
     for key in ("airsim_like", "disjoint"):
         s = results[key]
         lines.append(
@@ -137,4 +148,3 @@ def system_markdown(results: dict) -> str:
         for n, m in results["memory"].items():
             lines.append(f"| {n} | {m['peak_rss_mb']:.0f} | {m['wall_s']:.0f} |")
     return "\n".join(lines) + "\n"
-
