@@ -300,8 +300,12 @@ def run(
         typer.Option("--robot", "-r", help="NAME=PATH[:start-end]; repeat per robot (the first is the shared frame)"),
     ],
     odometry: Annotated[
-        str, typer.Option(help="kiss-icp | gt | a KITTI/TUM poses file ({robot} in the path = robot name)")
-    ] = "kiss-icp",
+        str | None,
+        typer.Option(
+            help="auto | kiss-icp | visual | gt | a KITTI/TUM poses file ({robot} in the path = robot name); "
+            "auto = visual odometry on model depth, KISS-ICP on depth files [default: the config's, auto]"
+        ),
+    ] = None,
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
     out: Annotated[Path | None, typer.Option("--out", help="results folder [default: results/<time>]")] = None,
     rerun: Annotated[str, typer.Option("--rerun", help="spawn | save | connect | off")] = "save",
@@ -320,16 +324,20 @@ def run(
         raise typer.Exit(130)
 
 
-def _apply_run_options(cfg, odometry: str, depth_model: Path | None, seg_model: Path | None):
+def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_model: Path | None):
     from shgm_slam.config import OdometryKind
     from shgm_slam.errors import ConfigError
 
     kinds = {k.value: k for k in OdometryKind if k is not OdometryKind.FILE}
-    if odometry in kinds:
+    if odometry is None:
+        pass
+    elif odometry in kinds:
         cfg.odometry.kind = kinds[odometry]
     else:
         if "{robot}" not in odometry and not Path(odometry).is_file():
-            raise ConfigError(f"--odometry {odometry!r}: not kiss-icp, gt, or an existing poses file")
+            raise ConfigError(
+                f"--odometry {odometry!r}: not one of {', '.join(kinds)}, nor an existing poses file"
+            )
         cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, Path(odometry)
     if depth_model is not None:
         cfg.perception.depth_model = depth_model

@@ -111,15 +111,20 @@ class MatchingConfig(_Stage):
 
 
 class OdometryKind(str, Enum):
+    """Where each frame's pose comes from. AUTO: VISUAL when a depth model predicts the depth (ICP on
+    predicted depth stalls), KISS_ICP when the depth comes from files (a sensor or the simulator)."""
+
+    AUTO = "auto"
     KISS_ICP = "kiss-icp"
     GT = "gt"
     FILE = "file"
+    VISUAL = "visual"  # depth-assisted monocular visual odometry (KLT + PnP), for predicted depth
 
 
 class OdometryConfig(_Stage):
     """Front-end odometry (KISS-ICP tuned for dense pseudo-LiDAR, REFERENCE.md §1.2)."""
 
-    kind: OdometryKind = OdometryKind.KISS_ICP
+    kind: OdometryKind = OdometryKind.AUTO
     poses_file: Path | None = None
     voxel_size_m: float = Field(1.0, gt=0, description="KISS-ICP voxel; its rule of thumb is max_range/100")
     max_points_per_voxel: int = Field(10, ge=1)
@@ -136,6 +141,14 @@ class OdometryConfig(_Stage):
         False, description="seeded random point order before KISS-ICP's voxel subsampling (helps aerial start-up)"
     )
     max_icp_iterations: int = Field(100, ge=1)
+    visual_max_features: int = Field(1000, ge=8, description="visual odometry: corners per reference frame")
+    visual_max_depth_m: float = Field(
+        40.0, gt=0, description="visual odometry: corners only where depth is below this (far monocular depth is poor)"
+    )
+    visual_min_track_fraction: float = Field(
+        0.5, gt=0, le=1, description="visual odometry: new reference frame when fewer of its corners are tracked"
+    )
+    visual_reprojection_px: float = Field(2.0, gt=0, description="visual odometry: PnP RANSAC inlier threshold")
 
     @model_validator(mode="after")
     def _file_needs_path(self) -> OdometryConfig:

@@ -17,10 +17,11 @@ MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 
 UAV_OVERRIDES = RobotOverrides(
     extraction={"max_depth_m": 100.0, "min_blob_fraction": 0.002},
-    odometry={"voxel_size_m": 1.5, "shuffle_points": True},
+    odometry={"voxel_size_m": 1.5, "shuffle_points": True, "visual_max_depth_m": 150.0},
 )
-"""A UAV at 30-60 m sees the ground 30-90 m away: objects must be taken farther and smaller, and its
-dense far-away clouds register faster and without start-up stall on a coarser, shuffled voxel map."""
+"""A UAV at 30-60 m sees the ground 30-90 m away: objects must be taken farther and smaller, its
+dense far-away clouds register faster and without start-up stall on a coarser, shuffled voxel map,
+and visual odometry must take corners as far as the ground it sees."""
 
 
 def prepare_world(

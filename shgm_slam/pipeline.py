@@ -184,7 +184,7 @@ class RobotFrontend:
             label_ids=perceived.label_ids,
         )
         t_cloud = time.perf_counter()
-        est = self.odometry.update(frame, points_cam)
+        est = self.odometry.update(frame, points_cam, perceived.depth_m, perceived.label_ids)
         T_odom_cam = est.T_odom_cam
         t_odo = time.perf_counter()
         self.T_odom_cam[index] = T_odom_cam

@@ -75,7 +75,7 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
         path = Path(str(rcfg.odometry.poses_file).replace("{robot}", name))
         rcfg = rcfg.model_copy(update={"odometry": rcfg.odometry.model_copy(update={"poses_file": path})})
     perception = make_perception(rcfg.perception, sequence)
-    odometry = make_odometry(rcfg.odometry, len(sequence))
+    odometry = make_odometry(rcfg.odometry, len(sequence), depth_from_model=rcfg.perception.depth_model is not None)
     return RobotFrontend(name, sequence, rcfg, perception, odometry)
 
 

@@ -1,4 +1,4 @@
-"""Odometry sources behind one protocol: KISS-ICP, ground truth, or a poses file.
+"""Odometry sources behind one protocol: KISS-ICP, visual odometry, ground truth, or a poses file.
 
 Every source reports ``T_odom_cam``: the camera pose in the robot's odometry frame, which is the
 camera frame of the robot's first frame. ``make_odometry`` builds one from ``OdometryConfig``.
@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
+import cv2
 import numpy as np
 
 from shgm_slam.config import OdometryConfig, OdometryKind
@@ -18,6 +19,7 @@ from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry.se3 import inverse
 from shgm_slam.odometry.clouds import sampling_spacing_m
 from shgm_slam.odometry.kiss import KissOdometry
+from shgm_slam.odometry.visual import DepthVisualOdometry
 from shgm_slam.types import Frame
 
 
@@ -34,8 +36,18 @@ class OdometryEstimate:
 class OdometrySource(Protocol):
     """Anything that turns frames (and their camera-frame clouds) into ``T_odom_cam`` poses."""
 
-    def update(self, frame: Frame, points_cam: np.ndarray) -> OdometryEstimate:
-        """Pose of ``frame``; ``points_cam`` (N, 3) is its pseudo-LiDAR cloud in the camera frame."""
+    def update(
+        self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
+        label_ids: np.ndarray | None = None,
+    ) -> OdometryEstimate:
+        """Pose of ``frame``.
+
+        Args:
+            frame: the frame (its image, intrinsics, and ground truth when the source needs them).
+            points_cam: (N, 3) its pseudo-LiDAR cloud in the camera frame, metres.
+            depth_m: (H, W) the depth image the cloud came from (files or a model), metres.
+            label_ids: (H, W) its Cityscapes train ids, or None.
+        """
         ...
 
 
@@ -67,7 +79,10 @@ class KissIcpSource:
         self.max_spacing_m = max_spacing_m
         self._rng = np.random.default_rng(seed) if shuffle_points else None
 
-    def update(self, frame: Frame, points_cam: np.ndarray) -> OdometryEstimate:
+    def update(
+        self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
+        label_ids: np.ndarray | None = None,
+    ) -> OdometryEstimate:
         if self.max_spacing_m is not None and len(points_cam):
             spacing_m = sampling_spacing_m(points_cam, frame.intrinsics, stride=self.cloud_stride)
             points_cam = points_cam[spacing_m <= self.max_spacing_m]
@@ -84,7 +99,10 @@ class GroundTruthSource:
     def __init__(self) -> None:
         self._T_cam0_world: np.ndarray | None = None
 
-    def update(self, frame: Frame, points_cam: np.ndarray) -> OdometryEstimate:
+    def update(
+        self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
+        label_ids: np.ndarray | None = None,
+    ) -> OdometryEstimate:
         if frame.T_world_cam is None:
             raise DataError(
                 f"frame {frame.index} has no ground-truth pose: the sequence has no poses.txt "
@@ -111,12 +129,52 @@ class PoseFileSource:
             )
         self.T_odom_cam = inverse(poses[0]) @ poses  # (N, 4, 4)
 
-    def update(self, frame: Frame, points_cam: np.ndarray) -> OdometryEstimate:
+    def update(
+        self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
+        label_ids: np.ndarray | None = None,
+    ) -> OdometryEstimate:
         if not 0 <= frame.index < self.T_odom_cam.shape[0]:
             raise DataError(
                 f"frame {frame.index} has no pose in {self.path} ({self.T_odom_cam.shape[0]} poses)"
             )
         return OdometryEstimate(self.T_odom_cam[frame.index].copy(), True)
+
+
+class VisualOdometrySource:
+    """Depth-assisted monocular visual odometry (``visual.DepthVisualOdometry``) on the frame's RGB
+    image and its depth image (frames must arrive in order). Made for depth predicted by a monocular
+    network, where ICP on the pseudo-LiDAR cloud stalls; the cloud itself is not used."""
+
+    def __init__(self, odometry: DepthVisualOdometry) -> None:
+        self.odometry = odometry
+
+    def update(
+        self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
+        label_ids: np.ndarray | None = None,
+    ) -> OdometryEstimate:
+        if frame.image_rgb is None or depth_m is None:
+            raise DataError(
+                f"frame {frame.index}: visual odometry needs the RGB image and a depth image "
+                "(a depth model or depth/ files); use odometry kind 'kiss-icp' for clouds only"
+            )
+        gray = cv2.cvtColor(np.ascontiguousarray(frame.image_rgb), cv2.COLOR_RGB2GRAY)
+        reg = self.odometry.register(gray, depth_m, frame.intrinsics, label_ids)
+        note = "" if reg.ok else (
+            f"frame {frame.index}: {reg.status.value} ({reg.num_tracks} tracks, {reg.num_inliers} inliers)"
+        )
+        return OdometryEstimate(reg.T_odom_cam, reg.ok, note)
+
+
+def _visual(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
+    return VisualOdometrySource(
+        DepthVisualOdometry(
+            max_features=cfg.visual_max_features,
+            min_depth_m=cfg.min_range_m,
+            max_depth_m=cfg.visual_max_depth_m,
+            min_track_fraction=cfg.visual_min_track_fraction,
+            reprojection_px=cfg.visual_reprojection_px,
+        )
+    )
 
 
 def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
@@ -144,9 +202,22 @@ ODOMETRY_SOURCES: dict[OdometryKind, Callable[[OdometryConfig, int], OdometrySou
     OdometryKind.KISS_ICP: _kiss,
     OdometryKind.GT: lambda cfg, num_frames: GroundTruthSource(),
     OdometryKind.FILE: _file,
+    OdometryKind.VISUAL: _visual,
 }
 
 
-def make_odometry(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
-    """Build the odometry source ``cfg.kind`` for a sequence of ``num_frames`` frames."""
-    return ODOMETRY_SOURCES[OdometryKind(cfg.kind)](cfg, num_frames)
+def resolve_kind(kind: OdometryKind | str, depth_from_model: bool) -> OdometryKind:
+    """``kind`` with AUTO resolved: VISUAL for model-predicted depth, KISS_ICP for depth files."""
+    kind = OdometryKind(kind)
+    if kind is OdometryKind.AUTO:
+        return OdometryKind.VISUAL if depth_from_model else OdometryKind.KISS_ICP
+    return kind
+
+
+def make_odometry(cfg: OdometryConfig, num_frames: int, *, depth_from_model: bool = False) -> OdometrySource:
+    """Build the odometry source ``cfg.kind`` for a sequence of ``num_frames`` frames.
+
+    ``depth_from_model`` tells AUTO whether the depth is predicted (then visual odometry) or read
+    from files (then KISS-ICP).
+    """
+    return ODOMETRY_SOURCES[resolve_kind(cfg.kind, depth_from_model)](cfg, num_frames)

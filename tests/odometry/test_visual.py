@@ -1,0 +1,181 @@
+"""Depth-assisted visual odometry on an exactly rendered corridor (true depth), checked against its path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shgm_slam.config import OdometryConfig, OdometryKind
+from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.geometry.se3 import inverse, pose_error
+from shgm_slam.metrics import ate, trajectory_length
+from shgm_slam.odometry.sources import VisualOdometrySource, make_odometry, resolve_kind
+from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus, backproject_pixels
+from shgm_slam.types import Frame
+from tests.odometry.corridor import INTRINSICS, path, render
+
+
+def run_vo(poses: np.ndarray, depth_fn=lambda d, i: d, **kwargs) -> tuple[np.ndarray, list]:
+    vo = DepthVisualOdometry(**kwargs)
+    est, regs = [], []
+    for i, T in enumerate(poses):
+        gray, depth = render(T)
+        reg = vo.register(gray, depth_fn(depth, i), INTRINSICS)
+        est.append(reg.T_odom_cam)
+        regs.append(reg)
+    return np.stack(est), regs
+
+
+@pytest.fixture(scope="module")
+def corridor() -> np.ndarray:
+    return path(30)
+
+
+def test_true_depth_follows_the_path_within_centimetres(corridor):
+    est, regs = run_vo(corridor)
+    gt = inverse(corridor[0]) @ corridor
+    assert regs[0].status is VisualStatus.FIRST_FRAME
+    assert all(r.ok for r in regs)
+    assert ate(gt, est, align="none").rmse < 0.15
+    assert trajectory_length(est) == pytest.approx(trajectory_length(gt), rel=0.01)
+    t_err, r_err = pose_error(gt[-1], est[-1])
+    assert t_err < 0.3 and r_err < 0.5
+
+
+def test_noisy_depth_keeps_the_scale(corridor):
+    """Per-pixel depth noise of 10 % (log-normal) barely moves the estimate: the scale comes from many points."""
+    rng = np.random.default_rng(0)
+    est, _ = run_vo(corridor, lambda d, i: (d * np.exp(rng.normal(0.0, 0.1, d.shape))).astype(np.float32))
+    gt = inverse(corridor[0]) @ corridor
+    assert trajectory_length(est) == pytest.approx(trajectory_length(gt), rel=0.03)
+    assert ate(gt, est, align="none").rmse < 0.5
+
+
+def test_depth_scale_error_scales_the_path(corridor):
+    """A depth model 20 % short makes the path 20 % short: scale is the depth's, not invented."""
+    est, _ = run_vo(corridor, lambda d, i: d * np.float32(0.8))
+    gt = inverse(corridor[0]) @ corridor
+    assert trajectory_length(est) == pytest.approx(0.8 * trajectory_length(gt), rel=0.02)
+
+
+def test_static_camera_invents_no_motion():
+    poses = np.tile(path(2)[:1], (8, 1, 1))
+    est, regs = run_vo(poses)
+    assert all(r.ok for r in regs)
+    assert np.abs(est[-1] - np.eye(4)).max() < 1e-3
+
+
+def test_blank_frames_coast_on_constant_velocity_and_recover(corridor):
+    """Frames without texture give no tracks: the pose follows the last motion and tracking restarts."""
+    vo = DepthVisualOdometry()
+    statuses = []
+    for i, T in enumerate(corridor[:12]):
+        gray, depth = render(T)
+        if i in (6, 7):
+            gray = np.full_like(gray, 128)
+        statuses.append(vo.register(gray, depth, INTRINSICS).status)
+    assert statuses[6] is not VisualStatus.OK and statuses[7] is not VisualStatus.OK
+    assert statuses[9:] == [VisualStatus.OK] * 3
+    # coasting kept the car moving forward about 1 m per frame
+    assert 9.0 < vo.T_odom_cam[2, 3] < 13.0
+
+
+def test_nan_and_missing_depth_are_ignored(corridor):
+    def holes(d, i):
+        d = d.copy()
+        d[:, ::3] = np.nan
+        d[::4] = 0.0
+        return d
+
+    est, regs = run_vo(corridor[:10], holes)
+    gt = inverse(corridor[0]) @ corridor[:10]
+    assert all(r.ok for r in regs)
+    assert ate(gt, est, align="none").rmse < 0.2
+
+
+def test_no_depth_at_all_coasts_without_crashing(corridor):
+    est, regs = run_vo(corridor[:4], lambda d, i: np.zeros_like(d))
+    assert [r.status for r in regs[1:]] == [VisualStatus.FEW_TRACKS] * 3
+    assert np.isfinite(est).all()
+
+
+def test_excluded_labels_give_no_corners(corridor):
+    gray, depth = render(corridor[0])
+    labels = np.full(gray.shape, 10, np.uint8)  # all sky
+    vo = DepthVisualOdometry()
+    vo.register(gray, depth, INTRINSICS, labels)
+    gray1, depth1 = render(corridor[1])
+    assert vo.register(gray1, depth1, INTRINSICS, labels).status is VisualStatus.FEW_TRACKS
+
+
+@pytest.mark.parametrize(
+    ("gray", "depth", "labels", "message"),
+    [
+        (np.zeros((4, 5, 3), np.uint8), np.zeros((4, 5)), None, "grayscale"),
+        (np.zeros((4, 5), np.float32), np.zeros((4, 5)), None, "uint8"),
+        (np.zeros((4, 5), np.uint8), np.zeros((4, 6)), None, "differ in size"),
+        (np.zeros((4, 5), np.uint8), np.zeros((4, 5)), np.zeros((3, 5)), "labels"),
+    ],
+)
+def test_bad_inputs_raise_data_errors(gray, depth, labels, message):
+    with pytest.raises(DataError, match=message):
+        DepthVisualOdometry().register(gray, depth, INTRINSICS, labels)
+
+
+def test_image_size_change_is_a_data_error(corridor):
+    vo = DepthVisualOdometry()
+    gray, depth = render(corridor[0])
+    vo.register(gray, depth, INTRINSICS)
+    with pytest.raises(DataError, match="image size changed"):
+        vo.register(gray[:, :-2], depth[:, :-2], INTRINSICS)
+
+
+def test_invalid_settings_raise_config_errors():
+    with pytest.raises(ConfigError):
+        DepthVisualOdometry(min_depth_m=5.0, max_depth_m=2.0)
+    with pytest.raises(ConfigError):
+        DepthVisualOdometry(min_track_fraction=0.0)
+    with pytest.raises(ConfigError):
+        DepthVisualOdometry(reprojection_px=0.0)
+
+
+def test_backprojection_inverts_projection():
+    depth = np.full((192, 640), 7.5, np.float32)
+    uv = np.array([[319.5, 95.5], [10.0, 20.0], [600.0, 150.0]])
+    pts = backproject_pixels(uv, depth, INTRINSICS)
+    assert np.allclose(pts[:, 2], 7.5)
+    proj = pts[:, :2] / pts[:, 2:] * [INTRINSICS.fx, INTRINSICS.fy] + [INTRINSICS.cx, INTRINSICS.cy]
+    assert np.allclose(proj, np.rint(uv), atol=1e-9) or np.allclose(proj, uv)
+
+
+def test_source_needs_image_and_depth():
+    src = make_odometry(OdometryConfig(kind=OdometryKind.VISUAL), 3)
+    assert isinstance(src, VisualOdometrySource)
+    frame = Frame(index=0, timestamp_s=0.0, intrinsics=INTRINSICS, image_rgb=None)
+    with pytest.raises(DataError, match="RGB image and a depth image"):
+        src.update(frame, np.zeros((0, 3)), None)
+
+
+def test_source_runs_on_rgb_frames(corridor):
+    src = make_odometry(OdometryConfig(kind=OdometryKind.VISUAL), 5)
+    for i, T in enumerate(corridor[:5]):
+        gray, depth = render(T)
+        rgb = np.repeat(gray[..., None], 3, axis=2)
+        frame = Frame(index=i, timestamp_s=0.1 * i, intrinsics=INTRINSICS, image_rgb=rgb)
+        est = src.update(frame, np.zeros((0, 3)), depth)
+        assert est.ok
+    gt = inverse(corridor[0]) @ corridor[4]
+    assert pose_error(gt, est.T_odom_cam)[0] < 0.1
+
+
+@pytest.mark.parametrize(
+    ("kind", "from_model", "expected"),
+    [
+        (OdometryKind.AUTO, True, OdometryKind.VISUAL),
+        (OdometryKind.AUTO, False, OdometryKind.KISS_ICP),
+        (OdometryKind.KISS_ICP, True, OdometryKind.KISS_ICP),
+        ("visual", False, OdometryKind.VISUAL),
+    ],
+)
+def test_auto_picks_visual_odometry_for_model_depth(kind, from_model, expected):
+    assert resolve_kind(kind, from_model) is expected
