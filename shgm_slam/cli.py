@@ -496,12 +496,15 @@ def bench_system(
     cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
     seed: Annotated[int, typer.Option(help="world seed")] = 0,
     memory: Annotated[bool, typer.Option(help="also the 1000- vs 4000-frame peak-RSS runs")] = True,
+    rgb_only: Annotated[
+        bool, typer.Option(help="also both worlds RGB only: demo ONNX models + visual odometry")
+    ] = False,
 ) -> None:
     """The whole system on airsim-like (fused ATE, closures, ms/keyframe), disjoint (no merges), and memory."""
     from shgm_slam.bench.system import run_system_benchmark, system_markdown
 
     with console.status("starting") as status:
-        results = run_system_benchmark(out, cache=cache, seed=seed, memory=memory,
+        results = run_system_benchmark(out, cache=cache, seed=seed, memory=memory, rgb_only=rgb_only,
                                        progress=lambda msg: status.update(msg))
     console.print(system_markdown(results))
     console.print(f"wrote {out / 'system.json'} and {out / 'system.md'}")

@@ -149,6 +149,10 @@ class OdometryConfig(_Stage):
         0.5, gt=0, le=1, description="visual odometry: new reference frame when fewer of its corners are tracked"
     )
     visual_reprojection_px: float = Field(2.0, gt=0, description="visual odometry: PnP RANSAC inlier threshold")
+    visual_depth_window_px: int = Field(
+        5, ge=1, description="visual odometry: a corner's depth is the largest in this window (networks blur "
+        "depth edges toward the foreground); 1 for sensor depth"
+    )
 
     @model_validator(mode="after")
     def _file_needs_path(self) -> OdometryConfig:
@@ -184,6 +188,10 @@ class BackendConfig(_Stage):
     closure_sigma_rot_rad: float = Field(0.1, gt=0)
     closure_sigma_trans_m: float = Field(3.0, gt=0)
     robust_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="huber | cauchy | tukey | none")
+    min_closures_to_anchor: int = Field(
+        1, ge=1, description="a robot enters the shared frame only when a robot pair's consistent set has this "
+        "many closures (1 = trust the first accepted match; 2+ = safer on noisy, e.g. RGB-only, graphs)"
+    )
     consistency_trans_m: float = Field(5.0, gt=0, description="pairwise closure consistency, translation")
     consistency_rot_deg: float = Field(10.0, gt=0, description="pairwise closure consistency, rotation")
     consistency_trans_per_m: float = Field(

@@ -24,6 +24,10 @@ dense far-away clouds register faster and without start-up stall on a coarser, s
 and visual odometry must take corners as far as the ground it sees."""
 
 
+RGB_ONLY_MATCH_EVERY_KEYFRAMES = 5
+RGB_ONLY_MIN_MATCHES_TO_ANCHOR = 2
+
+
 def prepare_world(
     cache: Path, seed: int, simulate_fn: Callable[[Path], object] | None = None
 ) -> tuple[Path, dict[str, str]]:
@@ -62,4 +66,8 @@ def demo_config(kinds: dict[str, str], *, rgb_only: bool = False, base: ShgmConf
             if not p.is_file():
                 raise DataError(f"{p} is missing: train the demo models with `python tools/train_demo_models.py`")
         cfg.perception.depth_model, cfg.perception.seg_model = depth, seg
+        # graphs from predicted depth and labels are noisier and alias more often (repeated city
+        # blocks): match twice as often and anchor a robot only when two matches agree
+        cfg.backend.match_every_keyframes = RGB_ONLY_MATCH_EVERY_KEYFRAMES
+        cfg.backend.min_closures_to_anchor = RGB_ONLY_MIN_MATCHES_TO_ANCHOR
     return ShgmConfig.model_validate(cfg.model_dump())

@@ -298,6 +298,7 @@ class MapServer:
         self._since_match = dict.fromkeys(robot_names, 0)
         self._closures: set[tuple[str, int, str, int]] = set()
         self._step = 0
+        self._num_matches = 0  # successful graph matches so far (each closure's evidence id)
         self.timings_ms: dict[str, list[float]] = {"match": [], "backend": []}
 
     def receive(self, msg: KeyframeMessage) -> list[MatchRecord]:
@@ -380,9 +381,14 @@ class MapServer:
             result.T_a_b,
             graph_a.label_ids[rows_a],
         )
+        self._num_matches += 1
+        pg = self.pose_graph
+        confirming = pg.min_closures_to_anchor > 1 and not (pg.is_anchored(robot_a) and pg.is_anchored(robot_b))
         for kf_a, kf_b, T_akf_bkf, n in closures:
             key = (robot_a, kf_a, robot_b, kf_b)
-            if key in self._closures:
+            # a later match that finds the same keyframe pair again is independent evidence: while it
+            # can still confirm an unanchored robot it goes in; afterwards it is a duplicate
+            if key in self._closures and not confirming:
                 rec.closures.append(
                     {
                         "keyframe_a": kf_a,
@@ -394,7 +400,9 @@ class MapServer:
                 )
                 continue
             t1 = time.perf_counter()
-            decision = self.pose_graph.add_inter_robot_closure(robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n)
+            decision = self.pose_graph.add_inter_robot_closure(
+                robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n, match_id=self._num_matches
+            )
             self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
             rec.closures.append(
                 {

@@ -76,6 +76,12 @@ class ClosureRecord:
     status: ClosureStatus = ClosureStatus.REJECTED
     reason: str = ""
     in_graph: bool = False
+    match_id: int | None = None  # the graph match it came from (closures of one match share it)
+
+    @property
+    def evidence(self) -> tuple[str, int]:
+        """Its independent source of evidence: its match, or the closure itself when not given."""
+        return ("match", self.match_id) if self.match_id is not None else ("closure", self.closure_id)
 
 
 @dataclass(frozen=True)
@@ -151,7 +157,8 @@ class MultiRobotPoseGraph:
             its default width (Huber 1.345, Cauchy 1.0, Tukey 4.685, in sigmas).
         consistency_*: pairwise-consistency tolerances (``ConsistencyThresholds``).
         min_closures_to_anchor: a robot is anchored through a robot pair only when that pair's
-            consistent set holds at least this many closures (1 = trust a single first match).
+            consistent set holds closures from at least this many independent sources (matches;
+            1 = trust a single first match).
         factorization: iSAM2 linear solver.
         extra_updates: additional ``isam.update()`` passes after closures change the graph.
     """
@@ -237,6 +244,7 @@ class MultiRobotPoseGraph:
         *,
         num_inliers: int = 1,
         information: np.ndarray | None = None,
+        match_id: int | None = None,
     ) -> ClosureDecision:
         """Add a relative-pose measurement between keyframes of two different robots.
 
@@ -247,6 +255,8 @@ class MultiRobotPoseGraph:
                 equally large consistent sets.
             information: optional (6, 6) information matrix in gtsam order [rot, trans]; the
                 configured closure sigmas otherwise.
+            match_id: the graph match the closure was cut from; closures of one match count as one
+                source of evidence for ``min_closures_to_anchor`` (None: the closure is its own source).
 
         Returns:
             ``ClosureDecision``: accepted when the closure is in its robot pair's maximum consistent
@@ -272,7 +282,7 @@ class MultiRobotPoseGraph:
             if information is not None:
                 information = self._inverse_information(information, T)
         noise, info = self._closure_noise_model(information)
-        rec = ClosureRecord(len(self._closures), robot_a, kf_a, robot_b, kf_b, T, int(num_inliers))
+        rec = ClosureRecord(len(self._closures), robot_a, kf_a, robot_b, kf_b, T, int(num_inliers), match_id=match_id)
         self._closures.append(rec)
         self._closure_noise.append(noise)
         self._information.append(info)
@@ -283,7 +293,7 @@ class MultiRobotPoseGraph:
         if rec.status is ClosureStatus.ACCEPTED and not rec.in_graph:
             if self._robots[rec.robot_a].anchored or self._robots[rec.robot_b].anchored:
                 reason += (
-                    f"; waiting for {self.min_closures_to_anchor} consistent closures between "
+                    f"; waiting for consistent closures from {self.min_closures_to_anchor} matches between "
                     f"{rec.robot_a}-{rec.robot_b} before anchoring"
                 )
             else:
@@ -491,9 +501,10 @@ class MultiRobotPoseGraph:
         if broken:
             self._rebuild()
             return
-        pair_size: dict[tuple[str, str], int] = {}
+        pair_sources: dict[tuple[str, str], set] = {}
         for c in accepted:
-            pair_size[(c.robot_a, c.robot_b)] = pair_size.get((c.robot_a, c.robot_b), 0) + 1
+            pair_sources.setdefault((c.robot_a, c.robot_b), set()).add(c.evidence)
+        pair_size = {pair: len(sources) for pair, sources in pair_sources.items()}
         grown = True
         while grown:  # anchoring spreads through accepted closures (replays closures of unanchored robots)
             grown = False
@@ -628,4 +639,5 @@ def make_pose_graph(robot_names: list[str], cfg: BackendConfig) -> MultiRobotPos
         consistency_rot_deg=cfg.consistency_rot_deg,
         consistency_trans_per_m=cfg.consistency_trans_per_m,
         consistency_rot_deg_per_m=cfg.consistency_rot_deg_per_m,
+        min_closures_to_anchor=cfg.min_closures_to_anchor,
     )

@@ -2,9 +2,11 @@
 
 Measures the issue's targets in one run:
 
-* airsim-like (car1, car2, UAV; KISS-ICP odometry): which robots are localized, fused ATE in the shared
-  frame vs odometry alone, closures accepted and rejected, front end + back end ms per keyframe;
+* airsim-like (car1, car2, UAV; KISS-ICP odometry on the rendered depth): which robots are localized,
+  fused ATE in the shared frame vs odometry alone, closures accepted and rejected, front end + back end
+  ms per keyframe;
 * disjoint: the number of accepted inter-robot closures (must be zero);
+* with ``rgb_only``: both again from RGB alone (demo ONNX models, visual odometry);
 * memory: peak RSS of a 1000-frame and a 4000-frame run of one long drive, each in a fresh process.
 
 Worlds are simulated once into ``cache`` and reused. Nothing here prints; the CLI renders the dict.
@@ -75,10 +77,15 @@ def run_system_benchmark(
     cache: Path = Path("cache"),
     seed: int = 0,
     memory: bool = True,
+    rgb_only: bool = False,
     long_frames: int = 4000,
     progress: Progress | None = None,
 ) -> dict:
-    """Run the system benchmark; writes ``out/system.json`` and ``out/system.md`` and returns the dict."""
+    """Run the system benchmark; writes ``out/system.json`` and ``out/system.md`` and returns the dict.
+
+    With ``rgb_only`` both worlds run once more with depth and labels from the ONNX demo models
+    (and visual odometry): the monocular path, and whether it merges disjoint robots.
+    """
     progress = progress or (lambda _msg: None)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -97,6 +104,16 @@ def run_system_benchmark(
     cfg = ShgmConfig()
     summary = run_slam(open_robots([f"{r}={dis / r}" for r in _robots_of(dis)]), cfg, out / "disjoint")
     results["disjoint"] = _summary_dict(summary)
+
+    if rgb_only:
+        progress("running the system on airsim-like, RGB only (demo models, visual odometry)")
+        robots = open_robots([f"{r}={world / r}" for r in kinds])
+        summary = run_slam(robots, demo_config(kinds, rgb_only=True), out / "airsim-like-rgb")
+        results["airsim_like_rgb"] = _summary_dict(summary)
+        progress("running the system on disjoint, RGB only")
+        robots = open_robots([f"{r}={dis / r}" for r in _robots_of(dis)])
+        cfg_rgb = demo_config(dict.fromkeys(robots, "car"), rgb_only=True)
+        results["disjoint_rgb"] = _summary_dict(run_slam(robots, cfg_rgb, out / "disjoint-rgb"))
 
     # 3. memory: one long drive, 1000 vs long_frames frames, each in a fresh process
     if memory:
@@ -125,7 +142,8 @@ def system_markdown(results: dict) -> str:
         " aligned ATE odometry / fused m |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    for key in ("airsim_like", "disjoint"):
+    keys = [k for k in ("airsim_like", "disjoint", "airsim_like_rgb", "disjoint_rgb") if k in results]
+    for key in keys:
         for r in results[key]["robots"]:
             lines.append(
                 f"| {key.replace('_', '-')} | {r['name']} | {r['frames']} | {r['keyframes']} | "
@@ -137,7 +155,7 @@ def system_markdown(results: dict) -> str:
         "| scenario | matches tried | closures accepted | closures rejected | front+back end ms/keyframe | wall s |",
         "|---|---|---|---|---|---|",
     ]
-    for key in ("airsim_like", "disjoint"):
+    for key in keys:
         s = results[key]
         lines.append(
             f"| {key.replace('_', '-')} | {s['matches_tried']} | {s['closures_accepted']} | "

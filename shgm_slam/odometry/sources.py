@@ -173,6 +173,7 @@ def _visual(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
             max_depth_m=cfg.visual_max_depth_m,
             min_track_fraction=cfg.visual_min_track_fraction,
             reprojection_px=cfg.visual_reprojection_px,
+            depth_window_px=cfg.visual_depth_window_px,
         )
     )
 

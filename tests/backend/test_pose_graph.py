@@ -192,7 +192,7 @@ def test_anchoring_can_require_confirmation(scene):
         pg.add_keyframe("b", k, scene["odo_b"][k])
     (i, j, T), (k, l, T2) = scene["closures"][:2]
     first = pg.add_inter_robot_closure("a", i, "b", j, T)
-    assert first.accepted and "waiting for 2 consistent closures" in first.reason
+    assert first.accepted and "waiting for consistent closures from 2 matches" in first.reason
     assert not pg.is_anchored("b")
     assert pg.add_inter_robot_closure("a", k, "b", l, T2).accepted
     assert pg.is_anchored("b") and pg.stats().closures_in_graph == 2
@@ -290,3 +290,21 @@ def test_kitti00_geometry_two_robots_with_outliers(shared_data):
     odometry = ate(gt, np.r_[odo_a, inverse(gt_a[0]) @ gt_b[0] @ odo_b], align="none").rmse
     assert fused < 0.7 * odometry, (fused, odometry)
     assert ate(gt_b, est["b"]).rmse < ate(gt_b, odo_b).rmse  # b's shape improves too
+
+
+def test_backend_config_sets_the_anchoring_threshold():
+    assert make_pose_graph(["a", "b"], BackendConfig()).min_closures_to_anchor == 1
+    assert make_pose_graph(["a", "b"], BackendConfig(min_closures_to_anchor=3)).min_closures_to_anchor == 3
+
+
+def test_closures_of_one_match_do_not_confirm_each_other():
+    """With min_closures_to_anchor=2, two closures cut from ONE match do not anchor; a second match does."""
+    pg = MultiRobotPoseGraph(["a", "b"], min_closures_to_anchor=2)
+    for k in range(4):
+        pg.add_keyframe("a", k, make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]))
+        pg.add_keyframe("b", k, make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]))
+    pg.add_inter_robot_closure("a", 0, "b", 0, np.eye(4), num_inliers=20, match_id=1)
+    pg.add_inter_robot_closure("a", 2, "b", 2, np.eye(4), num_inliers=20, match_id=1)
+    assert not pg.is_anchored("b")
+    pg.add_inter_robot_closure("a", 1, "b", 1, np.eye(4), num_inliers=20, match_id=2)
+    assert pg.is_anchored("b")

@@ -16,6 +16,7 @@ from tests.odometry.corridor import INTRINSICS, path, render
 
 
 def run_vo(poses: np.ndarray, depth_fn=lambda d, i: d, **kwargs) -> tuple[np.ndarray, list]:
+    kwargs.setdefault("depth_window_px", 1)  # true depth: a corner's own pixel
     vo = DepthVisualOdometry(**kwargs)
     est, regs = [], []
     for i, T in enumerate(poses):
@@ -56,6 +57,21 @@ def test_depth_scale_error_scales_the_path(corridor):
     est, _ = run_vo(corridor, lambda d, i: d * np.float32(0.8))
     gt = inverse(corridor[0]) @ corridor
     assert trajectory_length(est) == pytest.approx(0.8 * trajectory_length(gt), rel=0.02)
+
+
+def test_depth_window_undoes_foreground_bleeding(corridor):
+    """Depth blurred toward the foreground at edges (a 5x5 minimum, as networks do) shortens the path;
+    taking the largest depth around each corner brings it back."""
+    import cv2
+
+    def bleed(d, i):
+        return cv2.erode(d, np.ones((5, 5), np.uint8))
+
+    gt_len = trajectory_length(inverse(corridor[0]) @ corridor)
+    own, _ = run_vo(corridor, bleed, depth_window_px=1)
+    window, _ = run_vo(corridor, bleed, depth_window_px=5)
+    assert abs(trajectory_length(window) - gt_len) < abs(trajectory_length(own) - gt_len)
+    assert trajectory_length(window) == pytest.approx(gt_len, rel=0.03)
 
 
 def test_static_camera_invents_no_motion():
@@ -157,7 +173,7 @@ def test_source_needs_image_and_depth():
 
 
 def test_source_runs_on_rgb_frames(corridor):
-    src = make_odometry(OdometryConfig(kind=OdometryKind.VISUAL), 5)
+    src = make_odometry(OdometryConfig(kind=OdometryKind.VISUAL, visual_depth_window_px=1), 5)
     for i, T in enumerate(corridor[:5]):
         gray, depth = render(T)
         rgb = np.repeat(gray[..., None], 3, axis=2)
