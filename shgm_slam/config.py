@@ -189,8 +189,8 @@ class BackendConfig(_Stage):
     closure_sigma_trans_m: float = Field(3.0, gt=0)
     robust_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="huber | cauchy | tukey | none")
     min_closures_to_anchor: int = Field(
-        1, ge=1, description="a robot enters the shared frame only when a robot pair's consistent set has this "
-        "many closures (1 = trust the first accepted match; 2+ = safer on noisy, e.g. RGB-only, graphs)"
+        1, ge=1, description="a robot enters the shared frame only when a robot pair's consistent set has closures "
+        "from this many matches (closures of one match count once; 1 = trust the first accepted match)"
     )
     consistency_trans_m: float = Field(5.0, gt=0, description="pairwise closure consistency, translation")
     consistency_rot_deg: float = Field(10.0, gt=0, description="pairwise closure consistency, rotation")

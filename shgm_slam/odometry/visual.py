@@ -13,7 +13,7 @@ The method (per frame):
 2. Solve PnP (RANSAC, then Levenberg-Marquardt on the inliers) between the reference frame's 3-D
    points, back-projected from its depth, and the tracked pixels; the constant-velocity prediction
    seeds it. Tracking against a reference (not the previous frame) compounds the depth error only
-   once per reference, which halves the drift on the demo worlds.
+   once per reference (true depth, airsim-like: ATE 4.1 -> 1.7 m for car1, 16.1 -> 6.3 m for the UAV).
 3. When fewer than ``min_track_fraction`` of the reference's corners survive (or fewer than
    ``min_tracks``), this frame becomes the new reference: fresh corners, 3-D from its own depth.
 
@@ -161,8 +161,6 @@ class DepthVisualOdometry:
         exclude_labels: Cityscapes train ids whose pixels never give corners (sky, people).
         triangulated_scale: take the translation length from ``triangulated_scale`` (median depth
             ratio) instead of PnP's least squares, which network depth noise shrinks.
-        scale_edge_ratio: only corners whose depth varies less than this factor over 5x5 pixels
-            vote for the scale (None: all).
         depth_window_px: a corner's depth is the largest in this window (1: its own pixel). Depth
             networks blur depth edges toward the foreground and corners sit on edges; without the
             window the demo model's path comes out 5-7 % short (3: 2-5 %, 5: 1-3 %; with true
@@ -186,7 +184,6 @@ class DepthVisualOdometry:
         lk_window_px: int = 21,
         lk_levels: int = 3,
         triangulated_scale: bool = True,
-        scale_edge_ratio: float | None = None,
         depth_window_px: int = 5,
     ) -> None:
         if not 0.0 <= min_depth_m < max_depth_m:
@@ -210,7 +207,6 @@ class DepthVisualOdometry:
         self.max_step_m = max_step_m
         self.exclude_labels = tuple(exclude_labels)
         self.triangulated_scale = triangulated_scale
-        self.scale_edge_ratio = scale_edge_ratio
         self.depth_window_px = depth_window_px
         self._lk = {
             "winSize": (lk_window_px, lk_window_px),
@@ -224,7 +220,6 @@ class DepthVisualOdometry:
         self._ref_points = np.zeros((0, 3))  # (M, 3) reference corners in the reference camera frame
         self._tracks_uv = np.zeros((0, 1, 2), np.float32)  # (M, 1, 2) their pixels in the previous image
         self._ref_uv = np.zeros((0, 2))  # (M, 2) their pixels in the reference image
-        self._ref_smooth = np.zeros(0, bool)  # (M,) away from depth edges (they vote for the scale)
         self._ref_count = 0
         self.num_frames = 0
         self.num_references = 0
@@ -311,15 +306,6 @@ class DepthVisualOdometry:
             # corners sit on edges; a background corner given foreground depth shortens the motion
             depth = cv2.dilate(depth, np.ones((self.depth_window_px, self.depth_window_px), np.uint8))
         self._ref_points = backproject_pixels(self._ref_uv, depth, intrinsics)
-        if self.scale_edge_ratio is not None and len(corners):
-            # depth at a depth edge is a blend of both sides: such corners do not vote for the scale
-            kernel = np.ones((5, 5), np.uint8)
-            ratio = cv2.dilate(depth, kernel) / np.maximum(cv2.erode(depth, kernel), 1e-3)
-            u = np.clip(np.rint(self._ref_uv[:, 0]).astype(np.int64), 0, depth.shape[1] - 1)
-            v = np.clip(np.rint(self._ref_uv[:, 1]).astype(np.int64), 0, depth.shape[0] - 1)
-            self._ref_smooth = ratio[v, u] < self.scale_edge_ratio
-        else:
-            self._ref_smooth = np.ones(len(corners), bool)
         self._ref_T_odom_cam = self.T_odom_cam.copy()
         self._ref_count = len(corners)
         self.num_references += 1
@@ -341,7 +327,7 @@ class DepthVisualOdometry:
     def _keep_tracks(self, keep: np.ndarray, tracks_uv: np.ndarray | None = None) -> None:
         tracks_uv = self._tracks_uv if tracks_uv is None else tracks_uv
         self._tracks_uv, self._ref_points = tracks_uv[keep], self._ref_points[keep]
-        self._ref_uv, self._ref_smooth = self._ref_uv[keep], self._ref_smooth[keep]
+        self._ref_uv = self._ref_uv[keep]
 
     def _solve_pnp(self, T_pred: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray | None, int]:
         """Pose of the current frame from reference 3-D points and tracked pixels, or (None, inliers)."""
@@ -362,8 +348,7 @@ class DepthVisualOdometry:
             return None, len(idx)
         T_cam_ref = _pose_from_rt(rvec, tvec)
         if self.triangulated_scale:
-            vote = idx[self._ref_smooth[idx]]
-            scale = triangulated_scale(T_cam_ref, self._ref_uv[vote], uv[vote], self._ref_points[vote, 2], K)
+            scale = triangulated_scale(T_cam_ref, self._ref_uv[idx], uv[idx], self._ref_points[idx, 2], K)
             t_norm = np.linalg.norm(T_cam_ref[:3, 3])
             if scale is not None and 0.5 * t_norm < scale < 2.0 * t_norm:
                 T_cam_ref[:3, 3] *= scale / t_norm
