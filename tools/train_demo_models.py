@@ -667,8 +667,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-dir", type=Path, default=Path("/tmp/shgm_demo_models/cache"),
                    help="rendered data cache (outside the repository)")
     p.add_argument("--out-dir", type=Path, default=REPO / "models", help="where the .onnx + cards go")
-    p.add_argument("--train-minutes", type=float, default=22.0, help="training wall-time budget")
-    p.add_argument("--max-steps", type=int, default=6000, help="training steps at most")
+    p.add_argument("--train-minutes", type=float, default=38.0, help="training wall-time budget")
+    p.add_argument("--max-steps", type=int, default=9000, help="training steps at most")
     p.add_argument("--batch", type=int, default=12, help="crops per step")
     p.add_argument("--lr", type=float, default=3e-3, help="peak learning rate (one-cycle)")
     p.add_argument("--seed", type=int, default=0)
