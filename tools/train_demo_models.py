@@ -8,8 +8,8 @@ downloads), so the whole system runs from RGB alone on the synthetic worlds. Ste
              the TRAINING seeds at 1 frame/s, 640x192; cache them as .npz at the model input size
     train    one small encoder-decoder (depthwise-separable, 24-32-64-128 channels, a thin full-resolution
              path) with a log-depth head and a 19-class head, jointly, for a wall-time budget (default
-             22 min): class-weighted L1 + scale-invariant + gradient loss on log depth (sky masked, far
-             clamped to 80 m) and class-weighted cross entropy
+             38 min, 9000 steps at most): class-weighted L1 + scale-invariant + gradient loss on log
+             depth (sky masked, far clamped to 80 m) and class-weighted cross entropy
     export   two ONNX files (opset 17, IR <= 10, dynamic batch, fixed 320x96 input) + model cards:
              demo_depth.onnx -> metric depth (N, 1, 96, 320), 0 where the model sees sky;
              demo_seg.onnx   -> label map (N, 96, 320) of Cityscapes train ids (ArgMax in the graph)
