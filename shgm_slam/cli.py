@@ -510,5 +510,48 @@ def bench_system(
     console.print(f"wrote {out / 'system.json'} and {out / 'system.md'}")
 
 
+@bench_app.command("heldout")
+@handle_errors
+def bench_heldout(
+    out: Annotated[Path, typer.Option("--out", "-o", help="results folder (resumes the runs already in it)")]
+    = Path("results/bench_heldout"),
+    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (200-209), 'tuning' (10-19) or A-B")]
+    = "report",
+    scenario: Annotated[list[str] | None, typer.Option(help="scenario (repeatable) [all four]")] = None,
+    mode: Annotated[list[str] | None, typer.Option(help="files | rgb (repeatable) [both]")] = None,
+    max_frames: Annotated[int | None, typer.Option(min=10, help="cut every robot's sequence (quick looks)")] = None,
+    cache: Annotated[Path, typer.Option(help="rendered worlds are cached here")] = Path("cache/heldout"),
+) -> None:
+    """The system with the default configuration on many unseen worlds: placed right, false merges,
+    not placed, odometry failures (ground truth and detected), per scenario and input."""
+    from shgm_slam.bench import heldout
+    from shgm_slam.errors import ConfigError
+
+    named = {"report": heldout.REPORT_SEEDS, "tuning": heldout.TUNING_SEEDS}
+    if seeds in named:
+        seed_list = named[seeds]
+    else:
+        try:
+            a, b = (int(x) for x in seeds.split("-"))
+        except ValueError:
+            raise ConfigError(f"--seeds {seeds!r}: write report, tuning or A-B (inclusive), e.g. 10-14") from None
+        if b < a:
+            raise ConfigError(f"--seeds {seeds!r}: the range is empty (A-B needs A <= B)")
+        seed_list = tuple(range(a, b + 1))
+    for s in scenario or ():
+        if s not in heldout.SCENARIOS:
+            raise ConfigError(f"--scenario {s!r}: choose from {', '.join(heldout.SCENARIOS)}")
+    try:
+        modes = tuple(heldout.InputMode(m) for m in (mode or [m.value for m in heldout.InputMode]))
+    except ValueError:
+        raise ConfigError(f"--mode {mode}: choose files or rgb") from None
+    options = heldout.HeldoutOptions(scenarios=tuple(scenario or heldout.SCENARIOS), seeds=seed_list, modes=modes,
+                                     max_frames=max_frames, cache=cache)
+    with console.status("starting") as status:
+        results = heldout.run_heldout_benchmark(out, options, progress=lambda msg: status.update(msg))
+    typer.echo(heldout.heldout_markdown(results))
+    console.print(f"wrote {out / 'heldout.json'} and {out / 'heldout.md'}")
+
+
 if __name__ == "__main__":
     app()
