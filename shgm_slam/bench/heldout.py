@@ -50,6 +50,18 @@ RESOLUTION = (320, 96)
 """Render size: the demo models' input size, and fast enough for ~80 runs in an hour on 2 cores."""
 MIN_SHARED_VIEW_M = 30.0
 """A robot 'overlaps' when it shares at least this much view with another robot (scenario.json)."""
+KITTI_DRIVE_PAIRS = (
+    ("00:2600-2900", "07:0-350"),  # the same street on two days (the scenario's default)
+    ("00:546-762", "08:0-300"),
+    ("09:333-592", "10:0-300"),
+    ("00:1369-1589", "08:3450-3750"),
+    ("00:378-628", "08:1950-2250"),  # driven in opposite directions
+    ("09:392-571", "10:900-1200"),
+    ("00:385-623", "08:1200-1500"),
+)
+"""kitti-paths drive pairs, one per world seed in turn: real KITTI motion, 83-258 m of shared street once
+laid into one world by ``sim.kitti_paths.align_drive`` (found by aligning 300-frame pieces of 08 and 10
+onto 00 and 09; the generated city grows around both drives)."""
 BREAK_WINDOW_S = 1.0
 """Odometry is judged against ground truth over windows of this length."""
 
@@ -117,7 +129,8 @@ def ensure_world(cache: Path, scenario: str, seed: int, resolution: tuple[int, i
     folder = world_folder(cache, scenario, seed, resolution)
     if not (folder / "scenario.json").is_file():
         progress(f"rendering {scenario} seed {seed} into {folder}")
-        simulate(scenario, folder, seed=seed, resolution=resolution, overwrite=True)
+        pair = KITTI_DRIVE_PAIRS[seed % len(KITTI_DRIVE_PAIRS)] if scenario == "kitti-paths" else None
+        simulate(scenario, folder, seed=seed, resolution=resolution, overwrite=True, kitti_robots=pair)
     return folder
 
 

@@ -142,6 +142,7 @@ def simulate(
     compact: bool = False,
     uav_speed_mps: float = 7.0,
     kitti_root: Path | None = None,
+    kitti_robots: tuple[str, ...] | None = None,
     overwrite: bool = False,
     threads: int = 2,
     progress: ProgressFn | None = None,
@@ -154,6 +155,8 @@ def simulate(
         corruption: depth/label corruption levels (default none: perfect ground truth).
         max_depth_m: depth beyond is written as 0 (invalid).
         compact: small world and short paths (tests, previews).
+        kitti_root, kitti_robots: kitti-paths only: the folder with ``poses/NN.txt`` and the drives as
+            ``SEQ:START-END`` (default ``sim.kitti_paths.DEFAULT_KITTI_ROBOTS``; the first is the reference).
         overwrite: replace an existing output folder's sequences.
         threads: ray-casting threads.
         progress: called after every frame.
@@ -176,6 +179,7 @@ def simulate(
         world_size_m=world_size_m,
         max_depth_m=max_depth_m,
         kitti_root=kitti_root,
+        **({"kitti_robots": tuple(kitti_robots)} if kitti_robots else {}),
         compact=compact,
         uav_speed_mps=uav_speed_mps,
     )
