@@ -521,6 +521,7 @@ def bench_heldout(
     mode: Annotated[list[str] | None, typer.Option(help="files | rgb (repeatable) [both]")] = None,
     max_frames: Annotated[int | None, typer.Option(min=10, help="cut every robot's sequence (quick looks)")] = None,
     cache: Annotated[Path, typer.Option(help="rendered worlds are cached here")] = Path("cache/heldout"),
+    jobs: Annotated[int, typer.Option(min=1, max=64, help="worlds run in this many processes at once")] = 1,
 ) -> None:
     """The system with the default configuration on many unseen worlds: placed right, false merges,
     not placed, odometry failures (ground truth and detected), per scenario and input."""
@@ -548,7 +549,7 @@ def bench_heldout(
     options = heldout.HeldoutOptions(scenarios=tuple(scenario or heldout.SCENARIOS), seeds=seed_list, modes=modes,
                                      max_frames=max_frames, cache=cache)
     with console.status("starting") as status:
-        results = heldout.run_heldout_benchmark(out, options, progress=lambda msg: status.update(msg))
+        results = heldout.run_heldout_benchmark(out, options, progress=lambda msg: status.update(msg), jobs=jobs)
     typer.echo(heldout.heldout_markdown(results))
     console.print(f"wrote {out / 'heldout.json'} and {out / 'heldout.md'}")
 

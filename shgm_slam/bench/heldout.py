@@ -24,8 +24,10 @@ resumes where it stopped. Nothing here prints; the CLI renders the returned dict
 from __future__ import annotations
 
 import json
+import multiprocessing
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -266,41 +268,62 @@ def run_one(world: Path, mode: InputMode, run_dir: Path, max_frames: int | None)
     return json.loads(json.dumps(summary.to_json_dict(), default=float))
 
 
-def run_heldout_benchmark(out: Path, options: HeldoutOptions, progress: Progress | None = None) -> dict:
+def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, progress: Progress) -> list[dict]:
+    """Render one world (cached) and run every mode on it; returns one dict per run (cached as JSON)."""
+    world = ensure_world(options.cache, scenario, seed, options.resolution, progress)
+    done_runs = []
+    for mode in options.modes:
+        run_dir = out / "runs" / f"{scenario}-s{seed}-{mode.value}"
+        cached = run_dir / "verdicts.json"
+        if cached.is_file():
+            done_runs.append(json.loads(cached.read_text()))
+            continue
+        progress(f"running {scenario} seed {seed} ({mode.value})")
+        t_run = time.perf_counter()
+        metrics = run_one(world, mode, run_dir, options.max_frames)
+        verdicts = judge_run(run_dir, world, _robots_of(world), mode, scenario, seed, metrics)
+        done = {
+            "scenario": scenario, "seed": seed, "mode": mode.value,
+            "wall_s": round(time.perf_counter() - t_run, 1),
+            "matches_tried": metrics.get("matches_tried"),
+            "closures_accepted": metrics.get("closures_accepted"),
+            "per_keyframe_ms": metrics.get("per_keyframe_ms"),
+            "verdicts": [vars(v) for v in verdicts],
+        }  # fmt: skip
+        cached.write_text(json.dumps(done, indent=1, default=float) + "\n")
+        done_runs.append(done)
+    return done_runs
+
+
+def _quiet(_msg: str) -> None:
+    pass
+
+
+def run_heldout_benchmark(
+    out: Path, options: HeldoutOptions, progress: Progress | None = None, *, jobs: int = 1
+) -> dict:
     """Run (or resume) the held-out evaluation; writes ``out/heldout.json`` and ``out/heldout.md``.
 
     Each (scenario, seed, mode) run keeps its results folder under ``out/runs/`` and its verdicts in
-    ``verdicts.json`` there; runs that already have one are not repeated.
+    ``verdicts.json`` there; runs that already have one are not repeated. With ``jobs`` > 1 worlds
+    run in that many worker processes at once (each world's modes stay in one worker).
     """
-    progress = progress or (lambda _msg: None)
+    progress = progress or _quiet
     out = Path(out)
-    rows: list[dict] = []
-    runs: list[dict] = []
     t0 = time.perf_counter()
-    for scenario in options.scenarios:
-        for seed in options.seeds:
-            world = ensure_world(options.cache, scenario, seed, options.resolution, progress)
-            for mode in options.modes:
-                run_dir = out / "runs" / f"{scenario}-s{seed}-{mode.value}"
-                cached = run_dir / "verdicts.json"
-                if cached.is_file():
-                    done = json.loads(cached.read_text())
-                else:
-                    progress(f"running {scenario} seed {seed} ({mode.value})")
-                    t_run = time.perf_counter()
-                    metrics = run_one(world, mode, run_dir, options.max_frames)
-                    verdicts = judge_run(run_dir, world, _robots_of(world), mode, scenario, seed, metrics)
-                    done = {
-                        "scenario": scenario, "seed": seed, "mode": mode.value,
-                        "wall_s": round(time.perf_counter() - t_run, 1),
-                        "matches_tried": metrics.get("matches_tried"),
-                        "closures_accepted": metrics.get("closures_accepted"),
-                        "per_keyframe_ms": metrics.get("per_keyframe_ms"),
-                        "verdicts": [vars(v) for v in verdicts],
-                    }  # fmt: skip
-                    cached.write_text(json.dumps(done, indent=1, default=float) + "\n")
-                runs.append({k: v for k, v in done.items() if k != "verdicts"})
-                rows += done["verdicts"]
+    worlds = [(sc, seed) for sc in options.scenarios for seed in options.seeds]
+    if jobs > 1:
+        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = [pool.submit(_world_runs, sc, seed, options, out, _quiet) for sc, seed in worlds]
+            runs_by_world = []
+            for k, f in enumerate(futures):
+                progress(f"world {k + 1}/{len(worlds)}: {worlds[k][0]} seed {worlds[k][1]}")
+                runs_by_world.append(f.result())
+    else:
+        runs_by_world = [_world_runs(sc, seed, options, out, progress) for sc, seed in worlds]
+    done_runs = [r for world_runs in runs_by_world for r in world_runs]
+    runs = [{k: v for k, v in d.items() if k != "verdicts"} for d in done_runs]
+    rows = [v for d in done_runs for v in d["verdicts"]]
     results = {
         "options": {
             "scenarios": list(options.scenarios), "seeds": list(options.seeds),
