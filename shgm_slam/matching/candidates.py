@@ -47,17 +47,23 @@ class Candidates:
         return Candidates(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
 
 
-def _rank_in_groups(groups: np.ndarray, scores: np.ndarray) -> np.ndarray:
+def _rank_in_groups(groups: np.ndarray, scores: np.ndarray, others: np.ndarray) -> np.ndarray:
     """Rank (0 = best) of each entry among the entries of its group by descending score.
 
-    One sort of the composite key ``group + (1 - score) / 2`` (scores lie in [0, 1]).
+    Ties are broken by ascending ``others`` (the node on the other side), so the ranking does not depend
+    on the order of the entries: one lexsort on (group, -score, other).
     """
-    order = np.argsort(groups + 0.5 * (1.0 - scores))
+    order = np.lexsort((others, -scores, groups))
     sorted_groups = groups[order]
     first = np.searchsorted(sorted_groups, sorted_groups, side="left")
     rank = np.empty(groups.size, dtype=np.int64)
     rank[order] = np.arange(groups.size) - first
     return rank
+
+
+def _by_score(rows_a: np.ndarray, rows_b: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Order of candidates by descending score, ties by (row_b, row_a): independent of the input order."""
+    return np.lexsort((rows_a, rows_b, -s))
 
 
 def select_candidates(
@@ -79,18 +85,67 @@ def select_candidates(
     if mode is CandidateMode.ALL:
         mask = np.ones(s.size, dtype=bool)
     elif mode is CandidateMode.BEST:
-        mask = _rank_in_groups(rows_b, s) == 0
+        mask = _rank_in_groups(rows_b, s, rows_a) == 0
     elif mode is CandidateMode.TOP_K:
-        mask = _rank_in_groups(rows_b, s) < top_k
+        mask = _rank_in_groups(rows_b, s, rows_a) < top_k
     elif mode is CandidateMode.MUTUAL:
-        mask = (_rank_in_groups(rows_b, s) == 0) & (_rank_in_groups(rows_a, s) == 0)
+        mask = (_rank_in_groups(rows_b, s, rows_a) == 0) & (_rank_in_groups(rows_a, s, rows_b) == 0)
     else:  # pragma: no cover - exhaustive over the enum
         raise ValueError(f"unknown candidate mode {mode}")
-    order = np.argsort(-s[mask], kind="stable")
-    return Candidates(rows_a[mask][order], rows_b[mask][order], s[mask][order])
+    rows_a, rows_b, s = rows_a[mask], rows_b[mask], s[mask]
+    order = _by_score(rows_a, rows_b, s)
+    return Candidates(rows_a[order], rows_b[order], s[order])
 
 
-def match_candidates(a: NodeDescriptors, b: NodeDescriptors, cfg: MatchingConfig) -> Candidates:
-    """Eq. 1 scores between two graphs' descriptors, then the candidate selection of ``cfg``."""
+MAX_FILL_PAIRS = 4_000_000
+"""Graphs with more node pairs than this are not filled (their descriptors carry enough candidates)."""
+
+
+def fill_same_label(
+    cands: Candidates, scores: sp.spmatrix, labels_a: np.ndarray, labels_b: np.ndarray, budget: int
+) -> Candidates:
+    """Append further same-label pairs to ``cands`` until there are ``budget`` candidates.
+
+    Sparse maps miss many objects, so a node's neighbourhood, and with it its descriptor, differs between
+    the robots and the true partner often scores 0 (verified later against the whole overlap, not trusted).
+    The extra pairs come round-robin over B's nodes: every node's best remaining partner first (by
+    score, ties by row), then every node's second, and so on.
+
+    Args:
+        cands: the selected candidates (kept first, in their order).
+        scores: (N_a, N_b) Eq. 1 scores (absent = 0).
+        labels_a, labels_b: (N_a,), (N_b,) train ids.
+        budget: total candidates wanted.
+    """
+    n_a, n_b = labels_a.shape[0], labels_b.shape[0]
+    if len(cands) >= budget or n_a * n_b > MAX_FILL_PAIRS:
+        return cands
+    same = labels_a[:, None] == labels_b[None, :]
+    same[cands.rows_a, cands.rows_b] = False
+    rows_a, rows_b = np.nonzero(same)
+    if rows_a.size == 0:
+        return cands
+    s = np.asarray(sp.csr_matrix(scores)[rows_a, rows_b]).ravel()
+    rank = _rank_in_groups(rows_b, s, rows_a)
+    order = np.lexsort((rows_a, -s, rows_b, rank))[: budget - len(cands)]
+    return Candidates(
+        np.concatenate([cands.rows_a, rows_a[order]]),
+        np.concatenate([cands.rows_b, rows_b[order]]),
+        np.concatenate([cands.scores, s[order]]),
+    )
+
+
+def match_candidates(
+    a: NodeDescriptors,
+    b: NodeDescriptors,
+    cfg: MatchingConfig,
+    labels_a: np.ndarray | None = None,
+    labels_b: np.ndarray | None = None,
+) -> Candidates:
+    """Eq. 1 scores between two graphs' descriptors, then the candidate selection of ``cfg``; with
+    ``cfg.fill_candidates`` and both graphs' (N,) train ids, filled up to ``cfg.max_candidates``."""
     scores = similarity(a, b, same_label_only=cfg.same_label_only)
-    return select_candidates(scores, cfg.candidate_mode, cfg.score_threshold, cfg.top_k)
+    cands = select_candidates(scores, cfg.candidate_mode, cfg.score_threshold, cfg.top_k)
+    if cfg.fill_candidates and labels_a is not None and labels_b is not None:
+        cands = fill_same_label(cands, scores, labels_a, labels_b, cfg.max_candidates)
+    return cands

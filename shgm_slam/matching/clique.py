@@ -11,14 +11,10 @@ Gravity-aligned robots share the vertical axis, so their consistency test also c
 offsets and horizontal distances separately (a much stronger test), and the fit is 4-DoF.
 
 Chance cliques of 5-8 correspondences exist among hundreds of candidates even between places that
-do not overlap, so a clique is only evidence when it clearly beats the best clique among the
-candidates its fit does not explain (``rival_support``; the matcher's ``min_support_ratio`` test).
-Clique sizes are biased against large graphs: chance cliques grow with the number of candidates while
-the true clique is capped by node noise (|d_a - d_b| < eps fails for noisy pairs). So both hypotheses
-are also scored like RANSAC's: refit and re-select one-to-one inliers within the re-check threshold
-(``inlier_support`` among all candidates, ``rival_inlier_support`` among those the winner does not
-explain); the matcher accepts either a clear clique-size margin or a clear refined-inlier margin
-backed by a smaller clique-size margin (``MatchingConfig.min_clique_ratio``).
+do not overlap, and on sparse, noisy maps the largest clique is often not the true one; so the matcher
+takes several cliques (``clique_hypotheses``) and judges each on the whole overlap of both graphs
+(``verification``), not on its size. ``clique_alignment`` (one maximum clique, its fit and the best
+clique among the candidates it does not explain) remains for RANSAC comparisons and diagnostics.
 """
 
 from __future__ import annotations
@@ -281,3 +277,61 @@ def recheck_threshold_m(consistency_threshold_m: float) -> float:
     (Residuals below eps / 2 guarantee pairwise consistency; 2 eps tolerates the fit's own error.)
     """
     return 2.0 * consistency_threshold_m
+
+
+def clique_hypotheses(
+    points_b: np.ndarray,
+    points_a: np.ndarray,
+    rows_a: np.ndarray,
+    rows_b: np.ndarray,
+    weights: np.ndarray | None = None,
+    *,
+    consistency_threshold_m: float = 2.0,
+    gravity_aligned: bool = False,
+    up: np.ndarray | None = None,
+    max_candidates: int | None = None,
+    max_hypotheses: int = MAX_SEEDS,
+) -> list[np.ndarray]:
+    """Several alignment hypotheses: the Eq. 2 fits of greedy cliques grown from different seeds.
+
+    The maximum clique is often not the true alignment on sparse, noisy graphs (a chance clique of
+    repeated classes can be as large as the true one, whose size noise caps), so the matcher verifies
+    several: greedy cliques (``_greedy_clique``) from the ``max_hypotheses`` candidates of highest
+    consistency degree, in that order, cliques of fewer than 3 candidates and repeats dropped.
+
+    Args:
+        points_b, points_a: (K, 3) candidate positions in B's and A's frames (decreasing score order).
+        rows_a, rows_b: (K,) node rows of the candidates.
+        weights: (K,) Eq. 2 weights or None.
+
+    Returns:
+        (4, 4) ``T_a_b`` fits, largest clique first.
+    """
+    m = points_b.shape[0] if max_candidates is None else min(max_candidates, points_b.shape[0])
+    pb, pa = points_b[:m], points_a[:m]
+    adjacency = consistency_matrix(pa, pb, rows_a[:m], rows_b[:m], consistency_threshold_m, True, gravity_aligned, up)
+    degree = _count(adjacency, axis=1)
+    seeds = np.argsort(-degree, kind="stable")[:max_hypotheses]
+    alive = np.ones(m, dtype=bool)
+    seen: set[bytes] = set()
+    cliques: list[np.ndarray] = []
+    for seed in seeds:
+        if degree[seed] < 2:
+            break
+        clique = _greedy_clique(adjacency, int(seed), alive, 2)
+        key = np.sort(clique).tobytes()
+        if clique.size >= 3 and key not in seen:
+            seen.add(key)
+            cliques.append(clique)
+    if not cliques:
+        return []
+    cliques.sort(key=lambda c: -c.size)
+    # one batched Eq. 2 fit: cliques padded to the largest with zero weights
+    size = cliques[0].size
+    index = np.zeros((len(cliques), size), dtype=np.int64)
+    w = np.zeros((len(cliques), size))
+    wc = np.ones(m) if weights is None else weights[:m]
+    for i, c in enumerate(cliques):
+        index[i, : c.size] = c
+        w[i, : c.size] = wc[c]
+    return list(fit_pose(pb[index], pa[index], w, gravity_aligned, up))

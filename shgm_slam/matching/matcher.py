@@ -1,4 +1,5 @@
-"""Match two semantic graphs end to end: descriptors -> candidates (Eq. 1) -> outliers -> pose (Eq. 2).
+"""Match two semantic graphs end to end: descriptors -> candidates (Eq. 1) -> hypotheses -> verification
+(whole overlap against chance) -> pose (Eq. 2).
 
 ``match_graphs`` is the one library function behind ``shgm-slam match``, the map server's
 cross-robot matching and the localization benchmark; pass precomputed descriptors to match one graph
@@ -7,6 +8,7 @@ against many cheaply.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 
@@ -15,18 +17,26 @@ import numpy as np
 from shgm_slam.config import DescriptorConfig, MatchingConfig, OutlierMode
 from shgm_slam.descriptors import NodeDescriptors, compute_descriptors
 from shgm_slam.errors import ConfigError, GraphError
+from shgm_slam.geometry.se3 import transform_points
 from shgm_slam.matching.candidates import Candidates, match_candidates
-from shgm_slam.matching.clique import clique_alignment, recheck_threshold_m
-from shgm_slam.matching.pose import Alignment, correspondence_weights, refine_alignment, spread_m
+from shgm_slam.matching.clique import clique_hypotheses
+from shgm_slam.matching.pose import correspondence_weights, fit_pose, spread_m
 from shgm_slam.matching.ransac import ransac_alignment
 from shgm_slam.matching.result import MatchResult
+from shgm_slam.matching.verification import (
+    LabelledTree,
+    Verification,
+    shift_vectors,
+    support_counts,
+    verify_alignment,
+)
 from shgm_slam.types import GraphArrays
 
 MIN_NODES = 3
 """Graphs with fewer nodes cannot determine a rigid transform."""
 
-OutlierRejector = Callable[
-    [np.ndarray, np.ndarray, Candidates, np.ndarray | None, MatchingConfig], Alignment | None
+HypothesisGenerator = Callable[
+    [np.ndarray, np.ndarray, Candidates, np.ndarray | None, MatchingConfig], list[np.ndarray]
 ]
 
 
@@ -36,13 +46,14 @@ def _ransac(
     cands: Candidates,
     weights: np.ndarray | None,
     cfg: MatchingConfig,
-) -> Alignment | None:
-    return ransac_alignment(
+) -> list[np.ndarray]:
+    best = ransac_alignment(
         points_b, points_a, cands.rows_a, cands.rows_b, weights,
         iterations=cfg.ransac_iterations, inlier_threshold_m=cfg.inlier_threshold_m,
         refine_iterations=cfg.refine_iterations,
         gravity_aligned=cfg.gravity_aligned, up=np.asarray(cfg.up_axis), seed=cfg.seed,
     )  # fmt: skip
+    return [] if best is None else [best.T_a_b]
 
 
 def _clique(
@@ -51,26 +62,25 @@ def _clique(
     cands: Candidates,
     weights: np.ndarray | None,
     cfg: MatchingConfig,
-) -> Alignment | None:
-    return clique_alignment(
+) -> list[np.ndarray]:
+    return clique_hypotheses(
         points_b, points_a, cands.rows_a, cands.rows_b, weights,
-        consistency_threshold_m=cfg.consistency_threshold_m, refine_iterations=cfg.refine_iterations,
+        consistency_threshold_m=cfg.consistency_threshold_m,
         gravity_aligned=cfg.gravity_aligned, up=np.asarray(cfg.up_axis), max_candidates=cfg.max_candidates,
     )  # fmt: skip
 
 
-OUTLIER_REJECTORS: dict[OutlierMode, OutlierRejector] = {
+HYPOTHESIS_GENERATORS: dict[OutlierMode, HypothesisGenerator] = {
     OutlierMode.RANSAC: _ransac,
     OutlierMode.CLIQUE: _clique,
 }
-"""Registry: outlier mode -> (points_b, points_a, candidates, weights, cfg) -> hypothesis with inliers."""
+"""Registry: outlier mode -> (points_b, points_a, candidates, weights, cfg) -> (4, 4) hypotheses."""
 
 
-def inlier_threshold_m(cfg: MatchingConfig) -> float:
-    """Residual below which a candidate supports the final pose: Alg. 2's T_R, or 2 eps for cliques."""
-    if cfg.outlier_mode is OutlierMode.RANSAC:
-        return cfg.inlier_threshold_m
-    return recheck_threshold_m(cfg.consistency_threshold_m)
+def searched_hypotheses(num_hypotheses: int, cfg: MatchingConfig) -> int:
+    """How many hypotheses the best one was chosen from (the Bonferroni factor of the decision):
+    RANSAC's iterations, or the cliques grown."""
+    return cfg.ransac_iterations if cfg.outlier_mode is OutlierMode.RANSAC else max(num_hypotheses, 1)
 
 
 def unusable_reason(graph: GraphArrays, name: str) -> str:
@@ -120,17 +130,18 @@ def match_graphs(
 ) -> MatchResult:
     """Find ``T_a_b`` (B's frame -> A's frame) from the semantic graphs of two robots.
 
-    Success needs (1) an unambiguous hypothesis: its support (clique size or RANSAC inliers) at least
-    ``min_support_ratio`` times that of the best hypothesis among the candidates it does not explain
-    (chance level or a competing alignment), (2) at least ``min_inliers`` one-to-one inliers, (3) an
-    inlier RMSE of at most ``max_rmse_m`` and (4) inliers spanning at least ``min_spread_m``
-    (``pose.spread_m``). Empty, tiny or edgeless graphs give an unsuccessful result with a reason,
-    never an exception.
+    Candidates (Eq. 1, filled with further same-label pairs for sparse maps) give hypotheses (max-clique
+    fits or Alg. 2 RANSAC); the ``verified_hypotheses`` with most supporting nodes are refined on their
+    whole-overlap partners and judged by ``verification`` (a likelihood ratio of the alignment against
+    chance, over every node in the other robot's observed area). Success needs (1) that ratio above
+    ``hypotheses searched / false_alarm_rate``, (2) at least ``min_inliers`` partner pairs, (3) an RMSE
+    of at most ``max_rmse_m`` and (4) partners spanning at least ``min_spread_m`` (``pose.spread_m``).
+    Empty, tiny or edgeless graphs give an unsuccessful result with a reason, never an exception.
 
     Args:
         a, b: the two graphs (positions in each robot's world frame, metres).
         descriptor_cfg: descriptor kind and parameters (ignored for graphs whose descriptors are given).
-        matching_cfg: candidate selection, outlier rejection and success criteria.
+        matching_cfg: candidate selection, hypotheses and the verification's parameters.
         descriptors_a, descriptors_b: precomputed ``compute_descriptors`` results (same kind) or None.
 
     Raises:
@@ -156,7 +167,7 @@ def match_graphs(
     db = _descriptors(b, descriptors_b, descriptor_cfg, "B")
     t = lap("descriptors", t_start)
 
-    cands = match_candidates(da, db, cfg)
+    cands = match_candidates(da, db, cfg, a.label_ids, b.label_ids)
     t = lap("matching", t)
     if len(cands) < MIN_NODES:
         reason = f"only {len(cands)} candidate(s) scored above {cfg.score_threshold}"
@@ -166,66 +177,119 @@ def match_graphs(
     weights = None
     if cfg.weighted_pose:
         weights = correspondence_weights(a.sizes[cands.rows_a], b.sizes[cands.rows_b])
-    hypothesis = OUTLIER_REJECTORS[cfg.outlier_mode](points_b, points_a, cands, weights, cfg)
+    hypotheses = HYPOTHESIS_GENERATORS[cfg.outlier_mode](points_b, points_a, cands, weights, cfg)
     t = lap("ransac", t)
-    if hypothesis is None:
+    if not hypotheses:
         reason = f"no consistent hypothesis among {len(cands)} candidates"
         return MatchResult.failure(reason, len(cands), timings)
 
+    tree_a, tree_b = LabelledTree(a.positions_xyz, a.label_ids), LabelledTree(b.positions_xyz, b.label_ids)
+    scored = _verify_best(np.stack(hypotheses), a, b, tree_a, tree_b, cfg)
+    best, rival = _best_and_rival(scored, b, cfg.verification_radius_m)
+    T, v = best[0], _verify(tree_a, tree_b, best[0], cfg, shift_vectors(np.asarray(cfg.up_axis)))
+    rows_a, rows_b = v.pairs[:, 0], v.pairs[:, 1]
+    res = np.linalg.norm(transform_points(T, b.positions_xyz[rows_b]) - a.positions_xyz[rows_a], axis=1)
+    rmse = float(np.sqrt(np.mean(res**2))) if res.size else math.inf
     up = np.asarray(cfg.up_axis)
-    # pose (Sec. III-D): the Eq. 2 weighted fit on the hypothesis' inliers, inliers re-selected once more
-    final = refine_alignment(
-        hypothesis.T_a_b, points_b, points_a, cands.rows_a, cands.rows_b, weights,
-        inlier_threshold_m(cfg), 1, cfg.gravity_aligned, up,
-    )  # fmt: skip
-    spread = spread_m(points_a[final.inliers], cfg.gravity_aligned, up)
+    spread = spread_m(a.positions_xyz[rows_a], cfg.gravity_aligned, up)
+    threshold = math.log(searched_hypotheses(len(hypotheses), cfg) / cfg.false_alarm_rate)
     lap("pose", t)
 
-    reason = _rejection_reason(final, spread, hypothesis, cfg)
-    rows_a, rows_b = cands.rows_a[final.inliers], cands.rows_b[final.inliers]
-    pairs = np.stack([a.node_ids[rows_a], b.node_ids[rows_b]], axis=1)
+    reason = _rejection_reason(v, threshold, rmse, spread, cfg)
+    pairs = np.stack([a.node_ids[rows_a], b.node_ids[rows_b]], axis=1).astype(np.int64)
     return MatchResult(
         success=not reason,
-        T_a_b=None if reason else final.T_a_b,
-        inliers=np.zeros((0, 2), dtype=np.int64) if reason else pairs.astype(np.int64),
+        T_a_b=None if reason else T,
+        inliers=np.zeros((0, 2), dtype=np.int64) if reason else pairs,
         candidates=len(cands),
         timings_ms=timings,
-        rmse_m=final.rmse_m,
-        num_inliers=final.num_inliers,
+        rmse_m=rmse,
+        num_inliers=v.support,
         spread_m=spread,
-        support=hypothesis.support,
-        rival_support=hypothesis.rival_support,
-        T_a_b_hypothesis=final.T_a_b,
+        support=v.support,
+        rival_support=0 if rival is None else rival[1].support,
+        T_a_b_hypothesis=T,
         reason=reason,
+        expected_chance=v.expected_chance,
+        overlap_a=v.overlap_a,
+        overlap_b=v.overlap_b,
+        contradictions=v.contradictions,
+        llr=v.llr,
+        llr_threshold=threshold,
+        rival_llr=-math.inf if rival is None else rival[1].llr,
+        hypotheses=len(hypotheses),
     )
 
 
-def _rejection_reason(final: Alignment, spread: float, hypothesis: Alignment, cfg: MatchingConfig) -> str:
+def _verify(
+    tree_a: LabelledTree, tree_b: LabelledTree, T: np.ndarray, cfg: MatchingConfig, shifts_m: np.ndarray | None = None
+) -> Verification:
+    return verify_alignment(
+        tree_a, tree_b, T, radius_m=cfg.verification_radius_m, coverage_m=cfg.coverage_radius_m,
+        density_radius_m=cfg.density_radius_m, partner_probability=cfg.partner_probability, shifts_m=shifts_m,
+    )  # fmt: skip
+
+
+def _verify_best(
+    hypotheses: np.ndarray, a: GraphArrays, b: GraphArrays, tree_a: LabelledTree, tree_b: LabelledTree,
+    cfg: MatchingConfig,
+) -> list[tuple[np.ndarray, Verification]]:  # fmt: skip
+    """Screen (H, 4, 4) hypotheses by their supporting nodes of B, then refine the ``verified_hypotheses``
+    best: alternate partner selection (``verification``) and the Eq. 2 fit on the partners
+    (``refine_iterations`` times, stopping when the partners are stable). Returns (T, verification) pairs."""
+    counts = support_counts(tree_a, b.positions_xyz, b.label_ids, hypotheses, cfg.verification_radius_m)
+    top = np.argsort(-counts, kind="stable")[: cfg.verified_hypotheses]
+    up = np.asarray(cfg.up_axis)
+    out = []
+    for h in top:
+        T = hypotheses[h]
+        v = _verify(tree_a, tree_b, T, cfg)
+        for _ in range(cfg.refine_iterations):
+            if v.support < MIN_NODES:
+                break
+            w = None
+            if cfg.weighted_pose:
+                w = correspondence_weights(a.sizes[v.pairs[:, 0]], b.sizes[v.pairs[:, 1]])
+            T_new = fit_pose(b.positions_xyz[v.pairs[:, 1]], a.positions_xyz[v.pairs[:, 0]], w,
+                             cfg.gravity_aligned, up)  # fmt: skip
+            v_new = _verify(tree_a, tree_b, T_new, cfg)
+            if v_new.llr < v.llr:
+                break
+            stable = np.array_equal(v_new.pairs, v.pairs)
+            T, v = T_new, v_new
+            if stable:
+                break
+        out.append((T, v))
+    return out
+
+
+def _best_and_rival(
+    scored: list[tuple[np.ndarray, Verification]], b: GraphArrays, radius_m: float
+) -> tuple[tuple[np.ndarray, Verification], tuple[np.ndarray, Verification] | None]:
+    """The hypothesis with the largest likelihood ratio, and the best one that places B elsewhere
+    (B's centroid more than twice the verification radius away) or None."""
+    order = sorted(range(len(scored)), key=lambda i: -scored[i][1].llr)
+    best = scored[order[0]]
+    c = b.positions_xyz.mean(axis=0, keepdims=True)
+    at = transform_points(best[0], c)
+    for i in order[1:]:
+        if np.linalg.norm(transform_points(scored[i][0], c) - at) > 2.0 * radius_m:
+            return best, scored[i]
+    return best, None
+
+
+def _rejection_reason(v: Verification, threshold: float, rmse: float, spread: float, cfg: MatchingConfig) -> str:
     """'' when the alignment is accepted, else why not (the success criteria of ``match_graphs``)."""
-    if _ambiguous(hypothesis, cfg):
+    if v.llr < threshold:
         return (
-            f"ambiguous: support {hypothesis.support} (refined inliers {hypothesis.inlier_support}) is less "
-            f"than {cfg.min_support_ratio:g}x the {hypothesis.rival_support} "
-            f"({hypothesis.rival_inlier_support}) of the best rival hypothesis"
+            f"not beyond chance: {v.support} partner(s) among {v.overlap_a}/{v.overlap_b} overlapping nodes "
+            f"(A/B; {v.contradictions} without partner, {v.expected_chance:.1f} expected by chance), "
+            f"log likelihood ratio {v.llr:.1f} below {threshold:.1f}"
         )
-    if final.num_inliers < cfg.min_inliers:
-        return f"{final.num_inliers} inlier(s), fewer than min_inliers={cfg.min_inliers}"
-    if final.rmse_m > cfg.max_rmse_m:
-        return f"inlier RMSE {final.rmse_m:.2f} m above max_rmse_m={cfg.max_rmse_m}"
+    if v.support < cfg.min_inliers:
+        return f"{v.support} partner(s), fewer than min_inliers={cfg.min_inliers}"
+    if rmse > cfg.max_rmse_m:
+        return f"partner RMSE {rmse:.2f} m above max_rmse_m={cfg.max_rmse_m}"
     if spread < cfg.min_spread_m:
-        return f"inliers span only {spread:.1f} m (degenerate), below min_spread_m={cfg.min_spread_m}"
+        return f"partners span only {spread:.1f} m (degenerate), below min_spread_m={cfg.min_spread_m}"
     return ""
-
-
-def _ambiguous(h: Alignment, cfg: MatchingConfig) -> bool:
-    """True unless the hypothesis clearly beats its rival (``min_support_ratio``) in support (clique size
-    or RANSAC inliers), or in refined inlier count while also beating it by ``min_clique_ratio`` in support.
-
-    The second way exists because clique sizes are biased against large graphs (see ``clique``); the
-    support guard keeps chance hypotheses whose refit merely collects chance inliers over a large area out.
-    For RANSAC the refined counts are the support, so the second way adds nothing.
-    """
-    if h.support >= cfg.min_support_ratio * h.rival_support:
-        return False
-    refined_margin = h.inlier_support >= cfg.min_support_ratio * h.rival_inlier_support
-    return not (h.inlier_support > 0 and refined_margin and h.support >= cfg.min_clique_ratio * h.rival_support)

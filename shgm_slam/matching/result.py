@@ -17,19 +17,27 @@ class MatchResult:
     """Outcome of ``match_graphs``: a transform only when the evidence is sufficient.
 
     Attributes:
-        success: True when enough consistent, well-spread inliers with a small residual were found.
+        success: True when the alignment's evidence is far beyond chance (``verification``) and its
+            partners are enough, well spread and with a small residual.
         T_a_b: (4, 4) float64 mapping B's coordinates into A's frame, or None when not successful.
-        inliers: (M, 2) int64 node-id pairs (id_a, id_b) supporting ``T_a_b`` (empty when not successful).
+        inliers: (M, 2) int64 node-id pairs (id_a, id_b) supporting ``T_a_b``: same-label partners within the
+            verification radius, one-to-one (empty when not successful).
         candidates: number of candidate correspondences after descriptor matching.
         timings_ms: stage timings in milliseconds, keys ``TIMING_KEYS``.
-        rmse_m: inlier residual RMSE of the best hypothesis, metres (inf when there is none).
-        num_inliers: inliers of the best hypothesis, also when it was rejected (a PR-curve threshold).
-        spread_m: spread of the best hypothesis' inliers (``pose.spread_m``).
-        support: outlier-stage evidence of the best hypothesis (RANSAC inlier count or clique size).
-        rival_support: the same for the best hypothesis among the candidates the winner does not
-            explain: the chance level, or a competing alignment when the scene is ambiguous.
+        rmse_m: partner residual RMSE of the best hypothesis, metres (inf when there is none).
+        num_inliers: partners of the best hypothesis, also when it was rejected (a PR-curve threshold).
+        spread_m: spread of the best hypothesis' partners (``pose.spread_m``).
+        support: partner pairs of the best hypothesis (= ``num_inliers``).
+        rival_support: partner pairs of the best hypothesis that places B elsewhere (0 without one).
         T_a_b_hypothesis: (4, 4) best hypothesis, also when rejected (diagnostics), or None.
         reason: why the match failed (empty on success).
+        expected_chance: B's overlapping nodes expected to find a partner by chance (local label density).
+        overlap_a, overlap_b: nodes of A (B) inside the area the other robot observed.
+        contradictions: overlapping nodes (both sides) without a partner.
+        llr: log likelihood ratio, alignment against chance (nats; the smaller of both directions).
+        llr_threshold: ``log(hypotheses searched / false_alarm_rate)``; success needs ``llr`` above it.
+        rival_llr: ``llr`` of the rival hypothesis (-inf without one).
+        hypotheses: alignment hypotheses generated (cliques, or 1 for RANSAC).
     """
 
     success: bool
@@ -44,6 +52,14 @@ class MatchResult:
     rival_support: int = 0
     T_a_b_hypothesis: np.ndarray | None = None
     reason: str = ""
+    expected_chance: float = 0.0
+    overlap_a: int = 0
+    overlap_b: int = 0
+    contradictions: int = 0
+    llr: float = -math.inf
+    llr_threshold: float = math.inf
+    rival_llr: float = -math.inf
+    hypotheses: int = 0
 
     @staticmethod
     def failure(reason: str, candidates: int = 0, timings_ms: dict[str, float] | None = None) -> MatchResult:
@@ -64,5 +80,20 @@ class MatchResult:
             "spread_m": round(float(self.spread_m), 4),
             "support": int(self.support),
             "rival_support": int(self.rival_support),
+            "verification": {
+                "expected_chance": round(float(self.expected_chance), 3),
+                "overlap_a": int(self.overlap_a),
+                "overlap_b": int(self.overlap_b),
+                "contradictions": int(self.contradictions),
+                "llr": _finite(self.llr),
+                "llr_threshold": _finite(self.llr_threshold),
+                "rival_llr": _finite(self.rival_llr),
+                "hypotheses": int(self.hypotheses),
+            },
             "reason": self.reason,
         }
+
+
+def _finite(x: float) -> float | None:
+    """JSON-safe: rounded, None when not finite."""
+    return round(float(x), 3) if math.isfinite(x) else None

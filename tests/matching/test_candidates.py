@@ -73,3 +73,34 @@ def test_same_label_option(same_label_only):
     c = match_candidates(d, d, cfg)
     cross = g.label_ids[c.rows_a] != g.label_ids[c.rows_b]
     assert cross.any() != same_label_only  # centres 0 and 4 (labels 2, 8) match only across labels
+
+
+@pytest.mark.parametrize("mode", list(CandidateMode))
+def test_ties_are_broken_by_node_rows_whatever_the_entry_order(mode):
+    """Equal scores: the lower row of A wins (top-k, best), whatever order the sparse entries come in."""
+    rng = np.random.default_rng(0)
+    dense = rng.choice([0.6, 0.8], size=(12, 9))  # many exact ties
+    expected = select_candidates(sp.coo_matrix(dense), mode, 0.5, top_k=3)
+    coo = sp.coo_matrix(dense)
+    for _ in range(5):
+        perm = rng.permutation(coo.nnz)
+        shuffled = sp.coo_matrix((coo.data[perm], (coo.row[perm], coo.col[perm])), shape=dense.shape)
+        got = select_candidates(shuffled, mode, 0.5, top_k=3)
+        assert _pairs(got) == _pairs(expected)
+    if mode is CandidateMode.BEST:
+        for b in range(dense.shape[1]):  # the winner of each column is the first row with its maximum
+            assert (int(expected.rows_a[expected.rows_b == b][0]), b) == (int(np.argmax(dense[:, b])), b)
+
+
+def test_fill_adds_same_label_pairs_round_robin_up_to_the_budget():
+    from shgm_slam.matching.candidates import fill_same_label
+
+    labels_a, labels_b = np.array([5, 5, 8, 8, 8]), np.array([8, 5, 8])
+    chosen = select_candidates(sp.csr_matrix(np.zeros((5, 3))), CandidateMode.TOP_K, 0.5, 2)
+    filled = fill_same_label(chosen, sp.csr_matrix((5, 3)), labels_a, labels_b, budget=5)
+    assert len(filled) == 5
+    assert np.all(labels_a[filled.rows_a] == labels_b[filled.rows_b])
+    assert len(set(_pairs(filled))) == 5
+    assert sorted(filled.rows_b[:3].tolist()) == [0, 1, 2]  # every node of B gets its first partner first
+    again = fill_same_label(chosen, sp.csr_matrix((5, 3)), labels_a, labels_b, budget=5)
+    assert _pairs(again) == _pairs(filled)

@@ -1,0 +1,362 @@
+"""Sparse, map-like localization benchmark (``shgm-slam bench sparse``): graphs like real city maps.
+
+Real semantic maps are much sparser than the graphs our renderer produces: 15-150 nodes per robot,
+only the classes a map holds, many objects missed, noisy centroids and some label confusions. This
+benchmark builds such graphs directly from a synthetic city's ground-truth objects (no rendering):
+
+- a drive is a random street route; a robot's graph holds the map-class objects (``MAP_KINDS``) whose
+  centres lie within ``VIEW_RANGE_M`` of its lane (buildings ``BUILDING_RANGE_M``), each missed with
+  the robot's miss rate (30-60 %), moved by its centroid noise (0.5-2 m horizontal RMS), and a few
+  relabelled with a confusable class (``CONFUSIONS``);
+- overlapping pairs: two drives along one route sharing 50-300 m of street (B reversed half of the time);
+- negatives: two drives whose lanes stay ``NEGATIVE_GAP_M`` apart; half of them on parallel streets;
+- every B graph is moved by a random rigid transform (yaw + translation, or a full 3D rotation).
+
+A localization is right when the accepted ``T_a_b`` maps B's centroid within ``CORRECT_M`` and
+``CORRECT_DEG`` of the truth; a success outside that is a wrong claim; any success on a negative pair
+is a false acceptance. Deterministic by seed. Tuning seeds: ``TUNING_SEEDS``; the report seeds
+``REPORT_SEEDS`` are reserved for the final table.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from shgm_slam.bench.localization_metrics import random_transform, true_transform
+from shgm_slam.config import DescriptorConfig, GraphConfig, MatchingConfig
+from shgm_slam.descriptors import compute_descriptors
+from shgm_slam.errors import ConfigError, SimulationError
+from shgm_slam.geometry.se3 import pose_error, transform_points
+from shgm_slam.labels import Label
+from shgm_slam.matching import MatchResult, match_graphs
+from shgm_slam.sim.city import CityParams, build_city
+from shgm_slam.sim.shapes import KIND_LABEL, ObjectKind
+from shgm_slam.sim.trajectories import arc_length, fillet_path, lane_path, random_route
+from shgm_slam.sim.world import World
+from shgm_slam.types import GraphArrays
+
+TUNING_SEEDS = tuple(range(10, 20))
+REPORT_SEEDS = tuple(range(200, 220))
+
+MAP_KINDS = (ObjectKind.TREE, ObjectKind.POLE, ObjectKind.STREET_LAMP, ObjectKind.SIGNAL_POLE,
+             ObjectKind.TRAFFIC_LIGHT, ObjectKind.TRAFFIC_SIGN, ObjectKind.BUILDING)  # fmt: skip
+"""Object kinds a city map holds (vegetation, poles and lamps, signals, signs, buildings)."""
+
+CONFUSIONS: dict[int, tuple[int, ...]] = {
+    Label.POLE: (Label.TRAFFIC_SIGN, Label.TRAFFIC_LIGHT),
+    Label.TRAFFIC_SIGN: (Label.POLE,),
+    Label.TRAFFIC_LIGHT: (Label.POLE, Label.TRAFFIC_SIGN),
+    Label.VEGETATION: (Label.BUILDING, Label.POLE),
+    Label.BUILDING: (Label.VEGETATION,),
+}
+"""Label confusions a map builder makes: true train id -> train ids it may be mistaken for."""
+
+VIEW_RANGE_M = 25.0
+BUILDING_RANGE_M = 40.0
+CORNER_RADIUS_M = 8.0
+LANE_OFFSET_M = 2.2
+NEGATIVE_GAP_M = 120.0
+CORRECT_M = 2.0
+CORRECT_DEG = 5.0
+MIN_NODES, MAX_NODES = 15, 150
+MIN_COMMON = 12
+"""Overlapping pairs share at least this many objects (real layouts: 12-51)."""
+UP_WORLD = (0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class SparseOptions:
+    """What to run.
+
+    Attributes:
+        seeds: world seeds (one city each).
+        pairs_per_seed: overlapping pairs per world (as many negatives).
+        miss_range: per-robot fraction of objects missed, drawn uniformly.
+        noise_range_m: per-robot horizontal centroid noise (RMS, metres), drawn uniformly.
+        confusion_rate: fraction of a robot's nodes relabelled with a confusable class.
+        share_range_m: street length two overlapping drives share.
+        full_rotation: also run every pair with a random 3D rotation (6-DoF matching).
+    """
+
+    seeds: tuple[int, ...] = TUNING_SEEDS
+    pairs_per_seed: int = 10
+    miss_range: tuple[float, float] = (0.3, 0.6)
+    noise_range_m: tuple[float, float] = (0.5, 2.0)
+    confusion_rate: float = 0.05
+    share_range_m: tuple[float, float] = (50.0, 300.0)
+    full_rotation: bool = True
+
+
+@dataclass
+class SparsePair:
+    """One benchmark case: A's graph, B's graph in B's own (moved) frame and the true ``T_a_b``."""
+
+    seed: int
+    index: int
+    overlapping: bool
+    graph_a: GraphArrays
+    graph_b: GraphArrays
+    T_a_b: np.ndarray
+    common: int
+    parallel: bool = False
+
+
+@dataclass
+class SparseOutcome:
+    """One scored match."""
+
+    seed: int
+    index: int
+    overlapping: bool
+    dof: int
+    nodes: tuple[int, int]
+    common: int
+    success: bool
+    correct: bool
+    trans_err_m: float
+    rot_err_deg: float
+    ms: float
+    reason: str
+
+    def to_json(self) -> dict:
+        return {k: (round(v, 4) if isinstance(v, float) and np.isfinite(v) else v)
+                for k, v in self.__dict__.items() if k != "reason"} | {"reason": self.reason}  # fmt: skip
+
+
+@dataclass
+class SparseResults:
+    """All outcomes plus the summary per DoF (``summary``)."""
+
+    outcomes: list[SparseOutcome] = field(default_factory=list)
+
+    def summary(self) -> dict[str, dict]:
+        out = {}
+        for dof in sorted({o.dof for o in self.outcomes}):
+            pos = [o for o in self.outcomes if o.dof == dof and o.overlapping]
+            neg = [o for o in self.outcomes if o.dof == dof and not o.overlapping]
+            ms = np.array([o.ms for o in self.outcomes if o.dof == dof])
+            out[f"{dof}dof"] = {
+                "overlapping_pairs": len(pos),
+                "localized": sum(o.success and o.correct for o in pos),
+                "localized_rate": sum(o.success and o.correct for o in pos) / max(len(pos), 1),
+                "wrong_claims": sum(o.success and not o.correct for o in pos),
+                "negatives": len(neg),
+                "negatives_accepted": sum(o.success for o in neg),
+                "median_ms": float(np.median(ms)) if ms.size else 0.0,
+                "p90_ms": float(np.percentile(ms, 90)) if ms.size else 0.0,
+                "nodes_median": float(np.median([o.nodes for o in pos + neg])) if pos + neg else 0.0,
+                "common_median": float(np.median([o.common for o in pos])) if pos else 0.0,
+            }
+        return out
+
+    def to_json(self) -> dict:
+        return {"summary": self.summary(), "outcomes": [o.to_json() for o in self.outcomes]}
+
+
+def parse_seeds(text: str) -> tuple[int, ...]:
+    """'10-19' or '10,12,15' -> seeds. Raises ``ConfigError`` on anything else."""
+    try:
+        if "-" in text:
+            lo, hi = (int(x) for x in text.split("-"))
+            seeds = tuple(range(lo, hi + 1))
+        else:
+            seeds = tuple(int(x) for x in text.split(","))
+    except ValueError as e:
+        raise ConfigError(f"seeds {text!r}: expected 'A-B' or 'A,B,C' with integers") from e
+    if not seeds:
+        raise ConfigError(f"seeds {text!r} selects no world")
+    return seeds
+
+
+def map_objects(world: World) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(M,) world object ids, (M,) train ids and (M, 3) centres (world, z up) of the map-class objects."""
+    keep = {k.value for k in MAP_KINDS}
+    ids = np.array([o.id for o in world.objects if o.kind.value in keep], dtype=np.int64)
+    labels = np.array([KIND_LABEL[world.objects[i].kind] for i in ids], dtype=np.int64)
+    centres = np.array([world.objects[i].centre_xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    return ids, labels, centres
+
+
+def _route(world: World, rng: np.random.Generator, length_m: float, allowed: np.ndarray | None = None) -> np.ndarray:
+    """A dense (M, 2) street centreline of about ``length_m`` (cut from a random route)."""
+    route = random_route(world.streets, rng, length_m + 2 * CORNER_RADIUS_M, allowed=allowed)
+    path = fillet_path(world.streets.nodes_xy[route], CORNER_RADIUS_M)
+    s = arc_length(path)
+    return path[s <= length_m]
+
+
+def _cut(path: np.ndarray, s0: float, s1: float) -> np.ndarray:
+    s = arc_length(path)
+    return path[(s >= s0) & (s <= s1)]
+
+
+def _seen(lane_xy: np.ndarray, labels: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(M,) bool: objects within view range of a (K, 2) lane (buildings: ``BUILDING_RANGE_M``)."""
+    d = cKDTree(lane_xy).query(centres[:, :2])[0]
+    return d <= np.where(labels == Label.BUILDING, BUILDING_RANGE_M, VIEW_RANGE_M)
+
+
+def _robot_graph(
+    seen: np.ndarray, labels: np.ndarray, centres: np.ndarray, rng: np.random.Generator,
+    opt: SparseOptions, connectivity_m: float, id_offset: int,
+) -> tuple[GraphArrays, np.ndarray]:  # fmt: skip
+    """One robot's map: misses, centroid noise and confusions applied; returns the graph (world frame)
+    and the (N,) indices of its objects into the map-object arrays."""
+    miss = rng.uniform(*opt.miss_range)
+    sigma = rng.uniform(*opt.noise_range_m)
+    rows = np.flatnonzero(seen & (rng.random(seen.size) >= miss))
+    n = rows.size
+    pos = centres[rows] + np.column_stack([rng.normal(0, sigma / np.sqrt(2), (n, 2)), rng.normal(0, 0.3 * sigma, n)])
+    lab = labels[rows].copy()
+    for i in np.flatnonzero(rng.random(n) < opt.confusion_rate):
+        options = CONFUSIONS.get(int(lab[i]))
+        if options:
+            lab[i] = options[int(rng.integers(len(options)))]
+    edges = cKDTree(pos).query_pairs(connectivity_m, output_type="ndarray").astype(np.int64).reshape(-1, 2)
+    order = rng.permutation(n)  # node order carries no information
+    inv = np.empty(n, np.int64)
+    inv[order] = np.arange(n)
+    g = GraphArrays(np.arange(n, dtype=np.int64) + id_offset, lab[order], pos[order], np.ones(n),
+                    np.sort(inv[edges], axis=1) if edges.size else edges)  # fmt: skip
+    return g, rows[order]
+
+
+def make_pairs(world: World, seed: int, opt: SparseOptions, connectivity_m: float) -> list[SparsePair]:
+    """``pairs_per_seed`` overlapping and as many negative pairs in ``world`` (deterministic by seed).
+
+    Pairs whose graphs fall outside ``MIN_NODES``-``MAX_NODES`` nodes are redrawn.
+    """
+    rng = np.random.default_rng(seed * 7919 + 17)
+    _, labels, centres = map_objects(world)
+    pairs: list[SparsePair] = []
+    for overlapping in (True, False):
+        for _attempt in range(50 * opt.pairs_per_seed):
+            if sum(p.overlapping == overlapping for p in pairs) >= opt.pairs_per_seed:
+                break
+            pair = _draw_pair(world, rng, labels, centres, opt, connectivity_m, overlapping)
+            if pair is not None:
+                pair.seed, pair.index = seed, len(pairs)
+                pairs.append(pair)
+        else:
+            raise SimulationError(f"seed {seed}: could not draw {opt.pairs_per_seed} sparse pairs")
+    return pairs
+
+
+def _draw_pair(world, rng, labels, centres, opt: SparseOptions, connectivity_m: float,
+               overlapping: bool) -> SparsePair | None:  # fmt: skip
+    len_a, len_b = rng.uniform(80.0, 350.0, 2)
+    parallel = False
+    try:
+        if overlapping:
+            share = min(rng.uniform(*opt.share_range_m), len_a, len_b)
+            centre = _route(world, rng, len_a + len_b - share)
+            lane_a = lane_path(_cut(centre, 0.0, len_a), LANE_OFFSET_M)
+            piece_b = _cut(centre, len_a - share, len_a + len_b - share)
+            lane_b = lane_path(piece_b[::-1] if rng.random() < 0.5 else piece_b, LANE_OFFSET_M)
+        else:
+            lane_a = lane_path(_route(world, rng, len_a), LANE_OFFSET_M)
+            far = cKDTree(lane_a).query(world.streets.nodes_xy)[0] > NEGATIVE_GAP_M + 50.0
+            parallel = bool(rng.random() < 0.5)
+            lane_b = lane_path(_route(world, rng, len_b, allowed=far), LANE_OFFSET_M)
+            if cKDTree(lane_a).query(lane_b)[0].min() < NEGATIVE_GAP_M:
+                return None
+            if parallel and not _parallel(lane_a, lane_b):
+                return None
+    except SimulationError:
+        return None
+    if len(lane_a) < 2 or len(lane_b) < 2:
+        return None
+    seen_a, seen_b = _seen(lane_a, labels, centres), _seen(lane_b, labels, centres)
+    ga, rows_a = _robot_graph(seen_a, labels, centres, rng, opt, connectivity_m, 0)
+    gb, rows_b = _robot_graph(seen_b, labels, centres, rng, opt, connectivity_m, 100_000)
+    if not (MIN_NODES <= len(ga) <= MAX_NODES and MIN_NODES <= len(gb) <= MAX_NODES):
+        return None
+    common = int(np.intersect1d(rows_a, rows_b).size)
+    if overlapping and common < MIN_COMMON:
+        return None
+    # A's frame: world moved by a random transform too, so nothing is near the origin by construction
+    T_a_world = random_transform(rng, False)
+    T_b_world = random_transform(rng, False)
+    return SparsePair(-1, -1, overlapping, ga.transformed(T_a_world), gb.transformed(T_b_world),
+                      T_a_world @ true_transform(T_b_world), common, parallel)  # fmt: skip
+
+
+def _parallel(lane_a: np.ndarray, lane_b: np.ndarray) -> bool:
+    """Both lanes' principal directions within 10 degrees (straight, parallel streets)."""
+    def direction(p: np.ndarray) -> np.ndarray:
+        c = p - p.mean(axis=0)
+        return np.linalg.svd(c, full_matrices=False)[2][0]
+
+    return abs(float(direction(lane_a) @ direction(lane_b))) > np.cos(np.radians(10.0))
+
+
+def rotate_fully(pair: SparsePair, rng: np.random.Generator) -> SparsePair:
+    """The same pair with B moved by an additional random 3D rotation (6-DoF matching)."""
+    T = random_transform(rng, True, 50.0)
+    return SparsePair(pair.seed, pair.index, pair.overlapping, pair.graph_a, pair.graph_b.transformed(T),
+                      pair.T_a_b @ true_transform(T), pair.common, pair.parallel)  # fmt: skip
+
+
+def score(result: MatchResult, pair: SparsePair) -> tuple[bool, float, float]:
+    """(correct, translation error at B's centroid in metres, rotation error in degrees) of the accepted
+    or best-hypothesis transform (inf without one)."""
+    T = result.T_a_b if result.success else result.T_a_b_hypothesis
+    if T is None or not pair.overlapping:
+        return False, np.inf, np.inf
+    c = pair.graph_b.positions_xyz.mean(axis=0)
+    trans = float(np.linalg.norm(transform_points(T, c[None]) - transform_points(pair.T_a_b, c[None])))
+    rot = float(pose_error(T, pair.T_a_b)[1])
+    return trans < CORRECT_M and rot < CORRECT_DEG, trans, rot
+
+
+def run_sparse_benchmark(
+    options: SparseOptions | None = None,
+    descriptor_cfg: DescriptorConfig | None = None,
+    matching_cfg: MatchingConfig | None = None,
+    graph_cfg: GraphConfig | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> SparseResults:
+    """Match every pair of every seed with the given (default) configuration, gravity-aligned (4-DoF)
+    and, with ``full_rotation``, 6-DoF; time each match (descriptors included)."""
+    opt = options or SparseOptions()
+    dcfg = descriptor_cfg or DescriptorConfig()
+    mcfg = (matching_cfg or MatchingConfig()).model_copy(update={"up_axis": UP_WORLD})
+    gcfg = graph_cfg or GraphConfig()
+    results = SparseResults()
+    for seed in opt.seeds:
+        if progress:
+            progress(f"seed {seed}")
+        world = build_city(CityParams(), seed=seed)
+        pairs = make_pairs(world, seed, opt, gcfg.connectivity_m)
+        rng = np.random.default_rng(seed + 5)
+        runs = [(4, p) for p in pairs] + ([(6, rotate_fully(p, rng)) for p in pairs] if opt.full_rotation else [])
+        for dof, pair in runs:
+            cfg = mcfg.model_copy(update={"gravity_aligned": dof == 4})
+            t0 = time.perf_counter()
+            da = compute_descriptors(pair.graph_a, dcfg)
+            r = match_graphs(pair.graph_a, pair.graph_b, dcfg, cfg, descriptors_a=da)
+            ms = 1e3 * (time.perf_counter() - t0)
+            correct, te, re = score(r, pair)
+            results.outcomes.append(SparseOutcome(
+                seed, pair.index, pair.overlapping, dof, (len(pair.graph_a), len(pair.graph_b)), pair.common,
+                bool(r.success), correct, te, re, ms, r.reason))  # fmt: skip
+    return results
+
+
+def sparse_markdown(results: SparseResults, seeds: tuple[int, ...]) -> str:
+    """The summary table as markdown."""
+    lines = [f"Sparse map-like localization, seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} worlds)", "",
+             "| matching | overlapping pairs | localized | wrong claims | negatives accepted | median ms | p90 ms |",
+             "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for key, s in results.summary().items():
+        lines.append(
+            f"| {key} | {s['overlapping_pairs']} | {s['localized']} ({100 * s['localized_rate']:.0f} %) | "
+            f"{s['wrong_claims']} | {s['negatives_accepted']} / {s['negatives']} | {s['median_ms']:.1f} | "
+            f"{s['p90_ms']:.1f} |"
+        )
+    return "\n".join(lines) + "\n"
