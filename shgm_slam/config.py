@@ -84,7 +84,8 @@ class MatchingConfig(_Stage):
     )
     gravity_aligned: bool = Field(False, description="4-DoF (yaw + translation) fit for ground robots")
     min_inliers: int = Field(
-        15, ge=3, description="success needs at least this many consistent inliers (tuned: bench localization)"
+        6, ge=3, description="absolute floor on supporting node pairs (degenerate geometry); the decision itself "
+        "is the likelihood ratio against chance (false_alarm_rate)",
     )
     max_rmse_m: float = Field(3.0, gt=0, description="success needs a fit residual below this")
     weighted_pose: bool = Field(True, description="Eq. 2 weights from object size")
@@ -96,14 +97,30 @@ class MatchingConfig(_Stage):
     min_spread_m: float = Field(
         5.0, ge=0, description="success needs inliers spanning this much (2nd principal axis; 4-DoF: 1st)"
     )
-    min_support_ratio: float = Field(
-        2.5, ge=1.0, description="success needs this many times the support of the best rival hypothesis"
+    fill_candidates: bool = Field(
+        True, description="fill the max_candidates budget with further same-label pairs, round-robin over B's "
+        "nodes by score (sparse maps, whose descriptors barely agree)",
     )
-    min_clique_ratio: float = Field(
-        1.5,
-        ge=1.0,
-        description="clique mode: a support below min_support_ratio x the rival's still passes with this "
-        "clique-size ratio when the refined inlier counts meet min_support_ratio (tuned: bench localization)",
+    verified_hypotheses: int = Field(
+        4, ge=1, description="hypotheses (most supporting nodes first) refined and scored by the likelihood ratio"
+    )
+    verification_radius_m: float = Field(
+        3.0, gt=0, description="whole-overlap check: a same-label node this close under the hypothesis is a partner"
+    )
+    coverage_radius_m: float = Field(
+        10.0, gt=0, description="whole-overlap check: a node this close to any node of the other graph lies in the "
+        "area the other robot observed (it should find a partner)",
+    )
+    density_radius_m: float = Field(
+        15.0, gt=0, description="chance model: radius of the local same-label density around each node"
+    )
+    partner_probability: float = Field(
+        0.4, gt=0, lt=1, description="chance model: probability that an object inside the other robot's area was "
+        "mapped by both robots (maps miss 30-60 % of objects)",
+    )
+    false_alarm_rate: float = Field(
+        1e-3, gt=0, lt=1, description="success needs a likelihood ratio (alignment vs chance) above "
+        "hypotheses / false_alarm_rate",
     )
     up_axis: tuple[float, float, float] = Field(
         (0.0, -1.0, 0.0), description="vertical axis of the world frames (KITTI camera frame: -y is up)"

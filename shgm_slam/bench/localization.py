@@ -102,14 +102,14 @@ class BenchMode(str, Enum):
 
 MODE_OVERRIDES: dict[BenchMode, dict] = {
     BenchMode.PAPER: {"outlier_mode": OutlierMode.RANSAC, "candidate_mode": CandidateMode.BEST,
-                      "min_support_ratio": 3.0, "min_inliers": 18, "max_rmse_m": 5.0},
+                      "min_inliers": 18, "max_rmse_m": 5.0},
     BenchMode.ROBUST: {"outlier_mode": OutlierMode.CLIQUE, "candidate_mode": CandidateMode.TOP_K},
 }
 """MatchingConfig fields each mode sets; everything else is the configured default (the robust mode).
 
 RANSAC's 10 m inliers (authors' threshold) are a weaker test than the clique's pairwise consistency, so
-the paper mode needs its own acceptance: a fit RMSE up to half the inlier threshold, and a support ratio
-and inlier count chosen, like the defaults, for zero false successes on the training worlds (seed 1)."""
+the paper mode needs its own acceptance: a fit RMSE up to half the inlier threshold and an inlier floor
+chosen for zero false successes on the training worlds (seed 1), on top of the verification's likelihood ratio."""
 
 
 @dataclass
