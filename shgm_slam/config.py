@@ -170,6 +170,29 @@ class OdometryConfig(_Stage):
         5, ge=1, description="visual odometry: a corner's depth is the largest in this window (networks blur "
         "depth edges toward the foreground); 1 for sensor depth"
     )
+    image_rotation_prior: bool = Field(
+        True, description="KISS-ICP: the turn measured from image motion seeds ICP's rotation (sharp turns)"
+    )
+    health_check: bool = Field(
+        True, description="detect odometry divergence and restart as a new trajectory segment (odometry/health.py)"
+    )
+    max_speed_mps: float = Field(40.0, gt=0, description="health: faster steps are divergence (cars <= 144 km/h)")
+    max_accel_mps2: float = Field(
+        30.0, gt=0, description="health: acceleration limit incl. centripetal (sim cars reach 2 g in sharp turns)"
+    )
+    max_turn_rate_dps: float = Field(180.0, gt=0, description="health: turn-rate limit (sim cars: up to 107 deg/s)")
+    step_noise_m: float = Field(
+        2.0, ge=0, description="health: per-step position noise of healthy odometry (acceleration slack; KISS-ICP "
+        "on a UAV's far, sparse clouds jumps by up to 1.6 m per step without diverging)"
+    )
+    step_noise_deg: float = Field(2.0, ge=0, description="health: per-step rotation noise (turn-rate slack)")
+    max_coast_s: float = Field(
+        0.5, gt=0, description="health: longest stretch of predicted poses (no depth, ICP/PnP failed)"
+    )
+    max_threshold_m: float = Field(15.0, gt=0, description="health: KISS-ICP adaptive threshold limit")
+    max_image_rotation_deg: float = Field(
+        5.0, gt=0, description="health: largest disagreement of a step's yaw with image motion (KISS-ICP)"
+    )
 
     @model_validator(mode="after")
     def _file_needs_path(self) -> OdometryConfig:

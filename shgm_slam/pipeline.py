@@ -26,7 +26,8 @@ from shgm_slam.labels import Label
 from shgm_slam.matching import match_graphs
 from shgm_slam.matching.pose import spread_m
 from shgm_slam.odometry.clouds import depth_to_cloud
-from shgm_slam.odometry.sources import OdometrySource
+from shgm_slam.odometry.health import HealthLimits, OdometryFailure, OdometryHealthMonitor
+from shgm_slam.odometry.sources import OdometryEstimate, OdometrySource
 from shgm_slam.perception import PerceptionSource
 from shgm_slam.types import Frame, GraphArrays, Sequence
 
@@ -107,6 +108,7 @@ class KeyframeMessage:
     """What a robot sends to the map server for each keyframe (small: a pose and graph node states).
 
     ``T_odom_kf`` is the keyframe's camera pose in the robot's odometry frame (its first camera frame).
+    ``robot`` is the sending agent: the robot, or one of its later trajectory segments (``segment_agent``).
     """
 
     robot: str
@@ -118,9 +120,52 @@ class KeyframeMessage:
     up_odom: np.ndarray | None = None  # (3,) unit "up" (ground normal) in the odometry frame, if known
 
 
+SEGMENT_SEPARATOR = "#"
+"""Agent names of trajectory segments: ``car1`` (the first), ``car1#1``, ``car1#2`` ... (robot names
+cannot contain it, see ``runner.parse_robot_arg``)."""
+
+
+def segment_agent(robot: str, segment: int) -> str:
+    """The map server's agent name of ``robot``'s trajectory segment ``segment`` (0: the robot's name)."""
+    return robot if segment == 0 else f"{robot}{SEGMENT_SEPARATOR}{segment}"
+
+
+def agent_robot(agent: str) -> tuple[str, int]:
+    """Inverse of ``segment_agent``: (robot, segment index)."""
+    robot, _, seg = agent.partition(SEGMENT_SEPARATOR)
+    return robot, int(seg) if seg else 0
+
+
+@dataclass
+class TrajectorySegment:
+    """A stretch of one robot's frames with one healthy odometry: its own odometry frame (the camera of
+    ``first_frame``), keyframes and semantic graph. The map server treats it as an agent of its own;
+    its pose relative to the robot's other segments is unknown until graph matching places it."""
+
+    index: int
+    agent: str
+    first_frame: int
+    graph: SemanticGraph
+    keyframes: KeyframeSelector
+    kf_frames: list[int] = field(default_factory=list)
+    kf_poses: list[np.ndarray] = field(default_factory=list)
+    up_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))  # keyframe ground normals, odometry frame
+    end_failure: OdometryFailure | None = None  # the divergence that ended it (None: healthy to the end)
+
+    @property
+    def num_keyframes(self) -> int:
+        return len(self.kf_frames)
+
+
 @dataclass
 class FrameResult:
-    """Everything one front-end step produced (for the orchestrator, the viewer and the summary)."""
+    """Everything one front-end step produced (for the orchestrator, the viewer and the summary).
+
+    ``agent`` is the trajectory segment the frame belongs to (``segment_agent``); ``failure`` the
+    odometry divergence this frame revealed (then the frame starts a new segment), else None.
+    ``T_odom_cam`` is NaN for frames that belong to no segment (after a divergence, before the
+    odometry measures again).
+    """
 
     robot: str
     frame: Frame
@@ -132,12 +177,18 @@ class FrameResult:
     odometry_ok: bool
     message: KeyframeMessage | None
     timings_ms: dict[str, float]
+    agent: str = ""
+    failure: OdometryFailure | None = None
 
 
 class RobotFrontend:
     """One robot's front end: perception -> pseudo-LiDAR -> odometry -> keyframes -> semantic graph.
 
-    The graph lives in the robot's odometry frame; nodes are anchored to keyframes.
+    Each trajectory segment's graph lives in its own odometry frame; nodes are anchored to keyframes.
+    With ``cfg.odometry.health_check`` every pose is checked (``odometry.health``); on a divergence the
+    segment is cut at its onset (frames from the onset on get NaN poses and segment -1), the odometry
+    is re-initialised, and the next measured frame starts a new segment with a fresh graph, sent to
+    the map server as a new agent (``segment_agent``).
     """
 
     def __init__(
@@ -153,15 +204,61 @@ class RobotFrontend:
         self.cfg = cfg
         self.perception = perception
         self.odometry = odometry
-        self.graph = SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m)
-        self.keyframes = KeyframeSelector(cfg.keyframes.distance_m, cfg.keyframes.angle_deg)
-        self.num_keyframes = 0
+        self.health = (
+            OdometryHealthMonitor(HealthLimits.from_config(cfg.odometry)) if cfg.odometry.health_check else None
+        )
         n = len(sequence)
-        self.T_odom_cam = np.full((n, 4, 4), np.nan)
-        self.frame_kf = np.full(n, -1, dtype=np.int64)  # last keyframe index at or before each frame
-        self.kf_frames: list[int] = []
-        self.kf_poses: list[np.ndarray] = []
-        self._up_sum = np.zeros(3)  # sum of keyframe ground normals in the odometry frame
+        self.T_odom_cam = np.full((n, 4, 4), np.nan)  # each frame in its own segment's odometry frame
+        self.frame_kf = np.full(n, -1, dtype=np.int64)  # last keyframe (of its segment) at or before each frame
+        self.frame_segment = np.full(n, -1, dtype=np.int64)  # segment of each frame (-1: none)
+        self.segments: list[TrajectorySegment] = []
+        self.failures: list[OdometryFailure] = []
+        self._new_segment(0)
+
+    # --- segments ------------------------------------------------------------------------------
+
+    @property
+    def segment(self) -> TrajectorySegment:
+        """The current trajectory segment."""
+        return self.segments[-1]
+
+    @property
+    def graph(self) -> SemanticGraph:
+        """The current segment's semantic graph."""
+        return self.segment.graph
+
+    @property
+    def num_keyframes(self) -> int:
+        """Keyframes over all segments."""
+        return sum(s.num_keyframes for s in self.segments)
+
+    def _new_segment(self, first_frame: int) -> None:
+        k = len(self.segments)
+        self.segments.append(
+            TrajectorySegment(
+                k, segment_agent(self.name, k), first_frame,
+                SemanticGraph(self.cfg.graph.merge_radius_m, self.cfg.graph.connectivity_m),
+                KeyframeSelector(self.cfg.keyframes.distance_m, self.cfg.keyframes.angle_deg),
+            )
+        )  # fmt: skip
+
+    def _fail(self, failure: OdometryFailure) -> None:
+        """Cut the current segment at the failure's onset and re-initialise the odometry."""
+        log.warning("%s: odometry diverged (%s); restarting as a new trajectory segment", self.name, failure.describe())
+        self.failures.append(failure)
+        seg = self.segment
+        seg.end_failure = failure
+        cut = np.arange(self.T_odom_cam.shape[0]) >= failure.onset_frame
+        cut &= self.frame_segment == seg.index
+        self.T_odom_cam[cut] = np.nan
+        self.frame_segment[cut] = -1
+        self.frame_kf[cut] = -1
+        self.odometry.reset()
+        self.health.reset()
+        # a new segment starts at the next measured frame (the one after a re-initialisation)
+        self._new_segment(-1)
+
+    # --- one frame -------------------------------------------------------------------------------
 
     def process(self, index: int) -> FrameResult:
         """Run frame ``index`` through the front end.
@@ -185,9 +282,22 @@ class RobotFrontend:
         )
         t_cloud = time.perf_counter()
         est = self.odometry.update(frame, points_cam, perceived.depth_m, perceived.label_ids)
-        T_odom_cam = est.T_odom_cam
+        failure = None
+        if self.health is not None:
+            failure = self._check(index, frame.timestamp_s, est)
+            if failure is not None:
+                self._fail(failure)
+                est = self.odometry.update(frame, points_cam, perceived.depth_m, perceived.label_ids)
+                self.health.check(index, frame.timestamp_s, est.T_odom_cam, measured=est.ok)
+        seg = self.segment
+        if seg.first_frame < 0:  # after a re-initialisation: wait for a measured pose
+            if est.ok:
+                seg.first_frame = index
+            else:
+                self.odometry.reset()
+                self.health.reset()
+        T_odom_cam = est.T_odom_cam if seg.first_frame >= 0 else np.full((4, 4), np.nan)
         t_odo = time.perf_counter()
-        self.T_odom_cam[index] = T_odom_cam
         message = None
         timings = {
             "load": (t_load - t0) * 1e3,
@@ -195,38 +305,53 @@ class RobotFrontend:
             "cloud": (t_cloud - t_perc) * 1e3,
             "odometry": (t_odo - t_cloud) * 1e3,
         }
-        if self.keyframes.is_keyframe(T_odom_cam) and perceived.label_ids is not None:
-            ex = self.cfg.extraction
-            objects = extract_objects(
-                perceived.depth_m,
-                perceived.label_ids,
-                frame.intrinsics,
-                T_odom_cam,
-                labels=ex.labels,
-                max_depth_m=ex.max_depth_m,
-                min_depth_m=ex.min_depth_m,
-                depth_step_m=ex.depth_step_m,
-                min_blob_fraction=ex.min_blob_fraction,
-            )
-            t_ex = time.perf_counter()
-            kf = self.num_keyframes
-            update = self.graph.add_keyframe(kf, T_odom_cam, objects)
-            t_graph = time.perf_counter()
-            self.num_keyframes += 1
-            self.kf_frames.append(index)
-            self.kf_poses.append(T_odom_cam.copy())
-            n_cam = ground_normal(points_cam, point_labels)
-            if n_cam is not None:
-                self._up_sum += T_odom_cam[:3, :3] @ n_cam
-            up = self._up_sum / np.linalg.norm(self._up_sum) if self._up_sum.any() else None
-            message = KeyframeMessage(self.name, kf, index, frame.timestamp_s, T_odom_cam.copy(), update, up)
-            timings["extraction"] = (t_ex - t_odo) * 1e3
-            timings["graph"] = (t_graph - t_ex) * 1e3
-        self.frame_kf[index] = self.num_keyframes - 1
+        if seg.first_frame >= 0:
+            self.T_odom_cam[index] = T_odom_cam
+            self.frame_segment[index] = seg.index
+            # keyframes only from measured poses: a prediction may be cut away by a later failure
+            if est.ok and seg.keyframes.is_keyframe(T_odom_cam) and perceived.label_ids is not None:
+                message = self._keyframe(seg, index, frame, perceived, T_odom_cam, points_cam, point_labels, timings)
+            self.frame_kf[index] = seg.num_keyframes - 1
         return FrameResult(
             self.name, frame, T_odom_cam, perceived.depth_m, perceived.label_ids, points_cam, point_labels,
-            est.ok, message, timings,
+            est.ok, message, timings, seg.agent, failure,
         )  # fmt: skip
+
+    def _check(self, index: int, timestamp_s: float, est: OdometryEstimate) -> OdometryFailure | None:
+        if self.segment.first_frame < 0:
+            return None
+        return self.health.check(
+            index, timestamp_s, est.T_odom_cam, measured=est.ok,
+            registration_threshold_m=est.threshold_m, rotation_disagreement_deg=est.rotation_disagreement_deg,
+        )  # fmt: skip
+
+    def _keyframe(self, seg, index, frame, perceived, T_odom_cam, points_cam, point_labels, timings) -> KeyframeMessage:
+        t0 = time.perf_counter()
+        ex = self.cfg.extraction
+        objects = extract_objects(
+            perceived.depth_m,
+            perceived.label_ids,
+            frame.intrinsics,
+            T_odom_cam,
+            labels=ex.labels,
+            max_depth_m=ex.max_depth_m,
+            min_depth_m=ex.min_depth_m,
+            depth_step_m=ex.depth_step_m,
+            min_blob_fraction=ex.min_blob_fraction,
+        )
+        t_ex = time.perf_counter()
+        kf = seg.num_keyframes
+        update = seg.graph.add_keyframe(kf, T_odom_cam, objects)
+        t_graph = time.perf_counter()
+        seg.kf_frames.append(index)
+        seg.kf_poses.append(T_odom_cam.copy())
+        n_cam = ground_normal(points_cam, point_labels)
+        if n_cam is not None:
+            seg.up_sum += T_odom_cam[:3, :3] @ n_cam
+        up = seg.up_sum / np.linalg.norm(seg.up_sum) if seg.up_sum.any() else None
+        timings["extraction"] = (t_ex - t0) * 1e3
+        timings["graph"] = (t_graph - t_ex) * 1e3
+        return KeyframeMessage(seg.agent, kf, index, frame.timestamp_s, T_odom_cam.copy(), update, up)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -283,7 +408,8 @@ class MapServer:
     """Mirrors every robot's graph from messages, matches robots periodically, fuses them in iSAM2.
 
     Every ``match_every_keyframes`` keyframes of a robot r, r's recent submap and r's whole graph are
-    matched against every other robot's whole graph; accepted matches become inter-robot
+    matched against every other robot's whole graph (robots here are agents: a robot's trajectory
+    segments after odometry failures are agents of their own, added at run time); accepted matches become inter-robot
     relative-pose factors between keyframes. Shared frame = the first robot's odometry frame.
     """
 
@@ -301,10 +427,23 @@ class MapServer:
         self._num_matches = 0  # successful graph matches so far (each closure's evidence id)
         self.timings_ms: dict[str, list[float]] = {"match": [], "backend": []}
 
+    def add_agent(self, agent: str) -> None:
+        """Start mirroring a new agent (a robot's later trajectory segment): its own graph, unanchored
+        in the pose graph, matched like any robot against every other agent, its robot's too."""
+        self.pose_graph.add_robot(agent)
+        self.robot_names.append(agent)
+        self.graphs[agent] = SemanticGraph(self.cfg.graph.merge_radius_m, self.cfg.graph.connectivity_m)
+        self.kf_poses[agent] = []
+        self.up[agent] = None
+        self._since_match[agent] = 0
+
     def receive(self, msg: KeyframeMessage) -> list[MatchRecord]:
-        """Ingest one keyframe message; returns the match attempts it triggered (possibly none)."""
+        """Ingest one keyframe message (a new agent is added on its first); returns the match attempts it
+        triggered (possibly none)."""
         t0 = time.perf_counter()
         self._step += 1
+        if msg.robot not in self.graphs:
+            self.add_agent(msg.robot)
         self.kf_poses[msg.robot].append(msg.T_odom_kf)
         if msg.up_odom is not None:
             self.up[msg.robot] = msg.up_odom
@@ -492,8 +631,9 @@ class MapServer:
         return se3.make_pose(R_a.T, np.zeros(3)) @ T_g @ se3.make_pose(R_b, np.zeros(3))
 
     def T_shared_kf(self, robot: str) -> np.ndarray | None:
-        """(K, 4, 4) fused keyframe poses of ``robot`` in the shared frame, or None if not localized."""
-        if not self.pose_graph.is_anchored(robot):
+        """(K, 4, 4) fused keyframe poses of ``robot`` (an agent) in the shared frame, or None if not
+        localized (or not known to the server yet)."""
+        if robot not in self.graphs or not self.pose_graph.is_anchored(robot):
             return None
         return self.pose_graph.estimate()[robot]
 

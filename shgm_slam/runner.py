@@ -97,6 +97,16 @@ class RobotReport:
     ate_fused_m: float = float("nan")
     ate_odometry_aligned_m: float = float("nan")  # SE(3)-aligned (shape only)
     ate_fused_aligned_m: float = float("nan")
+    # odometry health: each detected divergence cuts the trajectory and starts a new segment whose pose
+    # is unknown until graph matching places it; the odometry ATEs above treat each segment on its own
+    # (placed at its true first pose / aligned on its own). ``localized``: every segment with keyframes
+    # is placed; ``placed_fraction``: the share of the robot's segment frames that are in the shared frame.
+    segments: int = 1
+    segments_placed: int = 0
+    placed_fraction: float = 0.0
+    odometry_failures: int = 0
+    failure_reasons: list[str] = field(default_factory=list)
+    frames_dropped: int = 0  # frames between a divergence's onset and the next segment's first frame
 
 
 @dataclass
@@ -195,6 +205,10 @@ def run_slam(
                     progress(done, total)
                 continue
             processed[robot] += 1
+            if res.failure is not None:
+                viz.log_text(
+                    f"{robot}: odometry diverged, {res.failure.describe()}; new trajectory segment {res.agent}", "WARN"
+                )
             t0 = time.perf_counter()
             records = server.receive(res.message) if res.message is not None else []
             backend_ms = (time.perf_counter() - t0) * 1e3
@@ -236,17 +250,37 @@ def run_slam(
     return summary
 
 
+def _placed_segments(front: RobotFrontend, server: MapServer) -> list[tuple[int, np.ndarray]]:
+    """(segment index, (K, 4, 4) T_shared_kf) of every segment of ``front`` placed in the shared frame."""
+    out = []
+    for seg in front.segments:
+        T_shared_kf = server.T_shared_kf(seg.agent) if seg.num_keyframes else None
+        if T_shared_kf is not None:
+            out.append((seg.index, T_shared_kf))
+    return out
+
+
 def _fused(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
-    T_shared_kf = server.T_shared_kf(front.name)
-    if T_shared_kf is None or front.num_keyframes == 0:
+    """(N, 4, 4) fused poses: the frames of every placed segment in the shared frame, NaN elsewhere;
+    None when no segment is placed."""
+    placed = _placed_segments(front, server)
+    if not placed:
         return None
-    return fuse_frames(front.T_odom_cam, front.frame_kf, np.stack(front.kf_poses), T_shared_kf)
+    out = np.full_like(front.T_odom_cam, np.nan)
+    for k, T_shared_kf in placed:
+        rows = front.frame_segment == k
+        seg = front.segments[k]
+        out[rows] = fuse_frames(front.T_odom_cam[rows], front.frame_kf[rows], np.stack(seg.kf_poses), T_shared_kf)
+    return out
 
 
 def _write_results(writer: ResultsWriter, fronts, server: MapServer, robots: dict[str, Sequence]) -> None:
+    # odometry file: every segment in its own odometry frame (each restarts at the identity), the frames
+    # between a divergence and the next segment left out; metrics.json lists the segments' frames
     for r, front in fronts.items():
         writer.write_trajectories(r, np.asarray(robots[r].timestamps_s), front.T_odom_cam, _fused(front, server))
-        writer.write_graph(r, front.graph.arrays())
+        for seg in front.segments:
+            writer.write_graph(seg.agent, seg.graph.arrays())
     writer.write_matches(server.matches)
     server.pose_graph.write_g2o(writer.path("pose_graph.g2o"))
 
@@ -258,35 +292,55 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
     for r, front in fronts.items():
         seq = robots[r]
         fused = _fused(front, server)
+        placed = {k for k, _ in _placed_segments(front, server)}
+        with_kf = [s for s in front.segments if s.num_keyframes]
+        in_seg = front.frame_segment >= 0
         rep = RobotReport(
-            r, len(seq), processed[r], len(seq) - processed[r], front.num_keyframes, len(front.graph),
-            fused is not None,
+            r, len(seq), processed[r], len(seq) - processed[r], front.num_keyframes,
+            sum(len(s.graph) for s in front.segments), bool(with_kf) and all(s.index in placed for s in with_kf),
         )  # fmt: skip
+        rep.segments = sum(s.first_frame >= 0 for s in front.segments)
+        rep.segments_placed = len(placed)
+        rep.placed_fraction = float(np.isin(front.frame_segment, list(placed)).sum() / max(in_seg.sum(), 1))
+        rep.odometry_failures = len(front.failures)
+        rep.failure_reasons = [f.describe() for f in front.failures]
+        rep.frames_dropped = int((~in_seg).sum()) - (len(seq) - processed[r])
         gt = seq.gt_poses
         ok = np.isfinite(front.T_odom_cam.reshape(len(seq), -1)).all(axis=1)
         if gt is not None and ok.sum() >= 3:
             rep.path_length_m = float(np.linalg.norm(np.diff(gt[ok][:, :3, 3], axis=0), axis=1).sum())
-            odo = front.T_odom_cam[ok]
-            rep.ate_odometry_aligned_m = ate(gt[ok], odo, align="se3")["rmse"]
             shared = gt_shared_frame and gt0 is not None
+            gt_ref = se3.inverse(gt0[0]) @ gt if shared else gt
+            sq_aligned, sq_start = [], []
+            for seg in front.segments:  # each segment on its own: their relative poses are unknown
+                rows = ok & (front.frame_segment == seg.index)
+                if not rows.any():
+                    continue
+                odo = front.T_odom_cam[rows]
+                if rows.sum() >= 3:
+                    sq_aligned.append(ate(gt[rows], odo, align="se3")["rmse"] ** 2 * rows.sum())
+                placed_at_start = gt_ref[rows][0] @ se3.inverse(odo[0]) @ odo
+                sq_start.append(np.sum((placed_at_start[:, :3, 3] - gt_ref[rows][:, :3, 3]) ** 2))
+            rep.ate_odometry_aligned_m = float(np.sqrt(sum(sq_aligned) / ok.sum()))
             if shared:
-                gt_shared = se3.inverse(gt0[0]) @ gt
-                first = int(np.flatnonzero(ok)[0])
-                odo_shared = gt_shared[first] @ se3.inverse(odo[0]) @ odo
-                rep.ate_odometry_m = ate(gt_shared[ok], odo_shared, align="none")["rmse"]
+                rep.ate_odometry_m = float(np.sqrt(sum(sq_start) / ok.sum()))
             if fused is not None:
                 okf = ok & np.isfinite(fused.reshape(len(seq), -1)).all(axis=1)
                 rep.ate_fused_aligned_m = ate(gt[okf], fused[okf], align="se3")["rmse"]
                 if shared:
-                    rep.ate_fused_m = ate(gt_shared[okf], fused[okf], align="none")["rmse"]
+                    rep.ate_fused_m = ate(gt_ref[okf], fused[okf], align="none")["rmse"]
         reports.append(rep)
     return reports
 
 
 def _log_frame(viz: Viz, server: MapServer, front: RobotFrontend, res: FrameResult, records) -> None:
-    r = res.robot
+    r, agent = res.robot, res.agent or res.robot
     viz.set_time(r, res.frame.index, res.frame.timestamp_s)
-    T_shared_odom = server.pose_graph.T_shared_odom(r) if server.pose_graph.is_anchored(r) else None
+    if not np.isfinite(res.T_odom_cam).all():  # between a divergence and the next measured frame
+        _log_matches(viz, server, records)
+        return
+    placed = agent in server.graphs and server.pose_graph.is_anchored(agent)
+    T_shared_odom = server.pose_graph.T_shared_odom(agent) if placed else None
     T_view = res.T_odom_cam if T_shared_odom is None else T_shared_odom @ res.T_odom_cam
     # the heavy parts (depth image, point cloud) only at keyframes: keeps recordings ~100 KB per frame
     key = res.message is not None
@@ -297,8 +351,8 @@ def _log_frame(viz: Viz, server: MapServer, front: RobotFrontend, res: FrameResu
     )  # fmt: skip
     viz.log_timings(r, res.timings_ms)
     if res.message is not None:
-        odo_xyz = front.T_odom_cam[: res.frame.index + 1, :3, 3]
-        odo_xyz = odo_xyz[np.isfinite(odo_xyz).all(axis=1)]
+        upto = slice(0, res.frame.index + 1)
+        odo_xyz = front.T_odom_cam[upto, :3, 3][front.frame_segment[upto] == front.segment.index]  # this segment
         fused = _fused(front, server)
         fused_xyz = None
         if fused is not None:
@@ -307,7 +361,7 @@ def _log_frame(viz: Viz, server: MapServer, front: RobotFrontend, res: FrameResu
         if T_shared_odom is not None:
             odo_xyz = se3.transform_points(T_shared_odom, odo_xyz)
         viz.log_trajectories(r, odo_xyz, fused_xyz)
-        graph = server.graphs[r].arrays()
+        graph = server.graphs[agent].arrays()
         viz.log_graph(r, graph.transformed(T_shared_odom) if T_shared_odom is not None else graph)
     _log_matches(viz, server, records)
 

@@ -205,3 +205,79 @@ def test_saved_recording_holds_the_run(tiny_scenario: Path, tmp_path: Path) -> N
         assert any("traj" in p and robot in p for p in paths)
     columns = {f for c in chunks if c.entity_path.endswith("cam/rgb") for f in c.to_record_batch().schema.names}
     assert "frame" in columns
+
+
+# --------------------------------------------------------------------------------------------------
+# Odometry failures: detected, cut at the onset, recovered as a new trajectory segment
+# --------------------------------------------------------------------------------------------------
+
+
+def test_healthy_kiss_icp_raises_no_false_alarm(tiny_scenario: Path) -> None:
+    """Cars through intersections, the UAV at altitude: no divergence reported with the defaults."""
+    from shgm_slam.runner import make_frontend
+
+    for name in ("car1", "car2", "uav"):
+        seq = open_sequence(str(tiny_scenario / name))
+        front = make_frontend(name, seq, ShgmConfig())
+        for i in range(len(seq)):
+            front.process(i)
+        assert front.failures == [], (name, [f.describe() for f in front.failures])
+        assert len(front.segments) == 1 and (front.frame_segment == 0).all()
+
+
+def test_blank_stretch_starts_a_new_segment_after_it(tiny_scenario: Path, tmp_path: Path) -> None:
+    """Frames 20-23 have no depth (1 s at 4 Hz): KISS-ICP can only predict; the failure is dated to frame 20,
+    the predicted frames belong to no segment, and segment 1 starts at the first measured frame."""
+    import cv2
+
+    from shgm_slam.odometry.health import FailureReason
+    from shgm_slam.runner import make_frontend
+
+    seq_dir = tmp_path / "car1"
+    shutil.copytree(tiny_scenario / "car1", seq_dir)
+    for i in range(20, 24):
+        path = seq_dir / "depth" / f"{i:06d}.png"
+        cv2.imwrite(str(path), np.zeros_like(cv2.imread(str(path), cv2.IMREAD_UNCHANGED)))
+    seq = open_sequence(str(seq_dir))
+    front = make_frontend("car1", seq, ShgmConfig())
+    results = [front.process(i) for i in range(len(seq))]
+    assert len(front.failures) == 1, [f.describe() for f in front.failures]
+    failure = front.failures[0]
+    assert failure.reason is FailureReason.COASTING and failure.onset_frame == 20
+    assert [r.failure is not None for r in results].index(True) == failure.detected_frame
+    assert (front.frame_segment[:20] == 0).all() and (front.frame_segment[20:24] == -1).all()
+    assert np.isnan(front.T_odom_cam[20:24]).all()
+    seg = front.segments[1]
+    assert seg.agent == "car1#1" and seg.first_frame == 24 and (front.frame_segment[24:] == 1).all()
+    np.testing.assert_allclose(front.T_odom_cam[24], np.eye(4), atol=1e-9)  # a new odometry frame
+    assert max(front.segments[0].kf_frames) < 20 and min(seg.kf_frames) >= 24
+    assert {r.agent for r in results[24:] if r.message is not None} == {"car1#1"}
+
+
+def test_injected_jump_is_detected_and_the_new_segment_is_placed_again(tiny_scenario: Path, tmp_path: Path) -> None:
+    """car2's odometry teleports 30 m sideways at frame 25: the failure is reported, segment car2#1 starts
+    there in its own frame, and graph matching places both segments in the shared frame again."""
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
+    for name, seq in robots.items():
+        odo = se3.inverse(seq.gt_poses[0]) @ seq.gt_poses
+        if name == "car2":
+            odo[25:, 0, 3] += 30.0
+        write_kitti_poses(tmp_path / f"odo_{name}.txt", odo)
+    cfg = ShgmConfig()
+    cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, tmp_path / "odo_{robot}.txt"
+    cfg.backend.match_every_keyframes = 5
+    summary = run_slam(robots, cfg, tmp_path / "out")
+    car1, car2 = summary.robots
+    assert car1.odometry_failures == 0 and car1.segments == 1
+    assert car2.odometry_failures == 1 and car2.segments == 2
+    assert car2.failure_reasons[0].startswith("speed at frame 25"), car2.failure_reasons
+    assert car2.segments_placed == 2 and car2.localized and car2.placed_fraction == 1.0
+    assert car2.ate_fused_m < 2.5, car2  # both segments in the right place: no trace of the 30 m jump
+    assert car2.ate_odometry_m < 1e-6  # per segment, the odometry is exact
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["robots"][1]["failure_reasons"] == car2.failure_reasons
+    assert (tmp_path / "out" / "graph_car2#1.json").is_file()
+    # the odometry file restarts at the identity where the new segment starts
+    t_odo, odo_file = read_tum(tmp_path / "out" / "car2_odometry_tum.txt")
+    t = np.asarray(robots["car2"].timestamps_s)
+    np.testing.assert_allclose(odo_file[np.flatnonzero(np.isclose(t_odo, t[25]))[0]], np.eye(4), atol=1e-6)

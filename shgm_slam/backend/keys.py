@@ -44,7 +44,8 @@ def decode(k: int) -> tuple[int, int]:
 
 
 class RobotKeys:
-    """Robot names <-> indices <-> gtsam keys for one fixed, ordered list of robots."""
+    """Robot names <-> indices <-> gtsam keys for an ordered list of robots (agents), which may grow
+    at run time (``add``: e.g. a robot's new trajectory segment after an odometry failure)."""
 
     def __init__(self, robot_names: list[str]) -> None:
         names = list(robot_names)
@@ -55,6 +56,23 @@ class RobotKeys:
         robot_letter(len(names) - 1)  # raises when there are too many robots
         self.names = names
         self._index = {n: i for i, n in enumerate(names)}
+
+    def add(self, robot: str) -> int:
+        """Append a new agent; returns its index.
+
+        Raises:
+            BackendError: the name is taken, or all 52 key letters are in use.
+        """
+        if robot in self._index:
+            raise BackendError(f"robot {robot!r} is already in the pose graph")
+        if len(self.names) >= len(ROBOT_LETTERS):
+            raise BackendError(
+                f"cannot add {robot!r}: the pose graph holds at most {len(ROBOT_LETTERS)} agents (robots and "
+                "their trajectory segments after odometry failures); use fewer robots or fix the odometry"
+            )
+        self._index[robot] = len(self.names)
+        self.names.append(robot)
+        return self._index[robot]
 
     def __len__(self) -> int:
         return len(self.names)

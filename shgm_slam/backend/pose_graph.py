@@ -300,6 +300,15 @@ class MultiRobotPoseGraph:
                 reason += f"; stored until {rec.robot_a} or {rec.robot_b} is anchored to {self.keys.names[0]}"
         return ClosureDecision(rec.status is ClosureStatus.ACCEPTED, reason, rec.closure_id)
 
+    def add_robot(self, robot: str) -> None:
+        """Add an agent at run time (unanchored, no keyframes yet), e.g. a robot's new trajectory segment
+        whose pose relative to everything else is unknown until a closure places it.
+
+        Raises:
+            BackendError: the name is taken or the 52 key letters are used up.
+        """
+        self._robots[robot] = _Robot(self.keys.add(robot))
+
     def is_anchored(self, robot: str) -> bool:
         """True when ``robot``'s keyframes are in the shared frame (it has variables in iSAM2)."""
         return self._robot(robot).anchored

@@ -142,6 +142,23 @@ class KissOdometry:
         self._no_stamps = np.array([])  # KISS-ICP needs an array; empty = no deskew
         self.num_frames = 0
 
+    def reset(self) -> None:
+        """Start afresh: empty map, zero velocity; the next frame defines a new odometry frame."""
+        from kiss_icp.kiss_icp import KissICP
+
+        self._icp = KissICP(self.config)
+        self.num_frames = 0
+
+    @property
+    def threshold_m(self) -> float:
+        """KISS-ICP's adaptive threshold σ, metres (correspondences are searched within 3σ)."""
+        return float(self._icp.adaptive_threshold.get_threshold())
+
+    @property
+    def predicted_delta(self) -> np.ndarray:
+        """(4, 4) copy of the constant-velocity prediction of the next frame-to-frame motion."""
+        return self._icp.last_delta.copy()
+
     @property
     def T_odom_cam(self) -> np.ndarray:
         """(4, 4) copy of the latest camera pose in the odometry frame."""
@@ -151,12 +168,15 @@ class KissOdometry:
         """(M, 3) float64 points of KISS-ICP's local voxel map, odometry frame."""
         return np.asarray(self._icp.local_map.point_cloud(), dtype=np.float64)
 
-    def register(self, points_cam: np.ndarray) -> Registration:
+    def register(self, points_cam: np.ndarray, delta_prior: np.ndarray | None = None) -> Registration:
         """Register one cloud against the local map and return the new camera pose.
 
         Args:
             points_cam: (N, 3) points in the camera frame, metres (float32/float64; non-finite rows
                 are dropped). N may be 0.
+            delta_prior: (4, 4) predicted motion of this frame in the previous camera frame, replacing
+                KISS-ICP's constant-velocity prediction as ICP's initial guess (e.g. with a rotation
+                measured from the images).
 
         Returns:
             ``Registration`` with a copy of ``T_odom_cam`` (4, 4). Clouds with fewer than
@@ -168,6 +188,8 @@ class KissOdometry:
         r = np.linalg.norm(pts, axis=1)
         num_in_range = int(np.count_nonzero((r >= self.min_range_m) & (r <= self.max_range_m)))
         self.num_frames += 1
+        if delta_prior is not None:
+            self._icp.last_delta = np.asarray(delta_prior, dtype=np.float64).copy()
         if num_in_range < self.min_points:
             return Registration(self._coast(), OdometryStatus.DEGENERATE_CLOUD, num_in_range)
 

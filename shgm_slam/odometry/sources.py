@@ -18,6 +18,7 @@ from shgm_slam.config import OdometryConfig, OdometryKind
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry.se3 import inverse
 from shgm_slam.odometry.clouds import sampling_spacing_m
+from shgm_slam.odometry.image_rotation import ImageYawEstimator, rot_y, yaw_of
 from shgm_slam.odometry.kiss import KissOdometry
 from shgm_slam.odometry.visual import DepthVisualOdometry
 from shgm_slam.types import Frame
@@ -25,11 +26,18 @@ from shgm_slam.types import Frame
 
 @dataclass(frozen=True)
 class OdometryEstimate:
-    """Pose of one frame. ``ok`` is False when the pose is a prediction (e.g. a degenerate cloud)."""
+    """Pose of one frame. ``ok`` is False when the pose is a prediction (e.g. a degenerate cloud).
+
+    The optional diagnostics feed ``health.OdometryHealthMonitor``: ``threshold_m`` is the source's
+    registration threshold after this frame (KISS-ICP's adaptive σ, metres), ``rotation_disagreement_deg``
+    how far the source's rotation of this step is from the rotation measured from image motion.
+    """
 
     T_odom_cam: np.ndarray
     ok: bool
     note: str = ""
+    threshold_m: float | None = None
+    rotation_disagreement_deg: float | None = None
 
 
 @runtime_checkable
@@ -50,6 +58,10 @@ class OdometrySource(Protocol):
         """
         ...
 
+    def reset(self) -> None:
+        """Re-initialise: the next frame starts a new odometry frame (after a detected divergence)."""
+        ...
+
 
 class KissIcpSource:
     """KISS-ICP on the pseudo-LiDAR clouds (frames must arrive in order).
@@ -61,6 +73,11 @@ class KissIcpSource:
     With ``shuffle_points`` the points are put in a random (seeded, reproducible) order: KISS-ICP keeps
     the first point of every voxel, so image order ties the kept points to the pixel grid, which moves
     with the camera; a random order breaks that tie (helps oblique aerial views start up).
+    With ``image_yaw`` (frames with an RGB image) the turn between consecutive images, measured from
+    their global shift (``image_rotation``), replaces the constant-velocity prediction's yaw as ICP's
+    initial guess when they differ by more than ``prior_min_deg``: at a sharp turn the prediction
+    lags by up to 10°/frame, beyond ICP's basin with a narrow field of view. The remaining
+    disagreement after ICP is reported for the health check.
     """
 
     def __init__(
@@ -71,13 +88,25 @@ class KissIcpSource:
         max_spacing_m: float | None = None,
         shuffle_points: bool = False,
         seed: int = 0,
+        image_yaw: ImageYawEstimator | None = None,
+        prior_min_deg: float = 1.0,
     ) -> None:
         if max_spacing_m is not None and max_spacing_m <= 0:
             raise ConfigError(f"odometry max_spacing_m must be > 0 or None, got {max_spacing_m}")
         self.odometry = odometry
         self.cloud_stride = cloud_stride
         self.max_spacing_m = max_spacing_m
+        self._seed = seed
         self._rng = np.random.default_rng(seed) if shuffle_points else None
+        self.image_yaw = image_yaw
+        self.prior_min_rad = float(np.radians(prior_min_deg))
+
+    def reset(self) -> None:
+        self.odometry.reset()
+        if self._rng is not None:
+            self._rng = np.random.default_rng(self._seed)
+        if self.image_yaw is not None:
+            self.image_yaw.reset()
 
     def update(
         self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
@@ -88,9 +117,26 @@ class KissIcpSource:
             points_cam = points_cam[spacing_m <= self.max_spacing_m]
         if self._rng is not None:
             points_cam = points_cam[self._rng.permutation(len(points_cam))]
-        reg = self.odometry.register(points_cam)
+        yaw_img = None
+        if self.image_yaw is not None and frame.image_rgb is not None and self.odometry.num_frames > 0:
+            yaw_img = self.image_yaw.update(frame.image_rgb, frame.intrinsics.fx)
+        elif self.image_yaw is not None and frame.image_rgb is not None:
+            self.image_yaw.update(frame.image_rgb, frame.intrinsics.fx)  # the first frame: reference only
+        T_prev = self.odometry.T_odom_cam
+        prior = None
+        if yaw_img is not None:
+            delta = self.odometry.predicted_delta
+            dyaw = yaw_img - yaw_of(delta)
+            if abs(dyaw) > self.prior_min_rad:
+                delta[:3, :3] = rot_y(dyaw) @ delta[:3, :3]
+                prior = delta
+        reg = self.odometry.register(points_cam, prior)
         note = "" if reg.ok else f"frame {frame.index}: {reg.status.value} ({reg.num_points} points in range)"
-        return OdometryEstimate(reg.T_odom_cam, reg.ok, note)
+        disagreement = None
+        if yaw_img is not None and reg.ok:
+            yaw_icp = yaw_of(inverse(T_prev) @ reg.T_odom_cam)
+            disagreement = float(np.degrees(abs(np.angle(np.exp(1j * (yaw_icp - yaw_img))))))
+        return OdometryEstimate(reg.T_odom_cam, reg.ok, note, self.odometry.threshold_m, disagreement)
 
 
 class GroundTruthSource:
@@ -98,6 +144,9 @@ class GroundTruthSource:
 
     def __init__(self) -> None:
         self._T_cam0_world: np.ndarray | None = None
+
+    def reset(self) -> None:
+        self._T_cam0_world = None
 
     def update(
         self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
@@ -128,6 +177,10 @@ class PoseFileSource:
                 "frames; give one pose per frame (for a frame range, cut the file to the same range)"
             )
         self.T_odom_cam = inverse(poses[0]) @ poses  # (N, 4, 4)
+        self._T_cam0_file: np.ndarray | None = None  # after ``reset``: the file pose of the new first frame
+
+    def reset(self) -> None:
+        self._T_cam0_file = np.full((4, 4), np.nan)
 
     def update(
         self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
@@ -137,7 +190,12 @@ class PoseFileSource:
             raise DataError(
                 f"frame {frame.index} has no pose in {self.path} ({self.T_odom_cam.shape[0]} poses)"
             )
-        return OdometryEstimate(self.T_odom_cam[frame.index].copy(), True)
+        T = self.T_odom_cam[frame.index].copy()
+        if self._T_cam0_file is not None:  # re-expressed relative to the first frame after a reset
+            if not np.isfinite(self._T_cam0_file).all():
+                self._T_cam0_file = T
+            T = inverse(self._T_cam0_file) @ T
+        return OdometryEstimate(T, True)
 
 
 class VisualOdometrySource:
@@ -145,8 +203,14 @@ class VisualOdometrySource:
     image and its depth image (frames must arrive in order). Made for depth predicted by a monocular
     network, where ICP on the pseudo-LiDAR cloud stalls; the cloud itself is not used."""
 
-    def __init__(self, odometry: DepthVisualOdometry) -> None:
+    def __init__(self, odometry: DepthVisualOdometry, factory: Callable[[], DepthVisualOdometry] | None = None) -> None:
         self.odometry = odometry
+        self._factory = factory
+
+    def reset(self) -> None:
+        if self._factory is None:
+            raise ConfigError("this visual odometry source was built without a factory and cannot re-initialise")
+        self.odometry = self._factory()
 
     def update(
         self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
@@ -166,8 +230,8 @@ class VisualOdometrySource:
 
 
 def _visual(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
-    return VisualOdometrySource(
-        DepthVisualOdometry(
+    def factory() -> DepthVisualOdometry:
+        return DepthVisualOdometry(
             max_features=cfg.visual_max_features,
             min_depth_m=cfg.min_range_m,
             max_depth_m=cfg.visual_max_depth_m,
@@ -175,7 +239,8 @@ def _visual(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
             reprojection_px=cfg.visual_reprojection_px,
             depth_window_px=cfg.visual_depth_window_px,
         )
-    )
+
+    return VisualOdometrySource(factory(), factory)
 
 
 def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
@@ -190,6 +255,7 @@ def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
         cloud_stride=cfg.cloud_stride,
         max_spacing_m=cfg.max_spacing_m,
         shuffle_points=cfg.shuffle_points,
+        image_yaw=ImageYawEstimator() if cfg.image_rotation_prior else None,
     )
 
 

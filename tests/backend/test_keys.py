@@ -33,3 +33,17 @@ def test_errors_name_the_problem():
         decode(gtsam.symbol("#", 3))
     with pytest.raises(BackendError, match="belongs to no robot"):
         RobotKeys(["a", "b"]).decode(key(5, 0))
+
+
+def test_agents_are_added_at_run_time_up_to_52():
+    keys = RobotKeys(["car1", "car2"])
+    assert keys.add("car1#1") == 2
+    assert keys.key("car1#1", 4) == gtsam.symbol("c", 4)
+    assert keys.decode(gtsam.symbol("c", 4)) == ("car1#1", 4)
+    with pytest.raises(BackendError, match="already"):
+        keys.add("car1#1")
+    for i in range(2, 51):
+        keys.add(f"car1#{i}")
+    assert len(keys) == 52
+    with pytest.raises(BackendError, match="at most 52 agents"):
+        keys.add("car1#51")

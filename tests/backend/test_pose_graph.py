@@ -308,3 +308,38 @@ def test_closures_of_one_match_do_not_confirm_each_other():
     assert not pg.is_anchored("b")
     pg.add_inter_robot_closure("a", 1, "b", 1, np.eye(4), num_inliers=20, match_id=2)
     assert pg.is_anchored("b")
+
+
+def test_agent_added_at_run_time_is_placed_by_closures_to_its_own_robots_earlier_segment(scene):
+    """A robot's odometry fails halfway: its second segment is a new agent with an unknown frame, placed by
+    closures to the first segment (the robot's own past) and to another robot, like any robot."""
+    half = N // 2
+    gt_a, odo_b = scene["gt_a"], scene["odo_b"]
+    gt_a2 = gt_a[half:]  # segment 2 of a: odometry restarts at keyframe `half`
+    odo_a2 = inverse(scene["odo_a"][half]) @ scene["odo_a"][half:]
+    pg = MultiRobotPoseGraph(["a", "b"])
+    for k in range(half):
+        pg.add_keyframe("a", k, scene["odo_a"][k])
+    for k in range(N):
+        pg.add_keyframe("b", k, odo_b[k])
+    for i, j, T in scene["closures"]:
+        if i < half:
+            pg.add_inter_robot_closure("a", i, "b", j, T, num_inliers=8)
+    with pytest.raises(BackendError, match="unknown robot"):
+        pg.add_keyframe("a#1", 0, np.eye(4))
+    pg.add_robot("a#1")
+    assert not pg.is_anchored("a#1")
+    for k in range(len(odo_a2)):
+        pg.add_keyframe("a#1", k, odo_a2[k])
+    # closures of the new segment to b (true ones) and to its own earlier segment (an overlap of 1 keyframe)
+    gt_b = scene["gt_b"]
+    for i, j, T in true_closures(gt_a2, gt_b, np.random.default_rng(7)):
+        pg.add_inter_robot_closure("a#1", i, "b", j, T, num_inliers=8)
+    pg.add_inter_robot_closure("a", half - 1, "a#1", 0, inverse(gt_a[half - 1]) @ gt_a2[0], num_inliers=8)
+    assert pg.is_anchored("a#1")
+    est = pg.estimate()["a#1"]
+    err = np.linalg.norm(est[:, :3, 3] - (inverse(gt_a[0]) @ gt_a2)[:, :3, 3], axis=1)
+    assert err.max() < 3.0, err
+    assert gtsam.Symbol(pg.keys.key("a#1", 0)).string() == "c0"
+    assert "c0" in {gtsam.Symbol(int(line.split()[1])).string() for line in pg.to_g2o().splitlines()
+                    if line.startswith("VERTEX")}  # fmt: skip

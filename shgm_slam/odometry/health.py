@@ -1,0 +1,203 @@
+"""Odometry health: tells when an odometry estimate has diverged, and from which frame on.
+
+Any odometry source (KISS-ICP, visual odometry, a poses file) reports one pose per frame; the monitor
+checks each new pose against what the robot can physically do between two frames and against the
+source's own diagnostics (``OdometryEstimate``):
+
+- **speed**: ``|Δt| / Δt ≤ max_speed_mps`` (a road car: 40 m/s = 144 km/h covers every scenario),
+- **acceleration**: the change of the velocity vector between consecutive steps (expressed in one
+  frame) ``≤ max_accel_mps2·Δt + step_noise_m / Δt``: the second term is the odometry's own
+  per-step position noise turned into a velocity (KISS-ICP on pseudo-LiDAR: car steps jitter by up
+  to ~0.5 m, a UAV's over far, sparse clouds by up to 1.6 m without diverging; sharp 90° turns of
+  the simulated cars reach 2 g centripetal),
+- **turn rate**: ``angle(ΔR) ≤ max_turn_rate_dps·Δt + step_noise_deg`` (the simulated cars turn
+  at up to 107°/s at intersections),
+- **coasting**: the source predicted instead of measured (no depth, too few points, ICP or PnP
+  failed) for more than ``max_coast_s`` since the last measured pose,
+- **registration threshold**: KISS-ICP's adaptive threshold (its running estimate of the motion
+  model's error, metres) above ``max_threshold_m``; a safety net only: on healthy starts it reaches
+  8 m (the first frames accelerate from a zero-velocity prior),
+- **image rotation**: the source's rotation disagrees with the rotation measured from image motion
+  (``OdometryEstimate.rotation_disagreement_deg``) by more than ``max_image_rotation_deg``:
+  catches ICP that under-turns through a sharp turn, which no motion limit can see.
+
+The limits are per second and scaled by each step's Δt from the timestamps, so they hold at any
+frame rate. Divergence *onset* is the first frame that broke a limit (for coasting, the first
+predicted frame): that frame and everything after it belong to no healthy trajectory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from shgm_slam.config import OdometryConfig
+from shgm_slam.geometry.se3 import inverse, rotation_angle
+
+
+class FailureReason(str, Enum):
+    """Why an odometry trajectory was declared diverged."""
+
+    SPEED = "speed"
+    ACCELERATION = "acceleration"
+    TURN_RATE = "turn-rate"
+    COASTING = "coasting"
+    REGISTRATION_THRESHOLD = "registration-threshold"
+    IMAGE_ROTATION = "image-rotation"
+    NON_FINITE = "non-finite"
+
+
+@dataclass(frozen=True)
+class HealthLimits:
+    """What a robot can do between two frames (see the module docstring for each check; defaults in
+    ``OdometryConfig``).
+
+    Attributes:
+        max_speed_mps: speed limit, m/s.
+        max_accel_mps2: acceleration limit (including centripetal), m/s².
+        max_turn_rate_dps: turn-rate limit, degrees/s.
+        step_noise_m: per-step position noise of a healthy odometry, m (acceleration slack).
+        step_noise_deg: per-step rotation noise of a healthy odometry, degrees (turn-rate slack).
+        max_coast_s: longest run of predicted (not measured) poses, seconds.
+        max_threshold_m: largest acceptable registration threshold (KISS-ICP), m.
+        max_image_rotation_deg: largest acceptable disagreement with image rotation, degrees.
+    """
+
+    max_speed_mps: float
+    max_accel_mps2: float
+    max_turn_rate_dps: float
+    step_noise_m: float
+    step_noise_deg: float
+    max_coast_s: float
+    max_threshold_m: float
+    max_image_rotation_deg: float
+
+    @classmethod
+    def from_config(cls, cfg: OdometryConfig) -> HealthLimits:
+        """The limits of ``OdometryConfig`` (defaults and their reasons live there)."""
+        return cls(**{f: getattr(cfg, f) for f in cls.__dataclass_fields__})
+
+
+@dataclass(frozen=True)
+class OdometryFailure:
+    """A detected divergence: the first bad frame (``onset_frame``), the frame that detected it."""
+
+    reason: FailureReason
+    onset_frame: int
+    detected_frame: int
+    detail: str
+
+    def describe(self) -> str:
+        return f"{self.reason.value} at frame {self.onset_frame} (detected at {self.detected_frame}): {self.detail}"
+
+
+class OdometryHealthMonitor:
+    """Checks one trajectory segment's poses frame by frame (``check``); ``reset`` starts a new segment.
+
+    Frames must arrive in order. Only measured (``measured=True``) frames update the motion state:
+    a predicted pose is constant-velocity by construction and is checked only for coasting.
+    """
+
+    def __init__(self, limits: HealthLimits) -> None:
+        self.limits = limits
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the motion history (a new trajectory segment starts with the next frame)."""
+        self._last: tuple[int, float, np.ndarray] | None = None  # frame, time, T_odom_cam
+        self._velocity: np.ndarray | None = None  # (3,) last step's velocity in the odometry frame, m/s
+        self._coast_start: tuple[int, float] | None = None  # first predicted frame, last measured time
+
+    def check(
+        self,
+        frame_index: int,
+        timestamp_s: float,
+        T_odom_cam: np.ndarray,
+        *,
+        measured: bool = True,
+        registration_threshold_m: float | None = None,
+        rotation_disagreement_deg: float | None = None,
+    ) -> OdometryFailure | None:
+        """Check the pose of one frame; returns the failure it reveals, or None while healthy.
+
+        Args:
+            frame_index: the frame's index in its sequence.
+            timestamp_s: its timestamp, seconds.
+            T_odom_cam: (4, 4) its camera pose in the segment's odometry frame.
+            measured: False when the source only predicted the pose (coasting).
+            registration_threshold_m: the source's registration threshold after this frame, if any.
+            rotation_disagreement_deg: |source rotation - image rotation| of this step, if measured.
+        """
+        lim = self.limits
+        T = np.asarray(T_odom_cam, dtype=np.float64)
+        if not np.isfinite(T).all():
+            return OdometryFailure(FailureReason.NON_FINITE, frame_index, frame_index, "non-finite pose")
+        if not measured:
+            if self._coast_start is None:
+                t_measured = self._last[1] if self._last is not None else timestamp_s
+                self._coast_start = (frame_index, t_measured)
+            start, t_measured = self._coast_start
+            if timestamp_s - t_measured > lim.max_coast_s:
+                return OdometryFailure(
+                    FailureReason.COASTING, start, frame_index,
+                    f"no measured pose for {timestamp_s - t_measured:.2f} s (limit {lim.max_coast_s} s)",
+                )  # fmt: skip
+            return None
+        self._coast_start = None
+        failure = self._check_motion(frame_index, timestamp_s, T)
+        if failure is None and registration_threshold_m is not None and registration_threshold_m > lim.max_threshold_m:
+            failure = OdometryFailure(
+                FailureReason.REGISTRATION_THRESHOLD, frame_index, frame_index,
+                f"registration threshold {registration_threshold_m:.1f} m > {lim.max_threshold_m} m",
+            )  # fmt: skip
+        if (
+            failure is None
+            and rotation_disagreement_deg is not None
+            and rotation_disagreement_deg > lim.max_image_rotation_deg
+        ):
+            failure = OdometryFailure(
+                FailureReason.IMAGE_ROTATION, frame_index, frame_index,
+                f"rotation differs from image motion by {rotation_disagreement_deg:.1f} deg "
+                f"(limit {lim.max_image_rotation_deg} deg)",
+            )  # fmt: skip
+        return failure
+
+    def _check_motion(self, frame_index: int, t: float, T: np.ndarray) -> OdometryFailure | None:
+        lim = self.limits
+        last = self._last
+        self._last = (frame_index, t, T)
+        if last is None:
+            return None
+        _, t_prev, T_prev = last
+        dt = t - t_prev
+        if not dt > 0:
+            self._velocity = None
+            return None
+        step = inverse(T_prev) @ T  # this step, in the previous camera frame
+        speed = float(np.linalg.norm(step[:3, 3])) / dt
+        if speed > lim.max_speed_mps:
+            return OdometryFailure(
+                FailureReason.SPEED, frame_index, frame_index,
+                f"speed {speed:.1f} m/s > {lim.max_speed_mps} m/s",
+            )  # fmt: skip
+        turn_deg = float(np.degrees(rotation_angle(step)))
+        max_turn = lim.max_turn_rate_dps * dt + lim.step_noise_deg
+        if turn_deg > max_turn:
+            return OdometryFailure(
+                FailureReason.TURN_RATE, frame_index, frame_index,
+                f"turned {turn_deg:.1f} deg in {dt:.3f} s (limit {max_turn:.1f} deg)",
+            )  # fmt: skip
+        # velocity of this step in the world (odometry) frame: compare with the previous step's
+        velocity = T_prev[:3, :3] @ step[:3, 3] / dt
+        prev_velocity, self._velocity = self._velocity, velocity
+        if prev_velocity is not None:
+            dv = float(np.linalg.norm(velocity - prev_velocity))
+            max_dv = lim.max_accel_mps2 * dt + lim.step_noise_m / dt
+            if dv > max_dv:
+                return OdometryFailure(
+                    FailureReason.ACCELERATION, frame_index, frame_index,
+                    f"velocity changed by {dv:.1f} m/s in {dt:.3f} s (limit {max_dv:.1f} m/s)",
+                )  # fmt: skip
+        return None

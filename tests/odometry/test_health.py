@@ -1,0 +1,154 @@
+"""Odometry health: impossible jumps, blank stretches and sharp-turn failures are detected at their onset;
+healthy driving (turns, stops at zero speed, a hovering UAV, odometry noise) raises no alarm."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from shgm_slam.config import OdometryConfig
+from shgm_slam.geometry.se3 import make_pose, rot_y
+from shgm_slam.odometry.health import FailureReason, HealthLimits, OdometryHealthMonitor
+from shgm_slam.odometry.image_rotation import ImageYawEstimator
+
+LIMITS = HealthLimits.from_config(OdometryConfig())
+
+
+def drive(speeds_mps: np.ndarray, yaw_rates_dps: np.ndarray, dt_s: float) -> np.ndarray:
+    """(N, 4, 4) camera poses (z forward, y down) of a car with the given per-step speed and yaw rate."""
+    poses = [np.eye(4)]
+    for v, w in zip(speeds_mps, yaw_rates_dps, strict=True):
+        poses.append(poses[-1] @ make_pose(rot_y(np.radians(w * dt_s)), [0.0, 0.0, v * dt_s]))
+    return np.stack(poses)
+
+
+def jitter(poses: np.ndarray, rng: np.random.Generator, step_m: float, step_deg: float) -> np.ndarray:
+    """Odometry-like noise: every pose perturbed by up to ``step_m`` / ``step_deg``."""
+    out = poses.copy()
+    for T in out[1:]:
+        T[:] = T @ make_pose(rot_y(np.radians(rng.uniform(-step_deg, step_deg))), rng.uniform(-step_m, step_m, 3))
+    return out
+
+
+def run(monitor: OdometryHealthMonitor, poses: np.ndarray, dt_s: float, **per_frame):
+    """Check every pose; returns the first failure (or None)."""
+    for i, T in enumerate(poses):
+        kwargs = {k: v[i] for k, v in per_frame.items()}
+        failure = monitor.check(i, i * dt_s, T, **kwargs)
+        if failure is not None:
+            return failure
+    return None
+
+
+def city_drive(n: int = 300) -> tuple[np.ndarray, np.ndarray]:
+    """Speeds (accelerate, cruise at 11 m/s, brake to a stop, wait, go) and yaw rates (a 90-degree turn at
+    up to 107 deg/s, as the simulator's cars at intersections)."""
+    v = np.concatenate(
+        [np.linspace(0, 11, 40), np.full(80, 11.0), np.linspace(11, 0, 30), np.zeros(40), np.linspace(0, 8, 30)]
+    )
+    v = np.concatenate([v, np.full(n - len(v), 8.0)])
+    w = np.zeros(n)
+    w[60:69] = 100.0  # ~90 degrees in 0.9 s at 11 m/s: ~2 g centripetal
+    w[230:260] = -20.0
+    return v, w
+
+
+@pytest.mark.parametrize("dt_s", [0.1, 0.25, 1 / 30])
+def test_healthy_city_drive_with_stops_and_sharp_turns_raises_no_alarm(dt_s: float) -> None:
+    v, w = city_drive()
+    poses = jitter(drive(v, w, dt_s), np.random.default_rng(0), 0.15, 0.5)
+    assert run(OdometryHealthMonitor(LIMITS), poses, dt_s) is None
+
+
+def test_hovering_and_climbing_uav_raises_no_alarm() -> None:
+    dt = 0.1
+    poses = [np.eye(4)]
+    for i in range(400):  # hover, climb along -y (up), fly, hover again
+        step = [0.0, -0.3, 0.0] if 50 <= i < 100 else [0.0, 0.0, 0.74] if 100 <= i < 350 else [0.0, 0.0, 0.0]
+        poses.append(poses[-1] @ make_pose(rot_y(np.radians(0.3 if 200 <= i < 250 else 0.0)), step))
+    noisy = jitter(np.stack(poses), np.random.default_rng(1), 0.4, 1.0)  # a UAV's noisier far-cloud odometry
+    assert run(OdometryHealthMonitor(LIMITS), noisy, dt) is None
+
+
+@pytest.mark.parametrize("jump_m", [3.5, 45.0])
+def test_impossible_jump_is_detected_at_its_onset(jump_m: float) -> None:
+    v, w = city_drive()
+    poses = drive(v, w, 0.1)
+    poses[100:, 0, 3] += jump_m  # a sideways teleport from frame 100 on
+    failure = run(OdometryHealthMonitor(LIMITS), poses, 0.1)
+    assert failure is not None
+    assert failure.onset_frame == failure.detected_frame == 100
+    assert failure.reason in (FailureReason.SPEED, FailureReason.ACCELERATION)
+    if jump_m > 40:
+        assert failure.reason is FailureReason.SPEED
+
+
+def test_divergence_after_a_turn_with_large_steps_is_detected() -> None:
+    """What users saw: after a sharp turn, steps of 40+ m per frame."""
+    v, w = city_drive()
+    v[70:] = 400.0
+    failure = run(OdometryHealthMonitor(LIMITS), drive(v, w, 0.1), 0.1)
+    assert failure is not None and failure.onset_frame == 71 and failure.reason is FailureReason.SPEED
+
+
+def test_blank_stretch_is_detected_from_its_first_predicted_frame() -> None:
+    v, w = city_drive()
+    poses = drive(v, w, 0.1)
+    measured = np.ones(len(poses), dtype=bool)
+    measured[120:135] = False  # no depth for 1.5 s: the odometry only predicts
+    failure = run(OdometryHealthMonitor(LIMITS), poses, 0.1, measured=measured)
+    assert failure is not None and failure.reason is FailureReason.COASTING
+    assert failure.onset_frame == 120
+    assert failure.detected_frame == 120 + int(np.floor(LIMITS.max_coast_s / 0.1 + 1e-9))
+
+
+def test_short_gap_is_tolerated() -> None:
+    v, w = city_drive()
+    measured = np.ones(len(v) + 1, dtype=bool)
+    measured[120:123] = False  # 0.3 s
+    assert run(OdometryHealthMonitor(LIMITS), drive(v, w, 0.1), 0.1, measured=measured) is None
+
+
+def test_sharp_turn_missed_by_icp_is_detected_from_image_rotation() -> None:
+    """ICP that under-turns keeps a plausible motion; only the image rotation disagrees."""
+    v, w = city_drive()
+    w_icp = w.copy()
+    w_icp[60:69] = 15.0
+    disagreement = np.zeros(len(v) + 1)
+    disagreement[1:] = np.abs(w - w_icp) * 0.1
+    failure = run(OdometryHealthMonitor(LIMITS), drive(v, w_icp, 0.1), 0.1, rotation_disagreement_deg=disagreement)
+    assert failure is not None and failure.reason is FailureReason.IMAGE_ROTATION and failure.onset_frame == 61
+
+
+def test_turn_rate_and_registration_threshold_limits() -> None:
+    v, w = city_drive()
+    w[150] = 600.0  # 60 degrees in one 0.1 s frame
+    failure = run(OdometryHealthMonitor(LIMITS), drive(v, w, 0.1), 0.1)
+    assert failure is not None and failure.reason is FailureReason.TURN_RATE and failure.onset_frame == 151
+    v, w = city_drive()
+    sigma = np.full(len(v) + 1, 1.0)
+    sigma[200] = LIMITS.max_threshold_m + 1
+    failure = run(OdometryHealthMonitor(LIMITS), drive(v, w, 0.1), 0.1, registration_threshold_m=sigma)
+    assert failure is not None and failure.reason is FailureReason.REGISTRATION_THRESHOLD
+
+
+def test_reset_starts_a_new_history() -> None:
+    monitor = OdometryHealthMonitor(LIMITS)
+    assert monitor.check(0, 0.0, np.eye(4)) is None
+    monitor.reset()
+    # after a reset the next pose starts afresh (the new segment's odometry frame): no jump from the old one
+    assert monitor.check(1, 0.1, make_pose(np.eye(3), [100.0, 0.0, 0.0])) is None
+    assert monitor.check(2, 0.2, make_pose(np.eye(3), [100.0, 0.0, 1.0])) is None
+
+
+def test_image_yaw_of_a_horizontal_shift() -> None:
+    rng = np.random.default_rng(0)
+    big = cv2.GaussianBlur((rng.random((96, 400)) * 255).astype(np.uint8), (5, 5), 1.5)
+    fx = 184.0
+    est = ImageYawEstimator()
+    assert est.update(np.dstack([big[:, 40:360]] * 3), fx) is None  # first image: reference only
+    shift_px = 12
+    yaw = est.update(np.dstack([big[:, 40 + shift_px : 360 + shift_px]] * 3), fx)
+    # content moved left by 12 px: the camera turned towards +x, R_prev_cur = R_y(atan(12/fx))
+    assert yaw is not None and yaw == pytest.approx(np.arctan2(shift_px, fx), abs=np.radians(0.3))
