@@ -249,18 +249,28 @@ def _render_summary(summary) -> None:
     from rich.table import Table
 
     t = Table(title="shgm-slam run", title_style="bold")
-    for col in ("robot", "frames", "kf", "nodes", "fused", "path m", "ATE odo", "ATE fused", "aligned"):
+    for col in ("robot", "frames", "kf", "nodes", "odo fail", "fused", "path m", "ATE odo", "ATE fused", "aligned"):
         t.add_column(col, justify="right" if col != "robot" else "left")
     for r in summary.robots:
+        fused = "[green]yes[/]" if r.localized else "[red]no[/]"
+        if r.segments > 1:  # after odometry failures: which trajectory segments are in the shared frame
+            fused += f" ({r.segments_placed}/{r.segments} seg)"
         t.add_row(
             r.name, str(r.frames), str(r.keyframes), str(r.nodes),
-            "[green]yes[/]" if r.localized else "[red]no[/]", f"{r.path_length_m:.0f}",
+            f"[yellow]{r.odometry_failures}[/]" if r.odometry_failures else "0", fused, f"{r.path_length_m:.0f}",
             f"{r.ate_odometry_m:.2f}", f"{r.ate_fused_m:.2f}",
             f"{r.ate_odometry_aligned_m:.2f}/{r.ate_fused_aligned_m:.2f}",
         )
-    t.caption = ("ATE in metres in the shared frame (odo = odometry alone, started at its true pose); "
-                 "aligned = SE(3)-aligned per robot")
+    t.caption = ("ATE in metres in the shared frame (odo = odometry alone, started at its true pose; per trajectory "
+                 "segment after odometry failures); aligned = SE(3)-aligned per robot")
     console.print(t)
+    for r in summary.robots:
+        if r.odometry_failures:
+            more = f" (+{r.odometry_failures - 3} more in metrics.json)" if r.odometry_failures > 3 else ""
+            console.print(
+                f"[yellow]{r.name}: odometry diverged {r.odometry_failures}x[/], restarted as new trajectory "
+                f"segments: " + "; ".join(r.failure_reasons[:3]) + more
+            )
     console.print(
         f"inter-robot matches tried {summary.matches_tried}, closures accepted "
         f"[green]{summary.closures_accepted}[/], rejected [yellow]{summary.closures_rejected}[/]"

@@ -206,9 +206,10 @@ def run_slam(
                 continue
             processed[robot] += 1
             if res.failure is not None:
-                viz.log_text(
-                    f"{robot}: odometry diverged, {res.failure.describe()}; new trajectory segment {res.agent}", "WARN"
-                )
+                viz.log_odometry_failure(
+                    robot, f"{robot}: odometry diverged, {res.failure.describe()}; new trajectory segment {res.agent}",
+                    _last_healthy_position(fronts[robot], server),
+                )  # fmt: skip
             t0 = time.perf_counter()
             records = server.receive(res.message) if res.message is not None else []
             backend_ms = (time.perf_counter() - t0) * 1e3
@@ -248,6 +249,15 @@ def run_slam(
     writer.write_json("metrics.json", summary.to_json_dict())
     viz.close()
     return summary
+
+
+def _last_healthy_position(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
+    """(3,) shared-frame position of the last frame of the segment that just failed, if that is placed."""
+    seg = front.segments[-2]
+    frames = np.flatnonzero(front.frame_segment == seg.index)
+    if not len(frames) or server.T_shared_kf(seg.agent) is None:
+        return None
+    return (server.pose_graph.T_shared_odom(seg.agent) @ front.T_odom_cam[frames[-1]])[:3, 3]
 
 
 def _placed_segments(front: RobotFrontend, server: MapServer) -> list[tuple[int, np.ndarray]]:

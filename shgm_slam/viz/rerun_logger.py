@@ -139,6 +139,8 @@ class Viz(Protocol):
 
     def log_text(self, message: str, level: LogLevel | str = LogLevel.INFO) -> None: ...
 
+    def log_odometry_failure(self, robot: str, message: str, position_shared: np.ndarray | None = None) -> None: ...
+
     def log_timings(self, robot: str, timings_ms: dict[str, float]) -> None: ...
 
     def log_scalar(self, path: str, value: float) -> None: ...
@@ -186,6 +188,9 @@ class NullLogger:
         pass
 
     def log_text(self, message: str, level: LogLevel | str = LogLevel.INFO) -> None:
+        pass
+
+    def log_odometry_failure(self, robot: str, message: str, position_shared: np.ndarray | None = None) -> None:
         pass
 
     def log_timings(self, robot: str, timings_ms: dict[str, float]) -> None:
@@ -442,6 +447,19 @@ class RerunLogger:
     def log_text(self, message: str, level: LogLevel | str = LogLevel.INFO) -> None:
         """One line in the viewer's log view (``/log``)."""
         self.rec.log(LOG, rr.TextLog(message, level=LogLevel(level).value))
+
+    def log_odometry_failure(self, robot: str, message: str, position_shared: np.ndarray | None = None) -> None:
+        """A detected odometry divergence: a WARN line in ``/log`` and, when the last healthy position is
+        known in the shared frame (``position_shared`` (3,), metres), a red marker ``<robot>/odometry_failure``."""
+        self.log_text(message, LogLevel.WARN)
+        if position_shared is not None:
+            xyz = _xyz("position_shared", np.asarray(position_shared, dtype=np.float64).reshape(1, 3))
+            self.rec.log(
+                f"{robot_path(robot)}/odometry_failure",
+                rr.Points3D(
+                    xyz, colors=(230, 40, 40), radii=rr.components.Radius.ui_points(10.0), labels=["odometry failure"]
+                ),
+            )
 
     def log_timings(self, robot: str, timings_ms: dict[str, float]) -> None:
         """Per-stage durations (ms) of the current frame as series ``/timings/<robot>/<stage>``."""
