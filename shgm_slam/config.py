@@ -119,8 +119,8 @@ class MatchingConfig(_Stage):
         "mapped by both robots (maps miss 30-60 % of objects)",
     )
     false_alarm_rate: float = Field(
-        1e-3, gt=0, lt=1, description="success needs a likelihood ratio (alignment vs chance) above "
-        "hypotheses / false_alarm_rate",
+        1e-2, gt=0, lt=1, description="success needs a likelihood ratio (alignment vs chance) above "
+        "hypotheses / false_alarm_rate (tuned: bench sparse, seeds 10-19)",
     )
     up_axis: tuple[float, float, float] = Field(
         (0.0, -1.0, 0.0), description="vertical axis of the world frames (KITTI camera frame: -y is up)"

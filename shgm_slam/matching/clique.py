@@ -31,6 +31,9 @@ MAX_SEEDS = 48
 PATIENCE = 12
 """Stop after this many consecutive seeds that did not improve the best clique."""
 
+HYPOTHESIS_SEEDS = 48
+"""``clique_hypotheses``: greedy cliques grown from this many highest-degree candidates."""
+
 
 _BLOCK_ROWS = 128
 """Rows of the consistency matrix computed at once (keeps the float temporaries in cache)."""
@@ -290,14 +293,15 @@ def clique_hypotheses(
     gravity_aligned: bool = False,
     up: np.ndarray | None = None,
     max_candidates: int | None = None,
-    max_hypotheses: int = MAX_SEEDS,
+    max_hypotheses: int = HYPOTHESIS_SEEDS,
 ) -> list[np.ndarray]:
     """Several alignment hypotheses: the Eq. 2 fits of greedy cliques grown from different seeds.
 
     The maximum clique is often not the true alignment on sparse, noisy graphs (a chance clique of
     repeated classes can be as large as the true one, whose size noise caps), so the matcher verifies
     several: greedy cliques (``_greedy_clique``) from the ``max_hypotheses`` candidates of highest
-    consistency degree, in that order, cliques of fewer than 3 candidates and repeats dropped.
+    consistency degree, in that order, skipping seeds inside a clique already found; cliques of fewer
+    than 3 candidates and repeats dropped.
 
     Args:
         points_b, points_a: (K, 3) candidate positions in B's and A's frames (decreasing score order).
@@ -315,14 +319,18 @@ def clique_hypotheses(
     alive = np.ones(m, dtype=bool)
     seen: set[bytes] = set()
     cliques: list[np.ndarray] = []
+    covered = np.zeros(m, dtype=bool)
     for seed in seeds:
         if degree[seed] < 2:
             break
+        if covered[seed]:  # it would mostly regrow a clique already found
+            continue
         clique = _greedy_clique(adjacency, int(seed), alive, 2)
         key = np.sort(clique).tobytes()
         if clique.size >= 3 and key not in seen:
             seen.add(key)
             cliques.append(clique)
+            covered[clique] = True
     if not cliques:
         return []
     cliques.sort(key=lambda c: -c.size)

@@ -26,6 +26,7 @@ from shgm_slam.matching.result import MatchResult
 from shgm_slam.matching.verification import (
     LabelledTree,
     Verification,
+    partner_pairs,
     shift_vectors,
     support_counts,
     verify_alignment,
@@ -184,9 +185,10 @@ def match_graphs(
         return MatchResult.failure(reason, len(cands), timings)
 
     tree_a, tree_b = LabelledTree(a.positions_xyz, a.label_ids), LabelledTree(b.positions_xyz, b.label_ids)
-    scored = _verify_best(np.stack(hypotheses), a, b, tree_a, tree_b, cfg)
+    shifts = shift_vectors(np.asarray(cfg.up_axis))
+    scored = [(T, _verify(tree_a, tree_b, T, cfg, shifts)) for T in _refined(np.stack(hypotheses), a, b, tree_a, cfg)]
     best, rival = _best_and_rival(scored, b, cfg.verification_radius_m)
-    T, v = best[0], _verify(tree_a, tree_b, best[0], cfg, shift_vectors(np.asarray(cfg.up_axis)))
+    T, v = best
     rows_a, rows_b = v.pairs[:, 0], v.pairs[:, 1]
     res = np.linalg.norm(transform_points(T, b.positions_xyz[rows_b]) - a.positions_xyz[rows_a], axis=1)
     rmse = float(np.sqrt(np.mean(res**2))) if res.size else math.inf
@@ -222,7 +224,7 @@ def match_graphs(
 
 
 def _verify(
-    tree_a: LabelledTree, tree_b: LabelledTree, T: np.ndarray, cfg: MatchingConfig, shifts_m: np.ndarray | None = None
+    tree_a: LabelledTree, tree_b: LabelledTree, T: np.ndarray, cfg: MatchingConfig, shifts_m: np.ndarray
 ) -> Verification:
     return verify_alignment(
         tree_a, tree_b, T, radius_m=cfg.verification_radius_m, coverage_m=cfg.coverage_radius_m,
@@ -230,37 +232,47 @@ def _verify(
     )  # fmt: skip
 
 
-def _verify_best(
-    hypotheses: np.ndarray, a: GraphArrays, b: GraphArrays, tree_a: LabelledTree, tree_b: LabelledTree,
-    cfg: MatchingConfig,
-) -> list[tuple[np.ndarray, Verification]]:  # fmt: skip
+def _refined(
+    hypotheses: np.ndarray, a: GraphArrays, b: GraphArrays, tree_a: LabelledTree, cfg: MatchingConfig
+) -> list[np.ndarray]:
     """Screen (H, 4, 4) hypotheses by their supporting nodes of B, then refine the ``verified_hypotheses``
-    best: alternate partner selection (``verification``) and the Eq. 2 fit on the partners
-    (``refine_iterations`` times, stopping when the partners are stable). Returns (T, verification) pairs."""
-    counts = support_counts(tree_a, b.positions_xyz, b.label_ids, hypotheses, cfg.verification_radius_m)
-    top = np.argsort(-counts, kind="stable")[: cfg.verified_hypotheses]
-    up = np.asarray(cfg.up_axis)
-    out = []
-    for h in top:
-        T = hypotheses[h]
-        v = _verify(tree_a, tree_b, T, cfg)
-        for _ in range(cfg.refine_iterations):
-            if v.support < MIN_NODES:
-                break
-            w = None
-            if cfg.weighted_pose:
-                w = correspondence_weights(a.sizes[v.pairs[:, 0]], b.sizes[v.pairs[:, 1]])
-            T_new = fit_pose(b.positions_xyz[v.pairs[:, 1]], a.positions_xyz[v.pairs[:, 0]], w,
-                             cfg.gravity_aligned, up)  # fmt: skip
-            v_new = _verify(tree_a, tree_b, T_new, cfg)
-            if v_new.llr < v.llr:
-                break
-            stable = np.array_equal(v_new.pairs, v.pairs)
-            T, v = T_new, v_new
-            if stable:
-                break
-        out.append((T, v))
-    return out
+    best together: alternate partner selection (``verification.partner_pairs``, the whole graphs) and one
+    batched Eq. 2 fit on each one's partners, ``refine_iterations`` times; a hypothesis stops when its
+    partners are stable or would shrink."""
+    radius = cfg.verification_radius_m
+    counts = support_counts(tree_a, b.positions_xyz, b.label_ids, hypotheses, radius)
+    Ts = hypotheses[np.argsort(-counts, kind="stable")[: cfg.verified_hypotheses]].copy()
+
+    def partners(T: np.ndarray) -> np.ndarray:
+        return partner_pairs(tree_a, transform_points(T, b.positions_xyz), b.label_ids, radius)[0]
+
+    pairs = [partners(T) for T in Ts]
+    active = [k for k in range(len(Ts)) if pairs[k].shape[0] >= MIN_NODES]
+    for _ in range(cfg.refine_iterations):
+        if not active:
+            break
+        size = max(pairs[k].shape[0] for k in active)
+        rows_a = np.zeros((len(active), size), dtype=np.int64)
+        rows_b = np.zeros((len(active), size), dtype=np.int64)
+        w = np.zeros((len(active), size))
+        for i, k in enumerate(active):
+            m = pairs[k].shape[0]
+            rows_a[i, :m], rows_b[i, :m] = pairs[k][:, 0], pairs[k][:, 1]
+            sizes_a, sizes_b = a.sizes[rows_a[i, :m]], b.sizes[rows_b[i, :m]]
+            w[i, :m] = correspondence_weights(sizes_a, sizes_b) if cfg.weighted_pose else 1.0
+        up = np.asarray(cfg.up_axis)
+        fits = fit_pose(b.positions_xyz[rows_b], a.positions_xyz[rows_a], w, cfg.gravity_aligned, up)
+        still = []
+        for i, k in enumerate(active):
+            new = partners(fits[i])
+            if new.shape[0] < pairs[k].shape[0]:
+                continue
+            stable = np.array_equal(new, pairs[k])
+            Ts[k], pairs[k] = fits[i], new
+            if not stable:
+                still.append(k)
+        active = still
+    return list(Ts)
 
 
 def _best_and_rival(

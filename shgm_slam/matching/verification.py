@@ -47,9 +47,6 @@ class Verification:
         contradictions: overlap nodes (both sides) without a same-label partner.
         expected_chance: nodes of B expected to find a partner by chance (sum of p0 over B's overlap).
         llr: log likelihood ratio H1 / H0 (the smaller of the two directions), nats.
-        llr_half: the smallest LLR of one half of one direction's overlap (split along its principal axis):
-            evidence must hold along the whole overlap, not only where a repeated template (an
-            intersection's signals, a row of trees) aligns.
         pairs: (S, 2) int64 row pairs (row_a, row_b) of the support.
     """
 
@@ -59,7 +56,6 @@ class Verification:
     contradictions: int
     expected_chance: float
     llr: float
-    llr_half: float
     pairs: np.ndarray
 
 
@@ -136,10 +132,22 @@ def shift_vectors(
 def shifted_hits(
     tree: LabelledTree, points_xyz: np.ndarray, label_ids: np.ndarray, shifts_m: np.ndarray, radius_m: float
 ) -> np.ndarray:
-    """(S, N) bool: point n finds a same-label node of ``tree`` within ``radius_m`` once shifted by shift s."""
-    shifted = points_xyz[None, :, :] + shifts_m[:, None, :]
-    d, _ = nearest_same_label(tree, shifted.reshape(-1, 3), np.tile(label_ids, len(shifts_m)), radius_m)
-    return np.isfinite(d).reshape(len(shifts_m), -1)
+    """(S, N) bool: point n finds a same-label node of ``tree`` within ``radius_m`` once shifted by shift s.
+
+    One sparse distance query collects every same-label node within reach of any shift; the shifts are then
+    tested on the offsets of those pairs (vectorised over pairs x shifts).
+    """
+    n, num_shifts = points_xyz.shape[0], shifts_m.shape[0]
+    reach = float(np.linalg.norm(shifts_m, axis=1).max()) + radius_m
+    near = cKDTree(embed(points_xyz, label_ids)).sparse_distance_matrix(tree.same, reach, output_type="ndarray")
+    hits = np.zeros((num_shifts, n), dtype=bool)
+    if near.size == 0:
+        return hits
+    offsets = tree.positions_xyz[near["j"]] - points_xyz[near["i"]]  # (P, 3)
+    d2 = ((offsets[None, :, :] - shifts_m[:, None, :]) ** 2).sum(axis=2)  # (S, P)
+    s_idx, p_idx = np.nonzero(d2 < radius_m**2)
+    hits[s_idx, near["i"][p_idx]] = True
+    return hits
 
 
 def label_chance(hits: np.ndarray, label_ids: np.ndarray, inside: np.ndarray, prior: np.ndarray) -> np.ndarray:
@@ -158,13 +166,26 @@ def label_chance(hits: np.ndarray, label_ids: np.ndarray, inside: np.ndarray, pr
     return out
 
 
+def partner_pairs(
+    tree_a: LabelledTree, points_b_in_a: np.ndarray, labels_b: np.ndarray, radius_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """One-to-one same-label partners of B's (N_b, 3) nodes (mapped into A's frame) among A's nodes.
+
+    Returns:
+        (S, 2) int64 row pairs (row_a, row_b), closest first per node, and their (S,) distances in metres.
+    """
+    d_b, j_a = nearest_same_label(tree_a, points_b_in_a, labels_b, radius_m)
+    close = np.flatnonzero(np.isfinite(d_b))
+    keep = _one_to_one(j_a[close], close, d_b[close])
+    return np.stack([j_a[close][keep], close[keep]], axis=1).astype(np.int64), d_b[close][keep]
+
+
 def _direction_llr(
-    residual_m: np.ndarray, inside: np.ndarray, same_nearby: np.ndarray, positions_xyz: np.ndarray,
+    residual_m: np.ndarray, inside: np.ndarray, same_nearby: np.ndarray,
     radius_m: float, density_radius_m: float, partner_probability: float,
     hits: np.ndarray | None = None, label_ids: np.ndarray | None = None,
-) -> tuple[float, float, float]:  # fmt: skip
-    """(LLR, expected chance count, smaller LLR of the two halves) of one direction over its overlap
-    nodes (module docstring); the halves split the overlap nodes at the median of their principal axis.
+) -> tuple[float, float]:  # fmt: skip
+    """(LLR, expected chance count) of one direction over its overlap nodes (module docstring).
 
     ``residual_m`` is each node's distance to its partner (inf without one)."""
     p1 = partner_probability
@@ -175,13 +196,7 @@ def _direction_llr(
     p1 = float(np.clip(s.mean(), p1, MAX_PARTNER_PROBABILITY)) if s.size else p1  # generalized LR
     p0 = np.clip(p0[inside], 1e-3, p1)
     llr = np.where(s, np.log(p1 / p0), np.log((1.0 - p1) / (1.0 - p0)))
-    if llr.size < 2:
-        return float(llr.sum()), float(p0.sum()), float(llr.sum())
-    x = positions_xyz[inside] - positions_xyz[inside].mean(axis=0)
-    axis = np.linalg.svd(x, full_matrices=False)[2][0]
-    proj = x @ axis
-    first = proj <= np.median(proj)
-    return float(llr.sum()), float(p0.sum()), float(min(llr[first].sum(), llr[~first].sum()))
+    return float(llr.sum()), float(p0.sum())
 
 
 def verify_alignment(
@@ -210,13 +225,10 @@ def verify_alignment(
     pb = transform(T_a_b, tree_b.positions_xyz)
     R, t = T_a_b[:3, :3], T_a_b[:3, 3]
     pa_in_b = (tree_a.positions_xyz - t) @ R  # A's nodes in B's frame: B's trees are reused
-    d_b, j_a = nearest_same_label(tree_a, pb, tree_b.label_ids, radius_m)
-    close = np.flatnonzero(np.isfinite(d_b))
-    keep = _one_to_one(j_a[close], close, d_b[close])
-    pairs = np.stack([j_a[close][keep], close[keep]], axis=1).astype(np.int64)
+    pairs, dist = partner_pairs(tree_a, pb, tree_b.label_ids, radius_m)
     res_a = np.full(len(tree_a), np.inf)
     res_b = np.full(len(tree_b), np.inf)
-    res_a[pairs[:, 0]] = res_b[pairs[:, 1]] = d_b[close][keep]
+    res_a[pairs[:, 0]] = res_b[pairs[:, 1]] = dist
     sup_a, sup_b = np.isfinite(res_a), np.isfinite(res_b)
     inside_b = np.isfinite(tree_a.any.query(pb, k=1, distance_upper_bound=coverage_m)[0])
     inside_a = np.isfinite(tree_b.any.query(pa_in_b, k=1, distance_upper_bound=coverage_m)[0])
@@ -227,11 +239,10 @@ def verify_alignment(
         hits_b = shifted_hits(tree_a, pb, tree_b.label_ids, shifts_m, radius_m)
         hits_a = shifted_hits(tree_b, pa_in_b, tree_a.label_ids, shifts_m @ R, radius_m)
     args = (radius_m, density_radius_m, partner_probability)
-    llr_b, chance_b, half_b = _direction_llr(res_b, inside_b, near_b, pb, *args, hits_b, tree_b.label_ids)
-    llr_a, _, half_a = _direction_llr(res_a, inside_a, near_a, tree_a.positions_xyz, *args, hits_a, tree_a.label_ids)
+    llr_b, chance_b = _direction_llr(res_b, inside_b, near_b, *args, hits_b, tree_b.label_ids)
+    llr_a, _ = _direction_llr(res_a, inside_a, near_a, *args, hits_a, tree_a.label_ids)
     contradictions = int((inside_b & ~sup_b).sum() + (inside_a & ~sup_a).sum())
     return Verification(
         support=int(pairs.shape[0]), overlap_a=int(inside_a.sum()), overlap_b=int(inside_b.sum()),
-        contradictions=contradictions, expected_chance=chance_b, llr=min(llr_a, llr_b),
-        llr_half=min(half_a, half_b), pairs=pairs,
+        contradictions=contradictions, expected_chance=chance_b, llr=min(llr_a, llr_b), pairs=pairs,
     )  # fmt: skip

@@ -1,0 +1,84 @@
+"""Sparse map-like localization benchmark: pairs as specified, deterministic by seed, scored honestly."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shgm_slam.bench.localization_sparse import (
+    MAP_KINDS,
+    MAX_NODES,
+    MIN_COMMON,
+    MIN_NODES,
+    NEGATIVE_GAP_M,
+    SparseOptions,
+    make_pairs,
+    parse_seeds,
+    run_sparse_benchmark,
+    sparse_markdown,
+)
+from shgm_slam.errors import ConfigError
+from shgm_slam.geometry.se3 import transform_points
+from shgm_slam.labels import Label
+from shgm_slam.sim.city import CityParams, build_city
+from shgm_slam.sim.shapes import KIND_LABEL
+
+SEED = 10  # a tuning seed
+
+
+@pytest.fixture(scope="module")
+def world():
+    return build_city(CityParams(), seed=SEED)
+
+
+def test_pairs_are_sparse_map_like_and_deterministic(world):
+    opt = SparseOptions(seeds=(SEED,), pairs_per_seed=3)
+    pairs = make_pairs(world, SEED, opt, 10.0)
+    again = make_pairs(world, SEED, opt, 10.0)
+    assert [p.overlapping for p in pairs] == [True] * 3 + [False] * 3
+    map_labels = {KIND_LABEL[k] for k in MAP_KINDS}
+    assert Label.CAR not in map_labels
+    for p, q in zip(pairs, again, strict=True):
+        np.testing.assert_array_equal(p.graph_b.positions_xyz, q.graph_b.positions_xyz)
+        for g in (p.graph_a, p.graph_b):
+            assert MIN_NODES <= len(g) <= MAX_NODES
+            assert set(np.unique(g.label_ids).tolist()) <= map_labels
+        if p.overlapping:
+            assert p.common >= MIN_COMMON
+        else:  # B mapped back into A's frame stays far from everything A mapped
+            pb = transform_points(p.T_a_b, p.graph_b.positions_xyz)
+            gap = np.linalg.norm(p.graph_a.positions_xyz[:, None, :2] - pb[None, :, :2], axis=2).min()
+            assert gap > NEGATIVE_GAP_M - 2 * 40.0  # lanes are apart; objects lie within 40 m of them
+
+
+def test_true_transform_maps_shared_objects_onto_each_other(world):
+    """Under the true T_a_b, B's nodes land near same-label nodes of A (noise + confusions only)."""
+    pair = make_pairs(world, SEED, SparseOptions(seeds=(SEED,), pairs_per_seed=1), 10.0)[0]
+    pb = transform_points(pair.T_a_b, pair.graph_b.positions_xyz)
+    d = np.linalg.norm(pair.graph_a.positions_xyz[:, None] - pb[None], axis=2)
+    same = pair.graph_a.label_ids[:, None] == pair.graph_b.label_ids[None]
+    close = (np.where(same, d, np.inf) < 6.0).any(axis=0).sum()
+    assert close >= 0.5 * pair.common
+
+
+def test_benchmark_runs_scores_and_summarizes(world):
+    opt = SparseOptions(seeds=(SEED,), pairs_per_seed=2, full_rotation=True)
+    results = run_sparse_benchmark(opt)
+    summary = results.summary()
+    assert set(summary) == {"4dof", "6dof"}
+    for s in summary.values():
+        assert s["overlapping_pairs"] == 2 and s["negatives"] == 2
+        assert s["localized"] + s["wrong_claims"] <= 2 and s["median_ms"] > 0
+    for o in results.outcomes:
+        assert not (o.success and not o.overlapping) or not o.correct  # a negative is never "correct"
+        assert o.correct == (o.trans_err_m < 2.0 and o.rot_err_deg < 5.0)
+    assert "| 4dof |" in sparse_markdown(results, opt.seeds)
+    doc = results.to_json()
+    assert len(doc["outcomes"]) == 8
+
+
+def test_seed_parsing():
+    assert parse_seeds("10-12") == (10, 11, 12)
+    assert parse_seeds("200,205") == (200, 205)
+    with pytest.raises(ConfigError):
+        parse_seeds("ten")
