@@ -391,7 +391,7 @@ def demo(
 
     world, kinds = prepare_world(cache, seed, simulate_world)
     console.print(f"world: [bold]{world}[/] robots: {', '.join(f'{r} ({k})' for r, k in kinds.items())}")
-    cfg = demo_config(kinds, rgb_only=rgb_only)
+    cfg = demo_config(rgb_only=rgb_only)
     summary = _run_command([f"{r}={world / r}" for r in kinds], cfg, out, rerun, None, True)
     _render_summary(summary)
     if (out / "run.rrd").is_file():

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from enum import Enum
 from pathlib import Path
+from typing import ClassVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -22,15 +23,32 @@ class _Stage(BaseModel):
 
 
 class ExtractionConfig(_Stage):
-    """Object extraction from depth + labels (Sec. III-A; authors' release defaults)."""
+    """Object extraction from depth + labels (Sec. III-A; authors' release defaults).
 
-    max_depth_m: float = Field(30.0, gt=0, description="ignore pixels farther than this")
+    Fields that default to None are derived per robot from its first frames (``scene_scale``: the camera's
+    height above the ground plane and the depth of the nearest ground in view); ``FLEET`` holds the values
+    of a car camera ~1.6 m above the road (the authors' release), used as the rules' reference and as the
+    fallback when a robot's scene cannot be measured. A value set in a config always wins.
+    """
+
+    FLEET: ClassVar[dict[str, float]] = {"max_depth_m": 30.0, "min_blob_fraction": 5000.0 / (1024 * 576)}
+
+    max_depth_m: float | None = Field(
+        None, gt=0, description="ignore pixels farther than this; None: max(30, 2 x the depth of the nearest "
+        "ground in view), so a camera high above the ground keeps a footprint as deep as its nearest ground"
+    )
     min_depth_m: float = Field(0.5, ge=0)
     depth_step_m: float = Field(1.0, gt=0, description="4-neighbours closer than this in depth join a region")
-    min_blob_fraction: float = Field(
-        5000.0 / (1024 * 576), gt=0, lt=1, description="minimum region size as a fraction of image area"
+    min_blob_fraction: float | None = Field(
+        None, gt=0, lt=1, description="minimum region size as a fraction of image area; None: "
+        "5000/(1024*576) x (30 / max_depth_m)^2, an object at the far end of the range as many pixels as "
+        "at 30 m"
     )
     labels: tuple[int, ...] = Field(DEFAULT_GRAPH_LABELS, description="train ids that become nodes")
+
+    def filled(self) -> ExtractionConfig:
+        """This stage with every data-derived field still None set to its ``FLEET`` value."""
+        return self.model_copy(update={k: v for k, v in self.FLEET.items() if getattr(self, k) is None})
 
 
 class GraphConfig(_Stage):
@@ -119,7 +137,7 @@ class MatchingConfig(_Stage):
         "mapped by both robots (maps miss 30-60 % of objects)",
     )
     false_alarm_rate: float = Field(
-        1e-2, gt=0, lt=1, description="success needs a likelihood ratio (alignment vs chance) above "
+        3e-3, gt=0, lt=1, description="success needs a likelihood ratio (alignment vs chance) above "
         "hypotheses / false_alarm_rate (tuned: bench sparse, seeds 10-19)",
     )
     up_axis: tuple[float, float, float] = Field(
@@ -139,14 +157,28 @@ class OdometryKind(str, Enum):
 
 
 class OdometryConfig(_Stage):
-    """Front-end odometry (KISS-ICP tuned for dense pseudo-LiDAR, REFERENCE.md §1.2)."""
+    """Front-end odometry (KISS-ICP tuned for dense pseudo-LiDAR, REFERENCE.md §1.2).
+
+    Fields that default to None are derived per robot from its first frames (``scene_scale``, as in
+    ``ExtractionConfig``); ``FLEET`` holds a car camera's values, the rules' reference and the fallback.
+    """
+
+    FLEET: ClassVar[dict[str, float | bool]] = {
+        "voxel_size_m": 1.0, "max_range_m": 100.0, "shuffle_points": False, "visual_max_depth_m": 40.0,
+    }
 
     kind: OdometryKind = OdometryKind.AUTO
     poses_file: Path | None = None
-    voxel_size_m: float = Field(1.0, gt=0, description="KISS-ICP voxel; its rule of thumb is max_range/100")
+    voxel_size_m: float | None = Field(
+        None, gt=0, description="KISS-ICP voxel; None: max(1, median depth of the first frames / 40) (far, "
+        "dense clouds register on a coarser map)"
+    )
     max_points_per_voxel: int = Field(10, ge=1)
     min_range_m: float = Field(0.5, ge=0)
-    max_range_m: float = Field(100.0, gt=0, description="outdoor scenes need far points to constrain forward motion")
+    max_range_m: float | None = Field(
+        None, gt=0, description="outdoor scenes need far points to constrain forward motion; None: 100, or "
+        "1.1 x the range of the farthest ground in view when the horizon is out of view and that is farther"
+    )
     cloud_stride: int = Field(2, ge=1, description="back-project every n-th pixel")
     max_spacing_m: float | None = Field(
         0.6,
@@ -154,13 +186,15 @@ class OdometryConfig(_Stage):
         description="drop points whose image-grid neighbours are farther apart (sparse far/grazing samples "
         "move with the camera and stall ICP at zero motion); None keeps all",
     )
-    shuffle_points: bool = Field(
-        False, description="seeded random point order before KISS-ICP's voxel subsampling (helps aerial start-up)"
+    shuffle_points: bool | None = Field(
+        None, description="seeded random point order before KISS-ICP's voxel subsampling (helps aerial "
+        "start-up); None: on when the horizon is out of view (the camera sees only the ground)"
     )
     max_icp_iterations: int = Field(100, ge=1)
     visual_max_features: int = Field(1000, ge=8, description="visual odometry: corners per reference frame")
-    visual_max_depth_m: float = Field(
-        40.0, gt=0, description="visual odometry: corners only where depth is below this (far monocular depth is poor)"
+    visual_max_depth_m: float | None = Field(
+        None, gt=0, description="visual odometry: corners only where depth is below this (far monocular depth "
+        "is poor); None: 40 x extraction.max_depth_m / 30 (as far as the robot takes objects)"
     )
     visual_min_track_fraction: float = Field(
         0.5, gt=0, le=1, description="visual odometry: new reference frame when fewer of its corners are tracked"
@@ -199,6 +233,10 @@ class OdometryConfig(_Stage):
         if self.kind is OdometryKind.FILE and self.poses_file is None:
             raise ValueError("odometry kind 'file' needs poses_file")
         return self
+
+    def filled(self) -> OdometryConfig:
+        """This stage with every data-derived field still None set to its ``FLEET`` value."""
+        return self.model_copy(update={k: v for k, v in self.FLEET.items() if getattr(self, k) is None})
 
 
 class KeyframeConfig(_Stage):

@@ -1,6 +1,8 @@
 """The built-in demo: the airsim-like world (car, car, UAV) simulated once into a cache, then the system.
 
-``shgm-slam demo`` = ``prepare_world`` + ``demo_config`` + ``runner.run_slam``.
+``shgm-slam demo`` = ``prepare_world`` + ``demo_config`` + ``runner.run_slam``. No robot needs its own
+settings: each robot's extraction range, blob size and odometry voxel follow from its first frames
+(``scene_scale``), so the UAV at 44-54 m gets its far, fine-grained settings as any new robot would.
 """
 
 from __future__ import annotations
@@ -9,20 +11,11 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
-from shgm_slam.config import RobotOverrides, ShgmConfig
+from shgm_slam.config import ShgmConfig
 from shgm_slam.errors import DataError
 
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 """Where the trained demo ONNX models live (a source checkout's ``models/``)."""
-
-UAV_OVERRIDES = RobotOverrides(
-    extraction={"max_depth_m": 100.0, "min_blob_fraction": 0.002},
-    odometry={"voxel_size_m": 1.5, "shuffle_points": True, "visual_max_depth_m": 150.0},
-)
-"""A UAV at 30-60 m sees the ground 30-90 m away: objects must be taken farther and smaller, its
-dense far-away clouds register faster and without start-up stall on a coarser, shuffled voxel map,
-and visual odometry must take corners as far as the ground it sees."""
-
 
 RGB_ONLY_MATCH_EVERY_KEYFRAMES = 5
 RGB_ONLY_MIN_MATCHES_TO_ANCHOR = 2
@@ -52,14 +45,13 @@ def prepare_world(
     return world, kinds
 
 
-def demo_config(kinds: dict[str, str], *, rgb_only: bool = False, base: ShgmConfig | None = None) -> ShgmConfig:
-    """The demo's configuration: defaults, UAV overrides, and the demo ONNX models when ``rgb_only``.
+def demo_config(*, rgb_only: bool = False, base: ShgmConfig | None = None) -> ShgmConfig:
+    """The demo's configuration: the defaults, and the demo ONNX models when ``rgb_only``.
 
     Raises:
         DataError: ``rgb_only`` but the demo models are not in ``models/``.
     """
     cfg = (base or ShgmConfig()).model_copy(deep=True)
-    cfg.robots = {**cfg.robots, **{name: UAV_OVERRIDES for name, kind in kinds.items() if kind == "uav"}}
     if rgb_only:
         depth, seg = MODELS_DIR / "demo_depth.onnx", MODELS_DIR / "demo_seg.onnx"
         for p in (depth, seg):

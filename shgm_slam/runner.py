@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shgm_slam.config import OdometryKind, ShgmConfig
+from shgm_slam.config import OdometryKind, RobotOverrides, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry import se3
@@ -25,6 +25,7 @@ from shgm_slam.metrics import ate
 from shgm_slam.odometry.sources import make_odometry
 from shgm_slam.perception import make_perception
 from shgm_slam.pipeline import FrameResult, MapServer, RobotFrontend, fuse_frames, interleave
+from shgm_slam.scene_scale import effective_fields, resolve_robot_config, sample_scene_scale
 from shgm_slam.types import Sequence
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
 
@@ -68,15 +69,42 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
     """Build one robot's front end from the fleet config (with the robot's overrides merged in).
 
     A poses-file odometry path may contain ``{robot}``, replaced by the robot name, so every robot
-    reads its own file (e.g. ``orbslam_{robot}.txt``).
+    reads its own file (e.g. ``orbslam_{robot}.txt``). Fields left None (extraction range, blob size,
+    odometry voxel, ...) are derived from the robot's first frames through its perception source
+    (``scene_scale``); the fleet values when none has usable depth (logged). The front end's ``cfg``
+    holds the resolved values.
     """
     rcfg = cfg.for_robot(name)
     if rcfg.odometry.kind is OdometryKind.FILE and rcfg.odometry.poses_file is not None:
         path = Path(str(rcfg.odometry.poses_file).replace("{robot}", name))
         rcfg = rcfg.model_copy(update={"odometry": rcfg.odometry.model_copy(update={"poses_file": path})})
     perception = make_perception(rcfg.perception, sequence)
+
+    def perceive(frame):
+        out = perception.process(frame)
+        return out.depth_m, out.label_ids
+
+    scale = sample_scene_scale(sequence, perceive)
+    if scale is None:
+        log.warning("%s: no usable depth in the first frames; extraction and odometry use the fleet defaults", name)
+    else:
+        log.info("%s: camera %.1f m above the ground, nearest ground at %.1f m", name,
+                 scale.camera_height_m or float("nan"), scale.nearest_ground_depth_m)  # fmt: skip
+    rcfg = resolve_robot_config(rcfg, scale)
     odometry = make_odometry(rcfg.odometry, len(sequence), depth_from_model=rcfg.perception.depth_model is not None)
     return RobotFrontend(name, sequence, rcfg, perception, odometry)
+
+
+def effective_config(cfg: ShgmConfig, robot_cfgs: dict[str, ShgmConfig]) -> ShgmConfig:
+    """``cfg`` with each robot's data-derived values (``resolve_robot_config``) written into its
+    ``robots`` overrides: loading it reproduces every front end's settings."""
+    robots = dict(cfg.robots)
+    for name, rcfg in robot_cfgs.items():
+        base = robots[name].model_dump() if name in robots else {}
+        for stage, values in effective_fields(rcfg).items():
+            base[stage] = {**(base.get(stage) or {}), **values}
+        robots[name] = RobotOverrides.model_validate(base)
+    return cfg.model_copy(update={"robots": robots})
 
 
 @dataclass
@@ -169,7 +197,8 @@ def run_slam(
 
     Args:
         robots: robot name -> sequence (order matters: the first robot defines the shared frame).
-        cfg: the effective configuration (written to ``config.yaml``).
+        cfg: the fleet configuration; ``config.yaml`` gets it with every robot's derived values
+            (``effective_config``).
         out_dir: results folder (created).
         viz: viewer (``NullLogger`` when None).
         progress: called with (frames done, frames total).
@@ -180,8 +209,8 @@ def run_slam(
     viz = viz or NullLogger()
     names = list(robots)
     writer = ResultsWriter(out_dir)
-    writer.write_text("config.yaml", cfg.to_yaml())
     fronts = {r: make_frontend(r, seq, cfg) for r, seq in robots.items()}
+    writer.write_text("config.yaml", effective_config(cfg, {r: f.cfg for r, f in fronts.items()}).to_yaml())
     server = MapServer(names, cfg)
     viz.setup({r: seq.intrinsics for r, seq in robots.items()})
     total = sum(len(s) for s in robots.values())

@@ -1,36 +1,50 @@
-"""The demo's configuration: UAV overrides and the RGB-only settings."""
+"""The demo's configuration: no per-robot settings (derived from the data), and the RGB-only settings."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-from shgm_slam.config import OdometryKind
+from shgm_slam.config import ExtractionConfig, OdometryConfig, OdometryKind
 from shgm_slam.demo import MODELS_DIR, demo_config
 from shgm_slam.errors import DataError
 from shgm_slam.odometry.sources import resolve_kind
+from shgm_slam.scene_scale import SceneScale, resolve_robot_config
 
-KINDS = {"car1": "car", "car2": "car", "uav": "uav"}
+UAV_SCALE = SceneScale(5, 50.0, 50.0, 53.0, 110.0, (50.0, 62.0, 80.0))
+"""What the airsim-like UAV's first frames measure (44-54 m up, 50 deg oblique)."""
 
 
 def test_files_demo_uses_kiss_icp_and_trusts_single_matches():
-    cfg = demo_config(KINDS)
+    cfg = demo_config()
     assert cfg.perception.depth_model is None
     assert resolve_kind(cfg.odometry.kind, cfg.perception.depth_model is not None) is OdometryKind.KISS_ICP
     assert cfg.backend.min_closures_to_anchor == 1
-    assert cfg.for_robot("uav").extraction.max_depth_m == 100.0
-    assert cfg.for_robot("car1").extraction.max_depth_m == cfg.extraction.max_depth_m
+    assert cfg.robots == {}
+
+
+def test_demo_leaves_the_uav_settings_to_its_data():
+    uav = resolve_robot_config(demo_config().for_robot("uav"), UAV_SCALE)
+    assert uav.extraction.max_depth_m > 90.0  # the nearest ground is 53 m away
+    assert uav.extraction.min_blob_fraction < ExtractionConfig.FLEET["min_blob_fraction"]
+    assert uav.odometry.shuffle_points is True
+    assert uav.odometry.visual_max_depth_m > 100.0
+    car = resolve_robot_config(demo_config().for_robot("car1"), None)
+    assert car.extraction.max_depth_m == ExtractionConfig.FLEET["max_depth_m"]
+    assert car.odometry.voxel_size_m == OdometryConfig.FLEET["voxel_size_m"]
+    assert np.isclose(car.extraction.min_blob_fraction, 5000.0 / (1024 * 576))
 
 
 @pytest.mark.skipif(not (MODELS_DIR / "demo_depth.onnx").is_file(), reason="demo models not in models/")
 def test_rgb_only_demo_uses_models_visual_odometry_and_confirmed_anchors():
-    cfg = demo_config(KINDS, rgb_only=True)
+    cfg = demo_config(rgb_only=True)
     assert cfg.perception.depth_model == MODELS_DIR / "demo_depth.onnx"
     assert resolve_kind(cfg.odometry.kind, True) is OdometryKind.VISUAL
     assert cfg.backend.min_closures_to_anchor == 2
-    assert cfg.for_robot("uav").odometry.visual_max_depth_m == 150.0
+    assert cfg.odometry.visual_max_depth_m is None  # derived per robot
 
 
 def test_rgb_only_without_models_names_the_training_script(monkeypatch, tmp_path):
     monkeypatch.setattr("shgm_slam.demo.MODELS_DIR", tmp_path)
     with pytest.raises(DataError, match="train_demo_models"):
-        demo_config(KINDS, rgb_only=True)
+        demo_config(rgb_only=True)

@@ -167,8 +167,9 @@ class _Context:
         return load_scene(spec, o.cache_dir)
 
     def extraction(self, robot: RenderedRobot, labels: tuple[int, ...] | None = None) -> ExtractionConfig:
-        """The extraction config for a robot kind (UAV: longer range, smaller blobs)."""
-        e = self.cfg.extraction
+        """The extraction config for a robot kind (fleet values for fields left to ``scene_scale``;
+        UAV: longer range, smaller blobs, as this benchmark was tuned)."""
+        e = self.cfg.extraction.filled()
         if robot.kind is RobotKind.UAV:
             e = e.model_copy(update={"max_depth_m": max(e.max_depth_m, UAV_MAX_DEPTH_M),
                                      "min_blob_fraction": e.min_blob_fraction * UAV_BLOB_SCALE})
@@ -493,7 +494,7 @@ def _large_extraction(ctx: _Context, resolution: tuple[int, int], frames: int) -
     traj = plan.robots[0]
     poses = traj.T_world_cam[:: max(1, len(traj) // frames)][:frames]
     K = make_intrinsics(*resolution)
-    e = ctx.cfg.extraction
+    e = ctx.cfg.extraction.filled()
     times = []
     with Renderer(plan.world, K, threads=2) as renderer:
         for T in poses:

@@ -95,7 +95,7 @@ def run_system_benchmark(
     world, kinds = prepare_world(cache, seed, lambda folder: _world(cache, "airsim-like", seed, progress))
     progress("running the system on airsim-like (KISS-ICP)")
     robots = open_robots([f"{r}={world / r}" for r in kinds])
-    summary = run_slam(robots, demo_config(kinds), out / "airsim-like")
+    summary = run_slam(robots, demo_config(), out / "airsim-like")
     results["airsim_like"] = _summary_dict(summary)
 
     # 2. disjoint: nothing may be merged
@@ -108,11 +108,11 @@ def run_system_benchmark(
     if rgb_only:
         progress("running the system on airsim-like, RGB only (demo models, visual odometry)")
         robots = open_robots([f"{r}={world / r}" for r in kinds])
-        summary = run_slam(robots, demo_config(kinds, rgb_only=True), out / "airsim-like-rgb")
+        summary = run_slam(robots, demo_config(rgb_only=True), out / "airsim-like-rgb")
         results["airsim_like_rgb"] = _summary_dict(summary)
         progress("running the system on disjoint, RGB only")
         robots = open_robots([f"{r}={dis / r}" for r in _robots_of(dis)])
-        cfg_rgb = demo_config(dict.fromkeys(robots, "car"), rgb_only=True)
+        cfg_rgb = demo_config(rgb_only=True)
         results["disjoint_rgb"] = _summary_dict(run_slam(robots, cfg_rgb, out / "disjoint-rgb"))
 
     # 3. memory: one long drive, 1000 vs long_frames frames, each in a fresh process

@@ -16,6 +16,7 @@ from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry.se3 import inverse, rotation_angle
 from shgm_slam.graph.extraction import extract_objects_from_config
 from shgm_slam.graph.semantic_graph import SemanticGraph
+from shgm_slam.scene_scale import resolve_robot_config, sample_scene_scale
 from shgm_slam.types import Sequence
 
 ProgressFn = Callable[[int, int], None]
@@ -55,7 +56,8 @@ def build_graph_from_sequence(
 
     Args:
         sequence: frames with ``depth_m``, ``label_ids`` and ground-truth ``T_world_cam``.
-        cfg: ``extraction``, ``graph`` and ``keyframes`` sections are used.
+        cfg: ``extraction``, ``graph`` and ``keyframes`` sections are used; extraction fields left None
+            are derived from the sequence's first frames (``scene_scale``).
         keyframe_every_m: overrides ``cfg.keyframes.distance_m``.
         progress: optional ``progress(done, total)`` callback per keyframe.
 
@@ -85,9 +87,10 @@ def build_graph_from_sequence(
         raise ConfigError(f"keyframe spacing must be positive, got {distance_m} m")
     keyframes = select_keyframes(gt, distance_m, cfg.keyframes.angle_deg)
     graph = SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m)
+    extraction = resolve_robot_config(cfg, sample_scene_scale(sequence, lambda f: (f.depth_m, f.label_ids))).extraction
     for done, i in enumerate(keyframes.tolist(), start=1):
         frame = sequence[i]
-        objects = extract_objects_from_config(frame, cfg.extraction, T_world_cam=gt[i])
+        objects = extract_objects_from_config(frame, extraction, T_world_cam=gt[i])
         graph.add_keyframe(i, gt[i], objects)
         if progress is not None:
             progress(done, keyframes.size)

@@ -247,7 +247,8 @@ def extract_objects_from_config(
     """``extract_objects`` on a ``Frame`` with an ``ExtractionConfig``.
 
     ``T_world_cam`` overrides the frame's (ground-truth) pose, e.g. with an odometry estimate; when
-    both are None the centroids stay in the camera frame.
+    both are None the centroids stay in the camera frame. Data-derived fields still None (``scene_scale``)
+    take the fleet values.
 
     Raises:
         DataError: the frame carries no depth or no labels.
@@ -258,6 +259,7 @@ def extract_objects_from_config(
             f"frame {frame.index} has no {missing}; object extraction needs depth/ and semantic/ images "
             "(or the perception models to predict them)"
         )
+    cfg = cfg.filled()
     intrinsics = frame.intrinsics
     if (intrinsics.width, intrinsics.height) != (frame.depth_m.shape[1], frame.depth_m.shape[0]):
         intrinsics = intrinsics.scaled(frame.depth_m.shape[1], frame.depth_m.shape[0])

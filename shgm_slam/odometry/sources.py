@@ -285,6 +285,6 @@ def make_odometry(cfg: OdometryConfig, num_frames: int, *, depth_from_model: boo
     """Build the odometry source ``cfg.kind`` for a sequence of ``num_frames`` frames.
 
     ``depth_from_model`` tells AUTO whether the depth is predicted (then visual odometry) or read
-    from files (then KISS-ICP).
+    from files (then KISS-ICP). Data-derived fields still None (``scene_scale``) take the fleet values.
     """
-    return ODOMETRY_SOURCES[resolve_kind(cfg.kind, depth_from_model)](cfg, num_frames)
+    return ODOMETRY_SOURCES[resolve_kind(cfg.kind, depth_from_model)](cfg.filled(), num_frames)

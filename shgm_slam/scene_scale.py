@@ -1,0 +1,292 @@
+"""Per-robot scale of the scene from its first frames: camera height, depth spread, derived defaults.
+
+A car camera 1.6 m above the road and a UAV camera 50 m up looking 50 deg down see the same city at
+ranges an order of magnitude apart; the extraction range, the minimum blob size and the odometry voxel
+must follow. ``measure_scene_scale`` fits the ground plane (road, sidewalk and terrain pixels; the lowest
+image rows when there are no ground labels) of a few frames: its distance from the camera is the
+camera's height, and intersecting the image corners' rays with it gives the depth of the nearest and
+the range of the farthest ground in view. ``resolve_robot_config`` fills the config fields left None
+from that geometry (rules in the fields' descriptions, ``config.py``); values set in a config win.
+
+Pure: arrays in, numbers out (no IO, no logging); ``sample_scene_scale`` reads frames through the
+sequence protocol and a perception callable.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from shgm_slam.config import ExtractionConfig, OdometryConfig, ShgmConfig
+from shgm_slam.errors import DataError
+from shgm_slam.geometry.camera import backproject
+from shgm_slam.labels import Label
+from shgm_slam.types import Frame, Intrinsics, Sequence
+
+GROUND_LABEL_IDS = (Label.ROAD, Label.SIDEWALK, Label.TERRAIN)
+"""Train ids on the ground plane (as ``pipeline.GROUND_LABELS``)."""
+
+MIN_PLANE_POINTS = 200
+"""A frame's plane fit needs at least this many ground points."""
+
+MAX_PLANE_POINTS = 20000
+"""Ground points per frame are subsampled to about this many."""
+
+PLANE_RMS_M = 0.3
+PLANE_RMS_PER_M = 0.02
+"""A fitted ground is planar when its RMS residual is below ``PLANE_RMS_M + PLANE_RMS_PER_M x height``
+(depth error grows with range)."""
+
+NEAR_GROUND_FACTOR = 2.0
+"""Extraction range: this many times the depth of the nearest ground in view (at least the fleet's)."""
+
+VOXEL_PER_MEDIAN_DEPTH = 1.0 / 40.0
+"""Odometry voxel: the median depth of the first frames times this (at least the fleet's)."""
+
+FAR_GROUND_MARGIN = 1.1
+"""Odometry range: this many times the range of the farthest ground in view (at least the fleet's)."""
+
+FALLBACK_NEAR_PERCENTILE = 5.0
+"""Without a ground plane the nearest ground's depth is this percentile of the valid depths."""
+
+
+@dataclass(frozen=True)
+class SceneScale:
+    """Scale of one robot's view, measured on its first frames.
+
+    Attributes:
+        frames: frames measured.
+        camera_height_m: distance of the camera above the fitted ground plane (median over frames), or
+            None when no frame gave a planar ground.
+        pitch_down_deg: angle of the optical axis below the ground plane (positive looking down), or None.
+        nearest_ground_depth_m: z-depth of the nearest ground in view (the image corner whose ray meets
+            the ground first); without a plane the ``FALLBACK_NEAR_PERCENTILE`` of the valid depths.
+        farthest_ground_range_m: Euclidean range of the farthest ground in view; inf when some corner's
+            ray does not meet the ground (the horizon is in view) or there is no plane.
+        depth_percentiles_m: (p5, p50, p95) of the valid depths of all frames, metres.
+    """
+
+    frames: int
+    camera_height_m: float | None
+    pitch_down_deg: float | None
+    nearest_ground_depth_m: float
+    farthest_ground_range_m: float
+    depth_percentiles_m: tuple[float, float, float]
+
+    @property
+    def horizon_in_view(self) -> bool:
+        """True unless every image ray meets the ground (aerial / strongly oblique view)."""
+        return not np.isfinite(self.farthest_ground_range_m)
+
+
+def fit_ground_plane(
+    depth_m: np.ndarray, label_ids: np.ndarray | None, intrinsics: Intrinsics
+) -> tuple[np.ndarray, float] | None:
+    """Ground plane of one frame in the camera frame: ``(n, h)`` with ``n . p = -h`` for ground points.
+
+    Args:
+        depth_m: (H, W) z-depth, metres; 0 or non-finite = invalid.
+        label_ids: (H, W) train ids, or None; the road, sidewalk and terrain pixels are the ground, the
+            lowest quarter of the image rows when there are too few of them.
+        intrinsics: pinhole intrinsics of ``depth_m``.
+
+    Returns:
+        ``n`` (3,) unit normal pointing up (towards the camera) and ``h`` the camera's height above the
+        plane, metres; None when there are too few ground points or they are not planar.
+    """
+    depth = np.asarray(depth_m, dtype=np.float64)
+    H, W = depth.shape
+    stride = max(1, int(np.sqrt(H * W / (4 * MAX_PLANE_POINTS))))
+    points, pixel = backproject(depth, intrinsics, stride=stride)
+    ground = None
+    if label_ids is not None:
+        ground = np.isin(np.asarray(label_ids).reshape(-1)[pixel], GROUND_LABEL_IDS)
+        if ground.sum() < MIN_PLANE_POINTS:
+            ground = None
+    if ground is None:
+        ground = pixel // W >= (3 * H) // 4
+    pts = points[ground]
+    if len(pts) < MIN_PLANE_POINTS:
+        return None
+    pts = pts[:: max(1, len(pts) // MAX_PLANE_POINTS)]
+    keep = np.ones(len(pts), bool)
+    for _ in range(3):  # least squares, then drop the points off the plane (kerbs, mislabels) and refit
+        centre = pts[keep].mean(axis=0)
+        _, _, vt = np.linalg.svd(pts[keep] - centre, full_matrices=False)
+        n = vt[2]
+        residual = np.abs((pts - centre) @ n)
+        rms = float(np.sqrt(np.mean(residual[keep] ** 2)))
+        keep = residual <= max(3.0 * rms, 0.1)
+        if keep.sum() < MIN_PLANE_POINTS:
+            return None
+    if n @ -centre < 0:
+        n = -n
+    h = float(n @ -centre)
+    rms = float(np.sqrt(np.mean(residual[keep] ** 2)))
+    if h <= 0 or rms > PLANE_RMS_M + PLANE_RMS_PER_M * h or keep.mean() < 0.5:
+        return None
+    return n, h
+
+
+def corner_rays(intrinsics: Intrinsics) -> np.ndarray:
+    """(4, 3) rays with z = 1 through the image corners (camera frame)."""
+    u = np.array([0.0, intrinsics.width - 1.0, 0.0, intrinsics.width - 1.0])
+    v = np.array([0.0, 0.0, intrinsics.height - 1.0, intrinsics.height - 1.0])
+    return np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, np.ones(4)], axis=1)
+
+
+def ground_in_view(normal: np.ndarray, height_m: float, intrinsics: Intrinsics) -> tuple[float, float]:
+    """``(nearest z-depth, farthest range)`` of the ground plane ``n . p = -h`` inside the image, metres.
+
+    A ray ``t r`` meets the plane at ``t = -h / (n . r)`` when ``n . r < 0``; ``n . r`` is linear in the
+    pixel, so its extremes are at the image corners. The farthest range is inf when a corner's ray does not
+    meet the ground (the horizon is in view); the nearest depth is inf when none does.
+    """
+    rays = corner_rays(intrinsics)
+    down = rays @ normal
+    if not (down < 0).any():
+        return float("inf"), float("inf")
+    depth = -height_m / down[down < 0]
+    nearest = float(depth.min())
+    if (down >= 0).any():
+        return nearest, float("inf")
+    return nearest, float((depth * np.linalg.norm(rays, axis=1)).max())
+
+
+def measure_scene_scale(
+    depths_m: list[np.ndarray], label_ids: list[np.ndarray | None], intrinsics: Intrinsics
+) -> SceneScale | None:
+    """Scale of a robot's view from a few frames (e.g. its first five with valid depth).
+
+    Args:
+        depths_m: per frame (H, W) z-depth, metres (0 or non-finite = invalid).
+        label_ids: per frame (H, W) train ids or None.
+        intrinsics: intrinsics of the depth maps.
+
+    Returns:
+        The measured scale, or None when no frame has valid depth.
+    """
+    valid = [np.asarray(d, dtype=np.float64) for d in depths_m]
+    samples = [d[np.isfinite(d) & (d > 0)] for d in valid]
+    samples = [s[:: max(1, s.size // 50000)] for s in samples if s.size]
+    if not samples:
+        return None
+    pooled = np.concatenate(samples)
+    p5, p50, p95 = (float(x) for x in np.percentile(pooled, [5.0, 50.0, 95.0]))
+    planes = [fit_ground_plane(d, lab, intrinsics) for d, lab in zip(valid, label_ids, strict=True)]
+    planes = [p for p in planes if p is not None]
+    if not planes:
+        near = float(np.percentile(pooled, FALLBACK_NEAR_PERCENTILE))
+        return SceneScale(len(valid), None, None, near, float("inf"), (p5, p50, p95))
+    normal = np.sum([n for n, _ in planes], axis=0)
+    normal /= np.linalg.norm(normal)
+    height = float(np.median([h for _, h in planes]))
+    near, far = ground_in_view(normal, height, intrinsics)
+    if not np.isfinite(near):  # looking up, away from the ground: the depths still tell the scale
+        near = float(np.percentile(pooled, FALLBACK_NEAR_PERCENTILE))
+    pitch = float(np.degrees(np.arcsin(np.clip(-normal[2], -1.0, 1.0))))
+    return SceneScale(len(valid), height, pitch, near, far, (p5, p50, p95))
+
+
+def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool]]:
+    """The data-derived fields, ``{"extraction": {...}, "odometry": {...}}``, from a robot's scene scale.
+
+    ``None`` (nothing measured) gives the fleet values (``ExtractionConfig.FLEET``, ``OdometryConfig.FLEET``).
+    Rules (reference: the fleet values, a car camera ~1.6 m above the road):
+
+    * ``max_depth_m = max(30, 2 x nearest ground depth)``: a camera that sees the ground only from far
+      away keeps a footprint as deep as that distance (car: the ground is 6 m away, 30 m stays);
+    * ``min_blob_fraction = fleet x (30 / max_depth_m)^2``: an object at the far end of the range covers
+      as many pixels as at 30 m;
+    * ``visual_max_depth_m = 40 x max_depth_m / 30``;
+    * ``voxel_size_m = max(1, median depth / 40)``;
+    * ``shuffle_points``: the horizon is out of view;
+    * ``max_range_m = max(100, 1.1 x farthest ground range)`` (100 when the horizon is in view).
+    """
+    ex, od = dict(ExtractionConfig.FLEET), dict(OdometryConfig.FLEET)
+    if scale is None:
+        return {"extraction": ex, "odometry": od}
+    max_depth_m = _rounded(max(ex["max_depth_m"], NEAR_GROUND_FACTOR * scale.nearest_ground_depth_m))
+    ratio = max_depth_m / ex["max_depth_m"]
+    out_ex = {"max_depth_m": max_depth_m, "min_blob_fraction": ex["min_blob_fraction"] / ratio**2}
+    far = scale.farthest_ground_range_m
+    out_od = {
+        "voxel_size_m": max(od["voxel_size_m"], VOXEL_PER_MEDIAN_DEPTH * scale.depth_percentiles_m[1]),
+        "max_range_m": max(od["max_range_m"], FAR_GROUND_MARGIN * far) if np.isfinite(far) else od["max_range_m"],
+        "shuffle_points": not scale.horizon_in_view,
+        "visual_max_depth_m": od["visual_max_depth_m"] * ratio,
+    }
+    return {"extraction": out_ex, "odometry": {k: _rounded(v) for k, v in out_od.items()}}
+
+
+def _rounded(value: float | bool) -> float | bool:
+    """Derived lengths to 3 significant digits (stable, readable ``config.yaml``)."""
+    return value if isinstance(value, bool) else float(f"{value:.3g}")
+
+
+def resolve_robot_config(cfg: ShgmConfig, scale: SceneScale | None) -> ShgmConfig:
+    """A robot's config (``ShgmConfig.for_robot``) with its None fields derived from ``scale``.
+
+    Fields set in ``cfg`` (fleet-wide or in the robot's overrides) are kept; the rest take
+    ``derived_values(scale)`` (the fleet values when ``scale`` is None).
+    """
+    derived = derived_values(scale)
+    stages = {}
+    for stage, values in derived.items():
+        current = getattr(cfg, stage)
+        stages[stage] = current.model_copy(update={k: v for k, v in values.items() if getattr(current, k) is None})
+    return cfg.model_copy(update=stages)
+
+
+def effective_fields(cfg: ShgmConfig) -> dict[str, dict[str, float | bool]]:
+    """The data-derived fields' values in a resolved robot config (for ``config.yaml``'s ``robots``)."""
+    return {
+        "extraction": {k: getattr(cfg.extraction, k) for k in ExtractionConfig.FLEET},
+        "odometry": {k: getattr(cfg.odometry, k) for k in OdometryConfig.FLEET},
+    }
+
+
+SAMPLE_FRAMES = 5
+"""Frames measured per robot (those with valid depth among the first ``SAMPLE_FRAMES * SAMPLE_STEP``)."""
+
+SAMPLE_STEP = 5
+"""Every this many frames (0.5 s at 10 fps: the frames differ a little)."""
+
+
+def sample_scene_scale(
+    sequence: Sequence, perceive: Callable[[Frame], tuple[np.ndarray, np.ndarray | None]]
+) -> SceneScale | None:
+    """``measure_scene_scale`` on the first frames of ``sequence`` with valid depth.
+
+    Args:
+        sequence: the robot's frames.
+        perceive: frame -> ``(depth_m (H, W) metres, label_ids (H, W) or None)``, e.g. the robot's
+            perception source; a frame it raises ``DataError`` on is skipped.
+
+    Returns:
+        The scale, or None when none of frames ``0, SAMPLE_STEP, ...`` (2 x SAMPLE_FRAMES tried) has
+        valid depth.
+    """
+    depths, labels, intrinsics = [], [], None
+    for index in range(0, min(len(sequence), 2 * SAMPLE_FRAMES * SAMPLE_STEP), SAMPLE_STEP):
+        try:
+            frame = sequence[index]
+            depth, label = perceive(frame)
+        except DataError:
+            continue
+        depth = np.asarray(depth)
+        if depth.ndim != 2 or not (np.isfinite(depth) & (depth > 0)).any():
+            continue
+        K = frame.intrinsics
+        if (K.width, K.height) != (depth.shape[1], depth.shape[0]):
+            K = K.scaled(depth.shape[1], depth.shape[0])
+        if intrinsics is not None and K != intrinsics:
+            continue
+        intrinsics = intrinsics or K
+        depths.append(depth)
+        labels.append(None if label is None or np.shape(label) != depth.shape else label)
+        if len(depths) == SAMPLE_FRAMES:
+            break
+    return measure_scene_scale(depths, labels, intrinsics) if depths else None

@@ -1,0 +1,176 @@
+"""Scene scale: camera height from the ground plane, derived per-robot values, config precedence."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shgm_slam.config import ExtractionConfig, OdometryConfig, OdometryKind, ShgmConfig, load_config
+from shgm_slam.geometry import se3
+from shgm_slam.geometry.camera import pixel_rays
+from shgm_slam.labels import Label
+from shgm_slam.runner import run_slam
+from shgm_slam.scene_scale import (
+    derived_values,
+    measure_scene_scale,
+    resolve_robot_config,
+    sample_scene_scale,
+)
+from shgm_slam.types import Frame, Intrinsics
+
+INTR = Intrinsics(184.06, 184.06, 159.5, 47.5, 320, 96)  # the simulator's 320x96, 82 deg horizontal
+
+
+def ground_view(height_m: float, pitch_down_deg: float, noise_m: float = 0.0, seed: int = 0):
+    """Depth (H, W) and labels of an infinite flat road seen from ``height_m`` with the optical axis
+    ``pitch_down_deg`` below the horizon; rays above the horizon see sky (depth 0)."""
+    t = np.radians(pitch_down_deg)
+    n_cam = np.array([0.0, -np.cos(t), -np.sin(t)])  # ground normal (up) in the camera frame
+    down = pixel_rays(INTR) @ n_cam
+    depth = np.where(down < -1e-9, -height_m / np.minimum(down, -1e-9), 0.0)
+    depth = np.where(depth < 500.0, depth, 0.0)
+    if noise_m:
+        depth = np.where(depth > 0, depth + np.random.default_rng(seed).normal(0.0, noise_m, depth.shape), 0.0)
+    labels = np.where(depth > 0, Label.ROAD, Label.SKY).astype(np.uint8)
+    return depth.astype(np.float32), labels
+
+
+def nearest_ground_depth(height_m: float, pitch_down_deg: float) -> float:
+    """Analytic z-depth of the ground at the lower image edge."""
+    below_axis = np.arctan((INTR.height - 1 - INTR.cy) / INTR.fy)
+    elevation = np.radians(pitch_down_deg) + below_axis
+    return height_m / np.sin(elevation) * np.cos(below_axis)
+
+
+def scale_of(height_m: float, pitch_down_deg: float, frames: int = 3, labels: bool = True):
+    views = [ground_view(height_m, pitch_down_deg, noise_m=0.02 * height_m / 10, seed=i) for i in range(frames)]
+    return measure_scene_scale([d for d, _ in views], [lab if labels else None for _, lab in views], INTR)
+
+
+@pytest.mark.parametrize(("height", "pitch"), [(1.6, 0.0), (50.0, 50.0), (30.0, 90.0), (3.0, 10.0)])
+@pytest.mark.parametrize("labels", [True, False])
+def test_camera_height_and_nearest_ground_from_a_flat_ground(height, pitch, labels):
+    s = scale_of(height, pitch, labels=labels)
+    assert s.camera_height_m == pytest.approx(height, rel=0.1)
+    assert s.pitch_down_deg == pytest.approx(pitch, abs=2.0)
+    assert s.nearest_ground_depth_m == pytest.approx(nearest_ground_depth(height, pitch), rel=0.1)
+    assert s.horizon_in_view == (pitch < np.degrees(np.arctan(INTR.cy / INTR.fy)))
+
+
+def test_car_camera_keeps_the_fleet_values():
+    fleet = {"extraction": ExtractionConfig.FLEET, "odometry": OdometryConfig.FLEET}
+    assert derived_values(scale_of(1.6, 0.0)) == fleet
+
+
+def test_uav_camera_takes_objects_farther_smaller_and_shuffles():
+    s = scale_of(50.0, 50.0)
+    v = derived_values(s)
+    ex, od = v["extraction"], v["odometry"]
+    near = nearest_ground_depth(50.0, 50.0)  # ~54 m: beyond the car's whole range
+    assert ex["max_depth_m"] == pytest.approx(2 * near, rel=0.02)
+    assert ex["max_depth_m"] > s.depth_percentiles_m[2]  # the whole footprint is kept
+    fleet = ExtractionConfig.FLEET
+    ratio = ex["max_depth_m"] / fleet["max_depth_m"]
+    assert ex["min_blob_fraction"] == pytest.approx(fleet["min_blob_fraction"] / ratio**2)
+    assert od["shuffle_points"] is True
+    assert od["visual_max_depth_m"] == pytest.approx(OdometryConfig.FLEET["visual_max_depth_m"] * ratio, rel=0.01)
+    assert 1.2 < od["voxel_size_m"] < 2.5
+    assert od["max_range_m"] >= s.farthest_ground_range_m  # the farthest ground stays in the cloud
+
+
+def test_higher_camera_sees_farther():
+    low, high = derived_values(scale_of(40.0, 50.0)), derived_values(scale_of(60.0, 50.0))
+    assert high["extraction"]["max_depth_m"] > low["extraction"]["max_depth_m"]
+    assert high["extraction"]["min_blob_fraction"] < low["extraction"]["min_blob_fraction"]
+
+
+def test_no_valid_depth_gives_none_and_the_fleet_values():
+    assert measure_scene_scale([np.zeros((96, 320), np.float32)], [None], INTR) is None
+    cfg = resolve_robot_config(ShgmConfig(), None)
+    assert cfg.extraction.max_depth_m == ExtractionConfig.FLEET["max_depth_m"]
+    assert cfg.odometry.voxel_size_m == OdometryConfig.FLEET["voxel_size_m"]
+
+
+def test_no_planar_ground_falls_back_to_the_depth_percentiles():
+    depth = np.random.default_rng(0).uniform(60.0, 90.0, (96, 320)).astype(np.float32)  # a rough, far scene
+    s = measure_scene_scale([depth], [None], INTR)
+    assert s.camera_height_m is None and s.horizon_in_view
+    assert s.nearest_ground_depth_m == pytest.approx(61.5, abs=1.0)  # 5th percentile of U(60, 90)
+    assert derived_values(s)["extraction"]["max_depth_m"] > ExtractionConfig.FLEET["max_depth_m"]
+
+
+def test_config_values_win_over_derived_ones():
+    cfg = ShgmConfig.model_validate({
+        "extraction": {"max_depth_m": 55.0},
+        "robots": {"uav": {"odometry": {"voxel_size_m": 0.7, "shuffle_points": False}}},
+    })
+    resolved = resolve_robot_config(cfg.for_robot("uav"), scale_of(50.0, 50.0))
+    assert resolved.extraction.max_depth_m == 55.0
+    assert resolved.odometry.voxel_size_m == 0.7 and resolved.odometry.shuffle_points is False
+    assert resolved.odometry.visual_max_depth_m > OdometryConfig.FLEET["visual_max_depth_m"]  # still derived
+    assert resolved.extraction.min_blob_fraction < ExtractionConfig.FLEET["min_blob_fraction"]
+
+
+@dataclass
+class GroundSequence:
+    """An in-memory sequence over a flat road at a fixed height, driving along the camera's x axis."""
+
+    name: str
+    height_m: float
+    pitch_down_deg: float
+    frames: int = 12
+
+    intrinsics: Intrinsics = INTR
+
+    def __len__(self) -> int:
+        return self.frames
+
+    def __getitem__(self, index: int) -> Frame:
+        depth, labels = ground_view(self.height_m, self.pitch_down_deg)
+        return Frame(index, index / 10.0, INTR, None, depth, labels, self.gt_poses[index], index)
+
+    @property
+    def timestamps_s(self) -> np.ndarray:
+        return np.arange(self.frames) / 10.0
+
+    @property
+    def gt_poses(self) -> np.ndarray:
+        poses = np.tile(np.eye(4), (self.frames, 1, 1))
+        poses[:, :3, :3] = se3.rot_x(-np.radians(self.pitch_down_deg))
+        poses[:, 0, 3] = np.arange(self.frames) * 1.0
+        return poses
+
+    has_depth = True
+    has_labels = True
+
+
+def test_sample_scene_scale_skips_frames_without_depth():
+    seq = GroundSequence("uav", 50.0, 50.0, frames=30)
+    calls = []
+
+    def perceive(frame):
+        calls.append(frame.index)
+        return (np.zeros_like(frame.depth_m) if frame.index == 0 else frame.depth_m), frame.label_ids
+
+    s = sample_scene_scale(seq, perceive)
+    assert s is not None and s.frames == 5 and 0 in calls
+    assert s.camera_height_m == pytest.approx(50.0, rel=0.1)
+    assert sample_scene_scale(seq, lambda f: (np.zeros_like(f.depth_m), None)) is None
+
+
+def test_results_config_holds_each_robots_resolved_values(tmp_path: Path):
+    robots = {"car": GroundSequence("car", 1.6, 0.0), "uav": GroundSequence("uav", 50.0, 50.0)}
+    cfg = ShgmConfig.model_validate({"odometry": {"kind": OdometryKind.GT.value}})
+    summary = run_slam(robots, cfg, tmp_path / "out")
+    saved = load_config(summary.out_dir / "config.yaml")
+    car, uav = saved.for_robot("car"), saved.for_robot("uav")
+    assert car.extraction.max_depth_m == ExtractionConfig.FLEET["max_depth_m"]
+    assert car.odometry.shuffle_points is False
+    assert uav.extraction.max_depth_m == pytest.approx(2 * nearest_ground_depth(50.0, 50.0), rel=0.02)
+    assert uav.odometry.shuffle_points is True
+    # re-running with the saved file reproduces the values: nothing is left to derive
+    for robot in (car, uav):
+        assert resolve_robot_config(robot, None) == robot
