@@ -153,15 +153,17 @@ def shifted_hits(
 def label_chance(hits: np.ndarray, label_ids: np.ndarray, inside: np.ndarray, prior: np.ndarray) -> np.ndarray:
     """(N,) chance of a partner per node from the best shifted alignment of its label (module docstring).
 
-    For every label, the shift under which most of the label's overlap nodes find partners gives the
-    label's chance rate: rows of trees or lamps and repeated templates (an intersection's signals) align
-    again under a shift by their spacing, irregular objects do not. Shrunk towards ``prior`` (the
-    density model, (N,)) by one pseudo-observation, so a label seen once is not judged on one shift.
+    For every label, the shifts under which most of the label's overlap nodes find partners give the
+    label's chance rate: rows of trees or lamps and repeated templates align again under a shift by
+    their spacing, irregular objects do not. A periodic row aligns under both s and -s, so the
+    second-best shift counts (the best alone is biased upwards by luck over many shifts). Shrunk
+    towards ``prior`` (the density model, (N,)) by one pseudo-observation, so a label seen once is
+    not judged on one shift.
     """
     out = prior.copy()
     for label in np.unique(label_ids[inside]):
         rows = np.flatnonzero(inside & (label_ids == label))
-        best = hits[:, rows].sum(axis=1).max()
+        best = np.sort(hits[:, rows].sum(axis=1))[-2]
         out[rows] = np.maximum(prior[rows], (best + prior[rows]) / (rows.size + 1.0))
     return out
 
