@@ -204,8 +204,9 @@ class OdometryConfig(_Stage):
         5, ge=1, description="visual odometry: a corner's depth is the largest in this window (networks blur "
         "depth edges toward the foreground); 1 for sensor depth"
     )
-    image_rotation_prior: bool = Field(
-        True, description="KISS-ICP: the turn measured from image motion seeds ICP's rotation (sharp turns)"
+    image_rotation: bool = Field(
+        True, description="measure each step's turn from image motion: it seeds KISS-ICP's rotation (sharp turns) "
+        "and the health check compares every odometry's turn with it"
     )
     health_check: bool = Field(
         True, description="detect odometry divergence and restart as a new trajectory segment (odometry/health.py)"

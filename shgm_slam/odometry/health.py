@@ -4,11 +4,12 @@ Any odometry source (KISS-ICP, visual odometry, a poses file) reports one pose p
 checks each new pose against what the robot can physically do between two frames and against the
 source's own diagnostics (``OdometryEstimate``):
 
-- **speed**: ``|Δt| / Δt ≤ max_speed_mps`` (a road car: 40 m/s = 144 km/h covers every scenario),
+- **speed**: ``|Δp| / Δt ≤ max_speed_mps`` (Δp the step's translation; a road car: 40 m/s =
+  144 km/h covers every scenario),
 - **acceleration**: the change of the velocity vector between consecutive steps (expressed in one
   frame) ``≤ max_accel_mps2·Δt + step_noise_m / Δt``: the second term is the odometry's own
   per-step position noise turned into a velocity (KISS-ICP on pseudo-LiDAR: car steps jitter by up
-  to ~0.5 m, a UAV's over far, sparse clouds by up to 1.6 m without diverging; sharp 90° turns of
+  to ~0.5 m, a UAV's (far, sparse clouds) by up to 1.6 m without diverging; sharp 90° turns of
   the simulated cars reach 2 g centripetal),
 - **turn rate**: ``angle(ΔR) ≤ max_turn_rate_dps·Δt + step_noise_deg`` (the simulated cars turn
   at up to 107°/s at intersections),
@@ -19,7 +20,8 @@ source's own diagnostics (``OdometryEstimate``):
   8 m (the first frames accelerate from a zero-velocity prior),
 - **image rotation**: the source's rotation disagrees with the rotation measured from image motion
   (``OdometryEstimate.rotation_disagreement_deg``) by more than ``max_image_rotation_deg``:
-  catches ICP that under-turns through a sharp turn, which no motion limit can see.
+  catches ICP that under-turns through a sharp turn, or a constant-velocity prediction (PnP failed)
+  that misses one, which no motion limit can see (onset: the first predicted frame).
 
 The limits are per second and scaled by each step's Δt from the timestamps, so they hold at any
 frame rate. Divergence *onset* is the first frame that broke a limit (for coasting, the first
@@ -139,6 +141,12 @@ class OdometryHealthMonitor:
                 t_measured = self._last[1] if self._last is not None else timestamp_s
                 self._coast_start = (frame_index, t_measured)
             start, t_measured = self._coast_start
+            if rotation_disagreement_deg is not None and rotation_disagreement_deg > lim.max_image_rotation_deg:
+                return OdometryFailure(  # the prediction visibly misses a turn: wrong since the coast began
+                    FailureReason.IMAGE_ROTATION, start, frame_index,
+                    f"predicted pose turns {rotation_disagreement_deg:.1f} deg off the image motion "
+                    f"(limit {lim.max_image_rotation_deg} deg)",
+                )  # fmt: skip
             if timestamp_s - t_measured > lim.max_coast_s:
                 return OdometryFailure(
                     FailureReason.COASTING, start, frame_index,

@@ -20,7 +20,7 @@ from shgm_slam.geometry.se3 import inverse
 from shgm_slam.odometry.clouds import sampling_spacing_m
 from shgm_slam.odometry.image_rotation import ImageYawEstimator, rot_y, yaw_of
 from shgm_slam.odometry.kiss import KissOdometry
-from shgm_slam.odometry.visual import DepthVisualOdometry
+from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus
 from shgm_slam.types import Frame
 
 
@@ -132,10 +132,7 @@ class KissIcpSource:
                 prior = delta
         reg = self.odometry.register(points_cam, prior)
         note = "" if reg.ok else f"frame {frame.index}: {reg.status.value} ({reg.num_points} points in range)"
-        disagreement = None
-        if yaw_img is not None and reg.ok:
-            yaw_icp = yaw_of(inverse(T_prev) @ reg.T_odom_cam)
-            disagreement = float(np.degrees(abs(np.angle(np.exp(1j * (yaw_icp - yaw_img))))))
+        disagreement = None if yaw_img is None else _yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
         return OdometryEstimate(reg.T_odom_cam, reg.ok, note, self.odometry.threshold_m, disagreement)
 
 
@@ -201,16 +198,30 @@ class PoseFileSource:
 class VisualOdometrySource:
     """Depth-assisted monocular visual odometry (``visual.DepthVisualOdometry``) on the frame's RGB
     image and its depth image (frames must arrive in order). Made for depth predicted by a monocular
-    network, where ICP on the pseudo-LiDAR cloud stalls; the cloud itself is not used."""
+    network, where ICP on the pseudo-LiDAR cloud stalls; the cloud itself is not used.
 
-    def __init__(self, odometry: DepthVisualOdometry, factory: Callable[[], DepthVisualOdometry] | None = None) -> None:
+    With ``image_yaw`` each step's turn is also measured from the images' global shift and the
+    difference is reported for the health check: when PnP fails in a sharp turn, the constant-velocity
+    prediction under-turns by up to 10°/frame (airsim-like, demo depth), which no motion limit sees.
+    ``factory`` builds a fresh ``DepthVisualOdometry`` for ``reset``.
+    """
+
+    def __init__(
+        self,
+        odometry: DepthVisualOdometry,
+        factory: Callable[[], DepthVisualOdometry] | None = None,
+        image_yaw: ImageYawEstimator | None = None,
+    ) -> None:
         self.odometry = odometry
         self._factory = factory
+        self.image_yaw = image_yaw
 
     def reset(self) -> None:
         if self._factory is None:
             raise ConfigError("this visual odometry source was built without a factory and cannot re-initialise")
         self.odometry = self._factory()
+        if self.image_yaw is not None:
+            self.image_yaw.reset()
 
     def update(
         self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
@@ -222,11 +233,21 @@ class VisualOdometrySource:
                 "(a depth model or depth/ files); use odometry kind 'kiss-icp' for clouds only"
             )
         gray = cv2.cvtColor(np.ascontiguousarray(frame.image_rgb), cv2.COLOR_RGB2GRAY)
+        T_prev = self.odometry.T_odom_cam.copy()
         reg = self.odometry.register(gray, depth_m, frame.intrinsics, label_ids)
         note = "" if reg.ok else (
             f"frame {frame.index}: {reg.status.value} ({reg.num_tracks} tracks, {reg.num_inliers} inliers)"
         )
-        return OdometryEstimate(reg.T_odom_cam, reg.ok, note)
+        yaw_img = None if self.image_yaw is None else self.image_yaw.update(frame.image_rgb, frame.intrinsics.fx)
+        first = reg.status is VisualStatus.FIRST_FRAME
+        disagreement = None if yaw_img is None or first else _yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
+        return OdometryEstimate(reg.T_odom_cam, reg.ok, note, rotation_disagreement_deg=disagreement)
+
+
+def _yaw_disagreement_deg(T_prev: np.ndarray, T_new: np.ndarray, yaw_img_rad: float) -> float:
+    """|yaw of the step T_prev -> T_new (odometry frame poses) - yaw from image motion|, degrees."""
+    yaw_step = yaw_of(inverse(T_prev) @ T_new)
+    return float(np.degrees(abs(np.angle(np.exp(1j * (yaw_step - yaw_img_rad))))))
 
 
 def _visual(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
@@ -240,7 +261,7 @@ def _visual(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
             depth_window_px=cfg.visual_depth_window_px,
         )
 
-    return VisualOdometrySource(factory(), factory)
+    return VisualOdometrySource(factory(), factory, ImageYawEstimator() if cfg.image_rotation else None)
 
 
 def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
@@ -255,7 +276,7 @@ def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
         cloud_stride=cfg.cloud_stride,
         max_spacing_m=cfg.max_spacing_m,
         shuffle_points=cfg.shuffle_points,
-        image_yaw=ImageYawEstimator() if cfg.image_rotation_prior else None,
+        image_yaw=ImageYawEstimator() if cfg.image_rotation else None,
     )
 
 

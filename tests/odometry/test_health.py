@@ -121,6 +121,19 @@ def test_sharp_turn_missed_by_icp_is_detected_from_image_rotation() -> None:
     assert failure is not None and failure.reason is FailureReason.IMAGE_ROTATION and failure.onset_frame == 61
 
 
+def test_prediction_that_misses_a_turn_is_dated_to_the_first_predicted_frame() -> None:
+    """Visual odometry loses its tracks entering a sharp turn and coasts straight on: the image turns."""
+    v, w = city_drive()
+    poses = drive(v, np.zeros_like(w), 0.1)
+    measured = np.ones(len(poses), dtype=bool)
+    measured[60:63] = False
+    disagreement = np.zeros(len(poses))
+    disagreement[60:63] = [3.0, 9.0, 10.0]  # the turn starts gently
+    failure = run(OdometryHealthMonitor(LIMITS), poses, 0.1, measured=measured, rotation_disagreement_deg=disagreement)
+    assert failure is not None and failure.reason is FailureReason.IMAGE_ROTATION
+    assert (failure.onset_frame, failure.detected_frame) == (60, 61)
+
+
 def test_turn_rate_and_registration_threshold_limits() -> None:
     v, w = city_drive()
     w[150] = 600.0  # 60 degrees in one 0.1 s frame
