@@ -11,7 +11,11 @@ inside the area B observed should find one of B. Each such node is one Bernoulli
 - H0 (the alignment is wrong): a node finds one by chance with probability
   ``p0 = 1 - exp(-c (radius_m / density_radius_m)^2)``, where ``c`` counts the other graph's
   same-label nodes within ``density_radius_m`` of the node: the local density of its label (rows of
-  trees along a street are dense, a lone traffic light is not).
+  trees along a street are dense, a lone traffic light is not). A uniform density underrates objects
+  in rows and repeated templates (street trees and lamps at regular spacing, an intersection's signals
+  laid out alike everywhere): they align again under a shift by their spacing. So, given ``shifts_m``
+  (the matcher passes ``shift_vectors``: 8 headings x 6, 10, 14 m), each label's chance is also measured
+  under the hypothesis shifted by each vector (``label_chance``), and the larger p0 counts.
 
 The log likelihood ratio sums ``log(p1 / p0)`` over supported nodes and ``log((1 - p1) / (1 - p0))``
 over contradicting ones (inside the other's area, no partner). An alias explains the repeated street
