@@ -63,6 +63,12 @@ class OdometrySource(Protocol):
         ...
 
 
+MIN_SPACED_POINTS = 1000
+"""The spacing filter keeps at least this many points (the best-sampled ones): a UAV whose nearest
+ground is ~60 m away has only ~250 of its 7680 points under 0.6 m spacing, too few for ICP (it then
+coasts and the health check ends the trajectory segment); KISS-ICP registers the 1000 best fine."""
+
+
 class KissIcpSource:
     """KISS-ICP on the pseudo-LiDAR clouds (frames must arrive in order).
 
@@ -114,7 +120,11 @@ class KissIcpSource:
     ) -> OdometryEstimate:
         if self.max_spacing_m is not None and len(points_cam):
             spacing_m = sampling_spacing_m(points_cam, frame.intrinsics, stride=self.cloud_stride)
-            points_cam = points_cam[spacing_m <= self.max_spacing_m]
+            keep = spacing_m <= self.max_spacing_m
+            if keep.sum() < MIN_SPACED_POINTS:  # all far (a UAV over distant ground): the best-sampled ones
+                keep = np.zeros(len(points_cam), dtype=bool)
+                keep[np.argsort(spacing_m, kind="stable")[:MIN_SPACED_POINTS]] = True
+            points_cam = points_cam[keep]
         if self._rng is not None:
             points_cam = points_cam[self._rng.permutation(len(points_cam))]
         yaw_img = None
