@@ -41,8 +41,7 @@ class ExtractionConfig(_Stage):
     depth_step_m: float = Field(1.0, gt=0, description="4-neighbours closer than this in depth join a region")
     min_blob_fraction: float | None = Field(
         None, gt=0, lt=1, description="minimum region size as a fraction of image area; None: "
-        "5000/(1024*576) x (30 / max_depth_m)^2, an object at the far end of the range as many pixels as "
-        "at 30 m"
+        "5000/(1024*576) x (30 / max_depth_m)^1.5 (farther objects appear smaller)"
     )
     labels: tuple[int, ...] = Field(DEFAULT_GRAPH_LABELS, description="train ids that become nodes")
 

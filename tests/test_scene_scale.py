@@ -14,6 +14,7 @@ from shgm_slam.geometry.camera import pixel_rays
 from shgm_slam.labels import Label
 from shgm_slam.runner import run_slam
 from shgm_slam.scene_scale import (
+    BLOB_RANGE_EXPONENT,
     derived_values,
     measure_scene_scale,
     resolve_robot_config,
@@ -74,7 +75,7 @@ def test_uav_camera_takes_objects_farther_smaller_and_shuffles():
     assert ex["max_depth_m"] > s.depth_percentiles_m[2]  # the whole footprint is kept
     fleet = ExtractionConfig.FLEET
     ratio = ex["max_depth_m"] / fleet["max_depth_m"]
-    assert ex["min_blob_fraction"] == pytest.approx(fleet["min_blob_fraction"] / ratio**2)
+    assert ex["min_blob_fraction"] == pytest.approx(fleet["min_blob_fraction"] / ratio**BLOB_RANGE_EXPONENT)
     assert od["shuffle_points"] is True
     assert od["visual_max_depth_m"] == pytest.approx(OdometryConfig.FLEET["visual_max_depth_m"] * ratio, rel=0.01)
     assert 1.2 < od["voxel_size_m"] < 2.5
