@@ -61,6 +61,13 @@ def test_camera_height_and_nearest_ground_from_a_flat_ground(height, pitch, labe
     assert s.horizon_in_view == (pitch < np.degrees(np.arctan(INTR.cy / INTR.fy)))
 
 
+def test_predicted_depth_noise_still_gives_the_plane():
+    views = [ground_view(50.0, 50.0, noise_m=2.0, seed=i) for i in range(3)]  # ~3 % of the depth, as a network
+    s = measure_scene_scale([d for d, _ in views], [lab for _, lab in views], INTR)
+    assert s.camera_height_m == pytest.approx(50.0, rel=0.1)
+    assert not s.horizon_in_view
+
+
 def test_car_camera_keeps_the_fleet_values():
     fleet = {"extraction": ExtractionConfig.FLEET, "odometry": OdometryConfig.FLEET}
     assert derived_values(scale_of(1.6, 0.0)) == fleet
