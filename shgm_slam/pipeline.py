@@ -293,6 +293,8 @@ class RobotFrontend:
         if seg.first_frame < 0:  # after a re-initialisation: wait for a measured pose
             if est.ok:
                 seg.first_frame = index
+                if failure is None:  # (a frame that just failed was checked again above)
+                    self.health.check(index, frame.timestamp_s, est.T_odom_cam)
             else:
                 self.odometry.reset()
                 self.health.reset()
