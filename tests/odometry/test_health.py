@@ -165,3 +165,27 @@ def test_image_yaw_of_a_horizontal_shift() -> None:
     yaw = est.update(np.dstack([big[:, 40 + shift_px : 360 + shift_px]] * 3), fx)
     # content moved left by 12 px: the camera turned towards +x, R_prev_cur = R_y(atan(12/fx))
     assert yaw is not None and yaw == pytest.approx(np.arctan2(shift_px, fx), abs=np.radians(0.3))
+
+
+def test_sources_reinitialise_into_a_new_odometry_frame(tmp_path) -> None:
+    """After ``reset`` the next frame is the new odometry frame's origin (ground truth, a poses file)."""
+    from shgm_slam.config import OdometryKind
+    from shgm_slam.io.trajectories import write_kitti_poses
+    from shgm_slam.odometry.sources import GroundTruthSource, PoseFileSource, make_odometry
+    from shgm_slam.types import Frame, Intrinsics
+
+    intr = Intrinsics(100.0, 100.0, 50.0, 20.0, 100, 40)
+    poses = drive(np.full(19, 10.0), np.full(19, 20.0), 0.1)
+    write_kitti_poses(tmp_path / "p.txt", poses)
+    for src in (GroundTruthSource(), PoseFileSource(tmp_path / "p.txt", len(poses))):
+        frames = [Frame(i, 0.1 * i, intr, T_world_cam=poses[i]) for i in range(len(poses))]
+        src.update(frames[0], np.zeros((0, 3)))
+        np.testing.assert_allclose(src.update(frames[5], np.zeros((0, 3))).T_odom_cam, poses[5], atol=1e-6)
+        src.reset()
+        np.testing.assert_allclose(src.update(frames[10], np.zeros((0, 3))).T_odom_cam, np.eye(4), atol=1e-9)
+        rel = np.linalg.inv(poses[10]) @ poses[12]
+        np.testing.assert_allclose(src.update(frames[12], np.zeros((0, 3))).T_odom_cam, rel, atol=1e-6)
+    visual = make_odometry(OdometryConfig(kind=OdometryKind.VISUAL), 10)
+    before = visual.odometry
+    visual.reset()
+    assert visual.odometry is not before
