@@ -135,6 +135,7 @@ class RobotReport:
     odometry_failures: int = 0
     failure_reasons: list[str] = field(default_factory=list)
     frames_dropped: int = 0  # frames between a divergence's onset and the next segment's first frame
+    segment_start_frames: list[int] = field(default_factory=list)  # first frame of each segment
 
 
 @dataclass
@@ -339,6 +340,7 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
             sum(len(s.graph) for s in front.segments), bool(with_kf) and all(s.index in placed for s in with_kf),
         )  # fmt: skip
         rep.segments = sum(s.first_frame >= 0 for s in front.segments)
+        rep.segment_start_frames = [int(s.first_frame) for s in front.segments if s.first_frame >= 0]
         rep.segments_placed = len(placed)
         rep.placed_fraction = float(np.isin(front.frame_segment, list(placed)).sum() / max(in_seg.sum(), 1))
         rep.odometry_failures = len(front.failures)
