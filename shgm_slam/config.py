@@ -164,6 +164,7 @@ class OdometryConfig(_Stage):
 
     FLEET: ClassVar[dict[str, float | bool]] = {
         "voxel_size_m": 1.0, "max_range_m": 100.0, "shuffle_points": False, "visual_max_depth_m": 40.0,
+        "cloud_stride": 2,
     }
 
     kind: OdometryKind = OdometryKind.AUTO
@@ -178,7 +179,10 @@ class OdometryConfig(_Stage):
         None, gt=0, description="outdoor scenes need far points to constrain forward motion; None: 100, or "
         "1.1 x the range of the farthest ground in view when the horizon is out of view and that is farther"
     )
-    cloud_stride: int = Field(2, ge=1, description="back-project every n-th pixel")
+    cloud_stride: int | None = Field(
+        None, ge=1, description="back-project every n-th pixel; None: derived from the image size (about "
+        "30k pixels per frame: 640x192 -> 2, 320x96 -> 1, 1242x375 -> 4)"
+    )
     max_spacing_m: float | None = Field(
         0.6,
         gt=0,

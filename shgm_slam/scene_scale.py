@@ -72,6 +72,7 @@ class SceneScale:
         farthest_ground_range_m: Euclidean range of the farthest ground in view; inf when some corner's
             ray does not meet the ground (the horizon is in view) or there is no plane.
         depth_percentiles_m: (p5, p50, p95) of the valid depths of all frames, metres.
+        image_px: (width, height) of the depth maps, pixels.
     """
 
     frames: int
@@ -80,6 +81,7 @@ class SceneScale:
     nearest_ground_depth_m: float
     farthest_ground_range_m: float
     depth_percentiles_m: tuple[float, float, float]
+    image_px: tuple[int, int] = (0, 0)
 
     @property
     def horizon_in_view(self) -> bool:
@@ -180,12 +182,13 @@ def measure_scene_scale(
     if not samples:
         return None
     pooled = np.concatenate(samples)
+    image_px = (int(valid[0].shape[1]), int(valid[0].shape[0]))
     p5, p50, p95 = (float(x) for x in np.percentile(pooled, [5.0, 50.0, 95.0]))
     planes = [fit_ground_plane(d, lab, intrinsics) for d, lab in zip(valid, label_ids, strict=True)]
     planes = [p for p in planes if p is not None]
     if not planes:
         near = float(np.percentile(pooled, FALLBACK_NEAR_PERCENTILE))
-        return SceneScale(len(valid), None, None, near, float("inf"), (p5, p50, p95))
+        return SceneScale(len(valid), None, None, near, float("inf"), (p5, p50, p95), image_px)
     normal = np.sum([n for n, _ in planes], axis=0)
     normal /= np.linalg.norm(normal)
     height = float(np.median([h for _, h in planes]))
@@ -193,7 +196,7 @@ def measure_scene_scale(
     if not np.isfinite(near):  # looking up, away from the ground: the depths still tell the scale
         near = float(np.percentile(pooled, FALLBACK_NEAR_PERCENTILE))
     pitch = float(np.degrees(np.arcsin(np.clip(-normal[2], -1.0, 1.0))))
-    return SceneScale(len(valid), height, pitch, near, far, (p5, p50, p95))
+    return SceneScale(len(valid), height, pitch, near, far, (p5, p50, p95), image_px)
 
 
 def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool]]:
@@ -209,7 +212,9 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
     * ``visual_max_depth_m = 40 x max_depth_m / 30``;
     * ``voxel_size_m = max(1, median depth / 40)``;
     * ``shuffle_points``: the horizon is out of view;
-    * ``max_range_m = max(100, 1.1 x farthest ground range)`` (100 when the horizon is in view).
+    * ``max_range_m = max(100, 1.1 x farthest ground range)`` (100 when the horizon is in view);
+    * ``cloud_stride = round(sqrt(W x H / CLOUD_TARGET_POINTS))``, at least 1: the pseudo-LiDAR cloud keeps
+      about as many points whatever the image size (640x192 -> 2, 320x96 -> 1, KITTI's 1242x375 -> 4).
     """
     ex, od = dict(ExtractionConfig.FLEET), dict(OdometryConfig.FLEET)
     if scale is None:
@@ -224,7 +229,18 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
         "shuffle_points": not scale.horizon_in_view,
         "visual_max_depth_m": od["visual_max_depth_m"] * ratio,
     }
-    return {"extraction": out_ex, "odometry": {k: _rounded(v) for k, v in out_od.items()}}
+    out = {k: _rounded(v) for k, v in out_od.items()}
+    out["cloud_stride"] = cloud_stride_for(scale.image_px) if min(scale.image_px) > 0 else od["cloud_stride"]
+    return {"extraction": out_ex, "odometry": out}
+
+
+CLOUD_TARGET_POINTS = 640 * 192 // 4
+"""Pixels back-projected per frame: KISS-ICP's settings here were tuned on 640x192 images at stride 2."""
+
+
+def cloud_stride_for(image_px: tuple[int, int]) -> int:
+    """Back-projection stride that keeps about ``CLOUD_TARGET_POINTS`` pixels of a (width, height) image."""
+    return max(1, round(float(np.sqrt(image_px[0] * image_px[1] / CLOUD_TARGET_POINTS))))
 
 
 def _rounded(value: float | bool) -> float | bool:

@@ -15,6 +15,8 @@ from shgm_slam.labels import Label
 from shgm_slam.runner import run_slam
 from shgm_slam.scene_scale import (
     BLOB_RANGE_EXPONENT,
+    CLOUD_TARGET_POINTS,
+    cloud_stride_for,
     derived_values,
     measure_scene_scale,
     resolve_robot_config,
@@ -69,8 +71,15 @@ def test_predicted_depth_noise_still_gives_the_plane():
 
 
 def test_car_camera_keeps_the_fleet_values():
-    fleet = {"extraction": ExtractionConfig.FLEET, "odometry": OdometryConfig.FLEET}
-    assert derived_values(scale_of(1.6, 0.0)) == fleet
+    fleet = {"extraction": ExtractionConfig.FLEET, "odometry": {**OdometryConfig.FLEET, "cloud_stride": 1}}
+    assert derived_values(scale_of(1.6, 0.0)) == fleet  # 320x96: every pixel, as many as 640x192 at stride 2
+
+
+@pytest.mark.parametrize(("image_px", "stride"), [((320, 96), 1), ((640, 192), 2), ((1242, 375), 4), ((50, 20), 1)])
+def test_cloud_stride_keeps_about_the_same_number_of_points(image_px, stride):
+    assert cloud_stride_for(image_px) == stride
+    points = (image_px[0] // stride) * (image_px[1] // stride)
+    assert points <= 1.6 * CLOUD_TARGET_POINTS
 
 
 def test_uav_camera_takes_objects_farther_smaller_and_shuffles():
