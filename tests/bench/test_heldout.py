@@ -20,7 +20,7 @@ from shgm_slam.bench.heldout import (
 )
 from shgm_slam.data import open_sequence
 from shgm_slam.geometry import se3
-from shgm_slam.io.trajectories import write_tum
+from shgm_slam.io.trajectories import read_tum, write_tum
 
 
 def _drive(n: int = 100, speed_mps: float = 10.0, fps: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
@@ -105,6 +105,23 @@ def test_judge_places_right_wrong_and_not_placed(tiny_scenario, tmp_path):
     rgb = judge_run(tmp_path, tiny_scenario, ["car1", "car2", "uav"], InputMode.RGB, "airsim-like", 0, metrics)
     assert [x.outcome for x in files] == ["right", "wrong", "wrong"]
     assert [x.outcome for x in rgb] == ["right", "right", "right"]
+
+
+def test_a_gauge_error_of_the_shared_frame_is_not_a_placement_error(tiny_scenario, tmp_path):
+    _fake_run(tiny_scenario, tmp_path, {"car1": 0.0, "car2": 0.0, "uav": 0.0})
+    up = se3.inverse(open_sequence(str(tiny_scenario / "car1")).gt_poses[0])[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    T = se3.make_pose(se3.so3_exp(up * np.radians(3.0)), np.array([1.0, -2.0, 0.5]))  # the whole fleet turned
+    for name in ("car1", "car2", "uav"):
+        t, poses = read_tum(tmp_path / f"{name}_fused_tum.txt")
+        write_tum(tmp_path / f"{name}_fused_tum.txt", t, T @ poses)
+    metrics = {"robots": [{"name": n} for n in ("car1", "car2", "uav")]}
+    v = judge_run(tmp_path, tiny_scenario, ["car1", "car2", "uav"], InputMode.FILES, "airsim-like", 0, metrics)
+    assert [x.outcome for x in v] == ["right"] * 3
+    assert all(x.ate_fused_m < 1e-3 for x in v)
+    assert max(x.ate_fused_raw_m for x in v) > 2.0  # the unaligned error sees the turn
+    rows = [vars(x) for x in v]
+    s = summarize(rows)["files"]["all"]
+    assert s["placed_right"] == 2 and s["placed_right_unaligned"] < 2
 
 
 def test_a_robot_that_shares_no_view_is_right_only_when_left_apart(tiny_scenario, tmp_path):
