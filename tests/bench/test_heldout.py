@@ -121,7 +121,21 @@ def test_a_gauge_error_of_the_shared_frame_is_not_a_placement_error(tiny_scenari
     assert max(x.ate_fused_raw_m for x in v) > 2.0  # the unaligned error sees the turn
     rows = [vars(x) for x in v]
     s = summarize(rows)["files"]["all"]
-    assert s["placed_right"] == 2 and s["placed_right_unaligned"] < 2
+    assert s["placed_right"] == 2 and s["fused_within"] == 2 and s["fused_within_unaligned"] < 2
+
+
+def test_own_drift_is_not_misplacement(tiny_scenario, tmp_path):
+    """A wobble no rigid transform removes (odometry drift) leaves the placement right, the fused ATE not."""
+    _fake_run(tiny_scenario, tmp_path, {"car1": 0.0, "car2": 0.0, "uav": 0.0})
+    t, poses = read_tum(tmp_path / "car2_fused_tum.txt")
+    wobble = 4.0 * np.sin(np.linspace(0.0, 6.0 * np.pi, len(t)))
+    poses[:, 0, 3] += wobble
+    poses[:, 2, 3] -= wobble
+    write_tum(tmp_path / "car2_fused_tum.txt", t, poses)
+    metrics = {"robots": [{"name": n} for n in ("car1", "car2", "uav")]}
+    v = judge_run(tmp_path, tiny_scenario, ["car1", "car2", "uav"], InputMode.FILES, "airsim-like", 0, metrics)
+    assert v[1].outcome == Outcome.RIGHT.value
+    assert v[1].placement_error_m < 1.0 < 2.0 < v[1].ate_fused_m
 
 
 def test_a_robot_that_shares_no_view_is_right_only_when_left_apart(tiny_scenario, tmp_path):
