@@ -125,6 +125,10 @@ SEGMENT_SEPARATOR = "#"
 cannot contain it, see ``runner.parse_robot_arg``)."""
 
 
+SEGMENT_GRACE_S = 1.0
+"""After a re-initialisation, predicted poses are not checked against the image motion for this long."""
+
+
 def segment_agent(robot: str, segment: int) -> str:
     """The map server's agent name of ``robot``'s trajectory segment ``segment`` (0: the robot's name)."""
     return robot if segment == 0 else f"{robot}{SEGMENT_SEPARATOR}{segment}"
@@ -320,11 +324,18 @@ class RobotFrontend:
         )  # fmt: skip
 
     def _check(self, index: int, timestamp_s: float, est: OdometryEstimate) -> OdometryFailure | None:
-        if self.segment.first_frame < 0:
+        seg = self.segment
+        if seg.first_frame < 0:
             return None
+        disagreement = est.rotation_disagreement_deg
+        if not est.ok and timestamp_s - self.sequence.timestamps_s[seg.first_frame] < SEGMENT_GRACE_S:
+            # a fresh segment's prediction has no motion to continue yet: a turn it misses is not a
+            # divergence (coasting still ends it after ``max_coast_s``); without this a sharp turn right
+            # after a re-initialisation cuts one new segment per frame
+            disagreement = None
         return self.health.check(
             index, timestamp_s, est.T_odom_cam, measured=est.ok,
-            registration_threshold_m=est.threshold_m, rotation_disagreement_deg=est.rotation_disagreement_deg,
+            registration_threshold_m=est.threshold_m, rotation_disagreement_deg=disagreement,
         )  # fmt: skip
 
     def _keyframe(self, seg, index, frame, perceived, T_odom_cam, points_cam, point_labels, timings) -> KeyframeMessage:
