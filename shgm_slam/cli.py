@@ -13,6 +13,7 @@ from typing import Annotated, Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from shgm_slam import __version__
 from shgm_slam.config import DescriptorKind, OutlierMode
@@ -20,6 +21,11 @@ from shgm_slam.errors import ShgmError
 
 console = Console()
 err_console = Console(stderr=True)
+
+
+def lit(value: object) -> str:
+    """``value`` as text that rich prints literally (paths, names and messages may hold ``[...]``)."""
+    return escape(str(value))
 
 app = typer.Typer(
     name="shgm-slam",
@@ -43,7 +49,7 @@ def handle_errors(fn: F) -> F:
         try:
             return fn(*args, **kwargs)
         except ShgmError as exc:
-            err_console.print(f"[bold red]error:[/] {exc}")
+            err_console.print(f"[bold red]error:[/] {lit(exc)}")
             raise typer.Exit(2) from None
 
     return wrapper  # type: ignore[return-value]
@@ -133,7 +139,7 @@ def simulate_command(
         table.add_column(col, justify="right" if col in ("frames", "path m") else "left")
     for r in result.robots:
         shared = ", ".join(f"{b} {v:.0f}" for b, v in result.shared_view_m[r.name].items())
-        table.add_row(r.name, r.kind, str(r.frames), f"{r.path_length_m:.0f}", shared, str(r.folder))
+        table.add_row(lit(r.name), r.kind, str(r.frames), f"{r.path_length_m:.0f}", shared, lit(r.folder))
     console.print(table)
     console.print(f"{result.total_frames} frames at {result.frames_per_s:.1f} frames/s; world: {result.world_objects} "
                   f"objects, {result.world_triangles} triangles -> {out / 'world.json'}")
@@ -256,7 +262,7 @@ def _render_summary(summary) -> None:
         if r.segments > 1:  # after odometry failures: which trajectory segments are in the shared frame
             fused += f" ({r.segments_placed}/{r.segments} seg)"
         t.add_row(
-            r.name, str(r.frames), str(r.keyframes), str(r.nodes),
+            lit(r.name), str(r.frames), str(r.keyframes), str(r.nodes),
             f"[yellow]{r.odometry_failures}[/]" if r.odometry_failures else "0", fused, f"{r.path_length_m:.0f}",
             f"{r.ate_odometry_m:.2f}", f"{r.ate_fused_m:.2f}",
             f"{r.ate_odometry_aligned_m:.2f}/{r.ate_fused_aligned_m:.2f}",
@@ -268,8 +274,8 @@ def _render_summary(summary) -> None:
         if r.odometry_failures:
             more = f" (+{r.odometry_failures - 3} more in metrics.json)" if r.odometry_failures > 3 else ""
             console.print(
-                f"[yellow]{r.name}: odometry diverged {r.odometry_failures}x[/], restarted as new trajectory "
-                f"segments: " + "; ".join(r.failure_reasons[:3]) + more
+                f"[yellow]{lit(r.name)}: odometry diverged {r.odometry_failures}x[/], restarted as new trajectory "
+                f"segments: " + lit("; ".join(r.failure_reasons[:3]) + more)
             )
     console.print(
         f"inter-robot matches tried {summary.matches_tried}, closures accepted "
@@ -284,10 +290,10 @@ def _render_summary(summary) -> None:
     console.print(tt)
     if summary.skipped_reasons:
         console.print(f"[yellow]{len(summary.skipped_reasons)} frame(s) skipped[/], first: "
-                      f"{summary.skipped_reasons[0]}")
+                      f"{lit(summary.skipped_reasons[0])}")
     if summary.interrupted:
         console.print("[yellow]interrupted: results written so far are kept[/]")
-    console.print(f"results in [bold]{summary.out_dir}[/]")
+    console.print(f"results in [bold]{lit(summary.out_dir)}[/]")
 
 
 def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool):
@@ -386,16 +392,16 @@ def demo(
     from shgm_slam.demo import demo_config, prepare_world
 
     def simulate_world(folder: Path) -> None:
-        console.print(f"simulating the airsim-like world into [bold]{folder}[/] (once; cached afterwards)")
+        console.print(f"simulating the airsim-like world into [bold]{lit(folder)}[/] (once; cached afterwards)")
         _simulate_with_progress("airsim-like", folder, seed)
 
     world, kinds = prepare_world(cache, seed, simulate_world)
-    console.print(f"world: [bold]{world}[/] robots: {', '.join(f'{r} ({k})' for r, k in kinds.items())}")
+    console.print(f"world: [bold]{lit(world)}[/] robots: {lit(', '.join(f'{r} ({k})' for r, k in kinds.items()))}")
     cfg = demo_config(rgb_only=rgb_only)
     summary = _run_command([f"{r}={world / r}" for r in kinds], cfg, out, rerun, None, True)
     _render_summary(summary)
     if (out / "run.rrd").is_file():
-        console.print(f"open the recording with: [bold].venv/bin/rerun {out / 'run.rrd'}[/]")
+        console.print(f"open the recording with: [bold].venv/bin/rerun {lit(out / 'run.rrd')}[/]")
 
 
 # --- check-model (perception/) ----------------------------------------------------------------------
@@ -418,25 +424,25 @@ def check_model_command(
     table = Table(title=f"{report.model_path.name}: {report.task.value} model", show_header=False)
     table.add_column(style="bold")
     table.add_column()
-    table.add_row("card", str(report.card_path))
+    table.add_row("card", lit(report.card_path))
     table.add_row("providers", ", ".join(report.providers))
-    table.add_row("input", f"{report.input_name} {list(report.input_shape)} {report.input_type}")
-    table.add_row("output", f"{report.output_name} {list(report.output_shape)} {report.output_type}")
-    table.add_row("image", f"{report.image_source} ({report.image_wh[0]}x{report.image_wh[1]})")
-    table.add_row("ran on", f"input {list(report.fed_shape)} -> output {list(report.raw_output_shape)}")
+    table.add_row("input", lit(f"{report.input_name} {list(report.input_shape)} {report.input_type}"))
+    table.add_row("output", lit(f"{report.output_name} {list(report.output_shape)} {report.output_type}"))
+    table.add_row("image", lit(f"{report.image_source} ({report.image_wh[0]}x{report.image_wh[1]})"))
+    table.add_row("ran on", lit(f"input {list(report.fed_shape)} -> output {list(report.raw_output_shape)}"))
     unit = " m" if report.label_fractions == {} else " (train ids)"
     table.add_row("values", f"{report.value_min:.3g} .. {report.value_max:.3g}{unit}, "
                             f"valid {100 * report.valid_fraction:.1f} %")
     if report.label_fractions:
         top = list(report.label_fractions.items())[:8]
-        table.add_row("labels", ", ".join(f"{name} {100 * f:.1f} %" for name, f in top))
+        table.add_row("labels", lit(", ".join(f"{name} {100 * f:.1f} %" for name, f in top)))
     t = report.timings_ms
     table.add_row("ms/frame", f"{t['total_ms']:.1f} (pre {t['preprocess_ms']:.1f}, model "
                               f"{t['inference_ms']:.1f}, post {t['postprocess_ms']:.1f}; median of {runs})")
     for note in report.notes:
-        table.add_row("note", note)
+        table.add_row("note", lit(note))
     if report.preview_path is not None:
-        table.add_row("preview", str(report.preview_path))
+        table.add_row("preview", lit(report.preview_path))
     console.print(table)
 
 
@@ -459,7 +465,7 @@ def bench_simulate(
     results = run_simulate_benchmark(out, resolution=parse_resolution(resolution), short_frames=short_frames,
                                      long_frames=long_frames, seed=seed)
     console.print(simulate_markdown(results))
-    console.print(f"wrote {out}")
+    console.print(f"wrote {lit(out)}")
 
 
 @bench_app.command("localization")
@@ -495,8 +501,8 @@ def bench_localization(
     for row in targets_rows(results):
         table.add_row(*row)
     console.print(table)
-    console.print(f"{results['wall_time_s']:.0f} s; wrote [bold]{out / 'localization.md'}[/], "
-                  f"{out / 'localization.json'} and {out / 'pr_curve.png'}")
+    console.print(f"{results['wall_time_s']:.0f} s; wrote [bold]{lit(out / 'localization.md')}[/], "
+                  f"{lit(out / 'localization.json')} and {lit(out / 'pr_curve.png')}")
 
 
 @bench_app.command("sparse")
@@ -528,7 +534,7 @@ def bench_sparse(
     text = sparse_markdown(results, seed_list)
     (out / "sparse.md").write_text(text)
     console.print(text)
-    console.print(f"wrote {out / 'sparse.json'} and {out / 'sparse.md'}")
+    console.print(f"wrote {lit(out / 'sparse.json')} and {lit(out / 'sparse.md')}")
 
 
 @bench_app.command("system")
@@ -549,7 +555,7 @@ def bench_system(
         results = run_system_benchmark(out, cache=cache, seed=seed, memory=memory, rgb_only=rgb_only,
                                        progress=lambda msg: status.update(msg))
     console.print(system_markdown(results))
-    console.print(f"wrote {out / 'system.json'} and {out / 'system.md'}")
+    console.print(f"wrote {lit(out / 'system.json')} and {lit(out / 'system.md')}")
 
 
 @bench_app.command("heldout")
@@ -593,7 +599,7 @@ def bench_heldout(
     with console.status("starting") as status:
         results = heldout.run_heldout_benchmark(out, options, progress=lambda msg: status.update(msg), jobs=jobs)
     typer.echo(heldout.heldout_markdown(results))
-    console.print(f"wrote {out / 'heldout.json'} and {out / 'heldout.md'}")
+    console.print(f"wrote {lit(out / 'heldout.json')} and {lit(out / 'heldout.md')}")
 
 
 if __name__ == "__main__":
