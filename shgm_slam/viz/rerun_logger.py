@@ -13,7 +13,9 @@ that logs.
 
 from __future__ import annotations
 
+import logging
 import os
+import socket
 import sys
 from enum import Enum
 from pathlib import Path
@@ -37,6 +39,39 @@ from shgm_slam.viz.blueprint import (
 )
 
 DEFAULT_CONNECT_URL = "rerun+http://127.0.0.1:9876/proxy"
+CONNECT_TIMEOUT_S = 2.0
+"""How long ``--rerun connect`` waits for a viewer to answer before the run goes on without it."""
+FLUSH_TIMEOUT_S = 10.0
+"""How long closing waits for the sink to take the last data (a viewer that went away must not hang the run)."""
+
+log = logging.getLogger(__name__)
+
+
+def viewer_address(url: str) -> tuple[str, int]:
+    """``(host, port)`` of a Rerun gRPC URL such as ``rerun+http://127.0.0.1:9876/proxy``.
+
+    Raises:
+        ConfigError: the URL is not of that form.
+    """
+    from urllib.parse import urlsplit
+
+    try:
+        parts = urlsplit(url)
+        host, port = parts.hostname, parts.port
+    except ValueError as exc:
+        raise ConfigError(f"--rerun-url {url!r} is not a URL ({exc}); e.g. {DEFAULT_CONNECT_URL}") from None
+    if parts.scheme not in ("rerun", "rerun+http", "rerun+https") or not host or port is None:
+        raise ConfigError(f"--rerun-url {url!r}: expected rerun+http://HOST:PORT/proxy, e.g. {DEFAULT_CONNECT_URL}")
+    return host, port
+
+
+def viewer_reachable(host: str, port: int, timeout_s: float = CONNECT_TIMEOUT_S) -> bool:
+    """True when something accepts TCP connections at ``host:port`` within ``timeout_s``."""
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
 
 ROBOT_COLORS_RGB = np.array(
     [(0, 150, 255), (255, 140, 0), (200, 60, 255), (0, 210, 200), (255, 215, 0), (255, 90, 170),
@@ -482,7 +517,7 @@ class RerunLogger:
 
     def close(self) -> None:
         """Flush everything to the sink and disconnect (the stream accepts no more data)."""
-        self.rec.flush()
+        self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
         self.rec.disconnect()
 
 
@@ -506,7 +541,9 @@ def make_viz(
 
     Processes that log the same run (one per robot, say) must share ``app_id`` and ``recording_id``.
     ``save_path`` is required for SAVE (parent folders are created); ``connect_url`` defaults to a
-    viewer on this machine (``rerun+http://127.0.0.1:9876/proxy``) for CONNECT. ``max_cloud_points``
+    viewer on this machine (``rerun+http://127.0.0.1:9876/proxy``) for CONNECT. When no viewer answers
+    there within ``CONNECT_TIMEOUT_S`` the run says so (a warning) and saves the recording to ``save_path``
+    instead (or logs nothing when there is none): a missing viewer never blocks a run. ``max_cloud_points``
     bounds each logged cloud (a 20k-point cloud is ~0.27 MB of the ~0.4 MB a frame costs in an .rrd).
     """
     mode = RerunMode(mode)
@@ -514,14 +551,29 @@ def make_viz(
         return NullLogger()
     rec = rr.RecordingStream(app_id, recording_id=recording_id)
     blueprint = default_blueprint(list(robots))
+    if mode is RerunMode.CONNECT:
+        url = connect_url or DEFAULT_CONNECT_URL
+        if not viewer_reachable(*viewer_address(url)):
+            where = f"saving the recording to {save_path} instead" if save_path is not None else "logging nothing"
+            log.warning("no Rerun viewer answers at %s within %.0f s: %s", url, CONNECT_TIMEOUT_S, where)
+            if save_path is None:
+                return NullLogger()
+            mode = RerunMode.SAVE
+        else:
+            rec.connect_grpc(url, default_blueprint=blueprint)
     if mode is RerunMode.SAVE:
         if save_path is None:
             raise ConfigError("--rerun save needs an output file: pass --rerun-file run.rrd")
         path = Path(save_path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        rec.save(path, default_blueprint=blueprint)
-    elif mode is RerunMode.CONNECT:
-        rec.connect_grpc(connect_url or DEFAULT_CONNECT_URL, default_blueprint=blueprint)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            if not os.access(path.parent, os.W_OK):
+                raise PermissionError(f"{path.parent} is not writable")
+            rec.save(path, default_blueprint=blueprint)
+        except (OSError, RuntimeError) as exc:
+            raise ConfigError(
+                f"cannot write the recording {path} ({exc}): choose a writable --out folder or --rerun off"
+            ) from None
     elif mode is RerunMode.SPAWN:
         if not _has_display():
             raise ConfigError(

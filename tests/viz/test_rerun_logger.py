@@ -256,3 +256,49 @@ def test_robot_names_are_escaped_into_one_path_part(tmp_path):
     viz.close()
     entities = _read(path)
     assert "/world/car\\ 1\\/left/cloud" in entities
+
+
+def test_connect_without_a_viewer_saves_instead_and_does_not_hang(tmp_path, caplog):
+    import socket
+    import time
+
+    from shgm_slam.viz.rerun_logger import NullLogger, RerunLogger, RerunMode, make_viz
+
+    with socket.socket() as s:  # a free port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.perf_counter()
+    viz = make_viz(RerunMode.CONNECT, robots=["a"], save_path=tmp_path / "run.rrd",
+                   connect_url=f"rerun+http://127.0.0.1:{port}/proxy")
+    assert isinstance(viz, RerunLogger)
+    viz.close()
+    assert time.perf_counter() - t0 < 15.0
+    assert (tmp_path / "run.rrd").is_file()
+    assert "no Rerun viewer answers" in caplog.text
+    assert isinstance(make_viz(RerunMode.CONNECT, robots=["a"], connect_url=f"rerun+http://127.0.0.1:{port}/proxy"),
+                      NullLogger)
+
+
+@pytest.mark.parametrize("url", ["localhost:9876", "rerun+http://[::1/proxy", "http://127.0.0.1/proxy", "nonsense"])
+def test_a_malformed_viewer_url_is_a_config_error(url):
+    from shgm_slam.viz.rerun_logger import RerunMode, make_viz
+
+    with pytest.raises(ConfigError, match="rerun-url"):
+        make_viz(RerunMode.CONNECT, robots=["a"], connect_url=url)
+
+
+def test_saving_into_a_read_only_folder_is_a_config_error(tmp_path):
+    import os
+
+    from shgm_slam.viz.rerun_logger import RerunMode, make_viz
+
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        if os.access(ro, os.W_OK):
+            pytest.skip("running as a user who can write anywhere (root)")
+        with pytest.raises(ConfigError, match="cannot write the recording"):
+            make_viz(RerunMode.SAVE, robots=["a"], save_path=ro / "run.rrd")
+    finally:
+        ro.chmod(0o700)
