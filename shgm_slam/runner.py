@@ -322,7 +322,7 @@ def _write_results(writer: ResultsWriter, fronts, server: MapServer, robots: dic
         for seg in front.segments:
             writer.write_graph(seg.agent, seg.graph.arrays())
     writer.write_matches(server.matches)
-    server.pose_graph.write_g2o(writer.path("pose_graph.g2o"))
+    writer.write_text("pose_graph.g2o", server.pose_graph.to_g2o())
 
 
 def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: bool) -> list[RobotReport]:

@@ -281,14 +281,19 @@ def judge_run(
                 outcome=outcome.value, placed_fraction=frac, placement_error_m=placement, ate_fused_m=ate,
                 ate_fused_raw_m=float(np.sqrt(np.mean(raw**2))) if raw.size else float("nan"),
                 max_error_m=float(err.max()) if err.size else float("nan"),
-                ate_odometry_aligned_m=float(rep.get("ate_odometry_aligned_m", float("nan"))),
+                ate_odometry_aligned_m=_number(rep.get("ate_odometry_aligned_m")),
                 odometry_breaks=odometry_breaks(times, odo, gt, boundaries),
                 failures_detected=int(rep.get("odometry_failures", 0) or 0),
-                path_length_m=float(rep.get("path_length_m", float("nan"))),
+                path_length_m=_number(rep.get("path_length_m")),
                 notes=notes,
             )
         )
     return verdicts
+
+
+def _number(value: object) -> float:
+    """A metrics.json number (null for 'not measured') as a float (NaN)."""
+    return float("nan") if value is None else float(value)
 
 
 def _robots_of(world: Path) -> list[str]:

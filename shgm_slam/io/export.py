@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from datetime import datetime
 from pathlib import Path
 
@@ -45,11 +45,49 @@ def make_results_dir(out: Path | None, base: Path = Path("results")) -> Path:
     return path
 
 
-def _atomic_write(path: Path, text: str) -> None:
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_FILE_MODE = 0o666 & ~_umask()
+"""Mode of results files: what ``open()`` would give (mkstemp's 0600 would hide results from other users)."""
+
+
+def _atomic(path: Path, write: Callable[[Path], object]) -> None:
+    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it onto ``path``.
+
+    Readers never see a half-written file, and an interrupted or failed write leaves the previous
+    version intact.
+
+    Raises:
+        DataError: the folder is not writable or the disk is full (the previous file is kept).
+    """
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.chmod(tmp, _FILE_MODE)
+        os.replace(tmp, path)
+    except OSError as exc:
+        Path(tmp).unlink(missing_ok=True)
+        raise DataError(f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out") from None
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    _atomic(path, lambda tmp: tmp.write_text(text))
+
+
+def finite_or_none(value: object) -> object:
+    """``value`` with every non-finite float (NaN, inf) replaced by None, recursively: valid JSON."""
+    if isinstance(value, float | np.floating):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite_or_none(v) for v in value]
+    return value
 
 
 def _valid_rows(poses: np.ndarray) -> np.ndarray:
@@ -75,17 +113,18 @@ class ResultsWriter:
         holds only the frames that have a fused pose, in order.
         """
         ok = _valid_rows(T_odom_cam)
-        write_tum(self.path(f"{robot}_odometry_tum.txt"), timestamps_s[ok], T_odom_cam[ok])
+        _atomic(self.path(f"{robot}_odometry_tum.txt"), lambda p: write_tum(p, timestamps_s[ok], T_odom_cam[ok]))
         if T_shared_cam is not None:
-            ok = _valid_rows(T_shared_cam)
-            write_tum(self.path(f"{robot}_fused_tum.txt"), timestamps_s[ok], T_shared_cam[ok])
-            write_kitti_poses(self.path(f"{robot}_fused_kitti.txt"), T_shared_cam[ok])
+            okf = _valid_rows(T_shared_cam)
+            _atomic(self.path(f"{robot}_fused_tum.txt"), lambda p: write_tum(p, timestamps_s[okf], T_shared_cam[okf]))
+            _atomic(self.path(f"{robot}_fused_kitti.txt"), lambda p: write_kitti_poses(p, T_shared_cam[okf]))
 
     def write_graph(self, robot: str, graph: GraphArrays) -> None:
-        write_graph(self.path(f"graph_{robot}.json"), graph)
+        _atomic(self.path(f"graph_{robot}.json"), lambda p: write_graph(p, graph))
 
     def write_json(self, name: str, data: object) -> None:
-        _atomic_write(self.path(name), json.dumps(data, indent=1, default=_json_default) + "\n")
+        data = json.loads(json.dumps(data, default=_json_default))  # numpy, paths -> plain values
+        _atomic_write(self.path(name), json.dumps(finite_or_none(data), indent=1, allow_nan=False) + "\n")
 
     def write_matches(self, records: Iterable) -> None:
         self.write_json("matches.json", [r.to_json_dict() for r in records])
