@@ -6,7 +6,9 @@ user. Each command is a thin wrapper over a library function that tests call dir
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import signal
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
@@ -51,6 +53,9 @@ def handle_errors(fn: F) -> F:
         except ShgmError as exc:
             err_console.print(f"[bold red]error:[/] {lit(exc)}")
             raise typer.Exit(2) from None
+        except KeyboardInterrupt:  # before a run's loop (which keeps its results itself) or in another command
+            err_console.print("[yellow]interrupted[/]")
+            raise typer.Exit(130) from None
 
     return wrapper  # type: ignore[return-value]
 
@@ -376,7 +381,24 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
     out_dir = make_results_dir(out)
     viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=rerun_url,
                    max_cloud_points=8000)
-    return _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame)
+    with _stop_signals_as_interrupt():
+        return _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame)
+
+
+@contextlib.contextmanager
+def _stop_signals_as_interrupt():
+    """SIGTERM and SIGHUP stop a run like Ctrl-C does: the results so far are written, with the summary."""
+
+    def interrupt(signum, _frame):
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    stops = [sig for sig in (signal.SIGTERM, getattr(signal, "SIGHUP", None)) if sig is not None]
+    previous = {sig: signal.signal(sig, interrupt) for sig in stops}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 @app.command("demo")

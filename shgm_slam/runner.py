@@ -211,9 +211,9 @@ def run_slam(
     names = list(robots)
     writer = ResultsWriter(out_dir)
     fronts = {r: make_frontend(r, seq, cfg) for r, seq in robots.items()}
-    writer.write_text("config.yaml", effective_config(cfg, {r: f.cfg for r, f in fronts.items()}).to_yaml())
     server = MapServer(names, cfg)
     viz.setup({r: seq.intrinsics for r, seq in robots.items()})
+    writer.write_text("config.yaml", effective_config(cfg, {r: f.cfg for r, f in fronts.items()}).to_yaml())
     total = sum(len(s) for s in robots.values())
     timings = _Timings()
     skipped: list[str] = []
