@@ -74,7 +74,11 @@ def read_projection(calib_path: Path, key: str) -> np.ndarray:
     """(3, 4) projection matrix of the ``key:`` line (``P0`` … ``P3``) of a KITTI calib.txt."""
     if not calib_path.is_file():
         raise DataError(f"{calib_path} is missing; a sequence needs a KITTI calib.txt with a {key} line")
-    for line in calib_path.read_text().splitlines():
+    try:
+        text = calib_path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise DataError(f"{calib_path} is not UTF-8 text; write a KITTI calib.txt with a {key} line") from None
+    for line in text.splitlines():
         head, _, rest = line.partition(":")
         if head.strip() == key:
             try:
@@ -87,6 +91,29 @@ def read_projection(calib_path: Path, key: str) -> np.ndarray:
     raise DataError(
         f"{calib_path} has no {key} line with 12 numbers; add '{key}: fx 0 cx 0 0 fy cy 0 0 0 1 0'"
     )
+
+
+def check_projection(P: np.ndarray, width: int, height: int, calib_path: Path, key: str) -> None:
+    """Sanity of a (3, 4) projection for a ``width`` x ``height`` image.
+
+    Raises:
+        DataError: a focal length that is not positive (zero, or negative: a mirrored map), a skewed or
+            non-pinhole matrix, or a principal point outside the image.
+    """
+    fx, fy, cx, cy = P[0, 0], P[1, 1], P[0, 2], P[1, 2]
+    where = f"{calib_path} {key}"
+    if not (fx > 0 and fy > 0):
+        raise DataError(f"{where}: focal lengths must be positive (a negative one mirrors the map), got fx={fx:g}, "
+                        f"fy={fy:g}")
+    if abs(P[1, 0]) > 1e-6 * fx or abs(P[2, 0]) > 1e-9 or abs(P[2, 1]) > 1e-9 or abs(P[2, 2] - 1.0) > 1e-6:
+        raise DataError(
+            f"{where}: expected a pinhole projection 'fx 0 cx tx 0 fy cy ty 0 0 1 tz', got {P[:, :3].ravel()}"
+        )
+    if not (0 <= cx < width and 0 <= cy < height):
+        raise DataError(
+            f"{where}: principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image; "
+            "is the calib for another camera or resolution?"
+        )
 
 
 def read_times(path: Path) -> np.ndarray:
@@ -146,6 +173,7 @@ class KittiSequence:
         count = count_frame_files(self._image_dir)
         P = read_projection(self.root / "calib.txt", source.calib_key)
         first = self._read_image(0, check_size=False)
+        check_projection(P, first.shape[1], first.shape[0], self.root / "calib.txt", source.calib_key)
         self.intrinsics = Intrinsics.from_K(P[:, :3], first.shape[1], first.shape[0])
         self._times = fit_count(read_times(self.root / "times.txt"), count, self.root / "times.txt",
                                 self.allow_extra_rows)

@@ -93,7 +93,7 @@ def _synthetic_kitti(root: Path, P2: np.ndarray, n: int = 3) -> np.ndarray:
 
 
 def test_image_2_preferred_and_gt_moved_to_camera_2(tmp_path: Path) -> None:
-    K = np.array([[700.0, 0, 600], [0, 700, 180], [0, 0, 1]])
+    K = np.array([[700.0, 0, 4], [0, 700, 3], [0, 0, 1]])
     t_cam2_cam0 = np.array([0.06, 0.001, 0.005])  # cam0's origin seen from camera 2
     poses_cam0 = _synthetic_kitti(tmp_path / "s", np.hstack([K, (K @ t_cam2_cam0)[:, None]]))
     seq = KittiSequence(tmp_path / "s")
@@ -104,7 +104,7 @@ def test_image_2_preferred_and_gt_moved_to_camera_2(tmp_path: Path) -> None:
 
 
 def test_image_0_uses_p0(tmp_path: Path) -> None:
-    K = np.array([[700.0, 0, 600], [0, 710, 180], [0, 0, 1]])
+    K = np.array([[700.0, 0, 4], [0, 710, 3], [0, 0, 1]])
     _synthetic_kitti(tmp_path / "s", np.hstack([K, np.ones((3, 1))]))
     shutil.rmtree(tmp_path / "s" / "image_2")
     seq = KittiSequence(tmp_path / "s")
@@ -119,6 +119,10 @@ def test_image_0_uses_p0(tmp_path: Path) -> None:
         (lambda r: [p.unlink() for p in (r / "image_2").iterdir()], "image_2 has no .png"),
         (lambda r: (r / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n"), "calib.txt has no P2"),
         (lambda r: (r / "poses.txt").write_text("1 0 0\n"), "poses.txt line 1"),
+        (lambda r: (r / "calib.txt").write_text("P2: 0 0 4 0 0 0 3 0 0 0 1 0\n"), "focal lengths must be positive"),
+        (lambda r: (r / "calib.txt").write_text("P2: -700 0 4 0 0 700 3 0 0 0 1 0\n"), "mirrors the map"),
+        (lambda r: (r / "calib.txt").write_text("P2: 700 0 600 0 0 700 3 0 0 0 1 0\n"), "principal point (600, 3)"),
+        (lambda r: (r / "calib.txt").write_bytes(b"P2: 7\xff\xfe 0 4\n"), "not UTF-8 text"),
     ],
 )
 def test_bad_kitti_folder_names_the_problem(tmp_path: Path, damage, culprit: str) -> None:
