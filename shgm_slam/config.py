@@ -45,6 +45,16 @@ class ExtractionConfig(_Stage):
     )
     labels: tuple[int, ...] = Field(DEFAULT_GRAPH_LABELS, description="train ids that become nodes")
 
+    @model_validator(mode="after")
+    def _consistent(self) -> ExtractionConfig:
+        if not self.labels:
+            raise ValueError("labels is empty: no object could become a graph node (e.g. [2, 5, 6, 7, 8, 13])")
+        if any(not 0 <= k < 255 for k in self.labels):
+            raise ValueError(f"labels must be Cityscapes train ids 0-18 (255 is 'ignore'), got {list(self.labels)}")
+        if self.max_depth_m is not None and self.min_depth_m >= self.max_depth_m:
+            raise ValueError(f"min_depth_m {self.min_depth_m} must be below max_depth_m {self.max_depth_m}")
+        return self
+
     def filled(self) -> ExtractionConfig:
         """This stage with every data-derived field still None set to its ``FLEET`` value."""
         return self.model_copy(update={k: v for k, v in self.FLEET.items() if getattr(self, k) is None})

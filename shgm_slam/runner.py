@@ -78,6 +78,11 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
     if rcfg.odometry.kind is OdometryKind.FILE and rcfg.odometry.poses_file is not None:
         path = Path(str(rcfg.odometry.poses_file).replace("{robot}", name))
         rcfg = rcfg.model_copy(update={"odometry": rcfg.odometry.model_copy(update={"poses_file": path})})
+    if rcfg.odometry.kind is OdometryKind.GT and sequence.gt_poses is None:
+        raise ConfigError(
+            f"robot {name!r}: --odometry gt needs ground-truth poses (poses.txt, or <root>/poses/<seq>.txt for "
+            "KITTI), and its sequence has none; use --odometry auto"
+        )
     perception = make_perception(rcfg.perception, sequence)
 
     def perceive(frame):
@@ -209,6 +214,12 @@ def run_slam(
     """
     viz = viz or NullLogger()
     names = list(robots)
+    unknown = sorted(set(cfg.robots) - set(names))
+    if unknown:
+        raise ConfigError(
+            f"the config has settings for robot(s) {', '.join(unknown)} that are not in this run "
+            f"({', '.join(names)}); fix the names under 'robots:'"
+        )
     writer = ResultsWriter(out_dir)
     fronts = {r: make_frontend(r, seq, cfg) for r, seq in robots.items()}
     server = MapServer(names, cfg)

@@ -128,6 +128,13 @@ def read_times(path: Path) -> np.ndarray:
         raise DataError(f"{path} must hold one number per line: {e}") from e
     if times.ndim != 1 or not np.isfinite(times).all():
         raise DataError(f"{path} must hold one finite number per line (got shape {times.shape})")
+    steps = np.diff(times)
+    if (steps <= 0).any():
+        k = int(np.flatnonzero(steps <= 0)[0])
+        raise DataError(
+            f"{path}: timestamps must increase, but line {k + 2} ({times[k + 1]:g} s) is not after line {k + 1} "
+            f"({times[k]:g} s); fix the file (frames out of order or duplicated?)"
+        )
     return times
 
 

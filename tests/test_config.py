@@ -1,0 +1,51 @@
+"""Configuration: semantic checks that refuse settings which would make a run silently do nothing."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from shgm_slam.config import OdometryKind, ShgmConfig, load_config
+from shgm_slam.errors import ConfigError
+from shgm_slam.runner import open_robots, run_slam
+
+
+@pytest.mark.parametrize(
+    ("yaml_text", "culprit"),
+    [
+        ("extraction: {labels: []}", "labels is empty"),
+        ("extraction: {labels: [2, 255]}", "train ids"),
+        ("extraction: {min_depth_m: 40, max_depth_m: 30}", "must be below max_depth_m"),
+        ("robots: {uav: {extraction: {labels: []}}}", "labels is empty"),
+    ],
+)
+def test_settings_that_make_a_run_do_nothing_are_refused(tmp_path: Path, yaml_text: str, culprit: str) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml_text + "\n")
+    with pytest.raises(ConfigError, match=culprit):
+        load_config(path)
+
+
+def test_derived_max_depth_still_allows_any_min_depth(tmp_path: Path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text("extraction: {min_depth_m: 40}\n")  # max_depth_m derived from the data later
+    assert load_config(path).extraction.min_depth_m == 40
+
+
+def test_overrides_for_a_robot_not_in_the_run_are_refused(tiny_scenario: Path, tmp_path: Path) -> None:
+    cfg = ShgmConfig.model_validate({"robots": {"uva": {"extraction": {"max_depth_m": 100}}}})
+    with pytest.raises(ConfigError, match="uva"):
+        run_slam(open_robots([f"car1={tiny_scenario / 'car1'}"]), cfg, tmp_path / "out")
+
+
+def test_gt_odometry_without_ground_truth_is_refused_before_the_run(tiny_scenario: Path, tmp_path: Path) -> None:
+    seq = tmp_path / "car1"
+    shutil.copytree(tiny_scenario / "car1", seq)
+    (seq / "poses.txt").unlink()
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    with pytest.raises(ConfigError, match="needs ground-truth poses"):
+        run_slam(open_robots([f"car1={seq}"]), cfg, tmp_path / "out")
+    assert not (tmp_path / "out" / "metrics.json").exists()
