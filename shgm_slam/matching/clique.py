@@ -13,23 +13,14 @@ offsets and horizontal distances separately (a much stronger test), and the fit 
 Chance cliques of 5-8 correspondences exist among hundreds of candidates even between places that
 do not overlap, and on sparse, noisy maps the largest clique is often not the true one; so the matcher
 takes several cliques (``clique_hypotheses``) and judges each on the whole overlap of both graphs
-(``verification``), not on its size. ``clique_alignment`` (one maximum clique, its fit and the best
-clique among the candidates it does not explain) remains for RANSAC comparisons and diagnostics.
+(``verification``), not on its size.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
-from shgm_slam.matching.pose import DEFAULT_UP, Alignment, fit_pose, refine_alignment, residuals_m
-
-MAX_SEEDS = 48
-"""Maximum number of greedy clique constructions (seeds in decreasing degree order)."""
-
-PATIENCE = 12
-"""Stop after this many consecutive seeds that did not improve the best clique."""
+from shgm_slam.matching.pose import DEFAULT_UP, fit_pose
 
 HYPOTHESIS_SEEDS = 48
 """``clique_hypotheses``: greedy cliques grown from this many highest-degree candidates."""
@@ -130,18 +121,6 @@ def _count(adjacency: np.ndarray, axis: int) -> np.ndarray:
     return adjacency.view(np.uint8).sum(axis=axis, dtype=acc).astype(np.int64)
 
 
-def _prune(adjacency: np.ndarray, alive: np.ndarray, degree: np.ndarray, size: int) -> None:
-    """Drop (in place) vertices that cannot be in a clique larger than ``size``: degree among alive < size.
-
-    ``degree`` holds each vertex's degree among the alive vertices and is kept up to date.
-    """
-    drop = alive & (degree < size)
-    while drop.any():
-        alive &= ~drop
-        degree -= _count(adjacency[drop], axis=0)
-        drop = alive & (degree < size)
-
-
 def _greedy_clique(adjacency: np.ndarray, seed: int, alive: np.ndarray, beat: int) -> np.ndarray:
     """Grow a clique from ``seed``: repeatedly add the candidate adjacent to most other candidates.
 
@@ -164,114 +143,6 @@ def _greedy_clique(adjacency: np.ndarray, seed: int, alive: np.ndarray, beat: in
             keep = sub[v]
         cand, sub = cand[keep], sub[keep][:, keep]
     return np.asarray(clique, dtype=np.int64) if len(clique) > beat else np.zeros(0, dtype=np.int64)
-
-
-def max_clique(
-    adjacency: np.ndarray,
-    within: np.ndarray | None = None,
-    max_seeds: int = MAX_SEEDS,
-    patience: int = PATIENCE,
-) -> np.ndarray:
-    """A maximum clique of a (K, K) symmetric bool adjacency (heuristic, usually exact here).
-
-    Greedy max-degree construction from up to ``max_seeds`` seeds in decreasing degree order (stopping
-    after ``patience`` seeds without improvement); after every improvement, vertices whose degree
-    cannot support a larger clique are pruned (k-core), and seeds whose degree cannot beat the best
-    clique end the search.
-
-    Args:
-        adjacency: (K, K) bool, symmetric, False diagonal.
-        within: optional (K,) bool mask: search only the subgraph induced by these vertices.
-
-    Returns:
-        (M,) int64 sorted vertex indices of the clique (empty when no vertex is available).
-    """
-    k = adjacency.shape[0]
-    alive = np.ones(k, dtype=bool) if within is None else within.copy()
-    if not alive.any():
-        return np.zeros(0, dtype=np.int64)
-    degree = _count(adjacency, axis=1)
-    if within is not None and not within.all():
-        degree -= _count(adjacency[~within], axis=0)
-    initial = degree.copy()
-    order = np.flatnonzero(alive)[np.argsort(-initial[alive], kind="stable")]
-    best = order[:1]
-    tried = since_improvement = 0
-    for seed in order:
-        if tried >= max_seeds or since_improvement >= patience or initial[seed] < best.size:
-            break  # seeds come in decreasing initial degree: none of the rest can beat the best
-        if not alive[seed] or degree[seed] < best.size:
-            continue
-        tried += 1
-        since_improvement += 1
-        clique = _greedy_clique(adjacency, int(seed), alive, best.size)
-        if clique.size > best.size:
-            best, since_improvement = clique, 0
-            _prune(adjacency, alive, degree, best.size)
-    return np.sort(best)
-
-
-def clique_alignment(
-    points_b: np.ndarray,
-    points_a: np.ndarray,
-    rows_a: np.ndarray,
-    rows_b: np.ndarray,
-    weights: np.ndarray | None = None,
-    *,
-    consistency_threshold_m: float = 2.0,
-    refine_iterations: int = 3,
-    gravity_aligned: bool = False,
-    up: np.ndarray | None = None,
-    max_candidates: int | None = None,
-) -> Alignment | None:
-    """Maximum-clique outlier rejection over K candidates, then the Eq. 2 fit and inlier re-selection.
-
-    The clique is searched among the first ``max_candidates`` candidates (pass them in decreasing
-    score order; the consistency matrix costs O(max_candidates^2)); the final inliers are selected
-    among *all* K candidates: the one-to-one candidates whose residual under the clique's fit is below
-    ``recheck_threshold_m(consistency_threshold_m)`` (re-selected ``refine_iterations`` times).
-    ``support`` is the clique size; ``rival_support`` the size of the largest clique among the
-    searched candidates that the fit does not explain (residual above twice the re-check threshold).
-    ``inlier_support`` is the refined inlier count of the result; ``rival_inlier_support`` that of the
-    rival clique's fit, refined among the candidates the result does not explain (0 without a rival).
-
-    Args:
-        points_b, points_a: (K, 3) candidate positions in B's and A's frames.
-        rows_a, rows_b: (K,) node rows of the candidates.
-        weights: (K,) Eq. 2 weights or None.
-
-    Returns:
-        The alignment, or None when no clique of at least 3 correspondences exists.
-    """
-    m = points_b.shape[0] if max_candidates is None else min(max_candidates, points_b.shape[0])
-    pb, pa = points_b[:m], points_a[:m]
-    adjacency = consistency_matrix(
-        pa, pb, rows_a[:m], rows_b[:m], consistency_threshold_m, True, gravity_aligned, up
-    )
-    clique = max_clique(adjacency)
-    if clique.size < 3:
-        return None
-    w = None if weights is None else weights[clique]
-    T = fit_pose(pb[clique], pa[clique], w, gravity_aligned, up)
-    threshold = recheck_threshold_m(consistency_threshold_m)
-    unexplained = residuals_m(T, pb, pa) >= 2.0 * threshold
-    rival = max_clique(adjacency, within=unexplained)
-    aligned = refine_alignment(
-        T, points_b, points_a, rows_a, rows_b, weights, threshold, refine_iterations, gravity_aligned, up
-    )
-    rival_inliers = 0
-    if rival.size >= 3:
-        w_rival = None if weights is None else weights[:m][rival]
-        T_rival = fit_pose(pb[rival], pa[rival], w_rival, gravity_aligned, up)
-        rest = residuals_m(aligned.T_a_b, points_b, points_a) >= 2.0 * threshold
-        rival_inliers = refine_alignment(
-            T_rival, points_b[rest], points_a[rest], rows_a[rest], rows_b[rest],
-            None if weights is None else weights[rest], threshold, refine_iterations, gravity_aligned, up,
-        ).num_inliers  # fmt: skip
-    return replace(
-        aligned, support=int(clique.size), rival_support=int(rival.size),
-        inlier_support=aligned.num_inliers, rival_inlier_support=int(rival_inliers),
-    )  # fmt: skip
 
 
 def recheck_threshold_m(consistency_threshold_m: float) -> float:
