@@ -350,8 +350,8 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
             r, len(seq), processed[r], len(seq) - processed[r], front.num_keyframes,
             sum(len(s.graph) for s in front.segments), bool(with_kf) and all(s.index in placed for s in with_kf),
         )  # fmt: skip
-        rep.segments = sum(s.first_frame >= 0 for s in front.segments)
         rep.segment_start_frames = [int(s.first_frame) for s in front.segments if s.first_frame >= 0]
+        rep.segments = len(rep.segment_start_frames)
         rep.segments_placed = len(placed)
         rep.placed_fraction = float(np.isin(front.frame_segment, list(placed)).sum() / max(in_seg.sum(), 1))
         rep.odometry_failures = len(front.failures)
