@@ -18,14 +18,17 @@ import numpy as np
 
 from shgm_slam.config import OdometryKind, RobotOverrides, ShgmConfig
 from shgm_slam.data import open_sequence
+from shgm_slam.data.interleave import interleave
 from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.fusion import fuse_frames
 from shgm_slam.geometry import se3
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.metrics import ate
 from shgm_slam.odometry.sources import make_odometry
 from shgm_slam.perception import make_perception
-from shgm_slam.pipeline import FrameResult, MapServer, RobotFrontend, fuse_frames, interleave
+from shgm_slam.robot.frontend import FrameResult, RobotFrontend
 from shgm_slam.scene_scale import effective_fields, resolve_robot_config, sample_scene_scale
+from shgm_slam.server.map_server import MapServer
 from shgm_slam.types import Sequence
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
 

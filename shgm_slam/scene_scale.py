@@ -26,7 +26,7 @@ from shgm_slam.labels import Label
 from shgm_slam.types import Frame, Intrinsics, Sequence
 
 GROUND_LABEL_IDS = (Label.ROAD, Label.SIDEWALK, Label.TERRAIN)
-"""Train ids on the ground plane (as ``pipeline.GROUND_LABELS``)."""
+"""Train ids on the ground plane (as ``geometry.ground.GROUND_LABELS``)."""
 
 MIN_PLANE_POINTS = 200
 """A frame's plane fit needs at least this many ground points."""

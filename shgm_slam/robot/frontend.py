@@ -1,0 +1,235 @@
+"""One robot's front end: perception -> pseudo-LiDAR -> odometry -> keyframes -> semantic graph."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from shgm_slam.agents import segment_agent
+from shgm_slam.config import ShgmConfig
+from shgm_slam.geometry.ground import ground_normal
+from shgm_slam.graph.extraction import extract_objects
+from shgm_slam.graph.semantic_graph import SemanticGraph
+from shgm_slam.messages import KeyframeMessage
+from shgm_slam.odometry.clouds import depth_to_cloud
+from shgm_slam.odometry.health import HealthLimits, OdometryFailure, OdometryHealthMonitor
+from shgm_slam.odometry.sources import OdometryEstimate, OdometrySource
+from shgm_slam.perception import PerceptionSource
+from shgm_slam.robot.keyframes import KeyframeSelector
+from shgm_slam.robot.segments import TrajectorySegment
+from shgm_slam.types import Frame, Sequence
+
+log = logging.getLogger(__name__)
+
+
+SEGMENT_GRACE_S = 1.0
+"""After a re-initialisation, predicted poses are not checked against the image motion for this long."""
+
+
+@dataclass
+class FrameResult:
+    """Everything one front-end step produced (for the orchestrator, the viewer and the summary).
+
+    ``agent`` is the trajectory segment the frame belongs to (``segment_agent``); ``failure`` the
+    odometry divergence this frame revealed (then the frame starts a new segment), else None.
+    ``T_odom_cam`` is NaN for frames that belong to no segment (after a divergence, before the
+    odometry measures again).
+    """
+
+    robot: str
+    frame: Frame
+    T_odom_cam: np.ndarray
+    depth_m: np.ndarray | None
+    label_ids: np.ndarray | None
+    points_cam: np.ndarray
+    point_labels: np.ndarray | None
+    odometry_ok: bool
+    message: KeyframeMessage | None
+    timings_ms: dict[str, float]
+    agent: str = ""
+    failure: OdometryFailure | None = None
+
+
+class RobotFrontend:
+    """One robot's front end: perception -> pseudo-LiDAR -> odometry -> keyframes -> semantic graph.
+
+    Each trajectory segment's graph lives in its own odometry frame; nodes are anchored to keyframes.
+    With ``cfg.odometry.health_check`` every pose is checked (``odometry.health``); on a divergence the
+    segment is cut at its onset (frames from the onset on get NaN poses and segment -1), the odometry
+    is re-initialised, and the next measured frame starts a new segment with a fresh graph, sent to
+    the map server as a new agent (``segment_agent``).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        sequence: Sequence,
+        cfg: ShgmConfig,
+        perception: PerceptionSource,
+        odometry: OdometrySource,
+    ) -> None:
+        self.name = name
+        self.sequence = sequence
+        self.cfg = cfg
+        self.perception = perception
+        self.odometry = odometry
+        self.health = (
+            OdometryHealthMonitor(HealthLimits.from_config(cfg.odometry)) if cfg.odometry.health_check else None
+        )
+        n = len(sequence)
+        self.T_odom_cam = np.full((n, 4, 4), np.nan)  # each frame in its own segment's odometry frame
+        self.frame_kf = np.full(n, -1, dtype=np.int64)  # last keyframe (of its segment) at or before each frame
+        self.frame_segment = np.full(n, -1, dtype=np.int64)  # segment of each frame (-1: none)
+        self.segments: list[TrajectorySegment] = []
+        self.failures: list[OdometryFailure] = []
+        self._new_segment(0)
+
+    # --- segments ------------------------------------------------------------------------------
+
+    @property
+    def segment(self) -> TrajectorySegment:
+        """The current trajectory segment."""
+        return self.segments[-1]
+
+    @property
+    def graph(self) -> SemanticGraph:
+        """The current segment's semantic graph."""
+        return self.segment.graph
+
+    @property
+    def num_keyframes(self) -> int:
+        """Keyframes over all segments."""
+        return sum(s.num_keyframes for s in self.segments)
+
+    def _new_segment(self, first_frame: int) -> None:
+        k = len(self.segments)
+        self.segments.append(
+            TrajectorySegment(
+                k, segment_agent(self.name, k), first_frame,
+                SemanticGraph(self.cfg.graph.merge_radius_m, self.cfg.graph.connectivity_m),
+                KeyframeSelector(self.cfg.keyframes.distance_m, self.cfg.keyframes.angle_deg),
+            )
+        )  # fmt: skip
+
+    def _fail(self, failure: OdometryFailure) -> None:
+        """Cut the current segment at the failure's onset and re-initialise the odometry."""
+        log.warning("%s: odometry diverged (%s); restarting as a new trajectory segment", self.name, failure.describe())
+        self.failures.append(failure)
+        seg = self.segment
+        seg.end_failure = failure
+        cut = np.arange(self.T_odom_cam.shape[0]) >= failure.onset_frame
+        cut &= self.frame_segment == seg.index
+        self.T_odom_cam[cut] = np.nan
+        self.frame_segment[cut] = -1
+        self.frame_kf[cut] = -1
+        self.odometry.reset()
+        self.health.reset()
+        # a new segment starts at the next measured frame (the one after a re-initialisation)
+        self._new_segment(-1)
+
+    # --- one frame -------------------------------------------------------------------------------
+
+    def process(self, index: int) -> FrameResult:
+        """Run frame ``index`` through the front end.
+
+        Raises:
+            DataError: the frame cannot be loaded or has no usable depth (the caller logs and skips it).
+        """
+        t0 = time.perf_counter()
+        frame = self.sequence[index]
+        t_load = time.perf_counter()
+        perceived = self.perception.process(frame)
+        t_perc = time.perf_counter()
+        o = self.cfg.odometry
+        points_cam, point_labels = depth_to_cloud(
+            perceived.depth_m,
+            frame.intrinsics,
+            stride=o.cloud_stride,
+            min_range_m=o.min_range_m,
+            max_range_m=o.max_range_m,
+            label_ids=perceived.label_ids,
+        )
+        t_cloud = time.perf_counter()
+        est = self.odometry.update(frame, points_cam, perceived.depth_m, perceived.label_ids)
+        failure = None
+        if self.health is not None:
+            failure = self._check(index, frame.timestamp_s, est)
+            if failure is not None:
+                self._fail(failure)
+                est = self.odometry.update(frame, points_cam, perceived.depth_m, perceived.label_ids)
+                self.health.check(index, frame.timestamp_s, est.T_odom_cam, measured=est.ok)
+        seg = self.segment
+        if seg.first_frame < 0:  # after a re-initialisation: wait for a measured pose
+            if est.ok:
+                seg.first_frame = index
+                if failure is None:  # (a frame that just failed was checked again above)
+                    self.health.check(index, frame.timestamp_s, est.T_odom_cam)
+            else:
+                self.odometry.reset()
+                self.health.reset()
+        T_odom_cam = est.T_odom_cam if seg.first_frame >= 0 else np.full((4, 4), np.nan)
+        t_odo = time.perf_counter()
+        message = None
+        timings = {
+            "load": (t_load - t0) * 1e3,
+            **{f"perception_{k}": v for k, v in perceived.timings_ms.items()},
+            "cloud": (t_cloud - t_perc) * 1e3,
+            "odometry": (t_odo - t_cloud) * 1e3,
+        }
+        if seg.first_frame >= 0:
+            self.T_odom_cam[index] = T_odom_cam
+            self.frame_segment[index] = seg.index
+            # keyframes only from measured poses: a prediction may be cut away by a later failure
+            if est.ok and seg.keyframes.is_keyframe(T_odom_cam) and perceived.label_ids is not None:
+                message = self._keyframe(seg, index, frame, perceived, T_odom_cam, points_cam, point_labels, timings)
+            self.frame_kf[index] = seg.num_keyframes - 1
+        return FrameResult(
+            self.name, frame, T_odom_cam, perceived.depth_m, perceived.label_ids, points_cam, point_labels,
+            est.ok, message, timings, seg.agent, failure,
+        )  # fmt: skip
+
+    def _check(self, index: int, timestamp_s: float, est: OdometryEstimate) -> OdometryFailure | None:
+        seg = self.segment
+        if seg.first_frame < 0:
+            return None
+        disagreement = est.rotation_disagreement_deg
+        if not est.ok and timestamp_s - self.sequence.timestamps_s[seg.first_frame] < SEGMENT_GRACE_S:
+            # a fresh segment's prediction has no motion to continue yet: a turn it misses is not a
+            # divergence (coasting still ends it after ``max_coast_s``); without this a sharp turn right
+            # after a re-initialisation cuts one new segment per frame
+            disagreement = None
+        return self.health.check(
+            index, timestamp_s, est.T_odom_cam, measured=est.ok,
+            registration_threshold_m=est.threshold_m, rotation_disagreement_deg=disagreement,
+        )  # fmt: skip
+
+    def _keyframe(self, seg, index, frame, perceived, T_odom_cam, points_cam, point_labels, timings) -> KeyframeMessage:
+        t0 = time.perf_counter()
+        ex = self.cfg.extraction
+        objects = extract_objects(
+            perceived.depth_m,
+            perceived.label_ids,
+            frame.intrinsics,
+            T_odom_cam,
+            labels=ex.labels,
+            max_depth_m=ex.max_depth_m,
+            min_depth_m=ex.min_depth_m,
+            depth_step_m=ex.depth_step_m,
+            min_blob_fraction=ex.min_blob_fraction,
+        )
+        t_ex = time.perf_counter()
+        kf = seg.num_keyframes
+        update = seg.graph.add_keyframe(kf, T_odom_cam, objects)
+        t_graph = time.perf_counter()
+        seg.kf_frames.append(index)
+        seg.kf_poses.append(T_odom_cam.copy())
+        n_cam = ground_normal(points_cam, point_labels)
+        if n_cam is not None:
+            seg.up_sum += T_odom_cam[:3, :3] @ n_cam
+        up = seg.up_sum / np.linalg.norm(seg.up_sum) if seg.up_sum.any() else None
+        timings["extraction"] = (t_ex - t0) * 1e3
+        timings["graph"] = (t_graph - t_ex) * 1e3
+        return KeyframeMessage(seg.agent, kf, index, frame.timestamp_s, T_odom_cam.copy(), update, up)

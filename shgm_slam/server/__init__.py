@@ -1,0 +1,1 @@
+"""The map server: mirrored graphs, cross-robot matching, the fused pose graph, its node process."""

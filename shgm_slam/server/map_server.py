@@ -1,0 +1,204 @@
+"""The map server: mirrors every agent's graph from messages, matches agents, fuses them in iSAM2."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from shgm_slam.backend.pose_graph import make_pose_graph
+from shgm_slam.config import ShgmConfig
+from shgm_slam.descriptors import compute_descriptors
+from shgm_slam.geometry import se3
+from shgm_slam.geometry.ground import rotation_to_z
+from shgm_slam.graph.semantic_graph import SemanticGraph
+from shgm_slam.matching import match_graphs
+from shgm_slam.messages import KeyframeMessage
+from shgm_slam.server.closures import local_closures
+from shgm_slam.server.records import MatchRecord
+from shgm_slam.types import GraphArrays
+
+log = logging.getLogger(__name__)
+
+
+class MapServer:
+    """Mirrors every robot's graph from messages, matches robots periodically, fuses them in iSAM2.
+
+    Every ``match_every_keyframes`` keyframes of a robot r, r's recent submap and r's whole graph are
+    matched against every other robot's whole graph (robots here are agents: a robot's trajectory
+    segments after odometry failures are agents of their own, added at run time); accepted matches become inter-robot
+    relative-pose factors between keyframes. Shared frame = the first robot's odometry frame.
+    """
+
+    def __init__(self, robot_names: list[str], cfg: ShgmConfig) -> None:
+        self.robot_names = list(robot_names)
+        self.cfg = cfg
+        self.pose_graph = make_pose_graph(self.robot_names, cfg.backend)
+        self.graphs = {r: SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m) for r in robot_names}
+        self.kf_poses: dict[str, list[np.ndarray]] = {r: [] for r in robot_names}
+        self.up: dict[str, np.ndarray | None] = dict.fromkeys(robot_names)
+        self.matches: list[MatchRecord] = []
+        self._since_match = dict.fromkeys(robot_names, 0)
+        self._closures: set[tuple[str, int, str, int]] = set()
+        self._step = 0
+        self._num_matches = 0  # successful graph matches so far (each closure's evidence id)
+        self.timings_ms: dict[str, list[float]] = {"match": [], "backend": []}
+
+    def add_agent(self, agent: str) -> None:
+        """Start mirroring a new agent (a robot's later trajectory segment): its own graph, unanchored
+        in the pose graph, matched like any robot against every other agent, its robot's too."""
+        self.pose_graph.add_robot(agent)
+        self.robot_names.append(agent)
+        self.graphs[agent] = SemanticGraph(self.cfg.graph.merge_radius_m, self.cfg.graph.connectivity_m)
+        self.kf_poses[agent] = []
+        self.up[agent] = None
+        self._since_match[agent] = 0
+
+    def receive(self, msg: KeyframeMessage) -> list[MatchRecord]:
+        """Ingest one keyframe message (a new agent is added on its first); returns the match attempts it
+        triggered (possibly none)."""
+        t0 = time.perf_counter()
+        self._step += 1
+        if msg.robot not in self.graphs:
+            self.add_agent(msg.robot)
+        self.kf_poses[msg.robot].append(msg.T_odom_kf)
+        if msg.up_odom is not None:
+            self.up[msg.robot] = msg.up_odom
+        self.pose_graph.add_keyframe(msg.robot, msg.kf_index, msg.T_odom_kf)
+        self.graphs[msg.robot].apply_update(msg.graph_update, self.kf_poses[msg.robot])
+        self.timings_ms["backend"].append((time.perf_counter() - t0) * 1e3)
+        self._since_match[msg.robot] += 1
+        if self._since_match[msg.robot] < self.cfg.backend.match_every_keyframes:
+            return []
+        self._since_match[msg.robot] = 0
+        return self.match_robot(msg.robot)
+
+    def finalize(self) -> list[MatchRecord]:
+        """Match every robot once more at the end of the run (whole graphs)."""
+        records: list[MatchRecord] = []
+        for r in self.robot_names:
+            records += self.match_robot(r, submap=False)
+        return records
+
+    def match_robot(self, robot: str, *, submap: bool = True) -> list[MatchRecord]:
+        """Match ``robot``'s recent submap and whole graph against every other robot's whole graph."""
+        records = []
+        queries: list[tuple[str, GraphArrays]] = []
+        n_kf = len(self.kf_poses[robot])
+        if submap and n_kf > self.cfg.backend.submap_keyframes:
+            kfs = np.arange(n_kf - self.cfg.backend.submap_keyframes, n_kf)
+            queries.append(("submap", self.graphs[robot].submap(kfs)))
+        queries.append(("whole", self.graphs[robot].arrays()))
+        for other in self.robot_names:
+            if other == robot or len(self.graphs[other]) == 0:
+                continue
+            graph_a = self.graphs[other].arrays()
+            desc_a = compute_descriptors(graph_a, self.cfg.descriptor)
+            for query, graph_b in queries:
+                records.append(self._match_pair(other, robot, query, graph_a, graph_b, desc_a))
+        self.matches += records
+        return records
+
+    def _match_pair(
+        self, robot_a: str, robot_b: str, query: str, graph_a: GraphArrays, graph_b: GraphArrays, desc_a
+    ) -> MatchRecord:
+        t0 = time.perf_counter()
+        up_a, up_b = self.up[robot_a], self.up[robot_b]
+        if up_a is not None and up_b is not None:
+            # both robots know where "up" is (their ground plane): a 4-DoF match in gravity-aligned frames
+            R_a, R_b = rotation_to_z(up_a), rotation_to_z(up_b)
+            cfg4 = self.cfg.matching.model_copy(update={"gravity_aligned": True, "up_axis": (0.0, 0.0, 1.0)})
+            result = match_graphs(
+                graph_a.transformed(se3.make_pose(R_a, np.zeros(3))),
+                graph_b.transformed(se3.make_pose(R_b, np.zeros(3))),
+                self.cfg.descriptor, cfg4, descriptors_a=desc_a,
+            )  # fmt: skip
+            if result.T_a_b is not None:
+                result.T_a_b = se3.make_pose(R_a.T, np.zeros(3)) @ result.T_a_b @ se3.make_pose(R_b, np.zeros(3))
+        else:
+            result = match_graphs(graph_a, graph_b, self.cfg.descriptor, self.cfg.matching, descriptors_a=desc_a)
+        self.timings_ms["match"].append((time.perf_counter() - t0) * 1e3)
+        rec = MatchRecord(
+            self._step, robot_a, robot_b, query, result.success, False, result.reason, None, None,
+            result.T_a_b, result.inliers, result.candidates, len(graph_a), len(graph_b), dict(result.timings_ms),
+        )  # fmt: skip
+        if not result.success:
+            return rec
+        rows_a = _rows_of(graph_a, result.inliers[:, 0])
+        rows_b = _rows_of(graph_b, result.inliers[:, 1])
+        rec.inlier_positions_a = graph_a.positions_xyz[rows_a]
+        rec.inlier_positions_b = graph_b.positions_xyz[rows_b]
+        closures = [
+            (kf_a, kf_b, se3.inverse(self.kf_poses[robot_a][kf_a]) @ T @ self.kf_poses[robot_b][kf_b], n)
+            for kf_a, kf_b, T, n in local_closures(
+                rec.inlier_positions_a,
+                rec.inlier_positions_b,
+                graph_a.label_ids[rows_a],
+                self.graphs[robot_a].anchor_keyframes(result.inliers[:, 0]),
+                self.graphs[robot_b].anchor_keyframes(result.inliers[:, 1]),
+                result.T_a_b,
+                segment_m=self.cfg.backend.local_closure_m,
+                min_inliers=self.cfg.matching.min_inliers // 2 + 1,
+                max_rmse_m=self.cfg.matching.max_rmse_m,
+                up_a=up_a,
+                up_b=up_b,
+            )
+        ]
+        self._num_matches += 1
+        pg = self.pose_graph
+        confirming = pg.min_closures_to_anchor > 1 and not (pg.is_anchored(robot_a) and pg.is_anchored(robot_b))
+        for kf_a, kf_b, T_akf_bkf, n in closures:
+            key = (robot_a, kf_a, robot_b, kf_b)
+            # a later match that finds the same keyframe pair again is independent evidence: while it
+            # can still confirm an unanchored robot it goes in; afterwards it is a duplicate
+            if key in self._closures and not confirming:
+                rec.closures.append(
+                    {
+                        "keyframe_a": kf_a,
+                        "keyframe_b": kf_b,
+                        "inliers": n,
+                        "accepted": False,
+                        "reason": "duplicate of an earlier closure between the same keyframes",
+                    }
+                )
+                continue
+            t1 = time.perf_counter()
+            decision = self.pose_graph.add_inter_robot_closure(
+                robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n, match_id=self._num_matches
+            )
+            self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
+            rec.closures.append(
+                {
+                    "keyframe_a": kf_a,
+                    "keyframe_b": kf_b,
+                    "inliers": n,
+                    "accepted": decision.accepted,
+                    "reason": decision.reason,
+                }
+            )
+            if decision.accepted:
+                self._closures.add(key)
+        accepted = [c for c in rec.closures if c["accepted"]]
+        rec.accepted = bool(accepted)
+        shown = accepted[0] if accepted else rec.closures[0]
+        rec.kf_a, rec.kf_b, rec.reason = shown["keyframe_a"], shown["keyframe_b"], shown["reason"]
+        if len(rec.closures) > 1:
+            rec.reason = f"{len(accepted)} of {len(rec.closures)} local closures accepted; {rec.reason}"
+        rec.duplicate = all(c["reason"].startswith("duplicate") for c in rec.closures if not c["accepted"]) and (
+            not accepted
+        )
+        return rec
+
+    def T_shared_kf(self, robot: str) -> np.ndarray | None:
+        """(K, 4, 4) fused keyframe poses of ``robot`` (an agent) in the shared frame, or None if not
+        localized (or not known to the server yet)."""
+        if robot not in self.graphs or not self.pose_graph.is_anchored(robot):
+            return None
+        return self.pose_graph.estimate()[robot]
+
+
+def _rows_of(graph: GraphArrays, node_ids: np.ndarray) -> np.ndarray:
+    """Row indices of ``node_ids`` in ``graph``."""
+    order = np.argsort(graph.node_ids)
+    return order[np.searchsorted(graph.node_ids, node_ids, sorter=order)]
