@@ -33,3 +33,11 @@ class SimulationError(ShgmError):
 
 class BackendError(ShgmError):
     """The pose graph back end failed (for example an indeterminate system)."""
+
+
+class ProtocolError(ShgmError):
+    """A message from a peer is malformed, of another protocol version, or from a clashing robot."""
+
+
+class TransportError(ShgmError):
+    """The network transport between robots and the map server cannot be opened or used."""

@@ -283,7 +283,7 @@ def run_slam(
         closures_rejected=sum(m.success and not m.accepted and not m.duplicate for m in server.matches),
         timings_ms={
             **timings.means(),
-            "match": float(np.mean(server.timings_ms["match"])) if server.timings_ms["match"] else 0.0,
+            "match": server.mean_match_ms(),
         },
         per_keyframe_ms=compute_ms / max(kf_total, 1),
         wall_s=time.perf_counter() - t_start,
@@ -301,7 +301,7 @@ def _last_healthy_position(front: RobotFrontend, server: MapServer) -> np.ndarra
     frames = np.flatnonzero(front.frame_segment == seg.index)
     if not len(frames) or server.T_shared_kf(seg.agent) is None:
         return None
-    return (server.pose_graph.T_shared_odom(seg.agent) @ front.T_odom_cam[frames[-1]])[:3, 3]
+    return (server.T_shared_odom(seg.agent) @ front.T_odom_cam[frames[-1]])[:3, 3]
 
 
 def _placed_segments(front: RobotFrontend, server: MapServer) -> list[tuple[int, np.ndarray]]:
@@ -336,7 +336,7 @@ def _write_results(writer: ResultsWriter, fronts, server: MapServer, robots: dic
         for seg in front.segments:
             writer.write_graph(seg.agent, seg.graph.arrays())
     writer.write_matches(server.matches)
-    writer.write_text("pose_graph.g2o", server.pose_graph.to_g2o())
+    writer.write_text("pose_graph.g2o", server.to_g2o())
 
 
 def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: bool) -> list[RobotReport]:
@@ -394,8 +394,7 @@ def _log_frame(viz: Viz, server: MapServer, front: RobotFrontend, res: FrameResu
     if not np.isfinite(res.T_odom_cam).all():  # between a divergence and the next measured frame
         _log_matches(viz, server, records)
         return
-    placed = agent in server.graphs and server.pose_graph.is_anchored(agent)
-    T_shared_odom = server.pose_graph.T_shared_odom(agent) if placed else None
+    T_shared_odom = server.T_shared_odom(agent)
     T_view = res.T_odom_cam if T_shared_odom is None else T_shared_odom @ res.T_odom_cam
     # the heavy parts (depth image, point cloud) only at keyframes: keeps recordings ~100 KB per frame
     key = res.message is not None
@@ -416,19 +415,18 @@ def _log_frame(viz: Viz, server: MapServer, front: RobotFrontend, res: FrameResu
         if T_shared_odom is not None:
             odo_xyz = se3.transform_points(T_shared_odom, odo_xyz)
         viz.log_trajectories(r, odo_xyz, fused_xyz)
-        graph = server.graphs[agent].arrays()
+        graph = server.graph(agent)
         viz.log_graph(r, graph.transformed(T_shared_odom) if T_shared_odom is not None else graph)
     _log_matches(viz, server, records)
 
 
 def _log_matches(viz: Viz, server: MapServer, records) -> None:
-    pg = server.pose_graph
     for m in records:
         if not m.success:
             continue
-        if pg.is_anchored(m.robot_a) and pg.is_anchored(m.robot_b):
-            pa = se3.transform_points(pg.T_shared_odom(m.robot_a), m.inlier_positions_a)
-            pb = se3.transform_points(pg.T_shared_odom(m.robot_b), m.inlier_positions_b)
+        if server.is_placed(m.robot_a) and server.is_placed(m.robot_b):
+            pa = se3.transform_points(server.T_shared_odom(m.robot_a), m.inlier_positions_a)
+            pb = se3.transform_points(server.T_shared_odom(m.robot_b), m.inlier_positions_b)
             viz.log_matches(m.robot_a, m.robot_b, pa, pb, m.accepted, len(m.inliers))
         level = "INFO" if m.accepted or m.duplicate else "WARN"
         verdict = "accepted" if m.accepted else "already known" if m.duplicate else "rejected"

@@ -10,6 +10,7 @@ import numpy as np
 from shgm_slam.backend.pose_graph import make_pose_graph
 from shgm_slam.config import ShgmConfig
 from shgm_slam.descriptors import compute_descriptors
+from shgm_slam.errors import ConfigError
 from shgm_slam.geometry import se3
 from shgm_slam.geometry.ground import rotation_to_z
 from shgm_slam.graph.semantic_graph import SemanticGraph
@@ -32,13 +33,16 @@ class MapServer:
     """
 
     def __init__(self, robot_names: list[str], cfg: ShgmConfig) -> None:
-        self.robot_names = list(robot_names)
+        if not robot_names:
+            raise ConfigError("the map server needs at least the reference robot (whose frame is the shared frame)")
         self.cfg = cfg
-        self.pose_graph = make_pose_graph(self.robot_names, cfg.backend)
-        self.graphs = {r: SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m) for r in robot_names}
-        self.kf_poses: dict[str, list[np.ndarray]] = {r: [] for r in robot_names}
-        self.up: dict[str, np.ndarray | None] = dict.fromkeys(robot_names)
-        self.matches: list[MatchRecord] = []
+        self._agents = list(robot_names)
+        self._pose_graph = make_pose_graph(self._agents, cfg.backend)
+        self._graphs = {r: SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m) for r in robot_names}
+        # the one home of keyframe poses on the server: each agent's keyframes in its odometry frame
+        self._T_odom_kf: dict[str, list[np.ndarray]] = {r: [] for r in robot_names}
+        self._up: dict[str, np.ndarray | None] = dict.fromkeys(robot_names)
+        self._matches: list[MatchRecord] = []
         self._since_match = dict.fromkeys(robot_names, 0)
         self._closures: set[tuple[str, int, str, int]] = set()
         self._step = 0
@@ -48,25 +52,32 @@ class MapServer:
     def add_agent(self, agent: str) -> None:
         """Start mirroring a new agent (a robot's later trajectory segment): its own graph, unanchored
         in the pose graph, matched like any robot against every other agent, its robot's too."""
-        self.pose_graph.add_robot(agent)
-        self.robot_names.append(agent)
-        self.graphs[agent] = SemanticGraph(self.cfg.graph.merge_radius_m, self.cfg.graph.connectivity_m)
-        self.kf_poses[agent] = []
-        self.up[agent] = None
+        self._pose_graph.add_robot(agent)
+        self._agents.append(agent)
+        self._graphs[agent] = SemanticGraph(self.cfg.graph.merge_radius_m, self.cfg.graph.connectivity_m)
+        self._T_odom_kf[agent] = []
+        self._up[agent] = None
         self._since_match[agent] = 0
 
     def receive(self, msg: KeyframeMessage) -> list[MatchRecord]:
         """Ingest one keyframe message (a new agent is added on its first); returns the match attempts it
-        triggered (possibly none)."""
+        triggered (possibly none).
+
+        Idempotent: a keyframe the server already holds (a re-sent message) is ignored, and so is one
+        that skips ahead (an earlier one was lost; the robot re-sends from ``received(agent)``).
+        """
+        if msg.kf_index != self.received(msg.robot):
+            log.debug("%s keyframe %d ignored (the server holds %d)", msg.robot, msg.kf_index, self.received(msg.robot))
+            return []
         t0 = time.perf_counter()
         self._step += 1
-        if msg.robot not in self.graphs:
+        if msg.robot not in self._graphs:
             self.add_agent(msg.robot)
-        self.kf_poses[msg.robot].append(msg.T_odom_kf)
+        self._T_odom_kf[msg.robot].append(msg.T_odom_kf)
         if msg.up_odom is not None:
-            self.up[msg.robot] = msg.up_odom
-        self.pose_graph.add_keyframe(msg.robot, msg.kf_index, msg.T_odom_kf)
-        self.graphs[msg.robot].apply_update(msg.graph_update, self.kf_poses[msg.robot])
+            self._up[msg.robot] = msg.up_odom
+        self._pose_graph.add_keyframe(msg.robot, msg.kf_index, msg.T_odom_kf)
+        self._graphs[msg.robot].apply_update(msg.graph_update, self._T_odom_kf[msg.robot])
         self.timings_ms["backend"].append((time.perf_counter() - t0) * 1e3)
         self._since_match[msg.robot] += 1
         if self._since_match[msg.robot] < self.cfg.backend.match_every_keyframes:
@@ -77,7 +88,7 @@ class MapServer:
     def finalize(self) -> list[MatchRecord]:
         """Match every robot once more at the end of the run (whole graphs)."""
         records: list[MatchRecord] = []
-        for r in self.robot_names:
+        for r in list(self._agents):
             records += self.match_robot(r, submap=False)
         return records
 
@@ -85,26 +96,26 @@ class MapServer:
         """Match ``robot``'s recent submap and whole graph against every other robot's whole graph."""
         records = []
         queries: list[tuple[str, GraphArrays]] = []
-        n_kf = len(self.kf_poses[robot])
+        n_kf = len(self._T_odom_kf[robot])
         if submap and n_kf > self.cfg.backend.submap_keyframes:
             kfs = np.arange(n_kf - self.cfg.backend.submap_keyframes, n_kf)
-            queries.append(("submap", self.graphs[robot].submap(kfs)))
-        queries.append(("whole", self.graphs[robot].arrays()))
-        for other in self.robot_names:
-            if other == robot or len(self.graphs[other]) == 0:
+            queries.append(("submap", self._graphs[robot].submap(kfs)))
+        queries.append(("whole", self._graphs[robot].arrays()))
+        for other in list(self._agents):
+            if other == robot or len(self._graphs[other]) == 0:
                 continue
-            graph_a = self.graphs[other].arrays()
+            graph_a = self._graphs[other].arrays()
             desc_a = compute_descriptors(graph_a, self.cfg.descriptor)
             for query, graph_b in queries:
                 records.append(self._match_pair(other, robot, query, graph_a, graph_b, desc_a))
-        self.matches += records
+        self._matches += records
         return records
 
     def _match_pair(
         self, robot_a: str, robot_b: str, query: str, graph_a: GraphArrays, graph_b: GraphArrays, desc_a
     ) -> MatchRecord:
         t0 = time.perf_counter()
-        up_a, up_b = self.up[robot_a], self.up[robot_b]
+        up_a, up_b = self._up[robot_a], self._up[robot_b]
         if up_a is not None and up_b is not None:
             # both robots know where "up" is (their ground plane): a 4-DoF match in gravity-aligned frames
             R_a, R_b = rotation_to_z(up_a), rotation_to_z(up_b)
@@ -130,13 +141,13 @@ class MapServer:
         rec.inlier_positions_a = graph_a.positions_xyz[rows_a]
         rec.inlier_positions_b = graph_b.positions_xyz[rows_b]
         closures = [
-            (kf_a, kf_b, se3.inverse(self.kf_poses[robot_a][kf_a]) @ T @ self.kf_poses[robot_b][kf_b], n)
+            (kf_a, kf_b, se3.inverse(self._T_odom_kf[robot_a][kf_a]) @ T @ self._T_odom_kf[robot_b][kf_b], n)
             for kf_a, kf_b, T, n in local_closures(
                 rec.inlier_positions_a,
                 rec.inlier_positions_b,
                 graph_a.label_ids[rows_a],
-                self.graphs[robot_a].anchor_keyframes(result.inliers[:, 0]),
-                self.graphs[robot_b].anchor_keyframes(result.inliers[:, 1]),
+                self._graphs[robot_a].anchor_keyframes(result.inliers[:, 0]),
+                self._graphs[robot_b].anchor_keyframes(result.inliers[:, 1]),
                 result.T_a_b,
                 segment_m=self.cfg.backend.local_closure_m,
                 min_inliers=self.cfg.matching.min_inliers // 2 + 1,
@@ -146,7 +157,7 @@ class MapServer:
             )
         ]
         self._num_matches += 1
-        pg = self.pose_graph
+        pg = self._pose_graph
         confirming = pg.min_closures_to_anchor > 1 and not (pg.is_anchored(robot_a) and pg.is_anchored(robot_b))
         for kf_a, kf_b, T_akf_bkf, n in closures:
             key = (robot_a, kf_a, robot_b, kf_b)
@@ -164,7 +175,7 @@ class MapServer:
                 )
                 continue
             t1 = time.perf_counter()
-            decision = self.pose_graph.add_inter_robot_closure(
+            decision = self._pose_graph.add_inter_robot_closure(
                 robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n, match_id=self._num_matches
             )
             self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
@@ -190,12 +201,59 @@ class MapServer:
         )
         return rec
 
-    def T_shared_kf(self, robot: str) -> np.ndarray | None:
-        """(K, 4, 4) fused keyframe poses of ``robot`` (an agent) in the shared frame, or None if not
-        localized (or not known to the server yet)."""
-        if robot not in self.graphs or not self.pose_graph.is_anchored(robot):
+    # --- queries ----------------------------------------------------------------------------------
+
+    @property
+    def reference(self) -> str:
+        """The robot whose odometry frame is the shared frame."""
+        return self._agents[0]
+
+    @property
+    def agents(self) -> list[str]:
+        """Every agent the server mirrors, in the order it learnt of them (the reference first)."""
+        return list(self._agents)
+
+    @property
+    def matches(self) -> list[MatchRecord]:
+        """Every match attempt so far, in order (the rows of ``matches.json``)."""
+        return list(self._matches)
+
+    def received(self, agent: str) -> int:
+        """How many keyframes of ``agent`` the server holds (0 for an agent it does not know)."""
+        return len(self._T_odom_kf.get(agent, ()))
+
+    def is_placed(self, agent: str) -> bool:
+        """True when ``agent``'s keyframes are in the shared frame."""
+        return agent in self._graphs and self._pose_graph.is_anchored(agent)
+
+    def T_shared_kf(self, agent: str) -> np.ndarray | None:
+        """(K, 4, 4) fused keyframe poses of ``agent`` in the shared frame, or None if not placed (or not
+        known to the server yet)."""
+        if not self.is_placed(agent):
             return None
-        return self.pose_graph.estimate()[robot]
+        return self._pose_graph.estimate()[agent]
+
+    def T_shared_odom(self, agent: str) -> np.ndarray | None:
+        """(4, 4) where ``agent``'s odometry frame lies in the shared frame now (at its latest keyframe),
+        or None if not placed."""
+        return self._pose_graph.T_shared_odom(agent) if self.is_placed(agent) else None
+
+    def graph(self, agent: str) -> GraphArrays:
+        """``agent``'s mirrored semantic graph, in its odometry frame."""
+        return self._graphs[agent].arrays()
+
+    def keyframe_poses(self, agent: str) -> np.ndarray:
+        """(K, 4, 4) ``T_odom_kf`` of ``agent``'s keyframes as received."""
+        poses = self._T_odom_kf.get(agent, [])
+        return np.stack(poses) if poses else np.zeros((0, 4, 4))
+
+    def to_g2o(self) -> str:
+        """The pose graph in g2o text form."""
+        return self._pose_graph.to_g2o()
+
+    def mean_match_ms(self) -> float:
+        """Mean wall time of one graph match so far (0 before the first)."""
+        return float(np.mean(self.timings_ms["match"])) if self.timings_ms["match"] else 0.0
 
 
 def _rows_of(graph: GraphArrays, node_ids: np.ndarray) -> np.ndarray:
