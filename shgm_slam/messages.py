@@ -44,15 +44,32 @@ class KeyframeMessage:
     T_odom_kf: np.ndarray
     graph_update: GraphUpdate
     up_odom: np.ndarray | None = None  # (3,) unit "up" (ground normal) in the odometry frame, if known
+    session: str = ""  # the sending robot process (``HelloMessage.session``)
+
+
+@dataclass(frozen=True, eq=False)
+class RobotTrajectory:
+    """Every frame of one robot in its odometry: what the server needs to write per-frame trajectories.
+
+    ``timestamps_s`` (N,) seconds; ``frame_segment`` (N,) the trajectory segment of each frame (-1: in
+    none, e.g. dropped after an odometry failure); ``T_odom_cam`` (N, 4, 4) each frame in its segment's
+    odometry frame (NaN rows where the segment is -1).
+    """
+
+    timestamps_s: np.ndarray
+    frame_segment: np.ndarray
+    T_odom_cam: np.ndarray
 
 
 @dataclass(frozen=True)
 class DoneMessage:
-    """A robot has sent its last keyframe: ``keyframes`` is how many each of its agents sent in all."""
+    """A robot has sent its last keyframe: ``keyframes`` is how many each of its agents sent in all;
+    ``trajectory`` its per-frame odometry (None: the robot does not share it)."""
 
     robot: str
     session: str
     keyframes: dict[str, int]
+    trajectory: RobotTrajectory | None = None
 
 
 @dataclass(frozen=True)
