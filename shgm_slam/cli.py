@@ -124,6 +124,11 @@ def simulate_command(
     max_depth: Annotated[float, typer.Option(min=1.0, help="depth range, metres (farther = 0)")] = 200.0,
     compact: Annotated[bool, typer.Option("--compact", help="small world, short paths")] = False,
     kitti_root: Annotated[Path | None, typer.Option(help="KITTI folder with poses/ (kitti-paths)")] = None,
+    kitti_drive: Annotated[list[str] | None, typer.Option(
+        "--kitti-drive", help="kitti-paths: one robot per drive SEQ:START-END of KITTI 00-10 ground truth, "
+        "repeatable. Frame ranges are half-open: frames START..END-1; SEQ alone = the whole sequence. Drives of "
+        "one sequence share its frame (robots kitti08a, kitti08b, ...); other sequences are aligned onto the "
+        "first. Default: 00:2600-2901 and 07:0-351")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing scenario")] = False,
 ) -> None:
     """Render a synthetic multi-robot scenario (RGB, depth, labels, GT poses) into sequence folders."""
@@ -137,6 +142,7 @@ def simulate_command(
     result = _simulate_with_progress(
         scenario, out, seed, resolution=size, fps=fps, max_frames=max_frames, corruption=corruption,
         world_size_m=world_size, max_depth_m=max_depth, compact=compact, kitti_root=kitti_root,
+        kitti_robots=tuple(kitti_drive) if kitti_drive else None,
         overwrite=overwrite,
     )
     table = Table(title=f"{scenario} (seed {seed}, {size[0]}x{size[1]} @ {fps:g} Hz) -> {out}")

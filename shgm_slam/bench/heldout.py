@@ -58,17 +58,18 @@ RESOLUTION = (320, 96)
 MIN_SHARED_VIEW_M = 30.0
 """A robot 'overlaps' when it shares at least this much view with another robot (scenario.json)."""
 KITTI_DRIVE_PAIRS = (
-    ("00:2600-2900", "07:0-350"),  # the same street on two days (the scenario's default)
-    ("00:546-762", "08:0-300"),
-    ("09:333-592", "10:0-300"),
-    ("00:1369-1589", "08:3450-3750"),
-    ("00:378-628", "08:1950-2250"),  # driven in opposite directions
-    ("09:392-571", "10:900-1200"),
-    ("00:385-623", "08:1200-1500"),
+    ("00:2600-2901", "07:0-351"),  # the same street on two days (the scenario's default)
+    ("00:546-763", "08:0-301"),
+    ("09:333-593", "10:0-301"),
+    ("00:1369-1590", "08:3450-3751"),
+    ("00:378-629", "08:1950-2251"),  # driven in opposite directions
+    ("09:392-572", "10:900-1201"),
+    ("00:385-624", "08:1200-1501"),
 )
 """kitti-paths drive pairs, one per world seed in turn: real KITTI motion, 83-258 m of shared street once
 laid into one world by ``sim.kitti_paths.align_drive`` (found by aligning 300-frame pieces of 08 and 10
-onto 00 and 09; the generated city grows around both drives)."""
+onto 00 and 09; the generated city grows around both drives). Frame ranges are half-open (END excluded):
+the ends are the inclusive ends these worlds were first rendered with, plus one."""
 BREAK_WINDOW_S = 1.0
 """Odometry is judged against ground truth over windows of this length."""
 

@@ -1,79 +1,176 @@
 """Real KITTI ground-truth drives as robot trajectories, placed in one z-up world.
 
-Each KITTI poses file has its own origin (its first camera). We rotate them into our z-up world,
-flatten them onto a flat road (camera 1.65 m above z = 0, rotations kept) and align every further
-drive onto the first one with a 4-DoF (yaw + translation) trimmed ICP on the 2-D tracks, started from a
-coarse yaw search; the measured overlap and residual are reported. KITTI 07 frames ~80-354 and 00
-frames ~2646-2900 drive the same street on different days, the default robot pair.
+A drive is a half-open frame range ``SEQ:START-END`` (frames START..END-1) of a KITTI odometry
+ground-truth file ``<root>/poses/SEQ.txt``; ``SEQ`` alone is the whole sequence. Each KITTI poses file
+has its own origin (its first camera). We rotate them into our z-up world and flatten them onto a flat
+road (camera 1.65 m above z = 0, rotations kept). Drives cut from the *same* sequence keep that
+sequence's frame (no alignment: they already share it, as the paper's three robots cut from 08 do).
+Every further sequence is aligned onto the first one with a 4-DoF (yaw + translation) trimmed ICP on the
+2-D tracks, started from a coarse yaw search; the measured overlap and residual are reported. KITTI 07
+frames ~80-354 and 00 frames ~2646-2900 drive the same street on different days, the default robot pair.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from shgm_slam.errors import DataError, SimulationError
+from shgm_slam.errors import ConfigError, DataError, SimulationError
 from shgm_slam.geometry.se3 import kabsch_yaw, make_pose, rot_z
 from shgm_slam.io.trajectories import read_kitti_poses
 from shgm_slam.sim.trajectories import CAR_CAMERA_HEIGHT_M, RobotKind, Trajectory, resample_path
 
 DEFAULT_KITTI_ROOT = Path(__file__).resolve().parents[3] / "shared" / "data" / "kitti"
 """``../shared/data/kitti`` next to the repository (real data is never part of the repository)."""
-DEFAULT_KITTI_ROBOTS = ("00:2600-2900", "07:0-350")
+DEFAULT_KITTI_ROBOTS = ("00:2600-2901", "07:0-351")
+"""The default pair: 00 frames 2600-2900 and 07 frames 0-350 (half-open ranges, ends excluded)."""
+KITTI_GT_SEQUENCES = tuple(f"{k:02d}" for k in range(11))
+"""KITTI odometry publishes ground-truth poses for sequences 00-10 only (11-21 are its test set)."""
 
 R_WORLD_KITTI = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 """Rotation from KITTI's first-camera frame (x right, y down, z forward) to a z-up world."""
 
+_DRIVE_RE = re.compile(r"^(?P<seq>\d{1,2})(?::(?P<start>\d+)-(?P<end>\d*))?$")
+
 
 @dataclass(frozen=True)
 class KittiDrive:
-    """A frame range of a KITTI ground-truth sequence: ``seq`` and frames ``start..end`` inclusive."""
+    """A half-open frame range ``[start, end)`` of a KITTI ground-truth sequence ``seq`` ("00".."21").
+
+    ``end`` None means "to the end of the sequence".
+    """
 
     seq: str
-    start: int
-    end: int
+    start: int = 0
+    end: int | None = None
 
     @property
     def name(self) -> str:
+        """The robot name of a drive whose sequence is used once (``kitti07``); see ``drive_names``."""
         return f"kitti{self.seq}"
+
+    @property
+    def spec(self) -> str:
+        return f"{self.seq}:{self.start}-{'' if self.end is None else self.end}"
 
     @staticmethod
     def parse(spec: str) -> KittiDrive:
-        """``"07:0-350"`` -> KittiDrive("07", 0, 350)."""
-        try:
-            seq, rng = spec.split(":")
-            a, b = (int(x) for x in rng.split("-"))
-        except ValueError:
-            raise SimulationError(f"bad KITTI drive {spec!r}; write SEQ:START-END, e.g. 07:0-350") from None
-        if a < 0 or b <= a:
-            raise SimulationError(f"bad KITTI frame range in {spec!r}: need 0 <= START < END")
-        return KittiDrive(seq.zfill(2), a, b)
+        """``"07:0-350"`` -> KittiDrive("07", 0, 350) (frames 0..349); ``"08"`` -> the whole of 08;
+        ``"08:3000-"`` -> frames 3000 to the end.
+
+        Raises:
+            ConfigError: not ``SEQ[:START-END]``, a sequence outside KITTI's 00-21, or an empty range.
+        """
+        m = _DRIVE_RE.match(spec.strip())
+        if not m:
+            raise ConfigError(
+                f"bad KITTI drive {spec!r}; write SEQ:START-END (half-open: frames START..END-1), "
+                "e.g. 07:0-350, or SEQ alone for the whole sequence"
+            )
+        seq = m["seq"].zfill(2)
+        if int(seq) > 21:
+            raise ConfigError(f"unknown KITTI sequence {seq!r} in {spec!r}; KITTI odometry has sequences 00-21")
+        if m["start"] is None:
+            return KittiDrive(seq)
+        start = int(m["start"])
+        end = int(m["end"]) if m["end"] else None
+        if end is not None and end <= start:
+            raise ConfigError(
+                f"empty KITTI frame range in {spec!r}: START-END is half-open (frames START..END-1), "
+                "so END must be greater than START"
+            )
+        return KittiDrive(seq, start, end)
+
+
+def drive_names(drives: list[KittiDrive]) -> list[str]:
+    """Robot names: ``kitti07`` for a sequence used once, ``kitti08a``, ``kitti08b``, ... (in the order
+    given) for several drives cut from one sequence. All match the runner's robot-name rule."""
+    count: dict[str, int] = {}
+    for d in drives:
+        count[d.seq] = count.get(d.seq, 0) + 1
+    seen: dict[str, int] = {}
+    names = []
+    for d in drives:
+        if count[d.seq] == 1:
+            names.append(d.name)
+            continue
+        k = seen.get(d.seq, 0)
+        seen[d.seq] = k + 1
+        names.append(f"{d.name}{_letters(k)}")
+    return names
+
+
+def _letters(k: int) -> str:
+    """0 -> a, 25 -> z, 26 -> ba, ... (base-26 letters)."""
+    out = ""
+    while True:
+        out = chr(ord("a") + k % 26) + out
+        k //= 26
+        if k == 0:
+            return out
+
+
+def read_sequence_poses(root: Path, seq: str) -> np.ndarray:
+    """(N, 4, 4) KITTI ground truth ``T_cam0_cam`` of sequence ``seq`` from ``<root>/poses/<seq>.txt``.
+
+    Raises:
+        DataError: the poses folder or file is missing or unreadable.
+        ConfigError: a sequence without public ground truth (11-21) and no file for it.
+    """
+    folder = Path(root) / "poses"
+    path = folder / f"{seq}.txt"
+    if not folder.is_dir():
+        raise DataError(
+            f"the kitti-paths scenario needs KITTI ground truth at {folder}/NN.txt, but there is no {folder}; "
+            "put the KITTI odometry poses there or pass --kitti-root DIR (a folder with poses/)"
+        )
+    if not path.is_file():
+        if seq not in KITTI_GT_SEQUENCES:
+            raise ConfigError(
+                f"KITTI sequence {seq} has no public ground truth (only 00-10 do) and {path} does not exist"
+            )
+        raise DataError(
+            f"the kitti-paths scenario needs KITTI ground truth at {path}; put the KITTI odometry poses "
+            f"there or pass --kitti-root DIR (a folder with poses/{seq}.txt)"
+        )
+    try:
+        return read_kitti_poses(path)
+    except DataError as exc:
+        raise DataError(f"cannot use {path}: {exc}") from None
+
+
+def drive_frames(drive: KittiDrive, num_poses: int) -> tuple[int, int]:
+    """The half-open ``(start, end)`` of ``drive`` in a sequence of ``num_poses`` frames.
+
+    Raises:
+        DataError: the range reaches outside the sequence.
+    """
+    end = num_poses if drive.end is None else drive.end
+    if drive.start >= num_poses or end > num_poses:
+        raise DataError(
+            f"KITTI {drive.seq} has {num_poses} poses (frames 0-{num_poses}, half-open); frame range "
+            f"{drive.spec} is outside it"
+        )
+    return drive.start, end
+
+
+def kitti_to_world(poses: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) KITTI poses (first camera = origin) rotated into the z-up world, flattened onto
+    z = 1.65 m (rotations kept). Drives of one sequence map through the same transform."""
+    T = make_pose(R_WORLD_KITTI, np.zeros(3)) @ poses
+    T[:, 2, 3] = CAR_CAMERA_HEIGHT_M
+    return T
 
 
 def load_drive(root: Path, drive: KittiDrive) -> np.ndarray:
     """(N, 4, 4) KITTI poses of ``drive`` mapped into a z-up frame and flattened onto z = 1.65 m."""
-    path = root / "poses" / f"{drive.seq}.txt"
-    if not path.is_file():
-        raise SimulationError(
-            f"the kitti-paths scenario needs KITTI ground truth at {path}; put the KITTI odometry poses "
-            f"there or pass --kitti-root DIR (a folder with poses/{drive.seq}.txt)"
-        )
-    try:
-        poses = read_kitti_poses(path)
-    except DataError as exc:
-        raise SimulationError(f"cannot use {path}: {exc}") from None
-    if drive.end >= len(poses):
-        raise SimulationError(
-            f"{path} has {len(poses)} poses; frame range {drive.start}-{drive.end} is outside it"
-        )
-    T = poses[drive.start : drive.end + 1].copy()
-    T_world_kitti = make_pose(R_WORLD_KITTI, np.zeros(3))
-    T = T_world_kitti @ T
-    T[:, 2, 3] = CAR_CAMERA_HEIGHT_M
-    return T
+    poses = read_sequence_poses(Path(root), drive.seq)
+    start, end = drive_frames(drive, len(poses))
+    return kitti_to_world(poses[start:end].copy())
 
 
 def _icp_yaw(src_xy: np.ndarray, tree: cKDTree, dst_xy: np.ndarray, yaw0: float, iters: int = 40):
@@ -95,17 +192,26 @@ def _icp_yaw(src_xy: np.ndarray, tree: cKDTree, dst_xy: np.ndarray, yaw0: float,
     return T, ok
 
 
-def align_drive(T_ref: np.ndarray, T_src: np.ndarray, min_overlap: float = 0.3) -> tuple[np.ndarray, dict]:
+def _track_xy(drives: np.ndarray | list[np.ndarray]) -> np.ndarray:
+    """(M, 2) positions every 1 m along one (N, 4, 4) pose stack or along each of several (concatenated)."""
+    stacks = drives if isinstance(drives, list) else [drives]
+    return np.concatenate([resample_path(T[:, :2, 3], 1.0) for T in stacks])
+
+
+def align_drive(
+    T_ref: np.ndarray | list[np.ndarray], T_src: np.ndarray | list[np.ndarray], min_overlap: float = 0.3
+) -> tuple[np.ndarray, dict]:
     """Yaw + translation ``T_ref_src`` that lays drive ``src`` onto drive ``ref`` where they overlap.
 
     Args:
-        T_ref, T_src: (N, 4, 4) / (M, 4, 4) poses in their own z-up frames.
+        T_ref, T_src: (N, 4, 4) / (M, 4, 4) poses in their own z-up frames, or lists of such stacks that
+            share one frame (several drives of one sequence).
         min_overlap: fraction of ``src`` that must end within 3 m of ``ref``.
 
     Returns: the (4, 4) transform and stats (overlap fraction and length, RMSE of the overlap, metres).
     """
-    ref = resample_path(T_ref[:, :2, 3], 1.0)
-    src = resample_path(T_src[:, :2, 3], 1.0)
+    ref = _track_xy(T_ref)
+    src = _track_xy(T_src)
     tree = cKDTree(ref)
     best = None
     for yaw0 in np.radians(np.arange(0.0, 360.0, 10.0)):  # coarse search, then ICP refines
@@ -135,22 +241,46 @@ def align_drive(T_ref: np.ndarray, T_src: np.ndarray, min_overlap: float = 0.3) 
 def kitti_trajectories(
     root: Path | None, specs: tuple[str, ...] = DEFAULT_KITTI_ROBOTS, fps: float = 10.0
 ) -> tuple[list[Trajectory], dict]:
-    """Trajectories of the KITTI drives ``specs`` in one world (the first drive's, z up).
+    """Trajectories of the KITTI drives ``specs`` (``SEQ[:START-END]``, half-open) in one world, z up.
 
-    Returns the trajectories (KITTI's 10 Hz frames, timestamps ``k / fps``) and per-robot alignment stats.
+    The first drive's sequence defines the world; every drive of that sequence keeps it as it is.
+    Each further sequence is aligned onto the drives placed so far (all of its drives together, by one
+    transform, so drives of one sequence always share that sequence's frame). Robot names: ``drive_names``.
+
+    Returns the trajectories (KITTI's 10 Hz frames, timestamps ``k / fps``) and per-robot notes (frames,
+    sequence, and for aligned sequences the alignment stats).
+
+    Raises:
+        ConfigError: no drives, or a malformed/unknown/empty drive spec.
+        DataError: missing poses, or a range outside its sequence.
+        SimulationError: a sequence whose drives do not overlap the drives placed before.
     """
     root = Path(root) if root is not None else DEFAULT_KITTI_ROOT
+    if not specs:
+        raise ConfigError("kitti-paths needs at least one KITTI drive (SEQ:START-END)")
     drives = [KittiDrive.parse(s) for s in specs]
-    if len({d.name for d in drives}) != len(drives):
-        raise SimulationError(f"KITTI drives {specs} repeat a sequence; use each sequence once")
-    poses = [load_drive(root, d) for d in drives]
-    notes: dict = {drives[0].name: {"reference": True, "frames": [drives[0].start, drives[0].end]}}
-    for k in range(1, len(drives)):
-        T, stats = align_drive(poses[0], poses[k])
-        poses[k] = T @ poses[k]
-        notes[drives[k].name] = {**stats, "frames": [drives[k].start, drives[k].end]}
+    names = drive_names(drives)
+    if len(set(drives)) != len(drives):
+        dup = next(d.spec for k, d in enumerate(drives) if d in drives[:k])
+        raise ConfigError(f"KITTI drive {dup} is given twice; two robots on the very same frames see the same")
+    sequences = {d.seq: read_sequence_poses(root, d.seq) for d in drives}
+    frames = [drive_frames(d, len(sequences[d.seq])) for d in drives]
+    poses = [kitti_to_world(sequences[d.seq][a:b].copy()) for d, (a, b) in zip(drives, frames, strict=True)]
+    notes: dict = {}
+    ref_seq = drives[0].seq
+    placed = [k for k, d in enumerate(drives) if d.seq == ref_seq]
+    for k in placed:
+        notes[names[k]] = {"reference": True, "sequence": ref_seq, "frames": list(frames[k])}
+    for seq in dict.fromkeys(d.seq for d in drives):
+        if seq == ref_seq:
+            continue
+        mine = [k for k, d in enumerate(drives) if d.seq == seq]
+        T, stats = align_drive([poses[k] for k in placed], [poses[k] for k in mine])
+        for k in mine:
+            poses[k] = T @ poses[k]
+            notes[names[k]] = {**stats, "sequence": seq, "frames": list(frames[k])}
+        placed += mine
     robots = [
-        Trajectory(d.name, RobotKind.CAR, T, np.arange(len(T)) / fps)
-        for d, T in zip(drives, poses, strict=True)
+        Trajectory(name, RobotKind.CAR, T, np.arange(len(T)) / fps) for name, T in zip(names, poses, strict=True)
     ]
     return robots, notes

@@ -6,8 +6,10 @@
   directions) and ``uav`` (~600 m at 44-54 m, 50 deg oblique camera), the paper's AirSim set.
 - ``disjoint``: ``car_a`` and ``car_b`` in opposite corners, never within 2x the depth range (a negative
   control).
-- ``kitti-paths``: ``kitti00`` and ``kitti07``, real KITTI GT drives (00 frames 2600-2900, 07 frames 0-350)
-  aligned into one world with a city grown around them: a real two-robot overlap.
+- ``kitti-paths``: real KITTI GT drives with a city grown around all of them; by default ``kitti00`` and
+  ``kitti07`` (00 frames 2600-2900, 07 frames 0-350, aligned into one world): a real two-robot overlap.
+  Any drives ``SEQ[:START-END]`` (half-open frame ranges) of KITTI 00-10, whole sequences included;
+  several robots cut from one sequence (``kitti08a``, ``kitti08b``, ...) share its frame as they are.
 
 Every scenario's poses share one world frame: the ground-truth inter-robot transform is identity.
 """
@@ -51,7 +53,8 @@ class ScenarioOptions:
         max_depth_m: depth range of the cameras (``disjoint`` keeps its robots 2x this apart).
         car_speed_mps, uav_speed_mps: cruise speeds.
         kitti_root: folder with ``poses/NN.txt`` (default ``../shared/data/kitti``).
-        kitti_robots: KITTI drives as ``SEQ:START-END``; the first is the reference frame.
+        kitti_robots: KITTI drives as ``SEQ[:START-END]`` (half-open frame ranges); the first drive's
+            sequence is the reference frame.
         compact: a small world and short paths (airsim-like: cars 120 m, UAV 150 m) for tests and quick looks.
     """
 
@@ -170,7 +173,7 @@ def disjoint(opt: ScenarioOptions) -> ScenarioPlan:
 
 
 def kitti_paths(opt: ScenarioOptions) -> ScenarioPlan:
-    """Real KITTI ground-truth drives, aligned into one world, with a city grown around them."""
+    """Real KITTI ground-truth drives in one world (``sim.kitti_paths``), with a city grown around all of them."""
     robots, notes = kitti_trajectories(opt.kitti_root, opt.kitti_robots, opt.fps)
     world = build_corridor_city([r.positions_xyz[:, :2] for r in robots], seed=opt.seed)
     targets = {r.name: round(r.path_length_m, 1) for r in robots}

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from shgm_slam.data.sequence import SequenceWriter
-from shgm_slam.errors import SimulationError
+from shgm_slam.errors import ConfigError, SimulationError
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.sim.corruption import CorruptionLevels, apply_corruption
 from shgm_slam.sim.render import Renderer, make_intrinsics
@@ -156,7 +156,8 @@ def simulate(
         max_depth_m: depth beyond is written as 0 (invalid).
         compact: small world and short paths (tests, previews).
         kitti_root, kitti_robots: kitti-paths only: the folder with ``poses/NN.txt`` and the drives as
-            ``SEQ:START-END`` (default ``sim.kitti_paths.DEFAULT_KITTI_ROBOTS``; the first is the reference).
+            ``SEQ[:START-END]``, half-open frame ranges (default ``sim.kitti_paths.DEFAULT_KITTI_ROBOTS``;
+            the first drive's sequence is the reference; drives of one sequence share its frame).
         overwrite: replace an existing output folder's sequences.
         threads: ray-casting threads.
         progress: called after every frame.
@@ -170,6 +171,8 @@ def simulate(
         raise SimulationError(
             f"{out} already holds a simulated scenario; choose a new folder or pass --overwrite"
         )
+    if kitti_robots and scenario != "kitti-paths":
+        raise ConfigError(f"KITTI drives (--kitti-drive) only apply to the kitti-paths scenario, not {scenario!r}")
     corruption = corruption or CorruptionLevels()
     intrinsics = make_intrinsics(*resolution, hfov_deg=hfov_deg)
     t0 = time.perf_counter()

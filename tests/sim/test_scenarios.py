@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from shgm_slam.errors import SimulationError
+from shgm_slam.errors import ConfigError, DataError, SimulationError
 from shgm_slam.sim.scenarios import SCENARIOS, ScenarioOptions, build_scenario
 from shgm_slam.sim.shapes import ObjectKind
 from shgm_slam.sim.trajectories import RobotKind, min_distance_m, shared_view_length_m
@@ -112,7 +112,7 @@ def test_unknown_scenario_lists_the_known_ones():
 def test_kitti_paths_aligns_real_drives(shared_data):
     plan = build_scenario("kitti-paths", ScenarioOptions(kitti_root=shared_data / "kitti"))
     k00, k07 = plan.robots
-    assert (k00.name, k07.name, len(k00), len(k07)) == ("kitti00", "kitti07", 301, 351)
+    assert (k00.name, k07.name, len(k00), len(k07)) == ("kitti00", "kitti07", 301, 351)  # half-open 2600-2901
     note = plan.notes["kitti_alignment"]["kitti07"]
     assert note["overlap_length_m"] > 150.0 and note["rmse_m"] < 2.0
     assert shared_view_length_m(k07, k00) > 150.0
@@ -122,7 +122,7 @@ def test_kitti_paths_aligns_real_drives(shared_data):
 
 
 def test_kitti_paths_without_data_is_a_clear_error(tmp_path):
-    with pytest.raises(SimulationError, match="KITTI ground truth"):
+    with pytest.raises(DataError, match="KITTI ground truth"):
         build_scenario("kitti-paths", ScenarioOptions(kitti_root=tmp_path))
-    with pytest.raises(SimulationError, match="SEQ:START-END"):
-        build_scenario("kitti-paths", ScenarioOptions(kitti_root=tmp_path, kitti_robots=("07",)))
+    with pytest.raises(ConfigError, match="SEQ:START-END"):
+        build_scenario("kitti-paths", ScenarioOptions(kitti_root=tmp_path, kitti_robots=("07:abc",)))
