@@ -97,6 +97,10 @@ class Transport(Protocol):
         """Deliver every message whose key matches ``key_expr`` into ``inbox`` (a new one if None)."""
         ...
 
+    def wait_for_subscribers(self, key: str, timeout_s: float) -> bool:
+        """Whether some subscription (of any node) matches ``key``, waiting up to ``timeout_s`` seconds."""
+        ...
+
     def close(self) -> None:
         """Stop all subscriptions and release the connection; idempotent."""
         ...

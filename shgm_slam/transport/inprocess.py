@@ -46,6 +46,10 @@ class InProcessBus:
         with self._lock:
             self._subscriptions.append(_Subscription(owner, key_expr, inbox))
 
+    def _has_subscriber(self, key: str) -> bool:
+        with self._lock:
+            return any(key_matches(s.key_expr, key) for s in self._subscriptions)
+
     def _unsubscribe_all(self, owner: int) -> None:
         with self._lock:
             self._subscriptions = [s for s in self._subscriptions if s.owner != owner]
@@ -81,6 +85,12 @@ class InProcessTransport:
         inbox = Inbox() if inbox is None else inbox
         self._bus._subscribe(self._owner, key_expr, inbox)
         return inbox
+
+    def wait_for_subscribers(self, key: str, timeout_s: float) -> bool:
+        """Whether a subscription on the bus matches ``key`` now (nothing changes while waiting)."""
+        self._check_open()
+        validate_key_expr(key, concrete=True)
+        return self._bus._has_subscriber(key)
 
     def close(self) -> None:
         """Remove this node's subscriptions from the bus; idempotent."""

@@ -69,7 +69,9 @@ def test_bus_routes_by_key_expression_in_order() -> None:
     with InProcessTransport(bus) as server, InProcessTransport(bus) as robot_a, InProcessTransport(bus) as robot_b:
         assert isinstance(server, Transport)
         inbox = server.subscribe(ALL_KEYFRAMES)
+        assert not robot_a.wait_for_subscribers(done_key("a"), 1.0)
         server.subscribe("shgm/*/done", inbox)
+        assert robot_a.wait_for_subscribers(done_key("a"), 1.0)
         corrections_a = robot_a.subscribe(correction_key("a"))
         status_b = robot_b.subscribe(STATUS_KEY)
 

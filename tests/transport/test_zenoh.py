@@ -7,6 +7,9 @@ see another run or test on the machine.
 from __future__ import annotations
 
 import socket
+import subprocess
+import sys
+import textwrap
 import time
 from collections.abc import Callable
 
@@ -123,6 +126,7 @@ def test_robot_starts_before_the_server_and_survives_a_server_restart() -> None:
     endpoint = free_endpoint()
     with robot_to(endpoint) as robot:  # nothing listens yet: opening must not fail
         assert robot.connected_nodes() == 0
+        corrections = robot.subscribe(correction_key("a"))
         key = keyframe_key("a")
         for generation in range(2):  # server start, then server restart on the same port
             with server_at(endpoint) as server:
@@ -130,8 +134,52 @@ def test_robot_starts_before_the_server_and_survives_a_server_restart() -> None:
                 assert robot.wait_for_subscribers(key, WAIT_S), f"no reconnect (generation {generation})"
                 robot.publish(key, f"gen{generation}".encode())
                 assert receive(inbox, 1) == [(key, f"gen{generation}".encode())]
+                # the robot's subscription is declared again to the new server
+                assert server.wait_for_subscribers(correction_key("a"), WAIT_S)
+                server.publish(correction_key("a"), bytes([generation]))
+                assert receive(corrections, 1) == [(correction_key("a"), bytes([generation]))]
             assert wait_until(lambda: robot.connected_nodes() == 0)
             robot.publish(key, b"lost while the server is down")  # no subscriber: dropped, no error
+
+
+ROBOT_PROCESS = textwrap.dedent(
+    """
+    import sys
+    from shgm_slam.transport import NodeRole, make_transport
+    from shgm_slam.transport.keys import correction_key, done_key, keyframe_key
+
+    with make_transport(NodeRole.ROBOT, sys.argv[1]) as robot:
+        corrections = robot.subscribe(correction_key("p"))
+        if not robot.wait_for_subscribers(keyframe_key("p"), 10.0):
+            sys.exit("no server")
+        for i in range(50):
+            robot.publish(keyframe_key("p"), i.to_bytes(2, "little") * 2500)
+        robot.publish(done_key("p"), b"")
+        message = corrections.get(timeout_s=10.0)
+        sys.exit(0 if message == (correction_key("p"), b"ack") else f"got {message!r}")
+    """
+)
+
+
+def test_robot_process_started_before_the_server() -> None:
+    endpoint = free_endpoint()
+    robot = subprocess.Popen([sys.executable, "-c", ROBOT_PROCESS, endpoint], stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(0.3)
+        with make_transport(NodeRole.SERVER, endpoint) as server:
+            inbox = server.subscribe(ALL_KEYFRAMES)
+            server.subscribe(ALL_DONE, inbox)
+            received = receive(inbox, 51, timeout_s=15.0)
+            assert [payload for _, payload in received[:50]] == [i.to_bytes(2, "little") * 2500 for i in range(50)]
+            assert received[50:] == [(done_key("p"), b"")]
+            assert server.wait_for_subscribers(correction_key("p"), WAIT_S)
+            server.publish(correction_key("p"), b"ack")
+            _, stderr = robot.communicate(timeout=15.0)
+            assert robot.returncode == 0, stderr
+    finally:
+        if robot.poll() is None:
+            robot.kill()
+            robot.wait()
 
 
 def test_robot_closed_and_reopened_reaches_the_same_server() -> None:
