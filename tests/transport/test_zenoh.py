@@ -243,3 +243,30 @@ def test_parse_endpoints_and_closed_transport() -> None:
     transport.close()
     with pytest.raises(TransportError, match="closed"):
         transport.publish(keyframe_key("a"), b"x")
+
+
+def test_three_robots_one_server() -> None:
+    endpoint = free_endpoint()
+    names = ["r0", "r1", "r2"]
+    with server_at(endpoint) as server:
+        inbox = server.subscribe(ALL_KEYFRAMES)
+        robots = [robot_to(endpoint) for _ in names]
+        try:
+            corrections = [robot.subscribe(correction_key(name)) for robot, name in zip(robots, names, strict=True)]
+            for robot, name in zip(robots, names, strict=True):
+                assert robot.wait_for_subscribers(keyframe_key(name), WAIT_S)
+                assert server.wait_for_subscribers(correction_key(name), WAIT_S)
+            for i in range(10):
+                for robot, name in zip(robots, names, strict=True):
+                    robot.publish(keyframe_key(name), bytes([i]))
+            received = receive(inbox, 30)
+            for name in names:
+                assert [payload for key, payload in received if key == keyframe_key(name)] == [
+                    bytes([i]) for i in range(10)
+                ]
+            server.publish(correction_key("r1"), b"only r1")
+            assert receive(corrections[1], 1) == [(correction_key("r1"), b"only r1")]
+            assert corrections[0].get(timeout_s=0.2) is None and corrections[2].get() is None
+        finally:
+            for robot in robots:
+                robot.close()
