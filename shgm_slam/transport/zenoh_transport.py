@@ -15,8 +15,8 @@ Zenoh configuration this module sets (see the Zenoh ``DEFAULT_CONFIG.json5``):
   ``listen/exit_on_failure = true``, so a port already in use fails at open with
   :class:`TransportError` instead of a silent node.
 - ``connect/endpoints``: the given list. In peer mode ``connect/timeout_ms = -1`` with
-  ``connect/exit_on_failure = false``: opening returns at once (about 0.5 s) even when the server
-  is not up yet, and Zenoh keeps retrying in the background until it appears; a lost link (the
+  ``connect/exit_on_failure = false``: opening returns in milliseconds when the server is up and
+  after about 0.5 s when it is not, and Zenoh keeps retrying in the background until it appears; a lost link (the
   server stopped and restarted) is retried the same way, so robots reconnect by themselves.
   Note: ``connect/timeout_ms = 0`` would try once and never retry (measured with zenoh 1.10).
 - ``connect/retry``: ``period_init_ms`` / ``period_max_ms`` / ``period_increase_factor``, the
@@ -40,7 +40,7 @@ thread: with zenoh-python's default (``indirect=True``) every subscriber gets it
 thread, and two subscriptions sharing one inbox (``shgm/*/keyframe`` and ``shgm/*/done``) then
 see messages out of their publication order (a robot's ``done`` before its last keyframe).
 
-Zenoh's own (Rust) log is off unless :func:`enable_zenoh_logging` is called (the CLI does);
+Zenoh's own (Rust) log is off unless :func:`enable_zenoh_logging` is called (from the CLI, once);
 ``RUST_LOG`` overrides the level.
 """
 
