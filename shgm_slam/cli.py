@@ -474,6 +474,48 @@ def check_model_command(
     console.print(table)
 
 
+@app.command("perceive")
+@handle_errors
+def perceive_command(
+    sequence: Annotated[str, typer.Argument(help="SEQ[:start-end]; the range is half-open: frames start..end-1")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="output sequence folder (run it again to resume)")],
+    depth_model: Annotated[Path | None, typer.Option(help="ONNX depth model (card next to it)")] = None,
+    seg_model: Annotated[Path | None, typer.Option(help="ONNX segmentation model (card next to it)")] = None,
+    batch_size: Annotated[int, typer.Option(min=1, help="frames per model call")] = 8,
+    threads: Annotated[int, typer.Option(min=0, help="onnxruntime intra-op threads (0 = all cores)")] = 0,
+    provider: Annotated[str, typer.Option(help="auto (CUDA when onnxruntime-gpu has it) | cpu | cuda")] = "auto",
+    copy_images: Annotated[bool, typer.Option("--copy-images", help="copy the images instead of linking")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="redo every frame of an existing --out")] = False,
+) -> None:
+    """Run the depth and segmentation networks once over a sequence; write depth/ and semantic/ into a
+    complete sequence folder (images linked, calib, times, poses) that `run --robot NAME=OUT` reads."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
+
+    from shgm_slam.errors import ConfigError
+    from shgm_slam.perception.perceive import ImageMode, Provider, perceive
+
+    try:
+        chosen = Provider(provider)
+    except ValueError:
+        raise ConfigError(f"--provider {provider!r}: choose auto, cpu or cuda") from None
+    with Progress("[bold]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TimeRemainingColumn(), console=console, transient=True) as bar:  # fmt: skip
+        task = bar.add_task("frames", total=None)
+        result = perceive(
+            sequence, out, depth_model=depth_model, seg_model=seg_model, batch_size=batch_size, threads=threads,
+            provider=chosen, images=ImageMode.COPY if copy_images else ImageMode.LINK, overwrite=overwrite,
+            progress=lambda done, total: bar.update(task, completed=done, total=total),
+        )  # fmt: skip
+    providers = ", ".join(f"{k} {v[0].removesuffix('ExecutionProvider')}" for k, v in result.providers.items())
+    speed = ", ".join(f"{k} {v:.1f}" for k, v in result.inference_ms_per_frame.items())
+    console.print(f"{lit(result.source)}: {result.computed} frame(s) computed, {result.reused} reused of "
+                  f"{result.frames} in {result.wall_s:.1f} s ({providers}" + (f"; ms/frame {speed})" if speed else ")"))
+    if result.interrupted:
+        console.print(f"[yellow]interrupted[/]: run the same command again to finish {lit(out)}")
+        raise typer.Exit(130)
+    console.print(f"wrote [bold]{lit(out)}[/]; use it with: shgm-slam run --robot NAME={lit(out)}")
+
+
 # --- bench (bench.py) -------------------------------------------------------------------------------
 
 

@@ -1,0 +1,347 @@
+"""Run the networks once: ONNX depth and segmentation over a sequence, written as a reusable sequence.
+
+``perceive("KITTI/sequences/08:0-1500", depth_model, seg_model, out)`` writes a complete sequence in
+our layout (ARCHITECTURE.md) that ``shgm-slam run --robot a=OUT`` reads with no models::
+
+    OUT/ image_2/ or image_0/   links to the source images (or copies), renumbered from 000000.png
+         depth/%06d.png          uint16, metres x 256, 0 = invalid     (from the depth model)
+         semantic/%06d.png       uint8 Cityscapes train ids            (from the segmentation model)
+         calib.txt               P0..P3 = [K | 0] of the source camera
+         times.txt  poses.txt    the range's timestamps and ground truth (T_world_cam of this camera)
+         perceive.json           what produced it: source, range, models (hashes), progress
+
+Frame ``i`` of OUT is frame ``start + i`` of the source. Each PNG is written atomically (temp file +
+rename), so an interrupted run never leaves a half file; running the same command again skips every
+frame whose depth and label PNGs exist and decode with the right size and type, and redoes the rest.
+Images are fed to the models in batches (one session call per batch, chunked by the adapters when a
+model's batch axis is fixed); sessions use CUDA when onnxruntime-gpu is installed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from shgm_slam.data.base import open_sequence, parse_sequence_spec
+from shgm_slam.data.kitti import IMAGE_SOURCES, frame_file
+from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, encode_depth
+from shgm_slam.errors import ConfigError, DataError, ModelError
+from shgm_slam.io.trajectories import format_kitti_pose
+from shgm_slam.perception.card import card_to_yaml
+from shgm_slam.perception.depth import DepthModel
+from shgm_slam.perception.onnx_model import OnnxModel
+from shgm_slam.perception.segmentation import SegmentationModel
+
+MANIFEST = "perceive.json"
+MANIFEST_FORMAT = "shgm-perceive/1"
+DEFAULT_BATCH = 8
+_HASHES = ("sha256", "card_sha256")
+
+ProgressFn = Callable[[int, int], None]
+"""Called with (frames done, frames to compute) after every batch."""
+
+
+class Provider(str, Enum):
+    """Where the networks run."""
+
+    AUTO = "auto"  # CUDA when onnxruntime-gpu has it, else CPU
+    CPU = "cpu"
+    CUDA = "cuda"
+
+
+class ImageMode(str, Enum):
+    """How the source images get into the output sequence."""
+
+    LINK = "link"  # absolute symlinks (no copy; the source must stay where it is)
+    COPY = "copy"
+
+
+@dataclass
+class PerceiveResult:
+    """What ``perceive`` did. Frames are counted in the output sequence (0 = the range's first)."""
+
+    out_dir: Path
+    source: str
+    frames: int
+    computed: int
+    reused: int
+    providers: dict[str, list[str]]
+    batch_size: int
+    wall_s: float
+    inference_ms_per_frame: dict[str, float] = field(default_factory=dict)
+    interrupted: bool = False
+
+    @property
+    def complete(self) -> bool:
+        return not self.interrupted and self.computed + self.reused == self.frames
+
+    def to_json_dict(self) -> dict:
+        return {
+            "out_dir": str(self.out_dir), "source": self.source, "frames": self.frames, "computed": self.computed,
+            "reused": self.reused, "providers": self.providers, "batch_size": self.batch_size,
+            "wall_s": self.wall_s, "inference_ms_per_frame": self.inference_ms_per_frame,
+            "interrupted": self.interrupted, "complete": self.complete,
+        }  # fmt: skip
+
+
+def session_providers(provider: Provider) -> list[str] | None:
+    """ONNX Runtime providers for ``provider`` (None = the adapters' default, CUDA first when present).
+
+    Raises:
+        ModelError: CUDA asked for but this onnxruntime build has no CUDA provider.
+    """
+    import onnxruntime as ort
+
+    if provider is Provider.CPU:
+        return ["CPUExecutionProvider"]
+    if provider is Provider.CUDA:
+        if "CUDAExecutionProvider" not in ort.get_available_providers():
+            raise ModelError(
+                f"--provider cuda: onnxruntime {ort.__version__} has no CUDA provider; install onnxruntime-gpu "
+                "(pip uninstall onnxruntime && pip install onnxruntime-gpu) or use --provider auto"
+            )
+        return ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    return None
+
+
+def _file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _model_identity(model: OnnxModel | None) -> dict | None:
+    if model is None:
+        return None
+    card = hashlib.sha256(card_to_yaml(model.card).encode()).hexdigest()
+    return {"path": str(model.model_path.absolute()), "sha256": _file_sha256(model.model_path), "card_sha256": card}
+
+
+def write_png_atomic(path: Path, image: np.ndarray) -> None:
+    """Encode ``image`` as PNG into a temp file beside ``path`` and rename it onto ``path``."""
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise DataError(f"cannot encode {path} as PNG (dtype {image.dtype}, shape {image.shape})")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
+    try:
+        tmp.write_bytes(data.tobytes())
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise DataError(f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out") from None
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def png_is_valid(path: Path, dtype: type, size_wh: tuple[int, int]) -> bool:
+    """True when ``path`` decodes as a single-channel ``dtype`` PNG of ``size_wh`` (W, H)."""
+    if not path.is_file():
+        return False
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    return (
+        image is not None and image.ndim == 2 and image.dtype == dtype and (image.shape[1], image.shape[0]) == size_wh
+    )
+
+
+def _check_out(out: Path, source_root: Path, manifest: dict, overwrite: bool) -> None:
+    """Refuse to write into the source, or into a folder that holds something else."""
+    if out.exists() and not out.is_dir():
+        raise DataError(f"--out {out} is a file; choose a folder")
+    if out.resolve() == source_root.resolve():
+        raise DataError(f"--out {out} is the source sequence itself; choose a new folder (the source is not changed)")
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    previous_path = out / MANIFEST
+    if not previous_path.is_file():
+        if overwrite:
+            for name in (DEPTH_DIR, LABEL_DIR):
+                shutil.rmtree(out / name, ignore_errors=True)
+            return
+        raise DataError(f"--out {out} is not empty and was not written by perceive; choose a new folder")
+    try:
+        previous = json.loads(previous_path.read_text())
+    except (OSError, ValueError):
+        previous = {}
+    changed = [k for k in ("format", "source", "start", "end") if previous.get(k) != manifest[k]]
+    for k in ("depth_model", "seg_model"):  # the same model may sit elsewhere now: compare contents only
+        old, new = previous.get(k) or {}, manifest[k] or {}
+        if {h: old.get(h) for h in _HASHES} != {h: new.get(h) for h in _HASHES}:
+            changed.append(k)
+    if changed and not overwrite:
+        raise DataError(
+            f"--out {out} holds perceive outputs of another source, range or model ({', '.join(changed)} "
+            "changed); choose a new folder or pass --overwrite to redo them"
+        )
+    same_frames = not set(changed) - {"depth_model", "seg_model"} and not overwrite
+    for name, key in ((DEPTH_DIR, "depth_model"), (LABEL_DIR, "seg_model")):
+        if not same_frames or key in changed:
+            shutil.rmtree(out / name, ignore_errors=True)
+
+
+def _write_static(out: Path, sequence, source_images: Path, image_folder: str, start: int, mode: ImageMode) -> None:
+    """Images (linked or copied), calib.txt ([K|0]), times.txt and poses.txt of the output sequence."""
+    images = out / image_folder
+    images.mkdir(parents=True, exist_ok=True)
+    for other in {s.folder for s in IMAGE_SOURCES} - {image_folder}:
+        if (out / other).is_dir():  # a previous run with another source camera
+            shutil.rmtree(out / other)
+    for i in range(len(sequence)):
+        src, dst = frame_file(source_images, start + i).absolute(), frame_file(images, i)
+        if mode is ImageMode.LINK:
+            if dst.is_symlink() and os.readlink(dst) == str(src):
+                continue
+            tmp = dst.with_name(f".{dst.name}.{os.getpid()}.part")
+            tmp.unlink(missing_ok=True)
+            os.symlink(src, tmp)
+            os.replace(tmp, dst)
+        elif dst.is_symlink() or not dst.is_file() or dst.stat().st_size != src.stat().st_size:
+            tmp = dst.with_name(f".{dst.name}.{os.getpid()}.part")
+            shutil.copyfile(src, tmp)
+            os.replace(tmp, dst)
+    K = sequence.intrinsics.K
+    line = " ".join(f"{v:.12e}" for v in np.hstack([K, np.zeros((3, 1))]).ravel())
+    _write_text_atomic(out / "calib.txt", "".join(f"P{k}: {line}\n" for k in range(4)))
+    _write_text_atomic(out / "times.txt", "".join(f"{t:.9f}\n" for t in np.asarray(sequence.timestamps_s)))
+    gt = sequence.gt_poses
+    if gt is not None:  # already on the read camera: with P = [K|0] the reader applies no offset again
+        _write_text_atomic(out / "poses.txt", "".join(format_kitti_pose(T) + "\n" for T in gt))
+    else:
+        (out / "poses.txt").unlink(missing_ok=True)
+
+
+def _open_models(
+    depth_model: Path | None, seg_model: Path | None, threads: int, providers: list[str] | None
+) -> tuple[DepthModel | None, SegmentationModel | None]:
+    if depth_model is None and seg_model is None:
+        raise ConfigError("perceive needs --depth-model and/or --seg-model (an .onnx file with its card beside it)")
+    for what, path in (("depth", depth_model), ("segmentation", seg_model)):
+        if path is not None and not Path(path).is_file():
+            raise ModelError(f"{what} model {path} does not exist; pass the path of an .onnx file")
+    depth = DepthModel(depth_model, threads=threads, providers=providers) if depth_model is not None else None
+    seg = SegmentationModel(seg_model, threads=threads, providers=providers) if seg_model is not None else None
+    return depth, seg
+
+
+def perceive(
+    spec: str | Path,
+    out: Path | str,
+    *,
+    depth_model: Path | str | None = None,
+    seg_model: Path | str | None = None,
+    batch_size: int = DEFAULT_BATCH,
+    threads: int = 0,
+    provider: Provider = Provider.AUTO,
+    images: ImageMode = ImageMode.LINK,
+    overwrite: bool = False,
+    progress: ProgressFn | None = None,
+) -> PerceiveResult:
+    """Run the depth and/or segmentation network over ``spec`` and write the sequence ``out``.
+
+    Args:
+        spec: ``path[:start-end]`` (start inclusive, end exclusive) of a KITTI or shgm sequence.
+        out: output folder (created; resumed when it holds this job's earlier, interrupted outputs).
+        depth_model, seg_model: .onnx files with their cards beside them; at least one.
+        batch_size: frames per session call.
+        threads: onnxruntime intra-op threads (0 = all cores).
+        provider: CUDA when available (auto), or force CPU / CUDA.
+        images: symlink the source images (default) or copy them.
+        overwrite: redo every frame of a folder that holds other outputs.
+        progress: called with (frames done, frames to compute).
+
+    Returns:
+        a ``PerceiveResult``; on Ctrl-C the frames done so far are kept and ``interrupted`` is True.
+
+    Raises:
+        ConfigError: no model, or a batch size below 1.
+        ModelError: a model or its card is missing or does not fit; CUDA asked for but absent.
+        DataError: the sequence cannot be read, or ``out`` is the source or holds other data.
+    """
+    t_start = time.perf_counter()
+    if batch_size < 1:
+        raise ConfigError(f"--batch-size {batch_size}: use 1 or more")
+    root, start, _ = parse_sequence_spec(spec)
+    sequence = open_sequence(spec)
+    n = len(sequence)
+    end = start + n
+    source = next((s for s in IMAGE_SOURCES if (root / s.folder).is_dir()), None)
+    if source is None:  # open_sequence checked this already
+        raise DataError(f"{root} has neither image_2/ nor image_0/")
+    depth, seg = _open_models(
+        Path(depth_model) if depth_model else None, Path(seg_model) if seg_model else None,
+        threads, session_providers(provider),
+    )  # fmt: skip
+    out = Path(out)
+    manifest = {
+        "format": MANIFEST_FORMAT, "source": str(root.absolute()), "start": start, "end": end, "frames": n,
+        "depth_model": _model_identity(depth), "seg_model": _model_identity(seg), "complete": False,
+    }  # fmt: skip
+    _check_out(out, root, manifest, overwrite)
+    out.mkdir(parents=True, exist_ok=True)
+    _write_text_atomic(out / MANIFEST, json.dumps(manifest, indent=1) + "\n")
+    _write_static(out, sequence, root / source.folder, source.folder, start, images)
+    size = sequence.intrinsics.size_wh
+    outputs: list[tuple[str, type]] = [(DEPTH_DIR, np.uint16)] * (depth is not None) + [(LABEL_DIR, np.uint8)] * (
+        seg is not None
+    )
+    for folder, _ in outputs:
+        (out / folder).mkdir(exist_ok=True)
+        for stale in (out / folder).glob(".*.part"):
+            stale.unlink(missing_ok=True)
+    todo = [i for i in range(n) if not all(png_is_valid(frame_file(out / f, i), t, size) for f, t in outputs)]
+    providers = {name: m.providers for name, m in (("depth", depth), ("segmentation", seg)) if m is not None}
+    result = PerceiveResult(out, str(spec), n, 0, n - len(todo), providers, batch_size, 0.0)
+    inference_ms = {"depth": 0.0, "segmentation": 0.0}
+    batches = [todo[k : k + batch_size] for k in range(0, len(todo), batch_size)]
+
+    def load(batch: list[int]) -> list[np.ndarray]:
+        return [sequence[i].image_rgb for i in batch]  # type: ignore[misc]
+
+    with ThreadPoolExecutor(max_workers=1) as loader:  # loads the next batch while the models run
+        pending = loader.submit(load, batches[0]) if batches else None
+        try:
+            if progress:
+                progress(0, len(todo))
+            for k, batch in enumerate(batches):
+                assert pending is not None
+                rgb = pending.result()
+                pending = loader.submit(load, batches[k + 1]) if k + 1 < len(batches) else None
+                if depth is not None:
+                    for i, d in zip(batch, depth.predict_batch(rgb, sequence.intrinsics), strict=True):
+                        write_png_atomic(frame_file(out / DEPTH_DIR, i), encode_depth(d))
+                    inference_ms["depth"] += depth.last_timings.total_ms
+                if seg is not None:
+                    for i, labels in zip(batch, seg.predict_batch(rgb), strict=True):
+                        write_png_atomic(frame_file(out / LABEL_DIR, i), labels.astype(np.uint8))
+                    inference_ms["segmentation"] += seg.last_timings.total_ms
+                result.computed += len(batch)
+                if progress:
+                    progress(result.computed, len(todo))
+        except KeyboardInterrupt:
+            result.interrupted = True
+            if pending is not None:
+                pending.cancel()
+    result.inference_ms_per_frame = {
+        k: v / result.computed for k, v in inference_ms.items() if result.computed and k in providers
+    }
+    result.wall_s = time.perf_counter() - t_start
+    if result.complete:
+        manifest["complete"] = True
+        _write_text_atomic(out / MANIFEST, json.dumps({**manifest, "last_run": result.to_json_dict()}, indent=1) + "\n")
+    return result
