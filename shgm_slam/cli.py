@@ -407,6 +407,100 @@ def _stop_signals_as_interrupt():
             signal.signal(sig, handler)
 
 
+@app.command("server")
+@handle_errors
+def server_command(
+    out: Annotated[Path, typer.Option("--out", help="results folder (a journal there is replayed: restart)")],
+    listen: Annotated[
+        str | None, typer.Option(help="Zenoh endpoint(s) to listen on, comma-separated [default: tcp/127.0.0.1:7447]")
+    ] = None,
+    reference: Annotated[
+        str | None, typer.Option(help="robot whose frame is the shared frame [default: the first to connect]")
+    ] = None,
+    expect: Annotated[
+        int | None,
+        typer.Option(min=1, max=52, help="finish by itself once N robots connected and sent their last keyframe"),
+    ] = None,
+    config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
+    rerun: Annotated[str, typer.Option("--rerun", help="spawn | save | connect | off")] = "save",
+    rerun_url: Annotated[str | None, typer.Option(help="gRPC URL for --rerun connect")] = None,
+    stale_after: Annotated[
+        float, typer.Option(min=0.5, max=3600, help="seconds of silence before a robot is stale")
+    ] = 5.0,
+) -> None:
+    """Map server for robots in separate processes (Eclipse Zenoh): fuses their maps, writes the results."""
+    from shgm_slam.config import load_config
+    from shgm_slam.errors import ConfigError
+    from shgm_slam.server.serve import serve
+    from shgm_slam.transport.keys import validate_robot_name
+    from shgm_slam.viz.rerun_logger import RerunMode, make_viz
+
+    cfg = load_config(config)
+    if reference is not None:
+        validate_robot_name(reference)
+    try:
+        mode = RerunMode(rerun)
+    except ValueError:
+        raise ConfigError(f"--rerun {rerun!r}: choose spawn, save, connect or off") from None
+    out.mkdir(parents=True, exist_ok=True)
+    viz = make_viz(mode, robots=[], save_path=out / "server.rrd", connect_url=rerun_url, max_cloud_points=8000)
+    console.print(f"map server listening on {lit(listen or 'tcp/127.0.0.1:7447')}"
+                  + (f", expecting {expect} robots" if expect else "; Ctrl-C to finish"))  # fmt: skip
+    with _stop_signals_as_interrupt():
+        result = serve(cfg, out, listen=listen, reference=reference, expect=expect, viz=viz, stale_after_s=stale_after)
+    s = result.summary
+    for name, r in s["robots"].items():
+        placed = ", ".join(r["placed"]) or "not placed"
+        console.print(f"  {lit(name)}: {r['keyframes']} keyframes, {r['state']}, placed: {lit(placed)}")
+    t = s["traffic"]
+    per_kf = t["bytes_per_keyframe"]
+    console.print(f"{s['matches_tried']} matches, {s['closures_accepted']} accepted; "
+                  f"{f'{per_kf:.0f} B' if per_kf else 'no'} per keyframe; {t['refused']} messages refused; "
+                  f"results in {lit(result.out_dir)}")  # fmt: skip
+    if result.interrupted:
+        raise typer.Exit(130)
+
+
+@app.command("robot")
+@handle_errors
+def robot_command(
+    robot: Annotated[str, typer.Argument(help="NAME=PATH[:start-end] (frames start..end-1)")],
+    connect: Annotated[
+        str | None, typer.Option(help="map server's Zenoh endpoint(s), comma-separated [default: tcp/127.0.0.1:7447]")
+    ] = None,
+    odometry: Annotated[
+        str | None, typer.Option(help="auto | kiss-icp | visual | gt | a KITTI/TUM poses file (as for run)")
+    ] = None,
+    depth_model: Annotated[Path | None, typer.Option(help="ONNX depth model (card next to it)")] = None,
+    seg_model: Annotated[Path | None, typer.Option(help="ONNX segmentation model (card next to it)")] = None,
+    config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
+    realtime: Annotated[
+        bool, typer.Option(help="pace frames by their timestamps [default: as fast as it can]")
+    ] = False,
+    out: Annotated[Path | None, typer.Option("--out", help="write this robot's trajectories here")] = None,
+    wait: Annotated[
+        float, typer.Option(min=0, max=3600, help="seconds to wait for the server after the last frame")
+    ] = 60.0,
+) -> None:
+    """One robot in its own process: front end, keyframes to the map server, corrections applied."""
+    from shgm_slam.config import load_config
+    from shgm_slam.robot.drive import drive_robot
+    from shgm_slam.runner import open_robots
+
+    cfg = _apply_run_options(load_config(config), odometry, depth_model, seg_model)
+    (name, seq), = open_robots([robot]).items()
+    with _stop_signals_as_interrupt():
+        s = drive_robot(name, seq, cfg, connect=connect, realtime=realtime, out_dir=out, wait_s=wait)
+    placed = ", ".join(s.placed_agents) or "not placed"
+    console.print(f"{lit(name)}: {s.frames_processed}/{s.frames} frames, {s.keyframes} keyframes "
+                  f"({s.bytes_per_keyframe:.0f} B each, {s.resent} re-sent), placed: {lit(placed)}")  # fmt: skip
+    if s.interrupted:
+        raise typer.Exit(130)
+    if not s.acknowledged:
+        console.print("[red]the map server did not acknowledge every keyframe (is it running? see --connect)[/red]")
+        raise typer.Exit(3)
+
+
 @app.command("demo")
 @handle_errors
 def demo(

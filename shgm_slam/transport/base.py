@@ -25,14 +25,8 @@ from collections import deque
 from types import TracebackType
 from typing import Protocol, runtime_checkable
 
-from shgm_slam.errors import ShgmError
-
 Message = tuple[str, bytes]
 """One received message: the concrete key it was published on and its payload."""
-
-
-class TransportError(ShgmError):
-    """A transport cannot be opened, is closed, or failed to send or subscribe."""
 
 
 class Inbox:

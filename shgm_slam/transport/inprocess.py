@@ -16,7 +16,8 @@ import threading
 from dataclasses import dataclass
 from types import TracebackType
 
-from shgm_slam.transport.base import Inbox, TransportError
+from shgm_slam.errors import TransportError
+from shgm_slam.transport.base import Inbox
 from shgm_slam.transport.keys import key_matches, validate_key_expr
 
 

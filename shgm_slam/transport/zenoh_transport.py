@@ -56,8 +56,8 @@ from types import TracebackType
 
 import zenoh
 
-from shgm_slam.errors import ConfigError
-from shgm_slam.transport.base import Inbox, TransportError
+from shgm_slam.errors import ConfigError, TransportError
+from shgm_slam.transport.base import Inbox
 from shgm_slam.transport.keys import validate_key_expr
 
 DEFAULT_PORT = 7447

@@ -1,0 +1,235 @@
+"""A robot as a node: its front end, the keyframes it sends, the corrections it applies.
+
+Used by ``shgm-slam robot`` over Eclipse Zenoh and by ``shgm-slam run`` over the in-process bus (one
+code path). The node
+
+- says hello (with a random session id) when it starts and every ``HEARTBEAT_S`` after: the server
+  uses it to tell a restart from a name clash and a silent robot from a live one;
+- sends one ``KeyframeMessage`` per keyframe and keeps it until the server acknowledges it
+  (``CorrectionMessage.received``); what stays unacknowledged for ``resend_after_s`` is sent again,
+  so lost messages, a restarted robot (the server tells it what it already has) and a restarted
+  server (it sees a new server session and says hello again) all end with nothing lost;
+- applies the fused keyframe poses it receives to its own frames (``fused``);
+- after its last frame sends a ``DoneMessage`` with its per-frame odometry and waits (bounded) until
+  the server holds every keyframe.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+
+from shgm_slam.agents import agent_robot
+from shgm_slam.errors import ProtocolError, ShgmError
+from shgm_slam.fusion import fuse_segments
+from shgm_slam.messages import CorrectionMessage, DoneMessage, HelloMessage, RobotTrajectory, StatusMessage
+from shgm_slam.robot.frontend import FrameResult, RobotFrontend
+from shgm_slam.transport.base import Inbox, Transport
+from shgm_slam.transport.keys import STATUS_KEY, correction_key, done_key, hello_key, keyframe_key
+from shgm_slam.wire import decode, encode
+
+log = logging.getLogger(__name__)
+
+HEARTBEAT_S = 0.5
+"""A robot says hello this often (its heartbeat)."""
+
+
+class RobotNode:
+    """One robot's front end behind a transport (see the module docstring).
+
+    Args:
+        frontend: the robot's front end (its name is the robot's name).
+        transport: where keyframes go and corrections come from.
+        session: this process's session id (random when None).
+        resend_after_s: re-send keyframes the server has not acknowledged after this long.
+        clock: monotonic seconds (tests pass a fake).
+    """
+
+    def __init__(
+        self,
+        frontend: RobotFrontend,
+        transport: Transport,
+        *,
+        session: str | None = None,
+        resend_after_s: float = 2.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.front = frontend
+        self.name = frontend.name
+        self.transport = transport
+        self.session = session or uuid.uuid4().hex[:16]
+        self.resend_after_s = resend_after_s
+        self.clock = clock
+        self._inbox = Inbox()
+        transport.subscribe(correction_key(self.name), self._inbox)
+        transport.subscribe(STATUS_KEY, self._inbox)
+        # agent -> every encoded keyframe, kept for re-sending (a server restarted on an empty folder can
+        # be given everything again; ~2-5 KB per keyframe)
+        self._payloads: dict[str, list[bytes]] = {}
+        self._acked: dict[str, int] = {}
+        self._last_progress_s: dict[str, float] = {}
+        self._T_shared_kf: dict[str, np.ndarray] = {}
+        self._last_hello_s = -np.inf
+        self._done: bytes | None = None
+        self.server_session: str | None = None
+        self.server_finished = False
+        self.bytes_sent: dict[str, int] = {"hello": 0, "keyframe": 0, "done": 0}
+        self.keyframes_sent = 0
+        self.resent = 0
+
+    # --- sending -------------------------------------------------------------------------------
+
+    def hello(self) -> None:
+        """Say hello (also the heartbeat)."""
+        self._last_hello_s = self.clock()
+        self._publish("hello", hello_key(self.name), encode(self._hello_message()))
+
+    def _hello_message(self) -> HelloMessage:
+        return HelloMessage(self.name, self.session, len(self.front.sequence))
+
+    def step(self, index: int) -> FrameResult:
+        """Run frame ``index`` through the front end and send its keyframe, if it made one.
+
+        Raises:
+            DataError: the frame cannot be used (the caller logs and skips it).
+        """
+        if self.clock() - self._last_hello_s >= HEARTBEAT_S:
+            self.hello()
+        res = self.front.process(index)
+        if res.message is not None:
+            msg = replace(res.message, session=self.session)
+            payload = encode(msg)
+            sent = self._payloads.setdefault(msg.robot, [])
+            sent.append(payload)
+            self._last_progress_s.setdefault(msg.robot, self.clock())
+            self.keyframes_sent += 1
+            if msg.kf_index >= self._acked.get(msg.robot, 0):
+                self._publish("keyframe", keyframe_key(self.name), payload)
+        return res
+
+    def done(self) -> None:
+        """Tell the server the last keyframe has been sent, with the per-frame odometry."""
+        f = self.front
+        traj = RobotTrajectory(np.asarray(f.sequence.timestamps_s, dtype=np.float64), f.frame_segment.copy(),
+                               f.T_odom_cam.copy())  # fmt: skip
+        counts = {s.agent: s.num_keyframes for s in f.segments if s.num_keyframes}
+        self._done = encode(DoneMessage(self.name, self.session, counts, traj))
+        self._publish("done", done_key(self.name), self._done)
+
+    def _publish(self, kind: str, key: str, payload: bytes) -> None:
+        self.bytes_sent[kind] += len(payload)
+        self.transport.publish(key, payload)
+
+    # --- receiving -----------------------------------------------------------------------------
+
+    def poll(self, timeout_s: float = 0.0) -> None:
+        """Apply every queued correction and status; re-send what the server is missing.
+
+        Raises:
+            ProtocolError: the server refused this robot (its name is taken by a live process).
+        """
+        items = self._inbox.drain()
+        if not items and timeout_s > 0:
+            first = self._inbox.get(timeout_s)
+            items = [first, *self._inbox.drain()] if first is not None else []
+        for key, payload in items:
+            try:
+                msg = decode(payload)
+            except ShgmError as exc:
+                log.warning("%s: unreadable message on %s refused: %s", self.name, key, exc)
+                continue
+            if isinstance(msg, CorrectionMessage) and msg.robot == self.name:
+                self._correction(msg)
+            elif isinstance(msg, StatusMessage):
+                self._status(msg)
+        self._resend_stalled()
+
+    def _correction(self, msg: CorrectionMessage) -> None:
+        if msg.session not in ("", self.session):
+            return
+        now = self.clock()
+        for agent, n in msg.received.items():
+            if agent_robot(agent)[0] != self.name:
+                continue
+            if n > self._acked.get(agent, 0):
+                self._last_progress_s[agent] = now
+            if n < self._acked.get(agent, 0):  # the server lost some (e.g. restarted without its journal)
+                self._last_progress_s[agent] = -np.inf
+            self._acked[agent] = n
+        for agent, T in msg.T_shared_kf.items():
+            self._T_shared_kf[agent] = T
+
+    def _status(self, msg: StatusMessage) -> None:
+        refusal = msg.refused.get(self.name)
+        if refusal is not None and refusal.startswith(self.session + ":"):
+            raise ProtocolError(f"the map server refused robot {self.name!r}: {refusal.partition(':')[2].strip()}")
+        if msg.server_session != self.server_session:
+            if self.server_session is not None:
+                log.warning("%s: the map server restarted; resuming with it", self.name)
+            self.server_session = msg.server_session
+            self.hello()  # the (new) server answers with what it holds; missing keyframes follow
+            for agent in self._payloads:
+                self._last_progress_s[agent] = -np.inf
+            if self._done is not None:
+                self._publish("done", done_key(self.name), self._done)
+        self.server_finished = msg.finished
+
+    def _resend_stalled(self) -> None:
+        now = self.clock()
+        for agent, sent in self._payloads.items():
+            n = self._acked.get(agent, 0)
+            if n >= len(sent) or now - self._last_progress_s.get(agent, -np.inf) < self.resend_after_s:
+                continue
+            missing = sent[n:]
+            log.info("%s: re-sending %d keyframes of %s from %d", self.name, len(missing), agent, n)
+            for p in missing:
+                self._publish("keyframe", keyframe_key(self.name), p)
+            self.resent += len(missing)
+            self._last_progress_s[agent] = now
+        if self._done is not None and not self.all_acknowledged() and now - self._last_hello_s >= self.resend_after_s:
+            self.hello()
+            self._publish("done", done_key(self.name), self._done)
+
+    # --- state ---------------------------------------------------------------------------------
+
+    def all_acknowledged(self) -> bool:
+        """True when the server holds every keyframe this robot made."""
+        return all(self._acked.get(a, 0) >= len(sent) for a, sent in self._payloads.items())
+
+    def wait_acknowledged(self, timeout_s: float, *, until_finished: bool = False) -> bool:
+        """Poll until the server holds every keyframe (and, with ``until_finished``, has finished and sent
+        its final correction), at most ``timeout_s``; keeps the heartbeat going. Returns success."""
+        deadline = self.clock() + timeout_s
+        while self.clock() < deadline:
+            if self.clock() - self._last_hello_s >= HEARTBEAT_S:
+                self.hello()
+            self.poll(timeout_s=0.1)
+            if self.all_acknowledged() and (self.server_finished or not until_finished):
+                return True
+        return False
+
+    def fused(self) -> np.ndarray | None:
+        """(N, 4, 4) this robot's frames in the shared frame from the latest corrections (NaN for frames
+        of unplaced segments), or None when no segment is placed."""
+        f = self.front
+        segs = [s for s in f.segments if s.num_keyframes]
+        return fuse_segments(
+            f.T_odom_cam, f.frame_segment,
+            {s.index: np.asarray(s.kf_frames, dtype=np.int64) for s in segs},
+            {s.index: np.stack(s.kf_poses) for s in segs},
+            {s.index: self._T_shared_kf[s.agent] for s in segs if s.agent in self._T_shared_kf},
+        )  # fmt: skip
+
+    def T_shared_odom(self, agent: str) -> np.ndarray | None:
+        """(4, 4) where ``agent``'s odometry frame lies in the shared frame (at its latest corrected
+        keyframe), or None when the server has not placed it."""
+        T = self._T_shared_kf.get(agent)
+        seg = next((s for s in self.front.segments if s.agent == agent), None)
+        if T is None or seg is None or not len(T):
+            return None
+        return T[-1] @ np.linalg.inv(seg.kf_poses[len(T) - 1])

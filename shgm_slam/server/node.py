@@ -1,0 +1,474 @@
+"""The map server as a node: messages in through a transport, corrections and status out, results on disk.
+
+One code path for both deployments: ``shgm-slam run`` drives a ``ServerNode`` over the in-process bus
+next to its robots, ``shgm-slam server`` drives one over Eclipse Zenoh. The node
+
+- decodes every message (``wire``); malformed bytes, another protocol version or a clashing robot name
+  get a log line and are refused; nothing a peer sends can crash it;
+- tracks each robot's process (``HelloMessage`` sessions): a new session under a live name is a clash
+  and refused, under a silent one it is a restart and resumes where the robot left off;
+- feeds keyframes to the ``MapServer`` (idempotent: re-sent keyframes are ignored) and answers each
+  robot with a ``CorrectionMessage`` (keyframes it holds, where its agents are in the shared frame);
+- marks robots that went silent stale (kept; they resume when they come back);
+- appends every accepted message to a journal, so a killed server started again on the same results
+  folder replays it and continues;
+- finishes by itself once ``expect`` robots have connected and each has sent its last keyframe: whole
+  graphs are matched once more, the results folder is written and every robot gets its final correction.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from shgm_slam.agents import agent_robot
+from shgm_slam.config import ShgmConfig
+from shgm_slam.errors import ShgmError
+from shgm_slam.fusion import fuse_segments
+from shgm_slam.io.export import ResultsWriter
+from shgm_slam.messages import (
+    CorrectionMessage,
+    DoneMessage,
+    HelloMessage,
+    KeyframeMessage,
+    RobotState,
+    RobotStatus,
+    RobotTrajectory,
+    StatusMessage,
+)
+from shgm_slam.server.journal import Journal
+from shgm_slam.server.map_server import MapServer
+from shgm_slam.server.records import MatchRecord
+from shgm_slam.transport.base import Inbox, Transport
+from shgm_slam.transport.keys import ALL_DONE, ALL_HELLO, ALL_KEYFRAMES, STATUS_KEY, correction_key, robot_of
+from shgm_slam.wire import decode, encode
+
+log = logging.getLogger(__name__)
+
+CLASH_WINDOW_S = 2.5
+"""A hello from a new session under a name heard from within this long is a name clash (robots send a
+hello every ``robot.node.HEARTBEAT_S``); after it, the new session is a restart and takes over."""
+
+
+@dataclass
+class RobotSession:
+    """What the server knows of one robot's process."""
+
+    name: str
+    session: str
+    state: RobotState = RobotState.ACTIVE
+    last_heard_s: float = 0.0
+    done: DoneMessage | None = None
+    kf_timestamps: dict[str, list[float]] = field(default_factory=dict)  # agent -> keyframe times
+    kf_frames: dict[str, list[int]] = field(default_factory=dict)  # agent -> keyframe frame indices
+    corrected_version: int = -1  # pose-graph version of the last correction sent
+
+    def complete(self, server: MapServer) -> bool:
+        """True when the robot said it is done and every keyframe it sent has arrived."""
+        return self.done is not None and all(server.received(a) >= n for a, n in self.done.keyframes.items())
+
+
+@dataclass
+class TrafficStats:
+    """Bytes and messages the server received, by kind, and what it refused."""
+
+    bytes_by_kind: dict[str, int] = field(default_factory=dict)
+    count_by_kind: dict[str, int] = field(default_factory=dict)
+    refused: int = 0
+    refusal_reasons: list[str] = field(default_factory=list)
+
+    def add(self, kind: str, size: int) -> None:
+        self.bytes_by_kind[kind] = self.bytes_by_kind.get(kind, 0) + size
+        self.count_by_kind[kind] = self.count_by_kind.get(kind, 0) + 1
+
+    def refuse(self, reason: str) -> None:
+        self.refused += 1
+        if len(self.refusal_reasons) < 50:
+            self.refusal_reasons.append(reason)
+
+    def to_json_dict(self) -> dict:
+        kf_n = self.count_by_kind.get("keyframe", 0)
+        return {
+            "bytes_by_kind": dict(self.bytes_by_kind),
+            "messages_by_kind": dict(self.count_by_kind),
+            "bytes_per_keyframe": self.bytes_by_kind.get("keyframe", 0) / kf_n if kf_n else None,
+            "refused": self.refused,
+            "refusal_reasons": list(self.refusal_reasons),
+        }
+
+
+class ServerNode:
+    """The map server behind a transport (see the module docstring).
+
+    Args:
+        cfg: the fleet configuration (matching, back end).
+        transport: where messages come from and corrections go.
+        out_dir: the results folder (``journal.bin`` lives there too when ``journal`` is on).
+        reference: the robot whose frame is the shared frame (None: the first robot to say hello).
+        expect: finish by itself once this many robots have connected and each has sent its last
+            keyframe (None: run until ``finish`` is called).
+        journal: keep the crash-recovery journal and replay it when one exists in ``out_dir``.
+        stale_after_s: a robot silent for this long is marked stale.
+        status_every_s: how often the status is broadcast (and stale robots checked).
+        correction_every_s: at most this often per robot a correction carries new fused poses
+            (acknowledgements go out with every batch).
+        write_every_keyframes: rewrite the results folder this often (0: only at the end).
+        clock: monotonic seconds (tests pass a fake).
+    """
+
+    def __init__(
+        self,
+        cfg: ShgmConfig,
+        transport: Transport,
+        out_dir: Path,
+        *,
+        reference: str | None = None,
+        expect: int | None = None,
+        journal: bool = True,
+        stale_after_s: float = 5.0,
+        status_every_s: float = 1.0,
+        correction_every_s: float = 0.5,
+        write_every_keyframes: int = 50,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.cfg = cfg
+        self.transport = transport
+        self.writer = ResultsWriter(out_dir)
+        self.reference = reference
+        self.expect = expect
+        self.stale_after_s = stale_after_s
+        self.status_every_s = status_every_s
+        self.correction_every_s = correction_every_s
+        self.write_every_keyframes = write_every_keyframes
+        self.clock = clock
+        self.session = uuid.uuid4().hex[:16]
+        self.map: MapServer | None = None
+        self.robots: dict[str, RobotSession] = {}
+        self.traffic = TrafficStats()
+        self.finished = False
+        self._refused: dict[str, str] = {}
+        self._pose_version = 0  # bumped whenever matching may have moved fused poses
+        self._last_status_s = -np.inf
+        self._last_correction_s: dict[str, float] = {}
+        self._keyframes_since_write = 0
+        self._inbox = Inbox()
+        for key in (ALL_HELLO, ALL_KEYFRAMES, ALL_DONE):
+            transport.subscribe(key, self._inbox)
+        self.journal = Journal(Path(out_dir) / "journal.bin") if journal else None
+        self.recovered_messages = self._recover() if self.journal is not None else 0
+        if self.reference is not None:
+            self._map()
+
+    # --- the loop ------------------------------------------------------------------------------
+
+    def poll(self, timeout_s: float = 0.0) -> list[MatchRecord]:
+        """Handle every queued message (waiting up to ``timeout_s`` for the first), answer the robots,
+        broadcast the status when due and finish when the expected robots are done.
+
+        Returns the match attempts the messages triggered (for a viewer)."""
+        items = self._inbox.drain()
+        if not items and timeout_s > 0:
+            first = self._inbox.get(timeout_s)
+            items = [first, *self._inbox.drain()] if first is not None else []
+        records: list[MatchRecord] = []
+        touched: set[str] = set()
+        for key, payload in items:
+            robot, recs = self._handle(key, payload, live=True)
+            records += recs
+            if robot is not None:
+                touched.add(robot)
+        if records:
+            self._pose_version += 1
+        now = self.clock()
+        for robot in sorted(touched):
+            self._send_correction(robot, now)
+        if now - self._last_status_s >= self.status_every_s:
+            self._check_stale(now)
+            self._broadcast_status()
+        if self.expect is not None and not self.finished and self._all_expected_done():
+            records += self.finish()
+        return records
+
+    def finish(self, *, match: bool = True) -> list[MatchRecord]:
+        """Match whole graphs once more (``match``), write the results folder, send every robot its
+        final correction and broadcast that the server has finished."""
+        records: list[MatchRecord] = []
+        if match and self.map is not None:
+            records = self.map.finalize()
+            self._pose_version += 1
+        self.write_results()
+        self.finished = True
+        for robot in self.robots:
+            self._send_correction(robot, self.clock(), force=True)
+        self._broadcast_status()
+        if self.journal is not None:
+            self.journal.close()
+        return records
+
+    # --- messages ------------------------------------------------------------------------------
+
+    def _handle(self, key: str, payload: bytes, *, live: bool) -> tuple[str | None, list[MatchRecord]]:
+        """Decode and apply one message; returns (robot to answer or None, match records)."""
+        try:
+            msg = decode(payload)
+            sender = robot_of(key)
+        except ShgmError as exc:
+            self._refuse(f"{key}: {exc}")
+            return None, []
+        if isinstance(msg, HelloMessage):
+            kind, robot = "hello", msg.robot
+        elif isinstance(msg, KeyframeMessage):
+            kind, robot = "keyframe", agent_robot(msg.robot)[0]
+        elif isinstance(msg, DoneMessage):
+            kind, robot = "done", msg.robot
+        else:
+            self._refuse(f"{key}: a {type(msg).__name__} is not for the server")
+            return None, []
+        if robot != sender:
+            self._refuse(f"{key}: a {kind} message of robot {robot!r} on robot {sender!r}'s key")
+            return None, []
+        if live:
+            self.traffic.add(kind, len(payload))
+        now = self.clock()
+        if isinstance(msg, HelloMessage):
+            return self._hello(msg, payload, now, live=live), []
+        rs = self.robots.get(robot)
+        if rs is None or rs.session != msg.session:
+            # not (or no longer) the robot's current process: after a server restart the robot says
+            # hello again (it sees a new server session) and re-sends what is missing
+            if live:
+                log.debug("%s from %s session %s ignored (not its current session)", kind, robot, msg.session)
+            return (robot if rs is not None else None), []
+        rs.last_heard_s = now
+        if rs.state is RobotState.STALE:
+            log.info("%s is back", robot)
+            rs.state = RobotState.ACTIVE
+        if isinstance(msg, DoneMessage):
+            if live and self.journal is not None and rs.done is None:
+                self.journal.append(payload)
+            rs.done = msg
+            if rs.complete(self._map()):
+                rs.state = RobotState.DONE
+            return robot, []
+        return robot, self._keyframe(rs, msg, payload, live=live)
+
+    def _hello(self, msg: HelloMessage, payload: bytes, now: float, *, live: bool) -> str | None:
+        rs = self.robots.get(msg.robot)
+        if rs is not None and rs.session != msg.session:
+            if live and rs.state is not RobotState.STALE and now - rs.last_heard_s < CLASH_WINDOW_S:
+                reason = (f"robot name {msg.robot!r} is in use by another running robot process; "
+                          "give every robot its own name")  # fmt: skip
+                self._refused[msg.robot] = f"{msg.session}: {reason}"
+                self._refuse(f"hello of {msg.robot} (session {msg.session}): {reason}")
+                self._broadcast_status()
+                return None
+            log.info("%s restarted (session %s); resuming after %d keyframes", msg.robot, msg.session,
+                     sum(self._map().received(a) for a in rs.kf_frames) if self.map else 0)  # fmt: skip
+            rs.session, rs.done = msg.session, None
+            rs.state = RobotState.ACTIVE
+        elif rs is None:
+            if self.reference is None:
+                self.reference = msg.robot
+            rs = RobotSession(msg.robot, msg.session)
+            self.robots[msg.robot] = rs
+            ref = " (the reference: its frame is the shared frame)" if msg.robot == self.reference else ""
+            log.info("%s connected (session %s)%s", msg.robot, msg.session, ref)
+        self._refused.pop(msg.robot, None)
+        rs.last_heard_s = now
+        if rs.state is RobotState.STALE:
+            rs.state = RobotState.ACTIVE
+        if live and self.journal is not None:
+            self.journal.append(payload)
+        rs.corrected_version = -1  # answer with everything it needs to resume
+        return msg.robot
+
+    def _keyframe(self, rs: RobotSession, msg: KeyframeMessage, payload: bytes, *, live: bool) -> list[MatchRecord]:
+        server = self._map()
+        if msg.kf_index != server.received(msg.robot):
+            return []  # a re-sent duplicate, or a gap after a lost message (the correction asks again)
+        if live and self.journal is not None:
+            self.journal.append(payload)
+        rs.kf_timestamps.setdefault(msg.robot, []).append(msg.timestamp_s)
+        rs.kf_frames.setdefault(msg.robot, []).append(msg.frame_index)
+        records = server.receive(msg)
+        if rs.done is not None and rs.complete(server):
+            rs.state = RobotState.DONE
+        self._keyframes_since_write += 1
+        if live and self.write_every_keyframes and self._keyframes_since_write >= self.write_every_keyframes:
+            self.write_results()
+        return records
+
+    def _refuse(self, reason: str) -> None:
+        log.warning("refused: %s", reason)
+        self.traffic.refuse(reason)
+
+    def _map(self) -> MapServer:
+        if self.map is None:
+            if self.reference is None:
+                raise ShgmError("no reference robot yet")  # not reached: a hello sets it first
+            self.map = MapServer([self.reference], self.cfg)
+        return self.map
+
+    # --- answers -------------------------------------------------------------------------------
+
+    def _send_correction(self, robot: str, now: float, *, force: bool = False) -> None:
+        rs = self.robots.get(robot)
+        if rs is None:
+            return
+        server = self._map()
+        agents = [a for a in server.agents if agent_robot(a)[0] == robot]
+        poses: dict[str, np.ndarray] = {}
+        due = force or (
+            rs.corrected_version != self._pose_version
+            and now - self._last_correction_s.get(robot, -np.inf) >= self.correction_every_s
+        )
+        if due:
+            for a in agents:
+                T = server.T_shared_kf(a)
+                if T is not None:
+                    poses[a] = T
+            rs.corrected_version = self._pose_version
+            self._last_correction_s[robot] = now
+        msg = CorrectionMessage(robot, rs.session, {a: server.received(a) for a in agents}, poses)
+        self.transport.publish(correction_key(robot), encode(msg))
+
+    def _broadcast_status(self) -> None:
+        self._last_status_s = self.clock()
+        robots = {}
+        for name, rs in self.robots.items():
+            agents = tuple(a for a in (self.map.agents if self.map else []) if agent_robot(a)[0] == name)
+            robots[name] = RobotStatus(
+                rs.state,
+                sum(self._map().received(a) for a in agents),
+                tuple(a for a in agents if self._map().is_placed(a)),
+                agents,
+            )
+        msg = StatusMessage(self.session, self.reference or "", robots, self.finished, dict(self._refused))
+        self.transport.publish(STATUS_KEY, encode(msg))
+
+    def _check_stale(self, now: float) -> None:
+        for rs in self.robots.values():
+            if rs.state is RobotState.ACTIVE and now - rs.last_heard_s > self.stale_after_s:
+                log.warning("%s went silent (%.0f s); kept, marked stale until it comes back", rs.name,
+                            now - rs.last_heard_s)  # fmt: skip
+                rs.state = RobotState.STALE
+
+    def _all_expected_done(self) -> bool:
+        return (
+            self.map is not None
+            and len(self.robots) >= (self.expect or 0)
+            and all(rs.complete(self.map) for rs in self.robots.values())
+        )
+
+    # --- recovery ------------------------------------------------------------------------------
+
+    def _recover(self) -> int:
+        """Replay the journal (a restarted server); returns how many messages it replayed."""
+        n = 0
+        t0 = time.perf_counter()
+        for payload in self.journal.replay():
+            # the journal holds only accepted messages, on their own robot's key
+            try:
+                msg = decode(payload)
+            except ShgmError as exc:
+                log.warning("journal record %d unreadable (%s); skipped", n, exc)
+                continue
+            robot = msg.robot if not isinstance(msg, KeyframeMessage) else agent_robot(msg.robot)[0]
+            self._handle(f"shgm/{robot}/replay", payload, live=False)
+            n += 1
+        if n:
+            for rs in self.robots.values():
+                rs.state = RobotState.STALE if rs.state is RobotState.ACTIVE else rs.state
+                rs.last_heard_s = self.clock()
+            log.info("recovered %d messages from %s in %.1f s: %s", n, self.journal.path, time.perf_counter() - t0,
+                     ", ".join(f"{r} {sum(self._map().received(a) for a in rs.kf_frames)} keyframes"
+                               for r, rs in self.robots.items()))  # fmt: skip
+        return n
+
+    # --- results -------------------------------------------------------------------------------
+
+    def fused_trajectory(self, robot: str) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """``(timestamps_s (N,), T_shared_cam (N, 4, 4) or None)`` of ``robot``: every frame once the
+        robot has sent its trajectory (``DoneMessage``), else its keyframes; None when it has neither."""
+        rs = self.robots.get(robot)
+        if rs is None or self.map is None:
+            return None
+        server = self.map
+        agents = [a for a in server.agents if agent_robot(a)[0] == robot]
+        traj = rs.done.trajectory if rs.done is not None else None
+        if traj is not None:
+            seg = {agent_robot(a)[1]: a for a in agents}
+            fused = fuse_segments(
+                traj.T_odom_cam, traj.frame_segment,
+                {k: np.asarray(rs.kf_frames.get(a, []), dtype=np.int64) for k, a in seg.items()},
+                {k: server.keyframe_poses(a) for k, a in seg.items()},
+                {k: server.T_shared_kf(a) for k, a in seg.items()},
+            )  # fmt: skip
+            return traj.timestamps_s, fused
+        times, poses = [], []
+        for a in agents:
+            T = server.T_shared_kf(a)
+            if T is not None:
+                times += rs.kf_timestamps.get(a, [])[: len(T)]
+                poses.append(T)
+        if not poses:
+            return np.zeros(0), None
+        order = np.argsort(times, kind="stable")
+        return np.asarray(times)[order], np.concatenate(poses)[order]
+
+    def trajectory(self, robot: str) -> RobotTrajectory | None:
+        """The per-frame odometry ``robot`` sent with its last keyframe, if it has."""
+        rs = self.robots.get(robot)
+        return rs.done.trajectory if rs is not None and rs.done is not None else None
+
+    def write_results(self) -> None:
+        """(Re)write the results folder: trajectories, graphs, matches, pose graph, server metrics."""
+        self._keyframes_since_write = 0
+        if self.map is None:
+            return
+        server = self.map
+        for robot in self.robots:
+            fused = self.fused_trajectory(robot)
+            traj = self.trajectory(robot)
+            if traj is not None:
+                self.writer.write_trajectories(robot, traj.timestamps_s, traj.T_odom_cam, fused[1] if fused else None)
+            elif fused is not None and fused[1] is not None:
+                self.writer.write_keyframe_trajectory(robot, fused[0], fused[1])
+            for a in server.agents:
+                if agent_robot(a)[0] == robot:
+                    self.writer.write_graph(a, server.graph(a))
+        self.writer.write_matches(server.matches)
+        self.writer.write_text("pose_graph.g2o", server.to_g2o())
+        self.writer.write_json("server.json", self.summary())
+
+    def summary(self) -> dict:
+        """Server-side metrics: robots, their state and placement, traffic, refusals."""
+        server = self.map
+        agents = server.agents if server else []
+        robots = {}
+        for name, rs in self.robots.items():
+            mine = [a for a in agents if agent_robot(a)[0] == name]
+            robots[name] = {
+                "state": rs.state.value,
+                "agents": mine,
+                "placed": [a for a in mine if server.is_placed(a)],
+                "keyframes": sum(server.received(a) for a in mine) if server else 0,
+                "done": rs.done is not None,
+            }
+        return {
+            "session": self.session,
+            "reference": self.reference,
+            "finished": self.finished,
+            "recovered_messages": self.recovered_messages,
+            "robots": robots,
+            "matches_tried": len(server.matches) if server else 0,
+            "closures_accepted": sum(m.accepted for m in server.matches) if server else 0,
+            "mean_match_ms": server.mean_match_ms() if server else 0.0,
+            "traffic": self.traffic.to_json_dict(),
+        }

@@ -1,0 +1,136 @@
+"""The library function behind ``shgm-slam server``: a map server on Eclipse Zenoh until it is done.
+
+It listens (peer mode, default ``tcp/127.0.0.1:7447``), runs a ``ServerNode`` with its journal in the
+results folder (a server started again on the same folder recovers and continues), streams the fused
+map to the viewer while robots are running, and returns when ``expect`` robots are done or on Ctrl-C /
+SIGTERM (then whole graphs are matched once more and the results written all the same).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shgm_slam.agents import agent_robot
+from shgm_slam.config import ShgmConfig
+from shgm_slam.geometry import se3
+from shgm_slam.server.node import ServerNode
+from shgm_slam.server.records import MatchRecord
+from shgm_slam.transport.factory import NodeRole, make_transport
+from shgm_slam.viz.rerun_logger import NullLogger, Viz
+
+log = logging.getLogger(__name__)
+
+LINGER_S = 2.0
+"""After finishing, the server keeps answering this long so every robot gets its final correction."""
+
+
+@dataclass
+class ServeSummary:
+    """What ``serve`` returns: the server's metrics (``server.json``) and how it ended."""
+
+    out_dir: Path
+    summary: dict
+    interrupted: bool
+    wall_s: float
+
+
+class ServerView:
+    """Streams a live map server to the viewer: each agent's graph and keyframe trajectory in the shared
+    frame (at most every ``every_s`` per robot, so long runs do not re-send everything each keyframe),
+    matches, robots joining and going stale."""
+
+    def __init__(self, viz: Viz, *, every_s: float = 1.0) -> None:
+        self.viz = viz
+        self.every_s = every_s
+        self._last: dict[str, float] = {}
+        self._states: dict[str, str] = {}
+
+    def update(self, node: ServerNode, records: list[MatchRecord]) -> None:
+        server = node.map
+        if server is None:
+            return
+        now = time.monotonic()
+        for name, rs in node.robots.items():
+            if self._states.get(name) != rs.state.value:
+                self._states[name] = rs.state.value
+                self.viz.log_text(f"{name}: {rs.state.value}", "WARN" if rs.state.value == "stale" else "INFO")
+            if now - self._last.get(name, -np.inf) < self.every_s:
+                continue
+            self._last[name] = now
+            agents = [a for a in server.agents if agent_robot(a)[0] == name and server.received(a)]
+            if not agents:
+                continue
+            frames = rs.kf_frames.get(agents[-1], [0])
+            times = rs.kf_timestamps.get(agents[-1], [0.0])
+            self.viz.set_time(name, int(frames[-1]), float(times[-1]))
+            fused = [server.T_shared_kf(a) for a in agents]
+            fused_xyz = np.concatenate([T[:, :3, 3] for T in fused if T is not None]) if any(
+                T is not None for T in fused) else None  # fmt: skip
+            last = agents[-1]
+            T_shared_odom = server.T_shared_odom(last)
+            odo_xyz = server.keyframe_poses(last)[:, :3, 3]
+            if T_shared_odom is not None:
+                odo_xyz = se3.transform_points(T_shared_odom, odo_xyz)
+            self.viz.log_trajectories(name, odo_xyz, fused_xyz)
+            graph = server.graph(last)
+            self.viz.log_graph(name, graph.transformed(T_shared_odom) if T_shared_odom is not None else graph)
+        for m in records:
+            if m.success and server.is_placed(m.robot_a) and server.is_placed(m.robot_b):
+                pa = se3.transform_points(server.T_shared_odom(m.robot_a), m.inlier_positions_a)
+                pb = se3.transform_points(server.T_shared_odom(m.robot_b), m.inlier_positions_b)
+                self.viz.log_matches(m.robot_a, m.robot_b, pa, pb, m.accepted, len(m.inliers))
+
+
+def serve(
+    cfg: ShgmConfig,
+    out_dir: Path,
+    *,
+    listen: str | None = None,
+    reference: str | None = None,
+    expect: int | None = None,
+    viz: Viz | None = None,
+    stale_after_s: float = 5.0,
+) -> ServeSummary:
+    """Run a map server until ``expect`` robots are done (or Ctrl-C / SIGTERM) and write its results.
+
+    Args:
+        cfg: the fleet configuration (written to ``config.yaml``).
+        out_dir: the results folder; a journal already there is replayed first (restart).
+        listen: Zenoh endpoint(s), comma-separated (default ``tcp/127.0.0.1:7447``).
+        reference: the robot whose frame is the shared frame (default: the first to connect).
+        expect: finish by itself once this many robots have connected and sent their last keyframe.
+        viz: live viewer (``NullLogger`` when None).
+        stale_after_s: a robot silent this long is marked stale (kept; it resumes when it returns).
+
+    Raises:
+        TransportError, ConfigError: the endpoint cannot be listened on.
+    """
+    viz = viz or NullLogger()
+    viz.setup({})
+    t0 = time.perf_counter()
+    interrupted = False
+    with make_transport(NodeRole.SERVER, listen) as transport:
+        node = ServerNode(cfg, transport, out_dir, reference=reference, expect=expect, stale_after_s=stale_after_s)
+        node.writer.write_text("config.yaml", cfg.to_yaml())
+        if node.recovered_messages:
+            viz.log_text(f"recovered {node.recovered_messages} messages from the journal", "INFO")
+        view = ServerView(viz)
+        try:
+            while not node.finished:
+                records = node.poll(timeout_s=0.1)
+                view.update(node, records)
+        except KeyboardInterrupt:
+            interrupted = True
+            log.warning("stopping: matching whole graphs once more and writing the results")
+            records = node.finish()
+            view.update(node, records)
+        linger_until = time.monotonic() + LINGER_S
+        while time.monotonic() < linger_until:
+            node.poll(timeout_s=0.1)
+    viz.close()
+    return ServeSummary(Path(out_dir), node.summary(), interrupted, time.perf_counter() - t0)
