@@ -375,7 +375,7 @@ def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_
 
 def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_frame: bool):
     from shgm_slam.errors import ConfigError
-    from shgm_slam.io.export import make_results_dir
+    from shgm_slam.io.export import ResultsWriter, make_results_dir
     from shgm_slam.runner import open_robots
     from shgm_slam.viz.rerun_logger import RerunMode, make_viz
 
@@ -385,6 +385,7 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
     except ValueError:
         raise ConfigError(f"--rerun {rerun_mode!r}: choose spawn, save, connect or off") from None
     out_dir = make_results_dir(out)
+    ResultsWriter(out_dir).write_ground_truth(robots, gt_shared_frame)  # <robot>_gt_tum.txt for evo / eval
     viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=rerun_url,
                    max_cloud_points=8000)
     with _stop_signals_as_interrupt():
@@ -524,6 +525,47 @@ def demo(
     _render_summary(summary)
     if (out / "run.rrd").is_file():
         console.print(f"open the recording with: [bold].venv/bin/rerun {lit(out / 'run.rrd')}[/]")
+
+
+@app.command("eval")
+@handle_errors
+def eval_command(
+    results: Annotated[Path, typer.Argument(help="results folder of run or demo")],
+    gt: Annotated[
+        list[str] | None,
+        typer.Option("--gt", help="NAME=PATH[:start-end] as in the run (half-open range: frames start..end-1); "
+                     "repeat per robot. Default: the <robot>_gt_tum.txt files in RESULTS"),
+    ] = None,
+    gt_shared_frame: Annotated[bool, typer.Option(help="ground truths of all robots share one world frame")] = True,
+    json_output: Annotated[bool, typer.Option("--json", help="print the evaluation as JSON")] = False,
+) -> None:
+    """Fused ATE of every robot against ground truth in the shared frame (evo, no alignment) and SE(3)-aligned.
+    With --gt, also writes <robot>_gt_tum.txt into RESULTS for evo_ape."""
+    import json
+
+    from rich.table import Table
+
+    from shgm_slam.evaluation import evaluate_results, open_ground_truth
+
+    sequences = open_ground_truth(gt) if gt else None
+    result = evaluate_results(results, sequences, gt_shared_frame=gt_shared_frame)
+    if json_output:
+        typer.echo(json.dumps(result.to_json_dict()))
+        return
+    table = Table(title=f"fused ATE in the shared frame ({lit(result.reference_robot)}'s), metres")
+    for col in ("robot", "poses", "ATE", "aligned", "max", "note"):
+        table.add_column(col, justify="left" if col in ("robot", "note") else "right")
+    def metres(v: float) -> str:
+        return f"{v:.2f}" if v == v else "-"  # NaN: not measurable
+
+    for r in result.robots:
+        table.add_row(lit(r.name), f"{r.evaluated_poses}/{r.fused_poses}", metres(r.ate_fused_m),
+                      metres(r.ate_fused_aligned_m), metres(r.max_error_m), lit(r.note))  # fmt: skip
+    table.caption = f"ground truth from the {result.gt_source}; aligned = SE(3)-aligned per robot"
+    console.print(table)
+    if result.gt_files_written:
+        console.print(f"wrote {len(result.gt_files_written) // 2} ground-truth trajectories; e.g. evo_ape tum "
+                      f"{lit(result.gt_files_written[0])} {lit(results / (result.reference_robot + '_fused_tum.txt'))}")
 
 
 # --- check-model (perception/) ----------------------------------------------------------------------

@@ -24,7 +24,7 @@ import numpy as np
 from shgm_slam.errors import DataError
 from shgm_slam.io.graph_json import write_graph
 from shgm_slam.io.trajectories import write_kitti_poses, write_tum
-from shgm_slam.types import GraphArrays
+from shgm_slam.types import GraphArrays, Sequence
 
 
 def make_results_dir(out: Path | None, base: Path = Path("results")) -> Path:
@@ -138,6 +138,24 @@ class ResultsWriter:
 
     def write_text(self, name: str, text: str) -> None:
         _atomic_write(self.path(name), text)
+
+    def write_ground_truth(self, robots: dict[str, Sequence], gt_shared_frame: bool = True) -> list[Path]:
+        """``<robot>_gt_tum.txt`` and ``<robot>_gt_kitti.txt``: ground truth in the shared frame.
+
+        The frame of the fused trajectories (the first robot's first camera), so ``evo_ape tum
+        <robot>_gt_tum.txt <robot>_fused_tum.txt`` needs no alignment. Robots without ground truth (or,
+        when ``gt_shared_frame`` is False, every robot but the first) get no file. Returns the files written.
+        """
+        from shgm_slam.evaluation import shared_frame_ground_truth
+
+        written = []
+        for robot, T_shared_cam in shared_frame_ground_truth(robots, gt_shared_frame).items():
+            t = np.asarray(robots[robot].timestamps_s)
+            tum, kitti = self.path(f"{robot}_gt_tum.txt"), self.path(f"{robot}_gt_kitti.txt")
+            _atomic(tum, lambda p, t=t, T=T_shared_cam: write_tum(p, t, T))
+            _atomic(kitti, lambda p, T=T_shared_cam: write_kitti_poses(p, T))
+            written += [tum, kitti]
+        return written
 
 
 def _json_default(o: object) -> object:

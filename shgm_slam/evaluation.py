@@ -1,0 +1,221 @@
+"""Evaluate a results folder against ground truth in the shared frame (``shgm-slam eval``).
+
+The fused trajectories of a run (``<robot>_fused_tum.txt``) are in ONE shared frame: the first
+robot's first camera frame. Ground truth comes in each sequence's own world frame (the simulator's
+city, KITTI's first camera of the drive), so it is moved into the shared frame the same way the run
+measures its ATE::
+
+    T_shared_cam_gt = inverse(T_world_cam_gt of the first robot's first frame) @ T_world_cam_gt
+
+``shared_frame_ground_truth`` does that; ``ResultsWriter.write_ground_truth`` writes the result as
+``<robot>_gt_tum.txt`` / ``<robot>_gt_kitti.txt`` so evo compares without alignment::
+
+    evo_ape tum results/demo/car1_gt_tum.txt results/demo/car1_fused_tum.txt
+
+``evaluate_results`` reads a results folder, takes the ground truth from those files or from the
+sequences, associates poses by timestamp and returns each robot's fused ATE (RMSE, metres) in the
+shared frame and SE(3)-aligned, through evo (``metrics.ate``).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from shgm_slam.data.base import open_sequence
+from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.geometry import se3
+from shgm_slam.io.trajectories import read_tum
+from shgm_slam.metrics import AlignMode, ate
+from shgm_slam.types import Sequence
+
+TIME_TOLERANCE_S = 1e-4
+"""Fused and ground-truth poses are the same frame when their timestamps differ by less than this."""
+
+
+def shared_frame_ground_truth(robots: dict[str, Sequence], gt_shared_frame: bool = True) -> dict[str, np.ndarray]:
+    """Each robot's ground truth ``T_shared_cam`` (N, 4, 4) in the run's shared frame.
+
+    Args:
+        robots: robot name -> sequence, in run order (the first robot defines the shared frame).
+        gt_shared_frame: the sequences' ground truths share one world frame (our simulator; ranges of
+            one KITTI sequence). When False only the first robot's ground truth can be placed.
+
+    Returns:
+        robot -> poses, for the robots whose ground truth can be put in the shared frame (none when
+        the first robot has no ground truth).
+    """
+    names = list(robots)
+    if not names or robots[names[0]].gt_poses is None:
+        return {}
+    T_shared_world = se3.inverse(np.asarray(robots[names[0]].gt_poses)[0])
+    placed = names if gt_shared_frame else names[:1]
+    return {r: T_shared_world @ np.asarray(robots[r].gt_poses) for r in placed if robots[r].gt_poses is not None}
+
+
+@dataclass
+class RobotEvaluation:
+    """One robot's fused trajectory against ground truth (metres; NaN when not measurable)."""
+
+    name: str
+    fused_poses: int  # rows of <robot>_fused_tum.txt (0 = not placed in the shared frame)
+    evaluated_poses: int  # of those, rows with a ground-truth pose at the same time
+    ate_fused_m: float = float("nan")  # RMSE in the shared frame, no alignment
+    ate_fused_aligned_m: float = float("nan")  # RMSE after an SE(3) fit (shape only)
+    max_error_m: float = float("nan")  # largest position error in the shared frame
+    note: str = ""
+
+    @property
+    def localized(self) -> bool:
+        return self.fused_poses > 0
+
+
+@dataclass
+class EvaluationResult:
+    """What ``evaluate_results`` returns; ``gt_source`` says where the ground truth came from."""
+
+    results_dir: Path
+    reference_robot: str
+    gt_source: str
+    robots: list[RobotEvaluation] = field(default_factory=list)
+    gt_files_written: list[Path] = field(default_factory=list)
+
+    def to_json_dict(self) -> dict:
+        from shgm_slam.io.export import finite_or_none
+
+        return finite_or_none({
+            "results_dir": str(self.results_dir), "reference_robot": self.reference_robot,
+            "gt_source": self.gt_source, "robots": [asdict(r) for r in self.robots],
+            "gt_files_written": [str(p) for p in self.gt_files_written],
+        })  # type: ignore[return-value]  # fmt: skip
+
+
+def open_ground_truth(args: list[str]) -> dict[str, Sequence]:
+    """Open ``NAME=PATH[:start-end]`` arguments (as given to ``run --robot``) as robot -> sequence.
+
+    Raises:
+        ConfigError: an argument without ``NAME=`` or a name given twice.
+        DataError: a sequence cannot be opened.
+    """
+    sequences: dict[str, Sequence] = {}
+    for arg in args:
+        name, sep, spec = arg.strip().partition("=")
+        if not sep or not name or not spec:
+            raise ConfigError(f"--gt {arg!r}: expected NAME=PATH[:start-end], the robot's --robot argument of the run")
+        if name in sequences:
+            raise ConfigError(f"--gt names robot {name!r} twice")
+        sequences[name] = open_sequence(spec)
+    return sequences
+
+
+def run_robot_order(results_dir: Path) -> list[str]:
+    """Robot names in run order from ``metrics.json``, else from the ``*_odometry_tum.txt`` files (sorted)."""
+    metrics = results_dir / "metrics.json"
+    if metrics.is_file():
+        try:
+            return [r["name"] for r in json.loads(metrics.read_text())["robots"]]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise DataError(f"{metrics} is unreadable ({exc}); is {results_dir} a results folder of `run`?") from None
+    names = sorted(p.name.removesuffix("_odometry_tum.txt") for p in results_dir.glob("*_odometry_tum.txt"))
+    if not names:
+        raise DataError(
+            f"{results_dir} has no metrics.json and no <robot>_odometry_tum.txt: point at the folder `run` wrote"
+        )
+    return names
+
+
+def associate(t_est: np.ndarray, t_gt: np.ndarray, tol_s: float = TIME_TOLERANCE_S) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (est rows, gt rows) of the same instants: nearest gt time within ``tol_s``."""
+    if t_gt.size == 0 or t_est.size == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    order = np.argsort(t_gt)
+    ts = t_gt[order]
+    after = np.searchsorted(ts, t_est).clip(0, len(ts) - 1)
+    before = (after - 1).clip(0)
+    pick = np.where(np.abs(ts[before] - t_est) < np.abs(ts[after] - t_est), before, after)
+    ok = np.abs(ts[pick] - t_est) < tol_s
+    return np.flatnonzero(ok), order[pick[ok]]
+
+
+def _evaluate_robot(name: str, fused_file: Path, t_gt: np.ndarray, gt: np.ndarray) -> RobotEvaluation:
+    if not fused_file.is_file():
+        return RobotEvaluation(name, 0, 0, note="not placed in the shared frame (no fused trajectory)")
+    t_est, est = read_tum(fused_file)
+    rows_est, rows_gt = associate(t_est, t_gt)
+    rep = RobotEvaluation(name, len(t_est), len(rows_est))
+    if len(rows_est) < len(t_est):
+        rep.note = f"{len(t_est) - len(rows_est)} fused pose(s) have no ground truth at their time"
+    shared = ate(gt[rows_gt], est[rows_est], align=AlignMode.NONE)
+    aligned = ate(gt[rows_gt], est[rows_est], align=AlignMode.SE3)
+    rep.ate_fused_m, rep.max_error_m, rep.ate_fused_aligned_m = shared.rmse, shared.max, aligned.rmse
+    if not shared.valid:
+        rep.note = shared.reason
+    return rep
+
+
+def evaluate_results(
+    results_dir: Path | str,
+    sequences: dict[str, Sequence] | None = None,
+    *,
+    gt_shared_frame: bool = True,
+    write_gt: bool = True,
+) -> EvaluationResult:
+    """Fused ATE of every robot of a results folder against ground truth in the shared frame.
+
+    Args:
+        results_dir: the folder ``run``/``demo`` wrote (``metrics.json`` gives the robot order).
+        sequences: robot -> its sequence (the same ``NAME=PATH[:start-end]`` as the run) to take the
+            ground truth from; None = the ``<robot>_gt_tum.txt`` files in ``results_dir``.
+        gt_shared_frame: the sequences' ground truths share one world frame (see
+            ``shared_frame_ground_truth``); otherwise only the shared-frame robot is evaluated unaligned.
+        write_gt: with ``sequences``, also write ``<robot>_gt_tum.txt`` / ``_kitti.txt`` into the folder.
+
+    Raises:
+        DataError: not a results folder, unknown robot names, or no ground truth anywhere.
+    """
+    from shgm_slam.io.export import ResultsWriter
+
+    root = Path(results_dir)
+    if not root.is_dir():
+        raise DataError(f"results folder {root} does not exist; pass the --out folder of `run` or `demo`")
+    order = run_robot_order(root)
+    result = EvaluationResult(root, order[0], "")
+    truth: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    if sequences:
+        unknown = sorted(set(sequences) - set(order))
+        if unknown:
+            raise DataError(f"--gt names robot(s) {', '.join(unknown)} that are not in {root} ({', '.join(order)})")
+        if order[0] not in sequences:
+            raise DataError(
+                f"--gt must include {order[0]}: the first robot of the run defines the shared frame"
+            )
+        ordered = {r: sequences[r] for r in order if r in sequences}
+        poses = shared_frame_ground_truth(ordered, gt_shared_frame)
+        if not poses:
+            raise DataError(f"the sequence of {order[0]} has no ground truth (poses.txt or <root>/poses/<seq>.txt)")
+        truth = {r: (np.asarray(ordered[r].timestamps_s), poses[r]) for r in poses}
+        result.gt_source = "sequences"
+        if write_gt:
+            result.gt_files_written = ResultsWriter(root).write_ground_truth(ordered, gt_shared_frame)
+    else:
+        for r in order:
+            path = root / f"{r}_gt_tum.txt"
+            if path.is_file():
+                truth[r] = read_tum(path)
+        if not truth:
+            raise DataError(
+                f"{root} has no <robot>_gt_tum.txt files: pass the run's sequences, e.g. "
+                f"--gt {order[0]}=PATH[:start-end] for every robot"
+            )
+        result.gt_source = "results folder"
+    for r in order:
+        if r in truth:
+            result.robots.append(_evaluate_robot(r, root / f"{r}_fused_tum.txt", *truth[r]))
+        else:
+            fused = root / f"{r}_fused_tum.txt"
+            count = len(read_tum(fused)[0]) if fused.is_file() else 0
+            result.robots.append(RobotEvaluation(r, count, 0, note="no ground truth given"))
+    return result

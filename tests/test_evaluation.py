@@ -1,0 +1,114 @@
+"""``evaluate_results`` / ``shgm-slam eval`` and the ground truth written in the shared frame.
+
+A results folder is made by hand from a simulated scenario: fused trajectories = the ground truth in
+the shared frame plus a known error, so the expected ATE is known without running the system.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from shgm_slam.cli import app
+from shgm_slam.data import open_sequence
+from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.evaluation import associate, evaluate_results, open_ground_truth, shared_frame_ground_truth
+from shgm_slam.geometry import se3
+from shgm_slam.io.export import ResultsWriter
+from shgm_slam.io.trajectories import read_kitti_poses, read_tum
+from shgm_slam.metrics import ate
+
+OFFSET_M = np.array([0.3, 0.0, 0.4])  # car2's fused error: a constant 0.5 m shift
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from shgm_slam.sim.simulate import simulate
+
+    out = tmp_path_factory.mktemp("eval_world")
+    simulate("airsim-like", out, resolution=(160, 48), fps=2.0, compact=True, max_frames=12)
+    return out
+
+
+def _results(world: Path, out: Path, *, place_car2: bool = True) -> dict:
+    """A results folder whose fused car1 is exact and car2 is off by OFFSET_M (car2's frames 3-11 only)."""
+    robots = {"car1": open_sequence(world / "car1"), "car2": open_sequence(f"{world / 'car2'}:3-")}
+    gt = shared_frame_ground_truth(robots)
+    writer = ResultsWriter(out)
+    for r, seq in robots.items():
+        fused = gt[r].copy()
+        if r == "car2":
+            fused[:, :3, 3] += OFFSET_M
+        odo = se3.inverse(fused[0]) @ fused
+        writer.write_trajectories(r, seq.timestamps_s, odo, fused if (r == "car1" or place_car2) else None)
+    writer.write_json("metrics.json", {"robots": [{"name": r} for r in robots]})
+    return robots
+
+
+def test_shared_frame_is_the_first_robots_first_camera(world):
+    robots = {"car2": open_sequence(world / "car2"), "car1": open_sequence(world / "car1")}
+    gt = shared_frame_ground_truth(robots)
+    np.testing.assert_allclose(gt["car2"][0], np.eye(4), atol=1e-9)
+    raw = robots["car1"].gt_poses
+    np.testing.assert_allclose(gt["car1"], se3.inverse(robots["car2"].gt_poses[0]) @ raw, atol=1e-9)
+    assert list(shared_frame_ground_truth(robots, gt_shared_frame=False)) == ["car2"]
+
+
+def test_eval_from_sequences_writes_gt_files_that_evo_reads(world, tmp_path):
+    robots = _results(world, tmp_path)
+    result = evaluate_results(tmp_path, robots)
+    rows = {r.name: r for r in result.robots}
+    assert result.reference_robot == "car1" and result.gt_source == "sequences"
+    assert rows["car1"].ate_fused_m < 1e-6 and rows["car1"].evaluated_poses == 12
+    assert rows["car2"].ate_fused_m == pytest.approx(0.5, abs=1e-6) and rows["car2"].evaluated_poses == 9
+    assert rows["car2"].ate_fused_aligned_m < 1e-6  # a pure shift: nothing left after alignment
+    t_gt, gt = read_tum(tmp_path / "car2_gt_tum.txt")
+    t_fused, fused = read_tum(tmp_path / "car2_fused_tum.txt")
+    np.testing.assert_allclose(t_gt, t_fused)  # same instants: evo associates them one to one
+    assert ate(gt, fused, align="none").rmse == pytest.approx(0.5, abs=1e-6)
+    assert read_kitti_poses(tmp_path / "car2_gt_kitti.txt").shape == (9, 4, 4)
+    # the world-frame poses.txt is NOT comparable (the newcomer's 975 m): the shared frame is needed
+    raw = open_sequence(world / "car1").gt_poses
+    assert ate(raw, read_tum(tmp_path / "car1_fused_tum.txt")[1], align="none").rmse > 5.0
+    # and the folder alone now evaluates the same
+    again = {r.name: r for r in evaluate_results(tmp_path).robots}
+    assert again["car2"].ate_fused_m == pytest.approx(0.5, abs=1e-6)
+
+
+def test_unplaced_robot_and_errors(world, tmp_path):
+    robots = _results(world, tmp_path, place_car2=False)
+    with pytest.raises(DataError, match="no <robot>_gt_tum"):
+        evaluate_results(tmp_path)
+    rows = {r.name: r for r in evaluate_results(tmp_path, robots).robots}
+    assert not rows["car2"].localized and "not placed" in rows["car2"].note
+    with pytest.raises(DataError, match="must include car1"):
+        evaluate_results(tmp_path, {"car2": robots["car2"]})
+    with pytest.raises(DataError, match="not in"):
+        evaluate_results(tmp_path, {**robots, "bus": robots["car1"]})
+    with pytest.raises(DataError, match="does not exist"):
+        evaluate_results(tmp_path / "nope")
+    with pytest.raises(ConfigError, match="NAME=PATH"):
+        open_ground_truth(["just/a/path"])
+
+
+def test_associate_by_nearest_time():
+    est, gt = associate(np.array([0.1, 0.2, 0.35, 0.5]), np.array([0.5, 0.2, 0.1]))
+    assert est.tolist() == [0, 1, 3] and gt.tolist() == [2, 1, 0]
+
+
+def test_cli_eval(world, tmp_path):
+    _results(world, tmp_path)
+    args = ["eval", str(tmp_path), "--gt", f"car1={world / 'car1'}", "--gt", f"car2={world / 'car2'}:3-"]
+    res = CliRunner().invoke(app, [*args, "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.output)
+    assert [r["name"] for r in data["robots"]] == ["car1", "car2"]
+    assert data["robots"][1]["ate_fused_m"] == pytest.approx(0.5, abs=1e-6)
+    res = CliRunner().invoke(app, ["eval", str(tmp_path)], env={"COLUMNS": "80"})
+    assert res.exit_code == 0 and "0.50" in res.output and "car2" in res.output
+    res = CliRunner().invoke(app, ["eval", str(tmp_path / "missing")])
+    assert res.exit_code == 2
