@@ -8,18 +8,32 @@ Two closures between the same robots, ``T_ai_bj`` (keyframe i of robot a to keyf
 The tolerances grow with the odometry distance inside the loop (drift). Correct closures agree with
 each other; wrong ones (perceptual aliasing) agree with nothing in particular, so the largest
 mutually consistent subset (a maximum clique of the consistency graph) is kept.
+
+The set is maintained incrementally per robot pair (``PairConsistency``): a new closure is tested
+against the pair's other closures only (O(n)); it joins the current set when it agrees with all of it,
+and only when it agrees with at least as many closures as the set holds can a larger set containing it
+exist, which a bounded branch-and-bound search (degree peeling, greedy start, ``INCREMENTAL_BUDGET``)
+decides. A pair keeps at most ``MAX_CLOSURES_PER_PAIR`` voting closures.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from shgm_slam.geometry.se3 import inverse, rotation_angle
 
-CLIQUE_BUDGET = 200_000
-"""Branch-and-bound expansions before ``max_consistent_set`` returns the best set found so far."""
+CLIQUE_BUDGET = 20_000
+"""Branch-and-bound expansions of a full search (``max_consistent_set``) before it settles for the best
+set found so far (a greedy clique improved by local swaps, or better)."""
+
+INCREMENTAL_BUDGET = 5_000
+"""Branch-and-bound expansions of the search ``PairConsistency.add`` runs when a new closure may start a
+larger consistent set than the current one."""
+
+MAX_CLOSURES_PER_PAIR = 500
+"""Closures of one robot pair that take part in the consistency vote (``PairConsistency``)."""
 
 
 @dataclass(frozen=True)
@@ -110,41 +124,272 @@ def max_consistent_set(
 
     Returns:
         Sorted int64 indices of the chosen clique (empty only for n = 0). Exact up to
-        ``CLIQUE_BUDGET`` expansions, after that the best clique found so far.
+        ``CLIQUE_BUDGET`` branch-and-bound expansions; beyond that the best clique found so far, at
+        least a greedy clique improved by local swaps.
     """
-    A = np.asarray(adjacency, dtype=bool)
+    A = _clean(adjacency)
     n = A.shape[0]
     if n == 0:
         return np.zeros(0, dtype=np.int64)
     w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
     pref = np.zeros(n, dtype=bool) if preferred is None else np.asarray(preferred, dtype=bool)
-    nbr = [sum(1 << int(j) for j in np.flatnonzero(A[i])) & ~(1 << i) for i in range(n)]
+    found, _ = best_clique(A, w, pref, min_size=1, budget=CLIQUE_BUDGET)
+    return found
 
-    def members(bits: int) -> list[int]:
-        return [i for i in range(n) if bits >> i & 1]
+
+def best_clique(
+    adjacency: np.ndarray, weights: np.ndarray, preferred: np.ndarray, min_size: int, budget: int
+) -> tuple[np.ndarray | None, bool]:
+    """Best clique of at least ``min_size`` vertices by (size, preferred members, weight, earliest).
+
+    Degree peeling first drops vertices that cannot be in such a clique, a greedy clique (improved by
+    1-for-2 swaps) gives the first bound, then branch and bound (Bron-Kerbosch with pivoting on
+    bitsets) runs for at most ``budget`` expansions.
+
+    Args:
+        adjacency: (m, m) symmetric bool with a False diagonal.
+        weights: (m,) evidence per vertex; preferred: (m,) bool.
+        min_size: smallest clique of interest (>= 1).
+        budget: branch-and-bound expansions.
+
+    Returns:
+        (sorted int64 indices or None when no clique reaches ``min_size``, whether the search was exact).
+    """
+    A = adjacency
+    m = A.shape[0]
+    alive = _peel(A, np.ones(m, dtype=bool), min_size)
+    if alive.sum() < min_size:
+        return None, True
+    greedy = _improve(A, _greedy(A, alive), alive)
+    best_size = max(min_size, int(greedy.sum()))
+    alive = _peel(A, alive, best_size)
+    idx = np.flatnonzero(alive)
+    if idx.size < best_size:  # cannot happen for a clique found inside alive; be safe
+        return (np.flatnonzero(greedy) if greedy.sum() >= min_size else None), True
+    sub = A[np.ix_(idx, idx)]
+    nbr = [int.from_bytes(r.tobytes(), "little") for r in np.packbits(sub, axis=1, bitorder="little")]
+    pref_bits = _to_bits(preferred[idx])
+    w = weights[idx]
 
     def score(bits: int) -> tuple:
-        m = members(bits)
-        return (len(m), int(pref[m].sum()), float(w[m].sum()), [-i for i in m])
+        mem = _members(bits)
+        return (len(mem), (bits & pref_bits).bit_count(), float(w[mem].sum()), tuple(-i for i in mem))
 
-    best = [0, score(0)]
-    budget = [CLIQUE_BUDGET]
+    g = greedy[idx]
+    best_bits = _to_bits(g) if g.sum() >= min_size else 0
+    best = score(best_bits) if best_bits else (best_size - 1,)
+    left = budget
+    stack: list[list] = []
 
-    def expand(R: int, P: int, X: int) -> None:
-        # Bron-Kerbosch with pivoting; prune branches that cannot reach the best size
-        if budget[0] <= 0 or R.bit_count() + P.bit_count() < best[1][0]:
+    def push(R: int, P: int, X: int) -> None:
+        nonlocal left, best_bits, best
+        if R.bit_count() + P.bit_count() < best[0]:
             return
-        budget[0] -= 1
-        if P == 0 and X == 0:
-            s = score(R)
-            if s > best[1]:
-                best[:] = [R, s]
+        left -= 1
+        if P == 0:
+            if X == 0 and R.bit_count() >= min_size:
+                s = score(R)
+                if s > best:
+                    best_bits, best = R, s
             return
-        pivot = max(members(P | X), key=lambda u: (P & nbr[u]).bit_count())
-        for v in members(P & ~nbr[pivot]):
-            expand(R | 1 << v, P & nbr[v], X & nbr[v])
-            P &= ~(1 << v)
-            X |= 1 << v
+        pivot = max(_members(P | X), key=lambda u: (P & nbr[u]).bit_count())
+        stack.append([R, P, X, _members(P & ~nbr[pivot]), 0])
 
-    expand(0, (1 << n) - 1, 0)
-    return np.array(members(best[0]), dtype=np.int64)
+    push(0, (1 << idx.size) - 1, 0)
+    while stack and left > 0:
+        frame = stack[-1]
+        R, P, X, todo, i = frame
+        if i == len(todo) or R.bit_count() + P.bit_count() < best[0]:
+            stack.pop()
+            continue
+        v = todo[i]
+        frame[4] = i + 1
+        bit = 1 << v
+        frame[1], frame[2] = P & ~bit, X | bit
+        push(R | bit, P & nbr[v], X & nbr[v])
+    if not best_bits:
+        return None, not stack
+    return idx[_members(best_bits)].astype(np.int64), not stack
+
+
+@dataclass
+class PairConsistency:
+    """Incremental maximum consistent set of one robot pair's closures, bounded in size.
+
+    Keeps the pair's voting closures (at most ``capacity``), their consistency adjacency and the
+    chosen set. ``add`` costs O(n) when the new closure joins the set or cannot change it; only when
+    it agrees with at least as many closures as the set holds (a larger set through it may exist) a
+    bounded search over its consistent neighbours runs. Semantics are those of
+    ``max_consistent_set`` with the current set preferred: a larger consistent set replaces the
+    current one, a tie does not.
+
+    When the pair is full, the oldest closure outside the set leaves the vote (it stays rejected);
+    when every closure is in the set, the oldest one leaves (it stays accepted).
+    """
+
+    capacity: int = MAX_CLOSURES_PER_PAIR
+    budget: int = INCREMENTAL_BUDGET
+    ids: list[int] = field(default_factory=list)
+    exact: bool = True  # False once a search ran out of budget (the set may then not be maximum)
+    searches: int = 0  # bounded searches run so far
+    _A: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
+    _w: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    _chosen: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+
+    def __post_init__(self) -> None:
+        if self.capacity < 1:
+            raise ValueError(f"capacity must be >= 1, got {self.capacity}")
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @property
+    def chosen_ids(self) -> list[int]:
+        """Closure ids in the current maximum consistent set, in insertion order."""
+        return [self.ids[i] for i in np.flatnonzero(self._chosen[: len(self.ids)])]
+
+    def chosen_mask(self) -> np.ndarray:
+        """(n,) bool over ``ids``: in the current set."""
+        return self._chosen[: len(self.ids)].copy()
+
+    def add(self, closure_id: int, consistent: np.ndarray, weight: float = 1.0) -> tuple[int, bool] | None:
+        """Add a closure given its consistency with the current ``ids`` (an (n,) bool row).
+
+        Returns:
+            The closure that left the vote to make room, with whether it was in the set, or None.
+        """
+        row = np.asarray(consistent, dtype=bool).reshape(-1)
+        n = len(self.ids)
+        if row.size != n:
+            raise ValueError(f"consistency row has {row.size} entries for {n} closures")
+        evicted = None
+        if n == self.capacity:
+            out = self._chosen[:n]
+            victim = int(np.argmin(out)) if not out.all() else 0  # oldest outside the set, else oldest
+            evicted = (self.ids[victim], bool(out[victim]))
+            self._remove(victim)
+            row = np.delete(row, victim)
+            n -= 1
+        self._grow(n + 1)
+        self._A[n, :n] = self._A[:n, n] = row
+        self._A[n, n] = False
+        self._w[n] = float(weight)
+        self._chosen[n] = False
+        self.ids.append(int(closure_id))
+        self._select(n, row)
+        return evicted
+
+    def _select(self, v: int, row: np.ndarray) -> None:
+        S = self._chosen[:v]
+        s = int(S.sum())
+        if s == 0:
+            self._chosen[v] = True
+            return
+        if row[S].all():  # joins: |S| + 1 is the largest a clique can grow by one vertex
+            self._chosen[v] = True
+            return
+        cand = np.flatnonzero(row)
+        if cand.size < s:  # no clique of |S| among its neighbours: S stays (it wins ties)
+            return
+        self.searches += 1
+        A = self._A[np.ix_(cand, cand)]
+        found, exact = best_clique(A, self._w[cand], S[cand], s, self.budget)
+        self.exact &= exact
+        if found is not None:
+            self._chosen[:v] = False
+            self._chosen[cand[found]] = True
+            self._chosen[v] = True
+
+    def _grow(self, n: int) -> None:
+        cap = self._A.shape[0]
+        if n <= cap:
+            return
+        new = min(max(2 * cap, 16), self.capacity)
+        A = np.zeros((new, new), dtype=bool)
+        A[:cap, :cap] = self._A
+        self._A = A
+        self._w = np.r_[self._w, np.zeros(new - cap)]
+        self._chosen = np.r_[self._chosen, np.zeros(new - cap, dtype=bool)]
+
+    def _remove(self, i: int) -> None:
+        n = len(self.ids)
+        self._A[i : n - 1, :n] = self._A[i + 1 : n, :n]
+        self._A[:n, i : n - 1] = self._A[:n, i + 1 : n]
+        self._A[n - 1, :n] = self._A[:n, n - 1] = False
+        self._w[i : n - 1] = self._w[i + 1 : n]
+        self._chosen[i : n - 1] = self._chosen[i + 1 : n]
+        self._chosen[n - 1] = False
+        del self.ids[i]
+
+
+def _clean(adjacency: np.ndarray) -> np.ndarray:
+    A = np.array(adjacency, dtype=bool)
+    np.fill_diagonal(A, False)
+    return A
+
+
+def _to_bits(mask: np.ndarray) -> int:
+    return int.from_bytes(np.packbits(np.asarray(mask, dtype=bool), bitorder="little").tobytes(), "little")
+
+
+def _members(bits: int) -> list[int]:
+    """Set bit positions of ``bits``, ascending."""
+    out = []
+    while bits:
+        low = bits & -bits
+        out.append(low.bit_length() - 1)
+        bits ^= low
+    return out
+
+
+def _peel(A: np.ndarray, alive: np.ndarray, size: int) -> np.ndarray:
+    """Drop vertices with fewer than ``size - 1`` live neighbours until none is left (a k-core)."""
+    alive = alive.copy()
+    deg = A[:, alive].sum(axis=1)
+    while True:
+        drop = alive & (deg < size - 1)
+        if not drop.any():
+            return alive
+        alive &= ~drop
+        deg -= A[:, drop].sum(axis=1)
+
+
+def _greedy(A: np.ndarray, alive: np.ndarray) -> np.ndarray:
+    """(m,) bool maximal clique inside ``alive``: repeatedly take the candidate with most candidate
+    neighbours (ties: the earliest)."""
+    clique = np.zeros(A.shape[0], dtype=bool)
+    cand = np.flatnonzero(alive)
+    while cand.size:
+        sub = A[np.ix_(cand, cand)]
+        v = int(np.argmax(sub.sum(axis=1)))
+        clique[cand[v]] = True
+        cand = cand[sub[v]]
+    return clique
+
+
+def _improve(A: np.ndarray, clique: np.ndarray, alive: np.ndarray, rounds: int = 50) -> np.ndarray:
+    """Local search on a clique: add vertices adjacent to all members, or swap one member for two
+    mutually consistent vertices adjacent to all other members; at most ``rounds`` moves."""
+    clique = clique.copy()
+    for _ in range(rounds):
+        members = np.flatnonzero(clique)
+        count = A[:, members].sum(axis=1)
+        count[~alive | clique] = -1
+        full = np.flatnonzero(count == members.size)
+        if full.size:
+            clique[full[0]] = True
+            continue
+        near = np.flatnonzero(count == members.size - 1)
+        if near.size < 2:
+            break
+        missing = members[np.argmin(A[np.ix_(near, members)], axis=1)]
+        for u in np.unique(missing):
+            group = near[missing == u]
+            pairs = np.argwhere(np.triu(A[np.ix_(group, group)]))
+            if pairs.size:
+                clique[u] = False
+                clique[group[pairs[0]]] = True
+                break
+        else:
+            break
+    return clique

@@ -13,14 +13,29 @@ gauge prior, so CHOLESKY never meets an indeterminate system). Closures between 
 are kept and replayed as soon as one of them is anchored (anchoring spreads through accepted closures).
 
 Closures between the same two robots are checked for pairwise consistency (``consistency.py``); only
-the maximum consistent set is accepted. When a later, larger consistent set outvotes earlier closures,
+the maximum consistent set is accepted. It is maintained incrementally per robot pair
+(``PairConsistency``: O(n) per closure, a bounded search only when a larger set may have formed) over
+at most ``max_closures_per_pair`` voting closures. When a later, larger consistent set outvotes earlier closures,
 those are removed from iSAM2 (``removeFactorIndices``); if a removed closure was the one that anchored
 a robot, the graph is rebuilt from the recorded odometry and the accepted closures, so one wrong first
 match cannot leave a robot in the wrong place. Accepted closures additionally carry a robust kernel.
+
+Numerics: iSAM2 factorizes with QR by default. With CHOLESKY, a long straight chain with the default
+sigmas raised ``IndeterminateSystem`` after ~1100 keyframes: the root clique's information couples
+rotation and translation through a lever arm as long as the chain, and gtsam's partial Cholesky
+declares a system indeterminate when consecutive diagonal entries of its factor differ by 2^12 or
+more; QR works on the square-root information and has no such test. Should an update raise anyway,
+the graph is rebuilt with QR from the recorded keyframes and accepted closures (a logged warning);
+only when that fails too is ``BackendError`` raised. Relinearization checks only the part of the
+Bayes tree an update touches, so adding a keyframe costs about the same at 5000 keyframes as at 1000.
+
+``estimate()`` is cached until the next change of the graph (a version counter), so callers that
+ask for poses per keyframe do not pay a full recomputation each time.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 from enum import Enum
@@ -29,11 +44,18 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from shgm_slam.backend.consistency import ConsistencyThresholds, consistent_with, max_consistent_set
-from shgm_slam.backend.keys import RobotKeys
+from shgm_slam.backend.consistency import (
+    MAX_CLOSURES_PER_PAIR,
+    ConsistencyThresholds,
+    PairConsistency,
+    consistent_with,
+)
+from shgm_slam.backend.keys import ROBOT_LETTERS, RobotKeys
 from shgm_slam.config import BackendConfig, RobustKernel
 from shgm_slam.errors import BackendError
 from shgm_slam.geometry.se3 import inverse
+
+_log = logging.getLogger(__name__)
 
 PRIOR_SIGMA = 1e-3
 """Sigma (rad and m) of the prior fixing robot 0's first keyframe: the gauge of the shared frame."""
@@ -107,6 +129,7 @@ class PoseGraphStats:
     anchored_robots: tuple[str, ...]
     rebuilds: int
     last_update_ms: float
+    recoveries: int = 0  # iSAM2 failures recovered by rebuilding with QR
 
 
 @dataclass
@@ -117,6 +140,26 @@ class _Robot:
     anchor_closure: int | None = None  # closure id that anchored it (None for robot 0 or unanchored)
     anchored: bool = False
     T_shared_odom_init: np.ndarray | None = None  # alignment used when it was anchored
+    _odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_odom_kf as a growing array
+    _path: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def append(self, T_odom_kf: np.ndarray) -> None:
+        """Record the next keyframe pose (and the odometry path length up to it)."""
+        k = len(self.T_odom_kf)
+        step = 0.0 if k == 0 else float(np.linalg.norm(T_odom_kf[:3, 3] - self.T_odom_kf[-1][:3, 3]))
+        self.path_m.append((self.path_m[-1] if k else 0.0) + step)
+        self.T_odom_kf.append(T_odom_kf)
+        if k == self._odom.shape[0]:  # amortised O(1): double the buffers
+            size = max(16, 2 * k)
+            self._odom = np.concatenate([self._odom, np.zeros((size - k, 4, 4))])
+            self._path = np.concatenate([self._path, np.zeros(size - k)])
+        self._odom[k] = T_odom_kf
+        self._path[k] = self.path_m[-1]
+
+    def odometry(self) -> tuple[np.ndarray, np.ndarray]:
+        """(K, 4, 4) keyframe poses in the odometry frame and (K,) path length at each, metres (views)."""
+        k = len(self.T_odom_kf)
+        return self._odom[:k], self._path[:k]
 
 
 def _pose3(T: np.ndarray) -> gtsam.Pose3:
@@ -161,6 +204,9 @@ class MultiRobotPoseGraph:
             1 = trust a single first match).
         factorization: iSAM2 linear solver.
         extra_updates: additional ``isam.update()`` passes after closures change the graph.
+        max_closures_per_pair: closures of one robot pair that vote on its consistent set; beyond
+            it the oldest closure outside the set (else the oldest in it) leaves the vote and keeps
+            its status (``PairConsistency``).
     """
 
     def __init__(
@@ -176,9 +222,10 @@ class MultiRobotPoseGraph:
         consistency_trans_per_m: float = 0.05,
         consistency_rot_deg_per_m: float = 0.05,
         min_closures_to_anchor: int = 1,
-        factorization: Factorization | str = Factorization.CHOLESKY,
+        factorization: Factorization | str = Factorization.QR,
         relinearize_threshold: float = 0.01,
         extra_updates: int = 3,
+        max_closures_per_pair: int = MAX_CLOSURES_PER_PAIR,
     ) -> None:
         self.keys = RobotKeys(robot_names)
         try:
@@ -195,15 +242,22 @@ class MultiRobotPoseGraph:
         if min_closures_to_anchor < 1:
             raise BackendError(f"min_closures_to_anchor must be >= 1, got {min_closures_to_anchor}")
         self.min_closures_to_anchor = min_closures_to_anchor
+        if max_closures_per_pair < 1:
+            raise BackendError(f"max_closures_per_pair must be >= 1, got {max_closures_per_pair}")
+        self.max_closures_per_pair = max_closures_per_pair
         self.relinearize_threshold = relinearize_threshold
         self.extra_updates = extra_updates
         self._robots = {name: _Robot(i) for i, name in enumerate(self.keys.names)}
         self._closures: list[ClosureRecord] = []
         self._closure_noise: list[gtsam.noiseModel.Base] = []
         self._information: list[np.ndarray] = []  # 6x6 [rot, trans] information, for g2o export
-        self._pair_adjacency: dict[tuple[str, str], tuple[list[int], np.ndarray]] = {}
+        self._pairs: dict[tuple[str, str], PairConsistency] = {}
         self._rebuilds = 0
+        self._recoveries = 0
         self._last_update_ms = 0.0
+        self._version = 0  # bumped on every change of the graph; keys the estimate cache
+        self._cache_version = -1
+        self._cache: dict[str, np.ndarray] = {}
         self._reset_isam()
 
     # --- public API ---------------------------------------------------------------------------------
@@ -224,9 +278,8 @@ class MultiRobotPoseGraph:
                 f"keyframe {kf_index} of {robot} is out of order: expected keyframe {len(r.T_odom_kf)} "
                 "(keyframes are numbered 0, 1, 2, ... per robot)"
             )
-        step = 0.0 if not r.T_odom_kf else float(np.linalg.norm(T[:3, 3] - r.T_odom_kf[-1][:3, 3]))
-        r.path_m.append((r.path_m[-1] if r.path_m else 0.0) + step)
-        r.T_odom_kf.append(T)
+        r.append(T)
+        self._version += 1
         if r.index == 0 and kf_index == 0:
             self._anchor_first_robot()
             self._sync()
@@ -284,6 +337,7 @@ class MultiRobotPoseGraph:
         noise, info = self._closure_noise_model(information)
         rec = ClosureRecord(len(self._closures), robot_a, kf_a, robot_b, kf_b, T, int(num_inliers), match_id=match_id)
         self._closures.append(rec)
+        self._version += 1
         self._closure_noise.append(noise)
         self._information.append(info)
         self._update_pair(rec)
@@ -308,27 +362,35 @@ class MultiRobotPoseGraph:
             BackendError: the name is taken or the 52 key letters are used up.
         """
         self._robots[robot] = _Robot(self.keys.add(robot))
+        self._version += 1
 
     def is_anchored(self, robot: str) -> bool:
         """True when ``robot``'s keyframes are in the shared frame (it has variables in iSAM2)."""
         return self._robot(robot).anchored
 
     def estimate(self) -> dict[str, np.ndarray]:
-        """Current ``T_shared_kf`` of every anchored robot: name -> (K, 4, 4), keyframe order."""
-        values = self._isam.calculateEstimate()
-        out = {}
-        for name, r in self._robots.items():
-            if r.anchored:
-                out[name] = np.stack(
-                    [values.atPose3(self.keys.key(name, k)).matrix() for k in range(len(r.T_odom_kf))]
-                )
-        return out
+        """Current ``T_shared_kf`` of every anchored robot: name -> (K, 4, 4), keyframe order.
+
+        Computed once per change of the graph and cached: the arrays are shared between calls and
+        read-only (copy them to modify).
+        """
+        if self._cache_version != self._version:
+            self._cache = self._compute_estimate()
+            self._cache_version = self._version
+        return dict(self._cache)
+
+    @property
+    def version(self) -> int:
+        """Counter bumped by every change of the graph (keyframe, closure, agent, rebuild)."""
+        return self._version
 
     def T_shared_kf(self, robot: str, kf_index: int) -> np.ndarray:
         """(4, 4) current estimate of one keyframe of an anchored robot in the shared frame."""
         r = self._require_anchored(robot)
         if not 0 <= kf_index < len(r.T_odom_kf):
             raise BackendError(f"{robot} has no keyframe {kf_index} ({len(r.T_odom_kf)} keyframes)")
+        if self._cache_version == self._version:
+            return self._cache[robot][kf_index].copy()
         return self._isam.calculateEstimatePose3(self.keys.key(robot, kf_index)).matrix()
 
     def T_shared_odom(self, robot: str, kf_index: int | None = None) -> np.ndarray:
@@ -364,6 +426,7 @@ class MultiRobotPoseGraph:
             anchored_robots=tuple(n for n, r in self._robots.items() if r.anchored),
             rebuilds=self._rebuilds,
             last_update_ms=self._last_update_ms,
+            recoveries=self._recoveries,
         )
 
     def to_g2o(self) -> str:
@@ -399,34 +462,34 @@ class MultiRobotPoseGraph:
     # --- consistency: which closures are accepted -------------------------------------------------
 
     def _update_pair(self, rec: ClosureRecord) -> None:
-        """Grow the pair's consistency graph by ``rec`` and re-select its maximum consistent set."""
+        """Test ``rec`` against its robot pair's voting closures (O(n)) and update the pair's maximum
+        consistent set incrementally (``PairConsistency``)."""
         pair = (rec.robot_a, rec.robot_b)
-        ids, A_old = self._pair_adjacency.get(pair, ([], np.zeros((0, 0), dtype=bool)))
+        voting = self._pairs.setdefault(pair, PairConsistency(self.max_closures_per_pair))
         ra, rb = self._robots[rec.robot_a], self._robots[rec.robot_b]
-        others = [self._closures[i] for i in ids]
+        others = [self._closures[i] for i in voting.ids]
+        (odom_a, path_a), (odom_b, path_b) = ra.odometry(), rb.odometry()
         row = consistent_with(
             rec.T_a_b, rec.kf_a, rec.kf_b,
             np.array([c.T_a_b for c in others]).reshape(-1, 4, 4),
             np.array([c.kf_a for c in others], dtype=np.int64),
             np.array([c.kf_b for c in others], dtype=np.int64),
-            np.stack(ra.T_odom_kf), np.stack(rb.T_odom_kf),
-            np.asarray(ra.path_m), np.asarray(rb.path_m), self.thresholds,
+            odom_a, odom_b, path_a, path_b, self.thresholds,
         )  # fmt: skip
-        n = len(ids) + 1
-        A = np.zeros((n, n), dtype=bool)
-        A[:-1, :-1] = A_old
-        A[-1, :-1] = A[:-1, -1] = row
-        ids = [*ids, rec.closure_id]
-        self._pair_adjacency[pair] = (ids, A)
-
-        members = [self._closures[i] for i in ids]
-        preferred = np.array([c.status is ClosureStatus.ACCEPTED for c in members])
-        weights = np.array([c.num_inliers for c in members], dtype=np.float64)
-        chosen = set(max_consistent_set(A, weights, preferred).tolist())
-        size = len(chosen)
+        evicted = voting.add(rec.closure_id, row, rec.num_inliers)
         where = f"{rec.robot_a}-{rec.robot_b}"
-        for j, c in enumerate(members):
-            if j in chosen:
+        if evicted is not None:
+            c = self._closures[evicted[0]]
+            kept = "accepted" if evicted[1] else "rejected"
+            c.reason = (
+                f"{kept}: left the consistency vote of {where} (it keeps the latest "
+                f"{self.max_closures_per_pair} closures)"
+            )
+        n, chosen = len(voting), voting.chosen_mask()
+        size = int(chosen.sum())
+        for cid, is_in in zip(voting.ids, chosen.tolist(), strict=True):
+            c = self._closures[cid]
+            if is_in:
                 c.status = ClosureStatus.ACCEPTED
                 c.reason = (
                     f"accepted: only closure between {where} so far (unconfirmed, a larger consistent set "
@@ -448,6 +511,8 @@ class MultiRobotPoseGraph:
         p.setFactorization(self.factorization.value)
         p.setRelinearizeThreshold(self.relinearize_threshold)
         p.relinearizeSkip = 1
+        p.enablePartialRelinearizationCheck = True  # check the touched cliques only: flat cost per update
+        self._version += 1
         self._isam = gtsam.ISAM2(p)
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
@@ -559,10 +624,22 @@ class MultiRobotPoseGraph:
         self._new_tags.append(closure_id)
 
     def _flush(self, *, closures_changed: bool) -> None:
-        """Run iSAM2 on the pending factors/values/removals (plus extra passes after closure changes)."""
+        """Run iSAM2 on the pending factors/values/removals (plus extra passes after closure changes).
+
+        An update that raises is recovered by rebuilding the graph with QR (a logged warning);
+        ``BackendError`` when that fails too.
+        """
         if self._new_factors.size() == 0 and not self._to_remove:
             return
         t0 = time.perf_counter()
+        self._version += 1
+        try:
+            self._update_isam(closures_changed)
+        except RuntimeError as exc:
+            self._recover(exc)
+        self._last_update_ms = (time.perf_counter() - t0) * 1e3
+
+    def _update_isam(self, closures_changed: bool) -> None:
         try:
             result = self._isam.update(self._new_factors, self._new_values, self._to_remove)
             for idx, tag in zip(result.getNewFactorsIndices(), self._new_tags, strict=True):
@@ -571,17 +648,54 @@ class MultiRobotPoseGraph:
             if closures_changed:
                 for _ in range(self.extra_updates):
                     self._isam.update()
-        except RuntimeError as exc:
-            raise BackendError(
-                f"iSAM2 update failed ({exc}); the graph is underconstrained or a pose is invalid - "
-                "try factorization='QR'"
-            ) from None
         finally:
             self._new_factors = gtsam.NonlinearFactorGraph()
             self._new_values = gtsam.Values()
             self._new_tags = []
             self._to_remove = []
-        self._last_update_ms = (time.perf_counter() - t0) * 1e3
+
+    def _recover(self, exc: RuntimeError) -> None:
+        """Rebuild iSAM2 with QR from the recorded keyframes and accepted closures after ``exc``."""
+        first = _first_line(exc)
+        _log.warning(
+            "iSAM2 update with %s factorization failed (%s); rebuilding the pose graph with QR",
+            self.factorization.value, first,
+        )  # fmt: skip
+        self._recoveries += 1
+        self.factorization = Factorization.QR
+        self._rebuild()
+        try:
+            self._update_isam(closures_changed=True)
+        except RuntimeError as again:
+            raise BackendError(
+                f"iSAM2 update failed ({first}) and rebuilding the graph with QR failed too "
+                f"({_first_line(again)}); the graph is underconstrained or a pose is invalid"
+            ) from None
+
+    def _compute_estimate(self) -> dict[str, np.ndarray]:
+        """All anchored robots' ``T_shared_kf`` from one ``calculateEstimate`` (vectorised extraction)."""
+        values = self._isam.calculateEstimate()
+        keys = np.fromiter(values.keys(), dtype=np.uint64, count=values.size())
+        rows = gtsam.utilities.extractPose3(values)  # (N, 12): R row-major, t; in key order
+        T = np.zeros((len(keys), 4, 4))
+        T[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+        T[:, :3, 3] = rows[:, 9:12]
+        T[:, 3, 3] = 1.0
+        letters = (keys >> np.uint64(56)).astype(np.int64)
+        kf = (keys & np.uint64((1 << 56) - 1)).astype(np.int64)
+        out = {}
+        for name, r in self._robots.items():
+            if not r.anchored:
+                continue
+            sel = np.flatnonzero(letters == ord(ROBOT_LETTERS[r.index]))
+            poses = T[sel[np.argsort(kf[sel], kind="stable")]]
+            if len(poses) != len(r.T_odom_kf):
+                raise BackendError(
+                    f"{name} has {len(r.T_odom_kf)} keyframes but {len(poses)} poses in iSAM2 (internal error)"
+                )
+            poses.flags.writeable = False
+            out[name] = poses
+        return out
 
     # --- helpers ---------------------------------------------------------------------------------
 
@@ -622,6 +736,11 @@ class MultiRobotPoseGraph:
         """
         Ad = _pose3(T_b_a).AdjointMap()
         return Ad.T @ np.asarray(information, dtype=np.float64) @ Ad
+
+
+def _first_line(exc: BaseException) -> str:
+    """The first non-empty line of an exception message (gtsam's run over many lines)."""
+    return next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
 
 
 def _g2o_pose(p: gtsam.Pose3) -> str:
