@@ -160,7 +160,8 @@ def simulate_command(
 @app.command("graph")
 @handle_errors
 def graph(
-    sequence: Annotated[str, typer.Argument(help="SEQ[:start-end] with depth/, semantic/ and poses.txt")],
+    sequence: Annotated[str, typer.Argument(help="SEQ[:start-end] with depth/, semantic/ and poses.txt; the range "
+                                            "is half-open: frames start..end-1 (08:0-1500 = 1500 frames)")],
     out: Annotated[Path, typer.Option("--out", "-o", help="graph file to write (shgm-graph/1 JSON)")],
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
     connectivity: Annotated[float | None, typer.Option(help="edge threshold, metres (config: 10)")] = None,
@@ -261,25 +262,44 @@ def _render_match(result, nodes_a: int, nodes_b: int, kind: DescriptorKind, mode
 # --- run / demo (pipeline.py) -----------------------------------------------------------------------
 
 
+def _metres(value: float) -> str:
+    """A distance in metres for an 80-column table: 2 decimals below 100 m, whole metres above, '-' for NaN."""
+    if value != value:
+        return "-"
+    return f"{value:.2f}" if abs(value) < 100 else f"{value:.0f}"
+
+
+def _summary_table(summary):
+    """The per-robot run table; fits 80 columns (two-line headers, no vertical rules, long names fold)."""
+    from rich import box
+    from rich.table import Table
+
+    t = Table(title="shgm-slam run", title_style="bold", box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
+    t.add_column("robot", overflow="fold")
+    numbers = ("frames", "kf", "nodes", "odo\nfail", "fused", "path\nm", "ATE\nodo", "ATE\nfused", "aligned\nodo/fused")
+    for col in numbers:
+        t.add_column(col, justify="right", no_wrap=True)
+    for r in summary.robots:
+        fused = "[green]yes[/]" if r.localized else "[red]no[/]"
+        if r.segments > 1:  # after odometry failures: which trajectory segments are in the shared frame
+            fused = f"{'[green]' if r.localized else '[red]'}{r.segments_placed}/{r.segments}[/]"
+        t.add_row(
+            lit(r.name), str(r.frames), str(r.keyframes), str(r.nodes),
+            f"[yellow]{r.odometry_failures}[/]" if r.odometry_failures else "0", fused, _metres(r.path_length_m),
+            _metres(r.ate_odometry_m), _metres(r.ate_fused_m),
+            f"{_metres(r.ate_odometry_aligned_m)}/{_metres(r.ate_fused_aligned_m)}",
+        )  # fmt: skip
+    t.caption = ("ATE: metres in the shared frame (odo = odometry alone, started at its true pose; per trajectory "
+                 "segment after odometry failures); aligned = SE(3)-aligned per robot; fused a/b = trajectory "
+                 "segments placed / segments")
+    return t
+
+
 def _render_summary(summary) -> None:
     """Print the run summary as rich tables."""
     from rich.table import Table
 
-    t = Table(title="shgm-slam run", title_style="bold")
-    for col in ("robot", "frames", "kf", "nodes", "odo fail", "fused", "path m", "ATE odo", "ATE fused", "aligned"):
-        t.add_column(col, justify="right" if col != "robot" else "left")
-    for r in summary.robots:
-        fused = "[green]yes[/]" if r.localized else "[red]no[/]"
-        if r.segments > 1:  # after odometry failures: which trajectory segments are in the shared frame
-            fused += f" ({r.segments_placed}/{r.segments} seg)"
-        t.add_row(
-            lit(r.name), str(r.frames), str(r.keyframes), str(r.nodes),
-            f"[yellow]{r.odometry_failures}[/]" if r.odometry_failures else "0", fused, f"{r.path_length_m:.0f}",
-            f"{r.ate_odometry_m:.2f}", f"{r.ate_fused_m:.2f}",
-            f"{r.ate_odometry_aligned_m:.2f}/{r.ate_fused_aligned_m:.2f}",
-        )
-    t.caption = ("ATE in metres in the shared frame (odo = odometry alone, started at its true pose; per trajectory "
-                 "segment after odometry failures); aligned = SE(3)-aligned per robot")
+    t = _summary_table(summary)
     console.print(t)
     for r in summary.robots:
         if r.odometry_failures:
@@ -324,7 +344,8 @@ def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool):
 def run(
     robot: Annotated[
         list[str],
-        typer.Option("--robot", "-r", help="NAME=PATH[:start-end]; repeat per robot (the first is the shared frame)"),
+        typer.Option("--robot", "-r", help="NAME=PATH[:start-end]; repeat per robot (the first is the shared frame). "
+                     "Ranges are half-open: car=08:0-1500 is frames 0..1499, 08:1500- the rest"),
     ],
     odometry: Annotated[
         str | None,
@@ -505,14 +526,18 @@ def robot_command(
 @app.command("demo")
 @handle_errors
 def demo(
-    out: Annotated[Path, typer.Option(help="results folder")] = Path("results/demo"),
+    out: Annotated[
+        Path | None, typer.Option(help="results folder [default: results/demo; with --rgb-only results/demo-rgb]")
+    ] = None,
     cache: Annotated[Path, typer.Option(help="where the simulated world is cached")] = Path("cache"),
     seed: Annotated[int, typer.Option(help="world seed")] = 0,
     rgb_only: Annotated[bool, typer.Option("--rgb-only", help="depth and labels from the ONNX demo models")] = False,
     rerun: Annotated[str, typer.Option("--rerun", help="spawn | save | connect | off")] = "save",
 ) -> None:
     """Simulate the airsim-like world (car, car, UAV) once, then run the whole system on it."""
-    from shgm_slam.demo import demo_config, prepare_world
+    from shgm_slam.demo import demo_config, demo_results_dir, prepare_world
+
+    out = out or demo_results_dir(rgb_only=rgb_only)
 
     def simulate_world(folder: Path) -> None:
         console.print(f"simulating the airsim-like world into [bold]{lit(folder)}[/] (once; cached afterwards)")
@@ -525,6 +550,8 @@ def demo(
     _render_summary(summary)
     if (out / "run.rrd").is_file():
         console.print(f"open the recording with: [bold].venv/bin/rerun {lit(out / 'run.rrd')}[/]")
+    console.print(f"evaluate against ground truth: [bold]shgm-slam eval {lit(out)}[/] or "
+                  f"[bold]evo_ape tum {lit(out / 'car2_gt_tum.txt')} {lit(out / 'car2_fused_tum.txt')}[/]")
 
 
 @app.command("eval")
@@ -579,7 +606,8 @@ def check_model_command(
     runs: Annotated[int, typer.Option(min=1, help="timed runs (median reported)")] = 5,
     threads: Annotated[int, typer.Option(min=0, help="onnxruntime intra-op threads (0 = all cores)")] = 2,
 ) -> None:
-    """Validate a model card against its ONNX model, run it once, show shapes, ranges, speed and a preview."""
+    """Validate a model card against its ONNX model, run it, show shapes, value ranges and speed; with
+    --preview FILE.png also write a preview (image | output side by side)."""
     from rich.table import Table
 
     from shgm_slam.perception.preview import check_model
@@ -762,6 +790,35 @@ def bench_system(
                                        progress=lambda msg: status.update(msg))
     console.print(system_markdown(results))
     console.print(f"wrote {lit(out / 'system.json')} and {lit(out / 'system.md')}")
+
+
+@bench_app.command("distributed")
+@handle_errors
+def bench_distributed(
+    out: Annotated[Path, typer.Option("--out", "-o", help="results folder")] = Path("results/bench_distributed"),
+    cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
+    seed: Annotated[int, typer.Option(help="demo world seed")] = 0,
+    faults: Annotated[
+        str, typer.Option(help="comma-separated distributed runs: none, robot (killed + restarted), server (same)")
+    ] = "none,robot,server",
+    config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
+) -> None:
+    """The demo world in one process and as server + robot processes over Zenoh (with faults): placement,
+    fused ATE, bytes per keyframe, KB/s per robot."""
+    from shgm_slam.bench.distributed import Fault, distributed_markdown, run_distributed_benchmark
+    from shgm_slam.demo import prepare_world
+    from shgm_slam.errors import ConfigError
+
+    try:
+        modes = [Fault(f.strip()) for f in faults.split(",") if f.strip()]
+    except ValueError:
+        raise ConfigError(f"--faults {faults!r}: comma-separated none, robot, server") from None
+    world, _ = prepare_world(cache, seed, lambda folder: _simulate_with_progress("airsim-like", folder, seed))
+    with console.status("starting") as status:
+        result = run_distributed_benchmark(world, out, faults=modes, config=config,
+                                           progress=lambda msg: status.update(msg))  # fmt: skip
+    console.print(distributed_markdown(result))
+    console.print(f"wrote {lit(out / 'distributed.json')} and {lit(out / 'distributed.md')}")
 
 
 @bench_app.command("heldout")

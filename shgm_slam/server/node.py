@@ -80,12 +80,18 @@ class TrafficStats:
 
     bytes_by_kind: dict[str, int] = field(default_factory=dict)
     count_by_kind: dict[str, int] = field(default_factory=dict)
+    bytes_by_robot: dict[str, int] = field(default_factory=dict)  # everything a robot sent
+    sent_by_kind: dict[str, int] = field(default_factory=dict)  # what the server sent (corrections, status)
     refused: int = 0
     refusal_reasons: list[str] = field(default_factory=list)
 
-    def add(self, kind: str, size: int) -> None:
+    def add(self, kind: str, size: int, robot: str) -> None:
         self.bytes_by_kind[kind] = self.bytes_by_kind.get(kind, 0) + size
         self.count_by_kind[kind] = self.count_by_kind.get(kind, 0) + 1
+        self.bytes_by_robot[robot] = self.bytes_by_robot.get(robot, 0) + size
+
+    def sent(self, kind: str, size: int) -> None:
+        self.sent_by_kind[kind] = self.sent_by_kind.get(kind, 0) + size
 
     def refuse(self, reason: str) -> None:
         self.refused += 1
@@ -97,6 +103,8 @@ class TrafficStats:
         return {
             "bytes_by_kind": dict(self.bytes_by_kind),
             "messages_by_kind": dict(self.count_by_kind),
+            "bytes_by_robot": dict(self.bytes_by_robot),
+            "bytes_sent_by_kind": dict(self.sent_by_kind),
             "bytes_per_keyframe": self.bytes_by_kind.get("keyframe", 0) / kf_n if kf_n else None,
             "refused": self.refused,
             "refusal_reasons": list(self.refusal_reasons),
@@ -234,7 +242,7 @@ class ServerNode:
             self._refuse(f"{key}: a {kind} message of robot {robot!r} on robot {sender!r}'s key")
             return None, []
         if live:
-            self.traffic.add(kind, len(payload))
+            self.traffic.add(kind, len(payload), robot)
         now = self.clock()
         if isinstance(msg, HelloMessage):
             return self._hello(msg, payload, now, live=live), []
@@ -335,8 +343,9 @@ class ServerNode:
                     poses[a] = T
             rs.corrected_version = self._pose_version
             self._last_correction_s[robot] = now
-        msg = CorrectionMessage(robot, rs.session, {a: server.received(a) for a in agents}, poses)
-        self.transport.publish(correction_key(robot), encode(msg))
+        payload = encode(CorrectionMessage(robot, rs.session, {a: server.received(a) for a in agents}, poses))
+        self.traffic.sent("correction", len(payload))
+        self.transport.publish(correction_key(robot), payload)
 
     def _broadcast_status(self) -> None:
         self._last_status_s = self.clock()
@@ -349,8 +358,9 @@ class ServerNode:
                 tuple(a for a in agents if self._map().is_placed(a)),
                 agents,
             )
-        msg = StatusMessage(self.session, self.reference or "", robots, self.finished, dict(self._refused))
-        self.transport.publish(STATUS_KEY, encode(msg))
+        payload = encode(StatusMessage(self.session, self.reference or "", robots, self.finished, dict(self._refused)))
+        self.traffic.sent("status", len(payload))
+        self.transport.publish(STATUS_KEY, payload)
 
     def _check_stale(self, now: float) -> None:
         for rs in self.robots.values():

@@ -1,0 +1,240 @@
+"""Distributed benchmark (``shgm-slam bench distributed``): the same world run in one process and as a
+map server plus one process per robot over Eclipse Zenoh on loopback, with optional faults.
+
+It reports, per run: which robots were placed, each robot's fused ATE in the shared frame (no
+alignment) against ground truth, and the traffic: bytes per keyframe, bytes per robot and KB/s per
+robot at the sequence's frame rate (and at 10 Hz), plus the server's corrections. Faults: a robot
+killed (SIGKILL) mid-run and started again, the server killed mid-run and started again.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+
+import numpy as np
+
+from shgm_slam.config import ShgmConfig
+from shgm_slam.data import open_sequence
+from shgm_slam.errors import ShgmError
+from shgm_slam.io.trajectories import read_tum
+from shgm_slam.metrics import ate
+from shgm_slam.runner import open_robots, run_slam
+
+CLI = [sys.executable, "-m", "shgm_slam.cli"]
+
+
+class Fault(str, Enum):
+    NONE = "none"
+    ROBOT = "robot"  # the last robot is killed when the server holds some keyframes, then restarted
+    SERVER = "server"  # the server is killed mid-run, then restarted on the same folder
+
+
+@dataclass
+class RunOutcome:
+    """One way of running the world."""
+
+    label: str
+    placed: dict[str, bool]
+    ate_fused_m: dict[str, float]
+    wall_s: float
+    traffic: dict = field(default_factory=dict)
+    recovered_messages: int = 0
+    error: str = ""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _gt_shared(robots: dict[str, Path]) -> dict[str, np.ndarray]:
+    seqs = {r: open_sequence(str(p)) for r, p in robots.items()}
+    ref = next(iter(seqs.values())).gt_poses
+    if ref is None or any(s.gt_poses is None for s in seqs.values()):
+        raise ShgmError("the distributed benchmark needs ground-truth poses for every robot")
+    T0 = np.linalg.inv(ref[0])
+    return {r: T0 @ s.gt_poses for r, s in seqs.items()}
+
+
+def _ate_from_files(out: Path, robot: str, gt_shared: np.ndarray, times: np.ndarray) -> float:
+    path = out / f"{robot}_fused_tum.txt"
+    if not path.is_file():
+        return float("nan")
+    t, T = read_tum(path)
+    rows = np.searchsorted(times, t)
+    ok = (rows < len(times)) & np.isclose(times[np.minimum(rows, len(times) - 1)], t, atol=1e-6)
+    if ok.sum() < 3:
+        return float("nan")
+    return float(ate(gt_shared[rows[ok]], T[ok], align="none")["rmse"])
+
+
+def _spawn(args: list[str], log_path: Path) -> subprocess.Popen:
+    return subprocess.Popen(args, stdout=open(log_path, "w"), stderr=subprocess.STDOUT)
+
+
+def _wait(p: subprocess.Popen, timeout_s: float, what: str) -> None:
+    try:
+        p.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        raise ShgmError(f"{what} did not finish within {timeout_s:.0f} s") from None
+    if p.returncode != 0:
+        raise ShgmError(f"{what} exited with {p.returncode}")
+
+
+def _journal_grew(out: Path, nbytes: int, server: subprocess.Popen, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        j = out / "journal.bin"
+        if j.is_file() and j.stat().st_size >= nbytes:
+            return
+        if server.poll() is not None:
+            raise ShgmError(f"the server exited early ({server.returncode})")
+        time.sleep(0.1)
+    raise ShgmError("the server received too little to inject the fault")
+
+
+def run_distributed(
+    robots: dict[str, Path],
+    out: Path,
+    *,
+    fault: Fault = Fault.NONE,
+    config: Path | None = None,
+    timeout_s: float = 600.0,
+) -> RunOutcome:
+    """Server + one process per robot on loopback; the server's results are judged against ground truth."""
+    out.mkdir(parents=True, exist_ok=True)
+    port = _free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    cfg_args = ["--config", str(config)] if config is not None else []
+    names = list(robots)
+    server_args = [*CLI, "server", "--out", str(out), "--expect", str(len(names)), "--listen", endpoint,
+                   "--reference", names[0], "--rerun", "off", *cfg_args]  # fmt: skip
+
+    def robot(name: str, i: int) -> subprocess.Popen:
+        return _spawn([*CLI, "robot", f"{name}={robots[name]}", "--connect", endpoint, "--wait", str(timeout_s),
+                       *cfg_args], out / f"{name}.{i}.log")  # fmt: skip
+
+    t0 = time.perf_counter()
+    server = _spawn(server_args, out / "server.0.log")
+    procs = {n: robot(n, 0) for n in names}
+    if fault is Fault.ROBOT:
+        _journal_grew(out, 30_000, server, timeout_s)
+        victim = names[-1]
+        os.kill(procs[victim].pid, signal.SIGKILL)
+        procs[victim].wait()
+        time.sleep(3.0)  # past the server's name-clash window
+        procs[victim] = robot(victim, 1)
+    elif fault is Fault.SERVER:
+        _journal_grew(out, 60_000, server, timeout_s)
+        os.kill(server.pid, signal.SIGKILL)
+        server.wait()
+        time.sleep(1.0)
+        server = _spawn(server_args, out / "server.1.log")
+    _wait(server, timeout_s, "the server")
+    for n, p in procs.items():
+        _wait(p, timeout_s, f"robot {n}")
+    wall = time.perf_counter() - t0
+    s = json.loads((out / "server.json").read_text())
+    gt = _gt_shared(robots)
+    times = {r: np.asarray(open_sequence(str(p)).timestamps_s) for r, p in robots.items()}
+    return RunOutcome(
+        f"server + {len(names)} robot processes" + ("" if fault is Fault.NONE else f", {fault.value} killed"),
+        {r: r in s["robots"].get(r, {}).get("placed", []) for r in names},
+        {r: _ate_from_files(out, r, gt[r], times[r]) for r in names},
+        wall, s["traffic"], s.get("recovered_messages", 0),
+    )  # fmt: skip
+
+
+def run_in_process(robots: dict[str, Path], out: Path, cfg: ShgmConfig) -> RunOutcome:
+    """``shgm-slam run`` on the same robots (the in-process bus)."""
+    seqs = open_robots([f"{r}={p}" for r, p in robots.items()])
+    t0 = time.perf_counter()
+    summary = run_slam(seqs, cfg, out)
+    return RunOutcome(
+        "shgm-slam run (one process)",
+        {r.name: r.localized for r in summary.robots},
+        {r.name: r.ate_fused_m for r in summary.robots},
+        time.perf_counter() - t0,
+    )
+
+
+def run_distributed_benchmark(
+    world: Path,
+    out: Path,
+    *,
+    faults: list[Fault],
+    config: Path | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """The world once in process and once per fault mode distributed; JSON-ready results."""
+    from shgm_slam.config import load_config
+
+    scenario = json.loads((world / "scenario.json").read_text())
+    robots = {r["name"]: world / r["name"] for r in scenario["robots"]}
+    cfg = load_config(config)
+    runs = []
+    say = progress or (lambda _msg: None)
+    say("in-process run")
+    runs.append(run_in_process(robots, out / "run", cfg))
+    for fault in faults:
+        say(f"distributed, fault: {fault.value}")
+        try:
+            runs.append(run_distributed(robots, out / f"distributed-{fault.value}", fault=fault, config=config))
+        except ShgmError as exc:
+            runs.append(RunOutcome(f"distributed, {fault.value}", {}, {}, float("nan"), error=str(exc)))
+    fps = _frame_rate(robots)
+    result = {"world": str(world), "frame_rate_hz": fps, "runs": [vars(r) for r in runs]}
+    for r in result["runs"]:
+        t = r["traffic"]
+        if t:
+            frames = {n: len(open_sequence(str(p))) for n, p in robots.items()}
+            r["kb_per_s_per_robot"] = {n: b / 1e3 / (frames[n] / fps) for n, b in t["bytes_by_robot"].items()}
+            r["kb_per_s_per_robot_at_10hz"] = {n: b / 1e3 / (frames[n] / 10.0) for n, b in t["bytes_by_robot"].items()}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "distributed.json").write_text(json.dumps(result, indent=2, default=float))
+    (out / "distributed.md").write_text(distributed_markdown(result))
+    return result
+
+
+def _frame_rate(robots: dict[str, Path]) -> float:
+    t = np.asarray(open_sequence(str(next(iter(robots.values())))).timestamps_s)
+    return float(1.0 / np.median(np.diff(t))) if len(t) > 1 else float("nan")
+
+
+def distributed_markdown(result: dict) -> str:
+    """Two tables: placement and fused ATE per run, and traffic per distributed run."""
+    runs = result["runs"]
+    robots = list(runs[0]["placed"]) if runs else []
+    head = "| run | " + " | ".join(f"{r} placed / ATE m" for r in robots) + " | wall s |"
+    lines = [head, "|" + "---|" * (len(robots) + 2)]
+    for r in runs:
+        if r["error"]:
+            lines.append(f"| {r['label']} | " + " | ".join("—" for _ in robots) + f" | failed: {r['error']} |")
+            continue
+        cells = [
+            f"{'yes' if r['placed'].get(n) else 'no'} / {r['ate_fused_m'].get(n, float('nan')):.2f}" for n in robots
+        ]
+        lines.append(f"| {r['label']} | " + " | ".join(cells) + f" | {r['wall_s']:.0f} |")
+    lines += ["", "| run | bytes / keyframe | keyframe messages | KB/s per robot at 10 Hz | server sent KB |",
+              "|---|---|---|---|---|"]  # fmt: skip
+    for r in runs:
+        t = r["traffic"]
+        if not t:
+            continue
+        rates = ", ".join(f"{n} {v:.1f}" for n, v in r["kb_per_s_per_robot_at_10hz"].items())
+        sent = sum(t["bytes_sent_by_kind"].values()) / 1e3
+        lines.append(f"| {r['label']} | {t['bytes_per_keyframe']:.0f} | {t['messages_by_kind'].get('keyframe', 0)} | "
+                     f"{rates} | {sent:.0f} |")  # fmt: skip
+    return "\n".join(lines) + "\n"
