@@ -17,6 +17,10 @@ from shgm_slam.errors import DataError
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 """Where the trained demo ONNX models live (a source checkout's ``models/``)."""
 
+RESULTS_DIR = Path("results/demo")
+RGB_ONLY_RESULTS_DIR = Path("results/demo-rgb")
+"""Default results folders: the plain and the ``--rgb-only`` demo never overwrite each other."""
+
 RGB_ONLY_MATCH_EVERY_KEYFRAMES = 5
 RGB_ONLY_MIN_MATCHES_TO_ANCHOR = 2
 
@@ -43,6 +47,11 @@ def prepare_world(
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise DataError(f"{scenario} is unreadable ({exc}); delete {world} to simulate it again") from None
     return world, kinds
+
+
+def demo_results_dir(*, rgb_only: bool = False) -> Path:
+    """``results/demo`` or, for the RGB-only demo, ``results/demo-rgb`` (relative to the working folder)."""
+    return RGB_ONLY_RESULTS_DIR if rgb_only else RESULTS_DIR
 
 
 def demo_config(*, rgb_only: bool = False, base: ShgmConfig | None = None) -> ShgmConfig:

@@ -184,6 +184,7 @@ def evaluate_results(
     order = run_robot_order(root)
     result = EvaluationResult(root, order[0], "")
     truth: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    own_frame: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     if sequences:
         unknown = sorted(set(sequences) - set(order))
         if unknown:
@@ -197,6 +198,10 @@ def evaluate_results(
         if not poses:
             raise DataError(f"the sequence of {order[0]} has no ground truth (poses.txt or <root>/poses/<seq>.txt)")
         truth = {r: (np.asarray(ordered[r].timestamps_s), poses[r]) for r in poses}
+        own_frame = {  # not in the shared frame: only the SE(3)-aligned error is measurable
+            r: (np.asarray(seq.timestamps_s), np.asarray(seq.gt_poses))
+            for r, seq in ordered.items() if r not in poses and seq.gt_poses is not None
+        }  # fmt: skip
         result.gt_source = "sequences"
         if write_gt:
             result.gt_files_written = ResultsWriter(root).write_ground_truth(ordered, gt_shared_frame)
@@ -214,6 +219,11 @@ def evaluate_results(
     for r in order:
         if r in truth:
             result.robots.append(_evaluate_robot(r, root / f"{r}_fused_tum.txt", *truth[r]))
+        elif r in own_frame:
+            rep = _evaluate_robot(r, root / f"{r}_fused_tum.txt", *own_frame[r])
+            rep.ate_fused_m = rep.max_error_m = float("nan")
+            rep.note = rep.note or "ground truth in another frame: aligned only"
+            result.robots.append(rep)
         else:
             fused = root / f"{r}_fused_tum.txt"
             count = len(read_tum(fused)[0]) if fused.is_file() else 0

@@ -54,3 +54,75 @@ def test_stop_signals_keep_the_results_like_ctrl_c(tiny_scenario, tmp_path, sig)
     assert metrics["interrupted"] is True
     assert b"interrupted: results written so far are kept" in stdout
     assert (out / "car0_odometry_tum.txt").is_file()
+
+
+def _summary(names, failures=0):
+    from types import SimpleNamespace
+
+    robots = [
+        SimpleNamespace(name=n, frames=4541, keyframes=1520, nodes=12345, odometry_failures=failures, localized=k != 1,
+           segments=failures + 1, segments_placed=failures, path_length_m=3724.4, ate_odometry_m=float("nan"),
+           ate_fused_m=1234.56, ate_odometry_aligned_m=12.345, ate_fused_aligned_m=56.78, failure_reasons=[])
+        for k, n in enumerate(names)
+    ]  # fmt: skip
+    return SimpleNamespace(robots=robots, matches_tried=1, closures_accepted=1, closures_rejected=0,
+                           timings_ms={"odometry": 1.0}, per_keyframe_ms=2.0, skipped_reasons=[], interrupted=False,
+                           out_dir="results/x")  # fmt: skip
+
+
+@pytest.mark.parametrize("failures", [0, 12])
+def test_summary_table_fits_80_columns_without_cutting(failures):
+    from rich.console import Console
+
+    from shgm_slam.cli import _summary_table
+
+    console = Console(width=80, record=True, color_system=None)
+    console.print(_summary_table(_summary(["car1", "kitti08a", "uav"], failures)))
+    text = console.export_text()
+    assert "…" not in text and max(len(line) for line in text.splitlines()) <= 80
+    for word in ("robot", "frames", "kf", "nodes", "odo", "fail", "fused", "path", "ATE", "aligned", "odo/fused"):
+        assert word in text
+    for value in ("kitti08a", "4541", "1520", "12345", "3724", "1235", "12.35/56.78", "-"):
+        assert value in text
+    if failures:
+        assert f"{failures}/{failures + 1}" in text
+
+
+def test_summary_table_folds_long_robot_names_instead_of_cutting():
+    from rich.console import Console
+
+    from shgm_slam.cli import _summary_table
+
+    name = "a_very_long_robot_name_of_32_chr"
+    console = Console(width=80, record=True, color_system=None)
+    console.print(_summary_table(_summary([name])))
+    text = console.export_text()
+    assert "…" not in text and max(len(line) for line in text.splitlines()) <= 80
+    assert "".join(line.split()[0] for line in text.splitlines() if line.strip() and line.split()[0] in name)
+
+
+@pytest.mark.parametrize("command", [["run"], ["graph"], ["perceive"], ["eval"], ["robot"]])
+def test_frame_range_semantics_in_help(command):
+    import re
+
+    res = runner.invoke(app, [*command, "--help"], env={"COLUMNS": "200"})
+    assert res.exit_code == 0, res.output
+    text = re.sub(r"[\s│]+", " ", res.output)
+    assert "half-open" in text or "start..end-1" in text
+
+
+def test_check_model_writes_a_preview_only_when_asked(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    model = Path(__file__).resolve().parents[1] / "models" / "demo_seg.onnx"
+    if not model.is_file():
+        pytest.skip("demo models are absent")
+    monkeypatch.chdir(tmp_path)
+    res = runner.invoke(app, ["check-model", str(model), "--runs", "1", "--threads", "1"])
+    assert res.exit_code == 0, res.output
+    assert not list(tmp_path.rglob("*.png")) and "preview" not in res.output
+    res = runner.invoke(app, ["check-model", str(model), "--runs", "1", "--threads", "1", "--preview", "p.png"])
+    assert res.exit_code == 0 and (tmp_path / "p.png").is_file()
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    row = next(line for line in readme.splitlines() if line.startswith("| `shgm-slam check-model"))
+    assert "--preview" in row  # the README says a preview needs --preview

@@ -48,3 +48,23 @@ def test_rgb_only_without_models_names_the_training_script(monkeypatch, tmp_path
     monkeypatch.setattr("shgm_slam.demo.MODELS_DIR", tmp_path)
     with pytest.raises(DataError, match="train_demo_models"):
         demo_config(rgb_only=True)
+
+
+def test_plain_and_rgb_only_demos_write_separate_results(monkeypatch, tmp_path):
+    """``demo --rgb-only`` must not overwrite the plain demo's results (results/demo vs results/demo-rgb)."""
+    from types import SimpleNamespace
+
+    from typer.testing import CliRunner
+
+    import shgm_slam.cli as cli
+    import shgm_slam.demo as demo
+
+    outs = []
+    monkeypatch.setattr(demo, "prepare_world", lambda cache, seed, fn: (tmp_path, {"car1": "car"}))
+    monkeypatch.setattr(cli, "_run_command", lambda robots, cfg, out, *a: outs.append(out) or SimpleNamespace())
+    monkeypatch.setattr(cli, "_render_summary", lambda summary: None)
+    for args in ([], ["--rgb-only"], ["--out", str(tmp_path / "mine")]):
+        res = CliRunner().invoke(cli.app, ["demo", "--rerun", "off", *args])
+        assert res.exit_code == 0, res.output
+    assert outs == [demo.RESULTS_DIR, demo.RGB_ONLY_RESULTS_DIR, tmp_path / "mine"]
+    assert demo.RESULTS_DIR != demo.RGB_ONLY_RESULTS_DIR

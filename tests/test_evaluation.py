@@ -112,3 +112,12 @@ def test_cli_eval(world, tmp_path):
     assert res.exit_code == 0 and "0.50" in res.output and "car2" in res.output
     res = CliRunner().invoke(app, ["eval", str(tmp_path / "missing")])
     assert res.exit_code == 2
+
+
+def test_without_a_shared_ground_truth_frame_only_aligned_errors(world, tmp_path):
+    robots = _results(world, tmp_path)
+    rows = {r.name: r for r in evaluate_results(tmp_path, robots, gt_shared_frame=False).robots}
+    assert rows["car1"].ate_fused_m < 1e-6
+    assert np.isnan(rows["car2"].ate_fused_m) and rows["car2"].ate_fused_aligned_m < 1e-6
+    assert "aligned only" in rows["car2"].note
+    assert not (tmp_path / "car2_gt_tum.txt").exists() and (tmp_path / "car1_gt_tum.txt").is_file()
