@@ -142,7 +142,7 @@ def associate(t_est: np.ndarray, t_gt: np.ndarray, tol_s: float = TIME_TOLERANCE
 
 def _evaluate_robot(name: str, fused_file: Path, t_gt: np.ndarray, gt: np.ndarray) -> RobotEvaluation:
     if not fused_file.is_file():
-        return RobotEvaluation(name, 0, 0, note="not placed in the shared frame (no fused trajectory)")
+        return RobotEvaluation(name, 0, 0, note="not placed (no fused trajectory)")
     t_est, est = read_tum(fused_file)
     rows_est, rows_gt = associate(t_est, t_gt)
     rep = RobotEvaluation(name, len(t_est), len(rows_est))

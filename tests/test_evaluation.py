@@ -30,7 +30,7 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from shgm_slam.sim.simulate import simulate
 
     out = tmp_path_factory.mktemp("eval_world")
-    simulate("airsim-like", out, resolution=(160, 48), fps=2.0, compact=True, max_frames=12)
+    simulate("airsim-like", out, resolution=(320, 96), fps=4.0, compact=True, max_frames=12)
     return out
 
 
@@ -121,3 +121,17 @@ def test_without_a_shared_ground_truth_frame_only_aligned_errors(world, tmp_path
     assert np.isnan(rows["car2"].ate_fused_m) and rows["car2"].ate_fused_aligned_m < 1e-6
     assert "aligned only" in rows["car2"].note
     assert not (tmp_path / "car2_gt_tum.txt").exists() and (tmp_path / "car1_gt_tum.txt").is_file()
+
+
+def test_cli_run_writes_ground_truth_that_eval_and_evo_read(world, tmp_path):
+    out = tmp_path / "run"
+    args = ["run", "--robot", f"car1={world / 'car1'}", "--robot", f"car2={world / 'car2'}:2-", "--rerun", "off",
+            "--out", str(out)]  # fmt: skip
+    res = CliRunner().invoke(app, args, env={"COLUMNS": "80"})
+    assert res.exit_code == 0, res.output
+    assert (out / "car1_gt_tum.txt").is_file() and (out / "car2_gt_tum.txt").is_file()
+    metrics = {r["name"]: r for r in json.loads((out / "metrics.json").read_text())["robots"]}
+    rows = {r.name: r for r in evaluate_results(out).robots}
+    assert rows["car1"].ate_fused_m == pytest.approx(metrics["car1"]["ate_fused_m"], abs=1e-6)
+    if metrics["car2"]["localized"]:
+        assert rows["car2"].ate_fused_m == pytest.approx(metrics["car2"]["ate_fused_m"], abs=1e-6)
