@@ -20,15 +20,18 @@ from shgm_slam.config import OdometryKind, RobotOverrides, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.data.interleave import interleave
 from shgm_slam.errors import ConfigError, DataError
-from shgm_slam.fusion import fuse_frames
+from shgm_slam.fusion import fuse_segments
 from shgm_slam.geometry import se3
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.metrics import ate
 from shgm_slam.odometry.sources import make_odometry
 from shgm_slam.perception import make_perception
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
+from shgm_slam.robot.node import RobotNode
 from shgm_slam.scene_scale import effective_fields, resolve_robot_config, sample_scene_scale
 from shgm_slam.server.map_server import MapServer
+from shgm_slam.server.node import ServerNode
+from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 from shgm_slam.types import Sequence
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
 
@@ -225,7 +228,17 @@ def run_slam(
         )
     writer = ResultsWriter(out_dir)
     fronts = {r: make_frontend(r, seq, cfg) for r, seq in robots.items()}
-    server = MapServer(names, cfg)
+    # the same nodes as the distributed deployment, on the in-process bus (every message is encoded)
+    bus = InProcessBus()
+    server_node = ServerNode(
+        cfg, InProcessTransport(bus), out_dir, reference=names[0], expect=len(names), journal=False,
+        write_every_keyframes=write_every_keyframes,
+    )  # fmt: skip
+    nodes = {r: RobotNode(f, InProcessTransport(bus)) for r, f in fronts.items()}
+    for node in nodes.values():
+        node.hello()
+    server_node.poll()
+    server = server_node.map
     viz.setup({r: seq.intrinsics for r, seq in robots.items()})
     writer.write_text("config.yaml", effective_config(cfg, {r: f.cfg for r, f in fronts.items()}).to_yaml())
     total = sum(len(s) for s in robots.values())
@@ -241,7 +254,7 @@ def run_slam(
         for robot, index in interleave(robots):
             done += 1
             try:
-                res = fronts[robot].process(index)
+                res = nodes[robot].step(index)
             except DataError as exc:
                 skipped.append(f"{robot} frame {index}: {exc}")
                 viz.log_text(f"{robot}: skipped frame {index}: {exc}", "WARN")
@@ -255,24 +268,27 @@ def run_slam(
                     _last_healthy_position(fronts[robot], server),
                 )  # fmt: skip
             t0 = time.perf_counter()
-            records = server.receive(res.message) if res.message is not None else []
-            backend_ms = (time.perf_counter() - t0) * 1e3
-            res.timings_ms["server"] = backend_ms
+            records = server_node.poll()
+            res.timings_ms["server"] = (time.perf_counter() - t0) * 1e3
+            nodes[robot].poll()
             timings.add(res.timings_ms)
             compute_ms += sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
             _log_frame(viz, server, fronts[robot], res, records)
-            if res.message is not None:
-                kf_total += 1
-                if kf_total % write_every_keyframes == 0:
-                    _write_results(writer, fronts, server, robots)
+            kf_total += res.message is not None
             if progress:
                 progress(done, total)
     except KeyboardInterrupt:
         interrupted = True
-    if not interrupted:
-        records = server.finalize()
-        _log_matches(viz, server, records)
-    _write_results(writer, fronts, server, robots)
+    if interrupted:  # no final matching: write what there is
+        server_node.expect = None
+    for node in nodes.values():
+        node.done()
+    records = server_node.poll()  # every robot done: the server matches whole graphs and writes the results
+    if not server_node.finished:
+        server_node.finish(match=not interrupted)
+    _log_matches(viz, server, records)
+    for node in nodes.values():
+        node.poll()
     reports = _evaluate(fronts, server, robots, processed, gt_shared_frame)
     accepted = sum(m.accepted for m in server.matches)
     summary = RunSummary(
@@ -317,26 +333,13 @@ def _placed_segments(front: RobotFrontend, server: MapServer) -> list[tuple[int,
 def _fused(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
     """(N, 4, 4) fused poses: the frames of every placed segment in the shared frame, NaN elsewhere;
     None when no segment is placed."""
-    placed = _placed_segments(front, server)
-    if not placed:
-        return None
-    out = np.full_like(front.T_odom_cam, np.nan)
-    for k, T_shared_kf in placed:
-        rows = front.frame_segment == k
-        seg = front.segments[k]
-        out[rows] = fuse_frames(front.T_odom_cam[rows], front.frame_kf[rows], np.stack(seg.kf_poses), T_shared_kf)
-    return out
-
-
-def _write_results(writer: ResultsWriter, fronts, server: MapServer, robots: dict[str, Sequence]) -> None:
-    # odometry file: every segment in its own odometry frame (each restarts at the identity), the frames
-    # between a divergence and the next segment left out; metrics.json lists the segments' frames
-    for r, front in fronts.items():
-        writer.write_trajectories(r, np.asarray(robots[r].timestamps_s), front.T_odom_cam, _fused(front, server))
-        for seg in front.segments:
-            writer.write_graph(seg.agent, seg.graph.arrays())
-    writer.write_matches(server.matches)
-    writer.write_text("pose_graph.g2o", server.to_g2o())
+    segs = [s for s in front.segments if s.num_keyframes]
+    return fuse_segments(
+        front.T_odom_cam, front.frame_segment,
+        {s.index: np.asarray(s.kf_frames, dtype=np.int64) for s in segs},
+        {s.index: np.stack(s.kf_poses) for s in segs},
+        dict(_placed_segments(front, server)),
+    )  # fmt: skip
 
 
 def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: bool) -> list[RobotReport]:

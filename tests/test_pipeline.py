@@ -11,11 +11,11 @@ import pytest
 
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
+from shgm_slam.data.interleave import interleave
 from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.fusion import fuse_frames
 from shgm_slam.geometry import se3
 from shgm_slam.io.trajectories import read_kitti_poses, read_tum, write_kitti_poses
-from shgm_slam.data.interleave import interleave
-from shgm_slam.fusion import fuse_frames
 from shgm_slam.robot.keyframes import KeyframeSelector
 from shgm_slam.runner import open_robots, parse_robot_arg, run_slam
 

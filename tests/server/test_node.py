@@ -104,8 +104,8 @@ def test_robot_killed_and_restarted_resumes_without_loss(uninterrupted, robots, 
     clock, bus = FakeClock(), InProcessBus()
     server = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=2, clock=clock)
     nodes = _fresh(robots, cfg, bus, clock)
-    n2 = len(robots["car2"])
-    _drive(server, nodes, {"car1": range(len(robots["car1"])), "car2": range(n2 // 2)}, clock)
+    k = min(len(s) for s in robots.values()) // 2  # both robots cut at the same frame: the same order as uninterrupted
+    _drive(server, nodes, {r: range(k) for r in nodes}, clock)
     held = server.map.received("car2")
     assert held > 0
     nodes["car2"].transport.close()  # killed
@@ -115,7 +115,9 @@ def test_robot_killed_and_restarted_resumes_without_loss(uninterrupted, robots, 
     server.poll()
     restarted.poll()
     nodes["car2"] = restarted
-    _drive(server, nodes, {"car2": range(n2)}, clock)
+    _drive(server, nodes, {"car2": range(k)}, clock)  # its first half again: the server ignores it all
+    assert server.map.received("car2") == held
+    _drive(server, nodes, {r: range(k, len(robots[r])) for r in nodes}, clock)
     _finish(server, nodes, clock)
     assert server.map.received("car2") == uninterrupted.map.received("car2")
     np.testing.assert_allclose(_fused(server, "car2"), _fused(uninterrupted, "car2"), atol=0.05)
@@ -125,8 +127,8 @@ def test_server_killed_and_restarted_recovers_from_its_journal(uninterrupted, ro
     clock, bus = FakeClock(), InProcessBus()
     first = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=2, clock=clock)
     nodes = _fresh(robots, cfg, bus, clock)
-    half = {r: range(len(robots[r]) // 2) for r in nodes}
-    _drive(first, nodes, half, clock)
+    k = min(len(s) for s in robots.values()) // 2
+    _drive(first, nodes, {r: range(k) for r in nodes}, clock)
     held = {a: first.map.received(a) for a in first.map.agents}
     matches = len(first.map.matches)
     first.transport.close()  # killed: nothing but its journal survives
@@ -138,7 +140,7 @@ def test_server_killed_and_restarted_recovers_from_its_journal(uninterrupted, ro
     second.poll()  # status with the new session: robots say hello again and re-send what is missing
     for n in nodes.values():
         n.poll()
-    _drive(second, nodes, {r: range(len(robots[r]) // 2, len(robots[r])) for r in nodes}, clock)
+    _drive(second, nodes, {r: range(k, len(robots[r])) for r in nodes}, clock)
     _finish(second, nodes, clock)
     assert second.map.received("car2") == uninterrupted.map.received("car2")
     np.testing.assert_allclose(_fused(second, "car2"), _fused(uninterrupted, "car2"), atol=0.05)

@@ -1,0 +1,130 @@
+"""Robots and the map server as separate processes over Eclipse Zenoh on loopback (bounded in time):
+the server finishes by itself, also when a robot or the server is killed mid-run and started again."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shgm_slam.io.trajectories import read_tum
+
+CLI = [sys.executable, "-m", "shgm_slam.cli"]
+TIMEOUT_S = 150
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _server(out: Path, port: int, expect: int = 2) -> subprocess.Popen:
+    return subprocess.Popen(
+        [*CLI, "server", "--out", str(out), "--expect", str(expect), "--listen", f"tcp/127.0.0.1:{port}",
+         "--reference", "car1", "--rerun", "off"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+
+
+def _robot(name: str, seq: Path, port: int, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [*CLI, "robot", f"{name}={seq}", "--connect", f"tcp/127.0.0.1:{port}", "--odometry", "gt",
+         "--wait", "90", *extra],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+
+
+def _wait(p: subprocess.Popen, what: str) -> str:
+    try:
+        out, _ = p.communicate(timeout=TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        out, _ = p.communicate()
+        pytest.fail(f"{what} did not finish within {TIMEOUT_S} s:\n{out[-3000:]}")
+    assert p.returncode == 0, f"{what} exited {p.returncode}:\n{out[-3000:]}"
+    return out
+
+
+def _check_results(out: Path, tiny_scenario: Path) -> dict:
+    s = json.loads((out / "server.json").read_text())
+    assert s["finished"]
+    assert set(s["robots"]) == {"car1", "car2"}
+    assert all(r["done"] for r in s["robots"].values())
+    assert "car2" in s["robots"]["car2"]["placed"]
+    _, T = read_tum(out / "car2_fused_tum.txt")
+    gt = np.loadtxt(tiny_scenario / "car2" / "poses.txt").reshape(-1, 3, 4)
+    gt0 = np.vstack([np.loadtxt(tiny_scenario / "car1" / "poses.txt").reshape(-1, 3, 4)[0], [0, 0, 0, 1]])
+    assert len(T) == len(gt)
+    gt_shared = np.linalg.inv(gt0)[None] @ np.concatenate([gt, np.tile([[[0, 0, 0, 1.0]]], (len(gt), 1, 1))], 1)
+    err = np.linalg.norm(T[:, :3, 3] - gt_shared[:, :3, 3], axis=1)
+    assert np.sqrt(np.mean(err**2)) < 2.0, err
+    for f in ("matches.json", "pose_graph.g2o", "config.yaml", "car1_fused_tum.txt", "journal.bin"):
+        assert (out / f).exists(), f
+    return s
+
+
+
+def test_server_and_two_robot_processes_finish_and_fuse(tiny_scenario: Path, tmp_path: Path) -> None:
+    port = _free_port()
+    robots = [_robot("car2", tiny_scenario / "car2", port)]  # a robot may start before the server
+    time.sleep(0.5)
+    server = _server(tmp_path, port)
+    robots.append(_robot("car1", tiny_scenario / "car1", port))
+    _wait(server, "server")
+    for r in robots:
+        _wait(r, "robot")
+    s = _check_results(tmp_path, tiny_scenario)
+    assert s["traffic"]["bytes_per_keyframe"] < 5000
+    assert s["traffic"]["refused"] == 0
+
+
+def _wait_for_keyframes(out: Path, server: subprocess.Popen, robot: str) -> None:
+    """Until the server journal has grown (keyframes arrived), bounded."""
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        j = out / "journal.bin"
+        if j.exists() and j.stat().st_size > 20_000:
+            return
+        assert server.poll() is None, server.communicate()[0][-3000:]
+        time.sleep(0.2)
+    pytest.fail(f"no keyframes of {robot} arrived in 60 s")
+
+
+def test_robot_killed_mid_run_and_restarted_resumes(tiny_scenario: Path, tmp_path: Path) -> None:
+    port = _free_port()
+    server = _server(tmp_path, port)
+    car1 = _robot("car1", tiny_scenario / "car1", port)
+    car2 = _robot("car2", tiny_scenario / "car2", port, "--realtime")
+    _wait_for_keyframes(tmp_path, server, "car2")
+    os.kill(car2.pid, signal.SIGKILL)
+    car2.communicate()
+    car2 = _robot("car2", tiny_scenario / "car2", port)
+    _wait(server, "server")
+    for r in (car1, car2):
+        _wait(r, "robot")
+    _check_results(tmp_path, tiny_scenario)
+
+
+def test_server_killed_mid_run_and_restarted_recovers(tiny_scenario: Path, tmp_path: Path) -> None:
+    port = _free_port()
+    server = _server(tmp_path, port)
+    robots = [_robot(n, tiny_scenario / n, port, "--realtime") for n in ("car1", "car2")]
+    _wait_for_keyframes(tmp_path, server, "car1")
+    os.kill(server.pid, signal.SIGKILL)
+    server.communicate()
+    time.sleep(1.0)
+    server = _server(tmp_path, port)
+    out = _wait(server, "restarted server")
+    for r in robots:
+        _wait(r, "robot")
+    s = _check_results(tmp_path, tiny_scenario)
+    assert s["recovered_messages"] > 0, out[-2000:]
