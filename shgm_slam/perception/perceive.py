@@ -24,8 +24,9 @@ import json
 import os
 import shutil
 import time
+from collections import deque
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -313,7 +314,24 @@ def perceive(
     def load(batch: list[int]) -> list[np.ndarray]:
         return [sequence[i].image_rgb for i in batch]  # type: ignore[misc]
 
-    with ThreadPoolExecutor(max_workers=1) as loader:  # loads the next batch while the models run
+    def write(batch: list[int], depths: list[np.ndarray] | None, labels: list[np.ndarray] | None) -> int:
+        for i, d in zip(batch, depths or [], strict=False):
+            write_png_atomic(frame_file(out / DEPTH_DIR, i), encode_depth(d))
+        for i, lab in zip(batch, labels or [], strict=False):
+            write_png_atomic(frame_file(out / LABEL_DIR, i), lab.astype(np.uint8))
+        return len(batch)
+
+    written: deque[Future[int]] = deque()
+
+    def collect(keep: int) -> None:
+        """Wait until at most ``keep`` batches are still being written; count and report the rest."""
+        while len(written) > keep:
+            result.computed += written.popleft().result()
+            if progress:
+                progress(result.computed, len(todo))
+
+    # three stages overlap: loading the next batch, the models, PNG encoding of the previous batch
+    with ThreadPoolExecutor(max_workers=1) as loader, ThreadPoolExecutor(max_workers=1) as writer:
         pending = loader.submit(load, batches[0]) if batches else None
         try:
             if progress:
@@ -322,21 +340,22 @@ def perceive(
                 assert pending is not None
                 rgb = pending.result()
                 pending = loader.submit(load, batches[k + 1]) if k + 1 < len(batches) else None
+                depths = labels = None
                 if depth is not None:
-                    for i, d in zip(batch, depth.predict_batch(rgb, sequence.intrinsics), strict=True):
-                        write_png_atomic(frame_file(out / DEPTH_DIR, i), encode_depth(d))
+                    depths = depth.predict_batch(rgb, sequence.intrinsics)
                     inference_ms["depth"] += depth.last_timings.total_ms
                 if seg is not None:
-                    for i, labels in zip(batch, seg.predict_batch(rgb), strict=True):
-                        write_png_atomic(frame_file(out / LABEL_DIR, i), labels.astype(np.uint8))
+                    labels = seg.predict_batch(rgb)
                     inference_ms["segmentation"] += seg.last_timings.total_ms
-                result.computed += len(batch)
-                if progress:
-                    progress(result.computed, len(todo))
+                written.append(writer.submit(write, batch, depths, labels))
+                collect(keep=1)
+            collect(keep=0)
         except KeyboardInterrupt:
             result.interrupted = True
             if pending is not None:
                 pending.cancel()
+            while written:  # batches already handed to the writer finish (each file is atomic anyway)
+                result.computed += written.popleft().result()
     result.inference_ms_per_frame = {
         k: v / result.computed for k, v in inference_ms.items() if result.computed and k in providers
     }
