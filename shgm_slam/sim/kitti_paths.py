@@ -199,14 +199,22 @@ def _track_xy(drives: np.ndarray | list[np.ndarray]) -> np.ndarray:
 
 
 def align_drive(
-    T_ref: np.ndarray | list[np.ndarray], T_src: np.ndarray | list[np.ndarray], min_overlap: float = 0.3
+    T_ref: np.ndarray | list[np.ndarray],
+    T_src: np.ndarray | list[np.ndarray],
+    min_overlap: float = 0.3,
+    min_overlap_m: float = 150.0,
 ) -> tuple[np.ndarray, dict]:
     """Yaw + translation ``T_ref_src`` that lays drive ``src`` onto drive ``ref`` where they overlap.
 
     Args:
         T_ref, T_src: (N, 4, 4) / (M, 4, 4) poses in their own z-up frames, or lists of such stacks that
             share one frame (several drives of one sequence).
-        min_overlap: fraction of ``src`` that must end within 3 m of ``ref``.
+        min_overlap, min_overlap_m: the fraction of ``src`` that must end within 3 m of ``ref``, or failing
+            that the metres of it (long drives, e.g. whole sequences, share a small fraction).
+
+    The transform is *an* alignment under which the drives share street, which is all a generated world
+    needs; for drives of different days it need not be KITTI's true relation (07 onto the whole of 00
+    finds 254 m of fit at another place than the street they really share).
 
     Returns: the (4, 4) transform and stats (overlap fraction and length, RMSE of the overlap, metres).
     """
@@ -223,7 +231,7 @@ def align_drive(
             best = (score, T, d)
     score, T, d = best
     near = d < 3.0
-    if score < min_overlap * len(src):
+    if score < min(min_overlap * len(src), min_overlap_m):
         raise SimulationError(
             f"could not find where the drives overlap (only {score} of {len(src)} m within 3 m); "
             "choose KITTI frame ranges that drive the same street (e.g. 00:2600-2900 and 07:0-350)"

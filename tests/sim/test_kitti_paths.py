@@ -163,3 +163,10 @@ def test_cli_simulate_kitti_drives(tmp_path):
     other = CliRunner().invoke(app, ["simulate", "-s", "disjoint", "-o", str(tmp_path / "w3"),
                                      "--kitti-drive", "03:0-10"])  # fmt: skip
     assert other.exit_code == 2 and "only apply to the kitti-paths" in other.output
+
+
+def test_real_kitti_whole_sequences(shared_data):
+    """Whole sequences as robots: 09 and 10 share ~175 m, a small fraction of 10's 918 m, still accepted."""
+    robots, notes = kitti_trajectories(shared_data / "kitti", ("09", "10"))
+    assert [(r.name, len(r)) for r in robots] == [("kitti09", 1591), ("kitti10", 1201)]
+    assert notes["kitti10"]["overlap_length_m"] > 150.0 and notes["kitti10"]["rmse_m"] < 2.0
