@@ -662,8 +662,10 @@ def perceive_command(
         chosen = Provider(provider)
     except ValueError:
         raise ConfigError(f"--provider {provider!r}: choose auto, cpu or cuda") from None
-    with Progress("[bold]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TimeRemainingColumn(), console=console, transient=True) as bar:  # fmt: skip
+    with _stop_signals_as_interrupt(), Progress(  # SIGTERM/SIGHUP stop it like Ctrl-C: resumable
+        "[bold]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
+        console=console, transient=True,
+    ) as bar:  # fmt: skip
         task = bar.add_task("frames", total=None)
         result = perceive(
             sequence, out, depth_model=depth_model, seg_model=seg_model, batch_size=batch_size, threads=threads,

@@ -157,3 +157,34 @@ def test_real_kitti_frames(shared_data, models, tmp_path):
     assert frame_file(tmp_path / "k" / "image_0", 0).resolve() == frame_file(
         shared_data / "kitti" / "sequences" / "07" / "image_0", 5
     ).resolve()
+
+
+def test_cli_stopped_by_sigterm_resumes(shared_data, models, tmp_path):
+    """A real stop mid-run (SIGTERM, as Ctrl-C): exit 130 with a resume hint, then the rerun finishes."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "k"
+    cmd = [sys.executable, "-m", "shgm_slam.cli", "perceive", f"{shared_data / 'kitti' / 'sequences' / '07'}:0-60",
+           "--out", str(out), "--depth-model", str(DEPTH_ONNX), "--seg-model", str(SEG_ONNX), "--threads", "1",
+           "--batch-size", "1"]  # fmt: skip
+    env = {**os.environ, "COLUMNS": "200"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True)
+    deadline = time.monotonic() + 120
+    while proc.poll() is None and time.monotonic() < deadline and not (out / "semantic" / "000001.png").is_file():
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    output = proc.communicate(timeout=120)[0]
+    if proc.returncode == 0:
+        pytest.skip("the run finished before it could be stopped")
+    assert proc.returncode == 130, output
+    assert "run the same command again" in " ".join(output.split())
+    done = len(list((out / "semantic").glob("*.png")))
+    assert done >= 2
+    rerun = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert rerun.returncode == 0, rerun.stdout + rerun.stderr
+    assert f"{60 - done} frame(s) computed, {done} reused" in " ".join(rerun.stdout.split())
+    assert len(open_sequence(out)) == 60
