@@ -676,6 +676,8 @@ def perceive_command(
     speed = ", ".join(f"{k} {v:.1f}" for k, v in result.inference_ms_per_frame.items())
     console.print(f"{lit(result.source)}: {result.computed} frame(s) computed, {result.reused} reused of "
                   f"{result.frames} in {result.wall_s:.1f} s ({providers}" + (f"; ms/frame {speed})" if speed else ")"))
+    for note in result.notes:
+        console.print(f"[yellow]note[/]: {lit(note)}")
     if result.interrupted:
         console.print(f"[yellow]interrupted[/]: run the same command again to finish {lit(out)}")
         raise typer.Exit(130)

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import onnxruntime as ort
 
 from shgm_slam.data.base import open_sequence, parse_sequence_spec
 from shgm_slam.data.kitti import IMAGE_SOURCES, frame_file
@@ -82,6 +83,7 @@ class PerceiveResult:
     wall_s: float
     inference_ms_per_frame: dict[str, float] = field(default_factory=dict)
     interrupted: bool = False
+    notes: list[str] = field(default_factory=list)
 
     @property
     def complete(self) -> bool:
@@ -92,7 +94,7 @@ class PerceiveResult:
             "out_dir": str(self.out_dir), "source": self.source, "frames": self.frames, "computed": self.computed,
             "reused": self.reused, "providers": self.providers, "batch_size": self.batch_size,
             "wall_s": self.wall_s, "inference_ms_per_frame": self.inference_ms_per_frame,
-            "interrupted": self.interrupted, "complete": self.complete,
+            "interrupted": self.interrupted, "complete": self.complete, "notes": self.notes,
         }  # fmt: skip
 
 
@@ -102,8 +104,6 @@ def session_providers(provider: Provider) -> list[str] | None:
     Raises:
         ModelError: CUDA asked for but this onnxruntime build has no CUDA provider.
     """
-    import onnxruntime as ort
-
     if provider is Provider.CPU:
         return ["CPUExecutionProvider"]
     if provider is Provider.CUDA:
@@ -114,6 +114,24 @@ def session_providers(provider: Provider) -> list[str] | None:
             )
         return ["CUDAExecutionProvider", "CPUExecutionProvider"]
     return None
+
+
+def check_providers(provider: Provider, providers: dict[str, list[str]], available: list[str]) -> list[str]:
+    """Notes on where the models really run; ModelError when CUDA was asked for but a session is on CPU.
+
+    Args:
+        provider: what was asked for.
+        providers: model -> the providers its session reports (``session.get_providers()``).
+        available: ``onnxruntime.get_available_providers()``.
+    """
+    on_cpu = [name for name, p in providers.items() if "CUDAExecutionProvider" not in p]
+    if not on_cpu or "CUDAExecutionProvider" not in available or provider is Provider.CPU:
+        return []
+    why = (f"onnxruntime has a CUDA provider but the {' and '.join(on_cpu)} session(s) run on CPU: CUDA could "
+           "not start (are the CUDA 12 / cuDNN 9 libraries onnxruntime-gpu needs installed?)")
+    if provider is Provider.CUDA:
+        raise ModelError(f"--provider cuda: {why}")
+    return [why]
 
 
 def _file_sha256(path: Path) -> str:
@@ -288,6 +306,8 @@ def perceive(
         Path(depth_model) if depth_model else None, Path(seg_model) if seg_model else None,
         threads, session_providers(provider),
     )  # fmt: skip
+    providers = {name: m.providers for name, m in (("depth", depth), ("segmentation", seg)) if m is not None}
+    notes = check_providers(provider, providers, ort.get_available_providers())
     out = Path(out)
     manifest = {
         "format": MANIFEST_FORMAT, "source": str(root.absolute()), "start": start, "end": end, "frames": n,
@@ -306,8 +326,7 @@ def perceive(
         for stale in (out / folder).glob(".*.part"):
             stale.unlink(missing_ok=True)
     todo = [i for i in range(n) if not all(png_is_valid(frame_file(out / f, i), t, size) for f, t in outputs)]
-    providers = {name: m.providers for name, m in (("depth", depth), ("segmentation", seg)) if m is not None}
-    result = PerceiveResult(out, str(spec), n, 0, n - len(todo), providers, batch_size, 0.0)
+    result = PerceiveResult(out, str(spec), n, 0, n - len(todo), providers, batch_size, 0.0, notes=notes)
     inference_ms = {"depth": 0.0, "segmentation": 0.0}
     batches = [todo[k : k + batch_size] for k in range(0, len(todo), batch_size)]
 

@@ -188,3 +188,21 @@ def test_cli_stopped_by_sigterm_resumes(shared_data, models, tmp_path):
     assert rerun.returncode == 0, rerun.stdout + rerun.stderr
     assert f"{60 - done} frame(s) computed, {done} reused" in " ".join(rerun.stdout.split())
     assert len(open_sequence(out)) == 60
+
+
+def test_cuda_fallback_is_reported_or_refused(monkeypatch):
+    import onnxruntime as ort
+
+    from shgm_slam.perception.perceive import Provider, check_providers, session_providers
+
+    cpu, both = ["CPUExecutionProvider"], ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    assert check_providers(Provider.AUTO, {"depth": cpu}, cpu) == []  # plain onnxruntime: CPU, nothing to say
+    assert check_providers(Provider.AUTO, {"depth": both}, both) == []
+    (note,) = check_providers(Provider.AUTO, {"depth": both, "segmentation": cpu}, both)
+    assert "segmentation" in note and "cuDNN" in note
+    with pytest.raises(ModelError, match="--provider cuda"):
+        check_providers(Provider.CUDA, {"depth": cpu}, both)
+    assert check_providers(Provider.CPU, {"depth": cpu}, both) == []
+    assert session_providers(Provider.CPU) == cpu and session_providers(Provider.AUTO) is None
+    monkeypatch.setattr(ort, "get_available_providers", lambda: both)
+    assert session_providers(Provider.CUDA) == both
