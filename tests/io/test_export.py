@@ -52,3 +52,32 @@ def test_a_failed_write_keeps_the_previous_file_and_says_why(tmp_path, monkeypat
         w.write_trajectories("car", t, poses + 1.0, None)
     assert (tmp_path / "car_odometry_tum.txt").read_text() == before
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp files left behind
+
+
+def test_ground_truth_is_written_in_the_shared_frame(tmp_path):
+    from types import SimpleNamespace
+
+    from shgm_slam.geometry import se3
+    from shgm_slam.io.trajectories import read_kitti_poses, read_tum
+
+    def poses(x0):
+        T = np.tile(np.eye(4), (4, 1, 1))
+        T[:, 0, 3] = x0 + np.arange(4.0)
+        return T
+
+    robots = {
+        "a": SimpleNamespace(gt_poses=poses(100.0), timestamps_s=np.arange(4.0)),
+        "b": SimpleNamespace(gt_poses=poses(200.0), timestamps_s=10 + np.arange(4.0)),
+        "c": SimpleNamespace(gt_poses=None, timestamps_s=np.arange(4.0)),
+    }
+    written = ResultsWriter(tmp_path).write_ground_truth(robots)
+    assert sorted(p.name for p in written) == ["a_gt_kitti.txt", "a_gt_tum.txt", "b_gt_kitti.txt", "b_gt_tum.txt"]
+    t, T_b = read_tum(tmp_path / "b_gt_tum.txt")
+    np.testing.assert_allclose(t, 10 + np.arange(4.0))
+    np.testing.assert_allclose(T_b, se3.inverse(poses(100.0)[0]) @ poses(200.0), atol=1e-9)  # a's first camera
+    np.testing.assert_allclose(read_kitti_poses(tmp_path / "a_gt_kitti.txt")[0], np.eye(4), atol=1e-9)
+    assert stat.S_IMODE(os.stat(tmp_path / "a_gt_tum.txt").st_mode) == export._FILE_MODE
+    other = tmp_path / "own_frames"
+    assert [p.name for p in ResultsWriter(other).write_ground_truth(robots, gt_shared_frame=False)] == [
+        "a_gt_tum.txt", "a_gt_kitti.txt"]
+    assert ResultsWriter(tmp_path / "none").write_ground_truth({"c": robots["c"]}) == []
