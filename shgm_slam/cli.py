@@ -681,7 +681,8 @@ def perceive_command(
     if result.interrupted:
         console.print(f"[yellow]interrupted[/]: run the same command again to finish {lit(out)}")
         raise typer.Exit(130)
-    console.print(f"wrote [bold]{lit(out)}[/]; use it with: shgm-slam run --robot NAME={lit(out)}")
+    console.print(f"wrote [bold]{lit(out)}[/]; use it with: shgm-slam run --robot NAME={lit(out)}"
+                  + (" --odometry visual (predicted depth)" if result.providers.get("depth") else ""))
 
 
 # --- bench (bench.py) -------------------------------------------------------------------------------
