@@ -24,13 +24,14 @@ import numpy as np
 
 from shgm_slam.geometry.se3 import inverse, rotation_angle
 
-CLIQUE_BUDGET = 20_000
-"""Branch-and-bound expansions of a full search (``max_consistent_set``) before it settles for the best
-set found so far (a greedy clique improved by local swaps, or better)."""
+CLIQUE_BUDGET = 1_000_000
+"""Work (vertices scanned for pivots) of a full branch-and-bound search (``max_consistent_set``, about
+0.3 s) before it settles for the best set found so far (a greedy clique improved by local swaps, or
+better)."""
 
-INCREMENTAL_BUDGET = 5_000
-"""Branch-and-bound expansions of the search ``PairConsistency.add`` runs when a new closure may start a
-larger consistent set than the current one."""
+INCREMENTAL_BUDGET = 30_000
+"""Work of the bounded search ``PairConsistency.add`` runs when a new closure may start a larger
+consistent set than the current one (tens of milliseconds at most)."""
 
 MAX_CLOSURES_PER_PAIR = 500
 """Closures of one robot pair that take part in the consistency vote (``PairConsistency``)."""
@@ -124,7 +125,7 @@ def max_consistent_set(
 
     Returns:
         Sorted int64 indices of the chosen clique (empty only for n = 0). Exact up to
-        ``CLIQUE_BUDGET`` branch-and-bound expansions; beyond that the best clique found so far, at
+        ``CLIQUE_BUDGET`` branch-and-bound work; beyond that the best clique found so far, at
         least a greedy clique improved by local swaps.
     """
     A = _clean(adjacency)
@@ -138,19 +139,26 @@ def max_consistent_set(
 
 
 def best_clique(
-    adjacency: np.ndarray, weights: np.ndarray, preferred: np.ndarray, min_size: int, budget: int
+    adjacency: np.ndarray,
+    weights: np.ndarray,
+    preferred: np.ndarray,
+    min_size: int,
+    budget: int,
+    start: np.ndarray | None = None,
 ) -> tuple[np.ndarray | None, bool]:
     """Best clique of at least ``min_size`` vertices by (size, preferred members, weight, earliest).
 
-    Degree peeling first drops vertices that cannot be in such a clique, a greedy clique (improved by
-    1-for-2 swaps) gives the first bound, then branch and bound (Bron-Kerbosch with pivoting on
-    bitsets) runs for at most ``budget`` expansions.
+    Degree peeling first drops vertices that cannot be in such a clique, greedy cliques (from the
+    highest degree and from ``start``, improved by 1-for-2 swaps) give the first bound, then branch
+    and bound (Bron-Kerbosch with pivoting on bitsets) runs until ``budget`` vertices were scanned
+    for pivots.
 
     Args:
         adjacency: (m, m) symmetric bool with a False diagonal.
         weights: (m,) evidence per vertex; preferred: (m,) bool.
         min_size: smallest clique of interest (>= 1).
-        budget: branch-and-bound expansions.
+        budget: branch-and-bound work (vertices scanned for pivots).
+        start: (m,) bool clique to grow the second greedy clique from (e.g. the current set's members).
 
     Returns:
         (sorted int64 indices or None when no clique reaches ``min_size``, whether the search was exact).
@@ -161,6 +169,10 @@ def best_clique(
     if alive.sum() < min_size:
         return None, True
     greedy = _improve(A, _greedy(A, alive), alive)
+    if start is not None and (start := start & alive).any():
+        grown = _improve(A, _greedy(A, alive, start), alive)
+        if grown.sum() > greedy.sum():
+            greedy = grown
     best_size = max(min_size, int(greedy.sum()))
     alive = _peel(A, alive, best_size)
     idx = np.flatnonzero(alive)
@@ -185,7 +197,7 @@ def best_clique(
         nonlocal left, best_bits, best
         if R.bit_count() + P.bit_count() < best[0]:
             return
-        left -= 1
+        left -= 1 + (P | X).bit_count()  # the pivot choice scans P and X
         if P == 0:
             if X == 0 and R.bit_count() >= min_size:
                 s = score(R)
@@ -293,7 +305,7 @@ class PairConsistency:
             return
         self.searches += 1
         A = self._A[np.ix_(cand, cand)]
-        found, exact = best_clique(A, self._w[cand], S[cand], s, self.budget)
+        found, exact = best_clique(A, self._w[cand], S[cand], s, self.budget, start=S[cand])
         self.exact &= exact
         if found is not None:
             self._chosen[:v] = False
@@ -354,11 +366,15 @@ def _peel(A: np.ndarray, alive: np.ndarray, size: int) -> np.ndarray:
         deg -= A[:, drop].sum(axis=1)
 
 
-def _greedy(A: np.ndarray, alive: np.ndarray) -> np.ndarray:
-    """(m,) bool maximal clique inside ``alive``: repeatedly take the candidate with most candidate
-    neighbours (ties: the earliest)."""
-    clique = np.zeros(A.shape[0], dtype=bool)
-    cand = np.flatnonzero(alive)
+def _greedy(A: np.ndarray, alive: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
+    """(m,) bool maximal clique inside ``alive`` (containing the clique ``start`` when given): repeatedly
+    take the candidate with most candidate neighbours (ties: the earliest)."""
+    if start is None:
+        clique = np.zeros(A.shape[0], dtype=bool)
+        cand = np.flatnonzero(alive)
+    else:
+        clique = start.copy()
+        cand = np.flatnonzero(alive & ~clique & A[:, clique].all(axis=1))
     while cand.size:
         sub = A[np.ix_(cand, cand)]
         v = int(np.argmax(sub.sum(axis=1)))
