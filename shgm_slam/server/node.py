@@ -52,8 +52,10 @@ from shgm_slam.wire import decode, encode
 log = logging.getLogger(__name__)
 
 CLASH_WINDOW_S = 2.5
-"""A hello from a new session under a name heard from within this long is a name clash (robots send a
-hello every ``robot.node.HEARTBEAT_S``); after it, the new session is a restart and takes over."""
+"""A hello from a new session under a name whose current session was heard within this long is held:
+if the current session speaks again it is a name clash and the newcomer is refused; once the current
+session has been silent this long the newcomer is a restart and takes over (robots say hello every
+``robot.node.HEARTBEAT_S``)."""
 
 
 @dataclass
@@ -161,6 +163,7 @@ class ServerNode:
         self.traffic = TrafficStats()
         self.finished = False
         self._refused: dict[str, str] = {}
+        self._pending: dict[str, tuple[str, float]] = {}  # robot -> (newcomer session, first heard)
         self._pose_version = 0  # bumped whenever matching may have moved fused poses
         self._last_status_s = -np.inf
         self._last_correction_s: dict[str, float] = {}
@@ -210,8 +213,8 @@ class ServerNode:
         if match and self.map is not None:
             records = self.map.finalize()
             self._pose_version += 1
-        self.write_results()
         self.finished = True
+        self.write_results()
         for robot in self.robots:
             self._send_correction(robot, self.clock(), force=True)
         self._broadcast_status()
@@ -253,10 +256,7 @@ class ServerNode:
             if live:
                 log.debug("%s from %s session %s ignored (not its current session)", kind, robot, msg.session)
             return (robot if rs is not None else None), []
-        rs.last_heard_s = now
-        if rs.state is RobotState.STALE:
-            log.info("%s is back", robot)
-            rs.state = RobotState.ACTIVE
+        self._heard(rs, now)
         if isinstance(msg, DoneMessage):
             if live and self.journal is not None and rs.done is None:
                 self.journal.append(payload)
@@ -270,11 +270,11 @@ class ServerNode:
         rs = self.robots.get(msg.robot)
         if rs is not None and rs.session != msg.session:
             if live and rs.state is not RobotState.STALE and now - rs.last_heard_s < CLASH_WINDOW_S:
-                reason = (f"robot name {msg.robot!r} is in use by another running robot process; "
-                          "give every robot its own name")  # fmt: skip
-                self._refused[msg.robot] = f"{msg.session}: {reason}"
-                self._refuse(f"hello of {msg.robot} (session {msg.session}): {reason}")
-                self._broadcast_status()
+                # a restart or a second process under the same name? Hold the newcomer until the current
+                # session is either heard again (a clash: refuse the newcomer) or silent long enough
+                pending = self._pending.get(msg.robot)
+                if pending is None or pending[0] != msg.session:
+                    self._pending[msg.robot] = (msg.session, now)
                 return None
             log.info("%s restarted (session %s); resuming after %d keyframes", msg.robot, msg.session,
                      sum(self._map().received(a) for a in rs.kf_frames) if self.map else 0)  # fmt: skip
@@ -288,13 +288,26 @@ class ServerNode:
             ref = " (the reference: its frame is the shared frame)" if msg.robot == self.reference else ""
             log.info("%s connected (session %s)%s", msg.robot, msg.session, ref)
         self._refused.pop(msg.robot, None)
-        rs.last_heard_s = now
-        if rs.state is RobotState.STALE:
-            rs.state = RobotState.ACTIVE
+        self._heard(rs, now)
         if live and self.journal is not None:
             self.journal.append(payload)
         rs.corrected_version = -1  # answer with everything it needs to resume
         return msg.robot
+
+    def _heard(self, rs: RobotSession, now: float) -> None:
+        """The robot's current session spoke: it is alive, so a newcomer under its name is a clash."""
+        rs.last_heard_s = now
+        if rs.state is RobotState.STALE:
+            log.info("%s is back", rs.name)
+            rs.state = RobotState.ACTIVE
+        pending = self._pending.get(rs.name)
+        if pending is not None and pending[0] != rs.session and now > pending[1]:
+            del self._pending[rs.name]
+            reason = (f"robot name {rs.name!r} is in use by another running robot process; "
+                      "give every robot its own name")  # fmt: skip
+            self._refused[rs.name] = f"{pending[0]}: {reason}"
+            self._refuse(f"hello of {rs.name} (session {pending[0]}): {reason}")
+            self._broadcast_status()
 
     def _keyframe(self, rs: RobotSession, msg: KeyframeMessage, payload: bytes, *, live: bool) -> list[MatchRecord]:
         server = self._map()

@@ -155,6 +155,10 @@ def test_name_clash_is_refused_and_the_newcomer_told(robots, cfg, tmp_path: Path
     clock.t += 0.2
     impostor.hello()
     server.poll()
+    impostor.poll()  # held, not yet refused: it could be a restart
+    clock.t += 0.3
+    nodes["car1"].hello()  # the first process is alive: a clash
+    server.poll()
     with pytest.raises(ProtocolError, match="in use by another running robot"):
         impostor.poll()
     nodes["car1"].poll()  # the original is unaffected
