@@ -884,6 +884,8 @@ def bench_table3(
     max_frames: Annotated[int | None, typer.Option(min=2, help="cut every drive to its first frames (quick "
                                                    "looks; may cut the overlap away)")] = None,
     resolution: Annotated[str, typer.Option(help="render size WIDTHxHEIGHT")] = "320x96",
+    mode: Annotated[str, typer.Option(help="robust (the default configuration) | paper (Alg. 2 RANSAC over "
+                                      "the best candidate per node, as the authors' release)")] = "robust",
     depth_noise: Annotated[float, typer.Option(min=0.0, help="relative depth error std of the renders")] = 0.0,
     label_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="label confusion of the renders")] = 0.0,
     kitti_root: Annotated[Path | None, typer.Option(help="KITTI folder with poses/")] = None,
@@ -893,12 +895,18 @@ def bench_table3(
     """The paper's Table III protocol on kitti-paths: 08 cut into three robots (08A, 08B), 02 into two driven
     in opposite directions, 00 against 07; whole-graph localization error per descriptor, next to the paper's."""
     from shgm_slam.bench import table3
+    from shgm_slam.bench.localization import BenchMode
+    from shgm_slam.errors import ConfigError
     from shgm_slam.sim.simulate import parse_resolution
 
+    try:
+        bench_mode = BenchMode(mode)
+    except ValueError:
+        raise ConfigError(f"--mode {mode!r}: choose robust or paper") from None
     options = table3.Table3Options(
         seeds=table3.parse_seeds(seeds), runs=runs, kinds=tuple(descriptor or DescriptorKind),
         splits=tuple(split or (s.name for s in table3.SPLITS)), resolution=parse_resolution(resolution),
-        max_frames=max_frames, depth_noise=depth_noise, label_noise=label_noise, cache=cache,
+        max_frames=max_frames, mode=bench_mode, depth_noise=depth_noise, label_noise=label_noise, cache=cache,
     )  # fmt: skip
     with console.status("starting") as status:
         results = table3.run_table3(options, progress=lambda msg: status.update(msg), jobs=jobs,

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from shgm_slam.bench.localization import BenchMode
 from shgm_slam.bench.table3 import (
     PAPER_TABLE3,
     REPORT_SEEDS,
@@ -66,12 +67,13 @@ def _grid_graph(rng: np.random.Generator) -> GraphArrays:
     return GraphArrays(np.arange(n), labels, xyz, np.full(n, 100.0), np.column_stack([i, j]))
 
 
-def test_localize_scores_the_placement_of_robot_b():
+@pytest.mark.parametrize("mode", list(BenchMode))
+def test_localize_scores_the_placement_of_robot_b(mode):
     """B = A's graph (same world frame): the localization is accepted and puts B's cameras where they are."""
     rng = np.random.default_rng(4)
     graph = _grid_graph(rng)
     cams = np.column_stack([np.linspace(0, 200, 50), np.zeros(50), np.full(50, 1.65)])
-    loc = localize(SPLITS[0], graph, graph, cams, DescriptorKind.HISTOGRAM, ShgmConfig(), seed=1, run=0)
+    loc = localize(SPLITS[0], graph, graph, cams, DescriptorKind.HISTOGRAM, ShgmConfig(), seed=1, run=0, mode=mode)
     assert loc.success and loc.correct
     assert loc.placement_error_m < 0.1 and loc.centroid_error_m < 0.1
 
@@ -119,3 +121,7 @@ def test_cli_bench_table3(shared_data, tmp_path):
     assert "| 02 | histogram |" in result.output and (tmp_path / "out" / "table3.md").is_file()
     bad = CliRunner().invoke(app, [*args[:-2], "--split", "19"])
     assert bad.exit_code == 2 and "unknown Table III split" in bad.output
+    paper = CliRunner().invoke(app, [*args, "--mode", "paper"])
+    assert paper.exit_code == 0 and "paper mode" in paper.output, paper.output
+    bad_mode = CliRunner().invoke(app, [*args, "--mode", "fast"])
+    assert bad_mode.exit_code == 2 and "choose robust or paper" in bad_mode.output
