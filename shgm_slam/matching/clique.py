@@ -31,24 +31,33 @@ _BLOCK_ROWS = 128
 
 
 class _Centred:
-    """(K, 3) points centred in float32 with their squared norms, for blocks of pairwise distances."""
+    """(K, 3) points centred, in float64, with their squared norms, for blocks of pairwise distances.
+
+    The Gram form ``|x|² + |y|² - 2 x·y`` cancels terms of ``extent²``: in float32 it lost up to
+    1.4 m at a 5 km map extent (2.5 km after centring) against metre tolerances. It is evaluated in
+    float64 and only the result is cast to float32 (relative error 6e-8, below 1 mm at 5 km), which
+    keeps the comparisons that follow as fast as before.
+    """
 
     def __init__(self, points: np.ndarray) -> None:
-        self.x = (points - points.mean(axis=0)).astype(np.float32)
+        points = np.asarray(points, dtype=np.float64)
+        self.x = points - points.mean(axis=0)
         self.sq = np.einsum("ij,ij->i", self.x, self.x)
 
     def distances(self, start: int, stop: int) -> np.ndarray:
-        """(stop - start, K) float32 distances from points ``start:stop`` to all points (Gram form)."""
+        """(stop - start, K) float32 distances from points ``start:stop`` to all points (Gram form in
+        float64, cast to float32 once the cancelling terms are subtracted: relative error 6e-8)."""
         d = self.x[start:stop] @ self.x.T
         d *= -2.0
         d += self.sq[start:stop, None]
         d += self.sq[None, :]
-        np.maximum(d, 0.0, out=d)
-        return np.sqrt(d, out=d)
+        out = d.astype(np.float32)
+        np.maximum(out, 0.0, out=out)
+        return np.sqrt(out, out=out)
 
 
 def pairwise_distances(points: np.ndarray) -> np.ndarray:
-    """(K, K) float32 distances between (K, 3) points."""
+    """(K, K) float32 distances between (K, 3) points (computed in float64, see ``_Centred``)."""
     return _Centred(points).distances(0, points.shape[0])
 
 
@@ -81,7 +90,10 @@ def consistency_matrix(
         u = DEFAULT_UP if up is None else np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
         ha, hb = points_a @ u, points_b @ u
         points_a, points_b = points_a - np.outer(ha, u), points_b - np.outer(hb, u)
-        dh = (ha - hb).astype(np.float32)  # vertical offsets agree <=> (ha_i - hb_i) - (ha_j - hb_j) small
+        # vertical offsets agree <=> (ha_i - hb_i) - (ha_j - hb_j) small: only differences matter, so
+        # centre in float64 before casting (a common vertical offset of kilometres cancels exactly)
+        dh = ha - hb
+        dh = (dh - dh.mean()).astype(np.float32)
     ca, cb = _Centred(points_a), _Centred(points_b)
     ok = np.empty((k, k), dtype=bool)
     for start in range(0, k, _BLOCK_ROWS):
