@@ -283,7 +283,11 @@ def run_slam(
         server_node.expect = None
     for node in nodes.values():
         node.done()
-    records = server_node.poll()  # every robot done: the server matches whole graphs and writes the results
+    records = []
+    try:
+        records = server_node.poll()  # every robot done: the server matches whole graphs and writes the results
+    except KeyboardInterrupt:  # stopped during the final matching: write what there is
+        interrupted = True
     if not server_node.finished:
         server_node.finish(match=not interrupted)
     _log_matches(viz, server, records)

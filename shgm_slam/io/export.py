@@ -119,12 +119,18 @@ class ResultsWriter:
             _atomic(self.path(f"{robot}_fused_tum.txt"), lambda p: write_tum(p, timestamps_s[okf], T_shared_cam[okf]))
             _atomic(self.path(f"{robot}_fused_kitti.txt"), lambda p: write_kitti_poses(p, T_shared_cam[okf]))
 
-    def write_keyframe_trajectory(self, robot: str, timestamps_s: np.ndarray, T_shared_kf: np.ndarray) -> None:
-        """Fused keyframe poses (TUM + KITTI) of a robot whose per-frame odometry the writer does not have
-        (a live map server before the robot's last message); replaced by ``write_trajectories`` later."""
-        ok = _valid_rows(T_shared_kf)
-        _atomic(self.path(f"{robot}_fused_tum.txt"), lambda p: write_tum(p, timestamps_s[ok], T_shared_kf[ok]))
-        _atomic(self.path(f"{robot}_fused_kitti.txt"), lambda p: write_kitti_poses(p, T_shared_kf[ok]))
+    def write_keyframe_trajectory(
+        self, robot: str, timestamps_s: np.ndarray, T_odom_kf: np.ndarray, T_shared_kf: np.ndarray | None
+    ) -> None:
+        """Keyframe-rate trajectories of a robot whose per-frame odometry the writer does not have yet (a
+        live map server before the robot's last message; ``write_trajectories`` replaces them later).
+
+        Args:
+            timestamps_s: (K,) keyframe times.
+            T_odom_kf: (K, 4, 4) keyframes in the odometry frame of their own trajectory segment.
+            T_shared_kf: (K, 4, 4) fused keyframes (NaN rows: segment not placed), or None.
+        """
+        self.write_trajectories(robot, timestamps_s, T_odom_kf, T_shared_kf)
 
     def write_graph(self, robot: str, graph: GraphArrays) -> None:
         _atomic(self.path(f"graph_{robot}.json"), lambda p: write_graph(p, graph))

@@ -417,33 +417,42 @@ class ServerNode:
     # --- results -------------------------------------------------------------------------------
 
     def fused_trajectory(self, robot: str) -> tuple[np.ndarray, np.ndarray | None] | None:
-        """``(timestamps_s (N,), T_shared_cam (N, 4, 4) or None)`` of ``robot``: every frame once the
-        robot has sent its trajectory (``DoneMessage``), else its keyframes; None when it has neither."""
+        """``(timestamps_s (N,), T_shared_cam (N, 4, 4) or None)`` of ``robot``'s frames, once it has sent
+        its trajectory (``DoneMessage``); None before (see ``keyframe_trajectory``) or for unknown robots."""
         rs = self.robots.get(robot)
-        if rs is None or self.map is None:
+        traj = self.trajectory(robot)
+        if rs is None or self.map is None or traj is None:
             return None
         server = self.map
-        agents = [a for a in server.agents if agent_robot(a)[0] == robot]
-        traj = rs.done.trajectory if rs.done is not None else None
-        if traj is not None:
-            seg = {agent_robot(a)[1]: a for a in agents}
-            fused = fuse_segments(
-                traj.T_odom_cam, traj.frame_segment,
-                {k: np.asarray(rs.kf_frames.get(a, []), dtype=np.int64) for k, a in seg.items()},
-                {k: server.keyframe_poses(a) for k, a in seg.items()},
-                {k: server.T_shared_kf(a) for k, a in seg.items()},
-            )  # fmt: skip
-            return traj.timestamps_s, fused
-        times, poses = [], []
-        for a in agents:
-            T = server.T_shared_kf(a)
-            if T is not None:
-                times += rs.kf_timestamps.get(a, [])[: len(T)]
-                poses.append(T)
-        if not poses:
-            return np.zeros(0), None
+        seg = {agent_robot(a)[1]: a for a in server.agents if agent_robot(a)[0] == robot}
+        fused = fuse_segments(
+            traj.T_odom_cam, traj.frame_segment,
+            {k: np.asarray(rs.kf_frames.get(a, []), dtype=np.int64) for k, a in seg.items()},
+            {k: server.keyframe_poses(a) for k, a in seg.items()},
+            {k: server.T_shared_kf(a) for k, a in seg.items()},
+        )  # fmt: skip
+        return traj.timestamps_s, fused
+
+    def keyframe_trajectory(self, robot: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """``(timestamps_s (K,), T_odom_kf (K, 4, 4), T_shared_kf (K, 4, 4) or None)`` of all of ``robot``'s
+        keyframes in time order (odometry in each segment's own frame; fused NaN for unplaced segments)."""
+        rs = self.robots.get(robot)
+        server = self.map
+        times, odo, fused = [], [], []
+        for a in server.agents if server is not None and rs is not None else []:
+            if agent_robot(a)[0] != robot or not server.received(a):
+                continue
+            T_odom = server.keyframe_poses(a)
+            T_shared = server.T_shared_kf(a)
+            times += rs.kf_timestamps.get(a, [])[: len(T_odom)]
+            odo.append(T_odom)
+            fused.append(T_shared if T_shared is not None else np.full_like(T_odom, np.nan))
+        if not odo:
+            return np.zeros(0), np.zeros((0, 4, 4)), None
         order = np.argsort(times, kind="stable")
-        return np.asarray(times)[order], np.concatenate(poses)[order]
+        T_fused = np.concatenate(fused)[order]
+        placed = np.isfinite(T_fused).all(axis=(1, 2)).any()
+        return np.asarray(times)[order], np.concatenate(odo)[order], T_fused if placed else None
 
     def trajectory(self, robot: str) -> RobotTrajectory | None:
         """The per-frame odometry ``robot`` sent with its last keyframe, if it has."""
@@ -457,12 +466,14 @@ class ServerNode:
             return
         server = self.map
         for robot in self.robots:
-            fused = self.fused_trajectory(robot)
             traj = self.trajectory(robot)
             if traj is not None:
-                self.writer.write_trajectories(robot, traj.timestamps_s, traj.T_odom_cam, fused[1] if fused else None)
-            elif fused is not None and fused[1] is not None:
-                self.writer.write_keyframe_trajectory(robot, fused[0], fused[1])
+                fused = self.fused_trajectory(robot)[1]
+                self.writer.write_trajectories(robot, traj.timestamps_s, traj.T_odom_cam, fused)
+            else:
+                times, T_odom_kf, T_shared_kf = self.keyframe_trajectory(robot)
+                if len(times):
+                    self.writer.write_keyframe_trajectory(robot, times, T_odom_kf, T_shared_kf)
             for a in server.agents:
                 if agent_robot(a)[0] == robot:
                     self.writer.write_graph(a, server.graph(a))
