@@ -371,8 +371,10 @@ class MultiRobotPoseGraph:
     def estimate(self) -> dict[str, np.ndarray]:
         """Current ``T_shared_kf`` of every anchored robot: name -> (K, 4, 4), keyframe order.
 
-        Computed once per change of the graph and cached: the arrays are shared between calls and
-        read-only (copy them to modify).
+        Computed once per change of the graph (``version``) and cached: the arrays are shared between
+        calls and read-only (copy them to modify). A recomputation reads every pose from iSAM2 (about
+        5 ms at 5000 keyframes, and it slows the next iSAM2 update), so ask when the poses are needed,
+        not after every keyframe; ``T_shared_kf``/``T_shared_odom`` read a single pose without it.
         """
         if self._cache_version != self._version:
             self._cache = self._compute_estimate()
