@@ -396,7 +396,7 @@ def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_
 
 def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_frame: bool):
     from shgm_slam.errors import ConfigError
-    from shgm_slam.io.export import ResultsWriter, make_results_dir
+    from shgm_slam.io.export import make_results_dir
     from shgm_slam.runner import open_robots
     from shgm_slam.viz.rerun_logger import RerunMode, make_viz
 
@@ -406,7 +406,6 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
     except ValueError:
         raise ConfigError(f"--rerun {rerun_mode!r}: choose spawn, save, connect or off") from None
     out_dir = make_results_dir(out)
-    ResultsWriter(out_dir).write_ground_truth(robots, gt_shared_frame)  # <robot>_gt_tum.txt for evo / eval
     viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=rerun_url,
                    max_cloud_points=8000)
     with _stop_signals_as_interrupt():

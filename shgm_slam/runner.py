@@ -227,6 +227,7 @@ def run_slam(
             f"({', '.join(names)}); fix the names under 'robots:'"
         )
     writer = ResultsWriter(out_dir)
+    writer.write_ground_truth(robots, gt_shared_frame)  # <robot>_gt_tum.txt, for evo and `shgm-slam eval`
     fronts = {r: make_frontend(r, seq, cfg) for r, seq in robots.items()}
     # the same nodes as the distributed deployment, on the in-process bus (every message is encoded)
     bus = InProcessBus()
