@@ -484,8 +484,8 @@ class MultiRobotPoseGraph:
             c = self._closures[evicted[0]]
             kept = "accepted" if evicted[1] else "rejected"
             c.reason = (
-                f"{kept}: left the consistency vote of {where} (it keeps the latest "
-                f"{self.max_closures_per_pair} closures)"
+                f"{kept}: left the consistency vote of {where} (at most {self.max_closures_per_pair} "
+                "closures vote; the oldest outside the consistent set leave first)"
             )
         n, chosen = len(voting), voting.chosen_mask()
         size = int(chosen.sum())
