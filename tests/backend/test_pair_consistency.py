@@ -105,3 +105,17 @@ def test_440_closures_in_one_pair_accept_the_true_ones():
             T_a_b = inverse(est["a"][c.kf_a]) @ est["b"][c.kf_b]
             assert np.linalg.norm(T_a_b[:3, 3] - c.T_a_b[:3, 3]) < 1.5
     print(f"440 closures: {np.mean(times[350:400]) * 1e3:.1f} ms per closure at 350-400 (iSAM2 included)")
+
+
+def test_pose_graph_caps_the_vote_per_pair_and_keeps_statuses():
+    gt = route(20, np.eye(4))
+    pg = MultiRobotPoseGraph(["a", "b"], max_closures_per_pair=4)
+    for k in range(20):
+        pg.add_keyframe("a", k, inverse(gt[0]) @ gt[k])
+        pg.add_keyframe("b", k, inverse(gt[0]) @ gt[k])
+    for k in range(0, 20, 2):  # b drove a's path: identity closures, all consistent
+        assert pg.add_inter_robot_closure("a", k, "b", k, np.eye(4)).accepted
+    closures = pg.closures()
+    assert all(c.status is ClosureStatus.ACCEPTED and c.in_graph for c in closures)
+    assert sum("left the consistency vote" in c.reason for c in closures) == len(closures) - 4
+    np.testing.assert_allclose(pg.T_shared_kf("b", 19), inverse(gt[0]) @ gt[19], atol=1e-6)
