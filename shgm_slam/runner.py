@@ -233,7 +233,7 @@ def run_slam(
     bus = InProcessBus()
     server_node = ServerNode(
         cfg, InProcessTransport(bus), out_dir, reference=names[0], expect=len(names), journal=False,
-        write_every_keyframes=write_every_keyframes,
+        write_every_keyframes=write_every_keyframes, stale_after_s=float("inf"),  # one process: never silent
     )  # fmt: skip
     nodes = {r: RobotNode(f, InProcessTransport(bus)) for r, f in fronts.items()}
     for node in nodes.values():
