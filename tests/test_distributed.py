@@ -128,3 +128,19 @@ def test_server_killed_mid_run_and_restarted_recovers(tiny_scenario: Path, tmp_p
         _wait(r, "robot")
     s = _check_results(tmp_path, tiny_scenario)
     assert s["recovered_messages"] > 0, out[-2000:]
+
+
+def test_bad_endpoint_is_a_clear_error(tmp_path: Path) -> None:
+    p = subprocess.run([*CLI, "server", "--out", str(tmp_path), "--listen", "127.0.0.1:7447", "--rerun", "off"],
+                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert p.returncode == 2, p.stdout + p.stderr
+    assert "Traceback" not in p.stdout + p.stderr
+    assert "tcp/" in p.stdout + p.stderr  # says what an endpoint looks like
+
+
+def test_robot_without_a_server_says_so_and_exits_nonzero(tiny_scenario: Path) -> None:
+    port = _free_port()
+    p = subprocess.run([*CLI, "robot", f"car1={tiny_scenario / 'car1'}:0-8", "--connect", f"tcp/127.0.0.1:{port}",
+                        "--odometry", "gt", "--wait", "1"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert p.returncode == 3, p.stdout + p.stderr
+    assert "did not acknowledge" in p.stdout + p.stderr
