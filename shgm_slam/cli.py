@@ -361,12 +361,15 @@ def run(
     depth_model: Annotated[Path | None, typer.Option(help="ONNX depth model (card next to it)")] = None,
     seg_model: Annotated[Path | None, typer.Option(help="ONNX segmentation model (card next to it)")] = None,
     gt_shared_frame: Annotated[bool, typer.Option(help="ground truths of all robots share one world frame")] = True,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="reuse a non-empty --out: remove an earlier run's results first")
+    ] = False,
 ) -> None:
     """Run the multi-robot system: odometry, semantic graphs, cross-robot matching, fused trajectories."""
     from shgm_slam.config import load_config
 
     cfg = _apply_run_options(load_config(config), odometry, depth_model, seg_model)
-    summary = _run_command(robot, cfg, out, rerun, rerun_url, gt_shared_frame)
+    summary = _run_command(robot, cfg, out, rerun, rerun_url, gt_shared_frame, overwrite)
     _render_summary(summary)
     if summary.interrupted:
         raise typer.Exit(130)
@@ -394,7 +397,7 @@ def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_
     return cfg
 
 
-def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_frame: bool):
+def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_frame: bool, overwrite: bool = False):
     from shgm_slam.errors import ConfigError
     from shgm_slam.io.export import make_results_dir
     from shgm_slam.runner import open_robots
@@ -405,7 +408,7 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
         mode = RerunMode(rerun_mode)
     except ValueError:
         raise ConfigError(f"--rerun {rerun_mode!r}: choose spawn, save, connect or off") from None
-    out_dir = make_results_dir(out)
+    out_dir = make_results_dir(out, overwrite=overwrite)
     viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=rerun_url,
                    max_cloud_points=8000)
     with _stop_signals_as_interrupt():
@@ -448,10 +451,14 @@ def server_command(
     stale_after: Annotated[
         float, typer.Option(min=0.5, max=3600, help="seconds of silence before a robot is stale")
     ] = 5.0,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="start fresh in a non-empty --out: remove an "
+                                            "earlier run's results and journal first (without it a journal "
+                                            "there is resumed)")] = False,
 ) -> None:
     """Map server for robots in separate processes (Eclipse Zenoh): fuses their maps, writes the results."""
     from shgm_slam.config import load_config
     from shgm_slam.errors import ConfigError
+    from shgm_slam.io.export import make_results_dir
     from shgm_slam.server.serve import serve
     from shgm_slam.transport.keys import validate_robot_name
     from shgm_slam.viz.rerun_logger import RerunMode, make_viz
@@ -463,7 +470,7 @@ def server_command(
         mode = RerunMode(rerun)
     except ValueError:
         raise ConfigError(f"--rerun {rerun!r}: choose spawn, save, connect or off") from None
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_results_dir(out, overwrite=overwrite, resume_file="journal.bin")  # journal there: a restart
     viz = make_viz(mode, robots=[], save_path=out / "server.rrd", connect_url=rerun_url, max_cloud_points=8000)
     console.print(f"map server listening on {lit(listen or 'tcp/127.0.0.1:7447')}"
                   + (f", expecting {expect} robots" if expect else "; Ctrl-C to finish"))  # fmt: skip
@@ -532,10 +539,13 @@ def demo(
     seed: Annotated[int, typer.Option(help="world seed")] = 0,
     rgb_only: Annotated[bool, typer.Option("--rgb-only", help="depth and labels from the ONNX demo models")] = False,
     rerun: Annotated[str, typer.Option("--rerun", help="spawn | save | connect | off")] = "save",
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="reuse a non-empty --out (the default folder is "
+                                            "always replaced): remove an earlier run's results first")] = False,
 ) -> None:
     """Simulate the airsim-like world (car, car, UAV) once, then run the whole system on it."""
     from shgm_slam.demo import demo_config, demo_results_dir, prepare_world
 
+    overwrite = overwrite or out is None  # the demo's own default folder holds the previous demo: replace it
     out = out or demo_results_dir(rgb_only=rgb_only)
 
     def simulate_world(folder: Path) -> None:
@@ -545,7 +555,7 @@ def demo(
     world, kinds = prepare_world(cache, seed, simulate_world)
     console.print(f"world: [bold]{lit(world)}[/] robots: {lit(', '.join(f'{r} ({k})' for r, k in kinds.items()))}")
     cfg = demo_config(rgb_only=rgb_only)
-    summary = _run_command([f"{r}={world / r}" for r in kinds], cfg, out, rerun, None, True)
+    summary = _run_command([f"{r}={world / r}" for r in kinds], cfg, out, rerun, None, True, overwrite)
     _render_summary(summary)
     if (out / "run.rrd").is_file():
         console.print(f"open the recording with: [bold].venv/bin/rerun {lit(out / 'run.rrd')}[/]")

@@ -27,12 +27,46 @@ from shgm_slam.io.trajectories import write_kitti_poses, write_tum
 from shgm_slam.types import GraphArrays, Sequence
 
 
-def make_results_dir(out: Path | None, base: Path = Path("results")) -> Path:
-    """Create the results folder: ``out`` if given, else ``base/<YYYYmmdd_HHMMSS>`` plus ``base/latest``."""
+RUN_OUTPUT_PATTERNS = (
+    "*_fused_tum.txt", "*_fused_kitti.txt", "*_odometry_tum.txt", "*_gt_tum.txt", "*_gt_kitti.txt",
+    "graph_*.json", "matches.json", "pose_graph.g2o", "config.yaml", "metrics.json", "server.json",
+    "run.rrd", "server.rrd", "journal.bin",
+)
+"""Files a run, demo or map server writes into its results folder (``--overwrite`` removes these, and
+their leftover ``.<name>.*`` temporary files, nothing else)."""
+
+
+def run_output_files(folder: Path) -> list[Path]:
+    """The files in ``folder`` that a run, demo or map server wrote (``RUN_OUTPUT_PATTERNS``)."""
+    found: set[Path] = set()
+    for pattern in RUN_OUTPUT_PATTERNS:
+        found.update(p for p in folder.glob(pattern) if p.is_file() or p.is_symlink())
+        found.update(p for p in folder.glob(f".{pattern}.*") if p.is_file())  # temporaries of atomic writes
+    return sorted(found)
+
+
+def make_results_dir(
+    out: Path | None, base: Path = Path("results"), *, overwrite: bool = False, resume_file: str | None = None
+) -> Path:
+    """Create the results folder: ``out`` if given, else ``base/<YYYYmmdd_HHMMSS>`` plus ``base/latest``.
+
+    A reused ``out`` never mixes two runs' files: a folder that is not empty is refused, unless
+    ``overwrite`` (then the files an earlier run wrote there, ``RUN_OUTPUT_PATTERNS``, are removed first;
+    other files are left alone) or ``resume_file`` names a file that is there (a map server's
+    ``journal.bin``: the folder is resumed as it is).
+
+    Raises:
+        DataError: ``out`` is a file, cannot be created, is not empty (without ``overwrite``), or an
+            earlier run's file cannot be removed.
+    """
     if out is not None:
         path = Path(out)
     else:
         path = base / datetime.now().strftime("%Y%m%d_%H%M%S")
+    if path.exists() and not path.is_dir():
+        raise DataError(f"results folder {path} is a file; choose a folder for --out")
+    if out is not None and path.is_dir():
+        _claim_results_dir(path, overwrite=overwrite, resume_file=resume_file)
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -43,6 +77,31 @@ def make_results_dir(out: Path | None, base: Path = Path("results")) -> Path:
             latest.unlink()
         latest.symlink_to(path.name)
     return path
+
+
+def _claim_results_dir(path: Path, *, overwrite: bool, resume_file: str | None) -> None:
+    """Refuse a non-empty ``path`` or clear the earlier run's files (see ``make_results_dir``)."""
+    try:
+        entries = list(path.iterdir())
+    except OSError as exc:
+        raise DataError(f"cannot read results folder {path}: {exc.strerror}") from None
+    if not entries:
+        return
+    if overwrite:
+        for old in run_output_files(path):
+            try:
+                old.unlink()
+            except OSError as exc:
+                raise DataError(f"cannot remove {old} of an earlier run: {exc.strerror}") from None
+        return
+    if resume_file is not None and (path / resume_file).is_file():
+        return
+    ours = run_output_files(path)
+    held = f"an earlier run's results ({ours[0].name}, ...)" if ours else f"{len(entries)} other file(s)"
+    raise DataError(
+        f"results folder {path} is not empty: it holds {held}; choose a new --out, or pass --overwrite to "
+        "replace an earlier run's results (other files are kept)"
+    )
 
 
 def _umask() -> int:

@@ -1,0 +1,67 @@
+"""A reused results folder never mixes two runs: refused unless --overwrite, which clears only our files."""
+
+from __future__ import annotations
+
+import pytest
+from typer.testing import CliRunner
+
+from shgm_slam.cli import app
+from shgm_slam.errors import DataError
+from shgm_slam.io.export import make_results_dir, run_output_files
+
+
+def _earlier_run(folder):
+    folder.mkdir()
+    for name in ("b_fused_tum.txt", "b_fused_kitti.txt", "metrics.json", "pose_graph.g2o", ".metrics.json.x1"):
+        (folder / name).write_text("old\n")
+    (folder / "notes.md").write_text("mine\n")
+
+
+def test_a_fresh_or_empty_folder_is_used(tmp_path):
+    assert make_results_dir(tmp_path / "new").is_dir()
+    (tmp_path / "empty").mkdir()
+    assert make_results_dir(tmp_path / "empty") == tmp_path / "empty"
+
+
+def test_a_folder_with_an_earlier_run_is_refused(tmp_path):
+    _earlier_run(tmp_path / "out")
+    with pytest.raises(DataError, match="not empty.*earlier run.*--overwrite"):
+        make_results_dir(tmp_path / "out")
+    assert (tmp_path / "out" / "b_fused_tum.txt").is_file()
+
+
+def test_overwrite_removes_only_the_earlier_runs_files(tmp_path):
+    _earlier_run(tmp_path / "out")
+    make_results_dir(tmp_path / "out", overwrite=True)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["notes.md"]
+    assert run_output_files(tmp_path / "out") == []
+
+
+def test_a_folder_with_other_files_is_refused(tmp_path):
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "thesis.tex").write_text("x")
+    with pytest.raises(DataError, match="1 other file"):
+        make_results_dir(tmp_path / "out")
+
+
+def test_a_file_is_not_a_results_folder(tmp_path):
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(DataError, match="is a file"):
+        make_results_dir(tmp_path / "f", overwrite=True)
+
+
+def test_a_server_journal_resumes_the_folder_and_overwrite_starts_fresh(tmp_path):
+    _earlier_run(tmp_path / "out")
+    (tmp_path / "out" / "journal.bin").write_bytes(b"j")
+    make_results_dir(tmp_path / "out", resume_file="journal.bin")  # a restart keeps everything
+    assert (tmp_path / "out" / "journal.bin").is_file() and (tmp_path / "out" / "metrics.json").is_file()
+    make_results_dir(tmp_path / "out", overwrite=True, resume_file="journal.bin")
+    assert not (tmp_path / "out" / "journal.bin").exists()
+
+
+def test_run_cli_refuses_a_reused_out_with_exit_2(tmp_path, tiny_scenario):
+    _earlier_run(tmp_path / "out")
+    args = ["run", "--robot", f"car1={tiny_scenario / 'car1'}", "--rerun", "off", "--out", str(tmp_path / "out")]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2 and "--overwrite" in res.output, res.output
+    assert (tmp_path / "out" / "b_fused_tum.txt").read_text() == "old\n"
