@@ -645,6 +645,12 @@ def check_model_command(
     if report.preview_path is not None:
         table.add_row("preview", lit(report.preview_path))
     console.print(table)
+    if report.valid_fraction == 0.0:  # a model that gives nothing usable is an error, not a report
+        from shgm_slam.errors import ModelError
+
+        what = "depth (all non-finite or <= 0)" if not report.label_fractions else "label (all ignore, 255)"
+        raise ModelError(f"{model}: valid output 0 %: every {what} on {report.image_source}; check the card "
+                         "(output kind, scale, classes) and the model")
 
 
 @app.command("perceive")

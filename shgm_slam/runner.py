@@ -19,6 +19,7 @@ import numpy as np
 from shgm_slam.config import OdometryKind, RobotOverrides, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.data.interleave import interleave
+from shgm_slam.data.validate import check_sequence_start
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.fusion import fuse_segments
 from shgm_slam.geometry import se3
@@ -95,6 +96,9 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
         out = perception.process(frame)
         return out.depth_m, out.label_ids
 
+    # whole-sequence problems (every frame unreadable, no valid depth, a broken model) end here, not as skips
+    check_sequence_start(name, sequence, perceive, depth_model=rcfg.perception.depth_model,
+                         seg_model=rcfg.perception.seg_model)  # fmt: skip
     scale = sample_scene_scale(sequence, perceive)
     if scale is None:
         log.warning("%s: no usable depth in the first frames; extraction and odometry use the fleet defaults", name)

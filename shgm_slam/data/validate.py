@@ -1,0 +1,129 @@
+"""Whole-sequence checks before a run starts: a few frames' depth and labels, and the models' outputs.
+
+A sequence whose every depth PNG has the wrong size, whose depth is all zeros, or whose depth model
+gives NaN everywhere would otherwise start, skip (or use) every frame one by one and finish with exit 0
+and a robot that never moved. ``check_sequence_start`` reads the first frames and a few spread over the
+sequence through the robot's perception and raises one clear error when none of them is usable:
+
+- no probed frame can be read or perceived (corrupt PNGs, wrong size or dtype, missing files): DataError;
+- depth is (H, W) on the image grid but no probed pixel is valid (finite and > 0): DataError for depth
+  files, ModelError naming the depth model;
+- no probed label is a Cityscapes train id (0-18; all 255 = ignore, or garbage): DataError / ModelError;
+- a model's output is constant over every probed frame (one depth value, one class): ModelError.
+
+A single bad frame is not an error here (the run skips it with a reason); only a sequence none of whose
+probed frames is usable is. Pure apart from reading frames through the ``Sequence`` protocol.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from shgm_slam.errors import DataError, ModelError
+from shgm_slam.types import Frame, Sequence
+
+FIRST_FRAMES = 3
+"""Frames 0, 1, 2 are probed ..."""
+SPREAD = (0.25, 0.5, 0.75)
+"""... and these fractions of the sequence (a range that starts with a few bad frames is still accepted)."""
+NUM_TRAIN_IDS = 19
+"""Cityscapes train ids 0..18; 255 = ignore."""
+
+Perceive = Callable[[Frame], tuple[np.ndarray, np.ndarray | None]]
+
+
+def probe_indices(num_frames: int) -> list[int]:
+    """The frame indices ``check_sequence_start`` reads: the first few and a few spread over the sequence."""
+    spread = [int(f * num_frames) for f in SPREAD]
+    return sorted({i for i in [*range(FIRST_FRAMES), *spread] if 0 <= i < num_frames})
+
+
+def check_sequence_start(
+    name: str,
+    sequence: Sequence,
+    perceive: Perceive,
+    *,
+    depth_model: Path | str | None = None,
+    seg_model: Path | str | None = None,
+) -> None:
+    """Raise when none of the probed frames (``probe_indices``) gives usable depth and labels.
+
+    Args:
+        name: the robot, for messages.
+        sequence: its frames.
+        perceive: frame -> (depth_m (H, W) metres, label_ids (H, W) train ids or None), e.g. the robot's
+            perception source; a ``DataError`` it raises counts against that frame.
+        depth_model, seg_model: the models the depth / labels come from (None: the sequence's files);
+            their outputs' problems are ModelErrors naming them.
+
+    Raises:
+        DataError: no probed frame can be read, or the depth / label files hold nothing usable.
+        ModelError: a model's output has no valid value or is constant on every probed frame.
+    """
+    indices = probe_indices(len(sequence))
+    errors: list[str] = []
+    depths: list[np.ndarray] = []
+    labels: list[np.ndarray] = []
+    for index in indices:
+        try:
+            frame = sequence[index]
+            depth, label = perceive(frame)
+            depth = _checked_map(np.asarray(depth), frame, "depth", np.floating)
+            if label is not None:
+                labels.append(_checked_map(np.asarray(label), frame, "labels", np.integer))
+        except DataError as exc:
+            errors.append(f"frame {index}: {exc}")
+            continue
+        depths.append(depth)
+    where = f"robot {name!r} ({sequence.name}), frames {', '.join(map(str, indices))}"
+    if not depths:
+        raise DataError(f"{where}: none can be used, so every frame would be skipped; first problem: {errors[0]}")
+    valid = [np.isfinite(d) & (d > 0) for d in depths]
+    if not any(v.any() for v in valid):
+        if depth_model is not None:
+            raise ModelError(
+                f"depth model {depth_model}: no valid depth (every pixel non-finite or <= 0) on {where}; "
+                "check the card's output kind and scale with shgm-slam check-model"
+            )
+        raise DataError(
+            f"{where}: depth has no valid pixel (all 0 or non-finite); depth/ needs uint16 PNGs of "
+            "metres x 256 with 0 = invalid"
+        )
+    if depth_model is not None:
+        values = np.concatenate([d[v] for d, v in zip(depths, valid, strict=True)])
+        if values.size > 1 and values.min() == values.max():
+            raise ModelError(
+                f"depth model {depth_model}: constant output ({values[0]:.3g} m everywhere) on {where}; "
+                "check the model and its card (output kind, scale, clamp range) with shgm-slam check-model"
+            )
+    if labels:
+        known = [lab[lab < NUM_TRAIN_IDS] for lab in labels]
+        if not any(k.size for k in known):
+            if seg_model is not None:
+                raise ModelError(
+                    f"segmentation model {seg_model}: every pixel maps to ignore (255) on {where}; check the "
+                    "card's classes (model class -> Cityscapes train id) with shgm-slam check-model"
+                )
+            raise DataError(
+                f"{where}: no label is a Cityscapes train id 0-18 (all 255 = ignore, or other values); "
+                "semantic/ needs uint8 PNGs of train ids"
+            )
+        flat = np.concatenate([lab.ravel() for lab in labels])
+        if seg_model is not None and flat.size > 1 and flat.min() == flat.max():
+            raise ModelError(
+                f"segmentation model {seg_model}: constant output (train id {flat[0]} everywhere) on {where}; "
+                "check the model and its card with shgm-slam check-model"
+            )
+
+
+def _checked_map(array: np.ndarray, frame: Frame, what: str, kind: type) -> np.ndarray:
+    """``array`` when it is (H, W) of ``kind`` on the frame's image grid; DataError otherwise."""
+    if array.ndim != 2 or not np.issubdtype(array.dtype, kind):
+        raise DataError(f"{what} is {array.dtype} with shape {array.shape}; expected (H, W) {kind.__name__}")
+    if frame.image_rgb is not None and array.shape != frame.image_rgb.shape[:2]:
+        h, w = frame.image_rgb.shape[:2]
+        raise DataError(f"{what} is {array.shape[1]}x{array.shape[0]} but the image is {w}x{h}")
+    return array

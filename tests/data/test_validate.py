@@ -1,0 +1,99 @@
+"""Whole-sequence checks before a run: one clear error instead of every frame skipped or a robot that never moves."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from shgm_slam.cli import app
+from shgm_slam.data import open_sequence
+from shgm_slam.data.validate import check_sequence_start, probe_indices
+from shgm_slam.errors import DataError, ModelError
+from tests.data.conftest import make_frames, write_frames
+
+
+def files(frame):
+    return frame.depth_m, frame.label_ids
+
+
+def test_probe_indices_cover_the_start_and_the_spread():
+    assert probe_indices(1) == [0]
+    assert probe_indices(100) == [0, 1, 2, 25, 50, 75]
+
+
+def test_a_clean_sequence_passes(seq_dir: Path):
+    check_sequence_start("car", open_sequence(seq_dir), files)
+
+
+def test_one_bad_frame_is_left_to_the_run(seq_dir: Path):
+    (seq_dir / "depth" / "000000.png").write_bytes(b"not a png")
+    check_sequence_start("car", open_sequence(seq_dir), files)
+
+
+def test_depth_all_zero_is_one_error(tmp_path: Path):
+    frames = make_frames(6)
+    for f in frames:
+        f.depth_m = np.zeros_like(f.depth_m)
+    seq = open_sequence(write_frames(tmp_path / "s", frames))
+    with pytest.raises(DataError, match="robot 'car'.*depth has no valid pixel"):
+        check_sequence_start("car", seq, files)
+
+
+def test_every_depth_png_of_the_wrong_dtype_is_one_error(seq_dir: Path):
+    for p in sorted((seq_dir / "depth").glob("*.png")):
+        cv2.imwrite(str(p), np.full((24, 32), 7, np.uint8))
+    with pytest.raises(DataError, match="none can be used.*uint8"):
+        check_sequence_start("car", open_sequence(seq_dir), files)
+
+
+def test_every_depth_png_of_the_wrong_size_is_one_error(seq_dir: Path):
+    for p in sorted((seq_dir / "depth").glob("*.png")):
+        cv2.imwrite(str(p), np.full((12, 16), 700, np.uint16))
+    with pytest.raises(DataError, match="none can be used"):
+        check_sequence_start("car", open_sequence(seq_dir), files)
+
+
+def test_labels_all_ignore_is_one_error(tmp_path: Path):
+    frames = make_frames(4)
+    for f in frames:
+        f.label_ids = np.full_like(f.label_ids, 255)
+    with pytest.raises(DataError, match="no label is a Cityscapes train id"):
+        check_sequence_start("car", open_sequence(write_frames(tmp_path / "s", frames)), files)
+
+
+def test_model_outputs_nan_or_constant_are_model_errors(seq_dir: Path):
+    seq = open_sequence(seq_dir)
+
+    def nan_depth(frame):
+        return np.full(frame.depth_m.shape, np.nan, np.float32), frame.label_ids
+
+    with pytest.raises(ModelError, match="depth model d.onnx: no valid depth"):
+        check_sequence_start("car", seq, nan_depth, depth_model="d.onnx")
+
+    def flat_depth(frame):
+        return np.full(frame.depth_m.shape, 80.0, np.float32), frame.label_ids
+
+    with pytest.raises(ModelError, match="constant output"):
+        check_sequence_start("car", seq, flat_depth, depth_model="d.onnx")
+    check_sequence_start("car", seq, flat_depth)  # a constant depth file is not a model's fault
+
+    def one_class(frame):
+        return frame.depth_m, np.full(frame.label_ids.shape, 2, np.uint8)
+
+    with pytest.raises(ModelError, match="segmentation model s.onnx: constant output"):
+        check_sequence_start("car", seq, one_class, seg_model="s.onnx")
+
+
+def test_run_on_all_zero_depth_exits_2_before_any_frame(tmp_path: Path):
+    frames = make_frames(6)
+    for f in frames:
+        f.depth_m = np.zeros_like(f.depth_m)
+    seq = write_frames(tmp_path / "s", frames)
+    res = CliRunner().invoke(app, ["run", "--robot", f"car={seq}", "--rerun", "off", "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2, res.output
+    assert "no valid pixel" in res.output.replace("\n", "")
+    assert not (tmp_path / "o" / "metrics.json").exists()
