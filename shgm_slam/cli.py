@@ -308,6 +308,8 @@ def _render_summary(summary) -> None:
                 f"[yellow]{lit(r.name)}: odometry diverged {r.odometry_failures}x[/], restarted as new trajectory "
                 f"segments: " + lit("; ".join(r.failure_reasons[:3]) + more)
             )
+        for text in r.warnings:  # degenerate data (also in metrics.json and the viewer's log)
+            console.print(f"[yellow]{lit(r.name)}: warning:[/] {lit(text)}")
     console.print(
         f"inter-robot matches tried {summary.matches_tried}, closures accepted "
         f"[green]{summary.closures_accepted}[/], rejected [yellow]{summary.closures_rejected}[/]"

@@ -26,6 +26,7 @@ from shgm_slam.geometry import se3
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.metrics import ate
 from shgm_slam.odometry.sources import make_odometry
+from shgm_slam.odometry.stillness import ImageChange, odometry_motion, stillness_warning
 from shgm_slam.perception import make_perception
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
 from shgm_slam.robot.node import RobotNode
@@ -151,6 +152,9 @@ class RobotReport:
     failure_reasons: list[str] = field(default_factory=list)
     frames_dropped: int = 0  # frames between a divergence's onset and the next segment's first frame
     segment_start_frames: list[int] = field(default_factory=list)  # first frame of each segment
+    # degenerate data, reported, never hidden: skipped frames, no graph nodes, odometry that did not move
+    # while the images did (then ``localized`` is False: the trajectory is known to be invalid)
+    warnings: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -250,6 +254,7 @@ def run_slam(
     timings = _Timings()
     skipped: list[str] = []
     processed = dict.fromkeys(names, 0)
+    image_change = {r: ImageChange() for r in names}
     compute_ms = 0.0
     t_start = time.perf_counter()
     done = 0
@@ -267,6 +272,7 @@ def run_slam(
                     progress(done, total)
                 continue
             processed[robot] += 1
+            image_change[robot].add(res.frame.image_rgb)
             if res.failure is not None:
                 viz.log_odometry_failure(
                     robot, f"{robot}: odometry diverged, {res.failure.describe()}; new trajectory segment {res.agent}",
@@ -299,6 +305,7 @@ def run_slam(
     for node in nodes.values():
         node.poll()
     reports = _evaluate(fronts, server, robots, processed, gt_shared_frame)
+    _report_degenerate(reports, fronts, image_change, viz)
     accepted = sum(m.accepted for m in server.matches)
     summary = RunSummary(
         out_dir=Path(out_dir),
@@ -318,6 +325,29 @@ def run_slam(
     writer.write_json("metrics.json", summary.to_json_dict())
     viz.close()
     return summary
+
+
+def _report_degenerate(
+    reports: list[RobotReport], fronts: dict[str, RobotFrontend], image_change: dict[str, ImageChange], viz: Viz
+) -> None:
+    """Add each robot's degenerate-data warnings to its report, the log and the viewer's log panel."""
+    for rep in reports:
+        front = fronts[rep.name]
+        if rep.frames_skipped:
+            rep.warnings.append(f"{rep.frames_skipped} of {rep.frames} frames skipped (reasons in 'skipped')")
+        if rep.frames_processed and rep.nodes == 0:
+            rep.warnings.append(
+                "no graph nodes: no object passed extraction, so it cannot be matched (check the labels, "
+                "extraction.labels, the depth range and the blob size)"
+            )
+        if rep.frames_processed:
+            still = stillness_warning(*odometry_motion(front.T_odom_cam, front.frame_segment), image_change[rep.name])
+            if still is not None:
+                rep.warnings.append(still)
+                rep.localized = False  # a trajectory known to be invalid is never "fused"
+        for text in rep.warnings:
+            log.warning("%s: %s", rep.name, text)
+            viz.log_text(f"{rep.name}: {text}", "WARN")
 
 
 def _last_healthy_position(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
