@@ -42,6 +42,9 @@ app.add_typer(bench_app, name="bench")
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+MAX_FRAMES = 1_000_000
+"""Upper bound of every frame-count option (KITTI's longest sequence has 4,661 frames)."""
+
 
 def handle_errors(fn: F) -> F:
     """Turn ``ShgmError`` into one red line on stderr and exit code 2 (the CLI's error boundary)."""
@@ -113,15 +116,15 @@ def simulate_command(
     scenario: Annotated[str, typer.Option("--scenario", "-s", help="synthia-like | airsim-like | disjoint | "
                                           "kitti-paths")],
     out: Annotated[Path, typer.Option("--out", "-o", help="output folder (one sequence per robot)")],
-    seed: Annotated[int, typer.Option(help="world and trajectory seed")] = 0,
+    seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world and trajectory seed")] = 0,
     resolution: Annotated[str, typer.Option(help="image size WIDTHxHEIGHT")] = "640x192",
-    fps: Annotated[float, typer.Option(min=0.1, help="frame rate, Hz")] = 10.0,
-    max_frames: Annotated[int | None, typer.Option(min=1, help="cut every robot's sequence")] = None,
-    depth_noise: Annotated[float, typer.Option(min=0.0, help="relative depth error std (0.05 = 5 %)")] = 0.0,
+    fps: Annotated[float, typer.Option(min=0.1, max=100.0, help="frame rate, Hz")] = 10.0,
+    max_frames: Annotated[int | None, typer.Option(min=1, max=MAX_FRAMES, help="cut every robot's sequence")] = None,
+    depth_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="relative depth error std (0.05 = 5 %)")] = 0.0,
     label_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="segment confusion probability "
                                                "(boundaries also jitter by 10x this many px)")] = 0.0,
-    world_size: Annotated[float | None, typer.Option(help="city side length, metres")] = None,
-    max_depth: Annotated[float, typer.Option(min=1.0, help="depth range, metres (farther = 0)")] = 200.0,
+    world_size: Annotated[float | None, typer.Option(min=50.0, max=20000.0, help="city side length, metres")] = None,
+    max_depth: Annotated[float, typer.Option(min=1.0, max=10000.0, help="depth range, metres (farther = 0)")] = 200.0,
     compact: Annotated[bool, typer.Option("--compact", help="small world, short paths")] = False,
     kitti_root: Annotated[Path | None, typer.Option(help="KITTI folder with poses/ (kitti-paths)")] = None,
     kitti_drive: Annotated[list[str] | None, typer.Option(
@@ -538,7 +541,7 @@ def demo(
         Path | None, typer.Option(help="results folder [default: results/demo; with --rgb-only results/demo-rgb]")
     ] = None,
     cache: Annotated[Path, typer.Option(help="where the simulated world is cached")] = Path("cache"),
-    seed: Annotated[int, typer.Option(help="world seed")] = 0,
+    seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
     rgb_only: Annotated[bool, typer.Option("--rgb-only", help="depth and labels from the ONNX demo models")] = False,
     rerun: Annotated[str, typer.Option("--rerun", help="spawn | save | connect | off")] = "save",
     overwrite: Annotated[bool, typer.Option("--overwrite", help="reuse a non-empty --out (the default folder is "
@@ -614,8 +617,8 @@ def check_model_command(
     card: Annotated[Path | None, typer.Option("--card", help="card YAML (default: beside model)")] = None,
     image: Annotated[Path | None, typer.Option("--image", help="image (default: synthetic)")] = None,
     preview: Annotated[Path | None, typer.Option("--preview", help="write image | output PNG")] = None,
-    runs: Annotated[int, typer.Option(min=1, help="timed runs (median reported)")] = 5,
-    threads: Annotated[int, typer.Option(min=0, help="onnxruntime intra-op threads (0 = all cores)")] = 2,
+    runs: Annotated[int, typer.Option(min=1, max=1000, help="timed runs (median reported)")] = 5,
+    threads: Annotated[int, typer.Option(min=0, max=256, help="onnxruntime intra-op threads (0 = all cores)")] = 2,
 ) -> None:
     """Validate a model card against its ONNX model, run it, show shapes, value ranges and speed; with
     --preview FILE.png also write a preview (image | output side by side)."""
@@ -662,8 +665,8 @@ def perceive_command(
     out: Annotated[Path, typer.Option("--out", "-o", help="output sequence folder (run it again to resume)")],
     depth_model: Annotated[Path | None, typer.Option(help="ONNX depth model (card next to it)")] = None,
     seg_model: Annotated[Path | None, typer.Option(help="ONNX segmentation model (card next to it)")] = None,
-    batch_size: Annotated[int, typer.Option(min=1, help="frames per model call")] = 8,
-    threads: Annotated[int, typer.Option(min=0, help="onnxruntime intra-op threads (0 = all cores)")] = 0,
+    batch_size: Annotated[int, typer.Option(min=1, max=256, help="frames per model call")] = 8,
+    threads: Annotated[int, typer.Option(min=0, max=256, help="onnxruntime intra-op threads (0 = all cores)")] = 0,
     provider: Annotated[str, typer.Option(help="auto (CUDA when onnxruntime-gpu has it) | cpu | cuda")] = "auto",
     copy_images: Annotated[bool, typer.Option("--copy-images", help="copy the images instead of linking")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="redo every frame of an existing --out")] = False,
@@ -710,9 +713,9 @@ def perceive_command(
 def bench_simulate(
     out: Annotated[Path, typer.Option("--out", "-o", help="results JSON")] = Path("results/bench_sim.json"),
     resolution: Annotated[str, typer.Option(help="image size WIDTHxHEIGHT")] = "640x192",
-    short_frames: Annotated[int, typer.Option(min=1, help="frames per robot, speed run")] = 40,
-    long_frames: Annotated[int, typer.Option(min=1, help="frames per robot, memory run")] = 300,
-    seed: Annotated[int, typer.Option(help="world seed")] = 0,
+    short_frames: Annotated[int, typer.Option(min=1, max=MAX_FRAMES, help="frames per robot, speed run")] = 40,
+    long_frames: Annotated[int, typer.Option(min=1, max=MAX_FRAMES, help="frames per robot, memory run")] = 300,
+    seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
 ) -> None:
     """Simulator frames/s (render + PNG writing) and peak RSS of a short and a long airsim-like run."""
     from shgm_slam.bench.simulate import run_simulate_benchmark, simulate_markdown
@@ -729,10 +732,10 @@ def bench_simulate(
 def bench_localization(
     out: Annotated[Path, typer.Option("--out", "-o", help="results folder: localization.json, .md, pr_curve.png")]
     = Path("results/bench_localization"),
-    runs: Annotated[int | None, typer.Option(min=1, help="random transforms per configuration [100; quick 10]")]
+    runs: Annotated[int | None, typer.Option(min=1, max=100000, help="random transforms per configuration [100; quick 10]")]
     = None,
     quick: Annotated[bool, typer.Option("--quick", help="compact worlds at 320x96, fewer runs (~2 min)")] = False,
-    seed: Annotated[int, typer.Option(help="world seed (defaults were tuned on seed 1)")] = 0,
+    seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed (defaults were tuned on seed 1)")] = 0,
     cache: Annotated[Path, typer.Option(help="rendered keyframes are cached here")] = Path("cache/bench"),
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
 ) -> None:
@@ -768,7 +771,7 @@ def bench_sparse(
     = Path("results/bench_sparse"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'A-B' or 'A,B,C' (tuning 10-19; report 200-219)")]
     = "10-19",
-    pairs: Annotated[int, typer.Option(min=1, help="overlapping pairs per world (as many negatives)")] = 10,
+    pairs: Annotated[int, typer.Option(min=1, max=10000, help="overlapping pairs per world (as many negatives)")] = 10,
     full_rotation: Annotated[bool, typer.Option(help="also match every pair 6-DoF")] = True,
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
 ) -> None:
@@ -798,7 +801,7 @@ def bench_sparse(
 def bench_system(
     out: Annotated[Path, typer.Option("--out", "-o", help="results folder")] = Path("results/bench_system"),
     cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
-    seed: Annotated[int, typer.Option(help="world seed")] = 0,
+    seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
     memory: Annotated[bool, typer.Option(help="also the 1000- vs 4000-frame peak-RSS runs")] = True,
     rgb_only: Annotated[
         bool, typer.Option(help="also both worlds RGB only: demo ONNX models + visual odometry")
@@ -819,7 +822,7 @@ def bench_system(
 def bench_distributed(
     out: Annotated[Path, typer.Option("--out", "-o", help="results folder")] = Path("results/bench_distributed"),
     cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
-    seed: Annotated[int, typer.Option(help="demo world seed")] = 0,
+    seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="demo world seed")] = 0,
     faults: Annotated[
         str, typer.Option(help="comma-separated distributed runs: none, robot (killed + restarted), server (same)")
     ] = "none,robot,server",
@@ -852,7 +855,7 @@ def bench_heldout(
     = "report",
     scenario: Annotated[list[str] | None, typer.Option(help="scenario (repeatable) [all four]")] = None,
     mode: Annotated[list[str] | None, typer.Option(help="files | rgb (repeatable) [both]")] = None,
-    max_frames: Annotated[int | None, typer.Option(min=10, help="cut every robot's sequence (quick looks)")] = None,
+    max_frames: Annotated[int | None, typer.Option(min=10, max=MAX_FRAMES, help="cut every robot's sequence (quick looks)")] = None,
     cache: Annotated[Path, typer.Option(help="rendered worlds are cached here")] = Path("cache/heldout"),
     jobs: Annotated[int, typer.Option(min=1, max=64, help="worlds run in this many processes at once")] = 1,
 ) -> None:
@@ -894,16 +897,16 @@ def bench_table3(
     = Path("results/bench_table3"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (200-209), 'tuning' (10-19), A-B or A,B")]
     = "report",
-    runs: Annotated[int, typer.Option(min=1, help="random transforms per split, descriptor and world")] = 10,
+    runs: Annotated[int, typer.Option(min=1, max=100000, help="random transforms per split, descriptor and world")] = 10,
     split: Annotated[list[str] | None, typer.Option(help="02 | 08A | 08B | 00-07 (repeatable) [all]")] = None,
     descriptor: Annotated[list[DescriptorKind] | None, typer.Option(help="descriptor (repeatable) [all three]")]
     = None,
-    max_frames: Annotated[int | None, typer.Option(min=2, help="cut every drive to its first frames (quick "
+    max_frames: Annotated[int | None, typer.Option(min=2, max=MAX_FRAMES, help="cut every drive to its first frames (quick "
                                                    "looks; may cut the overlap away)")] = None,
     resolution: Annotated[str, typer.Option(help="render size WIDTHxHEIGHT")] = "320x96",
     mode: Annotated[str, typer.Option(help="robust (the default configuration) | paper (Alg. 2 RANSAC over "
                                       "the best candidate per node, as the authors' release)")] = "robust",
-    depth_noise: Annotated[float, typer.Option(min=0.0, help="relative depth error std of the renders")] = 0.0,
+    depth_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="relative depth error std of the renders")] = 0.0,
     label_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="label confusion of the renders")] = 0.0,
     kitti_root: Annotated[Path | None, typer.Option(help="KITTI folder with poses/")] = None,
     cache: Annotated[Path, typer.Option(help="rendered worlds are cached here")] = Path("cache/table3"),

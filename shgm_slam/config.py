@@ -79,8 +79,8 @@ class DescriptorConfig(_Stage):
     kind: DescriptorKind = DescriptorKind.HISTOGRAM
     path_length: int = Field(3, ge=2, le=4, description="labels per histogram path (Alg. 1 uses 3)")
     count_backtracking: bool = Field(True, description="count i->m->i paths, as the authors' release does")
-    num_walks: int = Field(400, ge=1, description="random-walk baseline: walks per node (X-view)")
-    walk_length: int = Field(3, ge=1, description="random-walk baseline: steps per walk")
+    num_walks: int = Field(400, ge=1, le=100_000, description="random-walk baseline: walks per node (X-view)")
+    walk_length: int = Field(3, ge=1, le=64, description="random-walk baseline: steps per walk")
     seed: int = 0
 
 
@@ -102,9 +102,9 @@ class MatchingConfig(_Stage):
     score_threshold: float = Field(0.5, ge=0, le=1)
     same_label_only: bool = True
     candidate_mode: CandidateMode = CandidateMode.TOP_K
-    top_k: int = Field(2, ge=1, description="candidates per node of B (tuned: bench localization)")
+    top_k: int = Field(2, ge=1, le=1000, description="candidates per node of B (tuned: bench localization)")
     outlier_mode: OutlierMode = OutlierMode.CLIQUE
-    ransac_iterations: int = Field(1000, ge=1)
+    ransac_iterations: int = Field(1000, ge=1, le=1_000_000)
     inlier_threshold_m: float = Field(10.0, gt=0, description="RANSAC inlier distance (authors: 10 m)")
     consistency_threshold_m: float = Field(
         3.0, gt=0, description="clique mode: |d_a - d_b| tolerance (tuned: bench localization)"
@@ -180,10 +180,10 @@ class OdometryConfig(_Stage):
     kind: OdometryKind = OdometryKind.AUTO
     poses_file: Path | None = None
     voxel_size_m: float | None = Field(
-        None, gt=0, description="KISS-ICP voxel; None: max(1, median depth of the first frames / 40) (far, "
+        None, ge=0.01, description="KISS-ICP voxel (at least 1 cm); None: max(1, median depth of the first frames / 40) (far, "
         "dense clouds register on a coarser map)"
     )
-    max_points_per_voxel: int = Field(10, ge=1)
+    max_points_per_voxel: int = Field(10, ge=1, le=1000)
     min_range_m: float = Field(0.5, ge=0)
     max_range_m: float | None = Field(
         None, gt=0, description="outdoor scenes need far points to constrain forward motion; None: 100, or "
@@ -203,8 +203,8 @@ class OdometryConfig(_Stage):
         None, description="seeded random point order before KISS-ICP's voxel subsampling (helps aerial "
         "start-up); None: on when the horizon is out of view (the camera sees only the ground)"
     )
-    max_icp_iterations: int = Field(100, ge=1)
-    visual_max_features: int = Field(1000, ge=8, description="visual odometry: corners per reference frame")
+    max_icp_iterations: int = Field(100, ge=1, le=10_000)
+    visual_max_features: int = Field(1000, ge=8, le=100_000, description="visual odometry: corners per reference frame")
     visual_max_depth_m: float | None = Field(
         None, gt=0, description="visual odometry: corners only where depth is below this (far monocular depth "
         "is poor); None: 40 x extraction.max_depth_m / 30 (as far as the robot takes objects)"

@@ -1,0 +1,54 @@
+"""No option or config value can ask for absurd memory or time: upper bounds with clear messages (exit 2)."""
+
+from __future__ import annotations
+
+import pytest
+from typer.testing import CliRunner
+
+from shgm_slam.cli import app
+from shgm_slam.config import load_config
+from shgm_slam.errors import ConfigError
+
+runner = CliRunner()
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["simulate", "-s", "airsim-like", "-o", "{tmp}/x", "--fps", "10000"],
+        ["simulate", "-s", "airsim-like", "-o", "{tmp}/x", "--max-frames", "100000000"],
+        ["simulate", "-s", "airsim-like", "-o", "{tmp}/x", "--resolution", "100000x100000"],
+        ["simulate", "-s", "airsim-like", "-o", "{tmp}/x", "--world-size", "1e9"],
+        ["simulate", "-s", "airsim-like", "-o", "{tmp}/x", "--depth-noise", "50"],
+        ["simulate", "-s", "airsim-like", "-o", "{tmp}/x", "--seed", "-1"],
+        ["check-model", "{tmp}/m.onnx", "--runs", "100000000"],
+        ["check-model", "{tmp}/m.onnx", "--threads", "100000"],
+        ["perceive", "{tmp}/s", "-o", "{tmp}/p", "--batch-size", "1000000"],
+        ["bench", "simulate", "-o", "{tmp}/b.json", "--long-frames", "100000000"],
+        ["bench", "heldout", "-o", "{tmp}/h", "--jobs", "1000"],
+        ["bench", "table3", "-o", "{tmp}/t", "--runs", "1000000000"],
+        ["server", "--out", "{tmp}/srv", "--expect", "1000"],
+        ["demo", "--seed", "99999999999"],
+    ],
+)
+def test_absurd_options_are_refused_with_exit_2(tmp_path, args):
+    res = runner.invoke(app, [a.replace("{tmp}", str(tmp_path)) for a in args])
+    assert res.exit_code == 2, res.output
+    assert "Invalid value" in res.output or "out of range" in res.output, res.output
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize(
+    "yaml_text",
+    [
+        "odometry: {voxel_size_m: 0.0001}",
+        "matching: {ransac_iterations: 100000000000}",
+        "descriptor: {num_walks: 100000000}",
+        "odometry: {max_icp_iterations: 100000000}",
+    ],
+)
+def test_absurd_config_values_are_config_errors(tmp_path, yaml_text):
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml_text + "\n")
+    with pytest.raises(ConfigError, match="than or equal to"):
+        load_config(path)
