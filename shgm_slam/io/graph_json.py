@@ -25,6 +25,10 @@ from shgm_slam.labels import CITYSCAPES_CLASSES
 from shgm_slam.types import GraphArrays
 
 FORMAT_TAG = "shgm-graph/1"
+MAX_COORDINATE_M = 1e9
+"""Node coordinates beyond this (metres) are refused: distances and fits would overflow to inf."""
+MAX_SIZE = 1e15
+"""Node sizes (weights of Eq. 2) must be below this; their sums would otherwise overflow."""
 
 
 def _canonical(name: str) -> str:
@@ -111,13 +115,15 @@ def graph_from_dict(
         if not isinstance(node, dict) or not {"id", "label", "position"} <= node.keys():
             raise fail(f'node #{k} needs "id", "label" and "position" fields, got {node!r}')
         nid, lab, pos, size = node["id"], node["label"], node["position"], node.get("size", 1.0)
-        if isinstance(nid, bool) or not isinstance(nid, int):
-            raise fail(f"node #{k}: id must be an integer, got {nid!r}")
+        if isinstance(nid, bool) or not isinstance(nid, int) or not _fits_int64(nid):
+            raise fail(f"node #{k}: id must be an integer within +-2^63, got {nid!r}")
         if isinstance(lab, bool) or not isinstance(lab, int) or not 0 <= lab < len(classes):
             raise fail(f"node {nid}: label {lab!r} is not an index into the {len(classes)} classes")
         if not (isinstance(pos, list) and len(pos) == 3 and all(_is_finite_number(v) for v in pos)):
             raise fail(f"node {nid}: position must be three finite numbers, got {pos!r}")
-        if not _is_finite_number(size) or size <= 0:
+        if any(abs(v) > MAX_COORDINATE_M for v in pos):
+            raise fail(f"node {nid}: position {pos!r} is farther than {MAX_COORDINATE_M:g} m from the origin")
+        if not _is_finite_number(size) or not 0 < size < MAX_SIZE:
             raise fail(f"node {nid}: size must be a positive finite number, got {size!r}")
         node_ids[k], label_idx[k], positions[k], sizes[k] = nid, lab, pos, size
 
@@ -141,13 +147,18 @@ def graph_from_dict(
     return GraphArrays(node_ids, label_ids, positions, sizes, edges)
 
 
+def _fits_int64(v: int) -> bool:
+    return -(2**63) <= v < 2**63
+
+
 def _is_finite_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _edges_to_rows(edges_in: Any, node_ids: np.ndarray, fail: Any) -> np.ndarray:
     if not isinstance(edges_in, list) or not all(
-        isinstance(e, list) and len(e) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in e)
+        isinstance(e, list) and len(e) == 2
+        and all(isinstance(v, int) and not isinstance(v, bool) and _fits_int64(v) for v in e)
         for e in edges_in
     ):
         raise fail('"edges" must be a list of [id_a, id_b] integer pairs')
