@@ -275,6 +275,9 @@ class BackendConfig(_Stage):
     match_every_keyframes: int = Field(10, ge=1)
     local_closure_m: float = Field(40.0, gt=0, description="one graph match gives one closure per this much overlap")
     submap_keyframes: int = Field(30, ge=1, description="recent keyframes forming a robot's submap")
+    loop_closure: bool = Field(
+        True, description="also match each robot's submap against its own older graph (intra-robot loop closure)"
+    )
     odometry_sigma_rot_rad: float = Field(0.01, gt=0)
     odometry_sigma_trans_m: float = Field(0.1, gt=0)
     closure_sigma_rot_rad: float = Field(0.1, gt=0)

@@ -14,6 +14,9 @@ against the pair's other closures only (O(n)); it joins the current set when it 
 and only when it agrees with at least as many closures as the set holds can a larger set containing it
 exist, which a bounded branch-and-bound search (degree peeling, greedy start, ``INCREMENTAL_BUDGET``)
 decides. A pair keeps at most ``MAX_CLOSURES_PER_PAIR`` voting closures.
+
+Loop closures of one robot (a = b) use the same test with both odometries the robot's own; each must
+first agree with that odometry alone (``consistent_with_odometry``).
 """
 
 from __future__ import annotations
@@ -107,6 +110,41 @@ def consistent_with(
     return (trans_m <= thresholds.trans_m + thresholds.trans_per_m * d) & (
         rot_deg <= thresholds.rot_deg + thresholds.rot_deg_per_m * d
     )
+
+
+def consistent_with_odometry(
+    T_ai_aj: np.ndarray,
+    kf_i: int,
+    kf_j: int,
+    T_odom: np.ndarray,
+    path_m: np.ndarray,
+    thresholds: ConsistencyThresholds,
+) -> tuple[bool, float, float]:
+    """Whether a loop closure of one robot agrees with that robot's own odometry between its keyframes.
+
+    The odometry itself is the first "closure" a loop closure must be consistent with: the loop
+    ``E = T_ai_aj · T_aj_ai(odometry)`` has the tolerance of a loop of ``d = |path_j - path_i|`` metres
+    (``ConsistencyThresholds``), the drift the odometry may have accumulated between the two keyframes.
+
+    Args:
+        T_ai_aj: (4, 4) the closure: keyframe j's camera frame -> keyframe i's.
+        kf_i, kf_j: its two keyframes.
+        T_odom: (K, 4, 4) the robot's keyframe poses in its odometry frame.
+        path_m: (K,) cumulative odometry path length at each keyframe, metres.
+        thresholds: loop-error tolerances.
+
+    Returns:
+        (agrees, translation error m, rotation error deg).
+    """
+    T_aj_ai = inverse(T_odom[kf_j]) @ T_odom[kf_i]
+    E = np.asarray(T_ai_aj, dtype=np.float64) @ T_aj_ai
+    trans_m = float(np.linalg.norm(E[:3, 3]))
+    rot_deg = float(np.degrees(rotation_angle(E[None]))[0])
+    d = abs(float(path_m[kf_j]) - float(path_m[kf_i]))
+    agrees = trans_m <= thresholds.trans_m + thresholds.trans_per_m * d and (
+        rot_deg <= thresholds.rot_deg + thresholds.rot_deg_per_m * d
+    )
+    return agrees, trans_m, rot_deg
 
 
 def max_consistent_set(

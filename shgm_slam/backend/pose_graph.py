@@ -12,6 +12,12 @@ every accepted closure to an anchored robot is pushed (REFERENCE.md §3, deferre
 gauge prior, so CHOLESKY never meets an indeterminate system). Closures between two unanchored robots
 are kept and replayed as soon as one of them is anchored (anchoring spreads through accepted closures).
 
+Loop closures (intra-robot: two keyframes of the same robot) go through the same path: canonical order
+older keyframe first, a consistency vote of their own (the pair ``(robot, robot)``), the robust kernel.
+Each is first checked against the robot's own odometry between its two keyframes (the loop it closes
+with the odometry alone, ``consistent_with_odometry``), and it never anchors a robot: it enters
+iSAM2 once its robot is anchored, like a closure between two anchored robots.
+
 Closures between the same two robots are checked for pairwise consistency (``consistency.py``); only
 the maximum consistent set is accepted. It is maintained incrementally per robot pair
 (``PairConsistency``: O(n) per closure, a bounded search only when a larger set may have formed) over
@@ -49,6 +55,7 @@ from shgm_slam.backend.consistency import (
     ConsistencyThresholds,
     PairConsistency,
     consistent_with,
+    consistent_with_odometry,
 )
 from shgm_slam.backend.keys import ROBOT_LETTERS, RobotKeys
 from shgm_slam.config import BackendConfig, RobustKernel
@@ -82,7 +89,8 @@ class ClosureDecision:
 
 @dataclass
 class ClosureRecord:
-    """One inter-robot closure, stored in canonical order (robot_a has the lower robot index).
+    """One closure, stored in canonical order: robot_a has the lower robot index; a loop closure
+    (``robot_a == robot_b``) has the older keyframe as ``kf_a``.
 
     ``T_a_b`` is ``T_akf_bkf``: it maps points in b's keyframe ``kf_b`` camera frame into a's keyframe
     ``kf_a`` camera frame. ``in_graph`` tells whether its factor is currently in iSAM2.
@@ -299,7 +307,11 @@ class MultiRobotPoseGraph:
         information: np.ndarray | None = None,
         match_id: int | None = None,
     ) -> ClosureDecision:
-        """Add a relative-pose measurement between keyframes of two different robots.
+        """Add a relative-pose measurement between keyframes of two robots, or two keyframes of one robot.
+
+        With ``robot_a == robot_b`` it is a loop closure (see ``add_loop_closure``): it must also agree
+        with the robot's own odometry between the two keyframes (drift-dependent tolerance), it votes
+        in the robot's own consistency set and it never anchors the robot.
 
         Args:
             robot_a, kf_a, robot_b, kf_b: the two keyframes (already added with ``add_keyframe``).
@@ -316,13 +328,12 @@ class MultiRobotPoseGraph:
             set. The reason says why, and whether the closure waits for an anchored robot.
 
         Raises:
-            BackendError: unknown robots, the same robot twice, a keyframe not added yet, bad matrices.
+            BackendError: unknown robots, a keyframe closed with itself, a keyframe not added yet, bad
+                matrices.
         """
         ia, ib = self.keys.index(robot_a), self.keys.index(robot_b)
-        if ia == ib:
-            raise BackendError(
-                f"closure between {robot_a} and itself: only inter-robot closures are supported"
-            )
+        if ia == ib and kf_a == kf_b:
+            raise BackendError(f"closure between keyframe {kf_a} of {robot_a} and itself")
         T = _check_pose(T_akf_bkf, f"closure {robot_a}{kf_a}-{robot_b}{kf_b}")
         for name, kf in ((robot_a, kf_a), (robot_b, kf_b)):
             if not 0 <= kf < len(self._robots[name].T_odom_kf):
@@ -330,7 +341,7 @@ class MultiRobotPoseGraph:
                     f"closure refers to keyframe {kf} of {name}, which has only "
                     f"{len(self._robots[name].T_odom_kf)} keyframes; add keyframes before closures"
                 )
-        if ia > ib:  # canonical order: lower robot index first
+        if ia > ib or (ia == ib and kf_a > kf_b):  # canonical order: lower robot index, older keyframe first
             robot_a, kf_a, robot_b, kf_b, T = robot_b, kf_b, robot_a, kf_a, inverse(T)
             if information is not None:
                 information = self._inverse_information(information, T)
@@ -340,12 +351,16 @@ class MultiRobotPoseGraph:
         self._version += 1
         self._closure_noise.append(noise)
         self._information.append(info)
+        if rec.robot_a == rec.robot_b and not self._agrees_with_odometry(rec):
+            return ClosureDecision(False, rec.reason, rec.closure_id)
         self._update_pair(rec)
         self._sync()
         self._flush(closures_changed=True)
         reason = rec.reason
         if rec.status is ClosureStatus.ACCEPTED and not rec.in_graph:
-            if self._robots[rec.robot_a].anchored or self._robots[rec.robot_b].anchored:
+            if rec.robot_a == rec.robot_b:
+                reason += f"; stored until {rec.robot_a} is anchored to {self.keys.names[0]}"
+            elif self._robots[rec.robot_a].anchored or self._robots[rec.robot_b].anchored:
                 reason += (
                     f"; waiting for consistent closures from {self.min_closures_to_anchor} matches between "
                     f"{rec.robot_a}-{rec.robot_b} before anchoring"
@@ -353,6 +368,30 @@ class MultiRobotPoseGraph:
             else:
                 reason += f"; stored until {rec.robot_a} or {rec.robot_b} is anchored to {self.keys.names[0]}"
         return ClosureDecision(rec.status is ClosureStatus.ACCEPTED, reason, rec.closure_id)
+
+    def add_loop_closure(
+        self,
+        robot: str,
+        kf_old: int,
+        kf_new: int,
+        T_old_new: np.ndarray,
+        *,
+        num_inliers: int = 1,
+        information: np.ndarray | None = None,
+        match_id: int | None = None,
+    ) -> ClosureDecision:
+        """Add an intra-robot loop closure: ``T_old_new`` (4, 4) maps points in keyframe ``kf_new``'s
+        camera frame into keyframe ``kf_old``'s, both keyframes of ``robot``.
+
+        The same as ``add_inter_robot_closure(robot, kf_old, robot, kf_new, ...)``: rejected outright when
+        the loop it closes with the robot's odometry between the two keyframes exceeds the drift-dependent
+        consistency tolerance, else voted on with the robot's other loop closures (pairwise consistency)
+        and, when accepted, added with the robust kernel once the robot is anchored.
+        """
+        return self.add_inter_robot_closure(
+            robot, kf_old, robot, kf_new, T_old_new,
+            num_inliers=num_inliers, information=information, match_id=match_id,
+        )  # fmt: skip
 
     def add_robot(self, robot: str) -> None:
         """Add an agent at run time (unanchored, no keyframes yet), e.g. a robot's new trajectory segment
@@ -462,6 +501,20 @@ class MultiRobotPoseGraph:
         path.write_text(self.to_g2o())
 
     # --- consistency: which closures are accepted -------------------------------------------------
+
+    def _agrees_with_odometry(self, rec: ClosureRecord) -> bool:
+        """A loop closure must agree with its robot's own odometry between its two keyframes (the loop
+        with no other closure); one that does not is rejected for good and never votes."""
+        odom, path = self._robots[rec.robot_a].odometry()
+        ok, trans_m, rot_deg = consistent_with_odometry(rec.T_a_b, rec.kf_a, rec.kf_b, odom, path, self.thresholds)
+        if not ok:
+            rec.status = ClosureStatus.REJECTED
+            d = abs(path[rec.kf_b] - path[rec.kf_a])
+            rec.reason = (
+                f"rejected: loop closure disagrees with {rec.robot_a}'s odometry over {d:.0f} m "
+                f"({trans_m:.1f} m, {rot_deg:.1f} deg off)"
+            )
+        return ok
 
     def _update_pair(self, rec: ClosureRecord) -> None:
         """Test ``rec`` against its robot pair's voting closures (O(n)) and update the pair's maximum

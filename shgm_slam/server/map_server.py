@@ -30,6 +30,14 @@ class MapServer:
     matched against every other robot's whole graph (robots here are agents: a robot's trajectory
     segments after odometry failures are agents of their own, added at run time); accepted matches become inter-robot
     relative-pose factors between keyframes. Shared frame = the first robot's odometry frame.
+
+    Loop closure (``backend.loop_closure``): r's recent submap is also matched against r's *own* older
+    graph (query ``"loop"``), with the same matching, verification and closure cutting; accepted
+    closures join two keyframes of r in the pose graph. The older graph leaves out the stretch r just
+    drove (``loop_exclusion_m``): objects seen from the submap lie within r's object range of it, so
+    only nodes first seen from keyframes more than two object ranges of path (and at least a submap's
+    worth of keyframes) before the submap can be shared with it through a revisit, never through the
+    pass that is still in view.
     """
 
     def __init__(self, robot_names: list[str], cfg: ShgmConfig) -> None:
@@ -41,6 +49,7 @@ class MapServer:
         self._graphs = {r: SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m) for r in robot_names}
         # the one home of keyframe poses on the server: each agent's keyframes in its odometry frame
         self._T_odom_kf: dict[str, list[np.ndarray]] = {r: [] for r in robot_names}
+        self._path_m: dict[str, list[float]] = {r: [] for r in robot_names}  # odometry path length per keyframe
         self._up: dict[str, np.ndarray | None] = dict.fromkeys(robot_names)
         self._matches: list[MatchRecord] = []
         self._since_match = dict.fromkeys(robot_names, 0)
@@ -56,6 +65,7 @@ class MapServer:
         self._agents.append(agent)
         self._graphs[agent] = SemanticGraph(self.cfg.graph.merge_radius_m, self.cfg.graph.connectivity_m)
         self._T_odom_kf[agent] = []
+        self._path_m[agent] = []
         self._up[agent] = None
         self._since_match[agent] = 0
 
@@ -73,7 +83,9 @@ class MapServer:
         self._step += 1
         if msg.robot not in self._graphs:
             self.add_agent(msg.robot)
-        self._T_odom_kf[msg.robot].append(msg.T_odom_kf)
+        poses, path = self._T_odom_kf[msg.robot], self._path_m[msg.robot]
+        path.append(path[-1] + float(np.linalg.norm(msg.T_odom_kf[:3, 3] - poses[-1][:3, 3])) if path else 0.0)
+        poses.append(msg.T_odom_kf)
         if msg.up_odom is not None:
             self._up[msg.robot] = msg.up_odom
         self._pose_graph.add_keyframe(msg.robot, msg.kf_index, msg.T_odom_kf)
@@ -93,13 +105,18 @@ class MapServer:
         return records
 
     def match_robot(self, robot: str, *, submap: bool = True) -> list[MatchRecord]:
-        """Match ``robot``'s recent submap and whole graph against every other robot's whole graph."""
+        """Match ``robot``'s recent submap and whole graph against every other robot's whole graph, and
+        (loop closure) its recent submap against its own older graph."""
         records = []
         queries: list[tuple[str, GraphArrays]] = []
         n_kf = len(self._T_odom_kf[robot])
         if submap and n_kf > self.cfg.backend.submap_keyframes:
             kfs = np.arange(n_kf - self.cfg.backend.submap_keyframes, n_kf)
             queries.append(("submap", self._graphs[robot].submap(kfs)))
+            if self.cfg.backend.loop_closure:
+                loop = self._loop_query(robot, queries[0][1])
+                if loop is not None:
+                    records.append(self._match_pair(robot, robot, "loop", *loop))
         queries.append(("whole", self._graphs[robot].arrays()))
         for other in list(self._agents):
             if other == robot or len(self._graphs[other]) == 0:
@@ -110,6 +127,39 @@ class MapServer:
                 records.append(self._match_pair(other, robot, query, graph_a, graph_b, desc_a))
         self._matches += records
         return records
+
+    def loop_exclusion_m(self, robot: str) -> float:
+        """Metres of path before its submap whose keyframes ``robot``'s loop query leaves out of its older graph:
+        twice the robot's object range (the 95th percentile distance from a node to the keyframe that first
+        saw it; the fleet's extraction depth until the graph has nodes)."""
+        graph = self._graphs[robot].arrays()
+        if len(graph) == 0:
+            return 2.0 * float(self.cfg.extraction.filled().max_depth_m)
+        anchors = self._graphs[robot].anchor_keyframes(graph.node_ids)
+        origins = np.stack([self._T_odom_kf[robot][k][:3, 3] for k in anchors])
+        return 2.0 * float(np.percentile(np.linalg.norm(graph.positions_xyz - origins, axis=1), 95))
+
+    def _loop_query(self, robot: str, recent: GraphArrays) -> tuple[GraphArrays, GraphArrays, np.ndarray] | None:
+        """``(older graph, recent nodes, descriptors of the older graph)`` of ``robot``'s loop-closure match,
+        or None while the robot has not driven far enough for an older graph.
+
+        Older graph: the nodes first seen from keyframes before the excluded stretch (the submap, the
+        ``submap_keyframes`` before it, and every keyframe within ``loop_exclusion_m`` of path before it).
+        Recent nodes: the submap's nodes first seen after that stretch began, so no node is in both.
+        """
+        n_kf, window = len(self._T_odom_kf[robot]), self.cfg.backend.submap_keyframes
+        first = n_kf - window  # the submap's first keyframe
+        path = np.asarray(self._path_m[robot])
+        cutoff = min(first - window, int(np.searchsorted(path, path[first] - self.loop_exclusion_m(robot), "right")))
+        if cutoff <= 0:
+            return None
+        graph = self._graphs[robot]
+        whole = graph.arrays()
+        old = whole.subset(graph.anchor_keyframes(whole.node_ids) < cutoff)
+        new = recent.subset(graph.anchor_keyframes(recent.node_ids) >= cutoff)
+        if len(old) < self.cfg.matching.min_inliers or len(new) < self.cfg.matching.min_inliers:
+            return None
+        return old, new, compute_descriptors(old, self.cfg.descriptor)
 
     def _match_pair(
         self, robot_a: str, robot_b: str, query: str, graph_a: GraphArrays, graph_b: GraphArrays, desc_a

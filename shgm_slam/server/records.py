@@ -17,7 +17,8 @@ class MatchRecord:
     step: int
     robot_a: str
     robot_b: str
-    query: str  # "submap" | "whole": which part of robot_b's graph was matched against robot_a's graph
+    query: str  # "submap" | "whole": which part of robot_b's graph was matched against robot_a's graph;
+    # "loop": robot_b == robot_a, its recent submap against its own older graph (intra-robot loop closure)
     success: bool
     accepted: bool
     reason: str
