@@ -367,7 +367,7 @@ def run(
     seg_model: Annotated[Path | None, typer.Option(help="ONNX segmentation model (card next to it)")] = None,
     gt_shared_frame: Annotated[bool, typer.Option(help="ground truths of all robots share one world frame")] = True,
     overwrite: Annotated[
-        bool, typer.Option("--overwrite", help="reuse a non-empty --out: remove an earlier run's results first")
+        bool, typer.Option("--overwrite", help="reuse an --out holding an earlier run's results: remove them first")
     ] = False,
 ) -> None:
     """Run the multi-robot system: odometry, semantic graphs, cross-robot matching, fused trajectories."""
@@ -456,9 +456,9 @@ def server_command(
     stale_after: Annotated[
         float, typer.Option(min=0.5, max=3600, help="seconds of silence before a robot is stale")
     ] = 5.0,
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="start fresh in a non-empty --out: remove an "
-                                            "earlier run's results and journal first (without it a journal "
-                                            "there is resumed)")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="start fresh: remove an earlier run's results "
+                                            "and journal from --out first (without it a journal there is "
+                                            "resumed)")] = False,
 ) -> None:
     """Map server for robots in separate processes (Eclipse Zenoh): fuses their maps, writes the results."""
     from shgm_slam.config import load_config
@@ -544,8 +544,9 @@ def demo(
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
     rgb_only: Annotated[bool, typer.Option("--rgb-only", help="depth and labels from the ONNX demo models")] = False,
     rerun: Annotated[str, typer.Option("--rerun", help="spawn | save | connect | off")] = "save",
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="reuse a non-empty --out (the default folder is "
-                                            "always replaced): remove an earlier run's results first")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="reuse an --out holding an earlier run's "
+                                            "results: remove them first (the default folder is always "
+                                            "replaced)")] = False,
 ) -> None:
     """Simulate the airsim-like world (car, car, UAV) once, then run the whole system on it."""
     from shgm_slam.demo import demo_config, demo_results_dir, prepare_world
@@ -732,7 +733,8 @@ def bench_simulate(
 def bench_localization(
     out: Annotated[Path, typer.Option("--out", "-o", help="results folder: localization.json, .md, pr_curve.png")]
     = Path("results/bench_localization"),
-    runs: Annotated[int | None, typer.Option(min=1, max=100000, help="random transforms per configuration [100; quick 10]")]
+    runs: Annotated[int | None, typer.Option(min=1, max=100000,
+                                             help="random transforms per configuration [100; quick 10]")]
     = None,
     quick: Annotated[bool, typer.Option("--quick", help="compact worlds at 320x96, fewer runs (~2 min)")] = False,
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed (defaults were tuned on seed 1)")] = 0,
@@ -855,7 +857,9 @@ def bench_heldout(
     = "report",
     scenario: Annotated[list[str] | None, typer.Option(help="scenario (repeatable) [all four]")] = None,
     mode: Annotated[list[str] | None, typer.Option(help="files | rgb (repeatable) [both]")] = None,
-    max_frames: Annotated[int | None, typer.Option(min=10, max=MAX_FRAMES, help="cut every robot's sequence (quick looks)")] = None,
+    max_frames: Annotated[
+        int | None, typer.Option(min=10, max=MAX_FRAMES, help="cut every robot's sequence (quick looks)")
+    ] = None,
     cache: Annotated[Path, typer.Option(help="rendered worlds are cached here")] = Path("cache/heldout"),
     jobs: Annotated[int, typer.Option(min=1, max=64, help="worlds run in this many processes at once")] = 1,
 ) -> None:
@@ -897,12 +901,14 @@ def bench_table3(
     = Path("results/bench_table3"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (200-209), 'tuning' (10-19), A-B or A,B")]
     = "report",
-    runs: Annotated[int, typer.Option(min=1, max=100000, help="random transforms per split, descriptor and world")] = 10,
+    runs: Annotated[
+        int, typer.Option(min=1, max=100000, help="random transforms per split, descriptor and world")
+    ] = 10,
     split: Annotated[list[str] | None, typer.Option(help="02 | 08A | 08B | 00-07 (repeatable) [all]")] = None,
     descriptor: Annotated[list[DescriptorKind] | None, typer.Option(help="descriptor (repeatable) [all three]")]
     = None,
-    max_frames: Annotated[int | None, typer.Option(min=2, max=MAX_FRAMES, help="cut every drive to its first frames (quick "
-                                                   "looks; may cut the overlap away)")] = None,
+    max_frames: Annotated[int | None, typer.Option(min=2, max=MAX_FRAMES, help="cut every drive to its first frames "
+                                                   "(quick looks; may cut the overlap away)")] = None,
     resolution: Annotated[str, typer.Option(help="render size WIDTHxHEIGHT")] = "320x96",
     mode: Annotated[str, typer.Option(help="robust (the default configuration) | paper (Alg. 2 RANSAC over "
                                       "the best candidate per node, as the authors' release)")] = "robust",

@@ -180,8 +180,8 @@ class OdometryConfig(_Stage):
     kind: OdometryKind = OdometryKind.AUTO
     poses_file: Path | None = None
     voxel_size_m: float | None = Field(
-        None, ge=0.01, description="KISS-ICP voxel (at least 1 cm); None: max(1, median depth of the first frames / 40) (far, "
-        "dense clouds register on a coarser map)"
+        None, ge=0.01, description="KISS-ICP voxel (at least 1 cm); None: max(1, median depth of the first "
+        "frames / 40) (far, dense clouds register on a coarser map)"
     )
     max_points_per_voxel: int = Field(10, ge=1, le=1000)
     min_range_m: float = Field(0.5, ge=0)

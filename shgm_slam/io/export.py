@@ -26,7 +26,6 @@ from shgm_slam.io.graph_json import write_graph
 from shgm_slam.io.trajectories import write_kitti_poses, write_tum
 from shgm_slam.types import GraphArrays, Sequence
 
-
 RUN_OUTPUT_PATTERNS = (
     "*_fused_tum.txt", "*_fused_kitti.txt", "*_odometry_tum.txt", "*_gt_tum.txt", "*_gt_kitti.txt",
     "graph_*.json", "matches.json", "pose_graph.g2o", "config.yaml", "metrics.json", "server.json",
@@ -34,6 +33,10 @@ RUN_OUTPUT_PATTERNS = (
 )
 """Files a run, demo or map server writes into its results folder (``--overwrite`` removes these, and
 their leftover ``.<name>.*`` temporary files, nothing else)."""
+
+
+RESUME_START_FILES = ("config.yaml", "server.rrd", "server.json")
+"""What a map server writes before its journal exists; a folder holding only these is resumed too."""
 
 
 def run_output_files(folder: Path) -> list[Path]:
@@ -50,14 +53,14 @@ def make_results_dir(
 ) -> Path:
     """Create the results folder: ``out`` if given, else ``base/<YYYYmmdd_HHMMSS>`` plus ``base/latest``.
 
-    A reused ``out`` never mixes two runs' files: a folder that is not empty is refused, unless
-    ``overwrite`` (then the files an earlier run wrote there, ``RUN_OUTPUT_PATTERNS``, are removed first;
-    other files are left alone) or ``resume_file`` names a file that is there (a map server's
-    ``journal.bin``: the folder is resumed as it is).
+    A reused ``out`` never mixes two runs' files: a folder holding files an earlier run wrote
+    (``RUN_OUTPUT_PATTERNS``) is refused, unless ``overwrite`` (then those are removed first; other files
+    are left alone) or ``resume_file`` names a file that is there (a map server's ``journal.bin``: the
+    folder is resumed as it is; so is one holding only ``RESUME_START_FILES``).
 
     Raises:
-        DataError: ``out`` is a file, cannot be created, is not empty (without ``overwrite``), or an
-            earlier run's file cannot be removed.
+        DataError: ``out`` is a file, cannot be created, holds an earlier run's files (without
+            ``overwrite``), or one of those cannot be removed.
     """
     if out is not None:
         path = Path(out)
@@ -80,27 +83,27 @@ def make_results_dir(
 
 
 def _claim_results_dir(path: Path, *, overwrite: bool, resume_file: str | None) -> None:
-    """Refuse a non-empty ``path`` or clear the earlier run's files (see ``make_results_dir``)."""
+    """Refuse ``path`` when it holds an earlier run's files, or clear them (see ``make_results_dir``)."""
     try:
-        entries = list(path.iterdir())
+        ours = run_output_files(path)
     except OSError as exc:
         raise DataError(f"cannot read results folder {path}: {exc.strerror}") from None
-    if not entries:
-        return
+    if not ours:
+        return  # empty, or only other files (logs, notes): nothing to mix with
     if overwrite:
-        for old in run_output_files(path):
+        for old in ours:
             try:
                 old.unlink()
             except OSError as exc:
                 raise DataError(f"cannot remove {old} of an earlier run: {exc.strerror}") from None
         return
-    if resume_file is not None and (path / resume_file).is_file():
-        return
-    ours = run_output_files(path)
-    held = f"an earlier run's results ({ours[0].name}, ...)" if ours else f"{len(entries)} other file(s)"
+    if resume_file is not None:
+        if (path / resume_file).is_file() or {p.name for p in ours} <= set(RESUME_START_FILES):
+            return  # a journal to replay, or a server that stopped before hearing from any robot
+    names = ", ".join(p.name for p in ours[:3]) + (", ..." if len(ours) > 3 else "")
     raise DataError(
-        f"results folder {path} is not empty: it holds {held}; choose a new --out, or pass --overwrite to "
-        "replace an earlier run's results (other files are kept)"
+        f"results folder {path} holds an earlier run's results ({names}); choose a new --out, or pass "
+        "--overwrite to remove them first (other files are kept)"
     )
 
 

@@ -39,14 +39,14 @@ def test_depth_all_zero_is_one_error(tmp_path: Path):
     for f in frames:
         f.depth_m = np.zeros_like(f.depth_m)
     seq = open_sequence(write_frames(tmp_path / "s", frames))
-    with pytest.raises(DataError, match="robot 'car'.*depth has no valid pixel"):
+    with pytest.raises(DataError, match=r"robot 'car'.*depth has no valid pixel"):
         check_sequence_start("car", seq, files)
 
 
 def test_every_depth_png_of_the_wrong_dtype_is_one_error(seq_dir: Path):
     for p in sorted((seq_dir / "depth").glob("*.png")):
         cv2.imwrite(str(p), np.full((24, 32), 7, np.uint8))
-    with pytest.raises(DataError, match="none can be used.*uint8"):
+    with pytest.raises(DataError, match=r"none can be used.*uint8"):
         check_sequence_start("car", open_sequence(seq_dir), files)
 
 
@@ -71,7 +71,7 @@ def test_model_outputs_nan_or_constant_are_model_errors(seq_dir: Path):
     def nan_depth(frame):
         return np.full(frame.depth_m.shape, np.nan, np.float32), frame.label_ids
 
-    with pytest.raises(ModelError, match="depth model d.onnx: no valid depth"):
+    with pytest.raises(ModelError, match=r"depth model d.onnx: no valid depth"):
         check_sequence_start("car", seq, nan_depth, depth_model="d.onnx")
 
     def flat_depth(frame):
@@ -84,7 +84,7 @@ def test_model_outputs_nan_or_constant_are_model_errors(seq_dir: Path):
     def one_class(frame):
         return frame.depth_m, np.full(frame.label_ids.shape, 2, np.uint8)
 
-    with pytest.raises(ModelError, match="segmentation model s.onnx: constant output"):
+    with pytest.raises(ModelError, match=r"segmentation model s.onnx: constant output"):
         check_sequence_start("car", seq, one_class, seg_model="s.onnx")
 
 

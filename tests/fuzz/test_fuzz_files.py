@@ -49,8 +49,7 @@ def graph_docs(draw: st.DrawFn) -> object:
         value = draw(json_values)
         if target == "node" and nodes:
             nodes[draw(st.integers(0, n - 1))] = value
-        elif target == "field" and nodes:
-            node = nodes[draw(st.integers(0, n - 1))]
+        elif target == "field" and nodes and isinstance(node := nodes[draw(st.integers(0, n - 1))], dict):
             key = draw(st.sampled_from(["id", "label", "position", "size"]))
             node[key] = draw(st.one_of(st.just(value), st.sampled_from(HUGE), st.lists(numbers, min_size=3,
                                                                                       max_size=3)))
@@ -99,7 +98,7 @@ def calib_texts(draw: st.DrawFn) -> bytes:
     for _ in range(draw(st.integers(0, 3))):
         P[draw(st.integers(0, 11))] = draw(numbers)
     count = draw(st.sampled_from([12, 12, 12, 11, 13, 0]))
-    values = (P + [1.0])[:count]
+    values = [*P, 1.0][:count]
     key = draw(st.sampled_from(["P2", "P2", "P0", "p2", "P2 ", ""]))
     line = f"{key}: " + " ".join(repr(v) if draw(st.booleans()) else str(v) for v in values)
     text = "".join(f"P{k}: {' '.join(map(str, P))}\n" for k in (0, 1)) + line + "\n"

@@ -120,8 +120,8 @@ def _exercise(model_path: Path, card: dict) -> None:
             out = model.predict(IMAGE)
             assert out.shape == (24, 32) and out.dtype == np.uint8
 
-        frame = Frame(index=0, timestamp_s=0.0, intrinsics=INTRINSICS, image_rgb=IMAGE,
-                      depth_m=np.full((24, 32), 5.0, np.float32), label_ids=np.full((24, 32), 13, np.uint8))  # fmt: skip
+        depth, labels = np.full((24, 32), 5.0, np.float32), np.full((24, 32), 13, np.uint8)
+        frame = Frame(index=0, timestamp_s=0.0, intrinsics=INTRINSICS, image_rgb=IMAGE, depth_m=depth, label_ids=labels)
 
         def perceive(f):
             if isinstance(model, DepthModel):

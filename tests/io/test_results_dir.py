@@ -25,7 +25,7 @@ def test_a_fresh_or_empty_folder_is_used(tmp_path):
 
 def test_a_folder_with_an_earlier_run_is_refused(tmp_path):
     _earlier_run(tmp_path / "out")
-    with pytest.raises(DataError, match="not empty.*earlier run.*--overwrite"):
+    with pytest.raises(DataError, match=r"holds an earlier run's results.*--overwrite"):
         make_results_dir(tmp_path / "out")
     assert (tmp_path / "out" / "b_fused_tum.txt").is_file()
 
@@ -37,11 +37,11 @@ def test_overwrite_removes_only_the_earlier_runs_files(tmp_path):
     assert run_output_files(tmp_path / "out") == []
 
 
-def test_a_folder_with_other_files_is_refused(tmp_path):
+def test_a_folder_with_only_other_files_is_used_and_they_are_kept(tmp_path):
     (tmp_path / "out").mkdir()
-    (tmp_path / "out" / "thesis.tex").write_text("x")
-    with pytest.raises(DataError, match="1 other file"):
-        make_results_dir(tmp_path / "out")
+    (tmp_path / "out" / "server.0.log").write_text("x")  # e.g. logs a launcher writes before the server starts
+    make_results_dir(tmp_path / "out")
+    assert (tmp_path / "out" / "server.0.log").read_text() == "x"
 
 
 def test_a_file_is_not_a_results_folder(tmp_path):
@@ -57,6 +57,15 @@ def test_a_server_journal_resumes_the_folder_and_overwrite_starts_fresh(tmp_path
     assert (tmp_path / "out" / "journal.bin").is_file() and (tmp_path / "out" / "metrics.json").is_file()
     make_results_dir(tmp_path / "out", overwrite=True, resume_file="journal.bin")
     assert not (tmp_path / "out" / "journal.bin").exists()
+
+
+def test_a_server_that_stopped_before_any_robot_is_resumed(tmp_path):
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "config.yaml").write_text("x")
+    (tmp_path / "out" / "server.rrd").write_bytes(b"x")
+    make_results_dir(tmp_path / "out", resume_file="journal.bin")
+    with pytest.raises(DataError, match="earlier run"):
+        make_results_dir(tmp_path / "out")  # but run does not mix into it
 
 
 def test_run_cli_refuses_a_reused_out_with_exit_2(tmp_path, tiny_scenario):
