@@ -18,6 +18,22 @@ from shgm_slam.geometry import se3
 from shgm_slam.io.trajectories import write_kitti_poses
 from shgm_slam.runner import open_robots, run_slam
 from shgm_slam.sim.trajectories import arc_length, fillet_path, resample_path
+from shgm_slam.viz.rerun_logger import NullLogger
+
+
+class RecordingViz(NullLogger):
+    """A viewer that remembers the matches and messages it was asked to show."""
+
+    def __init__(self) -> None:
+        self.matches: list[tuple[str, str, bool, int]] = []
+        self.texts: list[str] = []
+
+    def log_matches(self, robot_a, robot_b, positions_a, positions_b, accepted, num_inliers=None, score=None):
+        assert positions_a.shape == positions_b.shape
+        self.matches.append((robot_a, robot_b, accepted, num_inliers))
+
+    def log_text(self, message, level="INFO"):
+        self.texts.append(message)
 
 
 def kitti_poses_along(path_xz: np.ndarray) -> np.ndarray:
@@ -70,14 +86,14 @@ def open_drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return _render(tmp / "kitti", fillet_path(corners, radius_m=15.0), tmp / "world")
 
 
-def _run(seq: Path, out: Path, *, loop_closure: bool = True):
+def _run(seq: Path, out: Path, *, loop_closure: bool = True, viz: NullLogger | None = None):
     robots = open_robots([f"car={seq}"])
     odo = drifting_odometry(robots["car"].gt_poses, 0.05, 1.01)
     write_kitti_poses(out.parent / f"{out.name}_odo.txt", odo)
     cfg = ShgmConfig()
     cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, out.parent / f"{out.name}_odo.txt"
     cfg.backend.loop_closure = loop_closure
-    summary = run_slam(robots, cfg, out)
+    summary = run_slam(robots, cfg, out, viz=viz)
     return summary, json.loads((out / "matches.json").read_text())
 
 
@@ -86,7 +102,8 @@ def _loops(matches: list[dict]) -> list[dict]:
 
 
 def test_a_drifting_loop_is_closed(loop_drive: Path, tmp_path: Path) -> None:
-    summary, matches = _run(loop_drive, tmp_path / "out")
+    viz = RecordingViz()
+    summary, matches = _run(loop_drive, tmp_path / "out", viz=viz)
     (car,) = summary.robots
     loops = _loops(matches)
     accepted = [m for m in loops if m["accepted"]]
@@ -95,6 +112,9 @@ def test_a_drifting_loop_is_closed(loop_drive: Path, tmp_path: Path) -> None:
         assert m["robot_a"] == m["robot_b"] == "car"
     for m in accepted:
         assert m["keyframe_a"] < m["keyframe_b"]
+    # shown by the viewer like inter-robot matches
+    assert ("car", "car", True, len(accepted[0]["inliers"])) in viz.matches
+    assert any(t.startswith("car<->car (loop)") for t in viz.texts)
     # the loop pulls the drifted return back: the fused trajectory is clearly better than the odometry
     assert car.ate_fused_m < 0.6 * car.ate_odometry_m, car
 
