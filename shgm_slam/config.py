@@ -278,6 +278,13 @@ class BackendConfig(_Stage):
     loop_closure: bool = Field(
         True, description="also match each robot's submap against its own older graph (intra-robot loop closure)"
     )
+    attitude_factors: bool = Field(
+        True, description="hold each keyframe's roll and pitch to its measured ground normal (level ground assumed)"
+    )
+    attitude_warmup_keyframes: int = Field(
+        20, ge=2, le=10_000, description="keyframes with a ground fit a robot needs before its normals' sigma "
+        "is measured (from their scatter) and its attitude factors start"
+    )
     odometry_sigma_rot_rad: float = Field(0.01, gt=0)
     odometry_sigma_trans_m: float = Field(0.1, gt=0)
     closure_sigma_rot_rad: float = Field(0.1, gt=0)

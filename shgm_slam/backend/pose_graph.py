@@ -26,6 +26,17 @@ those are removed from iSAM2 (``removeFactorIndices``); if a removed closure was
 a robot, the graph is rebuilt from the recorded odometry and the accepted closures, so one wrong first
 match cannot leave a robot in the wrong place. Accepted closures additionally carry a robust kernel.
 
+Attitude (``attitude``): each keyframe that measured its ground plane (``up_odom``: the plane's normal in
+its odometry frame) gets a unary ``AttitudeFactorPose3`` once its robot is anchored: the normal in the
+camera frame, rotated by the keyframe's estimated orientation, should point along the shared frame's up,
+with a Huber kernel and the robot's own measured sigma (``attitude.normal_sigma_rad``, from its first
+``attitude_warmup`` measured keyframes; none before). The shared frame's up comes from the first anchored
+robot's first ``attitude_warmup`` measurements, rotated into the shared frame and extrapolated to its
+first keyframe (``attitude.up_at_start``), and is then fixed: unary factors keep the cost of an update
+flat, where a shared "gravity" variable tied to every keyframe made each update cost O(keyframes). This
+stops roll and pitch from drifting with the odometry, and the height error that pitch drift integrates;
+it assumes level ground (see ``attitude.py``).
+
 Numerics: iSAM2 factorizes with QR by default. With CHOLESKY, a long straight chain with the default
 sigmas raised ``IndeterminateSystem`` after ~1100 keyframes: the root clique's information couples
 rotation and translation through a lever arm as long as the chain, and gtsam's partial Cholesky
@@ -41,6 +52,7 @@ ask for poses per keyframe do not pay a full recomputation each time.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import time
 from dataclasses import dataclass, field
@@ -50,6 +62,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
+from shgm_slam.backend.attitude import normal_sigma_rad, up_at_start
 from shgm_slam.backend.consistency import (
     MAX_CLOSURES_PER_PAIR,
     ConsistencyThresholds,
@@ -138,6 +151,7 @@ class PoseGraphStats:
     rebuilds: int
     last_update_ms: float
     recoveries: int = 0  # iSAM2 failures recovered by rebuilding with QR
+    attitude_factors: int = 0  # keyframes whose ground normal is a factor in iSAM2 now
 
 
 @dataclass
@@ -148,12 +162,20 @@ class _Robot:
     anchor_closure: int | None = None  # closure id that anchored it (None for robot 0 or unanchored)
     anchored: bool = False
     T_shared_odom_init: np.ndarray | None = None  # alignment used when it was anchored
+    up_odom: list[np.ndarray] = field(default_factory=list)  # each keyframe's ground normal (NaN: none)
+    measured: list[int] = field(default_factory=list)  # keyframes with a ground normal
+    attitude_sigma_rad: float | None = None  # measured once it has ``attitude_warmup`` normals
+    attitude_next: int = 0  # keyframes before this one have had their attitude factor (if measured)
     _odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_odom_kf as a growing array
     _path: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
-    def append(self, T_odom_kf: np.ndarray) -> None:
-        """Record the next keyframe pose (and the odometry path length up to it)."""
+    def append(self, T_odom_kf: np.ndarray, up_odom: np.ndarray | None = None) -> None:
+        """Record the next keyframe pose, its ground normal (odometry frame; None: not measured) and the
+        odometry path length up to it."""
         k = len(self.T_odom_kf)
+        self.up_odom.append(np.full(3, np.nan) if up_odom is None else up_odom)
+        if up_odom is not None:
+            self.measured.append(k)
         step = 0.0 if k == 0 else float(np.linalg.norm(T_odom_kf[:3, 3] - self.T_odom_kf[-1][:3, 3]))
         self.path_m.append((self.path_m[-1] if k else 0.0) + step)
         self.T_odom_kf.append(T_odom_kf)
@@ -212,6 +234,9 @@ class MultiRobotPoseGraph:
             1 = trust a single first match).
         factorization: iSAM2 linear solver.
         extra_updates: additional ``isam.update()`` passes after closures change the graph.
+        attitude: attitude factors from the keyframes' ground normals (module docstring).
+        attitude_warmup: measured keyframes a robot needs before its sigma is measured (and the first
+            anchored one's before the shared frame's up is fixed).
         max_closures_per_pair: closures of one robot pair that vote on its consistent set; beyond
             it the oldest closure outside the set (else the oldest in it) leaves the vote and keeps
             its status (``PairConsistency``).
@@ -233,6 +258,8 @@ class MultiRobotPoseGraph:
         factorization: Factorization | str = Factorization.QR,
         relinearize_threshold: float = 0.01,
         extra_updates: int = 3,
+        attitude: bool = True,
+        attitude_warmup: int = 20,
         max_closures_per_pair: int = MAX_CLOSURES_PER_PAIR,
     ) -> None:
         self.keys = RobotKeys(robot_names)
@@ -255,6 +282,12 @@ class MultiRobotPoseGraph:
         self.max_closures_per_pair = max_closures_per_pair
         self.relinearize_threshold = relinearize_threshold
         self.extra_updates = extra_updates
+        if attitude_warmup < 2:
+            raise BackendError(f"attitude_warmup must be >= 2 (a sigma needs pairs), got {attitude_warmup}")
+        self.attitude = attitude
+        self.attitude_warmup = attitude_warmup
+        self._up_shared: np.ndarray | None = None  # the shared frame's up, fixed once measured
+        self._attitude_factors = 0
         self._robots = {name: _Robot(i) for i, name in enumerate(self.keys.names)}
         self._closures: list[ClosureRecord] = []
         self._closure_noise: list[gtsam.noiseModel.Base] = []
@@ -270,29 +303,40 @@ class MultiRobotPoseGraph:
 
     # --- public API ---------------------------------------------------------------------------------
 
-    def add_keyframe(self, robot: str, kf_index: int, T_odom_kf: np.ndarray) -> None:
+    def add_keyframe(
+        self, robot: str, kf_index: int, T_odom_kf: np.ndarray, up_odom: np.ndarray | None = None
+    ) -> None:
         """Add keyframe ``kf_index`` (0, 1, 2, ... per robot) with its pose in the robot's odometry frame.
 
         Anchored robots get the odometry factor (and robot 0's first keyframe the prior) in iSAM2
         right away; keyframes of unanchored robots are recorded until the robot is anchored.
+        ``up_odom`` (3,) is the keyframe's measured ground normal (unit, pointing up) in the robot's
+        odometry frame, or None; it becomes an attitude factor (module docstring).
 
         Raises:
-            BackendError: unknown robot, a keyframe index out of order, or a non-finite pose.
+            BackendError: unknown robot, a keyframe index out of order, a non-finite pose or normal.
         """
         r = self._robot(robot)
         T = _check_pose(T_odom_kf, f"keyframe {kf_index} of {robot}")
+        if up_odom is not None:
+            up_odom = np.asarray(up_odom, dtype=np.float64)
+            norm = float(np.linalg.norm(up_odom)) if up_odom.shape == (3,) else 0.0
+            if not (np.isfinite(up_odom).all() and norm > 0):
+                raise BackendError(f"up_odom of keyframe {kf_index} of {robot} must be a finite non-zero (3,) vector")
+            up_odom = up_odom / norm
         if kf_index != len(r.T_odom_kf):
             raise BackendError(
                 f"keyframe {kf_index} of {robot} is out of order: expected keyframe {len(r.T_odom_kf)} "
                 "(keyframes are numbered 0, 1, 2, ... per robot)"
             )
-        r.append(T)
+        r.append(T, up_odom)
         self._version += 1
         if r.index == 0 and kf_index == 0:
             self._anchor_first_robot()
             self._sync()
         elif r.anchored:
             self._push_keyframe(robot, kf_index)
+            self._push_attitudes()
         self._flush(closures_changed=False)
 
     def add_inter_robot_closure(
@@ -403,6 +447,11 @@ class MultiRobotPoseGraph:
         self._robots[robot] = _Robot(self.keys.add(robot))
         self._version += 1
 
+    @property
+    def up_shared(self) -> np.ndarray | None:
+        """(3,) the shared frame's up (unit) the attitude factors hold keyframes to, once measured."""
+        return None if self._up_shared is None else self._up_shared.copy()
+
     def is_anchored(self, robot: str) -> bool:
         """True when ``robot``'s keyframes are in the shared frame (it has variables in iSAM2)."""
         return self._robot(robot).anchored
@@ -468,6 +517,7 @@ class MultiRobotPoseGraph:
             rebuilds=self._rebuilds,
             last_update_ms=self._last_update_ms,
             recoveries=self._recoveries,
+            attitude_factors=self._attitude_factors,
         )
 
     def to_g2o(self) -> str:
@@ -475,7 +525,7 @@ class MultiRobotPoseGraph:
 
         Vertex ids are the gtsam keys (``gtsam.readG2o`` restores ``a0, b3, ...``); edges are the
         odometry factors and the closures in the graph, information matrices in g2o order
-        [trans, rot]. Robust kernels and robot 0's prior are not part of the format.
+        [trans, rot]. Robust kernels, robot 0's prior and the attitude factors are not part of the format.
         """
         values = self._isam.calculateEstimate()
         lines = []
@@ -661,6 +711,51 @@ class MultiRobotPoseGraph:
                     raise BackendError(f"closure {c.closure_id} was rejected before its factor was added")
                 self._to_remove.append(idx)
                 c.in_graph = False
+        self._push_attitudes()
+
+    def _push_attitudes(self) -> None:
+        """Attitude factors for the measured keyframes of anchored robots that have none yet (once the
+        shared frame's up and the robot's sigma are measured)."""
+        if not self.attitude:
+            return
+        anchored = [(name, r) for name, r in self._robots.items() if r.anchored]
+        if self._up_shared is None:
+            self._up_shared = self._measure_up_shared(anchored)
+            if self._up_shared is None:
+                return
+        nav_up = gtsam.Unit3(self._up_shared)
+        for name, r in anchored:
+            if r.attitude_sigma_rad is None:
+                if len(r.measured) < self.attitude_warmup:
+                    continue
+                first = np.stack([r.up_odom[k] for k in r.measured[: self.attitude_warmup]])
+                r.attitude_sigma_rad = normal_sigma_rad(first)
+            if r.attitude_next == len(r.T_odom_kf):
+                continue
+            noise = gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Huber.Create(_KERNEL_WIDTH[RobustKernel.HUBER]),
+                gtsam.noiseModel.Isotropic.Sigma(2, r.attitude_sigma_rad),
+            )
+            start = bisect.bisect_left(r.measured, r.attitude_next)
+            for k in r.measured[start:]:
+                n_cam = r.T_odom_kf[k][:3, :3].T @ r.up_odom[k]
+                self._add_factor(gtsam.AttitudeFactorPose3(self.keys.key(name, k), nav_up, noise, gtsam.Unit3(n_cam)))
+                self._attitude_factors += 1
+            r.attitude_next = len(r.T_odom_kf)
+
+    def _measure_up_shared(self, anchored: list[tuple[str, _Robot]]) -> np.ndarray | None:
+        """The shared frame's up, from the first anchored robot (in index order) with ``attitude_warmup``
+        measured keyframes: those normals rotated by their current estimates, extrapolated to its first
+        keyframe (``attitude.up_at_start``: free of the odometry's drift over them)."""
+        for name, r in sorted(anchored, key=lambda item: item[1].index):
+            ks = r.measured[: self.attitude_warmup]
+            if len(ks) < self.attitude_warmup:
+                continue
+            ups = [
+                self._current_pose(name, k)[:3, :3] @ (r.T_odom_kf[k][:3, :3].T @ r.up_odom[k]) for k in ks
+            ]
+            return up_at_start(np.stack(ups), np.asarray(ks))
+        return None
 
     def _rebuild(self) -> None:
         """Start iSAM2 afresh from the recorded odometry and the accepted closures (anchor changed)."""
@@ -668,6 +763,8 @@ class MultiRobotPoseGraph:
         self._reset_isam()
         for r in self._robots.values():
             r.anchored, r.anchor_closure, r.T_shared_odom_init = False, None, None
+            r.attitude_next = 0
+        self._attitude_factors = 0
         for c in self._closures:
             c.in_graph = False
         if self._robots[self.keys.names[0]].T_odom_kf:
@@ -823,4 +920,6 @@ def make_pose_graph(robot_names: list[str], cfg: BackendConfig) -> MultiRobotPos
         consistency_trans_per_m=cfg.consistency_trans_per_m,
         consistency_rot_deg_per_m=cfg.consistency_rot_deg_per_m,
         min_closures_to_anchor=cfg.min_closures_to_anchor,
+        attitude=cfg.attitude_factors,
+        attitude_warmup=cfg.attitude_warmup_keyframes,
     )

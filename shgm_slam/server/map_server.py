@@ -50,7 +50,7 @@ class MapServer:
         # the one home of keyframe poses on the server: each agent's keyframes in its odometry frame
         self._T_odom_kf: dict[str, list[np.ndarray]] = {r: [] for r in robot_names}
         self._path_m: dict[str, list[float]] = {r: [] for r in robot_names}  # odometry path length per keyframe
-        self._up: dict[str, np.ndarray | None] = dict.fromkeys(robot_names)
+        self._up_sum = {r: np.zeros(3) for r in robot_names}  # sum of each agent's keyframe normals (odometry frame)
         self._matches: list[MatchRecord] = []
         self._since_match = dict.fromkeys(robot_names, 0)
         self._closures: set[tuple[str, int, str, int]] = set()
@@ -66,7 +66,7 @@ class MapServer:
         self._graphs[agent] = SemanticGraph(self.cfg.graph.merge_radius_m, self.cfg.graph.connectivity_m)
         self._T_odom_kf[agent] = []
         self._path_m[agent] = []
-        self._up[agent] = None
+        self._up_sum[agent] = np.zeros(3)
         self._since_match[agent] = 0
 
     def receive(self, msg: KeyframeMessage) -> list[MatchRecord]:
@@ -87,8 +87,8 @@ class MapServer:
         path.append(path[-1] + float(np.linalg.norm(msg.T_odom_kf[:3, 3] - poses[-1][:3, 3])) if path else 0.0)
         poses.append(msg.T_odom_kf)
         if msg.up_odom is not None:
-            self._up[msg.robot] = msg.up_odom
-        self._pose_graph.add_keyframe(msg.robot, msg.kf_index, msg.T_odom_kf)
+            self._up_sum[msg.robot] += msg.up_odom
+        self._pose_graph.add_keyframe(msg.robot, msg.kf_index, msg.T_odom_kf, msg.up_odom)
         self._graphs[msg.robot].apply_update(msg.graph_update, self._T_odom_kf[msg.robot])
         self.timings_ms["backend"].append((time.perf_counter() - t0) * 1e3)
         self._since_match[msg.robot] += 1
@@ -165,7 +165,7 @@ class MapServer:
         self, robot_a: str, robot_b: str, query: str, graph_a: GraphArrays, graph_b: GraphArrays, desc_a
     ) -> MatchRecord:
         t0 = time.perf_counter()
-        up_a, up_b = self._up[robot_a], self._up[robot_b]
+        up_a, up_b = self.up_odom(robot_a), self.up_odom(robot_b)
         if up_a is not None and up_b is not None:
             # both robots know where "up" is (their ground plane): a 4-DoF match in gravity-aligned frames
             R_a, R_b = rotation_to_z(up_a), rotation_to_z(up_b)
@@ -267,6 +267,13 @@ class MapServer:
     def matches(self) -> list[MatchRecord]:
         """Every match attempt so far, in order (the rows of ``matches.json``)."""
         return list(self._matches)
+
+    def up_odom(self, agent: str) -> np.ndarray | None:
+        """(3,) ``agent``'s mean ground normal (unit, up) over its keyframes in its odometry frame, or None
+        while none of its keyframes has fitted the ground."""
+        total = self._up_sum[agent]
+        norm = float(np.linalg.norm(total))
+        return total / norm if norm > 0 else None
 
     def received(self, agent: str) -> int:
         """How many keyframes of ``agent`` the server holds (0 for an agent it does not know)."""
