@@ -33,6 +33,7 @@ from shgm_slam.robot.node import RobotNode
 from shgm_slam.scene_scale import effective_fields, resolve_robot_config, sample_scene_scale
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.node import ServerNode
+from shgm_slam.server.records import MatchRecord
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 from shgm_slam.types import Sequence
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
@@ -189,6 +190,30 @@ class RunSummary:
 ProgressFn = Callable[[int, int], None]
 
 
+@dataclass(frozen=True)
+class FrameStats:
+    """What one step of ``run_slam`` cost (for benchmarks): ``front_end_ms`` the robot's stages without
+    loading and perception (``RobotFrontend.process``: cloud, odometry, extraction, graph); ``load_ms``
+    loading the frame and perception; ``match_ms`` / ``backend_ms`` the server's graph matching and
+    pose-graph work the step triggered; ``server_ms`` the whole server poll (those two, decoding,
+    corrections, results files); ``step_ms`` the whole step (all of these and the viewer). ``matches``
+    the attempts it triggered."""
+
+    robot: str
+    frame_index: int
+    keyframe: bool
+    front_end_ms: float
+    load_ms: float
+    match_ms: float
+    backend_ms: float
+    server_ms: float
+    step_ms: float
+    matches: tuple[MatchRecord, ...] = ()
+
+
+FrameFn = Callable[[FrameStats], None]
+
+
 class _Timings:
     def __init__(self) -> None:
         self.sums: dict[str, float] = {}
@@ -212,6 +237,7 @@ def run_slam(
     progress: ProgressFn | None = None,
     gt_shared_frame: bool = True,
     write_every_keyframes: int = 25,
+    on_frame: FrameFn | None = None,
 ) -> RunSummary:
     """Run the whole multi-robot system and write the results folder.
 
@@ -225,6 +251,7 @@ def run_slam(
         gt_shared_frame: the sequences' ground truths share one world frame (true for our simulator and
             for frame ranges of one KITTI sequence), so fused ATE is measured in the shared frame.
         write_every_keyframes: rewrite the results folder this often (survives crashes and Ctrl-C).
+        on_frame: called after every processed frame with what it cost (``FrameStats``).
     """
     viz = viz or NullLogger()
     names = list(robots)
@@ -263,6 +290,7 @@ def run_slam(
     try:
         for robot, index in interleave(robots):
             done += 1
+            t_step = time.perf_counter()
             try:
                 res = nodes[robot].step(index)
             except DataError as exc:
@@ -279,13 +307,23 @@ def run_slam(
                     _last_healthy_position(fronts[robot], server),
                 )  # fmt: skip
             t0 = time.perf_counter()
+            n_match, n_backend = len(server.timings_ms["match"]), len(server.timings_ms["backend"])
             records = server_node.poll()
             res.timings_ms["server"] = (time.perf_counter() - t0) * 1e3
             nodes[robot].poll()
             timings.add(res.timings_ms)
-            compute_ms += sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
+            step_compute = sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
+            compute_ms += step_compute
             _log_frame(viz, server, fronts[robot], res, records)
             kf_total += res.message is not None
+            if on_frame is not None:
+                match_ms = sum(server.timings_ms["match"][n_match:])
+                backend_ms = sum(server.timings_ms["backend"][n_backend:])
+                on_frame(FrameStats(
+                    robot, index, res.message is not None, step_compute - res.timings_ms["server"],
+                    sum(res.timings_ms.values()) - step_compute, match_ms, backend_ms, res.timings_ms["server"],
+                    (time.perf_counter() - t_step) * 1e3, tuple(records),
+                ))  # fmt: skip
             if progress:
                 progress(done, total)
     except KeyboardInterrupt:

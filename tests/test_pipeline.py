@@ -283,3 +283,22 @@ def test_injected_jump_is_detected_and_the_new_segment_is_placed_again(tiny_scen
     t_odo, odo_file = read_tum(tmp_path / "out" / "car2_odometry_tum.txt")
     t = np.asarray(robots["car2"].timestamps_s)
     np.testing.assert_allclose(odo_file[np.flatnonzero(np.isclose(t_odo, t[25]))[0]], np.eye(4), atol=1e-6)
+
+
+def test_every_step_reports_its_cost(tiny_scenario: Path, tmp_path: Path) -> None:
+    stats = []
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    cfg.backend.match_every_keyframes = 5
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
+    summary = run_slam(robots, cfg, tmp_path / "out", on_frame=stats.append)
+    assert len(stats) == sum(r.frames_processed for r in summary.robots)
+    for r in summary.robots:
+        assert sum(s.keyframe for s in stats if s.robot == r.name) == r.keyframes
+    assert sum(len(s.matches) for s in stats) <= summary.matches_tried  # the final matching is no step
+    assert any(s.matches for s in stats)
+    for s in stats:
+        parts = (s.front_end_ms, s.load_ms, s.match_ms, s.backend_ms, s.server_ms)
+        assert min(parts) >= 0.0
+        assert s.match_ms + s.backend_ms <= s.server_ms + 1e-6
+        assert s.front_end_ms + s.load_ms + s.server_ms <= s.step_ms + 1e-6
