@@ -470,6 +470,9 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
 
 def _log_frame(viz: Viz, server: MapServer, front: RobotFrontend, res: FrameResult, records) -> None:
     r, agent = res.robot, res.agent or res.robot
+    if not viz.enabled:  # nothing shown: skip the poses, clouds, trajectories and graphs only the viewer needs
+        _log_matches(viz, server, records)
+        return
     viz.set_time(r, res.frame.index, res.frame.timestamp_s)
     if not np.isfinite(res.T_odom_cam).all():  # between a divergence and the next measured frame
         _log_matches(viz, server, records)

@@ -138,7 +138,13 @@ def depth_to_mm_u16(depth_m: np.ndarray) -> np.ndarray:
 
 
 class Viz(Protocol):
-    """What the pipeline logs. Implementations: ``RerunLogger`` and ``NullLogger``."""
+    """What the pipeline logs. Implementations: ``RerunLogger`` and ``NullLogger``.
+
+    ``enabled`` is False when nothing is shown: callers skip computing what only the viewer needs
+    (fused trajectories, graphs in the shared frame) instead of handing it to a no-op.
+    """
+
+    enabled: bool
 
     def setup(self, robots: dict[str, Intrinsics]) -> None: ...
 
@@ -185,6 +191,8 @@ class Viz(Protocol):
 
 class NullLogger:
     """A ``Viz`` that does nothing (``--rerun off``); every call is a cheap no-op."""
+
+    enabled = False
 
     def setup(self, robots: dict[str, Intrinsics]) -> None:
         pass
@@ -263,6 +271,8 @@ class RerunLogger:
         jpeg_quality: RGB images are JPEG-compressed at this quality (0..100) to keep recordings small.
         image_plane_distance_m: depth of the camera frustum drawn in the 3D view, metres.
     """
+
+    enabled = True
 
     def __init__(
         self,
