@@ -89,7 +89,7 @@ class _Recorder:
         b.server_ms += s.server_ms
         b.step_ms += s.step_ms
         b.matches += len(s.matches)
-        b.match_nodes += [m.size_a + m.size_b for m in s.matches]
+        b.match_nodes += [m.nodes_a + m.nodes_b for m in s.matches]
 
 
 def _bin_row(b: _Bin, km_from: float, km_to: float) -> dict:

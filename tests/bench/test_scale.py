@@ -10,10 +10,17 @@ import pytest
 from shgm_slam.bench.scale import KM_M, ROBOT, _bin_row, _Recorder, height_split_m, scale_markdown
 from shgm_slam.io.trajectories import write_tum
 from shgm_slam.runner import FrameStats
+from shgm_slam.server.records import MatchRecord
+
+
+def _match(nodes_a: int, nodes_b: int) -> MatchRecord:
+    return MatchRecord(1, "a", "b", "submap", False, False, "", None, None, None, np.zeros((0, 2)), 0, nodes_a,
+                       nodes_b, {})  # fmt: skip
 
 
 def _stats(robot: str, frame: int, keyframe: bool, ms: float) -> FrameStats:
-    return FrameStats(robot, frame, keyframe, ms, 1.0, ms / 2, ms / 4, ms, 3 * ms)
+    matches = (_match(100, 20), _match(300, 40)) if frame % 10 == 0 else ()
+    return FrameStats(robot, frame, keyframe, ms, 1.0, ms / 2, ms / 4, ms, 3 * ms, matches)
 
 
 def test_recorder_bins_the_long_robot_by_distance_and_keeps_others_apart():
@@ -29,6 +36,8 @@ def test_recorder_bins_the_long_robot_by_distance_and_keeps_others_apart():
     assert second["front_end_ms_per_kf"] == pytest.approx(2 * first["front_end_ms_per_kf"])
     assert first["front_end_ms_per_kf"] == pytest.approx(10.0 * 100 / 50)
     assert first["runner_other_ms_per_kf"] == pytest.approx((30.0 - 10.0 - 1.0 - 10.0) * 100 / 50)
+    assert first["matches"] == 20 and first["nodes_per_match"] == pytest.approx(230.0)
+    assert first["ms_per_match"] == pytest.approx(5.0 * 100 / 20)  # 5 ms of matching in each of 100 frames
     assert rec.bins[0].rss_end_mb > 0 and np.isfinite(rec.rss_start_mb)
     assert len(rec.bins) == int(path_m[-1] // KM_M) + 1
 
