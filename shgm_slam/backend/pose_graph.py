@@ -498,6 +498,26 @@ class MultiRobotPoseGraph:
         r = self._require_anchored(robot)
         return Anchor(r.anchor_closure, r.T_shared_odom_init.copy())
 
+    def closure_keyframes(self, robot: str) -> np.ndarray:
+        """Sorted (C,) int64 keyframes of ``robot`` that a factor ties to the shared frame beyond its own
+        odometry: ends of its accepted closures in iSAM2 (and keyframe 0 of the shared frame's robot,
+        which carries the prior). Between them the fused estimate's drift is bounded by the closures."""
+        self._robot(robot)
+        kfs = [c.kf_a for c in self._closures if c.in_graph and c.robot_a == robot]
+        kfs += [c.kf_b for c in self._closures if c.in_graph and c.robot_b == robot]
+        if robot == self.keys.names[0] and self._robots[robot].T_odom_kf:
+            kfs.append(0)
+        return np.unique(np.asarray(kfs, dtype=np.int64))
+
+    def evidence_between(self, robot_a: str, robot_b: str) -> int:
+        """How many independent sources of evidence (graph matches, ``ClosureRecord.evidence``) the
+        accepted closures between two robots (either order; a robot with itself: its loop closures) rest on."""
+        pair = {robot_a, robot_b}
+        return len({
+            c.evidence for c in self._closures
+            if c.status is ClosureStatus.ACCEPTED and {c.robot_a, c.robot_b} == pair
+        })  # fmt: skip
+
     def closures(self) -> list[ClosureRecord]:
         """Every closure so far (canonical robot order) with its current status and reason."""
         return list(self._closures)

@@ -9,7 +9,8 @@ import numpy as np
 
 from shgm_slam.backend.pose_graph import make_pose_graph
 from shgm_slam.config import ShgmConfig
-from shgm_slam.descriptors import compute_descriptors
+from shgm_slam.descriptors import NodeDescriptors
+from shgm_slam.descriptors.incremental import IncrementalDescriptors
 from shgm_slam.errors import ConfigError
 from shgm_slam.geometry import se3
 from shgm_slam.geometry.ground import rotation_to_z
@@ -17,10 +18,15 @@ from shgm_slam.graph.semantic_graph import SemanticGraph
 from shgm_slam.matching import match_graphs
 from shgm_slam.messages import KeyframeMessage
 from shgm_slam.server.closures import local_closures
+from shgm_slam.server.places import free_path_m, near_keyframes, tolerance_m
 from shgm_slam.server.records import MatchRecord
 from shgm_slam.types import GraphArrays
 
 log = logging.getLogger(__name__)
+
+CONFIRMING_MATCHES = 2
+"""Independent graph matches behind a placed robot pair's accepted closures before its submaps are matched
+only near where the fused estimate puts them (one match may be a wrong placement: global matching goes on)."""
 
 
 class MapServer:
@@ -31,13 +37,23 @@ class MapServer:
     segments after odometry failures are agents of their own, added at run time); accepted matches become inter-robot
     relative-pose factors between keyframes. Shared frame = the first robot's odometry frame.
 
+    Candidate places first (cost flat with distance): once two placed robots' closures rest on at least
+    ``CONFIRMING_MATCHES`` independent matches, r's submap is matched only against the other's nodes
+    anchored near it (``places``: within the two robots' object ranges plus the drift tolerance of the
+    fused estimate), and whole graphs are matched again only each time r's graph has doubled since the
+    pair's last whole match (amortized flat; ``finalize`` matches whole graphs once more). Descriptors
+    come from a per-agent cache updated around each change (``IncrementalDescriptors``).
+
     Loop closure (``backend.loop_closure``): r's recent submap is also matched against r's *own* older
     graph (query ``"loop"``), with the same matching, verification and closure cutting; accepted
     closures join two keyframes of r in the pose graph. The older graph leaves out the stretch r just
     drove (``loop_exclusion_m``): objects seen from the submap lie within r's object range of it, so
     only nodes first seen from keyframes more than two object ranges of path (and at least a submap's
     worth of keyframes) before the submap can be shared with it through a revisit, never through the
-    pass that is still in view.
+    pass that is still in view. Of the older graph only the nodes anchored near the submap are matched
+    (``places``): within two object ranges plus the drift tolerance, counted along r's odometry between
+    the two keyframes (exactly what the pose graph's odometry check of a loop closure allows) or, once r
+    is placed, from each to its nearest keyframe tied by a closure, whichever is shorter.
     """
 
     def __init__(self, robot_names: list[str], cfg: ShgmConfig) -> None:
@@ -47,6 +63,10 @@ class MapServer:
         self._agents = list(robot_names)
         self._pose_graph = make_pose_graph(self._agents, cfg.backend)
         self._graphs = {r: SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m) for r in robot_names}
+        # descriptors of each agent's whole graph and of its older graph (loop queries), kept up to date
+        self._descriptors = {r: IncrementalDescriptors(cfg.descriptor) for r in robot_names}
+        self._old_descriptors = {r: IncrementalDescriptors(cfg.descriptor) for r in robot_names}
+        self._last_whole: dict[tuple[str, str], int] = {}  # (agent, query agent) -> query nodes at the last whole match
         # the one home of keyframe poses on the server: each agent's keyframes in its odometry frame
         self._T_odom_kf: dict[str, list[np.ndarray]] = {r: [] for r in robot_names}
         self._path_m: dict[str, list[float]] = {r: [] for r in robot_names}  # odometry path length per keyframe
@@ -64,6 +84,8 @@ class MapServer:
         self._pose_graph.add_robot(agent)
         self._agents.append(agent)
         self._graphs[agent] = SemanticGraph(self.cfg.graph.merge_radius_m, self.cfg.graph.connectivity_m)
+        self._descriptors[agent] = IncrementalDescriptors(self.cfg.descriptor)
+        self._old_descriptors[agent] = IncrementalDescriptors(self.cfg.descriptor)
         self._T_odom_kf[agent] = []
         self._path_m[agent] = []
         self._up_sum[agent] = np.zeros(3)
@@ -105,46 +127,86 @@ class MapServer:
         return records
 
     def match_robot(self, robot: str, *, submap: bool = True) -> list[MatchRecord]:
-        """Match ``robot``'s recent submap and whole graph against every other robot's whole graph, and
-        (loop closure) its recent submap against its own older graph."""
+        """Match ``robot``'s recent submap (``submap``) and whole graph against every other robot's graph,
+        and (loop closure) its recent submap against its own older graph; candidate places first (class
+        docstring). Without ``submap`` only whole graphs are matched, every pair."""
         records = []
-        queries: list[tuple[str, GraphArrays]] = []
         n_kf = len(self._T_odom_kf[robot])
+        recent: tuple[np.ndarray, GraphArrays] | None = None
         if submap and n_kf > self.cfg.backend.submap_keyframes:
             kfs = np.arange(n_kf - self.cfg.backend.submap_keyframes, n_kf)
-            queries.append(("submap", self._graphs[robot].submap(kfs)))
+            recent = (kfs, self._graphs[robot].submap(kfs))
             if self.cfg.backend.loop_closure:
-                loop = self._loop_query(robot, queries[0][1])
+                loop = self._loop_query(robot, *recent)
                 if loop is not None:
                     records.append(self._match_pair(robot, robot, "loop", *loop))
-        queries.append(("whole", self._graphs[robot].arrays()))
+        whole = self._graphs[robot].arrays()
         for other in list(self._agents):
             if other == robot or len(self._graphs[other]) == 0:
                 continue
             graph_a = self._graphs[other].arrays()
-            desc_a = compute_descriptors(graph_a, self.cfg.descriptor)
-            for query, graph_b in queries:
-                records.append(self._match_pair(other, robot, query, graph_a, graph_b, desc_a))
+            desc_a = self._descriptors[other].update(graph_a)
+            local = self._confirmed(other, robot)
+            if recent is not None:
+                rows = self._rows_near(other, robot, recent[0]) if local else None
+                if rows is None:
+                    records.append(self._match_pair(other, robot, "submap", graph_a, recent[1], desc_a))
+                elif rows.size >= self.cfg.matching.min_inliers:
+                    near = graph_a.subset(rows)
+                    records.append(self._match_pair(other, robot, "submap", near, recent[1], desc_a.subset(rows)))
+            last = self._last_whole.get((other, robot), 0)
+            if not submap or not local or len(whole) >= 2 * last:
+                self._last_whole[(other, robot)] = len(whole)
+                records.append(self._match_pair(other, robot, "whole", graph_a, whole, desc_a))
         self._matches += records
         return records
 
+    def _confirmed(self, a: str, b: str) -> bool:
+        """Both placed and their accepted closures rest on ``CONFIRMING_MATCHES`` independent matches."""
+        return (
+            self.is_placed(a) and self.is_placed(b)
+            and self._pose_graph.evidence_between(a, b) >= CONFIRMING_MATCHES
+        )  # fmt: skip
+
+    def object_range_m(self, agent: str) -> float | None:
+        """How far ``agent``'s objects lie from the keyframes that first saw them: the 95th percentile
+        of node-to-anchor distances (metres); None while its graph is empty."""
+        graph = self._graphs[agent]
+        if len(graph) == 0:
+            return None
+        origins = np.stack(self._T_odom_kf[agent])[graph.anchors(), :3, 3]
+        return float(np.percentile(np.linalg.norm(graph.arrays().positions_xyz - origins, axis=1), 95))
+
     def loop_exclusion_m(self, robot: str) -> float:
         """Metres of path before its submap whose keyframes ``robot``'s loop query leaves out of its older graph:
-        twice the robot's object range (the 95th percentile distance from a node to the keyframe that first
-        saw it; the fleet's extraction depth until the graph has nodes)."""
-        graph = self._graphs[robot].arrays()
-        if len(graph) == 0:
-            return 2.0 * float(self.cfg.extraction.filled().max_depth_m)
-        anchors = self._graphs[robot].anchor_keyframes(graph.node_ids)
-        origins = np.stack([self._T_odom_kf[robot][k][:3, 3] for k in anchors])
-        return 2.0 * float(np.percentile(np.linalg.norm(graph.positions_xyz - origins, axis=1), 95))
+        twice the robot's object range (``object_range_m``; the fleet's extraction depth until the graph has
+        nodes)."""
+        reach = self.object_range_m(robot)
+        return 2.0 * (float(self.cfg.extraction.filled().max_depth_m) if reach is None else reach)
 
-    def _loop_query(self, robot: str, recent: GraphArrays) -> tuple[GraphArrays, GraphArrays, np.ndarray] | None:
-        """``(older graph, recent nodes, descriptors of the older graph)`` of ``robot``'s loop-closure match,
-        or None while the robot has not driven far enough for an older graph.
+    def _free_path_m(self, agent: str) -> np.ndarray:
+        """(K,) metres from each keyframe of placed ``agent`` to its nearest keyframe tied by a closure."""
+        return free_path_m(np.asarray(self._path_m[agent]), self._pose_graph.closure_keyframes(agent))
+
+    def _rows_near(self, a: str, b: str, kfs_b: np.ndarray) -> np.ndarray:
+        """Rows of placed ``a``'s graph anchored near placed ``b``'s keyframes ``kfs_b`` in the fused
+        estimate (``places``): within both object ranges plus the drift tolerance."""
+        estimate = self._pose_graph.estimate()
+        drift_m = self._free_path_m(b)[kfs_b][:, None] + self._free_path_m(a)[None, :]
+        tol = tolerance_m(drift_m, self._pose_graph.thresholds)
+        reach = (self.object_range_m(a) or 0.0) + (self.object_range_m(b) or 0.0)
+        near = near_keyframes(estimate[b][kfs_b, :3, 3], estimate[a][:, :3, 3], tol, reach)
+        return np.flatnonzero(near[self._graphs[a].anchors()])
+
+    def _loop_query(
+        self, robot: str, kfs: np.ndarray, recent: GraphArrays
+    ) -> tuple[GraphArrays, GraphArrays, NodeDescriptors] | None:
+        """``(older nodes near the submap, recent nodes, their descriptors)`` of ``robot``'s loop-closure
+        match, or None while the robot has not driven far enough for an older graph.
 
         Older graph: the nodes first seen from keyframes before the excluded stretch (the submap, the
-        ``submap_keyframes`` before it, and every keyframe within ``loop_exclusion_m`` of path before it).
+        ``submap_keyframes`` before it, and every keyframe within ``loop_exclusion_m`` of path before it);
+        its descriptors count paths within it. Of it, the nodes anchored near the submap (class docstring).
         Recent nodes: the submap's nodes first seen after that stretch began, so no node is in both.
         """
         n_kf, window = len(self._T_odom_kf[robot]), self.cfg.backend.submap_keyframes
@@ -154,12 +216,25 @@ class MapServer:
         if cutoff <= 0:
             return None
         graph = self._graphs[robot]
-        whole = graph.arrays()
-        old = whole.subset(graph.anchor_keyframes(whole.node_ids) < cutoff)
+        anchors = graph.anchors()
+        d_path = np.abs(path[kfs][:, None] - path[None, :cutoff])
+        if self.is_placed(robot):
+            free = self._free_path_m(robot)
+            d_path = np.minimum(d_path, free[kfs][:, None] + free[None, :cutoff])
+            xyz = self._pose_graph.estimate()[robot][:, :3, 3]
+        else:
+            xyz = np.stack(self._T_odom_kf[robot])[:, :3, 3]
+        near = np.zeros(n_kf, dtype=bool)
+        near[:cutoff] = near_keyframes(xyz[kfs], xyz[:cutoff], tolerance_m(d_path, self._pose_graph.thresholds),
+                                       self.loop_exclusion_m(robot))  # fmt: skip
+        older = np.flatnonzero(anchors < cutoff)  # a prefix of the rows: nodes are created in keyframe order
+        rows = np.flatnonzero(near[anchors])
         new = recent.subset(graph.anchor_keyframes(recent.node_ids) >= cutoff)
-        if len(old) < self.cfg.matching.min_inliers or len(new) < self.cfg.matching.min_inliers:
+        if rows.size < self.cfg.matching.min_inliers or len(new) < self.cfg.matching.min_inliers:
             return None
-        return old, new, compute_descriptors(old, self.cfg.descriptor)
+        old_graph = graph.arrays().subset(older)
+        desc = self._old_descriptors[robot].update(old_graph).subset(np.searchsorted(older, rows))
+        return old_graph.subset(np.searchsorted(older, rows)), new, desc
 
     def _match_pair(
         self, robot_a: str, robot_b: str, query: str, graph_a: GraphArrays, graph_b: GraphArrays, desc_a

@@ -343,3 +343,21 @@ def test_agent_added_at_run_time_is_placed_by_closures_to_its_own_robots_earlier
     assert gtsam.Symbol(pg.keys.key("a#1", 0)).string() == "c0"
     assert "c0" in {gtsam.Symbol(int(line.split()[1])).string() for line in pg.to_g2o().splitlines()
                     if line.startswith("VERTEX")}  # fmt: skip
+
+
+def test_closure_keyframes_and_independent_evidence_between_robots():
+    gt = route(30, np.eye(4))
+    pg = MultiRobotPoseGraph(["a", "b", "c"])
+    for r in ("a", "b", "c"):
+        for k, T in enumerate(gt):
+            pg.add_keyframe(r, k, T)
+    assert pg.closure_keyframes("a").tolist() == [0]  # the prior ties the shared frame's first keyframe
+    assert pg.closure_keyframes("b").size == 0 and pg.evidence_between("a", "b") == 0
+    same = inverse(gt[5]) @ gt[5]
+    for kf in (5, 12):  # two closures cut from one match: one source of evidence
+        assert pg.add_inter_robot_closure("a", kf, "b", kf, same, num_inliers=8, match_id=1).accepted
+    assert pg.evidence_between("a", "b") == pg.evidence_between("b", "a") == 1
+    assert pg.add_inter_robot_closure("b", 20, "a", 20, same, num_inliers=8, match_id=2).accepted
+    assert pg.evidence_between("a", "b") == 2 and pg.evidence_between("a", "c") == 0
+    assert pg.closure_keyframes("a").tolist() == [0, 5, 12, 20]
+    assert pg.closure_keyframes("b").tolist() == [5, 12, 20]
