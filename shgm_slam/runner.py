@@ -30,6 +30,7 @@ from shgm_slam.odometry.stillness import ImageChange, odometry_motion, stillness
 from shgm_slam.perception import make_perception
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
 from shgm_slam.robot.node import RobotNode
+from shgm_slam.run_view import RunView
 from shgm_slam.scene_scale import effective_fields, resolve_robot_config, sample_scene_scale
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.node import ServerNode
@@ -276,6 +277,7 @@ def run_slam(
     server_node.poll()
     server = server_node.map
     viz.setup({r: seq.intrinsics for r, seq in robots.items()})
+    view = RunView(viz)
     writer.write_text("config.yaml", effective_config(cfg, {r: f.cfg for r, f in fronts.items()}).to_yaml())
     total = sum(len(s) for s in robots.values())
     timings = _Timings()
@@ -314,7 +316,7 @@ def run_slam(
             timings.add(res.timings_ms)
             step_compute = sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
             compute_ms += step_compute
-            _log_frame(viz, server, fronts[robot], res, records)
+            _log_frame(viz, view, server, fronts[robot], res, records)
             kf_total += res.message is not None
             if on_frame is not None:
                 match_ms = sum(server.timings_ms["match"][n_match:])
@@ -468,7 +470,9 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
     return reports
 
 
-def _log_frame(viz: Viz, server: MapServer, front: RobotFrontend, res: FrameResult, records) -> None:
+def _log_frame(
+    viz: Viz, view: RunView, server: MapServer, front: RobotFrontend, res: FrameResult, records
+) -> None:
     r, agent = res.robot, res.agent or res.robot
     if not viz.enabled:  # nothing shown: skip the poses, clouds, trajectories and graphs only the viewer needs
         _log_matches(viz, server, records)
@@ -488,18 +492,7 @@ def _log_frame(viz: Viz, server: MapServer, front: RobotFrontend, res: FrameResu
     )  # fmt: skip
     viz.log_timings(r, res.timings_ms)
     if res.message is not None:
-        upto = slice(0, res.frame.index + 1)
-        odo_xyz = front.T_odom_cam[upto, :3, 3][front.frame_segment[upto] == front.segment.index]  # this segment
-        fused = _fused(front, server)
-        fused_xyz = None
-        if fused is not None:
-            fused_xyz = fused[: res.frame.index + 1, :3, 3]
-            fused_xyz = fused_xyz[np.isfinite(fused_xyz).all(axis=1)]
-        if T_shared_odom is not None:
-            odo_xyz = se3.transform_points(T_shared_odom, odo_xyz)
-        viz.log_trajectories(r, odo_xyz, fused_xyz)
-        graph = server.graph(agent)
-        viz.log_graph(r, graph.transformed(T_shared_odom) if T_shared_odom is not None else graph)
+        view.keyframe(server, front, res)  # only the trajectory stretches and graph parts that changed
     _log_matches(viz, server, records)
 
 

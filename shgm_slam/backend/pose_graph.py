@@ -297,6 +297,7 @@ class MultiRobotPoseGraph:
         self._recoveries = 0
         self._last_update_ms = 0.0
         self._version = 0  # bumped on every change of the graph; keys the estimate cache
+        self._corrections = 0  # bumped when closures enter or leave iSAM2, a robot is anchored, or a rebuild
         self._cache_version = -1
         self._cache: dict[str, np.ndarray] = {}
         self._reset_isam()
@@ -473,6 +474,26 @@ class MultiRobotPoseGraph:
     def version(self) -> int:
         """Counter bumped by every change of the graph (keyframe, closure, agent, rebuild)."""
         return self._version
+
+    @property
+    def corrections(self) -> int:
+        """Counter bumped whenever closures enter or leave iSAM2, a robot is anchored or the graph is
+        rebuilt: the changes that can move keyframes far from where they were (new keyframes alone do not)."""
+        return self._corrections
+
+    def T_shared_kfs(self, robot: str, kf_indices: np.ndarray) -> np.ndarray:
+        """(M, 4, 4) current estimates of keyframes ``kf_indices`` of an anchored robot in the shared frame
+        (from the cached estimate when it is current, else one iSAM2 query per keyframe)."""
+        r = self._require_anchored(robot)
+        kfs = np.asarray(kf_indices, dtype=np.int64).reshape(-1)
+        if kfs.size and not (0 <= kfs.min() and kfs.max() < len(r.T_odom_kf)):
+            raise BackendError(f"{robot} has keyframes 0..{len(r.T_odom_kf) - 1}, asked for {kfs.min()}..{kfs.max()}")
+        if self._cache_version == self._version:
+            return self._cache[robot][kfs].copy()
+        out = np.zeros((kfs.size, 4, 4))
+        for i, k in enumerate(kfs.tolist()):
+            out[i] = self._isam.calculateEstimatePose3(self.keys.key(robot, k)).matrix()
+        return out
 
     def T_shared_kf(self, robot: str, kf_index: int) -> np.ndarray:
         """(4, 4) current estimate of one keyframe of an anchored robot in the shared frame."""
@@ -715,6 +736,7 @@ class MultiRobotPoseGraph:
             if candidates:
                 c = max(candidates, key=lambda c: (c.num_inliers, -c.closure_id))
                 self._anchor_robot(c.robot_b if self._robots[c.robot_a].anchored else c.robot_a, c)
+                self._corrections += 1
                 grown = True
         for c in self._closures:
             both = self._robots[c.robot_a].anchored and self._robots[c.robot_b].anchored
@@ -725,12 +747,14 @@ class MultiRobotPoseGraph:
                     c.closure_id,
                 )
                 c.in_graph = True
+                self._corrections += 1
             elif c.status is ClosureStatus.REJECTED and c.in_graph:
                 idx = self._factor_index.pop(c.closure_id, None)
                 if idx is None:  # still pending in this batch: cannot happen after a flush, be safe
                     raise BackendError(f"closure {c.closure_id} was rejected before its factor was added")
                 self._to_remove.append(idx)
                 c.in_graph = False
+                self._corrections += 1
         self._push_attitudes()
 
     def _push_attitudes(self) -> None:
@@ -780,6 +804,7 @@ class MultiRobotPoseGraph:
     def _rebuild(self) -> None:
         """Start iSAM2 afresh from the recorded odometry and the accepted closures (anchor changed)."""
         self._rebuilds += 1
+        self._corrections += 1
         self._reset_isam()
         for r in self._robots.values():
             r.anchored, r.anchor_closure, r.T_shared_odom_init = False, None, None

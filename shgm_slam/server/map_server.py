@@ -365,6 +365,20 @@ class MapServer:
             return None
         return self._pose_graph.estimate()[agent]
 
+    def T_shared_kf_at(self, agent: str, kf_indices: np.ndarray) -> np.ndarray | None:
+        """(M, 4, 4) fused poses of keyframes ``kf_indices`` of ``agent`` in the shared frame, or None if
+        not placed (a few keyframes without reading the whole estimate)."""
+        return self._pose_graph.T_shared_kfs(agent, kf_indices) if self.is_placed(agent) else None
+
+    @property
+    def corrections(self) -> int:
+        """Counter of the pose-graph changes that can move old keyframes (``MultiRobotPoseGraph.corrections``)."""
+        return self._pose_graph.corrections
+
+    def graph_anchors(self, agent: str) -> np.ndarray:
+        """(N,) keyframe each node of ``agent``'s mirrored graph (row order of ``graph``) is anchored to."""
+        return self._graphs[agent].anchors()
+
     def T_shared_odom(self, agent: str) -> np.ndarray | None:
         """(4, 4) where ``agent``'s odometry frame lies in the shared frame now (at its latest keyframe),
         or None if not placed."""
