@@ -197,8 +197,10 @@ class FrameStats:
     loading and perception (``RobotFrontend.process``: cloud, odometry, extraction, graph); ``load_ms``
     loading the frame and perception; ``match_ms`` / ``backend_ms`` the server's graph matching and
     pose-graph work the step triggered; ``server_ms`` the whole server poll (those two, decoding,
-    corrections, results files); ``step_ms`` the whole step (all of these and the viewer). ``matches``
-    the attempts it triggered."""
+    corrections, results files; ``write_ms`` and ``correction_ms`` of them rewriting the results folder and
+    answering the robots); ``step_ms`` the whole step (all of these and the viewer), wall time;
+    ``step_cpu_ms`` its CPU time (all threads of the process: what it costs, whatever else the machine
+    runs). ``matches`` the attempts it triggered."""
 
     robot: str
     frame_index: int
@@ -210,6 +212,9 @@ class FrameStats:
     server_ms: float
     step_ms: float
     matches: tuple[MatchRecord, ...] = ()
+    step_cpu_ms: float = 0.0
+    write_ms: float = 0.0
+    correction_ms: float = 0.0
 
 
 FrameFn = Callable[[FrameStats], None]
@@ -292,7 +297,7 @@ def run_slam(
     try:
         for robot, index in interleave(robots):
             done += 1
-            t_step = time.perf_counter()
+            t_step, cpu_step = time.perf_counter(), time.process_time()
             try:
                 res = nodes[robot].step(index)
             except DataError as exc:
@@ -310,6 +315,7 @@ def run_slam(
                 )  # fmt: skip
             t0 = time.perf_counter()
             n_match, n_backend = len(server.timings_ms["match"]), len(server.timings_ms["backend"])
+            n_write, n_corr = len(server_node.timings_ms["write"]), len(server_node.timings_ms["correction"])
             records = server_node.poll()
             res.timings_ms["server"] = (time.perf_counter() - t0) * 1e3
             nodes[robot].poll()
@@ -324,7 +330,8 @@ def run_slam(
                 on_frame(FrameStats(
                     robot, index, res.message is not None, step_compute - res.timings_ms["server"],
                     sum(res.timings_ms.values()) - step_compute, match_ms, backend_ms, res.timings_ms["server"],
-                    (time.perf_counter() - t_step) * 1e3, tuple(records),
+                    (time.perf_counter() - t_step) * 1e3, tuple(records), (time.process_time() - cpu_step) * 1e3,
+                    sum(server_node.timings_ms["write"][n_write:]), sum(server_node.timings_ms["correction"][n_corr:]),
                 ))  # fmt: skip
             if progress:
                 progress(done, total)

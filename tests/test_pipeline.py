@@ -300,5 +300,6 @@ def test_every_step_reports_its_cost(tiny_scenario: Path, tmp_path: Path) -> Non
     for s in stats:
         parts = (s.front_end_ms, s.load_ms, s.match_ms, s.backend_ms, s.server_ms)
         assert min(parts) >= 0.0
-        assert s.match_ms + s.backend_ms <= s.server_ms + 1e-6
+        assert s.match_ms + s.backend_ms + s.write_ms + s.correction_ms <= s.server_ms + 1e-6
+        assert s.step_cpu_ms >= 0.0
         assert s.front_end_ms + s.load_ms + s.server_ms <= s.step_ms + 1e-6

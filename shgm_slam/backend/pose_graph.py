@@ -233,7 +233,7 @@ class MultiRobotPoseGraph:
             consistent set holds closures from at least this many independent sources (matches;
             1 = trust a single first match).
         factorization: iSAM2 linear solver.
-        extra_updates: additional ``isam.update()`` passes after closures change the graph.
+        extra_updates: additional ``isam.update()`` passes after a large correction (``update``).
         attitude: attitude factors from the keyframes' ground normals (module docstring).
         attitude_warmup: measured keyframes a robot needs before its sigma is measured (and the first
             anchored one's before the shared frame's up is fixed).
@@ -298,6 +298,7 @@ class MultiRobotPoseGraph:
         self._last_update_ms = 0.0
         self._version = 0  # bumped on every change of the graph; keys the estimate cache
         self._corrections = 0  # bumped when closures enter or leave iSAM2, a robot is anchored, or a rebuild
+        self._large_correction = False  # pending changes need the extra relinearization passes
         self._cache_version = -1
         self._cache: dict[str, np.ndarray] = {}
         self._reset_isam()
@@ -338,7 +339,7 @@ class MultiRobotPoseGraph:
         elif r.anchored:
             self._push_keyframe(robot, kf_index)
             self._push_attitudes()
-        self._flush(closures_changed=False)
+        self._flush()
 
     def add_inter_robot_closure(
         self,
@@ -351,6 +352,7 @@ class MultiRobotPoseGraph:
         num_inliers: int = 1,
         information: np.ndarray | None = None,
         match_id: int | None = None,
+        update: bool = True,
     ) -> ClosureDecision:
         """Add a relative-pose measurement between keyframes of two robots, or two keyframes of one robot.
 
@@ -367,6 +369,8 @@ class MultiRobotPoseGraph:
                 configured closure sigmas otherwise.
             match_id: the graph match the closure was cut from; closures of one match count as one
                 source of evidence for ``min_closures_to_anchor`` (None: the closure is its own source).
+            update: run iSAM2 now; False leaves the factor pending until ``update`` (add the closures of
+                one match, then update once: one re-elimination instead of one per closure).
 
         Returns:
             ``ClosureDecision``: accepted when the closure is in its robot pair's maximum consistent
@@ -400,7 +404,8 @@ class MultiRobotPoseGraph:
             return ClosureDecision(False, rec.reason, rec.closure_id)
         self._update_pair(rec)
         self._sync()
-        self._flush(closures_changed=True)
+        if update:
+            self.update()
         reason = rec.reason
         if rec.status is ClosureStatus.ACCEPTED and not rec.in_graph:
             if rec.robot_a == rec.robot_b:
@@ -414,6 +419,15 @@ class MultiRobotPoseGraph:
                 reason += f"; stored until {rec.robot_a} or {rec.robot_b} is anchored to {self.keys.names[0]}"
         return ClosureDecision(rec.status is ClosureStatus.ACCEPTED, reason, rec.closure_id)
 
+    def update(self) -> None:
+        """Run iSAM2 on the closures added with ``update=False`` (no-op when nothing is pending).
+
+        Extra relinearization passes (``extra_updates``) follow only a large correction: a robot
+        anchored, a closure removed or a rebuild, or a new closure whose translation disagrees with the
+        current estimate by more than its sigma; small corrections settle in the next updates.
+        """
+        self._flush()
+
     def add_loop_closure(
         self,
         robot: str,
@@ -424,6 +438,7 @@ class MultiRobotPoseGraph:
         num_inliers: int = 1,
         information: np.ndarray | None = None,
         match_id: int | None = None,
+        update: bool = True,
     ) -> ClosureDecision:
         """Add an intra-robot loop closure: ``T_old_new`` (4, 4) maps points in keyframe ``kf_new``'s
         camera frame into keyframe ``kf_old``'s, both keyframes of ``robot``.
@@ -435,7 +450,7 @@ class MultiRobotPoseGraph:
         """
         return self.add_inter_robot_closure(
             robot, kf_old, robot, kf_new, T_old_new,
-            num_inliers=num_inliers, information=information, match_id=match_id,
+            num_inliers=num_inliers, information=information, match_id=match_id, update=update,
         )  # fmt: skip
 
     def add_robot(self, robot: str) -> None:
@@ -737,6 +752,7 @@ class MultiRobotPoseGraph:
                 c = max(candidates, key=lambda c: (c.num_inliers, -c.closure_id))
                 self._anchor_robot(c.robot_b if self._robots[c.robot_a].anchored else c.robot_a, c)
                 self._corrections += 1
+                self._large_correction = True
                 grown = True
         for c in self._closures:
             both = self._robots[c.robot_a].anchored and self._robots[c.robot_b].anchored
@@ -748,13 +764,20 @@ class MultiRobotPoseGraph:
                 )
                 c.in_graph = True
                 self._corrections += 1
+                if not self._large_correction:
+                    T_est = inverse(self._current_pose(c.robot_a, c.kf_a)) @ self._current_pose(c.robot_b, c.kf_b)
+                    off_m = float(np.linalg.norm((inverse(c.T_a_b) @ T_est)[:3, 3]))
+                    self._large_correction = off_m > self._closure_sigmas[3]
             elif c.status is ClosureStatus.REJECTED and c.in_graph:
+                if c.closure_id in self._new_tags:  # still pending (added with update=False): give it an index
+                    self._flush()
                 idx = self._factor_index.pop(c.closure_id, None)
-                if idx is None:  # still pending in this batch: cannot happen after a flush, be safe
+                if idx is None:  # cannot happen after a flush; be safe
                     raise BackendError(f"closure {c.closure_id} was rejected before its factor was added")
                 self._to_remove.append(idx)
                 c.in_graph = False
                 self._corrections += 1
+                self._large_correction = True
         self._push_attitudes()
 
     def _push_attitudes(self) -> None:
@@ -805,6 +828,7 @@ class MultiRobotPoseGraph:
         """Start iSAM2 afresh from the recorded odometry and the accepted closures (anchor changed)."""
         self._rebuilds += 1
         self._corrections += 1
+        self._large_correction = True
         self._reset_isam()
         for r in self._robots.values():
             r.anchored, r.anchor_closure, r.T_shared_odom_init = False, None, None
@@ -820,8 +844,8 @@ class MultiRobotPoseGraph:
         self._new_factors.add(factor)
         self._new_tags.append(closure_id)
 
-    def _flush(self, *, closures_changed: bool) -> None:
-        """Run iSAM2 on the pending factors/values/removals (plus extra passes after closure changes).
+    def _flush(self) -> None:
+        """Run iSAM2 on the pending factors/values/removals (plus extra passes after a large correction).
 
         An update that raises is recovered by rebuilding the graph with QR (a logged warning);
         ``BackendError`` when that fails too.
@@ -830,6 +854,7 @@ class MultiRobotPoseGraph:
             return
         t0 = time.perf_counter()
         self._version += 1
+        closures_changed, self._large_correction = self._large_correction, False
         try:
             self._update_isam(closures_changed)
         except RuntimeError as exc:

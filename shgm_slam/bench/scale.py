@@ -48,6 +48,9 @@ class _Bin:
     backend_ms: float = 0.0
     server_ms: float = 0.0
     step_ms: float = 0.0
+    cpu_ms: float = 0.0
+    write_ms: float = 0.0
+    correction_ms: float = 0.0
     matches: int = 0
     match_nodes: list[int] = field(default_factory=list)
     rss_end_mb: float = 0.0
@@ -88,6 +91,9 @@ class _Recorder:
         b.backend_ms += s.backend_ms
         b.server_ms += s.server_ms
         b.step_ms += s.step_ms
+        b.cpu_ms += s.step_cpu_ms
+        b.write_ms += s.write_ms
+        b.correction_ms += s.correction_ms
         b.matches += len(s.matches)
         b.match_nodes += [m.nodes_a + m.nodes_b for m in s.matches]
 
@@ -103,9 +109,12 @@ def _bin_row(b: _Bin, km_from: float, km_to: float) -> dict:
         "front_end_ms_per_kf": b.front_end_ms / n,
         "match_ms_per_kf": b.match_ms / n,
         "backend_ms_per_kf": b.backend_ms / n,
-        "server_other_ms_per_kf": (b.server_ms - b.match_ms - b.backend_ms) / n,
+        "results_files_ms_per_kf": b.write_ms / n,
+        "corrections_ms_per_kf": b.correction_ms / n,
+        "server_other_ms_per_kf": (b.server_ms - b.match_ms - b.backend_ms - b.write_ms - b.correction_ms) / n,
         "runner_other_ms_per_kf": other / n,
         "total_ms_per_kf": (b.step_ms - b.load_ms) / n,
+        "cpu_ms_per_kf": b.cpu_ms / n,
         "load_ms_per_kf": b.load_ms / n,
         "matches": b.matches,
         "ms_per_match": b.match_ms / b.matches if b.matches else 0.0,
@@ -182,6 +191,7 @@ def run_scale_benchmark(
     results["rss_start_mb"] = recorder.rss_start_mb
     results["targets"] = {
         "time_per_kf_last_over_first": last["total_ms_per_kf"] / first["total_ms_per_kf"],
+        "cpu_per_kf_last_over_first": last["cpu_ms_per_kf"] / first["cpu_ms_per_kf"],
         "rss_growth_per_kf_last_over_first": last["rss_growth_kb_per_kf"] / first["rss_growth_kb_per_kf"]
         if first["rss_growth_kb_per_kf"] > 0 else None,
     }  # fmt: skip
@@ -208,21 +218,24 @@ def scale_markdown(results: dict) -> str:
     lines = [
         f"{results['robot']}: {results['path_km']:.2f} km; per keyframe of {results['robot']} (ms), by distance driven",
         "",
-        "| km | keyframes | front end | matching | pose graph | server other | runner other | total | matches "
-        "| ms/match | nodes/match | RSS MB at end | RSS KB/keyframe |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| km | keyframes | front end | matching | pose graph | results files | corrections | server other "
+        "| runner other | total | CPU | matches | ms/match | nodes/match | RSS MB at end | RSS KB/keyframe |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results["per_km"]:
         lines.append(
             f"| {r['from_km']:.0f}-{r['to_km']:.1f} | {r['keyframes']} | {r['front_end_ms_per_kf']:.1f} | "
-            f"{r['match_ms_per_kf']:.1f} | {r['backend_ms_per_kf']:.1f} | {r['server_other_ms_per_kf']:.1f} | "
-            f"{r['runner_other_ms_per_kf']:.1f} | {r['total_ms_per_kf']:.1f} | {r['matches']} | "
+            f"{r['match_ms_per_kf']:.1f} | {r['backend_ms_per_kf']:.1f} | {r['results_files_ms_per_kf']:.1f} | "
+            f"{r['corrections_ms_per_kf']:.1f} | {r['server_other_ms_per_kf']:.1f} | "
+            f"{r['runner_other_ms_per_kf']:.1f} | {r['total_ms_per_kf']:.1f} | {r['cpu_ms_per_kf']:.1f} | "
+            f"{r['matches']} | "
             f"{r['ms_per_match']:.0f} | {r['nodes_per_match']:.0f} | {r['rss_end_mb']:.0f} | "
             f"{r['rss_growth_kb_per_kf']:.0f} |"
         )
     t = results["targets"]
     mem = t["rss_growth_per_kf_last_over_first"]
-    lines += ["", f"last km / first km: time per keyframe {t['time_per_kf_last_over_first']:.2f}, "
+    lines += ["", f"last km / first km: time per keyframe {t['time_per_kf_last_over_first']:.2f} (wall), "
+              f"{t['cpu_per_kf_last_over_first']:.2f} (CPU), "
               f"memory growth per keyframe {'n/a' if mem is None else f'{mem:.2f}'} "
               f"(RSS {results['rss_start_mb']:.0f} MB at the first frame)"]  # fmt: skip
     run = results["run"]

@@ -18,7 +18,7 @@ from shgm_slam.graph.semantic_graph import SemanticGraph
 from shgm_slam.matching import match_graphs
 from shgm_slam.messages import KeyframeMessage
 from shgm_slam.server.closures import local_closures
-from shgm_slam.server.places import free_path_m, near_keyframes, tolerance_m
+from shgm_slam.server.places import free_path_m, near_keyframes, near_keyframes_sparse, tolerance_m
 from shgm_slam.server.records import MatchRecord
 from shgm_slam.types import GraphArrays
 
@@ -40,9 +40,10 @@ class MapServer:
     Candidate places first (cost flat with distance): once two placed robots' closures rest on at least
     ``CONFIRMING_MATCHES`` independent matches, r's submap is matched only against the other's nodes
     anchored near it (``places``: within the two robots' object ranges plus the drift tolerance of the
-    fused estimate), and whole graphs are matched again only each time r's graph has doubled since the
-    pair's last whole match (amortized flat; ``finalize`` matches whole graphs once more). Descriptors
-    come from a per-agent cache updated around each change (``IncrementalDescriptors``).
+    fused estimate), and, while r is there, the whole graphs only where they overlap (each graph's nodes
+    anchored near a keyframe of the other); while r is nowhere near the other's map neither is matched.
+    ``finalize`` matches whole graphs once more. Descriptors come from a per-agent cache updated around
+    each change (``IncrementalDescriptors``).
 
     Loop closure (``backend.loop_closure``): r's recent submap is also matched against r's *own* older
     graph (query ``"loop"``), with the same matching, verification and closure cutting; accepted
@@ -66,7 +67,6 @@ class MapServer:
         # descriptors of each agent's whole graph and of its older graph (loop queries), kept up to date
         self._descriptors = {r: IncrementalDescriptors(cfg.descriptor) for r in robot_names}
         self._old_descriptors = {r: IncrementalDescriptors(cfg.descriptor) for r in robot_names}
-        self._last_whole: dict[tuple[str, str], int] = {}  # (agent, query agent) -> query nodes at the last whole match
         # the one home of keyframe poses on the server: each agent's keyframes in its odometry frame
         self._T_odom_kf: dict[str, list[np.ndarray]] = {r: [] for r in robot_names}
         self._path_m: dict[str, list[float]] = {r: [] for r in robot_names}  # odometry path length per keyframe
@@ -146,18 +146,23 @@ class MapServer:
                 continue
             graph_a = self._graphs[other].arrays()
             desc_a = self._descriptors[other].update(graph_a)
-            local = self._confirmed(other, robot)
-            if recent is not None:
-                rows = self._rows_near(other, robot, recent[0]) if local else None
-                if rows is None:
+            if not submap or not self._confirmed(other, robot):  # global: where robot is in other's map is open
+                if recent is not None:
                     records.append(self._match_pair(other, robot, "submap", graph_a, recent[1], desc_a))
-                elif rows.size >= self.cfg.matching.min_inliers:
-                    near = graph_a.subset(rows)
-                    records.append(self._match_pair(other, robot, "submap", near, recent[1], desc_a.subset(rows)))
-            last = self._last_whole.get((other, robot), 0)
-            if not submap or not local or len(whole) >= 2 * last:
-                self._last_whole[(other, robot)] = len(whole)
                 records.append(self._match_pair(other, robot, "whole", graph_a, whole, desc_a))
+                continue
+            if recent is None:
+                continue
+            rows = self._rows_near(other, robot, recent[0])
+            if rows.size < self.cfg.matching.min_inliers:
+                continue  # robot is not near other's map now: nothing new to find
+            near = graph_a.subset(rows)
+            records.append(self._match_pair(other, robot, "submap", near, recent[1], desc_a.subset(rows)))
+            rows_a, rows_b = self._overlap_rows(other, robot)
+            if min(rows_a.size, rows_b.size) >= self.cfg.matching.min_inliers:
+                desc_b = self._descriptors[robot].update(whole).subset(rows_b)
+                records.append(self._match_pair(other, robot, "whole", graph_a.subset(rows_a), whole.subset(rows_b),
+                                                desc_a.subset(rows_a), desc_b))  # fmt: skip
         self._matches += records
         return records
 
@@ -198,6 +203,18 @@ class MapServer:
         near = near_keyframes(estimate[b][kfs_b, :3, 3], estimate[a][:, :3, 3], tol, reach)
         return np.flatnonzero(near[self._graphs[a].anchors()])
 
+    def _overlap_rows(self, a: str, b: str) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of placed ``a``'s and ``b``'s graphs anchored near any keyframe of the other (``places``):
+        where their whole graphs can overlap."""
+        estimate, th = self._pose_graph.estimate(), self._pose_graph.thresholds
+        reach = (self.object_range_m(a) or 0.0) + (self.object_range_m(b) or 0.0)
+        xyz_a, xyz_b = estimate[a][:, :3, 3], estimate[b][:, :3, 3]
+        slack_a = th.trans_m / 2 + th.trans_per_m * self._free_path_m(a)
+        slack_b = th.trans_m / 2 + th.trans_per_m * self._free_path_m(b)
+        near_a = near_keyframes_sparse(xyz_b, slack_b, xyz_a, slack_a, reach)
+        near_b = near_keyframes_sparse(xyz_a, slack_a, xyz_b, slack_b, reach)
+        return np.flatnonzero(near_a[self._graphs[a].anchors()]), np.flatnonzero(near_b[self._graphs[b].anchors()])
+
     def _loop_query(
         self, robot: str, kfs: np.ndarray, recent: GraphArrays
     ) -> tuple[GraphArrays, GraphArrays, NodeDescriptors] | None:
@@ -237,7 +254,8 @@ class MapServer:
         return old_graph.subset(np.searchsorted(older, rows)), new, desc
 
     def _match_pair(
-        self, robot_a: str, robot_b: str, query: str, graph_a: GraphArrays, graph_b: GraphArrays, desc_a
+        self, robot_a: str, robot_b: str, query: str, graph_a: GraphArrays, graph_b: GraphArrays, desc_a,
+        desc_b: NodeDescriptors | None = None,
     ) -> MatchRecord:
         t0 = time.perf_counter()
         up_a, up_b = self.up_odom(robot_a), self.up_odom(robot_b)
@@ -248,12 +266,13 @@ class MapServer:
             result = match_graphs(
                 graph_a.transformed(se3.make_pose(R_a, np.zeros(3))),
                 graph_b.transformed(se3.make_pose(R_b, np.zeros(3))),
-                self.cfg.descriptor, cfg4, descriptors_a=desc_a,
+                self.cfg.descriptor, cfg4, descriptors_a=desc_a, descriptors_b=desc_b,
             )  # fmt: skip
             if result.T_a_b is not None:
                 result.T_a_b = se3.make_pose(R_a.T, np.zeros(3)) @ result.T_a_b @ se3.make_pose(R_b, np.zeros(3))
         else:
-            result = match_graphs(graph_a, graph_b, self.cfg.descriptor, self.cfg.matching, descriptors_a=desc_a)
+            result = match_graphs(graph_a, graph_b, self.cfg.descriptor, self.cfg.matching, descriptors_a=desc_a,
+                                  descriptors_b=desc_b)  # fmt: skip
         self.timings_ms["match"].append((time.perf_counter() - t0) * 1e3)
         rec = MatchRecord(
             self._step, robot_a, robot_b, query, result.success, False, result.reason, None, None,
@@ -301,7 +320,7 @@ class MapServer:
                 continue
             t1 = time.perf_counter()
             decision = self._pose_graph.add_inter_robot_closure(
-                robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n, match_id=self._num_matches
+                robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n, match_id=self._num_matches, update=False
             )
             self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
             rec.closures.append(
@@ -315,6 +334,9 @@ class MapServer:
             )
             if decision.accepted:
                 self._closures.add(key)
+        t1 = time.perf_counter()
+        self._pose_graph.update()  # one iSAM2 update for all closures of this match
+        self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
         accepted = [c for c in rec.closures if c["accepted"]]
         rec.accepted = bool(accepted)
         shown = accepted[0] if accepted else rec.closures[0]

@@ -168,6 +168,7 @@ class ServerNode:
         self._last_status_s = -np.inf
         self._last_correction_s: dict[str, float] = {}
         self._keyframes_since_write = 0
+        self.timings_ms: dict[str, list[float]] = {"write": [], "correction": []}  # per call
         self._inbox = Inbox()
         for key in (ALL_HELLO, ALL_KEYFRAMES, ALL_DONE):
             transport.subscribe(key, self._inbox)
@@ -342,6 +343,7 @@ class ServerNode:
         rs = self.robots.get(robot)
         if rs is None:
             return
+        t0 = time.perf_counter()
         server = self._map()
         agents = [a for a in server.agents if agent_robot(a)[0] == robot]
         poses: dict[str, np.ndarray] = {}
@@ -359,6 +361,7 @@ class ServerNode:
         payload = encode(CorrectionMessage(robot, rs.session, {a: server.received(a) for a in agents}, poses))
         self.traffic.sent("correction", len(payload))
         self.transport.publish(correction_key(robot), payload)
+        self.timings_ms["correction"].append((time.perf_counter() - t0) * 1e3)
 
     def _broadcast_status(self) -> None:
         self._last_status_s = self.clock()
@@ -464,6 +467,7 @@ class ServerNode:
         self._keyframes_since_write = 0
         if self.map is None:
             return
+        t0 = time.perf_counter()
         server = self.map
         for robot in self.robots:
             traj = self.trajectory(robot)
@@ -480,6 +484,7 @@ class ServerNode:
         self.writer.write_matches(server.matches)
         self.writer.write_text("pose_graph.g2o", server.to_g2o())
         self.writer.write_json("server.json", self.summary())
+        self.timings_ms["write"].append((time.perf_counter() - t0) * 1e3)
 
     def summary(self) -> dict:
         """Server-side metrics: robots, their state and placement, traffic, refusals."""

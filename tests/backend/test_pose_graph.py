@@ -361,3 +361,31 @@ def test_closure_keyframes_and_independent_evidence_between_robots():
     assert pg.evidence_between("a", "b") == 2 and pg.evidence_between("a", "c") == 0
     assert pg.closure_keyframes("a").tolist() == [0, 5, 12, 20]
     assert pg.closure_keyframes("b").tolist() == [5, 12, 20]
+
+
+def test_closures_of_one_match_update_once_and_give_the_same_estimate(scene):
+    rng = np.random.default_rng(7)
+    closures = scene["closures"]
+    one_by_one, _ = run(scene, closures)
+    pg = MultiRobotPoseGraph(["a", "b"])
+    for k in range(N):
+        pg.add_keyframe("a", k, scene["odo_a"][k])
+        pg.add_keyframe("b", k, scene["odo_b"][k])
+    for m, group in enumerate((closures[: len(closures) // 2], closures[len(closures) // 2 :])):
+        for kf_a, kf_b, T in group:
+            pg.add_inter_robot_closure("a", kf_a, "b", kf_b, T, num_inliers=10, match_id=m, update=False)
+        pg.update()
+    # wrong first, then outvoted inside one batch: its pending factor is removed cleanly
+    bad = MultiRobotPoseGraph(["a", "b"])
+    for k in range(N):
+        bad.add_keyframe("a", k, scene["odo_a"][k])
+        bad.add_keyframe("b", k, scene["odo_b"][k])
+    i, j, T_wrong = wrong_closure(rng, N, N)
+    bad.add_inter_robot_closure("a", i, "b", j, T_wrong, num_inliers=30, match_id=0, update=False)
+    for kf_a, kf_b, T in closures[:6]:
+        bad.add_inter_robot_closure("a", kf_a, "b", kf_b, T, num_inliers=10, match_id=1, update=False)
+    bad.update()
+    reference = fused_ate(scene, one_by_one)
+    assert fused_ate(scene, pg) == pytest.approx(reference, abs=0.1)
+    assert fused_ate(scene, bad) == pytest.approx(fused_ate(scene, run(scene, closures[:6])[0]), abs=0.2)
+    assert bad.closures()[0].status is ClosureStatus.REJECTED and not bad.closures()[0].in_graph

@@ -20,7 +20,7 @@ def _match(nodes_a: int, nodes_b: int) -> MatchRecord:
 
 def _stats(robot: str, frame: int, keyframe: bool, ms: float) -> FrameStats:
     matches = (_match(100, 20), _match(300, 40)) if frame % 10 == 0 else ()
-    return FrameStats(robot, frame, keyframe, ms, 1.0, ms / 2, ms / 4, ms, 3 * ms, matches)
+    return FrameStats(robot, frame, keyframe, ms, 1.0, ms / 2, ms / 4, ms, 3 * ms, matches, 2 * ms)
 
 
 def test_recorder_bins_the_long_robot_by_distance_and_keeps_others_apart():
@@ -36,6 +36,7 @@ def test_recorder_bins_the_long_robot_by_distance_and_keeps_others_apart():
     assert second["front_end_ms_per_kf"] == pytest.approx(2 * first["front_end_ms_per_kf"])
     assert first["front_end_ms_per_kf"] == pytest.approx(10.0 * 100 / 50)
     assert first["runner_other_ms_per_kf"] == pytest.approx((30.0 - 10.0 - 1.0 - 10.0) * 100 / 50)
+    assert second["cpu_ms_per_kf"] == pytest.approx(2 * first["cpu_ms_per_kf"])
     assert first["matches"] == 20 and first["nodes_per_match"] == pytest.approx(230.0)
     assert first["ms_per_match"] == pytest.approx(5.0 * 100 / 20)  # 5 ms of matching in each of 100 frames
     assert rec.bins[0].rss_end_mb > 0 and np.isfinite(rec.rss_start_mb)
@@ -58,12 +59,14 @@ def test_height_split_separates_vertical_from_horizontal_error(tmp_path: Path):
 
 def test_markdown_shows_every_kilometre_and_the_ratio():
     row = {"from_km": 0.0, "to_km": 1.0, "keyframes": 10, "front_end_ms_per_kf": 1.0, "match_ms_per_kf": 2.0,
-           "backend_ms_per_kf": 3.0, "server_other_ms_per_kf": 0.5, "runner_other_ms_per_kf": 0.1,
-           "total_ms_per_kf": 6.6, "matches": 2, "ms_per_match": 10.0, "nodes_per_match": 100.0,
+           "backend_ms_per_kf": 3.0, "results_files_ms_per_kf": 0.2, "corrections_ms_per_kf": 0.1,
+           "server_other_ms_per_kf": 0.5, "runner_other_ms_per_kf": 0.1,
+           "total_ms_per_kf": 6.6, "cpu_ms_per_kf": 5.0, "matches": 2, "ms_per_match": 10.0, "nodes_per_match": 100.0,
            "rss_end_mb": 300.0, "rss_growth_kb_per_kf": 12.0}  # fmt: skip
     results = {
         "robot": ROBOT, "path_km": 2.0, "per_km": [row, {**row, "from_km": 1.0, "to_km": 2.0}],
-        "targets": {"time_per_kf_last_over_first": 1.0, "rss_growth_per_kf_last_over_first": 1.0},
+        "targets": {"time_per_kf_last_over_first": 1.0, "cpu_per_kf_last_over_first": 1.1,
+                    "rss_growth_per_kf_last_over_first": 1.0},
         "rss_start_mb": 250.0, "height_split_m": {ROBOT: (0.5, 0.2)},
         "run": {"robots": [{"name": ROBOT, "ate_fused_m": 0.6, "ate_fused_aligned_m": 0.4, "localized": True}],
                 "matches_tried": 5, "closures_accepted": 2, "wall_s": 10.0},
