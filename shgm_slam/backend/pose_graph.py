@@ -233,6 +233,9 @@ class MultiRobotPoseGraph:
             consistent set holds closures from at least this many independent sources (matches;
             1 = trust a single first match).
         factorization: iSAM2 linear solver.
+        relinearize_threshold: iSAM2 relinearizes a variable whose update exceeds this (rad and m; gtsam's
+            default). With 0.01 every loop closure shifted a whole loop by more and each later update
+            re-linearized it: the cost per keyframe grew with the map (6x at 1.5 km of loops, the same ATE).
         extra_updates: additional ``isam.update()`` passes after a large correction (``update``).
         attitude: attitude factors from the keyframes' ground normals (module docstring).
         attitude_warmup: measured keyframes a robot needs before its sigma is measured (and the first
@@ -256,7 +259,7 @@ class MultiRobotPoseGraph:
         consistency_rot_deg_per_m: float = 0.05,
         min_closures_to_anchor: int = 1,
         factorization: Factorization | str = Factorization.QR,
-        relinearize_threshold: float = 0.01,
+        relinearize_threshold: float = 0.1,
         extra_updates: int = 3,
         attitude: bool = True,
         attitude_warmup: int = 20,
