@@ -115,6 +115,7 @@ def _bin_row(b: _Bin, km_from: float, km_to: float) -> dict:
         "runner_other_ms_per_kf": other / n,
         "total_ms_per_kf": (b.step_ms - b.load_ms) / n,
         "cpu_ms_per_kf": b.cpu_ms / n,
+        "cpu_ms_per_frame": b.cpu_ms / max(b.frames, 1),
         "load_ms_per_kf": b.load_ms / n,
         "matches": b.matches,
         "ms_per_match": b.match_ms / b.matches if b.matches else 0.0,
@@ -192,6 +193,7 @@ def run_scale_benchmark(
     results["targets"] = {
         "time_per_kf_last_over_first": last["total_ms_per_kf"] / first["total_ms_per_kf"],
         "cpu_per_kf_last_over_first": last["cpu_ms_per_kf"] / first["cpu_ms_per_kf"],
+        "cpu_per_frame_last_over_first": last["cpu_ms_per_frame"] / first["cpu_ms_per_frame"],
         "rss_growth_per_kf_last_over_first": last["rss_growth_kb_per_kf"] / first["rss_growth_kb_per_kf"]
         if first["rss_growth_kb_per_kf"] > 0 else None,
     }  # fmt: skip
@@ -235,7 +237,7 @@ def scale_markdown(results: dict) -> str:
     t = results["targets"]
     mem = t["rss_growth_per_kf_last_over_first"]
     lines += ["", f"last km / first km: time per keyframe {t['time_per_kf_last_over_first']:.2f} (wall), "
-              f"{t['cpu_per_kf_last_over_first']:.2f} (CPU), "
+              f"{t['cpu_per_kf_last_over_first']:.2f} (CPU; per frame {t['cpu_per_frame_last_over_first']:.2f}), "
               f"memory growth per keyframe {'n/a' if mem is None else f'{mem:.2f}'} "
               f"(RSS {results['rss_start_mb']:.0f} MB at the first frame)"]  # fmt: skip
     run = results["run"]

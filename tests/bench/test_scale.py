@@ -37,6 +37,7 @@ def test_recorder_bins_the_long_robot_by_distance_and_keeps_others_apart():
     assert first["front_end_ms_per_kf"] == pytest.approx(10.0 * 100 / 50)
     assert first["runner_other_ms_per_kf"] == pytest.approx((30.0 - 10.0 - 1.0 - 10.0) * 100 / 50)
     assert second["cpu_ms_per_kf"] == pytest.approx(2 * first["cpu_ms_per_kf"])
+    assert first["cpu_ms_per_frame"] == pytest.approx(20.0)
     assert first["matches"] == 20 and first["nodes_per_match"] == pytest.approx(230.0)
     assert first["ms_per_match"] == pytest.approx(5.0 * 100 / 20)  # 5 ms of matching in each of 100 frames
     assert rec.bins[0].rss_end_mb > 0 and np.isfinite(rec.rss_start_mb)
@@ -66,6 +67,7 @@ def test_markdown_shows_every_kilometre_and_the_ratio():
     results = {
         "robot": ROBOT, "path_km": 2.0, "per_km": [row, {**row, "from_km": 1.0, "to_km": 2.0}],
         "targets": {"time_per_kf_last_over_first": 1.0, "cpu_per_kf_last_over_first": 1.1,
+                    "cpu_per_frame_last_over_first": 1.05,
                     "rss_growth_per_kf_last_over_first": 1.0},
         "rss_start_mb": 250.0, "height_split_m": {ROBOT: (0.5, 0.2)},
         "run": {"robots": [{"name": ROBOT, "ate_fused_m": 0.6, "ate_fused_aligned_m": 0.4, "localized": True}],
