@@ -234,8 +234,8 @@ class MultiRobotPoseGraph:
             1 = trust a single first match).
         factorization: iSAM2 linear solver.
         relinearize_threshold: iSAM2 relinearizes a variable whose update exceeds this (rad and m; gtsam's
-            default). With 0.01 every loop closure shifted a whole loop by more and each later update
-            re-linearized it: the cost per keyframe grew with the map (6x at 1.5 km of loops, the same ATE).
+            default). On a 1.5 km drive of repeated loops (a loop closure every 10 keyframes) the CPU of a
+            keyframe update grew from 0.44 to 7.6 ms with 0.01 and from 0.34 to 2.1 ms with 0.1, same ATE.
         extra_updates: additional ``isam.update()`` passes after a large correction (``update``).
         attitude: attitude factors from the keyframes' ground normals (module docstring).
         attitude_warmup: measured keyframes a robot needs before its sigma is measured (and the first

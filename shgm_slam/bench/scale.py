@@ -14,7 +14,6 @@ a fresh process (``peak RSS``). Nothing here prints; the CLI renders the dict.
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -22,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shgm_slam.bench.system import _peak_rss_mb, _world
+from shgm_slam.bench.system import _world, peak_rss_runs, write_report
 from shgm_slam.config import ShgmConfig
 from shgm_slam.io.trajectories import read_tum
 from shgm_slam.runner import FrameStats, open_robots, run_slam
@@ -200,18 +199,11 @@ def run_scale_benchmark(
 
     if memory:  # distance, not frame rate: the first kilometre of 00 and all of it, each in a fresh process
         n_1km = int(np.searchsorted(path_m, KM_M)) + 1
-        mem = {}
-        runs = (("1 km", f"{world / ROBOT}:0-{n_1km}", "memory_1km"),
-                (f"{path_m[-1] / KM_M:.1f} km", str(world / ROBOT), "memory_all"))  # fmt: skip
-        for label, spec, folder in runs:
-            progress(f"memory run: {ROBOT} {label}")
-            args = ["run", "--robot", f"{ROBOT}={spec}", "--rerun", "off", "--out", str(out / folder), "--overwrite"]
-            rss, wall = _peak_rss_mb(args)
-            mem[label] = {"peak_rss_mb": round(rss, 1), "wall_s": round(wall, 1)}
-        results["memory"] = mem
+        runs = [("1 km", f"{ROBOT}={world / ROBOT}:0-{n_1km}", "memory_1km"),
+                (f"{path_m[-1] / KM_M:.1f} km", f"{ROBOT}={world / ROBOT}", "memory_all")]  # fmt: skip
+        results["memory"] = peak_rss_runs(out, runs, progress)
 
-    (out / "scale.json").write_text(json.dumps(results, indent=1) + "\n")
-    (out / "scale.md").write_text(scale_markdown(results))
+    write_report(out, "scale", results, scale_markdown)
     return results
 
 
