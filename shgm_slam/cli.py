@@ -771,7 +771,7 @@ def bench_localization(
 def bench_sparse(
     out: Annotated[Path, typer.Option("--out", "-o", help="results folder: sparse.json, sparse.md")]
     = Path("results/bench_sparse"),
-    seeds: Annotated[str, typer.Option(help="world seeds: 'A-B' or 'A,B,C' (tuning 10-19; report 200-219)")]
+    seeds: Annotated[str, typer.Option(help="world seeds: 'A-B' or 'A,B,C' (tuning 10-19; report 210-219)")]
     = "10-19",
     pairs: Annotated[int, typer.Option(min=1, max=10000, help="overlapping pairs per world (as many negatives)")] = 10,
     full_rotation: Annotated[bool, typer.Option(help="also match every pair 6-DoF")] = True,
@@ -853,7 +853,7 @@ def bench_distributed(
 def bench_heldout(
     out: Annotated[Path, typer.Option("--out", "-o", help="results folder (resumes the runs already in it)")]
     = Path("results/bench_heldout"),
-    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (200-209), 'tuning' (10-19) or A-B")]
+    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-19) or A-B")]
     = "report",
     scenario: Annotated[list[str] | None, typer.Option(help="scenario (repeatable) [all four]")] = None,
     mode: Annotated[list[str] | None, typer.Option(help="files | rgb (repeatable) [both]")] = None,
@@ -862,6 +862,11 @@ def bench_heldout(
     ] = None,
     cache: Annotated[Path, typer.Option(help="rendered worlds are cached here")] = Path("cache/heldout"),
     jobs: Annotated[int, typer.Option(min=1, max=64, help="worlds run in this many processes at once")] = 1,
+    replay_from: Annotated[
+        Path | None,
+        typer.Option(help="an earlier benchmark folder: run only the map server again on its recorded keyframes "
+                     "(matching and back-end changes; no rendering, perception or odometry)"),
+    ] = None,
 ) -> None:
     """The system with the default configuration on many unseen worlds: placed right, false merges,
     not placed, odometry failures (ground truth and detected), per scenario and input."""
@@ -887,7 +892,9 @@ def bench_heldout(
     except ValueError:
         raise ConfigError(f"--mode {mode}: choose files or rgb") from None
     options = heldout.HeldoutOptions(scenarios=tuple(scenario or heldout.SCENARIOS), seeds=seed_list, modes=modes,
-                                     max_frames=max_frames, cache=cache)
+                                     max_frames=max_frames, cache=cache, replay_from=replay_from)
+    if replay_from is not None and not (replay_from / "runs").is_dir():
+        raise ConfigError(f"--replay-from {replay_from}: no runs/ folder there (a `bench heldout` results folder)")
     with console.status("starting") as status:
         results = heldout.run_heldout_benchmark(out, options, progress=lambda msg: status.update(msg), jobs=jobs)
     typer.echo(heldout.heldout_markdown(results))

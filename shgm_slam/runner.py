@@ -212,6 +212,7 @@ def run_slam(
     progress: ProgressFn | None = None,
     gt_shared_frame: bool = True,
     write_every_keyframes: int = 25,
+    journal: bool = False,
 ) -> RunSummary:
     """Run the whole multi-robot system and write the results folder.
 
@@ -225,6 +226,8 @@ def run_slam(
         gt_shared_frame: the sequences' ground truths share one world frame (true for our simulator and
             for frame ranges of one KITTI sequence), so fused ATE is measured in the shared frame.
         write_every_keyframes: rewrite the results folder this often (survives crashes and Ctrl-C).
+        journal: keep the map server's message journal (``journal.bin``) in ``out_dir``: every keyframe
+            the robots sent, in order, so the back end can be run again on it (``replay_backend``).
     """
     viz = viz or NullLogger()
     names = list(robots)
@@ -240,7 +243,7 @@ def run_slam(
     # the same nodes as the distributed deployment, on the in-process bus (every message is encoded)
     bus = InProcessBus()
     server_node = ServerNode(
-        cfg, InProcessTransport(bus), out_dir, reference=names[0], expect=len(names), journal=False,
+        cfg, InProcessTransport(bus), out_dir, reference=names[0], expect=len(names), journal=journal,
         write_every_keyframes=write_every_keyframes, stale_after_s=float("inf"),  # one process: never silent
     )  # fmt: skip
     nodes = {r: RobotNode(f, InProcessTransport(bus)) for r, f in fronts.items()}
@@ -325,6 +328,41 @@ def run_slam(
     writer.write_json("metrics.json", summary.to_json_dict())
     viz.close()
     return summary
+
+
+def replay_backend(recorded: Path, cfg: ShgmConfig, out_dir: Path, robots: list[str]) -> ServerNode:
+    """Run the map server again on the keyframes a run recorded, with ``cfg``'s matching and back end.
+
+    The front ends (perception, odometry, graphs) are not run: their messages come from
+    ``recorded/journal.bin`` (``run_slam(..., journal=True)``), in the order the original run sent them,
+    so a change of matching, verification or pose graph is measured on identical input in seconds.
+
+    Args:
+        recorded: results folder of the original run (holds ``journal.bin``).
+        cfg: the configuration (only its matching and back-end stages matter here).
+        out_dir: new results folder (fused and odometry trajectories, graphs, matches, pose graph).
+        robots: the run's robot names, the reference (shared frame) first.
+
+    Returns:
+        The finished server node (its ``map`` answers what was placed and how).
+
+    Raises:
+        DataError: ``recorded`` holds no journal, or the journal's robots never all finished.
+    """
+    source = Path(recorded) / "journal.bin"
+    if not source.is_file():
+        raise DataError(f"{recorded} holds no journal.bin: record the run with a journal first")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "journal.bin").write_bytes(source.read_bytes())
+    node = ServerNode(
+        cfg, InProcessTransport(InProcessBus()), out_dir, reference=robots[0], expect=len(robots), journal=True,
+        write_every_keyframes=0, stale_after_s=float("inf"),
+    )  # fmt: skip
+    node.poll()
+    if not node.finished:
+        raise DataError(f"the journal in {recorded} does not hold every robot's last keyframe ({', '.join(robots)})")
+    return node
 
 
 def _report_degenerate(
