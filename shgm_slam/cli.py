@@ -283,9 +283,11 @@ def _summary_table(summary):
     for col in numbers:
         t.add_column(col, justify="right", no_wrap=True)
     for r in summary.robots:
-        fused = "[green]yes[/]" if r.localized else "[red]no[/]"
+        colour = "[yellow]" if r.provisional else "[green]" if r.localized else "[red]"
+        fused = "yes" if r.localized else "no"
         if r.segments > 1:  # after odometry failures: which trajectory segments are in the shared frame
-            fused = f"{'[green]' if r.localized else '[red]'}{r.segments_placed}/{r.segments}[/]"
+            fused = f"{r.segments_placed}/{r.segments}"
+        fused = f"{colour}{fused}{' prov' if r.provisional else ''}[/]"
         t.add_row(
             lit(r.name), str(r.frames), str(r.keyframes), str(r.nodes),
             f"[yellow]{r.odometry_failures}[/]" if r.odometry_failures else "0", fused, _metres(r.path_length_m),
@@ -294,7 +296,8 @@ def _summary_table(summary):
         )  # fmt: skip
     t.caption = ("ATE: metres in the shared frame (odo = odometry alone, started at its true pose; per trajectory "
                  "segment after odometry failures); aligned = SE(3)-aligned per robot; fused a/b = trajectory "
-                 "segments placed / segments")
+                 "segments placed / segments; prov = placed provisionally, from a single graph match (see its "
+                 "warning)")
     return t
 
 
@@ -483,7 +486,7 @@ def server_command(
         result = serve(cfg, out, listen=listen, reference=reference, expect=expect, viz=viz, stale_after_s=stale_after)
     s = result.summary
     for name, r in s["robots"].items():
-        placed = ", ".join(r["placed"]) or "not placed"
+        placed = _placed_text(r["placed"], r["provisional"])
         console.print(f"  {lit(name)}: {r['keyframes']} keyframes, {r['state']}, placed: {lit(placed)}")
     t = s["traffic"]
     per_kf = t["bytes_per_keyframe"]
@@ -492,6 +495,11 @@ def server_command(
                   f"results in {lit(result.out_dir)}")  # fmt: skip
     if result.interrupted:
         raise typer.Exit(130)
+
+
+def _placed_text(placed: list[str], provisional: list[str]) -> str:
+    """``car2, car2#1 (provisional)``: the placed agents, provisional ones marked; "not placed" for none."""
+    return ", ".join(a + (" (provisional)" if a in provisional else "") for a in placed) or "not placed"
 
 
 @app.command("robot")
@@ -524,7 +532,7 @@ def robot_command(
     (name, seq), = open_robots([robot]).items()
     with _stop_signals_as_interrupt():
         s = drive_robot(name, seq, cfg, connect=connect, realtime=realtime, out_dir=out, wait_s=wait)
-    placed = ", ".join(s.placed_agents) or "not placed"
+    placed = _placed_text(s.placed_agents, s.provisional_agents)
     console.print(f"{lit(name)}: {s.frames_processed}/{s.frames} frames, {s.keyframes} keyframes "
                   f"({s.bytes_per_keyframe:.0f} B each, {s.resent} re-sent), placed: {lit(placed)}")  # fmt: skip
     if s.interrupted:

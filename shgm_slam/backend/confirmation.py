@@ -160,8 +160,10 @@ def describe(agent: str, p: AgentPlacement) -> str:
         where += f" (its keyframe{'s' if last > first else ''} {first}{f'-{last}' if last > first else ''})"
     if p.placement is Placement.CONFIRMED:
         return f"{agent} is confirmed in the shared frame: independent graph matches{where} agree"
-    evidence = "a single graph match" if p.matches <= 1 else f"{p.matches} graph matches that found the same objects"
+    evidence = f"a single graph match{where}" if p.matches <= 1 else (
+        f"{p.matches} graph matches{where} that all found the same objects"
+    )
     return (
-        f"{agent} is placed provisionally: its place in the shared frame rests on {evidence}{where}; "
+        f"{agent} is placed provisionally: its place in the shared frame rests on {evidence}; "
         "it may be wrong and may still move until a match on other objects confirms it"
     )
