@@ -134,6 +134,60 @@ def test_interrupted_run_keeps_what_it_has(tiny_scenario: Path, tmp_path: Path) 
     assert (tmp_path / "out" / "metrics.json").is_file()
 
 
+def test_results_are_checkpointed_during_the_run(tiny_scenario: Path, tmp_path: Path) -> None:
+    """Every ``write_every_keyframes`` keyframes the results folder is rewritten, long before the end."""
+    out = tmp_path / "out"
+    seen: list[int] = []
+
+    def watch(done: int, total: int) -> None:
+        if (out / "server.json").is_file() and not seen:
+            seen.append(done)
+
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
+    total = sum(len(s) for s in robots.values())
+    run_slam(robots, cfg, out, progress=watch, write_every_keyframes=10)
+    assert seen and seen[0] < total / 2, seen  # the first checkpoint came early
+    for name in ("car1_odometry_tum.txt", "graph_car1.json", "matches.json", "pose_graph.g2o"):
+        assert (out / name).is_file()
+
+
+def test_a_full_disk_mid_run_keeps_the_last_complete_checkpoint(tiny_scenario: Path, tmp_path: Path, monkeypatch):
+    """The second checkpoint fails half way (disk full): the run stops with a DataError and the folder holds
+    the first checkpoint, whole (its files agree with each other) and without temporaries."""
+    import errno
+
+    from shgm_slam.io import export
+    from shgm_slam.server.node import ServerNode
+
+    out = tmp_path / "out"
+    real_write = ServerNode.write_results
+    calls = []
+
+    def write_results(self):
+        calls.append(1)
+        if len(calls) == 2:  # the graphs come after the trajectories: the checkpoint is half written
+            def full(*_args, **_kwargs):
+                raise OSError(errno.ENOSPC, "No space left on device")
+
+            monkeypatch.setattr(export, "write_graph", full)
+        return real_write(self)
+
+    monkeypatch.setattr(ServerNode, "write_results", write_results)
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
+    with pytest.raises(DataError, match="No space left on device"):
+        run_slam(robots, cfg, out, write_every_keyframes=10)
+    assert len(calls) == 2
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # no temporaries
+    server = json.loads((out / "server.json").read_text())
+    assert server["matches_tried"] == len(json.loads((out / "matches.json").read_text()))
+    t, _ = read_tum(out / "car1_odometry_tum.txt")  # keyframe-rate checkpoint of the first write
+    assert len(t) == server["robots"]["car1"]["keyframes"]
+
+
 def test_bad_robot_arguments_give_clear_errors(tiny_scenario: Path, tmp_path: Path) -> None:
     assert parse_robot_arg("car1=/data/seq:0-10") == ("car1", "/data/seq:0-10")
     with pytest.raises(ConfigError, match="NAME=PATH"):
