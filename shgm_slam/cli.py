@@ -148,7 +148,7 @@ def simulate_command(
         kitti_robots=tuple(kitti_drive) if kitti_drive else None,
         overwrite=overwrite,
     )
-    table = Table(title=f"{scenario} (seed {seed}, {size[0]}x{size[1]} @ {fps:g} Hz) -> {out}")
+    table = Table(title=f"{lit(scenario)} (seed {seed}, {size[0]}x{size[1]} @ {fps:g} Hz) -> {lit(out)}")
     for col in ("robot", "kind", "frames", "path m", "shares view with (m)", "folder"):
         table.add_column(col, justify="right" if col in ("frames", "path m") else "left")
     for r in result.robots:
@@ -156,7 +156,7 @@ def simulate_command(
         table.add_row(lit(r.name), r.kind, str(r.frames), f"{r.path_length_m:.0f}", shared, lit(r.folder))
     console.print(table)
     console.print(f"{result.total_frames} frames at {result.frames_per_s:.1f} frames/s; world: {result.world_objects} "
-                  f"objects, {result.world_triangles} triangles -> {out / 'world.json'}")
+                  f"objects, {result.world_triangles} triangles -> {lit(out / 'world.json')}")
 # --- graph / match (graph/, descriptors/, matching/) -----------------------------------------------
 
 
@@ -636,7 +636,7 @@ def check_model_command(
     from shgm_slam.perception.preview import check_model
 
     report = check_model(model, card, image, preview, runs=runs, threads=threads)
-    table = Table(title=f"{report.model_path.name}: {report.task.value} model", show_header=False)
+    table = Table(title=f"{lit(report.model_path.name)}: {report.task.value} model", show_header=False)
     table.add_column(style="bold")
     table.add_column()
     table.add_row("card", lit(report.card_path))
@@ -732,7 +732,7 @@ def bench_simulate(
 
     results = run_simulate_benchmark(out, resolution=parse_resolution(resolution), short_frames=short_frames,
                                      long_frames=long_frames, seed=seed)
-    console.print(simulate_markdown(results))
+    console.print(simulate_markdown(results), markup=False)
     console.print(f"wrote {lit(out)}")
 
 
@@ -802,7 +802,7 @@ def bench_sparse(
     (out / "sparse.json").write_text(json.dumps(results.to_json(), indent=1))
     text = sparse_markdown(results, seed_list)
     (out / "sparse.md").write_text(text)
-    console.print(text)
+    console.print(text, markup=False)
     console.print(f"wrote {lit(out / 'sparse.json')} and {lit(out / 'sparse.md')}")
 
 
@@ -823,7 +823,7 @@ def bench_system(
     with console.status("starting") as status:
         results = run_system_benchmark(out, cache=cache, seed=seed, memory=memory, rgb_only=rgb_only,
                                        progress=lambda msg: status.update(msg))
-    console.print(system_markdown(results))
+    console.print(system_markdown(results), markup=False)
     console.print(f"wrote {lit(out / 'system.json')} and {lit(out / 'system.md')}")
 
 
@@ -852,7 +852,7 @@ def bench_distributed(
     with console.status("starting") as status:
         result = run_distributed_benchmark(world, out, faults=modes, config=config,
                                            progress=lambda msg: status.update(msg))  # fmt: skip
-    console.print(distributed_markdown(result))
+    console.print(distributed_markdown(result), markup=False)
     console.print(f"wrote {lit(out / 'distributed.json')} and {lit(out / 'distributed.md')}")
 
 
