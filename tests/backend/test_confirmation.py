@@ -138,3 +138,30 @@ def test_confirms_needs_another_match_and_other_objects() -> None:
     support[2] = {"a": frozenset({4}), "b": frozenset({7, 8})}  # shares b's object 7 with closure 0
     assert not confirms(other, [one, same_match], support)
     assert confirms(rec(3, None), [one], {})  # no recorded objects: its own match suffices
+
+
+def test_the_object_index_decides_like_confirms_on_random_pairs() -> None:
+    """``placements`` (an object index over the matches) agrees with ``confirms`` (the definition) on
+    random robot pairs: few matches, closures sharing objects at random."""
+    from shgm_slam.backend.pose_graph import ClosureRecord
+
+    rng = np.random.default_rng(5)
+    outcomes = set()
+    for _ in range(300):
+        n = int(rng.integers(1, 8))
+        closures = [
+            ClosureRecord(i, "a", i, "b", i, np.eye(4), 5, ClosureStatus.ACCEPTED, match_id=int(rng.integers(0, 3)))
+            for i in range(n)
+        ]  # fmt: skip
+        support = {
+            c.closure_id: {r: frozenset(rng.choice(12, size=rng.integers(1, 4), replace=False).tolist()) for r in "ab"}
+            for c in closures if rng.random() < 0.9
+        }  # fmt: skip
+        by_match: dict = {}
+        for c in closures:
+            by_match.setdefault(c.evidence, []).append(c)
+        expected = any(confirms(c, m, support) for m in by_match.values() for c in closures)
+        placed = placements(["a", "b"], "a", ["a", "b"], closures, support)["b"]
+        assert (placed.placement is Placement.CONFIRMED) == expected
+        outcomes.add(expected)
+    assert outcomes == {True, False}  # both cases were drawn
