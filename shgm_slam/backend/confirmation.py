@@ -43,13 +43,15 @@ class Placement(str, Enum):
 
 @dataclass(frozen=True)
 class AgentPlacement:
-    """One agent's placement; ``partner`` is the confirmed agent its best evidence links it to (None for
-    the reference and unplaced agents) and ``matches`` how many graph matches gave that evidence."""
+    """One agent's placement; ``partner`` is the placed agent its best evidence links it to (a confirmed
+    one when there is one; None for the reference and unplaced agents), ``matches`` how many graph
+    matches gave that evidence and ``partner_confirmed`` whether the partner is confirmed itself."""
 
     placement: Placement
     partner: str | None = None
     matches: int = 0
     keyframes: tuple[int, ...] = ()  # the agent's keyframes in those closures
+    partner_confirmed: bool = True
 
     @property
     def provisional(self) -> bool:
@@ -147,25 +149,30 @@ def placements(
             out[agent] = AgentPlacement(Placement.UNPLACED)
         else:
             state = Placement.CONFIRMED if agent in confirmed else Placement.PROVISIONAL
-            out[agent] = _with_evidence(agent, state, by_pair, placed)
+            out[agent] = _with_evidence(agent, state, by_pair, placed, confirmed)
     return out
 
 
 def _with_evidence(
-    agent: str, state: Placement, by_pair: dict[frozenset[str], list[ClosureRecord]], others: set[str]
+    agent: str,
+    state: Placement,
+    by_pair: dict[frozenset[str], list[ClosureRecord]],
+    placed: set[str],
+    confirmed: set[str],
 ) -> AgentPlacement:
-    """``state`` with the placed partner whose accepted closures with ``agent`` come from the most matches."""
-    best: tuple[int, str, list[ClosureRecord]] | None = None
-    for other in sorted(others - {agent}):
+    """``state`` with the placed partner whose accepted closures with ``agent`` come from the most matches
+    (confirmed partners first)."""
+    best: tuple[bool, int, str, list[ClosureRecord]] | None = None
+    for other in sorted(placed - {agent}):
         cs = by_pair.get(frozenset((agent, other)), [])
-        n = len({c.evidence for c in cs})
-        if cs and (best is None or n > best[0]):
-            best = (n, other, cs)
+        rank = (other in confirmed, len({c.evidence for c in cs}))
+        if cs and (best is None or rank > best[:2]):
+            best = (*rank, other, cs)
     if best is None:
         return AgentPlacement(state)
-    n, other, cs = best
+    partner_confirmed, n, other, cs = best
     kfs = sorted({c.kf_a if c.robot_a == agent else c.kf_b for c in cs})
-    return AgentPlacement(state, other, n, tuple(kfs))
+    return AgentPlacement(state, other, n, tuple(kfs), partner_confirmed)
 
 
 def describe(agent: str, p: AgentPlacement) -> str:
@@ -180,6 +187,11 @@ def describe(agent: str, p: AgentPlacement) -> str:
         where += f" (its keyframe{'s' if last > first else ''} {first}{f'-{last}' if last > first else ''})"
     if p.placement is Placement.CONFIRMED:
         return f"{agent} is confirmed in the shared frame: independent graph matches{where} agree"
+    if not p.partner_confirmed:
+        return (
+            f"{agent} is placed provisionally: it was placed through graph matches{where}, and {p.partner} is "
+            "provisional itself; it may be wrong and may still move until both are confirmed"
+        )
     evidence = f"a single graph match{where}" if p.matches <= 1 else (
         f"{p.matches} graph matches{where} that all found the same objects"
     )

@@ -110,6 +110,8 @@ def test_confirmation_spreads_only_through_confirmed_agents(world) -> None:
     f.closure("b", 30, "c", 30, match=3, objects=range(120, 130))  # c: two independent matches, but with b
     assert f.pg.is_anchored("c")
     assert f.placement("b").provisional and f.placement("c").provisional
+    c = f.placement("c")
+    assert c.partner == "b" and not c.partner_confirmed and "b is provisional itself" in describe("c", c)
     f.closure("a", 30, "b", 30, match=4, objects=range(40, 50))  # b confirmed: c follows
     assert f.placement("b").placement is Placement.CONFIRMED
     assert f.placement("c").placement is Placement.CONFIRMED
