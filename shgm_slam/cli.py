@@ -296,8 +296,8 @@ def _summary_table(summary):
         )  # fmt: skip
     t.caption = ("ATE: metres in the shared frame (odo = odometry alone, started at its true pose; per trajectory "
                  "segment after odometry failures); aligned = SE(3)-aligned per robot; fused a/b = trajectory "
-                 "segments placed / segments; prov = placed provisionally, from a single graph match (see its "
-                 "warning)")
+                 "segments placed / segments; prov = placed provisionally, no independent graph match confirms it yet "
+                 "(see its warning)")
     return t
 
 

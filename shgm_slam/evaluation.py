@@ -67,7 +67,7 @@ class RobotEvaluation:
     ate_fused_aligned_m: float = float("nan")  # RMSE after an SE(3) fit (shape only)
     max_error_m: float = float("nan")  # largest position error in the shared frame
     note: str = ""
-    # placed from a single graph match, unconfirmed (the fused file's "# provisional: ..." line says why)
+    # placed but not confirmed by an independent graph match (the fused file's "# provisional: ..." line says why)
     provisional: bool = False
 
     @property
@@ -148,7 +148,7 @@ def _evaluate_robot(name: str, fused_file: Path, t_gt: np.ndarray, gt: np.ndarra
     t_est, est = read_tum(fused_file)
     rows_est, rows_gt = associate(t_est, t_gt)
     rep = RobotEvaluation(name, len(t_est), len(rows_est), provisional=is_provisional(fused_file))
-    notes = ["provisional: placed from a single graph match"] if rep.provisional else []
+    notes = ["provisional: no independent graph match confirms its place"] if rep.provisional else []
     if len(rows_est) < len(t_est):
         notes.append(f"{len(t_est) - len(rows_est)} fused pose(s) have no ground truth at their time")
     shared = ate(gt[rows_gt], est[rows_est], align=AlignMode.NONE)

@@ -157,8 +157,8 @@ class RobotReport:
     # degenerate data, reported, never hidden: skipped frames, no graph nodes, odometry that did not move
     # while the images did (then ``localized`` is False: the trajectory is known to be invalid)
     warnings: list[str] = field(default_factory=list)
-    # placed from a single piece of evidence (``backend.confirmation``): a segment's place in the shared
-    # frame rests on one graph match; it may be wrong (its fused trajectory is written, marked so)
+    # placed from a single piece of evidence (``backend.confirmation``): no independent graph match confirms
+    # a segment's place in the shared frame yet; it may be wrong (its fused trajectory is written, marked so)
     provisional: bool = False
 
 

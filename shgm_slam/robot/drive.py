@@ -44,7 +44,7 @@ class DriveSummary:
     wall_s: float
     interrupted: bool = False
     skipped: list[str] = field(default_factory=list)
-    provisional_agents: list[str] = field(default_factory=list)  # placed from a single match, unconfirmed
+    provisional_agents: list[str] = field(default_factory=list)  # placed, not confirmed by an independent match
 
     @property
     def bytes_per_keyframe(self) -> float:
@@ -108,9 +108,9 @@ def drive_robot(
     placed = [s.agent for s in front.segments if node.T_shared_odom(s.agent) is not None]
     provisional = [a for a in placed if a in node.provisional_agents]
     if out_dir is not None:
-        note = f"placed provisionally by the map server (single graph match): {', '.join(provisional)}"
+        why = "placed provisionally by the map server (no independent match confirms it yet): "
         ResultsWriter(out_dir).write_trajectories(name, times, front.T_odom_cam, node.fused(),
-                                                  provisional=note if provisional else None)  # fmt: skip
+                                                  provisional=why + ", ".join(provisional) if provisional else None)
     return DriveSummary(
         name, node.session, len(sequence), processed, node.keyframes_sent, node.all_acknowledged(),
         node.server_finished and acknowledged, placed, dict(node.bytes_sent), node.resent,
