@@ -104,6 +104,7 @@ class RobotStatus:
     keyframes: int  # over all its agents
     placed_agents: tuple[str, ...]
     agents: tuple[str, ...]
+    provisional_agents: tuple[str, ...] = ()  # placed, not confirmed by an independent graph match yet
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from shgm_slam.backend.confirmation import describe
 from shgm_slam.config import OdometryKind, RobotOverrides, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.data.interleave import interleave
@@ -33,6 +34,7 @@ from shgm_slam.robot.node import RobotNode
 from shgm_slam.scene_scale import effective_fields, resolve_robot_config, sample_scene_scale
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.node import ServerNode
+from shgm_slam.server.placement import PlacementWatch
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 from shgm_slam.types import Sequence
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
@@ -155,6 +157,9 @@ class RobotReport:
     # degenerate data, reported, never hidden: skipped frames, no graph nodes, odometry that did not move
     # while the images did (then ``localized`` is False: the trajectory is known to be invalid)
     warnings: list[str] = field(default_factory=list)
+    # placed from a single piece of evidence (``backend.confirmation``): no independent graph match confirms
+    # a segment's place in the shared frame yet; it may be wrong (its fused trajectory is written, marked so)
+    provisional: bool = False
 
 
 @dataclass
@@ -263,6 +268,7 @@ def run_slam(
     done = 0
     interrupted = False
     kf_total = 0
+    watch = PlacementWatch()
     try:
         for robot, index in interleave(robots):
             done += 1
@@ -288,6 +294,8 @@ def run_slam(
             timings.add(res.timings_ms)
             compute_ms += sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
             _log_frame(viz, server, fronts[robot], res, records)
+            if records:
+                _log_placements(viz, watch, server)
             kf_total += res.message is not None
             if progress:
                 progress(done, total)
@@ -305,9 +313,11 @@ def run_slam(
     if not server_node.finished:
         server_node.finish(match=not interrupted)
     _log_matches(viz, server, records)
+    _log_placements(viz, watch, server)
     for node in nodes.values():
         node.poll()
     reports = _evaluate(fronts, server, robots, processed, gt_shared_frame)
+    _report_provisional(reports, fronts, server)
     _report_degenerate(reports, fronts, image_change, viz)
     accepted = sum(m.accepted for m in server.matches)
     summary = RunSummary(
@@ -386,6 +396,23 @@ def _report_degenerate(
         for text in rep.warnings:
             log.warning("%s: %s", rep.name, text)
             viz.log_text(f"{rep.name}: {text}", "WARN")
+
+
+def _report_provisional(reports: list[RobotReport], fronts: dict[str, RobotFrontend], server: MapServer) -> None:
+    """Flag each robot with a segment placed from a single piece of evidence (a warning saying so)."""
+    for rep in reports:
+        for seg in fronts[rep.name].segments:
+            p = server.placement(seg.agent)
+            if p.provisional:
+                rep.provisional = True
+                rep.warnings.append(describe(seg.agent, p))
+
+
+def _log_placements(viz: Viz, watch: PlacementWatch, server: MapServer) -> None:
+    """Agents that joined the shared frame provisionally, were confirmed or lost their place: log and viewer."""
+    for level, text in watch.changes(server):
+        (log.warning if level == "WARN" else log.info)("%s", text)
+        viz.log_text(text, level)
 
 
 def _last_healthy_position(front: RobotFrontend, server: MapServer) -> np.ndarray | None:

@@ -381,7 +381,7 @@ def _encode_fields(msg: Message) -> dict[str, Any]:
             _robot(r, "status robot")
             if not isinstance(st, RobotStatus) or st.state not in _STATE_CODES:
                 raise WireError(f"status of robot {r!r} must be a RobotStatus with a RobotState")
-            lists = [list(st.placed_agents), list(st.agents)]
+            lists = [list(st.placed_agents), list(st.agents), list(st.provisional_agents)]
             if any(len(x) > MAX_AGENTS for x in lists):
                 raise WireError(f"status of robot {r!r} lists more than {MAX_AGENTS} agents")
             for x in lists:
@@ -458,12 +458,16 @@ def _decode_fields(kind: MessageKind, f: _Fields) -> Message:
     # STATUS
     robots = {}
     for r, v in f.map("b", _robot).items():
-        if not (isinstance(v, list) and len(v) == 4 and isinstance(v[2], list) and isinstance(v[3], list)):
-            raise WireError(f"status of robot {r!r} must be [state, keyframes, placed agents, agents]")
+        # the provisional agents (fifth) came later: a four-item status of an older server is still read
+        if not (isinstance(v, list) and len(v) in (4, 5) and all(isinstance(x, list) for x in v[2:])):
+            raise WireError(
+                f"status of robot {r!r} must be [state, keyframes, placed agents, agents, provisional agents]"
+            )
         code = _int(v[0], f"status state of {r!r}", 0, len(_CODE_STATES) - 1)
-        placed = tuple(_agent(a, f"status agent of {r!r}") for a in v[2])
-        agents = tuple(_agent(a, f"status agent of {r!r}") for a in v[3])
-        robots[r] = RobotStatus(_CODE_STATES[code], _int(v[1], f"status keyframes of {r!r}"), placed, agents)
+        placed, agents, provisional = (tuple(_agent(a, f"status agent of {r!r}") for a in x) for x in (*v[2:], [])[:3])
+        robots[r] = RobotStatus(
+            _CODE_STATES[code], _int(v[1], f"status keyframes of {r!r}"), placed, agents, provisional
+        )
     refused = {r: _text(why, f"refusal of {r!r}") for r, why in f.map("y", _robot).items()}
     reference = d["e"] if d["e"] == "" else _robot(d["e"], "status reference")
     if not isinstance(d["x"], bool):

@@ -88,6 +88,7 @@ def all_messages() -> list:
             "car1",
             {
                 "car1": RobotStatus(RobotState.ACTIVE, 12, ("car1",), ("car1", "car1#1")),
+                "car3": RobotStatus(RobotState.ACTIVE, 7, ("car3", "car3#1"), ("car3", "car3#1"), ("car3#1",)),
                 "car2": RobotStatus(RobotState.DONE, 0, (), ()),
                 "b-3": RobotStatus(RobotState.STALE, 5, (), ("b-3",)),
             },
@@ -133,6 +134,22 @@ def test_every_message_round_trips(msg):
     out = decode(payload)
     assert_same(msg, out)
     assert encode(out) == payload  # decoded values are fixed points: both runs see identical values
+
+
+def test_a_status_without_provisional_agents_is_still_read():
+    """An older server's status has four items per robot (no provisional agents): read as none."""
+    import msgpack
+
+    payload = encode(StatusMessage("srv", "car1", {"car1": RobotStatus(RobotState.ACTIVE, 3, ("car1",), ("car1",),
+                                                                       ("car1",))}))  # fmt: skip
+    fields = msgpack.unpackb(payload, raw=False)
+    assert len(fields["b"]["car1"]) == 5
+    fields["b"]["car1"] = fields["b"]["car1"][:4]
+    status = decode(msgpack.packb(fields, use_bin_type=True)).robots["car1"]
+    assert status.placed_agents == ("car1",) and status.provisional_agents == ()
+    fields["b"]["car1"] = [*fields["b"]["car1"], ["car1"], ["car1"]]  # six items: refused
+    with pytest.raises(WireError, match="provisional agents"):
+        decode(msgpack.packb(fields, use_bin_type=True))
 
 
 def test_keyframe_bytes_are_compact():

@@ -44,6 +44,7 @@ class DriveSummary:
     wall_s: float
     interrupted: bool = False
     skipped: list[str] = field(default_factory=list)
+    provisional_agents: list[str] = field(default_factory=list)  # placed, not confirmed by an independent match
 
     @property
     def bytes_per_keyframe(self) -> float:
@@ -104,12 +105,14 @@ def drive_robot(
         acknowledged = node.wait_acknowledged(wait_s, until_finished=not interrupted)
         if not node.all_acknowledged():
             log.warning("%s: the map server did not acknowledge every keyframe within %.0f s", name, wait_s)
+    placed = [s.agent for s in front.segments if node.T_shared_odom(s.agent) is not None]
+    provisional = [a for a in placed if a in node.provisional_agents]
     if out_dir is not None:
-        fused = node.fused()
-        ResultsWriter(out_dir).write_trajectories(name, times, front.T_odom_cam, fused)
+        why = "placed provisionally by the map server (no independent match confirms it yet): "
+        ResultsWriter(out_dir).write_trajectories(name, times, front.T_odom_cam, node.fused(),
+                                                  provisional=why + ", ".join(provisional) if provisional else None)
     return DriveSummary(
         name, node.session, len(sequence), processed, node.keyframes_sent, node.all_acknowledged(),
-        node.server_finished and acknowledged,
-        [s.agent for s in front.segments if node.T_shared_odom(s.agent) is not None],
-        dict(node.bytes_sent), node.resent, time.perf_counter() - t_start, interrupted, skipped,
+        node.server_finished and acknowledged, placed, dict(node.bytes_sent), node.resent,
+        time.perf_counter() - t_start, interrupted, skipped, provisional,
     )  # fmt: skip

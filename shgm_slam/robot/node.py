@@ -78,6 +78,7 @@ class RobotNode:
         self._done: bytes | None = None
         self.server_session: str | None = None
         self.server_finished = False
+        self.provisional_agents: tuple[str, ...] = ()  # its agents the server placed provisionally (status)
         self.bytes_sent: dict[str, int] = {"hello": 0, "keyframe": 0, "done": 0}
         self.keyframes_sent = 0
         self.resent = 0
@@ -178,6 +179,8 @@ class RobotNode:
             if self._done is not None:
                 self._publish("done", done_key(self.name), self._done)
         self.server_finished = msg.finished
+        mine = msg.robots.get(self.name)
+        self.provisional_agents = mine.provisional_agents if mine is not None else ()
 
     def _resend_stalled(self) -> None:
         now = self.clock()

@@ -38,8 +38,8 @@ def local_closures(
     max_rmse_m: float,
     up_a: np.ndarray | None,
     up_b: np.ndarray | None,
-) -> list[tuple[int, int, np.ndarray, int]]:
-    """Cut one graph match into local closures ``(kf_a, kf_b, T_a_b_local, inliers)``.
+) -> list[tuple[int, int, np.ndarray, int, np.ndarray]]:
+    """Cut one graph match into local closures ``(kf_a, kf_b, T_a_b_local, inliers, rows)``.
 
     Args:
         pos_a, pos_b: (M, 3) inlier node positions in robot a's / robot b's graph frame (metres).
@@ -53,7 +53,8 @@ def local_closures(
 
     Returns:
         Closures between the keyframes anchoring each stretch's central inlier, ``T_a_b_local`` in the
-        graph frames (b -> a); without any good stretch, one closure at the centre with ``T_a_b``.
+        graph frames (b -> a), with the (n,) indices into the M inliers that support it; without any
+        good stretch, one closure at the centre with ``T_a_b``, supported by all inliers.
     """
     order = np.argsort(anchors_a, kind="stable")
     groups: list[np.ndarray] = []
@@ -71,10 +72,10 @@ def local_closures(
         if np.sqrt(np.mean(resid**2)) > max_rmse_m:
             continue
         c = g[int(np.argmin(np.linalg.norm(pos_a[g] - pos_a[g].mean(axis=0), axis=1)))]
-        out.append((int(anchors_a[c]), int(anchors_b[c]), T_local, len(g)))
+        out.append((int(anchors_a[c]), int(anchors_b[c]), T_local, len(g), np.sort(g)))
     if not out:
         c = int(np.argmin(np.linalg.norm(pos_a - pos_a.mean(axis=0), axis=1)))
-        out.append((int(anchors_a[c]), int(anchors_b[c]), T_a_b, len(pos_a)))
+        out.append((int(anchors_a[c]), int(anchors_b[c]), T_a_b, len(pos_a), np.arange(len(pos_a))))
     return out
 
 

@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from shgm_slam.backend.confirmation import AgentPlacement, Placement, Support, placements
 from shgm_slam.backend.pose_graph import make_pose_graph
 from shgm_slam.config import ShgmConfig
 from shgm_slam.descriptors import compute_descriptors
@@ -56,6 +57,8 @@ class MapServer:
         self._closures: set[tuple[str, int, str, int]] = set()
         self._step = 0
         self._num_matches = 0  # successful graph matches so far (each closure's evidence id)
+        self._support: dict[int, Support] = {}  # closure id -> the matched objects (node ids) behind it
+        self._placements: tuple[int, dict[str, AgentPlacement]] = (-1, {})  # (pose-graph version, cache)
         self.timings_ms: dict[str, list[float]] = {"match": [], "backend": []}
 
     def add_agent(self, agent: str) -> None:
@@ -191,8 +194,8 @@ class MapServer:
         rec.inlier_positions_a = graph_a.positions_xyz[rows_a]
         rec.inlier_positions_b = graph_b.positions_xyz[rows_b]
         closures = [
-            (kf_a, kf_b, se3.inverse(self._T_odom_kf[robot_a][kf_a]) @ T @ self._T_odom_kf[robot_b][kf_b], n)
-            for kf_a, kf_b, T, n in local_closures(
+            (kf_a, kf_b, se3.inverse(self._T_odom_kf[robot_a][kf_a]) @ T @ self._T_odom_kf[robot_b][kf_b], n, rows)
+            for kf_a, kf_b, T, n, rows in local_closures(
                 rec.inlier_positions_a,
                 rec.inlier_positions_b,
                 graph_a.label_ids[rows_a],
@@ -209,7 +212,7 @@ class MapServer:
         self._num_matches += 1
         pg = self._pose_graph
         confirming = pg.min_closures_to_anchor > 1 and not (pg.is_anchored(robot_a) and pg.is_anchored(robot_b))
-        for kf_a, kf_b, T_akf_bkf, n in closures:
+        for kf_a, kf_b, T_akf_bkf, n, rows in closures:
             key = (robot_a, kf_a, robot_b, kf_b)
             # a later match that finds the same keyframe pair again is independent evidence: while it
             # can still confirm an unanchored robot it goes in; afterwards it is a duplicate
@@ -229,6 +232,11 @@ class MapServer:
                 robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n, match_id=self._num_matches
             )
             self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
+            if robot_a != robot_b:  # the objects behind it: what makes two matches independent evidence
+                self._support[decision.closure_id] = {
+                    robot_a: frozenset(result.inliers[rows, 0].tolist()),
+                    robot_b: frozenset(result.inliers[rows, 1].tolist()),
+                }
             rec.closures.append(
                 {
                     "keyframe_a": kf_a,
@@ -275,6 +283,16 @@ class MapServer:
     def is_placed(self, agent: str) -> bool:
         """True when ``agent``'s keyframes are in the shared frame."""
         return agent in self._graphs and self._pose_graph.is_anchored(agent)
+
+    def placement(self, agent: str) -> AgentPlacement:
+        """Whether ``agent`` is the reference, confirmed, provisional (placed from a single piece of
+        evidence, ``backend.confirmation``) or not placed; unknown agents are not placed."""
+        pg = self._pose_graph
+        if self._placements[0] != pg.version:
+            anchored = [a for a in self._agents if pg.is_anchored(a)]
+            self._placements = (pg.version, placements(self._agents, self.reference, anchored, pg.closures(),
+                                                       self._support))  # fmt: skip
+        return self._placements[1].get(agent, AgentPlacement(Placement.UNPLACED))
 
     def T_shared_kf(self, agent: str) -> np.ndarray | None:
         """(K, 4, 4) fused keyframe poses of ``agent`` in the shared frame, or None if not placed (or not

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from shgm_slam.agents import agent_robot
+from shgm_slam.backend.confirmation import describe
 from shgm_slam.config import ShgmConfig
 from shgm_slam.errors import ShgmError
 from shgm_slam.fusion import fuse_segments
@@ -370,6 +371,7 @@ class ServerNode:
                 sum(self._map().received(a) for a in agents),
                 tuple(a for a in agents if self._map().is_placed(a)),
                 agents,
+                tuple(a for a in agents if self._map().placement(a).provisional),
             )
         payload = encode(StatusMessage(self.session, self.reference or "", robots, self.finished, dict(self._refused)))
         self.traffic.sent("status", len(payload))
@@ -464,22 +466,36 @@ class ServerNode:
         self._keyframes_since_write = 0
         if self.map is None:
             return
-        server = self.map
+        with self.writer.checkpoint():  # all files or none: a full disk keeps the previous checkpoint whole
+            self._write_checkpoint(self.map)
+
+    def _write_checkpoint(self, server: MapServer) -> None:
         for robot in self.robots:
             traj = self.trajectory(robot)
+            note = self.provisional_note(robot)
             if traj is not None:
                 fused = self.fused_trajectory(robot)[1]
-                self.writer.write_trajectories(robot, traj.timestamps_s, traj.T_odom_cam, fused)
+                self.writer.write_trajectories(robot, traj.timestamps_s, traj.T_odom_cam, fused, provisional=note)
             else:
                 times, T_odom_kf, T_shared_kf = self.keyframe_trajectory(robot)
                 if len(times):
-                    self.writer.write_keyframe_trajectory(robot, times, T_odom_kf, T_shared_kf)
+                    self.writer.write_keyframe_trajectory(robot, times, T_odom_kf, T_shared_kf, provisional=note)
             for a in server.agents:
                 if agent_robot(a)[0] == robot:
                     self.writer.write_graph(a, server.graph(a))
         self.writer.write_matches(server.matches)
         self.writer.write_text("pose_graph.g2o", server.to_g2o())
         self.writer.write_json("server.json", self.summary())
+
+    def provisional_note(self, robot: str) -> str | None:
+        """Why ``robot``'s place in the shared frame is provisional (one line per such agent), or None when
+        every placed agent of it is confirmed (``backend.confirmation``)."""
+        server = self.map
+        if server is None:
+            return None
+        notes = [describe(a, p) for a in server.agents if agent_robot(a)[0] == robot
+                 and (p := server.placement(a)).provisional]  # fmt: skip
+        return "; ".join(notes) or None
 
     def summary(self) -> dict:
         """Server-side metrics: robots, their state and placement, traffic, refusals."""
@@ -492,6 +508,7 @@ class ServerNode:
                 "state": rs.state.value,
                 "agents": mine,
                 "placed": [a for a in mine if server.is_placed(a)],
+                "provisional": [a for a in mine if server.placement(a).provisional],
                 "keyframes": sum(server.received(a) for a in mine) if server else 0,
                 "done": rs.done is not None,
             }
