@@ -268,7 +268,8 @@ class ResultsWriter:
 
         Frames with NaN poses (skipped) are left out of TUM files; the KITTI file (no timestamps)
         holds only the frames that have a fused pose, in order. ``provisional`` (why the robot's place
-        is not confirmed) becomes the fused files' first line, ``# provisional: ...`` (evo skips it).
+        is not confirmed) becomes the fused TUM file's first line, ``# provisional: ...`` (TUM allows
+        comments; evo skips it); the KITTI file stays plain 12-number rows, as KITTI's devkit reads them.
         A robot no longer placed loses the fused files an earlier checkpoint wrote.
         """
         ok = _valid_rows(T_odom_cam)
@@ -281,7 +282,7 @@ class ResultsWriter:
         okf = _valid_rows(T_shared_cam)
         note = f"{PROVISIONAL_COMMENT} {provisional}" if provisional else ""
         self._put(tum, lambda p: write_tum(p, timestamps_s[okf], T_shared_cam[okf], comment=note))
-        self._put(kitti, lambda p: write_kitti_poses(p, T_shared_cam[okf], comment=note))
+        self._put(kitti, lambda p: write_kitti_poses(p, T_shared_cam[okf]))
 
     def write_keyframe_trajectory(
         self,
