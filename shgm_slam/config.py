@@ -278,8 +278,14 @@ class BackendConfig(_Stage):
     loop_closure: bool = Field(
         True, description="also match each robot's submap against its own older graph (intra-robot loop closure)"
     )
-    odometry_sigma_rot_rad: float = Field(0.01, gt=0)
-    odometry_sigma_trans_m: float = Field(0.1, gt=0)
+    odometry_sigma_rot_rad: float = Field(0.01, gt=0, description="odometry step sigma when it did not move")
+    odometry_sigma_trans_m: float = Field(0.1, gt=0, description="odometry step sigma when it did not move")
+    odometry_drift_rot_rad_per_m: float = Field(
+        0.0, ge=0, le=1, description="odometry step rotation sigma growth per metre driven"
+    )
+    odometry_drift_trans_per_m: float = Field(
+        0.0, ge=0, le=1, description="odometry step translation sigma growth per metre driven (0.01 = 1 %)"
+    )
     closure_sigma_rot_rad: float = Field(0.1, gt=0)
     closure_sigma_trans_m: float = Field(3.0, gt=0)
     robust_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="huber | cauchy | tukey | none")

@@ -202,7 +202,11 @@ class MultiRobotPoseGraph:
 
     Args:
         robot_names: the robots, in order; the first one defines the shared frame.
-        odometry_sigmas: (rotation rad, translation m) sigma of one keyframe-to-keyframe odometry step.
+        odometry_sigmas: (rotation rad, translation m) sigma of one keyframe-to-keyframe odometry step
+            that did not move (the floor).
+        odometry_drift: (rotation rad per metre, translation per metre) growth of those sigmas with the
+            step's length: odometry drifts with distance driven, so a 2 m step is twice as uncertain as
+            a 1 m one (0, 0: every step alike).
         closure_sigmas: (rotation rad, translation m) sigma of an inter-robot closure.
         robust_kernel: M-estimator on closures (string values accepted); ``kernel_width`` overrides
             its default width (Huber 1.345, Cauchy 1.0, Tukey 4.685, in sigmas).
@@ -222,6 +226,7 @@ class MultiRobotPoseGraph:
         robot_names: list[str],
         *,
         odometry_sigmas: tuple[float, float] = (0.01, 0.1),
+        odometry_drift: tuple[float, float] = (0.0, 0.0),
         closure_sigmas: tuple[float, float] = (0.05, 1.0),
         robust_kernel: RobustKernel | str = RobustKernel.CAUCHY,
         kernel_width: float | None = None,
@@ -241,7 +246,11 @@ class MultiRobotPoseGraph:
             self.factorization = Factorization(str(getattr(factorization, "value", factorization)).upper())
         except ValueError as exc:
             raise BackendError(f"pose graph: {exc}; robust kernels: none, huber, cauchy, tukey") from None
-        self._odometry_noise = gtsam.noiseModel.Diagonal.Sigmas(_sigmas6(odometry_sigmas))
+        self._odometry_floor = _sigmas6(odometry_sigmas)
+        drift = np.asarray(odometry_drift, dtype=np.float64)
+        if drift.shape != (2,) or not np.isfinite(drift).all() or (drift < 0).any():
+            raise BackendError(f"odometry drift must be two non-negative rates, got {odometry_drift}")
+        self._odometry_drift = np.r_[[drift[0]] * 3, [drift[1]] * 3]
         self._closure_sigmas = _sigmas6(closure_sigmas)
         self._kernel_width = kernel_width
         self.thresholds = ConsistencyThresholds(
@@ -481,12 +490,12 @@ class MultiRobotPoseGraph:
         lines = []
         for k in sorted(values.keys()):
             lines.append(f"VERTEX_SE3:QUAT {k} " + _g2o_pose(values.atPose3(k)))
-        odo_info = np.diag(1.0 / np.asarray(self._odometry_noise.sigmas()) ** 2)
         for name, r in self._robots.items():
             if not r.anchored:
                 continue
             for k in range(1, len(r.T_odom_kf)):
                 T = inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k]
+                odo_info = np.diag(1.0 / self._odometry_sigmas(T) ** 2)
                 lines.append(_g2o_edge(self.keys.key(name, k - 1), self.keys.key(name, k), T, odo_info))
         for c in self._closures:
             if c.in_graph:
@@ -586,6 +595,11 @@ class MultiRobotPoseGraph:
         for k in range(1, len(r.T_odom_kf)):
             self._push_keyframe(name, k)
 
+    def _odometry_sigmas(self, delta: np.ndarray) -> np.ndarray:
+        """(6,) [rot rad x3, trans m x3] sigmas of an odometry step ``delta`` (4, 4): the floor plus the
+        drift rates times the step's length."""
+        return self._odometry_floor + self._odometry_drift * float(np.linalg.norm(delta[:3, 3]))
+
     def _push_keyframe(self, robot: str, k: int) -> None:
         """Odometry factor (k-1 -> k) and initial value of keyframe k of an anchored robot."""
         r = self._robots[robot]
@@ -595,7 +609,8 @@ class MultiRobotPoseGraph:
             prev = self._new_values.atPose3(k_prev).matrix()
         else:
             prev = self._isam.calculateEstimatePose3(k_prev).matrix()
-        self._add_factor(gtsam.BetweenFactorPose3(k_prev, k_new, _pose3(delta), self._odometry_noise))
+        noise = gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(delta))
+        self._add_factor(gtsam.BetweenFactorPose3(k_prev, k_new, _pose3(delta), noise))
         self._new_values.insert(k_new, _pose3(prev @ delta))
 
     def _anchor_robot(self, robot: str, closure: ClosureRecord) -> None:
@@ -816,6 +831,7 @@ def make_pose_graph(robot_names: list[str], cfg: BackendConfig) -> MultiRobotPos
     return MultiRobotPoseGraph(
         robot_names,
         odometry_sigmas=(cfg.odometry_sigma_rot_rad, cfg.odometry_sigma_trans_m),
+        odometry_drift=(cfg.odometry_drift_rot_rad_per_m, cfg.odometry_drift_trans_per_m),
         closure_sigmas=(cfg.closure_sigma_rot_rad, cfg.closure_sigma_trans_m),
         robust_kernel=cfg.robust_kernel,
         consistency_trans_m=cfg.consistency_trans_m,
