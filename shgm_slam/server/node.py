@@ -10,8 +10,9 @@ next to its robots, ``shgm-slam server`` drives one over Eclipse Zenoh. The node
 - feeds keyframes to the ``MapServer`` (idempotent: re-sent keyframes are ignored) and answers each
   robot with a ``CorrectionMessage`` (keyframes it holds, where its agents are in the shared frame);
 - marks robots that went silent stale (kept; they resume when they come back);
-- appends every accepted message to a journal, so a killed server started again on the same results
-  folder replays it and continues;
+- appends every accepted message to a journal and writes a snapshot of its state every so often, so a
+  killed server started again on the same results folder loads the newest snapshot, replays the journal
+  records after it and continues (``recovery``);
 - finishes by itself once ``expect`` robots have connected and each has sent its last keyframe: whole
   graphs are matched once more, the results folder is written and every robot gets its final correction.
 """
@@ -29,7 +30,7 @@ import numpy as np
 
 from shgm_slam.agents import agent_robot
 from shgm_slam.config import ShgmConfig
-from shgm_slam.errors import ShgmError
+from shgm_slam.errors import DataError, ShgmError
 from shgm_slam.fusion import fuse_segments
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.messages import (
@@ -45,6 +46,10 @@ from shgm_slam.messages import (
 from shgm_slam.server.journal import Journal
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.records import MatchRecord
+from shgm_slam.server.recovery import RecoveryReport, recover
+from shgm_slam.server.sessions import RobotSession
+from shgm_slam.server.snapshot import SnapshotStore, config_digest
+from shgm_slam.server.snapshot_codec import ServerSnapshot, SnapshotError
 from shgm_slam.transport.base import Inbox, Transport
 from shgm_slam.transport.keys import ALL_DONE, ALL_HELLO, ALL_KEYFRAMES, STATUS_KEY, correction_key, robot_of
 from shgm_slam.wire import decode, encode
@@ -56,24 +61,6 @@ CLASH_WINDOW_S = 2.5
 if the current session speaks again it is a name clash and the newcomer is refused; once the current
 session has been silent this long the newcomer is a restart and takes over (robots say hello every
 ``robot.node.HEARTBEAT_S``)."""
-
-
-@dataclass
-class RobotSession:
-    """What the server knows of one robot's process."""
-
-    name: str
-    session: str
-    state: RobotState = RobotState.ACTIVE
-    last_heard_s: float = 0.0
-    done: DoneMessage | None = None
-    kf_timestamps: dict[str, list[float]] = field(default_factory=dict)  # agent -> keyframe times
-    kf_frames: dict[str, list[int]] = field(default_factory=dict)  # agent -> keyframe frame indices
-    corrected_version: int = -1  # pose-graph version of the last correction sent
-
-    def complete(self, server: MapServer) -> bool:
-        """True when the robot said it is done and every keyframe it sent has arrived."""
-        return self.done is not None and all(server.received(a) >= n for a, n in self.done.keyframes.items())
 
 
 @dataclass
@@ -123,7 +110,8 @@ class ServerNode:
         reference: the robot whose frame is the shared frame (None: the first robot to say hello).
         expect: finish by itself once this many robots have connected and each has sent its last
             keyframe (None: run until ``finish`` is called).
-        journal: keep the crash-recovery journal and replay it when one exists in ``out_dir``.
+        journal: keep the crash-recovery journal and snapshots (``cfg.server``) and recover from them when
+            ``out_dir`` has them.
         stale_after_s: a robot silent for this long is marked stale.
         status_every_s: how often the status is broadcast (and stale robots checked).
         correction_every_s: at most this often per robot a correction carries new fused poses
@@ -172,7 +160,11 @@ class ServerNode:
         for key in (ALL_HELLO, ALL_KEYFRAMES, ALL_DONE):
             transport.subscribe(key, self._inbox)
         self.journal = Journal(Path(out_dir) / "journal.bin") if journal else None
-        self.recovered_messages = self._recover() if self.journal is not None else 0
+        every = cfg.server.snapshot_every_messages
+        self.snapshots = SnapshotStore(out_dir, keep=cfg.server.snapshots_kept) if journal and every else None
+        self.recovery = self._recover() if self.journal is not None else RecoveryReport()
+        self.recovered_messages = self.recovery.replayed
+        self._snapshot_at = (self.recovery.snapshot_records, self.clock())  # journal records, time
         if self.reference is not None:
             self._map()
 
@@ -204,6 +196,7 @@ class ServerNode:
             self._broadcast_status()
         if self.expect is not None and not self.finished and self._all_expected_done():
             records += self.finish()
+        self._snapshot_if_due(now)
         return records
 
     def finish(self, *, match: bool = True) -> list[MatchRecord]:
@@ -268,6 +261,7 @@ class ServerNode:
 
     def _hello(self, msg: HelloMessage, payload: bytes, now: float, *, live: bool) -> str | None:
         rs = self.robots.get(msg.robot)
+        new_session = rs is None or rs.session != msg.session
         if rs is not None and rs.session != msg.session:
             if live and rs.state is not RobotState.STALE and now - rs.last_heard_s < CLASH_WINDOW_S:
                 # a restart or a second process under the same name? Hold the newcomer until the current
@@ -289,9 +283,10 @@ class ServerNode:
             log.info("%s connected (session %s)%s", msg.robot, msg.session, ref)
         self._refused.pop(msg.robot, None)
         self._heard(rs, now)
-        if live and self.journal is not None:
-            self.journal.append(payload)
-        rs.corrected_version = -1  # answer with everything it needs to resume
+        if new_session:
+            if live and self.journal is not None:  # heartbeats of a known session change nothing to recover
+                self.journal.append(payload)
+            rs.corrected_version = -1  # answer with everything it needs to resume
         return msg.robot
 
     def _heard(self, rs: RobotSession, now: float) -> None:
@@ -391,28 +386,74 @@ class ServerNode:
 
     # --- recovery ------------------------------------------------------------------------------
 
-    def _recover(self) -> int:
-        """Replay the journal (a restarted server); returns how many messages it replayed."""
-        n = 0
-        t0 = time.perf_counter()
-        for payload in self.journal.replay():
-            # the journal holds only accepted messages, on their own robot's key
-            try:
-                msg = decode(payload)
-            except ShgmError as exc:
-                log.warning("journal record %d unreadable (%s); skipped", n, exc)
-                continue
-            robot = msg.robot if not isinstance(msg, KeyframeMessage) else agent_robot(msg.robot)[0]
-            self._handle(f"shgm/{robot}/replay", payload, live=False)
-            n += 1
-        if n:
+    def _recover(self) -> RecoveryReport:
+        """A restarted server: the newest usable snapshot, then the journal records after it."""
+        report = recover(self.journal, self.snapshots, digest=config_digest(self.cfg), reference=self.reference,
+                         restore=self.restore, replay=self._replay)  # fmt: skip
+        if report.snapshot_records or report.replayed:
             for rs in self.robots.values():
                 rs.state = RobotState.STALE if rs.state is RobotState.ACTIVE else rs.state
                 rs.last_heard_s = self.clock()
-            log.info("recovered %d messages from %s in %.1f s: %s", n, self.journal.path, time.perf_counter() - t0,
+            log.info("recovered from %s in %.1f s (%d records from a snapshot, %d replayed): %s", self.journal.path,
+                     report.seconds, report.snapshot_records, report.replayed,
                      ", ".join(f"{r} {sum(self._map().received(a) for a in rs.kf_frames)} keyframes"
                                for r, rs in self.robots.items()))  # fmt: skip
-        return n
+        return report
+
+    def _replay(self, payload: bytes, index: int) -> None:
+        """Apply journal record ``index`` (only accepted messages, each from its own robot)."""
+        try:
+            msg = decode(payload)
+        except ShgmError as exc:
+            log.warning("journal record %d unreadable (%s); skipped", index, exc)
+            return
+        robot = msg.robot if not isinstance(msg, KeyframeMessage) else agent_robot(msg.robot)[0]
+        self._handle(f"shgm/{robot}/replay", payload, live=False)
+
+    def snapshot(self) -> ServerSnapshot:
+        """The server's state after every journal record so far (what ``restore`` loads)."""
+        return ServerSnapshot(
+            self.journal.records if self.journal is not None else 0, self.journal.chain if self.journal else 0,
+            config_digest(self.cfg), self.reference, tuple(self.robots.values()),
+            self.map.state() if self.map is not None else None,
+        )  # fmt: skip
+
+    def restore(self, snap: ServerSnapshot) -> None:
+        """Load a snapshot into this fresh node (nothing changes when it raises).
+
+        Raises:
+            SnapshotError, GraphError, BackendError: the snapshot's content is inconsistent.
+        """
+        server = MapServer.from_state(snap.map, self.cfg) if snap.map is not None else None
+        if server is not None and server.reference != snap.reference:
+            raise SnapshotError(f"snapshot's shared frame is {server.reference}'s but it names {snap.reference}")
+        robots = {rs.name: rs for rs in snap.sessions}
+        for rs in robots.values():
+            for a, frames in rs.kf_frames.items():
+                held = server.received(a) if server is not None else 0
+                if agent_robot(a)[0] != rs.name or len(frames) != held or len(rs.kf_timestamps.get(a, ())) != held:
+                    raise SnapshotError(f"snapshot session of {rs.name} disagrees with the map about {a}'s keyframes")
+        self.map, self.robots, self.reference = server, robots, snap.reference or self.reference
+
+    def _snapshot_if_due(self, now: float) -> None:
+        """Write a snapshot after ``snapshot_every_messages`` new journal records, or ``snapshot_every_s``
+        seconds with new records; never after finishing (the journal has no record of the final matching)."""
+        if self.snapshots is None or self.finished:
+            return
+        n = self.journal.records
+        done, at_s = self._snapshot_at
+        scfg = self.cfg.server
+        if n == done or (n - done < scfg.snapshot_every_messages and now - at_s < scfg.snapshot_every_s):
+            return
+        t0 = time.perf_counter()
+        try:
+            path = self.snapshots.write(self.snapshot())
+        except DataError as exc:  # the journal still holds everything: carry on without this snapshot
+            log.warning("snapshot not written (%s); a restart would replay more of the journal", exc)
+        else:
+            log.debug("snapshot %s (%d bytes) in %.0f ms", path.name, self.snapshots.last_bytes,
+                      (time.perf_counter() - t0) * 1e3)  # fmt: skip
+        self._snapshot_at = (n, now)
 
     # --- results -------------------------------------------------------------------------------
 
@@ -500,6 +541,9 @@ class ServerNode:
             "reference": self.reference,
             "finished": self.finished,
             "recovered_messages": self.recovered_messages,
+            "recovery": self.recovery.to_json_dict(),
+            "snapshots_written": self.snapshots.written if self.snapshots is not None else 0,
+            "snapshot_bytes": self.snapshots.last_bytes if self.snapshots is not None else 0,
             "robots": robots,
             "matches_tried": len(server.matches) if server else 0,
             "closures_accepted": sum(m.accepted for m in server.matches) if server else 0,
