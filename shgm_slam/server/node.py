@@ -8,7 +8,8 @@ next to its robots, ``shgm-slam server`` drives one over Eclipse Zenoh. The node
 - tracks each robot's process (``HelloMessage`` sessions): a new session under a live name is a clash
   and refused, under a silent one it is a restart and resumes where the robot left off;
 - feeds keyframes to the ``MapServer`` (idempotent: re-sent keyframes are ignored) and answers each
-  robot with a ``CorrectionMessage`` (keyframes it holds, where its agents are in the shared frame);
+  robot with a ``CorrectionMessage`` (keyframes it holds; where its agents are in the shared frame, only
+  what moved since the robot last heard, ``shgm_slam.corrections``);
 - marks robots that went silent stale (kept; they resume when they come back);
 - appends every accepted message to a journal and writes a snapshot of its state every so often, so a
   killed server started again on the same results folder loads the newest snapshot, replays the journal
@@ -30,6 +31,7 @@ import numpy as np
 
 from shgm_slam.agents import agent_robot
 from shgm_slam.config import ShgmConfig
+from shgm_slam.corrections import FusedView
 from shgm_slam.errors import DataError, ShgmError
 from shgm_slam.fusion import fuse_segments
 from shgm_slam.io.export import ResultsWriter
@@ -71,6 +73,7 @@ class TrafficStats:
     count_by_kind: dict[str, int] = field(default_factory=dict)
     bytes_by_robot: dict[str, int] = field(default_factory=dict)  # everything a robot sent
     sent_by_kind: dict[str, int] = field(default_factory=dict)  # what the server sent (corrections, status)
+    sent_by_robot: dict[str, int] = field(default_factory=dict)  # corrections sent to each robot
     refused: int = 0
     refusal_reasons: list[str] = field(default_factory=list)
 
@@ -79,8 +82,10 @@ class TrafficStats:
         self.count_by_kind[kind] = self.count_by_kind.get(kind, 0) + 1
         self.bytes_by_robot[robot] = self.bytes_by_robot.get(robot, 0) + size
 
-    def sent(self, kind: str, size: int) -> None:
+    def sent(self, kind: str, size: int, robot: str | None = None) -> None:
         self.sent_by_kind[kind] = self.sent_by_kind.get(kind, 0) + size
+        if robot is not None:
+            self.sent_by_robot[robot] = self.sent_by_robot.get(robot, 0) + size
 
     def refuse(self, reason: str) -> None:
         self.refused += 1
@@ -94,6 +99,7 @@ class TrafficStats:
             "messages_by_kind": dict(self.count_by_kind),
             "bytes_by_robot": dict(self.bytes_by_robot),
             "bytes_sent_by_kind": dict(self.sent_by_kind),
+            "bytes_sent_by_robot": dict(self.sent_by_robot),
             "bytes_per_keyframe": self.bytes_by_kind.get("keyframe", 0) / kf_n if kf_n else None,
             "refused": self.refused,
             "refusal_reasons": list(self.refusal_reasons),
@@ -286,7 +292,9 @@ class ServerNode:
         if new_session:
             if live and self.journal is not None:  # heartbeats of a known session change nothing to recover
                 self.journal.append(payload)
-            rs.corrected_version = -1  # answer with everything it needs to resume
+        if new_session or (msg.resync and rs.view.seq):
+            rs.view = FusedView()  # it holds nothing (new process) or missed a correction: a full one next
+            rs.corrected_version = -1
         return msg.robot
 
     def _heard(self, rs: RobotSession, now: float) -> None:
@@ -334,25 +342,34 @@ class ServerNode:
     # --- answers -------------------------------------------------------------------------------
 
     def _send_correction(self, robot: str, now: float, *, force: bool = False) -> None:
+        """Acknowledge ``robot``'s keyframes; when matching moved fused poses (at most every
+        ``correction_every_s``) or ``force``, also send what moved beyond ``server.correction_tolerance_*``
+        since the robot last got it (everything after a (re)connect or a resync request; every change
+        at all when ``force``, so the final correction leaves the robot with exactly the server's poses)."""
         rs = self.robots.get(robot)
         if rs is None:
             return
         server = self._map()
         agents = [a for a in server.agents if agent_robot(a)[0] == robot]
-        poses: dict[str, np.ndarray] = {}
         due = force or (
             rs.corrected_version != self._pose_version
             and now - self._last_correction_s.get(robot, -np.inf) >= self.correction_every_s
         )
+        seq, full, changes = 0, False, {}
         if due:
-            for a in agents:
-                T = server.T_shared_kf(a)
-                if T is not None:
-                    poses[a] = T
+            full = rs.view.seq == 0
+            current = {a: (server.T_shared_odom(a), server.T_shared_kf(a)) if server.is_placed(a) else None
+                       for a in agents}  # fmt: skip
+            scfg = self.cfg.server
+            tol = (0.0, 0.0) if force else (scfg.correction_tolerance_m, scfg.correction_tolerance_rad)
+            changes = rs.view.changes(current, *tol, full=full)
+            seq = rs.view.seq + 1 if changes or full else 0
             rs.corrected_version = self._pose_version
             self._last_correction_s[robot] = now
-        payload = encode(CorrectionMessage(robot, rs.session, {a: server.received(a) for a in agents}, poses))
-        self.traffic.sent("correction", len(payload))
+        msg = CorrectionMessage(robot, rs.session, {a: server.received(a) for a in agents}, seq, full, changes)
+        rs.view.apply(msg)
+        payload = encode(msg)
+        self.traffic.sent("correction", len(payload), robot)
         self.transport.publish(correction_key(robot), payload)
 
     def _broadcast_status(self) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from shgm_slam.corrections import FusedView
 from shgm_slam.messages import DoneMessage, RobotState
 from shgm_slam.server.map_server import MapServer
 
@@ -19,7 +20,8 @@ class RobotSession:
     done: DoneMessage | None = None
     kf_timestamps: dict[str, list[float]] = field(default_factory=dict)  # agent -> keyframe times
     kf_frames: dict[str, list[int]] = field(default_factory=dict)  # agent -> keyframe frame indices
-    corrected_version: int = -1  # pose-graph version of the last correction sent
+    corrected_version: int = -1  # pose-graph version of the last correction with poses (-1: send one now)
+    view: FusedView = field(default_factory=FusedView)  # what the robot holds of its fused poses
 
     def complete(self, server: MapServer) -> bool:
         """True when the robot said it is done and every keyframe it sent has arrived."""
