@@ -393,6 +393,7 @@ class ServerNode:
                 log.warning("%s went silent (%.0f s); kept, marked stale until it comes back", rs.name,
                             now - rs.last_heard_s)  # fmt: skip
                 rs.state = RobotState.STALE
+                rs.went_stale += 1
 
     def _all_expected_done(self) -> bool:
         return (
@@ -552,6 +553,7 @@ class ServerNode:
                 "placed": [a for a in mine if server.is_placed(a)],
                 "keyframes": sum(server.received(a) for a in mine) if server else 0,
                 "done": rs.done is not None,
+                "went_stale": rs.went_stale,
             }
         return {
             "session": self.session,

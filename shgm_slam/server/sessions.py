@@ -20,6 +20,7 @@ class RobotSession:
     done: DoneMessage | None = None
     kf_timestamps: dict[str, list[float]] = field(default_factory=dict)  # agent -> keyframe times
     kf_frames: dict[str, list[int]] = field(default_factory=dict)  # agent -> keyframe frame indices
+    went_stale: int = 0  # how often it went silent (and was kept)
     corrected_version: int = -1  # pose-graph version of the last correction with poses (-1: send one now)
     view: FusedView = field(default_factory=FusedView)  # what the robot holds of its fused poses
 
