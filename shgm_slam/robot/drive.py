@@ -40,6 +40,7 @@ class DriveSummary:
     server_finished: bool
     placed_agents: list[str]
     bytes_sent: dict[str, int]
+    bytes_received: dict[str, int]
     resent: int
     wall_s: float
     interrupted: bool = False
@@ -111,5 +112,6 @@ def drive_robot(
         name, node.session, len(sequence), processed, node.keyframes_sent, node.all_acknowledged(),
         node.server_finished and acknowledged,
         [s.agent for s in front.segments if node.T_shared_odom(s.agent) is not None],
-        dict(node.bytes_sent), node.resent, time.perf_counter() - t_start, interrupted, skipped,
+        dict(node.bytes_sent), dict(node.bytes_received), node.resent, time.perf_counter() - t_start, interrupted,
+        skipped,
     )  # fmt: skip
