@@ -81,14 +81,17 @@ class AgentCorrection:
 
     ``T_shared_odom``: (4, 4) the agent's odometry frame in the shared frame (at its latest keyframe), or
     None when the agent is not placed (the robot drops what it holds of it). ``num_keyframes``: K, the
-    agent's keyframes the server holds. ``kf_indices`` (M,) int64, increasing, < K, and ``T_shared_kf``
-    (M, 4, 4): the fused poses of the keyframes that are new or moved; the robot keeps the others.
+    agent's keyframes the server holds. ``T_move``: (4, 4) a rigid motion of the shared frame applied
+    first to every pose the robot holds of the agent (``T_move @ T_shared_kf``), or None. ``kf_indices``
+    (M,) int64, increasing, < K, and ``T_shared_kf`` (M, 4, 4): the fused poses of the keyframes that are
+    new or moved otherwise; the robot keeps the others.
     """
 
     T_shared_odom: np.ndarray | None
     num_keyframes: int = 0
     kf_indices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     T_shared_kf: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    T_move: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,8 @@ schema fixes (the count N follows from the byte length, and must agree across co
   (metres in a keyframe camera frame: float32 keeps ~0.1 mm at 1 km), sizes float32 (pixel counts,
   exact below 2^24), observation counts uint16 (saturated at 65535 when encoding);
 - ``up_odom`` (3,) float64 or nil; per agent of a ``CorrectionMessage``: ``T_shared_odom`` one pose or
-  nil, the keyframe count, keyframe indices int32 and their poses (M, 3, 4) float64;
+  nil, the keyframe count, keyframe indices int32 and their poses (M, 3, 4) float64, ``T_move`` one
+  pose or nil;
 - ``RobotTrajectory``: timestamps float64, segments int32, poses (N, 3, 4) float64 (a frame in no
   segment is all-NaN and comes back as an all-NaN 4x4).
 
@@ -338,11 +339,15 @@ def _agent_correction_fields(c: AgentCorrection, what: str) -> dict[str, Any]:
     poses = np.asarray(c.T_shared_kf, dtype=np.float64).reshape(-1, 4, 4) if idx.size else np.zeros((0, 4, 4))
     if len(poses) != idx.size:
         raise WireError(f"{what}: {idx.size} keyframe indices but {len(poses)} poses")
-    return {"o": odom, "K": n, "i": idx.astype("<i4").tobytes(), "T": _pack_poses(poses, f"{what} T_shared_kf")}
+    move = None if c.T_move is None else _pack_poses(np.asarray(c.T_move)[None], f"{what} T_move")
+    if move is not None and odom is None:
+        raise WireError(f"{what}: an agent that is not placed carries no keyframes")
+    return {"o": odom, "K": n, "i": idx.astype("<i4").tobytes(), "T": _pack_poses(poses, f"{what} T_shared_kf"),
+            "m": move}  # fmt: skip
 
 
 def _agent_correction(value: Any, what: str) -> AgentCorrection:
-    f = _Fields(value, what, ("o", "K", "i", "T"))
+    f = _Fields(value, what, ("o", "K", "i", "T", "m"))
     n = _int(f.d["K"], f"{what} num_keyframes")
     idx = np.frombuffer(f.raw("i", 4), "<i4").astype(np.int64)
     poses = _unpack_poses(f.raw("T", _POSE_BYTES, idx.size), idx.size, f"{what} T_shared_kf")
@@ -352,7 +357,11 @@ def _agent_correction(value: Any, what: str) -> AgentCorrection:
     if idx.size and (idx[0] < 0 or idx[-1] >= n or (np.diff(idx) <= 0).any()):
         raise WireError(f"{what}: keyframe indices must increase within 0..{n - 1}")
     odom = None if raw_odom is None else _unpack_poses(raw_odom, 1, f"{what} T_shared_odom")[0]
-    return AgentCorrection(odom, n, idx, poses)
+    raw_move = f.raw("m", _POSE_BYTES, 1, nullable=True)
+    if raw_move is not None and raw_odom is None:
+        raise WireError(f"{what}: an agent that is not placed carries no keyframes")
+    move = None if raw_move is None else _unpack_poses(raw_move, 1, f"{what} T_move")[0]
+    return AgentCorrection(odom, n, idx, poses, move)
 
 
 # --- encode -----------------------------------------------------------------------------------------

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shgm_slam.corrections import FusedView
+from shgm_slam.corrections import FusedView, rigid_motion
 from shgm_slam.geometry.se3 import make_pose, rotation_angle, so3_exp
 from shgm_slam.messages import CorrectionMessage
 from shgm_slam.wire import decode, encode
@@ -95,3 +95,27 @@ def test_a_delta_that_leaves_a_keyframe_without_a_pose_is_refused() -> None:
     holey = type(c)(c.T_shared_odom, c.num_keyframes, c.kf_indices[1:], c.T_shared_kf[1:])  # keyframe 3 missing
     assert not robot.apply(CorrectionMessage("car1", "s", {}, msg.seq, False, {"car1": holey}))
     assert robot.seq == 1 and len(robot.T_shared_kf["car1"]) == 3
+
+
+def test_a_rigid_move_is_sent_as_one_motion_and_what_it_leaves() -> None:
+    rng = np.random.default_rng(4)
+    server, robot = FusedView(), FusedView()
+    P = trajectory(rng, 30)
+    assert robot.apply(send(server, {"car1": (P[-1], P)}, False))
+    move = make_pose(so3_exp(np.array([0.0, 0.3, 0.0])), np.array([12.0, -1.0, 40.0]))
+    moved = move @ P
+    moved[5] = jiggle(rng, moved[5:6], 1.0)[0]  # and one keyframe bent on its own
+    msg = send(server, {"car1": (moved[-1], moved)}, False)
+    c = msg.agents["car1"]
+    assert c.T_move is not None and c.kf_indices.tolist() == [5]
+    assert robot.apply(msg)
+    err = np.linalg.norm(robot.T_shared_kf["car1"][:, :3, 3] - moved[:, :3, 3], axis=1)
+    assert err.max() <= TOL_M
+
+
+def test_rigid_motion_recovers_a_motion_of_a_straight_path() -> None:
+    held = np.stack([make_pose(np.eye(3), np.array([0.0, 0.0, 2.0 * k])) for k in range(10)])  # collinear
+    T = make_pose(so3_exp(np.array([0.4, 0.1, -0.2])), np.array([1.0, 2.0, 3.0]))
+    found, left = rigid_motion(held, T @ held, TOL_M, TOL_RAD)
+    np.testing.assert_allclose(found, T, atol=1e-12)
+    assert not left.any()

@@ -86,7 +86,7 @@ def all_messages() -> list:
         ),
         CorrectionMessage(
             "car1", "s1", {"car1": 5, "car1#1": 2}, 2, False,
-            {"car1": AgentCorrection(pose(8), 5, np.array([1, 3, 4]), np.stack([pose(i) for i in range(3)])),
+            {"car1": AgentCorrection(pose(8), 5, np.array([1, 3, 4]), np.stack([pose(i) for i in range(3)]), pose(9)),
              "car1#1": AgentCorrection(None)},
         ),
         StatusMessage(
@@ -379,6 +379,7 @@ def test_correction_indices_and_unplaced_agents_are_checked():
         (AgentCorrection(pose(0), 2, np.array([0, 1, 2]), T), "increase"),
         (AgentCorrection(pose(0), 3, np.array([0, 1]), T), "2 keyframe indices but 3 poses"),
         (AgentCorrection(None, 3, np.arange(3), T), "not placed"),
+        (AgentCorrection(None, T_move=pose(1)), "not placed"),
     ]:
         with pytest.raises(WireError, match=what):
             encode(CorrectionMessage("car1", "", {}, 1, False, {"car1": c}))

@@ -70,6 +70,7 @@ class RecoveryTiming:
     replayed: int
     snapshot_s: float
     journal_only_s: float
+    snapshot_bytes: int = 0  # the newest snapshot file's size
 
 
 def _free_port() -> int:
@@ -142,8 +143,9 @@ def time_recovery(folder: Path, cfg: ShgmConfig, reference: str, label: str) -> 
             node = ServerNode(mcfg, InProcessTransport(InProcessBus()), Path(tmp), reference=reference)
             times[mode], reports[mode] = time.perf_counter() - t0, node.recovery
     r = reports["snapshot"]
+    snaps = sorted(folder.glob("snapshot-*.bin"))
     return RecoveryTiming(label, r.snapshot_records + r.replayed, r.snapshot_records, r.replayed, times["snapshot"],
-                          times["journal"])  # fmt: skip
+                          times["journal"], snaps[-1].stat().st_size if snaps else 0)  # fmt: skip
 
 
 def run_distributed(
@@ -297,10 +299,11 @@ def distributed_markdown(result: dict) -> str:
                      f"{up} | {down} | {corr:.0f} + {status:.0f} |")  # fmt: skip
     rec = result.get("recovery", [])
     if rec:
-        lines += ["", "| recovered folder | journal records | from snapshot | replayed | s with snapshots | "
-                  "s journal only | speed-up |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+        lines += ["", "| recovered folder | journal records | from snapshot | replayed | snapshot MB | "
+                  "s with snapshots | s journal only | speed-up |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
         for r in rec:
             ratio = r["journal_only_s"] / r["snapshot_s"] if r["snapshot_s"] > 0 else float("nan")
+            mb = r.get("snapshot_bytes", 0) / 1e6
             lines.append(f"| {r['label']} | {r['journal_records']} | {r['snapshot_records']} | {r['replayed']} | "
-                         f"{r['snapshot_s']:.1f} | {r['journal_only_s']:.1f} | {ratio:.1f}x |")  # fmt: skip
+                         f"{mb:.2f} | {r['snapshot_s']:.1f} | {r['journal_only_s']:.1f} | {ratio:.1f}x |")  # fmt: skip
     return "\n".join(lines) + "\n"

@@ -171,6 +171,7 @@ class ServerNode:
         self.recovery = self._recover() if self.journal is not None else RecoveryReport()
         self.recovered_messages = self.recovery.replayed
         self._snapshot_at = (self.recovery.snapshot_records, self.clock())  # journal records, time
+        self._snapshot_ms: list[float] = []  # wall time of each snapshot written
         if self.reference is not None:
             self._map()
 
@@ -344,8 +345,8 @@ class ServerNode:
     def _send_correction(self, robot: str, now: float, *, force: bool = False) -> None:
         """Acknowledge ``robot``'s keyframes; when matching moved fused poses (at most every
         ``correction_every_s``) or ``force``, also send what moved beyond ``server.correction_tolerance_*``
-        since the robot last got it (everything after a (re)connect or a resync request; every change
-        at all when ``force``, so the final correction leaves the robot with exactly the server's poses)."""
+        since the robot last got it (everything after a (re)connect or a resync request, and when
+        ``force``: the final correction leaves the robot with exactly the server's poses)."""
         rs = self.robots.get(robot)
         if rs is None:
             return
@@ -357,12 +358,11 @@ class ServerNode:
         )
         seq, full, changes = 0, False, {}
         if due:
-            full = rs.view.seq == 0
+            full = force or rs.view.seq == 0
             current = {a: (server.T_shared_odom(a), server.T_shared_kf(a)) if server.is_placed(a) else None
                        for a in agents}  # fmt: skip
             scfg = self.cfg.server
-            tol = (0.0, 0.0) if force else (scfg.correction_tolerance_m, scfg.correction_tolerance_rad)
-            changes = rs.view.changes(current, *tol, full=full)
+            changes = rs.view.changes(current, scfg.correction_tolerance_m, scfg.correction_tolerance_rad, full=full)
             seq = rs.view.seq + 1 if changes or full else 0
             rs.corrected_version = self._pose_version
             self._last_correction_s[robot] = now
@@ -469,8 +469,8 @@ class ServerNode:
         except DataError as exc:  # the journal still holds everything: carry on without this snapshot
             log.warning("snapshot not written (%s); a restart would replay more of the journal", exc)
         else:
-            log.debug("snapshot %s (%d bytes) in %.0f ms", path.name, self.snapshots.last_bytes,
-                      (time.perf_counter() - t0) * 1e3)  # fmt: skip
+            self._snapshot_ms.append((time.perf_counter() - t0) * 1e3)
+            log.debug("snapshot %s (%d bytes) in %.0f ms", path.name, self.snapshots.last_bytes, self._snapshot_ms[-1])
         self._snapshot_at = (n, now)
 
     # --- results -------------------------------------------------------------------------------
@@ -563,6 +563,7 @@ class ServerNode:
             "recovery": self.recovery.to_json_dict(),
             "snapshots_written": self.snapshots.written if self.snapshots is not None else 0,
             "snapshot_bytes": self.snapshots.last_bytes if self.snapshots is not None else 0,
+            "snapshot_write_ms": round(float(np.mean(self._snapshot_ms)), 1) if self._snapshot_ms else None,
             "robots": robots,
             "matches_tried": len(server.matches) if server else 0,
             "closures_accepted": sum(m.accepted for m in server.matches) if server else 0,

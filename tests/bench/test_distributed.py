@@ -12,7 +12,7 @@ def test_recovery_is_timed_from_snapshots_and_from_the_journal_alone(half_run, c
     t = time_recovery(out, with_snapshots(cfg, 1), "car1", "half")
     assert t.journal_records == first.journal.records
     assert t.snapshot_records == first.journal.records and t.replayed == 0
-    assert 0 < t.snapshot_s and 0 < t.journal_only_s
+    assert 0 < t.snapshot_s and 0 < t.journal_only_s and t.snapshot_bytes > 0
 
 
 def test_markdown_has_the_readme_tables() -> None:
@@ -29,10 +29,10 @@ def test_markdown_has_the_readme_tables() -> None:
              "error": "the server exited early (2)"},
         ],
         "recovery": [{"label": "at the kill", "journal_records": 300, "snapshot_records": 200, "replayed": 100,
-                      "snapshot_s": 2.0, "journal_only_s": 10.0}],
+                      "snapshot_s": 2.0, "journal_only_s": 10.0, "snapshot_bytes": 1_234_000}],
     }  # fmt: skip
     md = distributed_markdown(result)
     assert "| run | yes / 1.23 | no / nan | 10 |" in md
     assert "| server + 2 robot processes | 900 | 10 | a 3.6, b 4.0 | a 0.50 | 5 + 0 |" in md
     assert "failed: the server exited early (2)" in md
-    assert "| at the kill | 300 | 200 | 100 | 2.0 | 10.0 | 5.0x |" in md
+    assert "| at the kill | 300 | 200 | 100 | 1.23 | 2.0 | 10.0 | 5.0x |" in md
