@@ -86,10 +86,10 @@ def drive_robot(
         t0 = time.monotonic()
         try:
             for i in range(len(sequence)):
-                if realtime:
-                    delay = t0 + (times[i] - times[0]) - time.monotonic()
-                    if delay > 0:
-                        node.poll(timeout_s=delay)
+                due = t0 + (times[i] - times[0])
+                while realtime and (wait := due - time.monotonic()) > 0:  # poll returns on any message
+                    node.heartbeat()
+                    node.poll(timeout_s=min(wait, 0.1))
                 try:
                     node.step(i)
                     processed += 1

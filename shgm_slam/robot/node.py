@@ -94,6 +94,11 @@ class RobotNode:
         self._last_hello_s = self.clock()
         self._publish("hello", hello_key(self.name), encode(self._hello_message()))
 
+    def heartbeat(self) -> None:
+        """Say hello when the last one is ``HEARTBEAT_S`` old."""
+        if self.clock() - self._last_hello_s >= HEARTBEAT_S:
+            self.hello()
+
     def _hello_message(self) -> HelloMessage:
         return HelloMessage(self.name, self.session, len(self.front.sequence), self._resync)
 
@@ -103,8 +108,7 @@ class RobotNode:
         Raises:
             DataError: the frame cannot be used (the caller logs and skips it).
         """
-        if self.clock() - self._last_hello_s >= HEARTBEAT_S:
-            self.hello()
+        self.heartbeat()
         res = self.front.process(index)
         if res.message is not None:
             msg = replace(res.message, session=self.session)
@@ -218,8 +222,7 @@ class RobotNode:
         its final correction), at most ``timeout_s``; keeps the heartbeat going. Returns success."""
         deadline = self.clock() + timeout_s
         while self.clock() < deadline:
-            if self.clock() - self._last_hello_s >= HEARTBEAT_S:
-                self.hello()
+            self.heartbeat()
             self.poll(timeout_s=0.1)
             if self.all_acknowledged() and (self.server_finished or not until_finished):
                 return True
