@@ -303,6 +303,29 @@ class BackendConfig(_Stage):
     )
 
 
+class ServerConfig(_Stage):
+    """Map server as a process: crash-recovery snapshots and the corrections it sends robots."""
+
+    snapshot_every_messages: int = Field(
+        200, ge=0, le=10_000_000, description="write a state snapshot after this many new journal records "
+        "(0: no snapshots; a restarted server then replays its whole journal, matching included)"
+    )
+    snapshot_every_s: float = Field(
+        30.0, gt=0, le=86_400, description="also write one when this many seconds passed since the last and new "
+        "records arrived"
+    )
+    snapshots_kept: int = Field(
+        2, ge=1, le=100, description="newest snapshots kept (an unreadable newest falls back to the one before)"
+    )
+    correction_tolerance_m: float = Field(
+        0.05, ge=0, le=100, description="a keyframe's fused pose is sent to its robot again once it moved more than "
+        "this since the robot last got it (the final correction sends every change)"
+    )
+    correction_tolerance_rad: float = Field(
+        0.005, ge=0, le=3.2, description="... or turned more than this"
+    )
+
+
 class PerceptionConfig(_Stage):
     """ONNX perception (optional): depth and segmentation models."""
 
@@ -333,6 +356,7 @@ class ShgmConfig(_Stage):
     odometry: OdometryConfig = OdometryConfig()
     keyframes: KeyframeConfig = KeyframeConfig()
     backend: BackendConfig = BackendConfig()
+    server: ServerConfig = ServerConfig()
     perception: PerceptionConfig = PerceptionConfig()
     robots: dict[str, RobotOverrides] = Field(
         default_factory=dict, description="per-robot overrides of front-end stages, by robot name"

@@ -4,17 +4,18 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from shgm_slam.backend.confirmation import AgentPlacement, Placement, Support, placements
-from shgm_slam.backend.pose_graph import make_pose_graph
+from shgm_slam.backend.pose_graph import PoseGraphState, make_pose_graph
 from shgm_slam.config import ShgmConfig
 from shgm_slam.descriptors import compute_descriptors
-from shgm_slam.errors import ConfigError
+from shgm_slam.errors import BackendError, ConfigError
 from shgm_slam.geometry import se3
 from shgm_slam.geometry.ground import rotation_to_z
-from shgm_slam.graph.semantic_graph import SemanticGraph
+from shgm_slam.graph.semantic_graph import GraphState, SemanticGraph
 from shgm_slam.matching import match_graphs
 from shgm_slam.messages import KeyframeMessage
 from shgm_slam.server.closures import local_closures
@@ -22,6 +23,39 @@ from shgm_slam.server.records import MatchRecord
 from shgm_slam.types import GraphArrays
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class MapServerState:
+    """Everything a ``MapServer`` holds (``MapServer.state``, what a snapshot stores);
+    ``MapServer.from_state`` rebuilds a server that matches, votes and answers as this one would.
+
+    Attributes:
+        agents: every agent in the order the server learnt of them (the reference first).
+        graphs: agent -> its mirrored semantic graph.
+        T_odom_kf: agent -> (K, 4, 4) keyframe poses in its odometry frame, as received.
+        up: agent -> (3,) "up" in its odometry frame, or None.
+        since_match: agent -> keyframes received since its last match.
+        matches: every match attempt so far (the match log).
+        closures: accepted closure keys ``(agent_a, kf_a, agent_b, kf_b)``.
+        step, num_matches: keyframes received and successful matches so far.
+        timings_ms: ``"match"`` / ``"backend"`` -> wall times so far, milliseconds.
+        pose_graph: the pose graph's decisions and estimate.
+        support: closure id -> agent -> the node ids behind it (confirmation of placements).
+    """
+
+    agents: tuple[str, ...]
+    graphs: dict[str, GraphState]
+    T_odom_kf: dict[str, np.ndarray]
+    up: dict[str, np.ndarray | None]
+    since_match: dict[str, int]
+    matches: tuple[MatchRecord, ...]
+    closures: tuple[tuple[str, int, str, int], ...]
+    step: int
+    num_matches: int
+    timings_ms: dict[str, list[float]]
+    pose_graph: PoseGraphState
+    support: dict[int, dict[str, frozenset[int]]] = field(default_factory=dict)
 
 
 class MapServer:
@@ -86,9 +120,7 @@ class MapServer:
         self._step += 1
         if msg.robot not in self._graphs:
             self.add_agent(msg.robot)
-        poses, path = self._T_odom_kf[msg.robot], self._path_m[msg.robot]
-        path.append(path[-1] + float(np.linalg.norm(msg.T_odom_kf[:3, 3] - poses[-1][:3, 3])) if path else 0.0)
-        poses.append(msg.T_odom_kf)
+        self._append_keyframe(msg.robot, msg.T_odom_kf)
         if msg.up_odom is not None:
             self._up[msg.robot] = msg.up_odom
         self._pose_graph.add_keyframe(msg.robot, msg.kf_index, msg.T_odom_kf)
@@ -99,6 +131,12 @@ class MapServer:
             return []
         self._since_match[msg.robot] = 0
         return self.match_robot(msg.robot)
+
+    def _append_keyframe(self, agent: str, T_odom_kf: np.ndarray) -> None:
+        """Record ``agent``'s next keyframe pose and its odometry path length."""
+        poses, path = self._T_odom_kf[agent], self._path_m[agent]
+        path.append(path[-1] + float(np.linalg.norm(T_odom_kf[:3, 3] - poses[-1][:3, 3])) if path else 0.0)
+        poses.append(T_odom_kf)
 
     def finalize(self) -> list[MatchRecord]:
         """Match every robot once more at the end of the run (whole graphs)."""
@@ -258,6 +296,61 @@ class MapServer:
             not accepted
         )
         return rec
+
+    # --- snapshots --------------------------------------------------------------------------------
+
+    def state(self) -> MapServerState:
+        """Everything this server holds (``MapServerState``)."""
+        return MapServerState(
+            tuple(self._agents),
+            {a: g.state() for a, g in self._graphs.items()},
+            {a: self.keyframe_poses(a) for a in self._agents},
+            {a: None if u is None else np.array(u, dtype=np.float64) for a, u in self._up.items()},
+            dict(self._since_match), tuple(self._matches), tuple(sorted(self._closures)),
+            self._step, self._num_matches, {k: list(v) for k, v in self.timings_ms.items()},
+            self._pose_graph.state(),
+            {cid: {a: frozenset(ids) for a, ids in sup.items()} for cid, sup in self._support.items()},
+        )  # fmt: skip
+
+    @classmethod
+    def from_state(cls, state: MapServerState, cfg: ShgmConfig) -> MapServer:
+        """Rebuild a map server from ``state()`` (made with the same configuration ``cfg``).
+
+        Raises:
+            GraphError, BackendError: the state is inconsistent (graphs, keyframes, pose graph).
+        """
+        agents = list(state.agents)
+        if not agents or len(set(agents)) != len(agents) or not set(agents) == set(state.graphs) == set(
+                state.T_odom_kf) == set(state.up) == set(state.since_match):  # fmt: skip
+            raise BackendError(f"map server state: agents {agents} do not match its graphs, keyframes and counters")
+        server = cls(agents[:1], cfg)
+        for a in agents[1:]:
+            server.add_agent(a)
+        for a in agents:
+            graph = SemanticGraph.from_state(state.graphs[a])
+            poses = np.asarray(state.T_odom_kf[a], dtype=np.float64).reshape(-1, 4, 4)
+            if graph.keyframe_ids != list(range(len(poses))):
+                raise BackendError(f"map server state: {a}'s graph has other keyframes than its {len(poses)} poses")
+            server._graphs[a] = graph
+            for T in poses:
+                server._append_keyframe(a, T)
+            up = state.up[a]
+            if up is not None and (np.shape(up) != (3,) or not np.isfinite(up).all()):
+                raise BackendError(f"map server state: {a}'s up vector is not a finite (3,) vector")
+            server._up[a] = None if up is None else np.array(up, dtype=np.float64)
+            server._since_match[a] = int(state.since_match[a])
+        if any(c[0] not in state.graphs or c[2] not in state.graphs for c in state.closures):
+            raise BackendError("map server state: a closure names an unknown agent")
+        server._matches = list(state.matches)
+        server._closures = {tuple(c) for c in state.closures}
+        server._step, server._num_matches = int(state.step), int(state.num_matches)
+        server.timings_ms = {"match": list(state.timings_ms.get("match", [])),
+                             "backend": list(state.timings_ms.get("backend", []))}  # fmt: skip
+        server._pose_graph.restore_state(state.pose_graph, {a: server.keyframe_poses(a) for a in agents})
+        server._support = {
+            int(cid): {a: frozenset(ids) for a, ids in sup.items()} for cid, sup in state.support.items()
+        }
+        return server
 
     # --- queries ----------------------------------------------------------------------------------
 
