@@ -18,7 +18,7 @@ from shgm_slam.geometry.ground import rotation_to_z
 from shgm_slam.graph.semantic_graph import GraphState, SemanticGraph
 from shgm_slam.matching import match_graphs
 from shgm_slam.messages import KeyframeMessage
-from shgm_slam.server.closures import local_closures
+from shgm_slam.server.closures import SurfaceOffset, local_closures
 from shgm_slam.server.records import MatchRecord
 from shgm_slam.types import GraphArrays
 
@@ -42,6 +42,7 @@ class MapServerState:
         timings_ms: ``"match"`` / ``"backend"`` -> wall times so far, milliseconds.
         pose_graph: the pose graph's decisions and estimate.
         support: closure id -> agent -> the node ids behind it (confirmation of placements).
+        surface_offset: the fleet's surface-to-centre offset estimate (``closures.SurfaceOffset.state``).
     """
 
     agents: tuple[str, ...]
@@ -56,6 +57,7 @@ class MapServerState:
     timings_ms: dict[str, list[float]]
     pose_graph: PoseGraphState
     support: dict[int, dict[str, frozenset[int]]] = field(default_factory=dict)
+    surface_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 class MapServer:
@@ -91,6 +93,7 @@ class MapServer:
         self._closures: set[tuple[str, int, str, int]] = set()
         self._step = 0
         self._num_matches = 0  # successful graph matches so far (each closure's evidence id)
+        self._surface_offset = SurfaceOffset()  # how far solid objects' centres lie behind what cameras see
         self._support: dict[int, Support] = {}  # closure id -> the matched objects (node ids) behind it
         self._placements: tuple[int, dict[str, AgentPlacement]] = (-1, {})  # (pose-graph version, cache)
         self.timings_ms: dict[str, list[float]] = {"match": [], "backend": []}
@@ -231,20 +234,25 @@ class MapServer:
         rows_b = _rows_of(graph_b, result.inliers[:, 1])
         rec.inlier_positions_a = graph_a.positions_xyz[rows_a]
         rec.inlier_positions_b = graph_b.positions_xyz[rows_b]
+        anchors_a = self._graphs[robot_a].anchor_keyframes(result.inliers[:, 0])
+        anchors_b = self._graphs[robot_b].anchor_keyframes(result.inliers[:, 1])
         closures = [
             (kf_a, kf_b, se3.inverse(self._T_odom_kf[robot_a][kf_a]) @ T @ self._T_odom_kf[robot_b][kf_b], n, rows)
             for kf_a, kf_b, T, n, rows in local_closures(
                 rec.inlier_positions_a,
                 rec.inlier_positions_b,
                 graph_a.label_ids[rows_a],
-                self._graphs[robot_a].anchor_keyframes(result.inliers[:, 0]),
-                self._graphs[robot_b].anchor_keyframes(result.inliers[:, 1]),
+                anchors_a,
+                anchors_b,
                 result.T_a_b,
                 segment_m=self.cfg.backend.local_closure_m,
                 min_inliers=self.cfg.matching.min_inliers // 2 + 1,
                 max_rmse_m=self.cfg.matching.max_rmse_m,
                 up_a=up_a,
                 up_b=up_b,
+                rays_a=self._viewing_rays(robot_a, anchors_a, rec.inlier_positions_a),
+                rays_b=self._viewing_rays(robot_b, anchors_b, rec.inlier_positions_b),
+                offset=self._surface_offset,
             )
         ]
         self._num_matches += 1
@@ -297,6 +305,14 @@ class MapServer:
         )
         return rec
 
+    def _viewing_rays(self, agent: str, anchors: np.ndarray, positions_xyz: np.ndarray) -> np.ndarray:
+        """(M, 3) unit rays in ``agent``'s odometry frame from the camera of each node's anchor keyframe (the
+        one that first saw it) towards the node at (M, 3) ``positions_xyz``."""
+        poses = self._T_odom_kf[agent]
+        cameras = np.stack([poses[k][:3, 3] for k in anchors]) if len(anchors) else np.zeros((0, 3))
+        rays = positions_xyz - cameras
+        return rays / np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-9)
+
     # --- snapshots --------------------------------------------------------------------------------
 
     def state(self) -> MapServerState:
@@ -310,6 +326,7 @@ class MapServer:
             self._step, self._num_matches, {k: list(v) for k, v in self.timings_ms.items()},
             self._pose_graph.state(),
             {cid: {a: frozenset(ids) for a, ids in sup.items()} for cid, sup in self._support.items()},
+            self._surface_offset.state(),
         )  # fmt: skip
 
     @classmethod
@@ -350,6 +367,10 @@ class MapServer:
         server._support = {
             int(cid): {a: frozenset(ids) for a, ids in sup.items()} for cid, sup in state.support.items()
         }
+        try:
+            server._surface_offset = SurfaceOffset.from_state(state.surface_offset)
+        except ValueError as exc:
+            raise BackendError(f"map server state: {exc}") from None
         return server
 
     # --- queries ----------------------------------------------------------------------------------

@@ -111,6 +111,7 @@ def _map(m: MapServerState) -> dict:
         "closures": [list(c) for c in m.closures], "step": m.step, "nm": m.num_matches,
         "ms": {k: _arr(v, "f8") for k, v in m.timings_ms.items()}, "pg": _pose_graph(m.pose_graph),
         "support": [[cid, {a: sorted(ids) for a, ids in sup.items()}] for cid, sup in sorted(m.support.items())],
+        "offset": [float(v) for v in m.surface_offset],
     }  # fmt: skip
 
 
@@ -236,7 +237,15 @@ def _unmap(d: dict) -> MapServerState:
             a: frozenset(_typed(i, int, "support node id") for i in _typed(ids, list, "support node ids"))
             for a, ids in _names(sup, "support").items()}
          for cid, sup in _typed(d.get("support", []), list, "support")},
+        _surface_offset(d.get("offset", [0.0, 0.0, 0.0])),
     )  # fmt: skip
+
+
+def _surface_offset(v: object) -> tuple[float, float, float]:
+    values = _typed(v, list, "surface offset")
+    if len(values) != 3 or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in values):
+        raise SnapshotError(f"snapshot: the surface offset must be three numbers, got {values!r}")
+    return (float(values[0]), float(values[1]), float(values[2]))
 
 
 def _unsession(d: dict) -> RobotSession:

@@ -59,6 +59,7 @@ def test_snapshot_round_trip_restores_the_same_state(uninterrupted, cfg, tmp_pat
     assert_same_map(uninterrupted, node)
     assert node.reference == uninterrupted.reference and set(node.robots) == set(uninterrupted.robots)
     assert node.map.state().support == uninterrupted.map.state().support  # what confirms placements
+    assert node.map.state().surface_offset == uninterrupted.map.state().surface_offset
     assert node.map.placement("car2") == uninterrupted.map.placement("car2")
     np.testing.assert_allclose(fused(node, "car2"), fused(uninterrupted, "car2"), atol=0.05)
 
