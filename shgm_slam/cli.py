@@ -148,7 +148,7 @@ def simulate_command(
         kitti_robots=tuple(kitti_drive) if kitti_drive else None,
         overwrite=overwrite,
     )
-    table = Table(title=f"{scenario} (seed {seed}, {size[0]}x{size[1]} @ {fps:g} Hz) -> {out}")
+    table = Table(title=f"{lit(scenario)} (seed {seed}, {size[0]}x{size[1]} @ {fps:g} Hz) -> {lit(out)}")
     for col in ("robot", "kind", "frames", "path m", "shares view with (m)", "folder"):
         table.add_column(col, justify="right" if col in ("frames", "path m") else "left")
     for r in result.robots:
@@ -156,7 +156,7 @@ def simulate_command(
         table.add_row(lit(r.name), r.kind, str(r.frames), f"{r.path_length_m:.0f}", shared, lit(r.folder))
     console.print(table)
     console.print(f"{result.total_frames} frames at {result.frames_per_s:.1f} frames/s; world: {result.world_objects} "
-                  f"objects, {result.world_triangles} triangles -> {out / 'world.json'}")
+                  f"objects, {result.world_triangles} triangles -> {lit(out / 'world.json')}")
 # --- graph / match (graph/, descriptors/, matching/) -----------------------------------------------
 
 
@@ -283,9 +283,11 @@ def _summary_table(summary):
     for col in numbers:
         t.add_column(col, justify="right", no_wrap=True)
     for r in summary.robots:
-        fused = "[green]yes[/]" if r.localized else "[red]no[/]"
+        colour = "[yellow]" if r.provisional else "[green]" if r.localized else "[red]"
+        fused = "yes" if r.localized else "no"
         if r.segments > 1:  # after odometry failures: which trajectory segments are in the shared frame
-            fused = f"{'[green]' if r.localized else '[red]'}{r.segments_placed}/{r.segments}[/]"
+            fused = f"{r.segments_placed}/{r.segments}"
+        fused = f"{colour}{fused}{' prov' if r.provisional else ''}[/]"
         t.add_row(
             lit(r.name), str(r.frames), str(r.keyframes), str(r.nodes),
             f"[yellow]{r.odometry_failures}[/]" if r.odometry_failures else "0", fused, _metres(r.path_length_m),
@@ -294,7 +296,8 @@ def _summary_table(summary):
         )  # fmt: skip
     t.caption = ("ATE: metres in the shared frame (odo = odometry alone, started at its true pose; per trajectory "
                  "segment after odometry failures); aligned = SE(3)-aligned per robot; fused a/b = trajectory "
-                 "segments placed / segments")
+                 "segments placed / segments; prov = placed provisionally, no independent graph match confirms it yet "
+                 "(see its warning)")
     return t
 
 
@@ -483,7 +486,7 @@ def server_command(
         result = serve(cfg, out, listen=listen, reference=reference, expect=expect, viz=viz, stale_after_s=stale_after)
     s = result.summary
     for name, r in s["robots"].items():
-        placed = ", ".join(r["placed"]) or "not placed"
+        placed = _placed_text(r["placed"], r["provisional"])
         console.print(f"  {lit(name)}: {r['keyframes']} keyframes, {r['state']}, placed: {lit(placed)}")
     t = s["traffic"]
     per_kf = t["bytes_per_keyframe"]
@@ -492,6 +495,11 @@ def server_command(
                   f"results in {lit(result.out_dir)}")  # fmt: skip
     if result.interrupted:
         raise typer.Exit(130)
+
+
+def _placed_text(placed: list[str], provisional: list[str]) -> str:
+    """``car2, car2#1 (provisional)``: the placed agents, provisional ones marked; "not placed" for none."""
+    return ", ".join(a + (" (provisional)" if a in provisional else "") for a in placed) or "not placed"
 
 
 @app.command("robot")
@@ -524,9 +532,11 @@ def robot_command(
     (name, seq), = open_robots([robot]).items()
     with _stop_signals_as_interrupt():
         s = drive_robot(name, seq, cfg, connect=connect, realtime=realtime, out_dir=out, wait_s=wait)
-    placed = ", ".join(s.placed_agents) or "not placed"
+    placed = _placed_text(s.placed_agents, s.provisional_agents)
+    down_kb = s.bytes_received.get("correction", 0) / 1e3
     console.print(f"{lit(name)}: {s.frames_processed}/{s.frames} frames, {s.keyframes} keyframes "
-                  f"({s.bytes_per_keyframe:.0f} B each, {s.resent} re-sent), placed: {lit(placed)}")  # fmt: skip
+                  f"({s.bytes_per_keyframe:.0f} B each, {s.resent} re-sent; {down_kb:.0f} KB of corrections), "
+                  f"placed: {lit(placed)}")  # fmt: skip
     if s.interrupted:
         raise typer.Exit(130)
     if not s.acknowledged:
@@ -628,7 +638,7 @@ def check_model_command(
     from shgm_slam.perception.preview import check_model
 
     report = check_model(model, card, image, preview, runs=runs, threads=threads)
-    table = Table(title=f"{report.model_path.name}: {report.task.value} model", show_header=False)
+    table = Table(title=f"{lit(report.model_path.name)}: {report.task.value} model", show_header=False)
     table.add_column(style="bold")
     table.add_column()
     table.add_row("card", lit(report.card_path))
@@ -724,7 +734,7 @@ def bench_simulate(
 
     results = run_simulate_benchmark(out, resolution=parse_resolution(resolution), short_frames=short_frames,
                                      long_frames=long_frames, seed=seed)
-    console.print(simulate_markdown(results))
+    console.print(simulate_markdown(results), markup=False)
     console.print(f"wrote {lit(out)}")
 
 
@@ -771,7 +781,7 @@ def bench_localization(
 def bench_sparse(
     out: Annotated[Path, typer.Option("--out", "-o", help="results folder: sparse.json, sparse.md")]
     = Path("results/bench_sparse"),
-    seeds: Annotated[str, typer.Option(help="world seeds: 'A-B' or 'A,B,C' (tuning 10-19; report 200-219)")]
+    seeds: Annotated[str, typer.Option(help="world seeds: 'A-B' or 'A,B,C' (tuning 10-19; report 210-219)")]
     = "10-19",
     pairs: Annotated[int, typer.Option(min=1, max=10000, help="overlapping pairs per world (as many negatives)")] = 10,
     full_rotation: Annotated[bool, typer.Option(help="also match every pair 6-DoF")] = True,
@@ -794,7 +804,7 @@ def bench_sparse(
     (out / "sparse.json").write_text(json.dumps(results.to_json(), indent=1))
     text = sparse_markdown(results, seed_list)
     (out / "sparse.md").write_text(text)
-    console.print(text)
+    console.print(text, markup=False)
     console.print(f"wrote {lit(out / 'sparse.json')} and {lit(out / 'sparse.md')}")
 
 
@@ -815,7 +825,7 @@ def bench_system(
     with console.status("starting") as status:
         results = run_system_benchmark(out, cache=cache, seed=seed, memory=memory, rgb_only=rgb_only,
                                        progress=lambda msg: status.update(msg))
-    console.print(system_markdown(results))
+    console.print(system_markdown(results), markup=False)
     console.print(f"wrote {lit(out / 'system.json')} and {lit(out / 'system.md')}")
 
 
@@ -867,7 +877,7 @@ def bench_distributed(
     with console.status("starting") as status:
         result = run_distributed_benchmark(world, out, faults=modes, config=config,
                                            progress=lambda msg: status.update(msg))  # fmt: skip
-    console.print(distributed_markdown(result))
+    console.print(distributed_markdown(result), markup=False)
     console.print(f"wrote {lit(out / 'distributed.json')} and {lit(out / 'distributed.md')}")
 
 
@@ -876,7 +886,7 @@ def bench_distributed(
 def bench_heldout(
     out: Annotated[Path, typer.Option("--out", "-o", help="results folder (resumes the runs already in it)")]
     = Path("results/bench_heldout"),
-    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (200-209), 'tuning' (10-19) or A-B")]
+    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-19) or A-B")]
     = "report",
     scenario: Annotated[list[str] | None, typer.Option(help="scenario (repeatable) [all four]")] = None,
     mode: Annotated[list[str] | None, typer.Option(help="files | rgb (repeatable) [both]")] = None,
@@ -885,6 +895,11 @@ def bench_heldout(
     ] = None,
     cache: Annotated[Path, typer.Option(help="rendered worlds are cached here")] = Path("cache/heldout"),
     jobs: Annotated[int, typer.Option(min=1, max=64, help="worlds run in this many processes at once")] = 1,
+    replay_from: Annotated[
+        Path | None,
+        typer.Option(help="an earlier benchmark folder: run only the map server again on its recorded keyframes "
+                     "(matching and back-end changes; no rendering, perception or odometry)"),
+    ] = None,
 ) -> None:
     """The system with the default configuration on many unseen worlds: placed right, false merges,
     not placed, odometry failures (ground truth and detected), per scenario and input."""
@@ -910,7 +925,9 @@ def bench_heldout(
     except ValueError:
         raise ConfigError(f"--mode {mode}: choose files or rgb") from None
     options = heldout.HeldoutOptions(scenarios=tuple(scenario or heldout.SCENARIOS), seeds=seed_list, modes=modes,
-                                     max_frames=max_frames, cache=cache)
+                                     max_frames=max_frames, cache=cache, replay_from=replay_from)
+    if replay_from is not None and not (replay_from / "runs").is_dir():
+        raise ConfigError(f"--replay-from {replay_from}: no runs/ folder there (a `bench heldout` results folder)")
     with console.status("starting") as status:
         results = heldout.run_heldout_benchmark(out, options, progress=lambda msg: status.update(msg), jobs=jobs)
     typer.echo(heldout.heldout_markdown(results))

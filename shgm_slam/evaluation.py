@@ -28,7 +28,7 @@ import numpy as np
 from shgm_slam.data.base import open_sequence
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry import se3
-from shgm_slam.io.trajectories import read_tum
+from shgm_slam.io.trajectories import read_comments, read_tum
 from shgm_slam.metrics import AlignMode, ate
 from shgm_slam.types import Sequence
 
@@ -67,6 +67,8 @@ class RobotEvaluation:
     ate_fused_aligned_m: float = float("nan")  # RMSE after an SE(3) fit (shape only)
     max_error_m: float = float("nan")  # largest position error in the shared frame
     note: str = ""
+    # placed but not confirmed by an independent graph match (the fused file's "# provisional: ..." line says why)
+    provisional: bool = False
 
     @property
     def localized(self) -> bool:
@@ -145,15 +147,24 @@ def _evaluate_robot(name: str, fused_file: Path, t_gt: np.ndarray, gt: np.ndarra
         return RobotEvaluation(name, 0, 0, note="not placed (no fused trajectory)")
     t_est, est = read_tum(fused_file)
     rows_est, rows_gt = associate(t_est, t_gt)
-    rep = RobotEvaluation(name, len(t_est), len(rows_est))
+    rep = RobotEvaluation(name, len(t_est), len(rows_est), provisional=is_provisional(fused_file))
+    notes = ["provisional: no independent graph match confirms its place"] if rep.provisional else []
     if len(rows_est) < len(t_est):
-        rep.note = f"{len(t_est) - len(rows_est)} fused pose(s) have no ground truth at their time"
+        notes.append(f"{len(t_est) - len(rows_est)} fused pose(s) have no ground truth at their time")
     shared = ate(gt[rows_gt], est[rows_est], align=AlignMode.NONE)
     aligned = ate(gt[rows_gt], est[rows_est], align=AlignMode.SE3)
     rep.ate_fused_m, rep.max_error_m, rep.ate_fused_aligned_m = shared.rmse, shared.max, aligned.rmse
     if not shared.valid:
-        rep.note = shared.reason
+        notes.append(shared.reason)
+    rep.note = "; ".join(notes)
     return rep
+
+
+def is_provisional(fused_file: Path) -> bool:
+    """True when a fused trajectory file says its robot was placed provisionally (``# provisional: ...``)."""
+    from shgm_slam.io.export import PROVISIONAL_COMMENT
+
+    return any(c.startswith(PROVISIONAL_COMMENT) for c in read_comments(fused_file))
 
 
 def evaluate_results(
@@ -227,5 +238,6 @@ def evaluate_results(
         else:
             fused = root / f"{r}_fused_tum.txt"
             count = len(read_tum(fused)[0]) if fused.is_file() else 0
-            result.robots.append(RobotEvaluation(r, count, 0, note="no ground truth given"))
+            provisional = count > 0 and is_provisional(fused)
+            result.robots.append(RobotEvaluation(r, count, 0, note="no ground truth given", provisional=provisional))
     return result

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from shgm_slam.backend.confirmation import describe
 from shgm_slam.config import OdometryKind, RobotOverrides, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.data.interleave import interleave
@@ -34,6 +35,7 @@ from shgm_slam.run_view import RunView
 from shgm_slam.scene_scale import effective_fields, resolve_robot_config, sample_scene_scale
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.node import ServerNode
+from shgm_slam.server.placement import PlacementWatch
 from shgm_slam.server.records import MatchRecord
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 from shgm_slam.types import Sequence
@@ -157,6 +159,9 @@ class RobotReport:
     # degenerate data, reported, never hidden: skipped frames, no graph nodes, odometry that did not move
     # while the images did (then ``localized`` is False: the trajectory is known to be invalid)
     warnings: list[str] = field(default_factory=list)
+    # placed from a single piece of evidence (``backend.confirmation``): no independent graph match confirms
+    # a segment's place in the shared frame yet; it may be wrong (its fused trajectory is written, marked so)
+    provisional: bool = False
 
 
 @dataclass
@@ -244,6 +249,7 @@ def run_slam(
     gt_shared_frame: bool = True,
     write_every_keyframes: int = 25,
     on_frame: FrameFn | None = None,
+    journal: bool = False,
 ) -> RunSummary:
     """Run the whole multi-robot system and write the results folder.
 
@@ -258,6 +264,8 @@ def run_slam(
             for frame ranges of one KITTI sequence), so fused ATE is measured in the shared frame.
         write_every_keyframes: rewrite the results folder this often (survives crashes and Ctrl-C).
         on_frame: called after every processed frame with what it cost (``FrameStats``).
+        journal: keep the map server's message journal (``journal.bin``) in ``out_dir``: every keyframe
+            the robots sent, in order, so the back end can be run again on it (``replay_backend``).
     """
     viz = viz or NullLogger()
     names = list(robots)
@@ -273,7 +281,7 @@ def run_slam(
     # the same nodes as the distributed deployment, on the in-process bus (every message is encoded)
     bus = InProcessBus()
     server_node = ServerNode(
-        cfg, InProcessTransport(bus), out_dir, reference=names[0], expect=len(names), journal=False,
+        cfg, InProcessTransport(bus), out_dir, reference=names[0], expect=len(names), journal=journal,
         write_every_keyframes=write_every_keyframes, stale_after_s=float("inf"),  # one process: never silent
     )  # fmt: skip
     nodes = {r: RobotNode(f, InProcessTransport(bus)) for r, f in fronts.items()}
@@ -294,6 +302,7 @@ def run_slam(
     done = 0
     interrupted = False
     kf_total = 0
+    watch = PlacementWatch()
     try:
         for robot, index in interleave(robots):
             done += 1
@@ -323,6 +332,8 @@ def run_slam(
             step_compute = sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
             compute_ms += step_compute
             _log_frame(viz, view, server, fronts[robot], res, records)
+            if records:
+                _log_placements(viz, watch, server)
             kf_total += res.message is not None
             if on_frame is not None:
                 match_ms = sum(server.timings_ms["match"][n_match:])
@@ -349,9 +360,11 @@ def run_slam(
     if not server_node.finished:
         server_node.finish(match=not interrupted)
     _log_matches(viz, server, records)
+    _log_placements(viz, watch, server)
     for node in nodes.values():
         node.poll()
     reports = _evaluate(fronts, server, robots, processed, gt_shared_frame)
+    _report_provisional(reports, fronts, server)
     _report_degenerate(reports, fronts, image_change, viz)
     accepted = sum(m.accepted for m in server.matches)
     summary = RunSummary(
@@ -372,6 +385,41 @@ def run_slam(
     writer.write_json("metrics.json", summary.to_json_dict())
     viz.close()
     return summary
+
+
+def replay_backend(recorded: Path, cfg: ShgmConfig, out_dir: Path, robots: list[str]) -> ServerNode:
+    """Run the map server again on the keyframes a run recorded, with ``cfg``'s matching and back end.
+
+    The front ends (perception, odometry, graphs) are not run: their messages come from
+    ``recorded/journal.bin`` (``run_slam(..., journal=True)``), in the order the original run sent them,
+    so a change of matching, verification or pose graph is measured on identical input in seconds.
+
+    Args:
+        recorded: results folder of the original run (holds ``journal.bin``).
+        cfg: the configuration (only its matching and back-end stages matter here).
+        out_dir: new results folder (fused and odometry trajectories, graphs, matches, pose graph).
+        robots: the run's robot names, the reference (shared frame) first.
+
+    Returns:
+        The finished server node (its ``map`` answers what was placed and how).
+
+    Raises:
+        DataError: ``recorded`` holds no journal, or the journal's robots never all finished.
+    """
+    source = Path(recorded) / "journal.bin"
+    if not source.is_file():
+        raise DataError(f"{recorded} holds no journal.bin: record the run with a journal first")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "journal.bin").write_bytes(source.read_bytes())
+    node = ServerNode(
+        cfg, InProcessTransport(InProcessBus()), out_dir, reference=robots[0], expect=len(robots), journal=True,
+        write_every_keyframes=0, stale_after_s=float("inf"),
+    )  # fmt: skip
+    node.poll()
+    if not node.finished:
+        raise DataError(f"the journal in {recorded} does not hold every robot's last keyframe ({', '.join(robots)})")
+    return node
 
 
 def _report_degenerate(
@@ -395,6 +443,23 @@ def _report_degenerate(
         for text in rep.warnings:
             log.warning("%s: %s", rep.name, text)
             viz.log_text(f"{rep.name}: {text}", "WARN")
+
+
+def _report_provisional(reports: list[RobotReport], fronts: dict[str, RobotFrontend], server: MapServer) -> None:
+    """Flag each robot with a segment placed from a single piece of evidence (a warning saying so)."""
+    for rep in reports:
+        for seg in fronts[rep.name].segments:
+            p = server.placement(seg.agent)
+            if p.provisional:
+                rep.provisional = True
+                rep.warnings.append(describe(seg.agent, p))
+
+
+def _log_placements(viz: Viz, watch: PlacementWatch, server: MapServer) -> None:
+    """Agents that joined the shared frame provisionally, were confirmed or lost their place: log and viewer."""
+    for level, text in watch.changes(server):
+        (log.warning if level == "WARN" else log.info)("%s", text)
+        viz.log_text(text, level)
 
 
 def _last_healthy_position(front: RobotFrontend, server: MapServer) -> np.ndarray | None:

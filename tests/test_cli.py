@@ -62,7 +62,8 @@ def _summary(names, failures=0):
     robots = [
         SimpleNamespace(name=n, frames=4541, keyframes=1520, nodes=12345, odometry_failures=failures, localized=k != 1,
            segments=failures + 1, segments_placed=failures, path_length_m=3724.4, ate_odometry_m=float("nan"),
-           ate_fused_m=1234.56, ate_odometry_aligned_m=12.345, ate_fused_aligned_m=56.78, failure_reasons=[])
+           ate_fused_m=1234.56, ate_odometry_aligned_m=12.345, ate_fused_aligned_m=56.78, failure_reasons=[],
+           provisional=k == 2)
         for k, n in enumerate(names)
     ]  # fmt: skip
     return SimpleNamespace(robots=robots, matches_tried=1, closures_accepted=1, closures_rejected=0,
@@ -86,6 +87,9 @@ def test_summary_table_fits_80_columns_without_cutting(failures):
         assert value in text
     if failures:
         assert f"{failures}/{failures + 1}" in text
+    uav_row = next(line for line in text.splitlines() if line.strip().startswith("uav"))
+    assert "prov" in uav_row and "prov" in text.split("ATE:")[1]  # the provisional robot, explained in the caption
+    assert not any("prov" in line for line in text.splitlines() if line.strip().startswith(("car1", "kitti08a")))
 
 
 def test_summary_table_folds_long_robot_names_instead_of_cutting():

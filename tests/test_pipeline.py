@@ -15,7 +15,7 @@ from shgm_slam.data.interleave import interleave
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.fusion import fuse_frames
 from shgm_slam.geometry import se3
-from shgm_slam.io.trajectories import read_kitti_poses, read_tum, write_kitti_poses
+from shgm_slam.io.trajectories import read_comments, read_kitti_poses, read_tum, write_kitti_poses
 from shgm_slam.robot.keyframes import KeyframeSelector
 from shgm_slam.runner import open_robots, parse_robot_arg, run_slam
 
@@ -134,6 +134,60 @@ def test_interrupted_run_keeps_what_it_has(tiny_scenario: Path, tmp_path: Path) 
     assert (tmp_path / "out" / "metrics.json").is_file()
 
 
+def test_results_are_checkpointed_during_the_run(tiny_scenario: Path, tmp_path: Path) -> None:
+    """Every ``write_every_keyframes`` keyframes the results folder is rewritten, long before the end."""
+    out = tmp_path / "out"
+    seen: list[int] = []
+
+    def watch(done: int, total: int) -> None:
+        if (out / "server.json").is_file() and not seen:
+            seen.append(done)
+
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
+    total = sum(len(s) for s in robots.values())
+    run_slam(robots, cfg, out, progress=watch, write_every_keyframes=10)
+    assert seen and seen[0] < total / 2, seen  # the first checkpoint came early
+    for name in ("car1_odometry_tum.txt", "graph_car1.json", "matches.json", "pose_graph.g2o"):
+        assert (out / name).is_file()
+
+
+def test_a_full_disk_mid_run_keeps_the_last_complete_checkpoint(tiny_scenario: Path, tmp_path: Path, monkeypatch):
+    """The second checkpoint fails half way (disk full): the run stops with a DataError and the folder holds
+    the first checkpoint, whole (its files agree with each other) and without temporaries."""
+    import errno
+
+    from shgm_slam.io import export
+    from shgm_slam.server.node import ServerNode
+
+    out = tmp_path / "out"
+    real_write = ServerNode.write_results
+    calls = []
+
+    def write_results(self):
+        calls.append(1)
+        if len(calls) == 2:  # the graphs come after the trajectories: the checkpoint is half written
+            def full(*_args, **_kwargs):
+                raise OSError(errno.ENOSPC, "No space left on device")
+
+            monkeypatch.setattr(export, "write_graph", full)
+        return real_write(self)
+
+    monkeypatch.setattr(ServerNode, "write_results", write_results)
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
+    with pytest.raises(DataError, match="No space left on device"):
+        run_slam(robots, cfg, out, write_every_keyframes=10)
+    assert len(calls) == 2
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # no temporaries
+    server = json.loads((out / "server.json").read_text())
+    assert server["matches_tried"] == len(json.loads((out / "matches.json").read_text()))
+    t, _ = read_tum(out / "car1_odometry_tum.txt")  # keyframe-rate checkpoint of the first write
+    assert len(t) == server["robots"]["car1"]["keyframes"]
+
+
 def test_bad_robot_arguments_give_clear_errors(tiny_scenario: Path, tmp_path: Path) -> None:
     assert parse_robot_arg("car1=/data/seq:0-10") == ("car1", "/data/seq:0-10")
     with pytest.raises(ConfigError, match="NAME=PATH"):
@@ -207,6 +261,77 @@ def test_saved_recording_holds_the_run(tiny_scenario: Path, tmp_path: Path) -> N
         assert any("traj" in p and robot in p for p in paths)
     columns = {f for c in chunks if c.entity_path.endswith("cam/rgb") for f in c.to_record_batch().schema.names}
     assert "frame" in columns
+
+
+# --------------------------------------------------------------------------------------------------
+# Early stop: a robot placed from a single piece of evidence is provisional in every output
+# --------------------------------------------------------------------------------------------------
+
+
+class RecordingViz:
+    """A viewer that records every call (the log panel's lines in ``texts``)."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, tuple]] = []
+
+    @property
+    def texts(self) -> list[tuple[str, str]]:
+        return [(args[0], str(args[1]) if len(args) > 1 else "INFO") for name, args in self.calls if name == "log_text"]
+
+    def __getattr__(self, name):
+        return lambda *args, **kwargs: self.calls.append((name, args))
+
+
+@pytest.fixture(scope="module")
+def early_stop(tiny_scenario: Path, tmp_path_factory: pytest.TempPathFactory):
+    """car2 stopped after 30 frames: every match it got found the same objects of car1 (ground-truth
+    odometry, so the run is deterministic); and the full run, where later matches confirm it."""
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    runs = {}
+    for name, car2 in (("early", ":0-30"), ("full", "")):
+        out = tmp_path_factory.mktemp(name)
+        viz = RecordingViz()
+        robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}{car2}"])
+        runs[name] = (run_slam(robots, cfg, out, viz=viz), out, viz)
+    return runs
+
+
+def test_early_stop_leaves_a_provisional_robot_and_every_output_says_so(early_stop) -> None:
+    from typer.testing import CliRunner
+
+    from shgm_slam.cli import app
+    from shgm_slam.evaluation import evaluate_results
+
+    summary, out, viz = early_stop["early"]
+    car1, car2 = summary.robots
+    assert car2.localized and car2.provisional and not car1.provisional
+    assert any(w.startswith("car2 is placed provisionally") for w in car2.warnings)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert [r["provisional"] for r in metrics["robots"]] == [False, True]
+    assert any("provisionally" in w for w in metrics["robots"][1]["warnings"])
+    server = json.loads((out / "server.json").read_text())
+    assert server["robots"]["car2"]["provisional"] == ["car2"] and server["robots"]["car1"]["provisional"] == []
+    for name in ("car2_fused_tum.txt", "car2_fused_kitti.txt"):  # written, but never silently certain
+        assert read_comments(out / name)[0].startswith("provisional: car2 is placed provisionally")
+    assert read_comments(out / "car1_fused_tum.txt") == []
+    warned = [t for t, level in viz.texts if level == "WARN" and t.startswith("car2 is placed provisionally")]
+    assert warned, viz.texts  # the viewer's log panel, when it happened
+    evaluation = {r.name: r for r in evaluate_results(out).robots}
+    assert evaluation["car2"].provisional and "provisional" in evaluation["car2"].note
+    assert not evaluation["car1"].provisional
+    res = CliRunner().invoke(app, ["eval", str(out), "--json"])
+    assert res.exit_code == 0, res.output
+    assert [r["provisional"] for r in json.loads(res.output)["robots"]] == [False, True]
+
+
+def test_a_later_independent_match_confirms_the_robot(early_stop) -> None:
+    summary, out, viz = early_stop["full"]
+    assert [r.provisional for r in summary.robots] == [False, False] and summary.robots[1].localized
+    assert json.loads((out / "server.json").read_text())["robots"]["car2"]["provisional"] == []
+    said = [(t.split(" is ")[1].split()[0], level) for t, level in viz.texts if t.startswith("car2 is ")]
+    assert said == [("placed", "WARN"), ("confirmed", "INFO")]  # first provisional, then confirmed, once each
+    assert read_comments(out / "car2_fused_tum.txt") == []
 
 
 # --------------------------------------------------------------------------------------------------

@@ -41,7 +41,7 @@ from shgm_slam.sim.world import World
 from shgm_slam.types import GraphArrays
 
 TUNING_SEEDS = tuple(range(10, 20))
-REPORT_SEEDS = tuple(range(200, 220))
+REPORT_SEEDS = tuple(range(210, 220))
 
 MAP_KINDS = (ObjectKind.TREE, ObjectKind.POLE, ObjectKind.STREET_LAMP, ObjectKind.SIGNAL_POLE,
              ObjectKind.TRAFFIC_LIGHT, ObjectKind.TRAFFIC_SIGN, ObjectKind.BUILDING)  # fmt: skip

@@ -78,6 +78,8 @@ def read_projection(calib_path: Path, key: str) -> np.ndarray:
         text = calib_path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
         raise DataError(f"{calib_path} is not UTF-8 text; write a KITTI calib.txt with a {key} line") from None
+    except OSError as exc:
+        raise DataError(f"cannot read {calib_path}: {exc.strerror or exc}; check its permissions") from None
     for line in text.splitlines():
         head, _, rest = line.partition(":")
         if head.strip() == key:
@@ -89,7 +91,7 @@ def read_projection(calib_path: Path, key: str) -> np.ndarray:
                 return values.reshape(3, 4)
             break
     raise DataError(
-        f"{calib_path} has no {key} line with 12 numbers; add '{key}: fx 0 cx 0 0 fy cy 0 0 0 1 0'"
+        f"{calib_path} has no {key} line of 12 finite numbers; add '{key}: fx 0 cx 0 0 fy cy 0 0 0 1 0'"
     )
 
 

@@ -6,16 +6,18 @@ Layout of ``--out DIR`` (default ``results/<time>/`` plus a ``latest`` symlink):
     <robot>_odometry_tum.txt                          the robot's own odometry (its first camera frame)
     graph_<robot>.json                                shgm-graph/1, robot's odometry frame
     matches.json  pose_graph.g2o  config.yaml  metrics.json  run.rrd (when saving)
+    server.json  journal.bin  snapshot-<records>.bin                 a map server's metrics and crash recovery
 
 Every file is written atomically (temp file + rename) so an interrupted run never leaves half files.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tempfile
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from datetime import datetime
 from pathlib import Path
 
@@ -29,10 +31,14 @@ from shgm_slam.types import GraphArrays, Sequence
 RUN_OUTPUT_PATTERNS = (
     "*_fused_tum.txt", "*_fused_kitti.txt", "*_odometry_tum.txt", "*_gt_tum.txt", "*_gt_kitti.txt",
     "graph_*.json", "matches.json", "pose_graph.g2o", "config.yaml", "metrics.json", "server.json",
-    "run.rrd", "server.rrd", "journal.bin",
+    "run.rrd", "server.rrd", "journal.bin", "snapshot-*.bin",
 )
 """Files a run, demo or map server writes into its results folder (``--overwrite`` removes these, and
 their leftover ``.<name>.*`` temporary files, nothing else)."""
+
+
+PROVISIONAL_COMMENT = "provisional:"
+"""How the comment line of a provisional robot's fused trajectory files begins (``# provisional: why``)."""
 
 
 RESUME_START_FILES = ("config.yaml", "server.rrd", "server.json")
@@ -117,28 +123,58 @@ _FILE_MODE = 0o666 & ~_umask()
 """Mode of results files: what ``open()`` would give (mkstemp's 0600 would hide results from other users)."""
 
 
-def _atomic(path: Path, write: Callable[[Path], object]) -> None:
-    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it onto ``path``.
+def _write_temp(path: Path, write: Callable[[Path], object]) -> Path:
+    """Call ``write(tmp)`` on a new temporary file beside ``path`` (normal file mode) and return it.
 
-    Readers never see a half-written file, and an interrupted or failed write leaves the previous
-    version intact.
+    Raises:
+        DataError: the folder is not writable or the disk is full (the temporary file is removed).
+    """
+    tmp = None
+    try:
+        fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+        os.close(fd)
+        tmp = Path(name)
+        write(tmp)
+        os.chmod(tmp, _FILE_MODE)
+        return tmp
+    except OSError as exc:
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)
+        raise DataError(f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out") from None
+
+
+def _commit(tmp: Path, path: Path) -> None:
+    """Rename the finished temporary ``tmp`` onto ``path`` (atomic: readers see the old or the new file)."""
+    try:
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise DataError(f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out") from None
+
+
+def _atomic(path: Path, write: Callable[[Path], object]) -> None:
+    """Write ``path`` through a temporary file and a rename: readers never see a half-written file, and an
+    interrupted or failed write leaves the previous version intact.
 
     Raises:
         DataError: the folder is not writable or the disk is full (the previous file is kept).
     """
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    os.close(fd)
+    _commit(_write_temp(path, write), path)
+
+
+def _discard(batch: list[tuple[Path | None, Path]]) -> None:
+    """Remove the temporaries of an unfinished checkpoint."""
+    for tmp, _ in batch:
+        if tmp is not None:
+            tmp.unlink(missing_ok=True)
+
+
+def _remove(path: Path) -> None:
+    """Delete ``path`` if it is there; DataError when it cannot be removed."""
     try:
-        write(Path(tmp))
-        os.chmod(tmp, _FILE_MODE)
-        os.replace(tmp, path)
+        path.unlink(missing_ok=True)
     except OSError as exc:
-        Path(tmp).unlink(missing_ok=True)
-        raise DataError(f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out") from None
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    _atomic(path, lambda tmp: tmp.write_text(text))
+        raise DataError(f"cannot remove {path}: {exc.strerror or exc}; check the folder's permissions") from None
 
 
 def finite_or_none(value: object) -> object:
@@ -157,32 +193,106 @@ def _valid_rows(poses: np.ndarray) -> np.ndarray:
 
 
 class ResultsWriter:
-    """Writes one run's outputs into ``root``; every method can be called again to overwrite."""
+    """Writes one run's outputs into ``root``; every method can be called again to overwrite.
+
+    Each file is replaced atomically; inside ``with writer.checkpoint():`` the files written form one
+    checkpoint, which replaces the previous one only once every file of it was written.
+    """
 
     def __init__(self, root: Path) -> None:
         self.root = Path(root)
-        self.root.mkdir(parents=True, exist_ok=True)
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise DataError(f"cannot create results folder {self.root}: {exc.strerror or exc}") from None
+        self._batch: list[tuple[Path | None, Path]] | None = None  # (temporary or None to delete, target)
 
     def path(self, name: str) -> Path:
         return self.root / name
 
+    @contextlib.contextmanager
+    def checkpoint(self) -> Iterator[None]:
+        """Collect the files written inside the block and put them in place together at its end.
+
+        Every file is first written to a temporary beside it; only when all were written (no full disk,
+        no error, no interruption) are they renamed onto the previous files, so a failure leaves the
+        previous checkpoint whole rather than half old, half new.
+
+        Raises:
+            DataError: a file could not be written (the previous checkpoint is kept, no temporaries left).
+        """
+        if self._batch is not None:  # nested: part of the enclosing checkpoint
+            yield
+            return
+        self._batch = []
+        try:
+            yield
+        except BaseException:
+            _discard(self._batch)
+            raise
+        finally:
+            batch, self._batch = self._batch, None
+        for i, (tmp, path) in enumerate(batch):
+            try:
+                if tmp is None:
+                    _remove(path)
+                else:
+                    _commit(tmp, path)
+            except DataError:
+                _discard(batch[i + 1 :])
+                raise
+
+    def _put(self, path: Path, write: Callable[[Path], object]) -> None:
+        """Write ``path`` atomically, or as part of the open checkpoint."""
+        if self._batch is None:
+            _atomic(path, write)
+        else:
+            self._batch.append((_write_temp(path, write), path))
+
+    def _drop(self, path: Path) -> None:
+        """Delete ``path`` now, or when the open checkpoint is put in place."""
+        if self._batch is None:
+            _remove(path)
+        else:
+            self._batch.append((None, path))
+
     def write_trajectories(
-        self, robot: str, timestamps_s: np.ndarray, T_odom_cam: np.ndarray, T_shared_cam: np.ndarray | None
+        self,
+        robot: str,
+        timestamps_s: np.ndarray,
+        T_odom_cam: np.ndarray,
+        T_shared_cam: np.ndarray | None,
+        *,
+        provisional: str | None = None,
     ) -> None:
         """Odometry (TUM) and, when the robot is localized, fused (TUM + KITTI) trajectories.
 
         Frames with NaN poses (skipped) are left out of TUM files; the KITTI file (no timestamps)
-        holds only the frames that have a fused pose, in order.
+        holds only the frames that have a fused pose, in order. ``provisional`` (why the robot's place
+        is not confirmed) becomes the fused TUM file's first line, ``# provisional: ...`` (TUM allows
+        comments; evo skips it); the KITTI file stays plain 12-number rows, as KITTI's devkit reads them.
+        A robot no longer placed loses the fused files an earlier checkpoint wrote.
         """
         ok = _valid_rows(T_odom_cam)
-        _atomic(self.path(f"{robot}_odometry_tum.txt"), lambda p: write_tum(p, timestamps_s[ok], T_odom_cam[ok]))
-        if T_shared_cam is not None:
-            okf = _valid_rows(T_shared_cam)
-            _atomic(self.path(f"{robot}_fused_tum.txt"), lambda p: write_tum(p, timestamps_s[okf], T_shared_cam[okf]))
-            _atomic(self.path(f"{robot}_fused_kitti.txt"), lambda p: write_kitti_poses(p, T_shared_cam[okf]))
+        self._put(self.path(f"{robot}_odometry_tum.txt"), lambda p: write_tum(p, timestamps_s[ok], T_odom_cam[ok]))
+        tum, kitti = self.path(f"{robot}_fused_tum.txt"), self.path(f"{robot}_fused_kitti.txt")
+        if T_shared_cam is None:
+            for stale in (tum, kitti):
+                self._drop(stale)
+            return
+        okf = _valid_rows(T_shared_cam)
+        note = f"{PROVISIONAL_COMMENT} {provisional}" if provisional else ""
+        self._put(tum, lambda p: write_tum(p, timestamps_s[okf], T_shared_cam[okf], comment=note))
+        self._put(kitti, lambda p: write_kitti_poses(p, T_shared_cam[okf]))
 
     def write_keyframe_trajectory(
-        self, robot: str, timestamps_s: np.ndarray, T_odom_kf: np.ndarray, T_shared_kf: np.ndarray | None
+        self,
+        robot: str,
+        timestamps_s: np.ndarray,
+        T_odom_kf: np.ndarray,
+        T_shared_kf: np.ndarray | None,
+        *,
+        provisional: str | None = None,
     ) -> None:
         """Keyframe-rate trajectories of a robot whose per-frame odometry the writer does not have yet (a
         live map server before the robot's last message; ``write_trajectories`` replaces them later).
@@ -191,21 +301,34 @@ class ResultsWriter:
             timestamps_s: (K,) keyframe times.
             T_odom_kf: (K, 4, 4) keyframes in the odometry frame of their own trajectory segment.
             T_shared_kf: (K, 4, 4) fused keyframes (NaN rows: segment not placed), or None.
+            provisional: as for ``write_trajectories``.
         """
-        self.write_trajectories(robot, timestamps_s, T_odom_kf, T_shared_kf)
+        self.write_trajectories(robot, timestamps_s, T_odom_kf, T_shared_kf, provisional=provisional)
 
     def write_graph(self, robot: str, graph: GraphArrays) -> None:
-        _atomic(self.path(f"graph_{robot}.json"), lambda p: write_graph(p, graph))
+        self._put(self.path(f"graph_{robot}.json"), lambda p: write_graph(p, graph))
 
     def write_json(self, name: str, data: object) -> None:
         data = json.loads(json.dumps(data, default=_json_default))  # numpy, paths -> plain values
-        _atomic_write(self.path(name), json.dumps(finite_or_none(data), indent=1, allow_nan=False) + "\n")
+        text = json.dumps(finite_or_none(data), indent=1, allow_nan=False) + "\n"
+        self._put(self.path(name), lambda p: p.write_text(text))
 
     def write_matches(self, records: Iterable) -> None:
         self.write_json("matches.json", [r.to_json_dict() for r in records])
 
     def write_text(self, name: str, text: str) -> None:
-        _atomic_write(self.path(name), text)
+        self._put(self.path(name), lambda p: p.write_text(text))
+
+    def write_bytes(self, name: str, data: bytes) -> None:
+        """Write ``data`` atomically and durably (fsync'd before the rename: it survives a power loss too)."""
+
+        def write(tmp: Path) -> None:
+            with open(tmp, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+
+        _atomic(self.path(name), write)
 
     def write_ground_truth(self, robots: dict[str, Sequence], gt_shared_frame: bool = True) -> list[Path]:
         """``<robot>_gt_tum.txt`` and ``<robot>_gt_kitti.txt``: ground truth in the shared frame.
@@ -220,8 +343,8 @@ class ResultsWriter:
         for robot, T_shared_cam in shared_frame_ground_truth(robots, gt_shared_frame).items():
             t = np.asarray(robots[robot].timestamps_s)
             tum, kitti = self.path(f"{robot}_gt_tum.txt"), self.path(f"{robot}_gt_kitti.txt")
-            _atomic(tum, lambda p, t=t, T=T_shared_cam: write_tum(p, t, T))
-            _atomic(kitti, lambda p, T=T_shared_cam: write_kitti_poses(p, T))
+            self._put(tum, lambda p, t=t, T=T_shared_cam: write_tum(p, t, T))
+            self._put(kitti, lambda p, T=T_shared_cam: write_kitti_poses(p, T))
             written += [tum, kitti]
         return written
 

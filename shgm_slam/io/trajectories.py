@@ -51,19 +51,22 @@ def format_kitti_pose(T_world_cam: np.ndarray) -> str:
     return " ".join(f"{v:.9f}" for v in np.asarray(T_world_cam, dtype=np.float64)[:3, :4].ravel())
 
 
-def write_kitti_poses(path: Path | str, poses: np.ndarray) -> None:
-    """Write (N, 4, 4) poses as KITTI rows (12 numbers, ``%.9f``); creates the parent folder."""
+def write_kitti_poses(path: Path | str, poses: np.ndarray, *, comment: str = "") -> None:
+    """Write (N, 4, 4) poses as KITTI rows (12 numbers, ``%.9f``); creates the parent folder.
+
+    ``comment`` (one line) goes first as a ``# `` line, which evo and ``read_kitti_poses`` skip."""
     path = Path(path)
     poses = _check_poses(poses, path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savetxt(path, poses[:, :3, :4].reshape(-1, 12), fmt="%.9f")
+    np.savetxt(path, poses[:, :3, :4].reshape(-1, 12), fmt="%.9f", header=_one_line(comment))
 
 
-def write_tum(path: Path | str, timestamps_s: np.ndarray, poses: np.ndarray) -> None:
+def write_tum(path: Path | str, timestamps_s: np.ndarray, poses: np.ndarray, *, comment: str = "") -> None:
     """Write a TUM file: ``t tx ty tz qx qy qz qw`` (8 columns, scalar-last quaternion, no trailing space).
 
     Args:
         timestamps_s: (N,) seconds. poses: (N, 4, 4) ``T_world_cam``.
+        comment: one line written first as a ``# `` line (evo and ``read_tum`` skip it).
     """
     path = Path(path)
     poses = _check_poses(poses, path)
@@ -75,18 +78,36 @@ def write_tum(path: Path | str, timestamps_s: np.ndarray, poses: np.ndarray) -> 
         )
     q_xyzw = Rotation.from_matrix(project_to_so3(poses[:, :3, :3])).as_quat()
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savetxt(path, np.c_[t, poses[:, :3, 3], q_xyzw], fmt=["%.9f"] + ["%.9f"] * 7)
+    np.savetxt(path, np.c_[t, poses[:, :3, 3], q_xyzw], fmt=["%.9f"] + ["%.9f"] * 7, header=_one_line(comment))
 
 
-def _read_rows(path: Path | str) -> tuple[Path, list[int], list[list[str]]]:
-    """Non-empty, non-comment rows of a text file split on whitespace, with their 1-based line numbers."""
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def read_comments(path: Path | str) -> list[str]:
+    """The ``#`` comment lines of a pose file, without the ``#`` (e.g. a fused trajectory's provisional note).
+
+    Raises:
+        DataError: the file is missing or unreadable.
+    """
+    _, text = _read_text(path)
+    return [line.strip().lstrip("#").strip() for line in text.splitlines() if line.strip().startswith("#")]
+
+
+def _read_text(path: Path | str) -> tuple[Path, str]:
     path = Path(path)
     if not path.is_file():
         raise DataError(f"pose file {path} does not exist; check the path")
     try:
-        text = path.read_text()
+        return path, path.read_text()
     except (OSError, UnicodeDecodeError) as e:
         raise DataError(f"cannot read pose file {path}: {e}") from e
+
+
+def _read_rows(path: Path | str) -> tuple[Path, list[int], list[list[str]]]:
+    """Non-empty, non-comment rows of a text file split on whitespace, with their 1-based line numbers."""
+    path, text = _read_text(path)
     numbers, rows = [], []
     for i, line in enumerate(text.splitlines(), start=1):
         s = line.strip()

@@ -218,6 +218,10 @@ def verify_alignment(
 ) -> Verification:
     """Support, overlap, contradictions, chance expectation and the likelihood ratio of ``T_a_b``.
 
+    One sparse same-label distance query between B's nodes (mapped into A's frame) and A's nodes serves
+    both directions: a rigid map keeps distances, so the pairs within reach of each other, their offsets
+    and the local densities are the same seen from A or from B (shifts turn with the hypothesis).
+
     Args:
         tree_a, tree_b: the two graphs' nodes, each in its own frame.
         T_a_b: (4, 4) hypothesis mapping B's frame into A's.
@@ -228,22 +232,29 @@ def verify_alignment(
         shifts_m: (S, 3) shifts in A's frame (``shift_vectors``): when given, each label's chance of a partner
             is also measured under the hypothesis shifted by each (``label_chance``), and the larger counts.
     """
+    n_a, n_b = len(tree_a), len(tree_b)
     pb = transform(T_a_b, tree_b.positions_xyz)
     R, t = T_a_b[:3, :3], T_a_b[:3, 3]
     pa_in_b = (tree_a.positions_xyz - t) @ R  # A's nodes in B's frame: B's trees are reused
-    pairs, dist = partner_pairs(tree_a, pb, tree_b.label_ids, radius_m)
-    res_a = np.full(len(tree_a), np.inf)
-    res_b = np.full(len(tree_b), np.inf)
+    reach = density_radius_m
+    if shifts_m is not None and len(shifts_m):
+        reach = max(reach, float(np.linalg.norm(shifts_m, axis=1).max()) + radius_m)
+    near = cKDTree(embed(pb, tree_b.label_ids)).sparse_distance_matrix(tree_a.same, reach, output_type="ndarray")
+    i_b, j_a, d = near["i"].astype(np.int64), near["j"].astype(np.int64), near["v"]
+    pairs, dist = _partners_from_near(i_b, j_a, d, radius_m)
+    res_a = np.full(n_a, np.inf)
+    res_b = np.full(n_b, np.inf)
     res_a[pairs[:, 0]] = res_b[pairs[:, 1]] = dist
     sup_a, sup_b = np.isfinite(res_a), np.isfinite(res_b)
     inside_b = np.isfinite(tree_a.any.query(pb, k=1, distance_upper_bound=coverage_m)[0])
     inside_a = np.isfinite(tree_b.any.query(pa_in_b, k=1, distance_upper_bound=coverage_m)[0])
-    near_b = tree_a.same.query_ball_point(embed(pb, tree_b.label_ids), density_radius_m, return_length=True)
-    near_a = tree_b.same.query_ball_point(embed(pa_in_b, tree_a.label_ids), density_radius_m, return_length=True)
+    dense = d <= density_radius_m
+    near_b = np.bincount(i_b[dense], minlength=n_b)
+    near_a = np.bincount(j_a[dense], minlength=n_a)
     hits_b = hits_a = None
     if shifts_m is not None:
-        hits_b = shifted_hits(tree_a, pb, tree_b.label_ids, shifts_m, radius_m)
-        hits_a = shifted_hits(tree_b, pa_in_b, tree_a.label_ids, shifts_m @ R, radius_m)
+        offsets = tree_a.positions_xyz[j_a] - pb[i_b]  # (P, 3) in A's frame
+        hits_b, hits_a = _shifted_hits_both(offsets, i_b, j_a, n_b, n_a, shifts_m, radius_m)
     args = (radius_m, density_radius_m, partner_probability)
     llr_b, chance_b = _direction_llr(res_b, inside_b, near_b, *args, hits_b, tree_b.label_ids)
     llr_a, _ = _direction_llr(res_a, inside_a, near_a, *args, hits_a, tree_a.label_ids)
@@ -252,3 +263,41 @@ def verify_alignment(
         support=int(pairs.shape[0]), overlap_a=int(inside_a.sum()), overlap_b=int(inside_b.sum()),
         contradictions=contradictions, expected_chance=chance_b, llr=min(llr_a, llr_b), pairs=pairs,
     )  # fmt: skip
+
+
+def _partners_from_near(
+    i_b: np.ndarray, j_a: np.ndarray, d: np.ndarray, radius_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``partner_pairs`` from a precomputed same-label pair list (i in B, j in A, distance d): each B node's
+    nearest A node within ``radius_m``, then the greedy one-to-one subset, closest first."""
+    close = d <= radius_m
+    i_b, j_a, d = i_b[close], j_a[close], d[close]
+    order = np.lexsort((j_a, d, i_b))  # by B node, then distance (ties: lower A row, as a KD-tree query)
+    first = order[np.unique(i_b[order], return_index=True)[1]]
+    keep = _one_to_one(j_a[first], i_b[first], d[first])
+    rows = np.stack([j_a[first][keep], i_b[first][keep]], axis=1).astype(np.int64).reshape(-1, 2)
+    return rows, d[first][keep]
+
+
+def _shifted_hits_both(
+    offsets: np.ndarray, i_b: np.ndarray, j_a: np.ndarray, n_b: int, n_a: int, shifts_m: np.ndarray, radius_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(S, N_b) and (S, N_a) bool: a node finds a same-label partner once the hypothesis is shifted by s.
+
+    B's node i mapped and shifted by s lands within ``radius_m`` of A's node j when |offset - s| < r; seen
+    from A (A's node mapped into B's frame and shifted by s turned into B's frame) the same pair hits
+    when |offset + s| < r. ``offsets`` (P, 3) are A_j - T(B_i) for the pairs within reach.
+    """
+    hits_b = np.zeros((len(shifts_m), n_b), dtype=bool)
+    hits_a = np.zeros((len(shifts_m), n_a), dtype=bool)
+    if offsets.size == 0:
+        return hits_b, hits_a
+    r2 = radius_m**2
+    sq_off = np.einsum("pi,pi->p", offsets, offsets)
+    cross = shifts_m @ offsets.T  # (S, P)
+    sq_s = np.einsum("si,si->s", shifts_m, shifts_m)[:, None]
+    s_idx, p_idx = np.nonzero(sq_off[None, :] - 2.0 * cross + sq_s < r2)
+    hits_b[s_idx, i_b[p_idx]] = True
+    s_idx, p_idx = np.nonzero(sq_off[None, :] + 2.0 * cross + sq_s < r2)
+    hits_a[s_idx, j_a[p_idx]] = True
+    return hits_b, hits_a

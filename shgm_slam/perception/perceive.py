@@ -154,9 +154,18 @@ def write_png_atomic(path: Path, image: np.ndarray) -> None:
     ok, data = cv2.imencode(".png", image)
     if not ok:
         raise DataError(f"cannot encode {path} as PNG (dtype {image.dtype}, shape {image.shape})")
+    _write_bytes_atomic(path, data.tobytes())
+
+
+def _write_bytes_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` into a temp file beside ``path`` and rename it onto ``path``.
+
+    Raises:
+        DataError: the folder is not writable or the disk is full (the previous file is kept).
+    """
     tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
     try:
-        tmp.write_bytes(data.tobytes())
+        tmp.write_bytes(data)
         os.replace(tmp, path)
     except OSError as exc:
         tmp.unlink(missing_ok=True)
@@ -164,9 +173,7 @@ def write_png_atomic(path: Path, image: np.ndarray) -> None:
 
 
 def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    _write_bytes_atomic(path, text.encode())
 
 
 def png_is_valid(path: Path, dtype: type, size_wh: tuple[int, int]) -> bool:
@@ -313,18 +320,22 @@ def perceive(
         "format": MANIFEST_FORMAT, "source": str(root.absolute()), "start": start, "end": end, "frames": n,
         "depth_model": _model_identity(depth), "seg_model": _model_identity(seg), "complete": False,
     }  # fmt: skip
-    _check_out(out, root, manifest, overwrite)
-    out.mkdir(parents=True, exist_ok=True)
-    _write_text_atomic(out / MANIFEST, json.dumps(manifest, indent=1) + "\n")
-    _write_static(out, sequence, root / source.folder, source.folder, start, images)
-    size = sequence.intrinsics.size_wh
     outputs: list[tuple[str, type]] = [(DEPTH_DIR, np.uint16)] * (depth is not None) + [(LABEL_DIR, np.uint8)] * (
         seg is not None
     )
-    for folder, _ in outputs:
-        (out / folder).mkdir(exist_ok=True)
-        for stale in (out / folder).glob(".*.part"):
-            stale.unlink(missing_ok=True)
+    try:  # the output folder's skeleton: a read-only or full folder is one clear error
+        _check_out(out, root, manifest, overwrite)
+        out.mkdir(parents=True, exist_ok=True)
+        _write_text_atomic(out / MANIFEST, json.dumps(manifest, indent=1) + "\n")
+        _write_static(out, sequence, root / source.folder, source.folder, start, images)
+        for folder, _ in outputs:
+            (out / folder).mkdir(exist_ok=True)
+            for stale in (out / folder).glob(".*.part"):
+                stale.unlink(missing_ok=True)
+    except OSError as exc:
+        where, why = exc.filename or out, exc.strerror or exc
+        raise DataError(f"cannot write {where}: {why}; choose a writable --out with free space") from None
+    size = sequence.intrinsics.size_wh
     todo = [i for i in range(n) if not all(png_is_valid(frame_file(out / f, i), t, size) for f, t in outputs)]
     result = PerceiveResult(out, str(spec), n, 0, n - len(todo), providers, batch_size, 0.0, notes=notes)
     inference_ms = {"depth": 0.0, "segmentation": 0.0}

@@ -87,12 +87,35 @@ def read_image_rgb(path: Path | str) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+"""File types a preview can be written as."""
+
+
+def _check_image_suffix(path: Path) -> None:
+    if path.suffix.lower() not in IMAGE_SUFFIXES:
+        raise DataError(f"cannot write image {path}: give it a .png (or .jpg) extension, e.g. {path}.png")
+
+
 def write_png(path: Path | str, image_rgb: np.ndarray) -> Path:
-    """Write an (H, W, 3) uint8 RGB image as PNG (parent folders are created)."""
+    """Write an (H, W, 3) uint8 RGB image as PNG (or JPEG by its suffix; parent folders are created).
+
+    Raises:
+        DataError: the path has no image suffix, its folder cannot be created (e.g. a file is in the
+            way) or the image cannot be written.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR)):
-        raise DataError(f"cannot write image {path}: check the folder and the .png extension")
+    _check_image_suffix(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        ok = cv2.imwrite(str(path), cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR))
+    except (OSError, cv2.error) as exc:
+        if isinstance(exc, FileExistsError | NotADirectoryError):
+            why = f"{exc.filename} is a file, not a folder"
+        else:
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc).strip().splitlines()[-1]
+        raise DataError(f"cannot write image {path}: {why}; choose another path") from None
+    if not ok:
+        raise DataError(f"cannot write image {path}: check that its folder is writable")
     return path
 
 
@@ -155,9 +178,11 @@ def check_model(
 
     Raises:
         ModelError: the card is missing/invalid or does not fit the model.
-        DataError: the image cannot be read.
+        DataError: the image cannot be read, or the preview path is not an image file name.
     """
     model_path = Path(model_path)
+    if preview_path is not None:
+        _check_image_suffix(Path(preview_path))  # before the model runs
     model = open_model(model_path, card_path, threads=threads)
     image = read_image_rgb(image_path) if image_path is not None else synthetic_test_image()
     H, W = image.shape[:2]

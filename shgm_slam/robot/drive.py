@@ -40,10 +40,12 @@ class DriveSummary:
     server_finished: bool
     placed_agents: list[str]
     bytes_sent: dict[str, int]
+    bytes_received: dict[str, int]
     resent: int
     wall_s: float
     interrupted: bool = False
     skipped: list[str] = field(default_factory=list)
+    provisional_agents: list[str] = field(default_factory=list)  # placed, not confirmed by an independent match
 
     @property
     def bytes_per_keyframe(self) -> float:
@@ -85,10 +87,10 @@ def drive_robot(
         t0 = time.monotonic()
         try:
             for i in range(len(sequence)):
-                if realtime:
-                    delay = t0 + (times[i] - times[0]) - time.monotonic()
-                    if delay > 0:
-                        node.poll(timeout_s=delay)
+                due = t0 + (times[i] - times[0])
+                while realtime and (wait := due - time.monotonic()) > 0:  # poll returns on any message
+                    node.heartbeat()
+                    node.poll(timeout_s=min(wait, 0.1))
                 try:
                     node.step(i)
                     processed += 1
@@ -104,12 +106,14 @@ def drive_robot(
         acknowledged = node.wait_acknowledged(wait_s, until_finished=not interrupted)
         if not node.all_acknowledged():
             log.warning("%s: the map server did not acknowledge every keyframe within %.0f s", name, wait_s)
+    placed = [s.agent for s in front.segments if node.T_shared_odom(s.agent) is not None]
+    provisional = [a for a in placed if a in node.provisional_agents]
     if out_dir is not None:
-        fused = node.fused()
-        ResultsWriter(out_dir).write_trajectories(name, times, front.T_odom_cam, fused)
+        why = "placed provisionally by the map server (no independent match confirms it yet): "
+        ResultsWriter(out_dir).write_trajectories(name, times, front.T_odom_cam, node.fused(),
+                                                  provisional=why + ", ".join(provisional) if provisional else None)
     return DriveSummary(
         name, node.session, len(sequence), processed, node.keyframes_sent, node.all_acknowledged(),
-        node.server_finished and acknowledged,
-        [s.agent for s in front.segments if node.T_shared_odom(s.agent) is not None],
-        dict(node.bytes_sent), node.resent, time.perf_counter() - t_start, interrupted, skipped,
+        node.server_finished and acknowledged, placed, dict(node.bytes_sent), dict(node.bytes_received),
+        node.resent, time.perf_counter() - t_start, interrupted, skipped, provisional,
     )  # fmt: skip

@@ -19,6 +19,7 @@ from shgm_slam.agents import agent_robot
 from shgm_slam.config import ShgmConfig
 from shgm_slam.geometry import se3
 from shgm_slam.server.node import ServerNode
+from shgm_slam.server.placement import PlacementWatch
 from shgm_slam.server.records import MatchRecord
 from shgm_slam.transport.factory import NodeRole, make_transport
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
@@ -42,13 +43,14 @@ class ServeSummary:
 class ServerView:
     """Streams a live map server to the viewer: each agent's graph and keyframe trajectory in the shared
     frame (at most every ``every_s`` per robot, so long runs do not re-send everything each keyframe),
-    matches, robots joining and going stale."""
+    matches, robots joining and going stale, agents placed provisionally or confirmed."""
 
     def __init__(self, viz: Viz, *, every_s: float = 1.0) -> None:
         self.viz = viz
         self.every_s = every_s
         self._last: dict[str, float] = {}
         self._states: dict[str, str] = {}
+        self._placements = PlacementWatch()
 
     def update(self, node: ServerNode, records: list[MatchRecord]) -> None:
         server = node.map
@@ -79,6 +81,9 @@ class ServerView:
             self.viz.log_trajectories(name, odo_xyz, fused_xyz)
             graph = server.graph(last)
             self.viz.log_graph(name, graph.transformed(T_shared_odom) if T_shared_odom is not None else graph)
+        if records:  # agents placed provisionally, confirmed or outvoted
+            for level, text in self._placements.changes(server):
+                self.viz.log_text(text, level)
         for m in records:
             if m.success and server.is_placed(m.robot_a) and server.is_placed(m.robot_b):
                 pa = se3.transform_points(server.T_shared_odom(m.robot_a), m.inlier_positions_a)
@@ -117,8 +122,10 @@ def serve(
     with make_transport(NodeRole.SERVER, listen) as transport:
         node = ServerNode(cfg, transport, out_dir, reference=reference, expect=expect, stale_after_s=stale_after_s)
         node.writer.write_text("config.yaml", cfg.to_yaml())
-        if node.recovered_messages:
-            viz.log_text(f"recovered {node.recovered_messages} messages from the journal", "INFO")
+        r = node.recovery
+        if r.snapshot_records or r.replayed:
+            viz.log_text(f"recovered {r.snapshot_records} journal records from a snapshot and replayed {r.replayed} "
+                         f"in {r.seconds:.1f} s", "INFO")  # fmt: skip
         view = ServerView(viz)
         try:
             while not node.finished:

@@ -1,6 +1,11 @@
 """A city grown around given drive paths (e.g. real KITTI trajectories): roads follow the paths and
 buildings, trees, lamps, signs, fences and parked cars line them, never on any path.
 
+Every road runs on ``EXTEND_M`` beyond both ends of its drive, straight along the drive's last heading,
+so a camera at the start or end of a drive looks down a street, as it would on a real road, not onto
+empty terrain where the generated city stops (which left pseudo-LiDAR clouds with nothing but ground
+ahead and broke the odometry in the last seconds of every drive).
+
 Ground: a terrain plane, sidewalk ribbons (|offset| <= road half width + sidewalk) and road ribbons
 2 cm above them along every road centreline (the drive path shifted left by the lane offset), so
 wherever roads overlap the road wins. Objects are proposed along both sides of every road and kept
@@ -21,6 +26,25 @@ K = ObjectKind
 ROAD_HALF_M = 6.5
 SIDEWALK_M = 4.0
 LANE_OFFSET_M = 2.0
+EXTEND_M = 120.0
+"""Roads (and what lines them) continue this far beyond each drive's ends: beyond the farthest a camera
+uses (KISS-ICP's 100 m range) so no view ends in empty terrain."""
+HEADING_M = 10.0
+"""The heading a road continues with: the mean direction of the drive's first / last this many metres."""
+
+
+def extend_path(path_xy: np.ndarray, extend_m: float = EXTEND_M, heading_m: float = HEADING_M) -> np.ndarray:
+    """A dense (M, 2) path (1 m spacing) continued straight for ``extend_m`` beyond both ends, along the
+    mean heading of its first / last ``heading_m``; a path shorter than 1 m is returned as it is."""
+    if len(path_xy) < 2 or np.linalg.norm(path_xy[-1] - path_xy[0]) < 1.0:
+        return path_xy
+    k = int(min(heading_m, len(path_xy) - 1))
+    steps = np.arange(1.0, extend_m + 0.5)[:, None]
+    head = path_xy[k] - path_xy[0]
+    tail = path_xy[-1] - path_xy[-1 - k]
+    head = head / max(np.linalg.norm(head), 1e-9)
+    tail = tail / max(np.linalg.norm(tail), 1e-9)
+    return np.concatenate([path_xy[0] - steps[::-1] * head, path_xy, path_xy[-1] + steps * tail])
 
 
 def _ribbon(centre_xy: np.ndarray, half_width_m: float, z_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -38,7 +62,7 @@ class _Corridor:
     def __init__(self, paths_xy: list[np.ndarray], seed: int) -> None:
         self.rng = np.random.default_rng(seed)
         self.seed = seed
-        dense = [resample_path(p, 1.0) for p in paths_xy]
+        dense = [extend_path(resample_path(p, 1.0)) for p in paths_xy]
         self.centres = [lane_path(p, -LANE_OFFSET_M) for p in dense]
         self.road_tree = cKDTree(np.concatenate(self.centres))
         self.path_tree = cKDTree(np.concatenate(dense))

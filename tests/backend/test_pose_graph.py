@@ -389,3 +389,19 @@ def test_closures_of_one_match_update_once_and_give_the_same_estimate(scene):
     assert fused_ate(scene, pg) == pytest.approx(reference, abs=0.1)
     assert fused_ate(scene, bad) == pytest.approx(fused_ate(scene, run(scene, closures[:6])[0]), abs=0.2)
     assert bad.closures()[0].status is ClosureStatus.REJECTED and not bad.closures()[0].in_graph
+
+
+def test_odometry_sigmas_grow_with_the_distance_driven():
+    pg = MultiRobotPoseGraph(["a"], odometry_sigmas=(0.001, 0.01), odometry_drift=(0.002, 0.02))
+    steps = [0.0, 1.0, 3.0]
+    T = np.eye(4)
+    pg.add_keyframe("a", 0, T)
+    for k, step in enumerate(steps[1:], start=1):
+        T = T @ make_pose(np.eye(3), np.array([0.0, 0.0, step]))
+        pg.add_keyframe("a", k, T)
+    edges = [line.split() for line in pg.to_g2o().splitlines() if line.startswith("EDGE")]
+    trans_info = [float(e[10]) for e in edges]  # first information entry: x translation
+    expected = [1.0 / (0.01 + 0.02 * s) ** 2 for s in steps[1:]]
+    np.testing.assert_allclose(trans_info, expected, rtol=1e-4)
+    with pytest.raises(BackendError, match="drift"):
+        MultiRobotPoseGraph(["a"], odometry_drift=(-1.0, 0.0))

@@ -123,6 +123,7 @@ def test_image_0_uses_p0(tmp_path: Path) -> None:
         (lambda r: (r / "calib.txt").write_text("P2: -700 0 4 0 0 700 3 0 0 0 1 0\n"), "mirrors the map"),
         (lambda r: (r / "calib.txt").write_text("P2: 700 0 600 0 0 700 3 0 0 0 1 0\n"), "principal point (600, 3)"),
         (lambda r: (r / "calib.txt").write_bytes(b"P2: 7\xff\xfe 0 4\n"), "not UTF-8 text"),
+        (lambda r: (r / "calib.txt").write_text("P2: nan 0 4 0 0 700 3 0 0 0 1 0\n"), "P2 line of 12 finite numbers"),
         (lambda r: (r / "times.txt").write_text("0.0\n0.1\n0.1\n"), "line 3 (0.1 s) is not after line 2"),
         (lambda r: (r / "times.txt").write_text("0.2\n0.1\n0.3\n"), "timestamps must increase"),
     ],

@@ -81,3 +81,63 @@ def test_ground_truth_is_written_in_the_shared_frame(tmp_path):
     assert [p.name for p in ResultsWriter(other).write_ground_truth(robots, gt_shared_frame=False)] == [
         "a_gt_tum.txt", "a_gt_kitti.txt"]
     assert ResultsWriter(tmp_path / "none").write_ground_truth({"c": robots["c"]}) == []
+
+
+def _fused_lines(path):
+    return path.read_text().splitlines()
+
+
+def test_provisional_fused_files_say_so_and_evo_still_reads_them(tmp_path):
+    from evo.tools import file_interface
+
+    w = ResultsWriter(tmp_path)
+    t, poses = np.arange(3.0), np.tile(np.eye(4), (3, 1, 1))
+    w.write_trajectories("car", t, poses, poses, provisional="car rests on a single graph match")
+    assert _fused_lines(tmp_path / "car_fused_tum.txt")[0] == "# provisional: car rests on a single graph match"
+    assert not any(line.startswith("#") for line in _fused_lines(tmp_path / "car_fused_kitti.txt"))  # devkit rows
+    assert len(file_interface.read_tum_trajectory_file(str(tmp_path / "car_fused_tum.txt")).poses_se3) == 3
+    assert not any(line.startswith("#") for line in _fused_lines(tmp_path / "car_odometry_tum.txt"))
+    w.write_trajectories("car", t, poses, poses)  # confirmed later: the mark goes
+    assert not any(line.startswith("#") for line in _fused_lines(tmp_path / "car_fused_tum.txt"))
+
+
+def test_a_robot_no_longer_placed_loses_its_fused_files(tmp_path):
+    w = ResultsWriter(tmp_path)
+    t, poses = np.arange(3.0), np.tile(np.eye(4), (3, 1, 1))
+    w.write_trajectories("car", t, poses, poses)
+    assert (tmp_path / "car_fused_tum.txt").is_file()
+    w.write_trajectories("car", t, poses, None)  # its placing closures were outvoted
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["car_odometry_tum.txt"]
+
+
+def _checkpoint(w, value):
+    """Three files as one checkpoint."""
+    with w.checkpoint():
+        for name in ("a.json", "b.json", "c.json"):
+            w.write_json(name, {"checkpoint": value})
+
+
+def test_a_checkpoint_replaces_all_files_or_none(tmp_path, monkeypatch):
+    w = ResultsWriter(tmp_path)
+    _checkpoint(w, 1)
+    real_write_text = type(tmp_path).write_text
+
+    def full_at_c(self, text, *args, **kwargs):
+        if self.name.startswith(".c.json."):
+            raise OSError(28, "No space left on device")
+        return real_write_text(self, text, *args, **kwargs)
+
+    monkeypatch.setattr(type(tmp_path), "write_text", full_at_c)
+    with pytest.raises(DataError, match=r"c\.json: No space left on device"):
+        _checkpoint(w, 2)
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json", "c.json"]  # no temporaries
+    assert {json.loads((tmp_path / n).read_text())["checkpoint"] for n in ("a.json", "b.json", "c.json")} == {1}
+    with pytest.raises(KeyboardInterrupt):  # Ctrl-C in the middle of a checkpoint
+        with w.checkpoint():
+            w.write_json("a.json", {"checkpoint": 3})
+            raise KeyboardInterrupt
+    assert json.loads((tmp_path / "a.json").read_text())["checkpoint"] == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json", "c.json"]
+    _checkpoint(w, 4)
+    assert {json.loads((tmp_path / n).read_text())["checkpoint"] for n in ("a.json", "b.json", "c.json")} == {4}

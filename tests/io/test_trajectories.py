@@ -141,3 +141,21 @@ def test_real_kitti_ground_truth(shared_data: Path) -> None:
     poses = read_kitti_poses(path)
     assert poses.shape == (4541, 4, 4)
     np.testing.assert_array_equal(poses[:, :3, :4].reshape(-1, 12), np.loadtxt(path))
+
+
+def test_a_comment_line_is_skipped_by_every_reader(tmp_path: Path, poses: np.ndarray, stamps: np.ndarray) -> None:
+    from shgm_slam.io.trajectories import read_comments
+
+    note = "provisional: placed from one match\n(keyframes 3-9)"
+    write_tum(tmp_path / "a.tum", stamps, poses, comment=note)
+    write_kitti_poses(tmp_path / "a.txt", poses, comment=note)
+    for path in (tmp_path / "a.tum", tmp_path / "a.txt"):
+        first, *rows = path.read_text().splitlines()
+        assert first == "# provisional: placed from one match (keyframes 3-9)" and len(rows) == len(poses)
+        assert read_comments(path) == ["provisional: placed from one match (keyframes 3-9)"]
+    np.testing.assert_allclose(read_tum(tmp_path / "a.tum")[1], poses, atol=1e-8)
+    np.testing.assert_allclose(read_kitti_poses(tmp_path / "a.txt"), poses, atol=1e-8)
+    assert len(file_interface.read_tum_trajectory_file(str(tmp_path / "a.tum")).poses_se3) == len(poses)
+    assert len(file_interface.read_kitti_poses_file(str(tmp_path / "a.txt")).poses_se3) == len(poses)
+    write_tum(tmp_path / "plain.tum", stamps, poses)
+    assert read_comments(tmp_path / "plain.tum") == []

@@ -107,6 +107,26 @@ def test_cli_check_model_smoke(tmp_path: Path, depth_model: Path) -> None:
     assert "orphan.yaml not found" in result.output.replace("\n", " ")
 
 
+@pytest.mark.parametrize(
+    ("where", "says"), [("preview", "give it a .png"), ("afile/p.png", "afile is a file, not a folder")]
+)
+def test_cli_check_model_bad_preview_path_is_one_line(tmp_path: Path, depth_model: Path, where: str, says: str) -> None:
+    (tmp_path / "afile").write_text("a file where a folder is wanted")
+    args = ["check-model", str(depth_model), "--preview", str(tmp_path / where), "--runs", "1"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, (result.output, repr(result.exception))
+    assert says in " ".join(result.output.split()) and "Traceback" not in result.output
+
+
+def test_cli_check_model_prints_a_model_name_with_brackets_literally(tmp_path: Path, depth_model: Path) -> None:
+    odd = tmp_path / "[bold]m.onnx"
+    depth_model.rename(odd)
+    depth_model.with_suffix(".yaml").rename(odd.with_suffix(".yaml"))
+    result = CliRunner().invoke(app, ["check-model", str(odd), "--runs", "1"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    assert "[bold]m.onnx: depth model" in result.output
+
+
 def test_check_model_on_a_real_kitti_frame(tmp_path: Path, depth_model: Path, shared_data: Path) -> None:
     image = shared_data / "kitti" / "frames06" / "kitti06-12-color.png"
     report = check_model(

@@ -129,6 +129,24 @@ def test_clear_errors(sim_seq, models, tmp_path):
     assert _run(f"{sim_seq}:0-3", tmp_path / "b", models, overwrite=True).computed == 3
 
 
+@pytest.mark.parametrize("fails", ["mkdir", "symlink", "write_bytes"])
+def test_an_unwritable_or_full_out_is_one_clear_error(sim_seq, models, tmp_path, monkeypatch, fails):
+    """A read-only --out (as a user without root meets it) or a full disk while the folder is laid out:
+    one DataError naming the file, no traceback."""
+    import errno
+    import os
+
+    code = errno.ENOSPC if fails == "write_bytes" else errno.EACCES
+
+    def refuse(*args, **kwargs):
+        raise OSError(code, os.strerror(code), str(args[0]))
+
+    target = {"mkdir": (Path, "mkdir"), "symlink": (os, "symlink"), "write_bytes": (Path, "write_bytes")}[fails]
+    monkeypatch.setattr(*target, refuse)
+    with pytest.raises(DataError, match=r"cannot write .*; "):
+        _run(f"{sim_seq}:0-3", tmp_path / "p", models)
+
+
 def test_cli_perceive_then_reads_as_a_robot(sim_seq, models, tmp_path):
     out = tmp_path / "p"
     args = ["perceive", f"{sim_seq}:0-4", "--out", str(out), "--depth-model", str(DEPTH_ONNX),

@@ -147,3 +147,24 @@ def test_results_are_rewritten_every_few_keyframes_unless_a_rewrite_costs_too_mu
     assert cheap >= 2
     # a rewrite "taking" far longer than the whole drive leaves room for no second one
     assert run(10 * elapsed / CHECKPOINT_SHARE) == 1
+
+
+def test_a_provisional_placement_reaches_status_server_json_and_the_robot(robots, cfg, tmp_path: Path) -> None:
+    """car2 stopped early, placed from one piece of evidence: the status, server.json, the server's fused
+    file and the robot process all say it is provisional."""
+    from shgm_slam.io.trajectories import read_comments
+
+    cfg = cfg.model_copy(deep=True)
+    cfg.backend.match_every_keyframes = 10  # the default: car2's matches in 30 frames all find the same objects
+    clock, bus = FakeClock(), InProcessBus()
+    server = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=2, clock=clock)
+    nodes = fresh(robots, cfg, bus, clock)
+    drive(server, nodes, {"car1": range(len(robots["car1"])), "car2": range(30)}, clock)
+    finish(server, nodes, clock)
+    assert server.map.placement("car2").provisional
+    s = server.summary()
+    assert s["robots"]["car2"]["placed"] == ["car2"] and s["robots"]["car2"]["provisional"] == ["car2"]
+    assert s["robots"]["car1"]["provisional"] == []
+    assert nodes["car2"].provisional_agents == ("car2",) and nodes["car1"].provisional_agents == ()
+    assert read_comments(tmp_path / "car2_fused_tum.txt")[0].startswith("provisional: car2 is placed provisionally")
+    assert server.provisional_note("car1") is None

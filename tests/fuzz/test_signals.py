@@ -1,0 +1,47 @@
+"""Stop signals at random moments of a run: exit 130 (or 0 when the run finished first), never a traceback,
+never a half-written results file."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from hypothesis import event, given
+from hypothesis import strategies as st
+
+from tests.fuzz.conftest import fuzz_settings, scratch
+
+
+@fuzz_settings(3)
+@given(sig=st.sampled_from(["SIGINT", "SIGTERM", "SIGHUP"]), delay_s=st.floats(0.0, 4.0))
+def test_a_stop_signal_at_any_moment_keeps_the_results(tiny_scenario: Path, sig: str, delay_s: float) -> None:
+    with scratch() as d:
+        out = d / "out"
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "shgm_slam.cli", "run", "--robot", f"car1={tiny_scenario / 'car1'}",
+             "--robot", f"car2={tiny_scenario / 'car2'}", "--rerun", "off", "--out", str(out)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "COLUMNS": "200"},
+        )  # fmt: skip
+        deadline = time.monotonic() + 120
+        while not (out / "config.yaml").is_file() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)  # the run has started (its handlers are installed; imports are done)
+        time.sleep(delay_s)
+        proc.send_signal(getattr(signal, sig))
+        stdout, stderr = proc.communicate(timeout=120)
+        text = (stdout + stderr).decode()
+        event(f"exit {proc.returncode}")
+        assert proc.returncode in (0, 130), text[-3000:]
+        assert "Traceback" not in text, text[-3000:]
+        assert not [p.name for p in out.iterdir() if p.name.startswith(".")]  # no temporaries left
+        metrics = out / "metrics.json"
+        if proc.returncode == 130:
+            assert "interrupted" in text
+        if metrics.is_file():  # absent only when the signal came while the final results were being written
+            assert json.loads(metrics.read_text())["interrupted"] is (proc.returncode == 130)
+            for robot in ("car1", "car2"):
+                assert (out / f"{robot}_odometry_tum.txt").is_file()
