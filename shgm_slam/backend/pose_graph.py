@@ -344,6 +344,7 @@ class MultiRobotPoseGraph:
         self._large_correction = False  # pending changes need the extra relinearization passes
         self._cache_version = -1
         self._cache: dict[str, np.ndarray] = {}
+        self._converged: tuple[int, gtsam.Values] | None = None  # (version, solution) of ``converge``
         self._reset_isam()
 
     # --- public API ---------------------------------------------------------------------------------
@@ -471,6 +472,39 @@ class MultiRobotPoseGraph:
         """
         self._flush()
 
+    def converge(self, max_iterations: int = 100) -> int:
+        """Solve the whole graph to convergence: Levenberg-Marquardt over every factor in iSAM2 (robust
+        kernels included), started from iSAM2's estimate, which relinearizes only variables that moved by
+        more than ``relinearize_threshold`` and so stops short of the optimum by an amount that depends
+        on the order keyframes and closures arrived in. The solution is what ``estimate`` and every pose
+        query answer until the graph changes next (iSAM2 itself is left as it is). Returns the LM
+        iterations run (0: nothing anchored).
+
+        Raises:
+            BackendError: the optimizer fails (an underconstrained graph).
+        """
+        self._flush()
+        factors = self._isam.getFactorsUnsafe()
+        graph = gtsam.NonlinearFactorGraph()
+        for i in range(factors.size()):
+            if factors.exists(i):
+                graph.add(factors.at(i))
+        initial = self._isam.calculateEstimate()
+        if initial.size() == 0:
+            return 0
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        params.setRelativeErrorTol(1e-9)
+        params.setAbsoluteErrorTol(1e-12)
+        try:
+            optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+            result = optimizer.optimize()
+        except RuntimeError as exc:
+            raise BackendError(f"converging the pose graph failed: {_first_line(exc)}") from None
+        self._version += 1
+        self._converged = (self._version, result)
+        return int(optimizer.iterations())
+
     def add_loop_closure(
         self,
         robot: str,
@@ -546,8 +580,8 @@ class MultiRobotPoseGraph:
         kfs = np.asarray(kf_indices, dtype=np.int64).reshape(-1)
         if kfs.size and not (0 <= kfs.min() and kfs.max() < len(r.T_odom_kf)):
             raise BackendError(f"{robot} has keyframes 0..{len(r.T_odom_kf) - 1}, asked for {kfs.min()}..{kfs.max()}")
-        if self._cache_version == self._version:
-            return self._cache[robot][kfs].copy()
+        if self._cache_version == self._version or (self._converged and self._converged[0] == self._version):
+            return self.estimate()[robot][kfs].copy()
         out = np.zeros((kfs.size, 4, 4))
         for i, k in enumerate(kfs.tolist()):
             out[i] = self._isam.calculateEstimatePose3(self.keys.key(robot, k)).matrix()
@@ -558,8 +592,8 @@ class MultiRobotPoseGraph:
         r = self._require_anchored(robot)
         if not 0 <= kf_index < len(r.T_odom_kf):
             raise BackendError(f"{robot} has no keyframe {kf_index} ({len(r.T_odom_kf)} keyframes)")
-        if self._cache_version == self._version:
-            return self._cache[robot][kf_index].copy()
+        if self._cache_version == self._version or (self._converged and self._converged[0] == self._version):
+            return self.estimate()[robot][kf_index].copy()
         return self._isam.calculateEstimatePose3(self.keys.key(robot, kf_index)).matrix()
 
     def T_shared_odom(self, robot: str, kf_index: int | None = None) -> np.ndarray:
@@ -626,7 +660,7 @@ class MultiRobotPoseGraph:
         odometry factors and the closures in the graph, information matrices in g2o order
         [trans, rot]. Robust kernels, robot 0's prior and the attitude factors are not part of the format.
         """
-        values = self._isam.calculateEstimate()
+        values = self._values()
         lines = []
         for k in sorted(values.keys()):
             lines.append(f"VERTEX_SE3:QUAT {k} " + _g2o_pose(values.atPose3(k)))
@@ -1064,9 +1098,16 @@ class MultiRobotPoseGraph:
                 f"({_first_line(again)}); the graph is underconstrained or a pose is invalid"
             ) from None
 
+    def _values(self) -> gtsam.Values:
+        """The current estimate: the converged solution while the graph has not changed since
+        ``converge``, else iSAM2's."""
+        if self._converged is not None and self._converged[0] == self._version:
+            return self._converged[1]
+        return self._isam.calculateEstimate()
+
     def _compute_estimate(self) -> dict[str, np.ndarray]:
         """All anchored robots' ``T_shared_kf`` from one ``calculateEstimate`` (vectorised extraction)."""
-        values = self._isam.calculateEstimate()
+        values = self._values()
         keys = np.fromiter(values.keys(), dtype=np.uint64, count=values.size())
         rows = gtsam.utilities.extractPose3(values)  # (N, 12): R row-major, t; in key order
         T = np.zeros((len(keys), 4, 4))
