@@ -269,6 +269,18 @@ class RobustKernel(str, Enum):
     TUKEY = "tukey"
 
 
+MEASURED_DEPTH_DRIFT = (0.002, 0.01)
+"""Odometry sigma growth (rad per metre, fraction of the distance) for KISS-ICP on measured depth (files:
+a sensor or the simulator). Chosen on the held-out tuning seeds 10-14: a step sigma of 0.01 rad / 0.1 m
+whatever its length let closures bend well-measured trajectories; the rotation rate is about twice a
+systematic yaw drift of 0.05 deg/m, so a loop closure still straightens such a drift."""
+
+PREDICTED_DEPTH_DRIFT = (0.005, 0.05)
+"""The same for odometry on depth a network predicts: the depth-quality study measured 4-6 % drift of
+the visual and hybrid odometry with the demo models (``bench depth-quality``); about what one 0.01 rad /
+0.1 m sigma per 2 m keyframe step allowed before."""
+
+
 class BackendConfig(_Stage):
     """Map server: periodic cross-robot matching and the iSAM2 pose graph."""
 
@@ -291,14 +303,13 @@ class BackendConfig(_Stage):
     odometry_sigma_trans_m: float = Field(
         0.01, gt=0, description="odometry step sigma when it did not move (the floor of the drift model)"
     )
-    odometry_drift_rot_rad_per_m: float = Field(
-        0.002, ge=0, le=1, description="odometry step rotation sigma growth per metre driven (KISS-ICP on "
-        "measured depth; chosen on held-out tuning seeds 10-14: tighter than 0.01 rad per keyframe, with which "
-        "closures bent well-measured trajectories; about twice a systematic yaw drift of 0.05 deg/m, so that "
-        "loop closures still straighten such a drift)"
+    odometry_drift_rot_rad_per_m: float | None = Field(
+        None, ge=0, le=1, description="odometry step rotation sigma growth per metre driven; None: from where "
+        "the depth comes from (``MEASURED_DEPTH_DRIFT``, ``PREDICTED_DEPTH_DRIFT``)"
     )
-    odometry_drift_trans_per_m: float = Field(
-        0.01, ge=0, le=1, description="odometry step translation sigma growth per metre driven (0.01 = 1 %)"
+    odometry_drift_trans_per_m: float | None = Field(
+        None, ge=0, le=1, description="odometry step translation sigma growth per metre driven (0.01 = 1 %); "
+        "None: from where the depth comes from"
     )
     closure_sigma_rot_rad: float = Field(0.1, gt=0)
     closure_sigma_trans_m: float = Field(3.0, gt=0)
@@ -315,6 +326,20 @@ class BackendConfig(_Stage):
     consistency_rot_deg_per_m: float = Field(
         0.05, ge=0, description="consistency rotation tolerance growth, degrees per metre of odometry in the loop"
     )
+
+
+
+    def with_drift(self, predicted_depth: bool) -> BackendConfig:
+        """This stage with the odometry drift rates still None set from where the depth comes from: the
+        fleet's ``PREDICTED_DEPTH_DRIFT`` when any robot's depth is predicted by a model, else
+        ``MEASURED_DEPTH_DRIFT``."""
+        rot, trans = PREDICTED_DEPTH_DRIFT if predicted_depth else MEASURED_DEPTH_DRIFT
+        update = {}
+        if self.odometry_drift_rot_rad_per_m is None:
+            update["odometry_drift_rot_rad_per_m"] = rot
+        if self.odometry_drift_trans_per_m is None:
+            update["odometry_drift_trans_per_m"] = trans
+        return self.model_copy(update=update)
 
 
 class ServerConfig(_Stage):

@@ -115,6 +115,18 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
     return RobotFrontend(name, sequence, rcfg, perception, odometry)
 
 
+def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConfig:
+    """``cfg`` with the back end's odometry drift rates (still None) set from where the fleet's depth comes
+    from (``BackendConfig.with_drift``: predicted when any robot's depth model predicts it)."""
+    predicted = [r for r, f in fronts.items() if f.cfg.perception.depth_model is not None]
+    backend = cfg.backend.with_drift(predicted_depth=bool(predicted))
+    if predicted and backend != cfg.backend:
+        log.info("odometry on predicted depth (%s): pose-graph odometry sigmas grow %.3f rad and %.0f %% per "
+                 "metre", ", ".join(predicted), backend.odometry_drift_rot_rad_per_m,
+                 100 * backend.odometry_drift_trans_per_m)  # fmt: skip
+    return cfg.model_copy(update={"backend": backend})
+
+
 def effective_config(cfg: ShgmConfig, robot_cfgs: dict[str, ShgmConfig]) -> ShgmConfig:
     """``cfg`` with each robot's data-derived values (``resolve_robot_config``) written into its
     ``robots`` overrides: loading it reproduces every front end's settings."""
@@ -278,6 +290,7 @@ def run_slam(
     writer = ResultsWriter(out_dir)
     writer.write_ground_truth(robots, gt_shared_frame)  # <robot>_gt_tum.txt, for evo and `shgm-slam eval`
     fronts = {r: make_frontend(r, seq, cfg) for r, seq in robots.items()}
+    cfg = fleet_backend(cfg, fronts)
     # the same nodes as the distributed deployment, on the in-process bus (every message is encoded)
     bus = InProcessBus()
     server_node = ServerNode(

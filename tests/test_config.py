@@ -6,6 +6,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import yaml
 
 from shgm_slam.config import OdometryKind, ShgmConfig, load_config
 from shgm_slam.errors import ConfigError
@@ -49,3 +50,28 @@ def test_gt_odometry_without_ground_truth_is_refused_before_the_run(tiny_scenari
     with pytest.raises(ConfigError, match="needs ground-truth poses"):
         run_slam(open_robots([f"car1={seq}"]), cfg, tmp_path / "out")
     assert not (tmp_path / "out" / "metrics.json").exists()
+
+
+def test_odometry_drift_follows_where_the_depth_comes_from() -> None:
+    from types import SimpleNamespace
+
+    from shgm_slam.config import MEASURED_DEPTH_DRIFT, PREDICTED_DEPTH_DRIFT, BackendConfig
+    from shgm_slam.runner import fleet_backend
+
+    b = BackendConfig()
+    measured, predicted = b.with_drift(predicted_depth=False), b.with_drift(predicted_depth=True)
+    assert (measured.odometry_drift_rot_rad_per_m, measured.odometry_drift_trans_per_m) == MEASURED_DEPTH_DRIFT
+    assert (predicted.odometry_drift_rot_rad_per_m, predicted.odometry_drift_trans_per_m) == PREDICTED_DEPTH_DRIFT
+    assert PREDICTED_DEPTH_DRIFT[1] > MEASURED_DEPTH_DRIFT[1]
+    user = BackendConfig(odometry_drift_trans_per_m=0.02).with_drift(predicted_depth=True)  # the user's value wins
+    assert user.odometry_drift_trans_per_m == 0.02 and user.odometry_drift_rot_rad_per_m == PREDICTED_DEPTH_DRIFT[0]
+
+    cfg = ShgmConfig()
+    rgb = cfg.model_copy(deep=True)
+    rgb.perception.depth_model = Path("d.onnx")
+    fronts = {"a": SimpleNamespace(cfg=cfg), "b": SimpleNamespace(cfg=rgb)}  # one robot on a depth model
+    assert fleet_backend(cfg, fronts).backend.odometry_drift_trans_per_m == PREDICTED_DEPTH_DRIFT[1]
+    assert fleet_backend(cfg, {"a": fronts["a"]}).backend.odometry_drift_trans_per_m == MEASURED_DEPTH_DRIFT[1]
+    # written resolved into config.yaml and read back unchanged
+    again = ShgmConfig.model_validate(yaml.safe_load(fleet_backend(cfg, fronts).to_yaml()))
+    assert again.backend.odometry_drift_rot_rad_per_m == PREDICTED_DEPTH_DRIFT[0]

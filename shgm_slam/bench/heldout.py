@@ -317,7 +317,9 @@ def replay_one(recorded: Path, mode: InputMode, run_dir: Path, robots: list[str]
     """The map server alone, again, on the keyframes of the recorded run ``recorded``; returns its
     ``metrics.json`` dict: the recorded front-end facts (segments, failures, path lengths) with this
     back end's matches and closures."""
-    node = replay_backend(recorded, heldout_config(mode), run_dir, robots)
+    cfg = heldout_config(mode)
+    cfg = cfg.model_copy(update={"backend": cfg.backend.with_drift(predicted_depth=mode is InputMode.RGB)})
+    node = replay_backend(recorded, cfg, run_dir, robots)
     metrics = json.loads((Path(recorded) / "metrics.json").read_text())
     matches = node.map.matches
     metrics["matches_tried"] = len(matches)
