@@ -307,6 +307,12 @@ def _render_summary(summary) -> None:
 
     t = _summary_table(summary)
     console.print(t)
+    chosen: dict[tuple[str, str], list[str]] = {}
+    for r in summary.robots:
+        if r.odometry:
+            chosen.setdefault((r.odometry, r.odometry_reason), []).append(r.name)
+    for (kind, reason), names in chosen.items():
+        console.print(f"odometry {lit(kind)} for {lit(', '.join(names))}: {lit(reason)}")
     for r in summary.robots:
         if r.odometry_failures:
             more = f" (+{r.odometry_failures - 3} more in metrics.json)" if r.odometry_failures > 3 else ""

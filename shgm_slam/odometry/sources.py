@@ -343,18 +343,46 @@ ODOMETRY_SOURCES: dict[OdometryKind, Callable[[OdometryConfig, int], OdometrySou
 }
 
 
-def resolve_kind(kind: OdometryKind | str, depth_from_model: bool) -> OdometryKind:
-    """``kind`` with AUTO resolved: VISUAL for model-predicted depth, KISS_ICP for depth files."""
+@dataclass(frozen=True)
+class OdometryChoice:
+    """The odometry a robot runs and why (``reason`` is shown in the log, the summary and metrics.json)."""
+
+    kind: OdometryKind
+    reason: str
+
+
+AUTO_FILES_REASON = "auto: depth from files (a depth sensor or the simulator), KISS-ICP on its pseudo-LiDAR"
+AUTO_MODEL_REASON = (
+    "auto: depth predicted by a model; KISS-ICP alone stalls on it (its error lies along the street and "
+    "changes from frame to frame), so KISS-ICP runs on the trusted part of the depth, seeded by the visual "
+    "odometry and fused with it by how noisy each one's turns are (the depth-quality study)"
+)
+
+
+def choose_odometry(kind: OdometryKind | str, depth_from_model: bool) -> OdometryChoice:
+    """``kind`` with AUTO resolved, and why: HYBRID for model-predicted depth, KISS_ICP for depth files.
+
+    The choice for predicted depth follows ``shgm-slam bench depth-quality`` (README, "What depth quality
+    your model needs"): with network-like depth errors KISS-ICP alone drifts tens of percent, the
+    hybrid no more than the visual odometry and less where the depth is good.
+    """
     kind = OdometryKind(kind)
-    if kind is OdometryKind.AUTO:
-        return OdometryKind.VISUAL if depth_from_model else OdometryKind.KISS_ICP
-    return kind
+    if kind is not OdometryKind.AUTO:
+        return OdometryChoice(kind, "set in the configuration")
+    if depth_from_model:
+        return OdometryChoice(OdometryKind.HYBRID, AUTO_MODEL_REASON)
+    return OdometryChoice(OdometryKind.KISS_ICP, AUTO_FILES_REASON)
+
+
+def resolve_kind(kind: OdometryKind | str, depth_from_model: bool) -> OdometryKind:
+    """``kind`` with AUTO resolved (``choose_odometry``)."""
+    return choose_odometry(kind, depth_from_model).kind
 
 
 def make_odometry(cfg: OdometryConfig, num_frames: int, *, depth_from_model: bool = False) -> OdometrySource:
     """Build the odometry source ``cfg.kind`` for a sequence of ``num_frames`` frames.
 
-    ``depth_from_model`` tells AUTO whether the depth is predicted (then visual odometry) or read
-    from files (then KISS-ICP). Data-derived fields still None (``scene_scale``) take the fleet values.
+    ``depth_from_model`` tells AUTO whether the depth is predicted or read from files
+    (``choose_odometry``). Data-derived fields still None (``scene_scale``) take the fleet values.
     """
     return ODOMETRY_SOURCES[resolve_kind(cfg.kind, depth_from_model)](cfg.filled(), num_frames)
