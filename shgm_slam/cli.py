@@ -539,8 +539,10 @@ def robot_command(
     with _stop_signals_as_interrupt():
         s = drive_robot(name, seq, cfg, connect=connect, realtime=realtime, out_dir=out, wait_s=wait)
     placed = _placed_text(s.placed_agents, s.provisional_agents)
+    down_kb = s.bytes_received.get("correction", 0) / 1e3
     console.print(f"{lit(name)}: {s.frames_processed}/{s.frames} frames, {s.keyframes} keyframes "
-                  f"({s.bytes_per_keyframe:.0f} B each, {s.resent} re-sent), placed: {lit(placed)}")  # fmt: skip
+                  f"({s.bytes_per_keyframe:.0f} B each, {s.resent} re-sent; {down_kb:.0f} KB of corrections), "
+                  f"placed: {lit(placed)}")  # fmt: skip
     if s.interrupted:
         raise typer.Exit(130)
     if not s.acknowledged:

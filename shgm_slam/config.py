@@ -284,8 +284,14 @@ class BackendConfig(_Stage):
     loop_closure: bool = Field(
         True, description="also match each robot's submap against its own older graph (intra-robot loop closure)"
     )
-    odometry_sigma_rot_rad: float = Field(0.01, gt=0)
-    odometry_sigma_trans_m: float = Field(0.1, gt=0)
+    odometry_sigma_rot_rad: float = Field(0.01, gt=0, description="odometry step sigma when it did not move")
+    odometry_sigma_trans_m: float = Field(0.1, gt=0, description="odometry step sigma when it did not move")
+    odometry_drift_rot_rad_per_m: float = Field(
+        0.0, ge=0, le=1, description="odometry step rotation sigma growth per metre driven"
+    )
+    odometry_drift_trans_per_m: float = Field(
+        0.0, ge=0, le=1, description="odometry step translation sigma growth per metre driven (0.01 = 1 %)"
+    )
     closure_sigma_rot_rad: float = Field(0.1, gt=0)
     closure_sigma_trans_m: float = Field(3.0, gt=0)
     robust_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="huber | cauchy | tukey | none")
@@ -300,6 +306,29 @@ class BackendConfig(_Stage):
     )
     consistency_rot_deg_per_m: float = Field(
         0.05, ge=0, description="consistency rotation tolerance growth, degrees per metre of odometry in the loop"
+    )
+
+
+class ServerConfig(_Stage):
+    """Map server as a process: crash-recovery snapshots and the corrections it sends robots."""
+
+    snapshot_every_messages: int = Field(
+        200, ge=0, le=10_000_000, description="write a state snapshot after this many new journal records "
+        "(0: no snapshots; a restarted server then replays its whole journal, matching included)"
+    )
+    snapshot_every_s: float = Field(
+        30.0, gt=0, le=86_400, description="also write one when this many seconds passed since the last and new "
+        "records arrived"
+    )
+    snapshots_kept: int = Field(
+        2, ge=1, le=100, description="newest snapshots kept (an unreadable newest falls back to the one before)"
+    )
+    correction_tolerance_m: float = Field(
+        0.05, ge=0, le=100, description="a keyframe's fused pose is sent to its robot again once it moved more than "
+        "this since the robot last got it (the final correction sends every change)"
+    )
+    correction_tolerance_rad: float = Field(
+        0.005, ge=0, le=3.2, description="... or turned more than this"
     )
 
 
@@ -333,6 +362,7 @@ class ShgmConfig(_Stage):
     odometry: OdometryConfig = OdometryConfig()
     keyframes: KeyframeConfig = KeyframeConfig()
     backend: BackendConfig = BackendConfig()
+    server: ServerConfig = ServerConfig()
     perception: PerceptionConfig = PerceptionConfig()
     robots: dict[str, RobotOverrides] = Field(
         default_factory=dict, description="per-robot overrides of front-end stages, by robot name"

@@ -1,8 +1,9 @@
 """What crosses the robot / map-server boundary: the message schema (robots are separate processes).
 
-Robots send ``HelloMessage`` (once per process start), ``KeyframeMessage`` (one per keyframe) and
-``DoneMessage`` (after their last frame); the map server answers each robot with ``CorrectionMessage``
-(where its agents are in the shared frame, and which keyframes arrived) and broadcasts
+Robots send ``HelloMessage`` (when the process starts, then as heartbeat), ``KeyframeMessage`` (one per
+keyframe) and ``DoneMessage`` (after their last frame); the map server answers each robot with
+``CorrectionMessage`` (which keyframes arrived; where its agents are in the shared frame: in full when the
+robot (re)connects or asks, else only what moved, ``shgm_slam.corrections``) and broadcasts
 ``StatusMessage``. ``shgm_slam.wire`` turns them into versioned, compact bytes and back.
 
 Agents: a robot's keyframes belong to the robot (``car1``) or to one of its later trajectory segments
@@ -21,12 +22,14 @@ from shgm_slam.graph.semantic_graph import GraphUpdate
 
 @dataclass(frozen=True)
 class HelloMessage:
-    """A robot process announces itself. ``session`` is random per process start: a hello with a new
-    session under a known name is a restart (resume) if the old session went silent, else a clash."""
+    """A robot process announces itself (and repeats it as its heartbeat). ``session`` is random per
+    process start: a hello with a new session under a known name is a restart (resume) if the old
+    session went silent, else a clash. ``resync``: the robot missed a correction and asks for a full one."""
 
     robot: str
     session: str
     num_frames: int
+    resync: bool = False
 
 
 @dataclass(frozen=True)
@@ -72,20 +75,43 @@ class DoneMessage:
     trajectory: RobotTrajectory | None = None
 
 
+@dataclass(frozen=True, eq=False)
+class AgentCorrection:
+    """Where one agent of a robot is in the shared frame, or what changed of it (``CorrectionMessage``).
+
+    ``T_shared_odom``: (4, 4) the agent's odometry frame in the shared frame (at its latest keyframe), or
+    None when the agent is not placed (the robot drops what it holds of it). ``num_keyframes``: K, the
+    agent's keyframes the server holds. ``T_move``: (4, 4) a rigid motion of the shared frame applied
+    first to every pose the robot holds of the agent (``T_move @ T_shared_kf``), or None. ``kf_indices``
+    (M,) int64, increasing, < K, and ``T_shared_kf`` (M, 4, 4): the fused poses of the keyframes that are
+    new or moved otherwise; the robot keeps the others.
+    """
+
+    T_shared_odom: np.ndarray | None
+    num_keyframes: int = 0
+    kf_indices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    T_shared_kf: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    T_move: np.ndarray | None = None
+
+
 @dataclass(frozen=True)
 class CorrectionMessage:
     """The map server's answer to one robot.
 
     ``received``: keyframes the server holds per agent of the robot (0 .. n-1 arrived; the robot
-    re-sends from n on). ``T_shared_kf``: (K, 4, 4) fused keyframe poses in the shared frame for each
-    agent of the robot that is placed (K = the agent's keyframes the server holds; unplaced agents are
-    absent). ``session`` echoes the robot session it answers ("" = any).
+    re-sends from n on). ``seq``: 0 for an acknowledgement alone; otherwise the number of this
+    correction for the robot's session (1, 2, ...). A ``full`` correction replaces everything the robot
+    holds (agents absent are not placed); any other carries only what changed since correction
+    ``seq - 1``, which the robot must hold (else it asks for a full one: ``HelloMessage.resync``).
+    ``agents``: agent -> ``AgentCorrection``. ``session`` echoes the robot session it answers ("" = any).
     """
 
     robot: str
     session: str
     received: dict[str, int]
-    T_shared_kf: dict[str, np.ndarray] = field(default_factory=dict)
+    seq: int = 0
+    full: bool = False
+    agents: dict[str, AgentCorrection] = field(default_factory=dict)
 
 
 class RobotState(str, Enum):

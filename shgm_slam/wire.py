@@ -9,7 +9,9 @@ schema fixes (the count N follows from the byte length, and must agree across co
   (Cityscapes train ids 0..18, 255 = ignore), anchor keyframes int32, positions (N, 3) float32
   (metres in a keyframe camera frame: float32 keeps ~0.1 mm at 1 km), sizes float32 (pixel counts,
   exact below 2^24), observation counts uint16 (saturated at 65535 when encoding);
-- ``up_odom`` (3,) float64 or nil; ``CorrectionMessage.T_shared_kf`` (K, 3, 4) float64 per agent;
+- ``up_odom`` (3,) float64 or nil; per agent of a ``CorrectionMessage``: ``T_shared_odom`` one pose or
+  nil, the keyframe count, keyframe indices int32 and their poses (M, 3, 4) float64, ``T_move`` one
+  pose or nil;
 - ``RobotTrajectory``: timestamps float64, segments int32, poses (N, 3, 4) float64 (a frame in no
   segment is all-NaN and comes back as an all-NaN 4x4).
 
@@ -34,6 +36,7 @@ import numpy as np
 from shgm_slam.errors import ProtocolError
 from shgm_slam.graph.semantic_graph import GraphUpdate, NodeState
 from shgm_slam.messages import (
+    AgentCorrection,
     CorrectionMessage,
     DoneMessage,
     HelloMessage,
@@ -45,8 +48,9 @@ from shgm_slam.messages import (
     StatusMessage,
 )
 
-PROTOCOL_VERSION = 1
-"""Version of the payload layout; a peer with another version is refused (``WireError``)."""
+PROTOCOL_VERSION = 2
+"""Version of the payload layout; a peer with another version is refused (``WireError``). 2: corrections
+carry only what changed (``AgentCorrection``), hellos a resync request."""
 
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 """Largest payload ``decode`` reads (and ``encode`` writes)."""
@@ -127,6 +131,12 @@ def _float(value: Any, what: str) -> float:
 def _text(value: Any, what: str) -> str:
     if not isinstance(value, str) or len(value) > MAX_TEXT_CHARS or not value.isprintable():
         raise WireError(f"{what} must be one printable line of at most {MAX_TEXT_CHARS} characters")
+    return value
+
+
+def _bool(value: Any, what: str) -> bool:
+    if not isinstance(value, bool):
+        raise WireError(f"{what} must be true or false, got {type(value).__name__}")
     return value
 
 
@@ -315,6 +325,45 @@ def _trajectory(value: Any) -> RobotTrajectory:
     return RobotTrajectory(t, seg, T)
 
 
+def _agent_correction_fields(c: AgentCorrection, what: str) -> dict[str, Any]:
+    if not isinstance(c, AgentCorrection):
+        raise WireError(f"{what} must be an AgentCorrection")
+    n = _int(c.num_keyframes, f"{what} num_keyframes")
+    idx = np.asarray(c.kf_indices).reshape(-1)
+    if c.T_shared_odom is None and (n or idx.size):
+        raise WireError(f"{what}: an agent that is not placed carries no keyframes")
+    if idx.size and (not np.issubdtype(idx.dtype, np.integer) or idx[0] < 0 or idx[-1] >= n
+                     or (np.diff(idx) <= 0).any()):  # fmt: skip
+        raise WireError(f"{what}: keyframe indices must increase within 0..{n - 1}")
+    odom = None if c.T_shared_odom is None else _pack_poses(np.asarray(c.T_shared_odom)[None], f"{what} T_shared_odom")
+    poses = np.asarray(c.T_shared_kf, dtype=np.float64).reshape(-1, 4, 4) if idx.size else np.zeros((0, 4, 4))
+    if len(poses) != idx.size:
+        raise WireError(f"{what}: {idx.size} keyframe indices but {len(poses)} poses")
+    move = None if c.T_move is None else _pack_poses(np.asarray(c.T_move)[None], f"{what} T_move")
+    if move is not None and odom is None:
+        raise WireError(f"{what}: an agent that is not placed carries no keyframes")
+    return {"o": odom, "K": n, "i": idx.astype("<i4").tobytes(), "T": _pack_poses(poses, f"{what} T_shared_kf"),
+            "m": move}  # fmt: skip
+
+
+def _agent_correction(value: Any, what: str) -> AgentCorrection:
+    f = _Fields(value, what, ("o", "K", "i", "T", "m"))
+    n = _int(f.d["K"], f"{what} num_keyframes")
+    idx = np.frombuffer(f.raw("i", 4), "<i4").astype(np.int64)
+    poses = _unpack_poses(f.raw("T", _POSE_BYTES, idx.size), idx.size, f"{what} T_shared_kf")
+    raw_odom = f.raw("o", _POSE_BYTES, 1, nullable=True)
+    if raw_odom is None and (n or idx.size):
+        raise WireError(f"{what}: an agent that is not placed carries no keyframes")
+    if idx.size and (idx[0] < 0 or idx[-1] >= n or (np.diff(idx) <= 0).any()):
+        raise WireError(f"{what}: keyframe indices must increase within 0..{n - 1}")
+    odom = None if raw_odom is None else _unpack_poses(raw_odom, 1, f"{what} T_shared_odom")[0]
+    raw_move = f.raw("m", _POSE_BYTES, 1, nullable=True)
+    if raw_move is not None and raw_odom is None:
+        raise WireError(f"{what}: an agent that is not placed carries no keyframes")
+    move = None if raw_move is None else _unpack_poses(raw_move, 1, f"{what} T_move")[0]
+    return AgentCorrection(odom, n, idx, poses, move)
+
+
 # --- encode -----------------------------------------------------------------------------------------
 
 
@@ -338,7 +387,8 @@ def _own_agent(agent: Any, what: str, robot: str) -> str:
 def _encode_fields(msg: Message) -> dict[str, Any]:
     if isinstance(msg, HelloMessage):
         return {"k": MessageKind.HELLO, "r": _robot(msg.robot, "hello robot"),
-                "s": _session(msg.session, "hello session"), "n": _int(msg.num_frames, "hello num_frames")}  # fmt: skip
+                "s": _session(msg.session, "hello session"), "n": _int(msg.num_frames, "hello num_frames"),
+                "y": _bool(msg.resync, "hello resync")}  # fmt: skip
     if isinstance(msg, KeyframeMessage):
         g = msg.graph_update
         T = np.asarray(msg.T_odom_kf, dtype=np.float64)
@@ -365,14 +415,13 @@ def _encode_fields(msg: Message) -> dict[str, Any]:
                 "j": None if msg.trajectory is None else _trajectory_fields(msg.trajectory)}  # fmt: skip
     if isinstance(msg, CorrectionMessage):
         robot = _robot(msg.robot, "correction robot")
-        if len(msg.T_shared_kf) > MAX_AGENTS:
-            raise WireError(f"correction T_shared_kf has {len(msg.T_shared_kf)} agents, at most {MAX_AGENTS}")
-        poses = {
-            _own_agent(a, "correction T_shared_kf", robot): _pack_poses(T, f"correction T_shared_kf[{a}]")
-            for a, T in msg.T_shared_kf.items()
-        }
+        if len(msg.agents) > MAX_AGENTS:
+            raise WireError(f"correction has {len(msg.agents)} agents, at most {MAX_AGENTS}")
+        agents = {_own_agent(a, "correction agents", robot): _agent_correction_fields(c, f"correction of {a}")
+                  for a, c in msg.agents.items()}  # fmt: skip
         return {"k": MessageKind.CORRECTION, "r": robot, "s": _session(msg.session, "correction session"),
-                "c": _counts(msg.received, "correction received", robot), "T": poses}  # fmt: skip
+                "c": _counts(msg.received, "correction received", robot), "q": _int(msg.seq, "correction seq"),
+                "F": _bool(msg.full, "correction full"), "A": agents}  # fmt: skip
     if isinstance(msg, StatusMessage):
         if len(msg.robots) > MAX_AGENTS or len(msg.refused) > MAX_AGENTS:
             raise WireError(f"status names more than {MAX_AGENTS} robots")
@@ -414,10 +463,10 @@ def encode(msg: Message) -> bytes:
 # --- decode -----------------------------------------------------------------------------------------
 
 _KEYS = {
-    MessageKind.HELLO: ("r", "s", "n"),
+    MessageKind.HELLO: ("r", "s", "n", "y"),
     MessageKind.KEYFRAME: ("r", "s", "i", "f", "t", "T", "u", "gk", "gT", "gn", "gu"),
     MessageKind.DONE: ("r", "s", "c", "j"),
-    MessageKind.CORRECTION: ("r", "s", "c", "T"),
+    MessageKind.CORRECTION: ("r", "s", "c", "q", "F", "A"),
     MessageKind.STATUS: ("s", "e", "b", "x", "y"),
 }
 
@@ -426,7 +475,7 @@ def _decode_fields(kind: MessageKind, f: _Fields) -> Message:
     d = f.d
     if kind is MessageKind.HELLO:
         return HelloMessage(_robot(d["r"], "hello robot"), _session(d["s"], "hello session"),
-                            _int(d["n"], "hello num_frames"))  # fmt: skip
+                            _int(d["n"], "hello num_frames"), _bool(d["y"], "hello resync"))  # fmt: skip
     if kind is MessageKind.KEYFRAME:
         T = _unpack_poses(f.raw("T", _POSE_BYTES, 1), 1, "keyframe T_odom_kf")[0]
         raw_world = f.raw("gT", _POSE_BYTES, 1, nullable=True)
@@ -449,12 +498,10 @@ def _decode_fields(kind: MessageKind, f: _Fields) -> Message:
     if kind is MessageKind.CORRECTION:
         robot = _robot(d["r"], "correction robot")
         received = _counts(f.map("c", lambda a, w: _own_agent(a, w, robot)), "correction received", robot)
-        poses = {}
-        for a, raw in f.map("T", lambda a, w: _own_agent(a, w, robot)).items():
-            if not isinstance(raw, bytes) or len(raw) % _POSE_BYTES:
-                raise WireError(f"correction T_shared_kf[{a}] must be bytes of (K, 3, 4) float64")
-            poses[a] = _unpack_poses(raw, len(raw) // _POSE_BYTES, f"correction T_shared_kf[{a}]")
-        return CorrectionMessage(robot, _session(d["s"], "correction session"), received, poses)
+        agents = {a: _agent_correction(v, f"correction of {a}")
+                  for a, v in f.map("A", lambda a, w: _own_agent(a, w, robot)).items()}  # fmt: skip
+        return CorrectionMessage(robot, _session(d["s"], "correction session"), received,
+                                 _int(d["q"], "correction seq"), _bool(d["F"], "correction full"), agents)  # fmt: skip
     # STATUS
     robots = {}
     for r, v in f.map("b", _robot).items():

@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -27,10 +28,11 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _server(out: Path, port: int, expect: int = 2) -> subprocess.Popen:
+def _server(out: Path, port: int, *extra: str, expect: int = 2) -> subprocess.Popen:
+    rerun = () if "--rerun" in extra else ("--rerun", "off")
     return subprocess.Popen(
         [*CLI, "server", "--out", str(out), "--expect", str(expect), "--listen", f"tcp/127.0.0.1:{port}",
-         "--reference", "car1", "--rerun", "off"],
+         "--reference", "car1", *rerun, *extra],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
 
@@ -87,12 +89,12 @@ def test_server_and_two_robot_processes_finish_and_fuse(tiny_scenario: Path, tmp
     assert s["traffic"]["refused"] == 0
 
 
-def _wait_for_keyframes(out: Path, server: subprocess.Popen, robot: str) -> None:
-    """Until the server journal has grown (keyframes arrived), bounded."""
+def _wait_for_keyframes(out: Path, server: subprocess.Popen, robot: str, nbytes: int = 20_000) -> None:
+    """Until the server journal has grown (keyframes arrived) and holds messages of ``robot``, bounded."""
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         j = out / "journal.bin"
-        if j.exists() and j.stat().st_size > 20_000:
+        if j.exists() and j.stat().st_size > nbytes and j.read_bytes().count(robot.encode()) >= 3:
             return
         assert server.poll() is None, server.communicate()[0][-3000:]
         time.sleep(0.2)
@@ -115,19 +117,104 @@ def test_robot_killed_mid_run_and_restarted_resumes(tiny_scenario: Path, tmp_pat
 
 
 def test_server_killed_mid_run_and_restarted_recovers(tiny_scenario: Path, tmp_path: Path) -> None:
+    config = tmp_path / "snapshots.yaml"
+    config.write_text("server:\n  snapshot_every_messages: 10\n")  # snapshots this short run does reach
+    out_dir = tmp_path / "out"
     port = _free_port()
-    server = _server(tmp_path, port)
+    server = _server(out_dir, port, "--config", str(config))
     robots = [_robot(n, tiny_scenario / n, port, "--realtime") for n in ("car1", "car2")]
-    _wait_for_keyframes(tmp_path, server, "car1")
+    _wait_for_keyframes(out_dir, server, "car1")
     os.kill(server.pid, signal.SIGKILL)
     server.communicate()
+    assert list(out_dir.glob("snapshot-*.bin"))
     time.sleep(1.0)
-    server = _server(tmp_path, port)
+    server = _server(out_dir, port, "--config", str(config))
     out = _wait(server, "restarted server")
     for r in robots:
         _wait(r, "robot")
+    s = _check_results(out_dir, tiny_scenario)
+    assert s["recovery"]["snapshot_records"] > 0, out[-2000:]  # from a snapshot, then the journal after it
+
+
+def test_stale_robot_resumes_and_bad_input_and_name_clash_are_refused(tiny_scenario: Path, tmp_path: Path) -> None:
+    from shgm_slam.transport.factory import NodeRole, make_transport
+    from shgm_slam.transport.keys import hello_key, keyframe_key
+
+    port = _free_port()
+    server = _server(tmp_path, port, "--stale-after", "1.5")
+    car1 = [_robot("car1", tiny_scenario / "car1", port, "--realtime") for _ in range(2)]  # one name, two processes
+    car2 = _robot("car2", tiny_scenario / "car2", port, "--realtime")
+    _wait_for_keyframes(tmp_path, server, "car2", 3_000)
+    os.kill(car2.pid, signal.SIGSTOP)  # silent for longer than --stale-after
+    with make_transport(NodeRole.ROBOT, f"tcp/127.0.0.1:{port}") as stranger:
+        for _ in range(3):  # the first may go out before the stranger is connected
+            time.sleep(0.5)
+            stranger.publish(keyframe_key("car2"), b"\x00garbage")
+            stranger.publish(hello_key("car9"), msgpack.packb({"v": 99, "k": 1, "r": "car9", "s": "x", "n": 1}))
+        time.sleep(2.0)
+    os.kill(car2.pid, signal.SIGCONT)
+    server_out = _wait(server, "server")
+    _wait(car2, "robot car2")
+    outs = []
+    for p in car1:
+        out, _ = p.communicate(timeout=TIMEOUT_S)
+        outs.append((p.returncode, out))
+    assert sorted(rc for rc, _ in outs) == [0, 2], outs  # the newcomer was refused and told
+    assert any("in use by another running robot" in " ".join(out.split()) for rc, out in outs if rc == 2), outs
     s = _check_results(tmp_path, tiny_scenario)
-    assert s["recovered_messages"] > 0, out[-2000:]
+    assert s["robots"]["car2"]["went_stale"] >= 1 and s["robots"]["car2"]["done"], server_out  # kept, resumed
+    reasons = " ".join(s["traffic"]["refusal_reasons"])
+    assert "msgpack" in reasons and "version 99" in reasons and "in use" in reasons, reasons
+
+
+@pytest.mark.filterwarnings("ignore:RRD file has no footer")  # a streamed collection has none
+def test_live_view_streams_to_a_viewer_while_robots_run(tiny_scenario: Path, tmp_path: Path) -> None:
+    from rerun.chunk import RrdReader
+
+    from shgm_slam.viz.rerun_logger import viewer_reachable
+
+    def collector_up() -> bool:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not viewer_reachable("127.0.0.1", view_port, 1.0):
+            time.sleep(0.3)
+        return viewer_reachable("127.0.0.1", view_port, 1.0)
+
+    port, view_port = _free_port(), _free_port()
+    live = tmp_path / "live.rrd"
+    # its own process group: the `rerun` launcher runs the collector as a child, and both must stop
+    viewer = subprocess.Popen([str(Path(sys.executable).parent / "rerun"), "--save", str(live), "--port",
+                               str(view_port)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              start_new_session=True)  # fmt: skip
+    try:
+        assert collector_up(), "the headless Rerun collector did not start"
+        server = _server(tmp_path / "out", port, "--rerun", "connect", "--rerun-url",
+                         f"rerun+http://127.0.0.1:{view_port}/proxy")  # fmt: skip
+        deadline = time.monotonic() + 60
+        while not (live.is_file() and live.stat().st_size) and time.monotonic() < deadline:
+            time.sleep(0.2)  # the server is up and connected to the viewer (its blueprint arrived)
+        robots = [_robot(n, tiny_scenario / n, port, "--realtime") for n in ("car1", "car2")]
+        streamed_while_running = False
+        while any(r.poll() is None for r in robots) and not streamed_while_running:
+            streamed_while_running = live.is_file() and live.stat().st_size > 50_000
+            time.sleep(0.2)
+        assert streamed_while_running, "nothing reached the viewer before the robots finished"
+        _wait(server, "server")
+        for r in robots:
+            _wait(r, "robot")
+    finally:
+        os.killpg(viewer.pid, signal.SIGINT)  # Ctrl-C to the launcher and the collector: it closes the file
+        try:
+            viewer.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(viewer.pid, signal.SIGKILL)
+            viewer.wait()
+    chunks = list(RrdReader(live).stream().to_chunks())
+
+    def rows(entity: str) -> int:
+        return sum(c.to_record_batch().num_rows for c in chunks if c.entity_path.endswith(entity))
+
+    assert rows("car1/trajectory/odometry") >= 3  # logged as its keyframes came in (every second), not once
+    assert rows("car2/trajectory/fused") >= 1  # and the fused map once car2 was placed
 
 
 def test_bad_endpoint_is_a_clear_error(tmp_path: Path) -> None:

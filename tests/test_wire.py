@@ -13,6 +13,7 @@ from shgm_slam.geometry.se3 import make_pose, rot_y, so3_exp
 from shgm_slam.graph.extraction import ObjectObservations
 from shgm_slam.graph.semantic_graph import GraphUpdate, NodeState, SemanticGraph
 from shgm_slam.messages import (
+    AgentCorrection,
     CorrectionMessage,
     DoneMessage,
     HelloMessage,
@@ -72,16 +73,21 @@ def all_messages() -> list:
     updates = graph_updates()
     return [
         HelloMessage("car1", "0123456789abcdef", 4541),
+        HelloMessage("car1", "0123456789abcdef", 4541, resync=True),
         *[keyframe(u) for u in updates],
         keyframe(updates[0], up=False, robot="car1"),
         KeyframeMessage("r", 0, 0, 0.0, pose(3), updates[1], None, ""),  # graph pose differs from the keyframe pose
         DoneMessage("car1", "s1", {"car1": 10, "car1#1": 0}, traj),
         DoneMessage("car1", "s1", {}, None),
+        CorrectionMessage("car1", "", {"car1": 3, "car1#1": 2}),  # acknowledgement alone
         CorrectionMessage(
-            "car1",
-            "",
-            {"car1": 3, "car1#1": 2},
-            {"car1": np.stack([pose(i) for i in range(3)]), "car1#1": np.zeros((0, 4, 4))},
+            "car1", "s1", {"car1": 3}, 1, True,
+            {"car1": AgentCorrection(pose(7), 3, np.arange(3), np.stack([pose(i) for i in range(3)]))},
+        ),
+        CorrectionMessage(
+            "car1", "s1", {"car1": 5, "car1#1": 2}, 2, False,
+            {"car1": AgentCorrection(pose(8), 5, np.array([1, 3, 4]), np.stack([pose(i) for i in range(3)]), pose(9)),
+             "car1#1": AgentCorrection(None)},
         ),
         StatusMessage(
             "srv",
@@ -115,8 +121,12 @@ def assert_same(a, b) -> None:
         return
     for name in a.__dataclass_fields__:
         x, y = getattr(a, name), getattr(b, name)
-        if isinstance(x, GraphUpdate | RobotTrajectory):
+        if isinstance(x, GraphUpdate | RobotTrajectory | AgentCorrection):
             assert_same(x, y)
+        elif isinstance(x, dict) and any(isinstance(v, AgentCorrection) for v in x.values()):
+            assert x.keys() == y.keys()
+            for k in x:
+                assert_same(x[k], y[k])
         elif isinstance(x, np.ndarray) or (isinstance(x, dict) and any(isinstance(v, np.ndarray) for v in x.values())):
             xs, ys = (x, y) if isinstance(x, dict) else ({0: x}, {0: y})
             assert xs.keys() == ys.keys()
@@ -155,8 +165,16 @@ def test_a_status_without_provisional_agents_is_still_read():
 def test_keyframe_bytes_are_compact():
     sizes = {n: len(encode(keyframe(random_update(n, seed=n)))) for n in (0, 10, 30, 100)}
     K = 100
-    corr = CorrectionMessage("car1", "0123456789abcdef", {"car1": K}, {"car1": np.stack([pose(i) for i in range(K)])})
-    print(f"keyframe bytes by node count: {sizes}; correction with {K} keyframes: {len(encode(corr))} bytes")
+    poses = np.stack([pose(i) for i in range(K)])
+    corr = CorrectionMessage("car1", "0123456789abcdef", {"car1": K}, 1, True,
+                             {"car1": AgentCorrection(pose(0), K, np.arange(K), poses)})  # fmt: skip
+    delta = CorrectionMessage("car1", "0123456789abcdef", {"car1": K}, 2, False,
+                              {"car1": AgentCorrection(pose(0), K, np.arange(K - 3, K), poses[-3:])})  # fmt: skip
+    ack = CorrectionMessage("car1", "0123456789abcdef", {"car1": K})
+    print(f"keyframe bytes by node count: {sizes}; correction with {K} keyframes: {len(encode(corr))} bytes, "
+          f"with 3: {len(encode(delta))}, acknowledgement: {len(encode(ack))}")  # fmt: skip
+    assert len(encode(delta)) < 500 and len(encode(ack)) < 80
+    assert K * 100 <= len(encode(corr)) <= K * 100 + 300  # 96 B pose + 4 B index per keyframe
     assert sizes[30] <= 5 * 1024
     assert 100 * 31 <= sizes[100] - sizes[0] <= 100 * 31 + 12  # 31 bytes a node (+ bin header growth)
 
@@ -244,7 +262,7 @@ def test_wrong_array_lengths_are_refused():
     d["T"] = d["T"] + d["T"]
     with pytest.raises(WireError, match="expected 1 x 96"):
         decode(_pack(d))
-    d = _envelope(all_messages()[6])  # done with a trajectory
+    d = _envelope(next(m for m in all_messages() if isinstance(m, DoneMessage)))  # with a trajectory
     d["j"]["g"] = d["j"]["g"][:-4]
     with pytest.raises(WireError, match=r"trajectory\.g"):
         decode(_pack(d))
@@ -306,9 +324,9 @@ def test_oversize_payloads_are_refused():
     with pytest.raises(WireError, match="at most 4096"):
         encode(CorrectionMessage("car1", "", many))
     with pytest.raises(WireError, match="not one valid msgpack"):
-        decode(_pack({"v": 1, "k": 4, "r": "car1", "s": "", "c": many, "T": {}}))
+        decode(_pack({"v": PROTOCOL_VERSION, "k": 4, "r": "car1", "s": "", "c": many, "q": 0, "F": False, "A": {}}))
     with pytest.raises(WireError, match="not one valid msgpack"):
-        decode(_pack({"v": 1, "k": 1, "r": "car1", "s": "x" * 10_000, "n": 1}))
+        decode(_pack({"v": PROTOCOL_VERSION, "k": 1, "r": "car1", "s": "x" * 10_000, "n": 1, "y": False}))
     with pytest.raises(WireError, match="not one valid msgpack"):
         decode(b"\x91" * 100_000)  # nested arrays
 
@@ -369,3 +387,29 @@ def test_wrong_field_types_decode_or_refuse():
                 except WireError:
                     refused += 1
     assert refused > 500
+
+
+def test_correction_indices_and_unplaced_agents_are_checked():
+    T = np.stack([pose(i) for i in range(3)])
+    for c, what in [
+        (AgentCorrection(pose(0), 3, np.array([0, 2, 1]), T), "increase"),
+        (AgentCorrection(pose(0), 2, np.array([0, 1, 2]), T), "increase"),
+        (AgentCorrection(pose(0), 3, np.array([0, 1]), T), "2 keyframe indices but 3 poses"),
+        (AgentCorrection(None, 3, np.arange(3), T), "not placed"),
+        (AgentCorrection(None, T_move=pose(1)), "not placed"),
+    ]:
+        with pytest.raises(WireError, match=what):
+            encode(CorrectionMessage("car1", "", {}, 1, False, {"car1": c}))
+    good = CorrectionMessage("car1", "", {}, 1, False, {"car1": AgentCorrection(pose(0), 3, np.arange(3), T)})
+    d = _envelope(good)
+    d["A"]["car1"]["i"] = np.array([0, 5, 6], "<i4").tobytes()
+    with pytest.raises(WireError, match=r"increase within 0\.\.2"):
+        decode(_pack(d))
+    d = _envelope(good)
+    d["A"]["car1"]["o"] = None
+    with pytest.raises(WireError, match="not placed"):
+        decode(_pack(d))
+    d = _envelope(good)
+    d["F"] = 1
+    with pytest.raises(WireError, match="full must be true or false"):
+        decode(_pack(d))

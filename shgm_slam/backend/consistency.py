@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from shgm_slam.errors import BackendError
 from shgm_slam.geometry.se3 import inverse, rotation_angle
 
 CLIQUE_BUDGET = 1_000_000
@@ -262,6 +263,23 @@ def best_clique(
     return idx[_members(best_bits)].astype(np.int64), not stack
 
 
+@dataclass(frozen=True, eq=False)
+class PairVote:
+    """One robot pair's consistency vote as arrays (``PairConsistency.vote``; a map server's snapshot).
+
+    ``ids`` (n,) int64 voting closure ids in insertion order; ``adjacency`` (n, n) bool pairwise
+    consistency; ``weights`` (n,) evidence; ``chosen`` (n,) bool the current maximum consistent set;
+    ``exact`` False once a bounded search ran out of budget; ``searches`` bounded searches run so far.
+    """
+
+    ids: np.ndarray
+    adjacency: np.ndarray
+    weights: np.ndarray
+    chosen: np.ndarray
+    exact: bool
+    searches: int
+
+
 @dataclass
 class PairConsistency:
     """Incremental maximum consistent set of one robot pair's closures, bounded in size.
@@ -301,6 +319,36 @@ class PairConsistency:
     def chosen_mask(self) -> np.ndarray:
         """(n,) bool over ``ids``: in the current set."""
         return self._chosen[: len(self.ids)].copy()
+
+    def vote(self) -> PairVote:
+        """The pair's vote as arrays (copies)."""
+        n = len(self.ids)
+        return PairVote(np.asarray(self.ids, dtype=np.int64), self._A[:n, :n].copy(), self._w[:n].copy(),
+                        self._chosen[:n].copy(), self.exact, self.searches)  # fmt: skip
+
+    @classmethod
+    def from_vote(cls, vote: PairVote, capacity: int = MAX_CLOSURES_PER_PAIR) -> PairConsistency:
+        """Rebuild a pair from ``vote()``; it then votes on new closures exactly as the original would.
+
+        Raises:
+            BackendError: the arrays are inconsistent (shapes, an asymmetric adjacency, more closures
+                than ``capacity``).
+        """
+        try:
+            ids = np.asarray(vote.ids, dtype=np.int64).reshape(-1)
+            n = ids.size
+            A = np.asarray(vote.adjacency, dtype=bool).reshape(n, n)
+            w = np.asarray(vote.weights, dtype=np.float64).reshape(n)
+            chosen = np.asarray(vote.chosen, dtype=bool).reshape(n)
+        except (TypeError, ValueError) as exc:
+            raise BackendError(f"consistency vote arrays do not fit together: {exc}") from None
+        if n > capacity or (A != A.T).any() or A.diagonal().any() or not np.isfinite(w).all():
+            raise BackendError(
+                f"consistency vote is inconsistent ({n} closures for capacity {capacity}, or an asymmetric "
+                "adjacency, or non-finite weights)"
+            )
+        return cls(capacity, ids=ids.tolist(), exact=bool(vote.exact), searches=int(vote.searches),
+                   _A=A.copy(), _w=w.copy(), _chosen=chosen.copy())  # fmt: skip
 
     def add(self, closure_id: int, consistent: np.ndarray, weight: float = 1.0) -> tuple[int, bool] | None:
         """Add a closure given its consistency with the current ``ids`` (an (n,) bool row).

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
 
@@ -54,6 +54,7 @@ from shgm_slam.backend.consistency import (
     MAX_CLOSURES_PER_PAIR,
     ConsistencyThresholds,
     PairConsistency,
+    PairVote,
     consistent_with,
     consistent_with_odometry,
 )
@@ -121,6 +122,33 @@ class Anchor:
 
     closure_id: int | None
     T_shared_odom: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class PoseGraphState:
+    """What a pose graph decided, without its keyframes (``MultiRobotPoseGraph.state``; a map server's
+    snapshot): ``restore_state`` rebuilds iSAM2 from it and the keyframe poses in one batch.
+
+    Attributes:
+        robots: every robot in key order (the first defines the shared frame).
+        anchors: anchored robot -> (closure id that anchored it or None for the first robot,
+            ``T_shared_odom`` (4, 4) its keyframes were initialised with).
+        T_shared_kf: anchored robot -> (K, 4, 4) current estimate (the restored graph starts there).
+        closures: every closure with its status, reason and whether its factor is in iSAM2.
+        information: (C, 6, 6) each closure's information matrix (gtsam order [rot, trans]).
+        pairs: robot pair -> its consistency vote.
+        rebuilds, recoveries: counters; factorization: the solver in use (QR after a recovery).
+    """
+
+    robots: tuple[str, ...]
+    anchors: dict[str, tuple[int | None, np.ndarray]]
+    T_shared_kf: dict[str, np.ndarray]
+    closures: tuple[ClosureRecord, ...]
+    information: np.ndarray
+    pairs: dict[tuple[str, str], PairVote]
+    rebuilds: int
+    recoveries: int
+    factorization: Factorization
 
 
 @dataclass(frozen=True)
@@ -202,7 +230,11 @@ class MultiRobotPoseGraph:
 
     Args:
         robot_names: the robots, in order; the first one defines the shared frame.
-        odometry_sigmas: (rotation rad, translation m) sigma of one keyframe-to-keyframe odometry step.
+        odometry_sigmas: (rotation rad, translation m) sigma of one keyframe-to-keyframe odometry step
+            that did not move (the floor).
+        odometry_drift: (rotation rad per metre, translation per metre) growth of those sigmas with the
+            step's length: odometry drifts with distance driven, so a 2 m step is twice as uncertain as
+            a 1 m one (0, 0: every step alike).
         closure_sigmas: (rotation rad, translation m) sigma of an inter-robot closure.
         robust_kernel: M-estimator on closures (string values accepted); ``kernel_width`` overrides
             its default width (Huber 1.345, Cauchy 1.0, Tukey 4.685, in sigmas).
@@ -222,6 +254,7 @@ class MultiRobotPoseGraph:
         robot_names: list[str],
         *,
         odometry_sigmas: tuple[float, float] = (0.01, 0.1),
+        odometry_drift: tuple[float, float] = (0.0, 0.0),
         closure_sigmas: tuple[float, float] = (0.05, 1.0),
         robust_kernel: RobustKernel | str = RobustKernel.CAUCHY,
         kernel_width: float | None = None,
@@ -241,7 +274,11 @@ class MultiRobotPoseGraph:
             self.factorization = Factorization(str(getattr(factorization, "value", factorization)).upper())
         except ValueError as exc:
             raise BackendError(f"pose graph: {exc}; robust kernels: none, huber, cauchy, tukey") from None
-        self._odometry_noise = gtsam.noiseModel.Diagonal.Sigmas(_sigmas6(odometry_sigmas))
+        self._odometry_floor = _sigmas6(odometry_sigmas)
+        drift = np.asarray(odometry_drift, dtype=np.float64)
+        if drift.shape != (2,) or not np.isfinite(drift).all() or (drift < 0).any():
+            raise BackendError(f"odometry drift must be two non-negative rates, got {odometry_drift}")
+        self._odometry_drift = np.r_[[drift[0]] * 3, [drift[1]] * 3]
         self._closure_sigmas = _sigmas6(closure_sigmas)
         self._kernel_width = kernel_width
         self.thresholds = ConsistencyThresholds(
@@ -481,12 +518,12 @@ class MultiRobotPoseGraph:
         lines = []
         for k in sorted(values.keys()):
             lines.append(f"VERTEX_SE3:QUAT {k} " + _g2o_pose(values.atPose3(k)))
-        odo_info = np.diag(1.0 / np.asarray(self._odometry_noise.sigmas()) ** 2)
         for name, r in self._robots.items():
             if not r.anchored:
                 continue
             for k in range(1, len(r.T_odom_kf)):
                 T = inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k]
+                odo_info = np.diag(1.0 / self._odometry_sigmas(T) ** 2)
                 lines.append(_g2o_edge(self.keys.key(name, k - 1), self.keys.key(name, k), T, odo_info))
         for c in self._closures:
             if c.in_graph:
@@ -499,6 +536,116 @@ class MultiRobotPoseGraph:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(self.to_g2o())
+
+    # --- snapshots ---------------------------------------------------------------------------------
+
+    def state(self) -> PoseGraphState:
+        """Everything the graph decided (closures, votes, anchors) and its current estimate (copies)."""
+        estimate = self.estimate()
+        return PoseGraphState(
+            tuple(self.keys.names),
+            {n: (r.anchor_closure, r.T_shared_odom_init.copy()) for n, r in self._robots.items() if r.anchored},
+            {n: T.copy() for n, T in estimate.items()},
+            tuple(replace(c, T_a_b=c.T_a_b.copy()) for c in self._closures),
+            np.array(self._information, dtype=np.float64).reshape(-1, 6, 6),
+            {pair: v.vote() for pair, v in self._pairs.items()},
+            self._rebuilds, self._recoveries, self.factorization,
+        )  # fmt: skip
+
+    def restore_state(self, state: PoseGraphState, T_odom_kf: dict[str, np.ndarray]) -> None:
+        """Load ``state`` into this fresh graph (made with the same settings and first robot) and build
+        iSAM2 from it in one batch, starting at the stored estimate: afterwards the graph answers and
+        votes as the one ``state`` came from (estimates equal to solver precision).
+
+        Args:
+            state: from ``state()``.
+            T_odom_kf: robot -> (K, 4, 4) its keyframe poses in its odometry frame (every robot of ``state``).
+
+        Raises:
+            BackendError: the graph is not fresh, or the state is inconsistent with itself or the keyframes.
+        """
+        if any(r.T_odom_kf for r in self._robots.values()) or self._closures:
+            raise BackendError("restore_state needs a fresh pose graph (no keyframes, no closures)")
+        names = list(state.robots)
+        if names[: len(self.keys.names)] != self.keys.names or set(T_odom_kf) != set(names):
+            raise BackendError(f"pose graph state of robots {names} does not fit robots {self.keys.names} "
+                               f"with keyframes of {sorted(T_odom_kf)}")  # fmt: skip
+        for name in names[len(self.keys.names):]:
+            self.add_robot(name)
+        for name in names:
+            for k, T in enumerate(np.asarray(T_odom_kf[name], dtype=np.float64).reshape(-1, 4, 4)):
+                self._robots[name].append(_check_pose(T, f"keyframe {k} of {name}"))
+        self._check_state(state)
+        default_info = np.diag(1.0 / self._closure_sigmas**2)
+        for c, info in zip(state.closures, state.information, strict=True):
+            self._closures.append(replace(c, T_a_b=np.array(c.T_a_b, dtype=np.float64)))
+            noise, info = self._closure_noise_model(None if np.array_equal(info, default_info) else info)
+            self._closure_noise.append(noise)
+            self._information.append(info)
+        cap = self.max_closures_per_pair
+        self._pairs = {pair: PairConsistency.from_vote(v, cap) for pair, v in state.pairs.items()}
+        self._rebuilds, self._recoveries = int(state.rebuilds), int(state.recoveries)
+        self.factorization = Factorization(state.factorization)
+        self._reset_isam()
+        first = self.keys.names[0]
+        for name, (closure_id, T_init) in state.anchors.items():
+            r = self._robots[name]
+            r.anchored, r.anchor_closure, r.T_shared_odom_init = True, closure_id, np.array(T_init, dtype=np.float64)
+            T_shared = state.T_shared_kf[name]
+            if name == first:
+                prior = gtsam.noiseModel.Isotropic.Sigma(6, PRIOR_SIGMA)
+                self._add_factor(gtsam.PriorFactorPose3(self.keys.key(name, 0), _pose3(r.T_odom_kf[0]), prior))
+            for k in range(len(r.T_odom_kf)):
+                key = self.keys.key(name, k)
+                self._new_values.insert(key, _pose3(T_shared[k]))
+                if k:
+                    delta = inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k]
+                    prev = self.keys.key(name, k - 1)
+                    noise = gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(delta))
+                    self._add_factor(gtsam.BetweenFactorPose3(prev, key, _pose3(delta), noise))
+        for c in self._closures:
+            if c.in_graph:
+                k_a, k_b = self.keys.key(c.robot_a, c.kf_a), self.keys.key(c.robot_b, c.kf_b)
+                noise = self._closure_noise[c.closure_id]
+                self._add_factor(gtsam.BetweenFactorPose3(k_a, k_b, _pose3(c.T_a_b), noise), c.closure_id)
+        self._flush(closures_changed=True)
+
+    def _check_state(self, state: PoseGraphState) -> None:
+        """``BackendError`` naming the first thing in ``state`` that does not fit itself or the keyframes."""
+        count = {n: len(r.T_odom_kf) for n, r in self._robots.items()}
+        index = {n: i for i, n in enumerate(self.keys.names)}
+        first = self.keys.names[0]
+
+        def fail(what: str) -> None:
+            raise BackendError(f"pose graph state is inconsistent: {what}")
+
+        if np.shape(state.information) != (len(state.closures), 6, 6):
+            fail(f"{np.shape(state.information)} information matrices for {len(state.closures)} closures")
+        for i, c in enumerate(state.closures):
+            if c.closure_id != i or c.robot_a not in index or c.robot_b not in index:
+                fail(f"closure {i} has id {c.closure_id} or unknown robots {c.robot_a}, {c.robot_b}")
+            if not (0 <= c.kf_a < count[c.robot_a] and 0 <= c.kf_b < count[c.robot_b]):
+                fail(f"closure {i} joins keyframes that do not exist")
+            if (index[c.robot_a], c.kf_a) >= (index[c.robot_b], c.kf_b):
+                fail(f"closure {i} is not in canonical order")
+            if np.shape(c.T_a_b) != (4, 4) or not np.isfinite(c.T_a_b).all():
+                fail(f"closure {i} has no finite (4, 4) pose")
+            if c.in_graph and not (c.status is ClosureStatus.ACCEPTED and {c.robot_a, c.robot_b} <= set(state.anchors)):
+                fail(f"closure {i} is in the graph but not accepted between anchored robots")
+        if (first in state.anchors) != (count[first] > 0):
+            fail(f"{first} (the shared frame) must be anchored exactly when it has keyframes")
+        for name, (closure_id, T_init) in state.anchors.items():
+            T = np.asarray(state.T_shared_kf.get(name, np.zeros(0)))
+            if name not in count or T.shape != (count[name], 4, 4) or not np.isfinite(T).all():
+                fail(f"anchored robot {name} has no finite estimate for each of its keyframes")
+            if np.shape(T_init) != (4, 4) or (closure_id is None) != (name == first):
+                fail(f"anchor of {name} is malformed")
+            if closure_id is not None and not 0 <= closure_id < len(state.closures):
+                fail(f"{name} is anchored by closure {closure_id}, which does not exist")
+        for (a, b), v in state.pairs.items():
+            ids = np.asarray(v.ids, dtype=np.int64)
+            if a not in index or b not in index or ((ids < 0) | (ids >= len(state.closures))).any():
+                fail(f"the vote of {a}-{b} names unknown robots or closures")
 
     # --- consistency: which closures are accepted -------------------------------------------------
 
@@ -586,6 +733,11 @@ class MultiRobotPoseGraph:
         for k in range(1, len(r.T_odom_kf)):
             self._push_keyframe(name, k)
 
+    def _odometry_sigmas(self, delta: np.ndarray) -> np.ndarray:
+        """(6,) [rot rad x3, trans m x3] sigmas of an odometry step ``delta`` (4, 4): the floor plus the
+        drift rates times the step's length."""
+        return self._odometry_floor + self._odometry_drift * float(np.linalg.norm(delta[:3, 3]))
+
     def _push_keyframe(self, robot: str, k: int) -> None:
         """Odometry factor (k-1 -> k) and initial value of keyframe k of an anchored robot."""
         r = self._robots[robot]
@@ -595,7 +747,8 @@ class MultiRobotPoseGraph:
             prev = self._new_values.atPose3(k_prev).matrix()
         else:
             prev = self._isam.calculateEstimatePose3(k_prev).matrix()
-        self._add_factor(gtsam.BetweenFactorPose3(k_prev, k_new, _pose3(delta), self._odometry_noise))
+        noise = gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(delta))
+        self._add_factor(gtsam.BetweenFactorPose3(k_prev, k_new, _pose3(delta), noise))
         self._new_values.insert(k_new, _pose3(prev @ delta))
 
     def _anchor_robot(self, robot: str, closure: ClosureRecord) -> None:
@@ -816,6 +969,7 @@ def make_pose_graph(robot_names: list[str], cfg: BackendConfig) -> MultiRobotPos
     return MultiRobotPoseGraph(
         robot_names,
         odometry_sigmas=(cfg.odometry_sigma_rot_rad, cfg.odometry_sigma_trans_m),
+        odometry_drift=(cfg.odometry_drift_rot_rad_per_m, cfg.odometry_drift_trans_per_m),
         closure_sigmas=(cfg.closure_sigma_rot_rad, cfg.closure_sigma_trans_m),
         robust_kernel=cfg.robust_kernel,
         consistency_trans_m=cfg.consistency_trans_m,

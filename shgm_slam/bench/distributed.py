@@ -2,19 +2,24 @@
 map server plus one process per robot over Eclipse Zenoh on loopback, with optional faults.
 
 It reports, per run: which robots were placed, each robot's fused ATE in the shared frame (no
-alignment) against ground truth, and the traffic: bytes per keyframe, bytes per robot and KB/s per
-robot at the sequence's frame rate (and at 10 Hz), plus the server's corrections. Faults: a robot
-killed (SIGKILL) mid-run and started again, the server killed mid-run and started again.
+alignment) against ground truth, and the traffic: bytes per keyframe, KB/s up and down per robot at
+the sequence's frame rate (and at 10 Hz). Faults: a robot killed (SIGKILL) mid-run and started again,
+the server killed mid-run and started again. Recovery: the killed server's folder as it was at the
+kill, and the no-fault run's whole folder, are recovered twice side by side in this process: from the
+newest snapshot plus the journal after it, and from the journal alone (what a server without
+snapshots replays).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,6 +34,8 @@ from shgm_slam.errors import ShgmError
 from shgm_slam.io.trajectories import read_tum
 from shgm_slam.metrics import ate
 from shgm_slam.runner import open_robots, run_slam
+from shgm_slam.server.node import ServerNode
+from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 
 CLI = [sys.executable, "-m", "shgm_slam.cli"]
 
@@ -48,8 +55,22 @@ class RunOutcome:
     ate_fused_m: dict[str, float]
     wall_s: float
     traffic: dict = field(default_factory=dict)
-    recovered_messages: int = 0
+    recovery: dict = field(default_factory=dict)  # the restarted server's (server.json)
     error: str = ""
+
+
+@dataclass
+class RecoveryTiming:
+    """One results folder recovered from its newest snapshot plus the journal after it, and from the journal
+    alone, side by side (seconds of wall time each)."""
+
+    label: str
+    journal_records: int
+    snapshot_records: int
+    replayed: int
+    snapshot_s: float
+    journal_only_s: float
+    snapshot_bytes: int = 0  # the newest snapshot file's size
 
 
 def _free_port() -> int:
@@ -105,6 +126,28 @@ def _journal_grew(out: Path, nbytes: int, server: subprocess.Popen, timeout_s: f
     raise ShgmError("the server received too little to inject the fault")
 
 
+def _recovery_files(folder: Path) -> list[Path]:
+    return [folder / "journal.bin", *sorted(folder.glob("snapshot-*.bin"))]
+
+
+def time_recovery(folder: Path, cfg: ShgmConfig, reference: str, label: str) -> RecoveryTiming:
+    """Recover the server state in ``folder`` (its journal and snapshots, copied) twice: with snapshots and
+    from the journal alone."""
+    times, reports = {}, {}
+    for mode, every in (("snapshot", max(cfg.server.snapshot_every_messages, 1)), ("journal", 0)):
+        mcfg = cfg.model_copy(update={"server": cfg.server.model_copy(update={"snapshot_every_messages": every})})
+        with tempfile.TemporaryDirectory() as tmp:
+            for f in _recovery_files(folder):
+                shutil.copy2(f, tmp)
+            t0 = time.perf_counter()
+            node = ServerNode(mcfg, InProcessTransport(InProcessBus()), Path(tmp), reference=reference)
+            times[mode], reports[mode] = time.perf_counter() - t0, node.recovery
+    r = reports["snapshot"]
+    snaps = sorted(folder.glob("snapshot-*.bin"))
+    return RecoveryTiming(label, r.snapshot_records + r.replayed, r.snapshot_records, r.replayed, times["snapshot"],
+                          times["journal"], snaps[-1].stat().st_size if snaps else 0)  # fmt: skip
+
+
 def run_distributed(
     robots: dict[str, Path],
     out: Path,
@@ -137,9 +180,13 @@ def run_distributed(
         time.sleep(3.0)  # past the server's name-clash window
         procs[victim] = robot(victim, 1)
     elif fault is Fault.SERVER:
-        _journal_grew(out, 60_000, server, timeout_s)
+        _journal_grew(out, 300_000, server, timeout_s)  # about half of the demo world's keyframes
         os.kill(server.pid, signal.SIGKILL)
         server.wait()
+        at_kill = out / "at-kill"  # the folder as the killed server left it, for time_recovery
+        at_kill.mkdir(exist_ok=True)
+        for f in _recovery_files(out):
+            shutil.copy2(f, at_kill)
         time.sleep(1.0)
         server = _spawn(server_args, out / "server.1.log")
     _wait(server, timeout_s, "the server")
@@ -153,7 +200,7 @@ def run_distributed(
         f"server + {len(names)} robot processes" + ("" if fault is Fault.NONE else f", {fault.value} killed"),
         {r: r in s["robots"].get(r, {}).get("placed", []) for r in names},
         {r: _ate_from_files(out, r, gt[r], times[r]) for r in names},
-        wall, s["traffic"], s.get("recovered_messages", 0),
+        wall, s["traffic"], s.get("recovery", {}) if fault is Fault.SERVER else {},
     )  # fmt: skip
 
 
@@ -178,7 +225,8 @@ def run_distributed_benchmark(
     config: Path | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> dict:
-    """The world once in process and once per fault mode distributed; JSON-ready results."""
+    """The world once in process and once per fault mode distributed, then the recovery timings; JSON-ready
+    results (also written to ``out/distributed.json`` and ``out/distributed.md``)."""
     from shgm_slam.config import load_config
 
     scenario = json.loads((world / "scenario.json").read_text())
@@ -194,14 +242,24 @@ def run_distributed_benchmark(
             runs.append(run_distributed(robots, out / f"distributed-{fault.value}", fault=fault, config=config))
         except ShgmError as exc:
             runs.append(RunOutcome(f"distributed, {fault.value}", {}, {}, float("nan"), error=str(exc)))
+    recoveries = []
+    reference = next(iter(robots))
+    for folder, label in ((out / "distributed-server" / "at-kill", "server killed mid-run (at the kill)"),
+                          (out / "distributed-none", "no fault (whole journal, at the end)")):  # fmt: skip
+        if (folder / "journal.bin").is_file():
+            say(f"recovery timing: {label}")
+            recoveries.append(time_recovery(folder, cfg, reference, label))
     fps = _frame_rate(robots)
-    result = {"world": str(world), "frame_rate_hz": fps, "runs": [vars(r) for r in runs]}
+    result = {"world": str(world), "frame_rate_hz": fps, "runs": [vars(r) for r in runs],
+              "recovery": [vars(r) for r in recoveries]}  # fmt: skip
+    frames = {n: len(open_sequence(str(p))) for n, p in robots.items()}
     for r in result["runs"]:
         t = r["traffic"]
         if t:
-            frames = {n: len(open_sequence(str(p))) for n, p in robots.items()}
             r["kb_per_s_per_robot"] = {n: b / 1e3 / (frames[n] / fps) for n, b in t["bytes_by_robot"].items()}
             r["kb_per_s_per_robot_at_10hz"] = {n: b / 1e3 / (frames[n] / 10.0) for n, b in t["bytes_by_robot"].items()}
+            down = t.get("bytes_sent_by_robot", {})
+            r["kb_per_s_down_per_robot_at_10hz"] = {n: b / 1e3 / (frames[n] / 10.0) for n, b in down.items()}
     out.mkdir(parents=True, exist_ok=True)
     (out / "distributed.json").write_text(json.dumps(result, indent=2, default=float))
     (out / "distributed.md").write_text(distributed_markdown(result))
@@ -214,7 +272,7 @@ def _frame_rate(robots: dict[str, Path]) -> float:
 
 
 def distributed_markdown(result: dict) -> str:
-    """Two tables: placement and fused ATE per run, and traffic per distributed run."""
+    """The README's tables: placement and fused ATE per run, traffic per distributed run, recovery timings."""
     runs = result["runs"]
     robots = list(runs[0]["placed"]) if runs else []
     head = "| run | " + " | ".join(f"{r} placed / ATE m" for r in robots) + " | wall s |"
@@ -227,14 +285,25 @@ def distributed_markdown(result: dict) -> str:
             f"{'yes' if r['placed'].get(n) else 'no'} / {r['ate_fused_m'].get(n, float('nan')):.2f}" for n in robots
         ]
         lines.append(f"| {r['label']} | " + " | ".join(cells) + f" | {r['wall_s']:.0f} |")
-    lines += ["", "| run | bytes / keyframe | keyframe messages | KB/s per robot at 10 Hz | server sent KB |",
-              "|---|---|---|---|---|"]  # fmt: skip
+    lines += ["", "| run | bytes / keyframe | keyframe messages | KB/s up per robot at 10 Hz | "
+              "KB/s down per robot at 10 Hz | server → robots KB (corrections + status) |",
+              "|---|---|---|---|---|---|"]  # fmt: skip
     for r in runs:
         t = r["traffic"]
         if not t:
             continue
-        rates = ", ".join(f"{n} {v:.1f}" for n, v in r["kb_per_s_per_robot_at_10hz"].items())
-        sent = sum(t["bytes_sent_by_kind"].values()) / 1e3
+        up = ", ".join(f"{n} {v:.1f}" for n, v in sorted(r["kb_per_s_per_robot_at_10hz"].items()))
+        down = ", ".join(f"{n} {v:.2f}" for n, v in sorted(r.get("kb_per_s_down_per_robot_at_10hz", {}).items()))
+        corr, status = (t["bytes_sent_by_kind"].get(k, 0) / 1e3 for k in ("correction", "status"))
         lines.append(f"| {r['label']} | {t['bytes_per_keyframe']:.0f} | {t['messages_by_kind'].get('keyframe', 0)} | "
-                     f"{rates} | {sent:.0f} |")  # fmt: skip
+                     f"{up} | {down} | {corr:.0f} + {status:.0f} |")  # fmt: skip
+    rec = result.get("recovery", [])
+    if rec:
+        lines += ["", "| recovered folder | journal records | from snapshot | replayed | snapshot MB | "
+                  "s with snapshots | s journal only | speed-up |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        for r in rec:
+            ratio = r["journal_only_s"] / r["snapshot_s"] if r["snapshot_s"] > 0 else float("nan")
+            mb = r.get("snapshot_bytes", 0) / 1e6
+            lines.append(f"| {r['label']} | {r['journal_records']} | {r['snapshot_records']} | {r['replayed']} | "
+                         f"{mb:.2f} | {r['snapshot_s']:.1f} | {r['journal_only_s']:.1f} | {ratio:.1f}x |")  # fmt: skip
     return "\n".join(lines) + "\n"

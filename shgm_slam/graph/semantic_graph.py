@@ -141,6 +141,81 @@ class GraphUpdate:
         return GraphUpdate(kf_id, T, new, upd)
 
 
+@dataclass(frozen=True, eq=False)
+class GraphState:
+    """Everything a ``SemanticGraph`` holds, as plain arrays: what a map server's snapshot stores.
+    ``SemanticGraph.from_state`` rebuilds a graph that behaves identically (same rows, edges, submaps).
+
+    Attributes:
+        merge_radius_m, connectivity_m: the graph's parameters (metres).
+        next_node_id: the id the graph gives its next new node.
+        node_ids: (N,) int64 in row order (creation order); label_ids: (N,) int64.
+        anchor_slots: (N,) int64 index into ``kf_ids`` of each node's anchor keyframe.
+        positions_kf: (N, 3) metres in the anchor keyframe's camera frame.
+        positions_world: (N, 3) metres in the graph's world frame.
+        sizes: (N,) accumulated pixel counts; num_observations: (N,) int64.
+        kf_ids: (K,) int64 keyframe ids in insertion order; T_world_kf: (K, 4, 4) their poses.
+        obs_rows, obs_slots: (M,) int64 observation log: node row seen from keyframe slot.
+        edges: (E, 2) int64 row pairs i < j, sorted.
+    """
+
+    merge_radius_m: float
+    connectivity_m: float
+    next_node_id: int
+    node_ids: np.ndarray
+    label_ids: np.ndarray
+    anchor_slots: np.ndarray
+    positions_kf: np.ndarray
+    positions_world: np.ndarray
+    sizes: np.ndarray
+    num_observations: np.ndarray
+    kf_ids: np.ndarray
+    T_world_kf: np.ndarray
+    obs_rows: np.ndarray
+    obs_slots: np.ndarray
+    edges: np.ndarray
+
+
+def _checked_state(s: GraphState) -> GraphState:
+    """``s`` with every array in its dtype and shape, or ``GraphError`` naming the first inconsistency."""
+    try:
+        ids = np.asarray(s.node_ids, dtype=np.int64).reshape(-1)
+        n = ids.size
+        kf_ids = np.asarray(s.kf_ids, dtype=np.int64).reshape(-1)
+        k = kf_ids.size
+        out = GraphState(
+            float(s.merge_radius_m), float(s.connectivity_m), int(s.next_node_id), ids,
+            np.asarray(s.label_ids, dtype=np.int64).reshape(n),
+            np.asarray(s.anchor_slots, dtype=np.int64).reshape(n),
+            np.asarray(s.positions_kf, dtype=np.float64).reshape(n, 3),
+            np.asarray(s.positions_world, dtype=np.float64).reshape(n, 3),
+            np.asarray(s.sizes, dtype=np.float64).reshape(n),
+            np.asarray(s.num_observations, dtype=np.int64).reshape(n),
+            kf_ids, np.asarray(s.T_world_kf, dtype=np.float64).reshape(k, 4, 4),
+            np.asarray(s.obs_rows, dtype=np.int64).reshape(-1), np.asarray(s.obs_slots, dtype=np.int64).reshape(-1),
+            np.asarray(s.edges, dtype=np.int64).reshape(-1, 2),
+        )  # fmt: skip
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise GraphError(f"graph state arrays do not fit together: {exc}") from None
+    floats = (out.positions_kf, out.positions_world, out.sizes, out.T_world_kf)
+    problems = [
+        (not all(np.isfinite(a).all() for a in floats), "non-finite positions, sizes or poses"),
+        (np.unique(ids).size != n or np.unique(kf_ids).size != k, "repeated node or keyframe ids"),
+        (n and int(ids.max()) >= out.next_node_id, "next_node_id not above every node id"),
+        (((out.anchor_slots < 0) | (out.anchor_slots >= k)).any(), "an anchor keyframe slot out of range"),
+        (out.obs_rows.size != out.obs_slots.size, "observation rows and slots differ in length"),
+        (((out.obs_rows < 0) | (out.obs_rows >= n)).any() or ((out.obs_slots < 0) | (out.obs_slots >= k)).any(),
+         "an observation out of range"),
+        (((out.edges < 0) | (out.edges >= n)).any() or (out.edges[:, 0] >= out.edges[:, 1]).any(),
+         "an edge out of range or not i < j"),
+        (not (out.merge_radius_m >= 0 and out.connectivity_m > 0), "bad merge radius or connectivity"),
+    ]  # fmt: skip
+    for bad, what in problems:
+        if bad:
+            raise GraphError(f"graph state is inconsistent: {what}")
+    return out
+
+
 PoseLookup = Mapping[int, np.ndarray] | Sequence[np.ndarray] | np.ndarray | None
 """Keyframe poses by id: a mapping kf id -> (4, 4), or a list / (K, 4, 4) array indexed by kf id."""
 
@@ -267,6 +342,46 @@ class SemanticGraph:
             return self.arrays().subset(np.zeros(0, np.int64))
         rows = np.concatenate(self._obs_rows)[np.isin(np.concatenate(self._obs_slots), slots)]
         return self.arrays().subset(np.unique(rows))
+
+    def state(self) -> GraphState:
+        """The whole graph as arrays (``GraphState``; copies)."""
+        n, k = self._n, len(self._kf_ids)
+        keys = self._sync_sorted_edges()
+        empty = np.zeros(0, np.int64)
+        return GraphState(
+            self.merge_radius_m, self.connectivity_m, self._next_id, self._node_ids[:n].copy(),
+            self._labels[:n].copy(), self._anchor_slot[:n].copy(), self._pos_kf[:n].copy(),
+            self._pos_world[:n].copy(), self._sizes[:n].copy(), self._num_obs[:n].copy(),
+            np.asarray(self._kf_ids, dtype=np.int64), self._kf_poses[:k].copy(),
+            np.concatenate(self._obs_rows) if self._obs_rows else empty,
+            np.concatenate(self._obs_slots) if self._obs_slots else empty,
+            np.stack([keys >> 32, keys & 0xFFFFFFFF], axis=1).reshape(-1, 2),
+        )  # fmt: skip
+
+    @classmethod
+    def from_state(cls, state: GraphState) -> SemanticGraph:
+        """Rebuild a graph from ``state()`` (e.g. read back from a snapshot).
+
+        Raises:
+            GraphError: the arrays are inconsistent (shapes, ranges, non-finite values, repeated ids).
+        """
+        s = _checked_state(state)
+        g = cls(s.merge_radius_m, s.connectivity_m, s.next_node_id)
+        g._n = n = s.node_ids.size
+        g._node_ids, g._labels, g._anchor_slot = s.node_ids.copy(), s.label_ids.copy(), s.anchor_slots.copy()
+        g._pos_kf, g._pos_world, g._sizes = s.positions_kf.copy(), s.positions_world.copy(), s.sizes.copy()
+        g._num_obs = s.num_observations.copy()
+        g._row_of_id = {i: r for r, i in enumerate(s.node_ids.tolist())}
+        g._kf_ids = s.kf_ids.tolist()
+        g._kf_slot = {kf: slot for slot, kf in enumerate(g._kf_ids)}
+        g._kf_poses = s.T_world_kf.copy()
+        if s.obs_rows.size:
+            g._obs_rows, g._obs_slots = [s.obs_rows.copy()], [s.obs_slots.copy()]
+        g._cell_key = np.zeros(n, np.int64)
+        g._index_grid(n)
+        g._edges_sorted = np.sort((s.edges[:, 0] << 32) | s.edges[:, 1])
+        g._edge_keys = set(g._edges_sorted.tolist())
+        return g
 
     # ------------------------------------------------------------------ building
     def add_keyframe(self, kf_id: int, T_world_kf: np.ndarray, objects: ObjectObservations) -> GraphUpdate:
@@ -499,16 +614,20 @@ class SemanticGraph:
         self._arrays_cache = None
         p = self._world_positions(np.arange(n)) if n else np.zeros((0, 3))
         self._pos_world[:n] = p
-        keys = _cell_keys(np.floor(p / self._cell_m).astype(np.int64))
+        self._index_grid(n)
+        edges = edges_within_radius(p, self.connectivity_m)
+        self._edges_sorted = (edges[:, 0] << 32) | edges[:, 1]  # lexsorted rows -> sorted keys
+        self._edge_keys = set(self._edges_sorted.tolist())
+        self._edges_added, self._edges_removed = set(), set()
+
+    def _index_grid(self, n: int) -> None:
+        """Put the first ``n`` rows into the spatial hash grid by their world positions (from scratch)."""
+        keys = _cell_keys(np.floor(self._pos_world[:n] / self._cell_m).astype(np.int64))
         self._cell_key[:n] = keys
         order = np.argsort(keys, kind="stable")
         uniq, starts = np.unique(keys[order], return_index=True)
         groups = np.split(order, starts[1:]) if n else []
         self._grid = {k: set(g.tolist()) for k, g in zip(uniq.tolist(), groups, strict=True)}
-        edges = edges_within_radius(p, self.connectivity_m)
-        self._edges_sorted = (edges[:, 0] << 32) | edges[:, 1]  # lexsorted rows -> sorted keys
-        self._edge_keys = set(self._edges_sorted.tolist())
-        self._edges_added, self._edges_removed = set(), set()
 
     def _remove_edges(self, keys: list[int]) -> None:
         gone = set(keys)

@@ -6,6 +6,7 @@ Layout of ``--out DIR`` (default ``results/<time>/`` plus a ``latest`` symlink):
     <robot>_odometry_tum.txt                          the robot's own odometry (its first camera frame)
     graph_<robot>.json                                shgm-graph/1, robot's odometry frame
     matches.json  pose_graph.g2o  config.yaml  metrics.json  run.rrd (when saving)
+    server.json  journal.bin  snapshot-<records>.bin                 a map server's metrics and crash recovery
 
 Every file is written atomically (temp file + rename) so an interrupted run never leaves half files.
 """
@@ -30,7 +31,7 @@ from shgm_slam.types import GraphArrays, Sequence
 RUN_OUTPUT_PATTERNS = (
     "*_fused_tum.txt", "*_fused_kitti.txt", "*_odometry_tum.txt", "*_gt_tum.txt", "*_gt_kitti.txt",
     "graph_*.json", "matches.json", "pose_graph.g2o", "config.yaml", "metrics.json", "server.json",
-    "run.rrd", "server.rrd", "journal.bin",
+    "run.rrd", "server.rrd", "journal.bin", "snapshot-*.bin",
 )
 """Files a run, demo or map server writes into its results folder (``--overwrite`` removes these, and
 their leftover ``.<name>.*`` temporary files, nothing else)."""
@@ -317,6 +318,17 @@ class ResultsWriter:
 
     def write_text(self, name: str, text: str) -> None:
         self._put(self.path(name), lambda p: p.write_text(text))
+
+    def write_bytes(self, name: str, data: bytes) -> None:
+        """Write ``data`` atomically and durably (fsync'd before the rename: it survives a power loss too)."""
+
+        def write(tmp: Path) -> None:
+            with open(tmp, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+
+        _atomic(self.path(name), write)
 
     def write_ground_truth(self, robots: dict[str, Sequence], gt_shared_frame: bool = True) -> list[Path]:
         """``<robot>_gt_tum.txt`` and ``<robot>_gt_kitti.txt``: ground truth in the shared frame.

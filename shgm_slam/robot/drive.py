@@ -40,6 +40,7 @@ class DriveSummary:
     server_finished: bool
     placed_agents: list[str]
     bytes_sent: dict[str, int]
+    bytes_received: dict[str, int]
     resent: int
     wall_s: float
     interrupted: bool = False
@@ -86,10 +87,10 @@ def drive_robot(
         t0 = time.monotonic()
         try:
             for i in range(len(sequence)):
-                if realtime:
-                    delay = t0 + (times[i] - times[0]) - time.monotonic()
-                    if delay > 0:
-                        node.poll(timeout_s=delay)
+                due = t0 + (times[i] - times[0])
+                while realtime and (wait := due - time.monotonic()) > 0:  # poll returns on any message
+                    node.heartbeat()
+                    node.poll(timeout_s=min(wait, 0.1))
                 try:
                     node.step(i)
                     processed += 1
@@ -113,6 +114,6 @@ def drive_robot(
                                                   provisional=why + ", ".join(provisional) if provisional else None)
     return DriveSummary(
         name, node.session, len(sequence), processed, node.keyframes_sent, node.all_acknowledged(),
-        node.server_finished and acknowledged, placed, dict(node.bytes_sent), node.resent,
-        time.perf_counter() - t_start, interrupted, skipped, provisional,
+        node.server_finished and acknowledged, placed, dict(node.bytes_sent), dict(node.bytes_received),
+        node.resent, time.perf_counter() - t_start, interrupted, skipped, provisional,
     )  # fmt: skip

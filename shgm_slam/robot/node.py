@@ -9,7 +9,9 @@ code path). The node
   (``CorrectionMessage.received``); what stays unacknowledged for ``resend_after_s`` is sent again,
   so lost messages, a restarted robot (the server tells it what it already has) and a restarted
   server (it sees a new server session and says hello again) all end with nothing lost;
-- applies the fused keyframe poses it receives to its own frames (``fused``);
+- applies the corrections it receives (only what moved since the last one, ``shgm_slam.corrections``; a
+  full one when it (re)connects, or when it missed one and asks with ``resync``) to its own frames
+  (``fused``);
 - after its last frame sends a ``DoneMessage`` with its per-frame odometry and waits (bounded) until
   the server holds every keyframe.
 """
@@ -25,6 +27,7 @@ from dataclasses import replace
 import numpy as np
 
 from shgm_slam.agents import agent_robot
+from shgm_slam.corrections import FusedView
 from shgm_slam.errors import ProtocolError, ShgmError
 from shgm_slam.fusion import fuse_segments
 from shgm_slam.messages import CorrectionMessage, DoneMessage, HelloMessage, RobotTrajectory, StatusMessage
@@ -73,13 +76,15 @@ class RobotNode:
         self._payloads: dict[str, list[bytes]] = {}
         self._acked: dict[str, int] = {}
         self._last_progress_s: dict[str, float] = {}
-        self._T_shared_kf: dict[str, np.ndarray] = {}
+        self._view = FusedView()
+        self._resync = False  # a correction was missed: ask for a full one with every hello until it comes
         self._last_hello_s = -np.inf
         self._done: bytes | None = None
         self.server_session: str | None = None
         self.server_finished = False
         self.provisional_agents: tuple[str, ...] = ()  # its agents the server placed provisionally (status)
         self.bytes_sent: dict[str, int] = {"hello": 0, "keyframe": 0, "done": 0}
+        self.bytes_received: dict[str, int] = {"correction": 0, "status": 0}
         self.keyframes_sent = 0
         self.resent = 0
 
@@ -90,8 +95,13 @@ class RobotNode:
         self._last_hello_s = self.clock()
         self._publish("hello", hello_key(self.name), encode(self._hello_message()))
 
+    def heartbeat(self) -> None:
+        """Say hello when the last one is ``HEARTBEAT_S`` old."""
+        if self.clock() - self._last_hello_s >= HEARTBEAT_S:
+            self.hello()
+
     def _hello_message(self) -> HelloMessage:
-        return HelloMessage(self.name, self.session, len(self.front.sequence))
+        return HelloMessage(self.name, self.session, len(self.front.sequence), self._resync)
 
     def step(self, index: int) -> FrameResult:
         """Run frame ``index`` through the front end and send its keyframe, if it made one.
@@ -99,8 +109,7 @@ class RobotNode:
         Raises:
             DataError: the frame cannot be used (the caller logs and skips it).
         """
-        if self.clock() - self._last_hello_s >= HEARTBEAT_S:
-            self.hello()
+        self.heartbeat()
         res = self.front.process(index)
         if res.message is not None:
             msg = replace(res.message, session=self.session)
@@ -145,8 +154,10 @@ class RobotNode:
                 log.warning("%s: unreadable message on %s refused: %s", self.name, key, exc)
                 continue
             if isinstance(msg, CorrectionMessage) and msg.robot == self.name:
+                self.bytes_received["correction"] += len(payload)
                 self._correction(msg)
             elif isinstance(msg, StatusMessage):
+                self.bytes_received["status"] += len(payload)
                 self._status(msg)
         self._resend_stalled()
 
@@ -162,8 +173,13 @@ class RobotNode:
             if n < self._acked.get(agent, 0):  # the server lost some (e.g. restarted without its journal)
                 self._last_progress_s[agent] = -np.inf
             self._acked[agent] = n
-        for agent, T in msg.T_shared_kf.items():
-            self._T_shared_kf[agent] = T
+        if self._view.apply(msg):
+            self._resync = self._resync and not msg.full
+        elif not self._resync:
+            log.info("%s: correction %d does not follow %d (one was lost); asking for a full one", self.name,
+                     msg.seq, self._view.seq)  # fmt: skip
+            self._resync = True
+            self.hello()
 
     def _status(self, msg: StatusMessage) -> None:
         refusal = msg.refused.get(self.name)
@@ -209,8 +225,7 @@ class RobotNode:
         its final correction), at most ``timeout_s``; keeps the heartbeat going. Returns success."""
         deadline = self.clock() + timeout_s
         while self.clock() < deadline:
-            if self.clock() - self._last_hello_s >= HEARTBEAT_S:
-                self.hello()
+            self.heartbeat()
             self.poll(timeout_s=0.1)
             if self.all_acknowledged() and (self.server_finished or not until_finished):
                 return True
@@ -225,14 +240,10 @@ class RobotNode:
             f.T_odom_cam, f.frame_segment,
             {s.index: np.asarray(s.kf_frames, dtype=np.int64) for s in segs},
             {s.index: np.stack(s.kf_poses) for s in segs},
-            {s.index: self._T_shared_kf[s.agent] for s in segs if s.agent in self._T_shared_kf},
+            {s.index: self._view.T_shared_kf[s.agent] for s in segs if s.agent in self._view.T_shared_kf},
         )  # fmt: skip
 
     def T_shared_odom(self, agent: str) -> np.ndarray | None:
-        """(4, 4) where ``agent``'s odometry frame lies in the shared frame (at its latest corrected
-        keyframe), or None when the server has not placed it."""
-        T = self._T_shared_kf.get(agent)
-        seg = next((s for s in self.front.segments if s.agent == agent), None)
-        if T is None or seg is None or not len(T):
-            return None
-        return T[-1] @ np.linalg.inv(seg.kf_poses[len(T) - 1])
+        """(4, 4) where ``agent``'s odometry frame lies in the shared frame (at its latest keyframe the server
+        has), or None when the server has not placed it."""
+        return self._view.T_shared_odom.get(agent)

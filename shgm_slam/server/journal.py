@@ -5,6 +5,9 @@ wire bytes exactly as received. A server killed at any moment and started again 
 folder replays the journal through a fresh map server: the mirrored graphs, the pose graph and the
 match log come back as they were (matching is deterministic given the message order). A record cut
 short by the kill (or corrupted) ends the replay; the file is truncated there so appends stay valid.
+
+``chain`` is a running CRC-32 over the records' CRCs: a snapshot stores the record count and chain it
+covers, so a restarted server can tell that the snapshot belongs to this very journal.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from shgm_slam.errors import DataError
 log = logging.getLogger(__name__)
 
 _HEADER = struct.Struct("<II")
+_CRC = struct.Struct("<I")
 MAX_RECORD_BYTES = 64 * 1024 * 1024
 
 
@@ -43,9 +47,15 @@ class Journal:
         self._file = None
         self._since_sync = 0
         self.records = 0
+        self.chain = 0  # running CRC-32 of the records' CRCs (see the module docstring)
+
+    def _count(self, crc: int) -> None:
+        self.records += 1
+        self.chain = zlib.crc32(_CRC.pack(crc), self.chain)
 
     def replay(self) -> Iterator[bytes]:
-        """Yield every intact record's payload in order; truncate a torn or corrupt tail."""
+        """Yield every intact record's payload in order; truncate a torn or corrupt tail. While a payload
+        is yielded, ``records`` and ``chain`` count it and every record before it."""
         if not self.path.exists():
             return
         good_end = 0
@@ -64,7 +74,7 @@ class Journal:
                                 self.path, good_end)  # fmt: skip
                     break
                 good_end = f.tell()
-                self.records += 1
+                self._count(crc)
                 yield payload
         if good_end < self.path.stat().st_size:
             with open(self.path, "r+b") as f:
@@ -79,7 +89,8 @@ class Journal:
         try:
             if self._file is None:
                 self._file = open(self.path, "ab")
-            self._file.write(_HEADER.pack(len(payload), zlib.crc32(payload)) + payload)
+            crc = zlib.crc32(payload)
+            self._file.write(_HEADER.pack(len(payload), crc) + payload)
             self._file.flush()
             self._since_sync += 1
             if self._since_sync >= self.sync_every:
@@ -87,7 +98,7 @@ class Journal:
                 self._since_sync = 0
         except OSError as exc:
             raise DataError(f"cannot append to the journal {self.path}: {exc.strerror}") from None
-        self.records += 1
+        self._count(crc)
 
     def close(self) -> None:
         if self._file is not None:

@@ -4,24 +4,60 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from shgm_slam.backend.confirmation import AgentPlacement, Placement, Support, placements
-from shgm_slam.backend.pose_graph import make_pose_graph
+from shgm_slam.backend.pose_graph import PoseGraphState, make_pose_graph
 from shgm_slam.config import ShgmConfig
 from shgm_slam.descriptors import compute_descriptors
-from shgm_slam.errors import ConfigError
+from shgm_slam.errors import BackendError, ConfigError
 from shgm_slam.geometry import se3
 from shgm_slam.geometry.ground import rotation_to_z
-from shgm_slam.graph.semantic_graph import SemanticGraph
+from shgm_slam.graph.semantic_graph import GraphState, SemanticGraph
 from shgm_slam.matching import match_graphs
 from shgm_slam.messages import KeyframeMessage
-from shgm_slam.server.closures import local_closures
+from shgm_slam.server.closures import SurfaceOffset, local_closures
 from shgm_slam.server.records import MatchRecord
 from shgm_slam.types import GraphArrays
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class MapServerState:
+    """Everything a ``MapServer`` holds (``MapServer.state``, what a snapshot stores);
+    ``MapServer.from_state`` rebuilds a server that matches, votes and answers as this one would.
+
+    Attributes:
+        agents: every agent in the order the server learnt of them (the reference first).
+        graphs: agent -> its mirrored semantic graph.
+        T_odom_kf: agent -> (K, 4, 4) keyframe poses in its odometry frame, as received.
+        up: agent -> (3,) "up" in its odometry frame, or None.
+        since_match: agent -> keyframes received since its last match.
+        matches: every match attempt so far (the match log).
+        closures: accepted closure keys ``(agent_a, kf_a, agent_b, kf_b)``.
+        step, num_matches: keyframes received and successful matches so far.
+        timings_ms: ``"match"`` / ``"backend"`` -> wall times so far, milliseconds.
+        pose_graph: the pose graph's decisions and estimate.
+        support: closure id -> agent -> the node ids behind it (confirmation of placements).
+        surface_offset: the fleet's surface-to-centre offset estimate (``closures.SurfaceOffset.state``).
+    """
+
+    agents: tuple[str, ...]
+    graphs: dict[str, GraphState]
+    T_odom_kf: dict[str, np.ndarray]
+    up: dict[str, np.ndarray | None]
+    since_match: dict[str, int]
+    matches: tuple[MatchRecord, ...]
+    closures: tuple[tuple[str, int, str, int], ...]
+    step: int
+    num_matches: int
+    timings_ms: dict[str, list[float]]
+    pose_graph: PoseGraphState
+    support: dict[int, dict[str, frozenset[int]]] = field(default_factory=dict)
+    surface_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 class MapServer:
@@ -57,6 +93,7 @@ class MapServer:
         self._closures: set[tuple[str, int, str, int]] = set()
         self._step = 0
         self._num_matches = 0  # successful graph matches so far (each closure's evidence id)
+        self._surface_offset = SurfaceOffset()  # how far solid objects' centres lie behind what cameras see
         self._support: dict[int, Support] = {}  # closure id -> the matched objects (node ids) behind it
         self._placements: tuple[int, dict[str, AgentPlacement]] = (-1, {})  # (pose-graph version, cache)
         self.timings_ms: dict[str, list[float]] = {"match": [], "backend": []}
@@ -86,9 +123,7 @@ class MapServer:
         self._step += 1
         if msg.robot not in self._graphs:
             self.add_agent(msg.robot)
-        poses, path = self._T_odom_kf[msg.robot], self._path_m[msg.robot]
-        path.append(path[-1] + float(np.linalg.norm(msg.T_odom_kf[:3, 3] - poses[-1][:3, 3])) if path else 0.0)
-        poses.append(msg.T_odom_kf)
+        self._append_keyframe(msg.robot, msg.T_odom_kf)
         if msg.up_odom is not None:
             self._up[msg.robot] = msg.up_odom
         self._pose_graph.add_keyframe(msg.robot, msg.kf_index, msg.T_odom_kf)
@@ -99,6 +134,12 @@ class MapServer:
             return []
         self._since_match[msg.robot] = 0
         return self.match_robot(msg.robot)
+
+    def _append_keyframe(self, agent: str, T_odom_kf: np.ndarray) -> None:
+        """Record ``agent``'s next keyframe pose and its odometry path length."""
+        poses, path = self._T_odom_kf[agent], self._path_m[agent]
+        path.append(path[-1] + float(np.linalg.norm(T_odom_kf[:3, 3] - poses[-1][:3, 3])) if path else 0.0)
+        poses.append(T_odom_kf)
 
     def finalize(self) -> list[MatchRecord]:
         """Match every robot once more at the end of the run (whole graphs)."""
@@ -193,20 +234,25 @@ class MapServer:
         rows_b = _rows_of(graph_b, result.inliers[:, 1])
         rec.inlier_positions_a = graph_a.positions_xyz[rows_a]
         rec.inlier_positions_b = graph_b.positions_xyz[rows_b]
+        anchors_a = self._graphs[robot_a].anchor_keyframes(result.inliers[:, 0])
+        anchors_b = self._graphs[robot_b].anchor_keyframes(result.inliers[:, 1])
         closures = [
             (kf_a, kf_b, se3.inverse(self._T_odom_kf[robot_a][kf_a]) @ T @ self._T_odom_kf[robot_b][kf_b], n, rows)
             for kf_a, kf_b, T, n, rows in local_closures(
                 rec.inlier_positions_a,
                 rec.inlier_positions_b,
                 graph_a.label_ids[rows_a],
-                self._graphs[robot_a].anchor_keyframes(result.inliers[:, 0]),
-                self._graphs[robot_b].anchor_keyframes(result.inliers[:, 1]),
+                anchors_a,
+                anchors_b,
                 result.T_a_b,
                 segment_m=self.cfg.backend.local_closure_m,
                 min_inliers=self.cfg.matching.min_inliers // 2 + 1,
                 max_rmse_m=self.cfg.matching.max_rmse_m,
                 up_a=up_a,
                 up_b=up_b,
+                rays_a=self._viewing_rays(robot_a, anchors_a, rec.inlier_positions_a),
+                rays_b=self._viewing_rays(robot_b, anchors_b, rec.inlier_positions_b),
+                offset=self._surface_offset,
             )
         ]
         self._num_matches += 1
@@ -258,6 +304,74 @@ class MapServer:
             not accepted
         )
         return rec
+
+    def _viewing_rays(self, agent: str, anchors: np.ndarray, positions_xyz: np.ndarray) -> np.ndarray:
+        """(M, 3) unit rays in ``agent``'s odometry frame from the camera of each node's anchor keyframe (the
+        one that first saw it) towards the node at (M, 3) ``positions_xyz``."""
+        poses = self._T_odom_kf[agent]
+        cameras = np.stack([poses[k][:3, 3] for k in anchors]) if len(anchors) else np.zeros((0, 3))
+        rays = positions_xyz - cameras
+        return rays / np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-9)
+
+    # --- snapshots --------------------------------------------------------------------------------
+
+    def state(self) -> MapServerState:
+        """Everything this server holds (``MapServerState``)."""
+        return MapServerState(
+            tuple(self._agents),
+            {a: g.state() for a, g in self._graphs.items()},
+            {a: self.keyframe_poses(a) for a in self._agents},
+            {a: None if u is None else np.array(u, dtype=np.float64) for a, u in self._up.items()},
+            dict(self._since_match), tuple(self._matches), tuple(sorted(self._closures)),
+            self._step, self._num_matches, {k: list(v) for k, v in self.timings_ms.items()},
+            self._pose_graph.state(),
+            {cid: {a: frozenset(ids) for a, ids in sup.items()} for cid, sup in self._support.items()},
+            self._surface_offset.state(),
+        )  # fmt: skip
+
+    @classmethod
+    def from_state(cls, state: MapServerState, cfg: ShgmConfig) -> MapServer:
+        """Rebuild a map server from ``state()`` (made with the same configuration ``cfg``).
+
+        Raises:
+            GraphError, BackendError: the state is inconsistent (graphs, keyframes, pose graph).
+        """
+        agents = list(state.agents)
+        if not agents or len(set(agents)) != len(agents) or not set(agents) == set(state.graphs) == set(
+                state.T_odom_kf) == set(state.up) == set(state.since_match):  # fmt: skip
+            raise BackendError(f"map server state: agents {agents} do not match its graphs, keyframes and counters")
+        server = cls(agents[:1], cfg)
+        for a in agents[1:]:
+            server.add_agent(a)
+        for a in agents:
+            graph = SemanticGraph.from_state(state.graphs[a])
+            poses = np.asarray(state.T_odom_kf[a], dtype=np.float64).reshape(-1, 4, 4)
+            if graph.keyframe_ids != list(range(len(poses))):
+                raise BackendError(f"map server state: {a}'s graph has other keyframes than its {len(poses)} poses")
+            server._graphs[a] = graph
+            for T in poses:
+                server._append_keyframe(a, T)
+            up = state.up[a]
+            if up is not None and (np.shape(up) != (3,) or not np.isfinite(up).all()):
+                raise BackendError(f"map server state: {a}'s up vector is not a finite (3,) vector")
+            server._up[a] = None if up is None else np.array(up, dtype=np.float64)
+            server._since_match[a] = int(state.since_match[a])
+        if any(c[0] not in state.graphs or c[2] not in state.graphs for c in state.closures):
+            raise BackendError("map server state: a closure names an unknown agent")
+        server._matches = list(state.matches)
+        server._closures = {tuple(c) for c in state.closures}
+        server._step, server._num_matches = int(state.step), int(state.num_matches)
+        server.timings_ms = {"match": list(state.timings_ms.get("match", [])),
+                             "backend": list(state.timings_ms.get("backend", []))}  # fmt: skip
+        server._pose_graph.restore_state(state.pose_graph, {a: server.keyframe_poses(a) for a in agents})
+        server._support = {
+            int(cid): {a: frozenset(ids) for a, ids in sup.items()} for cid, sup in state.support.items()
+        }
+        try:
+            server._surface_offset = SurfaceOffset.from_state(state.surface_offset)
+        except ValueError as exc:
+            raise BackendError(f"map server state: {exc}") from None
+        return server
 
     # --- queries ----------------------------------------------------------------------------------
 

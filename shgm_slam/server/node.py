@@ -8,10 +8,12 @@ next to its robots, ``shgm-slam server`` drives one over Eclipse Zenoh. The node
 - tracks each robot's process (``HelloMessage`` sessions): a new session under a live name is a clash
   and refused, under a silent one it is a restart and resumes where the robot left off;
 - feeds keyframes to the ``MapServer`` (idempotent: re-sent keyframes are ignored) and answers each
-  robot with a ``CorrectionMessage`` (keyframes it holds, where its agents are in the shared frame);
+  robot with a ``CorrectionMessage`` (keyframes it holds; where its agents are in the shared frame, only
+  what moved since the robot last heard, ``shgm_slam.corrections``);
 - marks robots that went silent stale (kept; they resume when they come back);
-- appends every accepted message to a journal, so a killed server started again on the same results
-  folder replays it and continues;
+- appends every accepted message to a journal and writes a snapshot of its state every so often, so a
+  killed server started again on the same results folder loads the newest snapshot, replays the journal
+  records after it and continues (``recovery``);
 - finishes by itself once ``expect`` robots have connected and each has sent its last keyframe: whole
   graphs are matched once more, the results folder is written and every robot gets its final correction.
 """
@@ -30,7 +32,8 @@ import numpy as np
 from shgm_slam.agents import agent_robot
 from shgm_slam.backend.confirmation import describe
 from shgm_slam.config import ShgmConfig
-from shgm_slam.errors import ShgmError
+from shgm_slam.corrections import FusedView
+from shgm_slam.errors import DataError, ShgmError
 from shgm_slam.fusion import fuse_segments
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.messages import (
@@ -46,6 +49,10 @@ from shgm_slam.messages import (
 from shgm_slam.server.journal import Journal
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.records import MatchRecord
+from shgm_slam.server.recovery import RecoveryReport, recover
+from shgm_slam.server.sessions import RobotSession
+from shgm_slam.server.snapshot import SnapshotStore, config_digest
+from shgm_slam.server.snapshot_codec import ServerSnapshot, SnapshotError
 from shgm_slam.transport.base import Inbox, Transport
 from shgm_slam.transport.keys import ALL_DONE, ALL_HELLO, ALL_KEYFRAMES, STATUS_KEY, correction_key, robot_of
 from shgm_slam.wire import decode, encode
@@ -60,24 +67,6 @@ session has been silent this long the newcomer is a restart and takes over (robo
 
 
 @dataclass
-class RobotSession:
-    """What the server knows of one robot's process."""
-
-    name: str
-    session: str
-    state: RobotState = RobotState.ACTIVE
-    last_heard_s: float = 0.0
-    done: DoneMessage | None = None
-    kf_timestamps: dict[str, list[float]] = field(default_factory=dict)  # agent -> keyframe times
-    kf_frames: dict[str, list[int]] = field(default_factory=dict)  # agent -> keyframe frame indices
-    corrected_version: int = -1  # pose-graph version of the last correction sent
-
-    def complete(self, server: MapServer) -> bool:
-        """True when the robot said it is done and every keyframe it sent has arrived."""
-        return self.done is not None and all(server.received(a) >= n for a, n in self.done.keyframes.items())
-
-
-@dataclass
 class TrafficStats:
     """Bytes and messages the server received, by kind, and what it refused."""
 
@@ -85,6 +74,7 @@ class TrafficStats:
     count_by_kind: dict[str, int] = field(default_factory=dict)
     bytes_by_robot: dict[str, int] = field(default_factory=dict)  # everything a robot sent
     sent_by_kind: dict[str, int] = field(default_factory=dict)  # what the server sent (corrections, status)
+    sent_by_robot: dict[str, int] = field(default_factory=dict)  # corrections sent to each robot
     refused: int = 0
     refusal_reasons: list[str] = field(default_factory=list)
 
@@ -93,8 +83,10 @@ class TrafficStats:
         self.count_by_kind[kind] = self.count_by_kind.get(kind, 0) + 1
         self.bytes_by_robot[robot] = self.bytes_by_robot.get(robot, 0) + size
 
-    def sent(self, kind: str, size: int) -> None:
+    def sent(self, kind: str, size: int, robot: str | None = None) -> None:
         self.sent_by_kind[kind] = self.sent_by_kind.get(kind, 0) + size
+        if robot is not None:
+            self.sent_by_robot[robot] = self.sent_by_robot.get(robot, 0) + size
 
     def refuse(self, reason: str) -> None:
         self.refused += 1
@@ -108,6 +100,7 @@ class TrafficStats:
             "messages_by_kind": dict(self.count_by_kind),
             "bytes_by_robot": dict(self.bytes_by_robot),
             "bytes_sent_by_kind": dict(self.sent_by_kind),
+            "bytes_sent_by_robot": dict(self.sent_by_robot),
             "bytes_per_keyframe": self.bytes_by_kind.get("keyframe", 0) / kf_n if kf_n else None,
             "refused": self.refused,
             "refusal_reasons": list(self.refusal_reasons),
@@ -124,7 +117,8 @@ class ServerNode:
         reference: the robot whose frame is the shared frame (None: the first robot to say hello).
         expect: finish by itself once this many robots have connected and each has sent its last
             keyframe (None: run until ``finish`` is called).
-        journal: keep the crash-recovery journal and replay it when one exists in ``out_dir``.
+        journal: keep the crash-recovery journal and snapshots (``cfg.server``) and recover from them when
+            ``out_dir`` has them.
         stale_after_s: a robot silent for this long is marked stale.
         status_every_s: how often the status is broadcast (and stale robots checked).
         correction_every_s: at most this often per robot a correction carries new fused poses
@@ -173,7 +167,12 @@ class ServerNode:
         for key in (ALL_HELLO, ALL_KEYFRAMES, ALL_DONE):
             transport.subscribe(key, self._inbox)
         self.journal = Journal(Path(out_dir) / "journal.bin") if journal else None
-        self.recovered_messages = self._recover() if self.journal is not None else 0
+        every = cfg.server.snapshot_every_messages
+        self.snapshots = SnapshotStore(out_dir, keep=cfg.server.snapshots_kept) if journal and every else None
+        self.recovery = self._recover() if self.journal is not None else RecoveryReport()
+        self.recovered_messages = self.recovery.replayed
+        self._snapshot_at = (self.recovery.snapshot_records, self.clock())  # journal records, time
+        self._snapshot_ms: list[float] = []  # wall time of each snapshot written
         if self.reference is not None:
             self._map()
 
@@ -205,6 +204,7 @@ class ServerNode:
             self._broadcast_status()
         if self.expect is not None and not self.finished and self._all_expected_done():
             records += self.finish()
+        self._snapshot_if_due(now)
         return records
 
     def finish(self, *, match: bool = True) -> list[MatchRecord]:
@@ -269,6 +269,7 @@ class ServerNode:
 
     def _hello(self, msg: HelloMessage, payload: bytes, now: float, *, live: bool) -> str | None:
         rs = self.robots.get(msg.robot)
+        new_session = rs is None or rs.session != msg.session
         if rs is not None and rs.session != msg.session:
             if live and rs.state is not RobotState.STALE and now - rs.last_heard_s < CLASH_WINDOW_S:
                 # a restart or a second process under the same name? Hold the newcomer until the current
@@ -290,9 +291,12 @@ class ServerNode:
             log.info("%s connected (session %s)%s", msg.robot, msg.session, ref)
         self._refused.pop(msg.robot, None)
         self._heard(rs, now)
-        if live and self.journal is not None:
-            self.journal.append(payload)
-        rs.corrected_version = -1  # answer with everything it needs to resume
+        if new_session:
+            if live and self.journal is not None:  # heartbeats of a known session change nothing to recover
+                self.journal.append(payload)
+        if new_session or (msg.resync and rs.view.seq):
+            rs.view = FusedView()  # it holds nothing (new process) or missed a correction: a full one next
+            rs.corrected_version = -1
         return msg.robot
 
     def _heard(self, rs: RobotSession, now: float) -> None:
@@ -340,25 +344,33 @@ class ServerNode:
     # --- answers -------------------------------------------------------------------------------
 
     def _send_correction(self, robot: str, now: float, *, force: bool = False) -> None:
+        """Acknowledge ``robot``'s keyframes; when matching moved fused poses (at most every
+        ``correction_every_s``) or ``force``, also send what moved beyond ``server.correction_tolerance_*``
+        since the robot last got it (everything after a (re)connect or a resync request, and when
+        ``force``: the final correction leaves the robot with exactly the server's poses)."""
         rs = self.robots.get(robot)
         if rs is None:
             return
         server = self._map()
         agents = [a for a in server.agents if agent_robot(a)[0] == robot]
-        poses: dict[str, np.ndarray] = {}
         due = force or (
             rs.corrected_version != self._pose_version
             and now - self._last_correction_s.get(robot, -np.inf) >= self.correction_every_s
         )
+        seq, full, changes = 0, False, {}
         if due:
-            for a in agents:
-                T = server.T_shared_kf(a)
-                if T is not None:
-                    poses[a] = T
+            full = force or rs.view.seq == 0
+            current = {a: (server.T_shared_odom(a), server.T_shared_kf(a)) if server.is_placed(a) else None
+                       for a in agents}  # fmt: skip
+            scfg = self.cfg.server
+            changes = rs.view.changes(current, scfg.correction_tolerance_m, scfg.correction_tolerance_rad, full=full)
+            seq = rs.view.seq + 1 if changes or full else 0
             rs.corrected_version = self._pose_version
             self._last_correction_s[robot] = now
-        payload = encode(CorrectionMessage(robot, rs.session, {a: server.received(a) for a in agents}, poses))
-        self.traffic.sent("correction", len(payload))
+        msg = CorrectionMessage(robot, rs.session, {a: server.received(a) for a in agents}, seq, full, changes)
+        rs.view.apply(msg)
+        payload = encode(msg)
+        self.traffic.sent("correction", len(payload), robot)
         self.transport.publish(correction_key(robot), payload)
 
     def _broadcast_status(self) -> None:
@@ -383,6 +395,7 @@ class ServerNode:
                 log.warning("%s went silent (%.0f s); kept, marked stale until it comes back", rs.name,
                             now - rs.last_heard_s)  # fmt: skip
                 rs.state = RobotState.STALE
+                rs.went_stale += 1
 
     def _all_expected_done(self) -> bool:
         return (
@@ -393,28 +406,74 @@ class ServerNode:
 
     # --- recovery ------------------------------------------------------------------------------
 
-    def _recover(self) -> int:
-        """Replay the journal (a restarted server); returns how many messages it replayed."""
-        n = 0
-        t0 = time.perf_counter()
-        for payload in self.journal.replay():
-            # the journal holds only accepted messages, on their own robot's key
-            try:
-                msg = decode(payload)
-            except ShgmError as exc:
-                log.warning("journal record %d unreadable (%s); skipped", n, exc)
-                continue
-            robot = msg.robot if not isinstance(msg, KeyframeMessage) else agent_robot(msg.robot)[0]
-            self._handle(f"shgm/{robot}/replay", payload, live=False)
-            n += 1
-        if n:
+    def _recover(self) -> RecoveryReport:
+        """A restarted server: the newest usable snapshot, then the journal records after it."""
+        report = recover(self.journal, self.snapshots, digest=config_digest(self.cfg), reference=self.reference,
+                         restore=self.restore, replay=self._replay)  # fmt: skip
+        if report.snapshot_records or report.replayed:
             for rs in self.robots.values():
                 rs.state = RobotState.STALE if rs.state is RobotState.ACTIVE else rs.state
                 rs.last_heard_s = self.clock()
-            log.info("recovered %d messages from %s in %.1f s: %s", n, self.journal.path, time.perf_counter() - t0,
+            log.info("recovered from %s in %.1f s (%d records from a snapshot, %d replayed): %s", self.journal.path,
+                     report.seconds, report.snapshot_records, report.replayed,
                      ", ".join(f"{r} {sum(self._map().received(a) for a in rs.kf_frames)} keyframes"
                                for r, rs in self.robots.items()))  # fmt: skip
-        return n
+        return report
+
+    def _replay(self, payload: bytes, index: int) -> None:
+        """Apply journal record ``index`` (only accepted messages, each from its own robot)."""
+        try:
+            msg = decode(payload)
+        except ShgmError as exc:
+            log.warning("journal record %d unreadable (%s); skipped", index, exc)
+            return
+        robot = msg.robot if not isinstance(msg, KeyframeMessage) else agent_robot(msg.robot)[0]
+        self._handle(f"shgm/{robot}/replay", payload, live=False)
+
+    def snapshot(self) -> ServerSnapshot:
+        """The server's state after every journal record so far (what ``restore`` loads)."""
+        return ServerSnapshot(
+            self.journal.records if self.journal is not None else 0, self.journal.chain if self.journal else 0,
+            config_digest(self.cfg), self.reference, tuple(self.robots.values()),
+            self.map.state() if self.map is not None else None,
+        )  # fmt: skip
+
+    def restore(self, snap: ServerSnapshot) -> None:
+        """Load a snapshot into this fresh node (nothing changes when it raises).
+
+        Raises:
+            SnapshotError, GraphError, BackendError: the snapshot's content is inconsistent.
+        """
+        server = MapServer.from_state(snap.map, self.cfg) if snap.map is not None else None
+        if server is not None and server.reference != snap.reference:
+            raise SnapshotError(f"snapshot's shared frame is {server.reference}'s but it names {snap.reference}")
+        robots = {rs.name: rs for rs in snap.sessions}
+        for rs in robots.values():
+            for a, frames in rs.kf_frames.items():
+                held = server.received(a) if server is not None else 0
+                if agent_robot(a)[0] != rs.name or len(frames) != held or len(rs.kf_timestamps.get(a, ())) != held:
+                    raise SnapshotError(f"snapshot session of {rs.name} disagrees with the map about {a}'s keyframes")
+        self.map, self.robots, self.reference = server, robots, snap.reference or self.reference
+
+    def _snapshot_if_due(self, now: float) -> None:
+        """Write a snapshot after ``snapshot_every_messages`` new journal records, or ``snapshot_every_s``
+        seconds with new records; never after finishing (the journal has no record of the final matching)."""
+        if self.snapshots is None or self.finished:
+            return
+        n = self.journal.records
+        done, at_s = self._snapshot_at
+        scfg = self.cfg.server
+        if n == done or (n - done < scfg.snapshot_every_messages and now - at_s < scfg.snapshot_every_s):
+            return
+        t0 = time.perf_counter()
+        try:
+            path = self.snapshots.write(self.snapshot())
+        except DataError as exc:  # the journal still holds everything: carry on without this snapshot
+            log.warning("snapshot not written (%s); a restart would replay more of the journal", exc)
+        else:
+            self._snapshot_ms.append((time.perf_counter() - t0) * 1e3)
+            log.debug("snapshot %s (%d bytes) in %.0f ms", path.name, self.snapshots.last_bytes, self._snapshot_ms[-1])
+        self._snapshot_at = (n, now)
 
     # --- results -------------------------------------------------------------------------------
 
@@ -511,12 +570,17 @@ class ServerNode:
                 "provisional": [a for a in mine if server.placement(a).provisional],
                 "keyframes": sum(server.received(a) for a in mine) if server else 0,
                 "done": rs.done is not None,
+                "went_stale": rs.went_stale,
             }
         return {
             "session": self.session,
             "reference": self.reference,
             "finished": self.finished,
             "recovered_messages": self.recovered_messages,
+            "recovery": self.recovery.to_json_dict(),
+            "snapshots_written": self.snapshots.written if self.snapshots is not None else 0,
+            "snapshot_bytes": self.snapshots.last_bytes if self.snapshots is not None else 0,
+            "snapshot_write_ms": round(float(np.mean(self._snapshot_ms)), 1) if self._snapshot_ms else None,
             "robots": robots,
             "matches_tried": len(server.matches) if server else 0,
             "closures_accepted": sum(m.accepted for m in server.matches) if server else 0,

@@ -122,8 +122,10 @@ def serve(
     with make_transport(NodeRole.SERVER, listen) as transport:
         node = ServerNode(cfg, transport, out_dir, reference=reference, expect=expect, stale_after_s=stale_after_s)
         node.writer.write_text("config.yaml", cfg.to_yaml())
-        if node.recovered_messages:
-            viz.log_text(f"recovered {node.recovered_messages} messages from the journal", "INFO")
+        r = node.recovery
+        if r.snapshot_records or r.replayed:
+            viz.log_text(f"recovered {r.snapshot_records} journal records from a snapshot and replayed {r.replayed} "
+                         f"in {r.seconds:.1f} s", "INFO")  # fmt: skip
         view = ServerView(viz)
         try:
             while not node.finished:

@@ -343,3 +343,19 @@ def test_agent_added_at_run_time_is_placed_by_closures_to_its_own_robots_earlier
     assert gtsam.Symbol(pg.keys.key("a#1", 0)).string() == "c0"
     assert "c0" in {gtsam.Symbol(int(line.split()[1])).string() for line in pg.to_g2o().splitlines()
                     if line.startswith("VERTEX")}  # fmt: skip
+
+
+def test_odometry_sigmas_grow_with_the_distance_driven():
+    pg = MultiRobotPoseGraph(["a"], odometry_sigmas=(0.001, 0.01), odometry_drift=(0.002, 0.02))
+    steps = [0.0, 1.0, 3.0]
+    T = np.eye(4)
+    pg.add_keyframe("a", 0, T)
+    for k, step in enumerate(steps[1:], start=1):
+        T = T @ make_pose(np.eye(3), np.array([0.0, 0.0, step]))
+        pg.add_keyframe("a", k, T)
+    edges = [line.split() for line in pg.to_g2o().splitlines() if line.startswith("EDGE")]
+    trans_info = [float(e[10]) for e in edges]  # first information entry: x translation
+    expected = [1.0 / (0.01 + 0.02 * s) ** 2 for s in steps[1:]]
+    np.testing.assert_allclose(trans_info, expected, rtol=1e-4)
+    with pytest.raises(BackendError, match="drift"):
+        MultiRobotPoseGraph(["a"], odometry_drift=(-1.0, 0.0))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -192,3 +193,48 @@ def test_empty_keyframes_are_fine():
     assert len(g) == 0 and g.num_edges == 0 and upd.observed_node_ids == []
     a = g.arrays()
     assert a.positions_xyz.shape == (0, 3) and a.edges.shape == (0, 2)
+
+
+def test_state_round_trip_behaves_identically_afterwards():
+    g = SemanticGraph(merge_radius_m=3.0, connectivity_m=10.0)
+    frames = list(drive(seed=7, n_kf=30))
+    for k, T, objs in frames[:18]:
+        g.add_keyframe(k, T, objs)
+    r = SemanticGraph.from_state(g.state())
+    for k, T, objs in frames[18:]:  # both keep building: the same merges, ids and edges
+        upd_g, upd_r = g.add_keyframe(k, T, objs), r.add_keyframe(k, T, objs)
+        assert upd_g.new_nodes == upd_r.new_nodes and upd_g.updated_nodes == upd_r.updated_nodes
+    a, b = g.arrays(), r.arrays()
+    for field in ("node_ids", "label_ids", "positions_xyz", "sizes", "edges"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    np.testing.assert_array_equal(g.submap(range(10, 25)).node_ids, r.submap(range(10, 25)).node_ids)
+    np.testing.assert_array_equal(g.anchor_keyframes(a.node_ids), r.anchor_keyframes(a.node_ids))
+    np.testing.assert_array_equal(brute_force_edges(b.positions_xyz, 10.0), b.edges)
+
+
+def test_empty_graph_state_round_trips():
+    r = SemanticGraph.from_state(SemanticGraph(2.0, 5.0, first_node_id=100).state())
+    assert len(r) == 0 and r.keyframe_ids == []
+    r.add_keyframe(0, np.eye(4), observations([2], [[0, 0, 5]]))
+    assert r.node_ids.tolist() == [100]
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("anchor_slots", lambda s: s.anchor_slots + len(s.kf_ids)),
+        ("node_ids", lambda s: np.zeros_like(s.node_ids)),
+        ("positions_world", lambda s: np.full_like(s.positions_world, np.nan)),
+        ("edges", lambda s: s.edges[:, ::-1]),
+        ("obs_rows", lambda s: s.obs_rows[:-1]),
+        ("sizes", lambda s: s.sizes[:-1]),
+        ("next_node_id", lambda s: 0),
+    ],
+)
+def test_inconsistent_state_is_a_graph_error(field, value):
+    g = SemanticGraph(merge_radius_m=3.0, connectivity_m=10.0)
+    for k, T, objs in drive(seed=2, n_kf=8):
+        g.add_keyframe(k, T, objs)
+    s = g.state()
+    with pytest.raises(GraphError, match="graph state"):
+        SemanticGraph.from_state(replace(s, **{field: value(s)}))

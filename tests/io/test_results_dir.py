@@ -53,10 +53,13 @@ def test_a_file_is_not_a_results_folder(tmp_path):
 def test_a_server_journal_resumes_the_folder_and_overwrite_starts_fresh(tmp_path):
     _earlier_run(tmp_path / "out")
     (tmp_path / "out" / "journal.bin").write_bytes(b"j")
+    (tmp_path / "out" / "snapshot-000000120.bin").write_bytes(b"s")
     make_results_dir(tmp_path / "out", resume_file="journal.bin")  # a restart keeps everything
     assert (tmp_path / "out" / "journal.bin").is_file() and (tmp_path / "out" / "metrics.json").is_file()
+    assert (tmp_path / "out" / "snapshot-000000120.bin").is_file()
     make_results_dir(tmp_path / "out", overwrite=True, resume_file="journal.bin")
     assert not (tmp_path / "out" / "journal.bin").exists()
+    assert not (tmp_path / "out" / "snapshot-000000120.bin").exists()
 
 
 def test_a_server_that_stopped_before_any_robot_is_resumed(tmp_path):

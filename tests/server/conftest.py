@@ -70,13 +70,18 @@ def fresh(robots, cfg, bus, clock, names=("car1", "car2")) -> dict[str, RobotNod
 
 
 @pytest.fixture(scope="module")
-def uninterrupted(robots, cfg, tmp_path_factory):
+def uninterrupted_run(robots, cfg, tmp_path_factory) -> tuple[ServerNode, dict[str, RobotNode]]:
     clock, bus = FakeClock(), InProcessBus()
     server = ServerNode(cfg, InProcessTransport(bus), tmp_path_factory.mktemp("plain"), expect=2, clock=clock)
     nodes = fresh(robots, cfg, bus, clock)
     drive(server, nodes, {r: range(len(robots[r])) for r in nodes}, clock)
     finish(server, nodes, clock)
-    return server
+    return server, nodes
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(uninterrupted_run) -> ServerNode:
+    return uninterrupted_run[0]
 
 
 def fused(server: ServerNode, robot: str) -> np.ndarray:

@@ -45,3 +45,19 @@ def test_corrupt_record_ends_the_replay(tmp_path: Path) -> None:
 
 def test_missing_journal_replays_nothing(tmp_path: Path) -> None:
     assert list(Journal(tmp_path / "none.bin").replay()) == []
+
+
+def test_chain_identifies_the_records_so_far(tmp_path: Path) -> None:
+    j = Journal(tmp_path / "journal.bin")
+    chains = []
+    for p in (b"a", b"b", b"c"):
+        j.append(p)
+        chains.append(j.chain)
+    j.close()
+    again = Journal(tmp_path / "journal.bin")
+    assert [again.chain for _ in again.replay()] == chains
+    assert len(set(chains)) == 3
+    other = Journal(tmp_path / "other.bin")
+    for p in (b"a", b"x", b"c"):
+        other.append(p)
+    assert other.chain != chains[-1]

@@ -1,0 +1,29 @@
+"""What the map server knows of each robot's process: its session, liveness, last message, keyframe times."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from shgm_slam.corrections import FusedView
+from shgm_slam.messages import DoneMessage, RobotState
+from shgm_slam.server.map_server import MapServer
+
+
+@dataclass
+class RobotSession:
+    """What the server knows of one robot's process."""
+
+    name: str
+    session: str
+    state: RobotState = RobotState.ACTIVE
+    last_heard_s: float = 0.0
+    done: DoneMessage | None = None
+    kf_timestamps: dict[str, list[float]] = field(default_factory=dict)  # agent -> keyframe times
+    kf_frames: dict[str, list[int]] = field(default_factory=dict)  # agent -> keyframe frame indices
+    went_stale: int = 0  # how often it went silent (and was kept)
+    corrected_version: int = -1  # pose-graph version of the last correction with poses (-1: send one now)
+    view: FusedView = field(default_factory=FusedView)  # what the robot holds of its fused poses
+
+    def complete(self, server: MapServer) -> bool:
+        """True when the robot said it is done and every keyframe it sent has arrived."""
+        return self.done is not None and all(server.received(a) >= n for a, n in self.done.keyframes.items())
