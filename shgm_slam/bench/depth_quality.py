@@ -159,7 +159,6 @@ def model_depth(sequence: Sequence, model_path: Path | None = None, threads: int
     return DepthReplacedSequence(sequence, depth_fn, "demo model")
 
 
-
 def level_sequence(base: Sequence, level: DepthLevel, seed: int) -> Sequence:
     """``base`` with the depth of ``level`` (true: ``base`` itself)."""
     if level.model:
@@ -381,6 +380,10 @@ def summarize(rows: list[dict], options: DepthQualityOptions) -> list[dict]:
     return out
 
 
+def _seeds_text(seeds: list[int]) -> str:
+    return f"seed {seeds[0]}" if len(seeds) == 1 else f"seeds {seeds[0]}-{seeds[-1]}"
+
+
 KIND_NAMES = {OdometryKind.KISS_ICP.value: "KISS-ICP", OdometryKind.VISUAL.value: "visual",
               OdometryKind.HYBRID.value: "hybrid"}  # fmt: skip
 
@@ -397,8 +400,10 @@ def depth_quality_markdown(results: dict) -> str:
     head += [f"wrong, {KIND_NAMES.get(k, k)}" for k in sys_kinds]
     head += [f"reference fused ATE m, {KIND_NAMES.get(k, k)}" for k in sys_kinds]
     lines = [
-        f"Worlds: {', '.join(o['scenarios'])}, seeds {o['seeds'][0]}-{o['seeds'][-1]}, "
-        f"{o['resolution'][0]}x{o['resolution'][1]}; rendered labels, depth as in the first column. Drift: "
+        f"Worlds: {', '.join(o['scenarios'])}, {_seeds_text(o['seeds'])}, "
+        f"{o['resolution'][0]}x{o['resolution'][1]}"
+        + (f", the first {o['max_frames']} frames of every robot" if o.get("max_frames") else "")
+        + "; rendered labels, depth as in the first column. Drift: "
         "translation error per distance driven over 50-200 m stretches (median over robots; odometry alone, no "
         "health check); ATE: SE(3)-aligned, metres. Placed right: overlapping robots (not the reference) placed "
         f"within {o['placed_right_m']:g} m by the whole system (default configuration, odometry forced).",
@@ -461,7 +466,7 @@ def plot_depth_quality(results: dict, path: Path) -> Path:
     ax2.grid(alpha=0.3)
     ax2.legend(fontsize=7)
     o = results["options"]
-    fig.suptitle(f"Depth quality: {', '.join(o['scenarios'])}, seeds {o['seeds'][0]}-{o['seeds'][-1]}", fontsize=9)
+    fig.suptitle(f"Depth quality: {', '.join(o['scenarios'])}, {_seeds_text(o['seeds'])}", fontsize=9)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()

@@ -64,6 +64,7 @@ def test_study_pipeline_on_a_tiny_world(tiny_scenario, tmp_path):
     assert (out / "depth_quality.png").stat().st_size > 1000
     md = (out / "depth_quality.md").read_text()
     assert "| true |" in md and "| 0.10 |" in md
+    assert "the first 25 frames of every robot" in md  # the caption says the runs were cut
     true, noisy = results["summary"]
     assert true["abs_rel_measured"] == 0.0 and noisy["abs_rel_measured"] == pytest.approx(0.1, rel=0.35)
     assert true["odometry"]["kiss-icp"]["all"]["robots"] == 3
