@@ -835,6 +835,29 @@ def bench_system(
     console.print(f"wrote {lit(out / 'system.json')} and {lit(out / 'system.md')}")
 
 
+@bench_app.command("scale")
+@handle_errors
+def bench_scale(
+    out: Annotated[Path, typer.Option("--out", "-o", help="results folder")] = Path("results/bench_scale"),
+    cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
+    seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
+    memory: Annotated[bool, typer.Option(help="also the 1 km vs whole-drive peak-RSS runs (fresh processes)")]
+    = True,
+    kitti_root: Annotated[Path | None, typer.Option(help="KITTI folder with poses/")] = None,
+    config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
+) -> None:
+    """Cost with distance: all of KITTI 00 (3.7 km) with 07 as kitti-paths; per kilometre, the time per keyframe
+    of the front end, matching and the pose graph, matches and their cost, memory; 1 km vs 3.7 km peak RSS."""
+    from shgm_slam.bench.scale import run_scale_benchmark, scale_markdown
+    from shgm_slam.config import load_config
+
+    with console.status("starting") as status:
+        results = run_scale_benchmark(out, cache=cache, seed=seed, memory=memory, kitti_root=kitti_root,
+                                      config=load_config(config), progress=lambda msg: status.update(msg))  # fmt: skip
+    typer.echo(scale_markdown(results))
+    console.print(f"wrote {lit(out / 'scale.json')} and {lit(out / 'scale.md')}")
+
+
 @bench_app.command("distributed")
 @handle_errors
 def bench_distributed(

@@ -46,7 +46,7 @@ class KeyframeMessage:
     timestamp_s: float
     T_odom_kf: np.ndarray
     graph_update: GraphUpdate
-    up_odom: np.ndarray | None = None  # (3,) unit "up" (ground normal) in the odometry frame, if known
+    up_odom: np.ndarray | None = None  # (3,) this keyframe's unit ground normal (up) in the odometry frame, if fitted
     session: str = ""  # the sending robot process (``HelloMessage.session``)
 
 

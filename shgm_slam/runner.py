@@ -31,10 +31,12 @@ from shgm_slam.odometry.stillness import ImageChange, odometry_motion, stillness
 from shgm_slam.perception import make_perception
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
 from shgm_slam.robot.node import RobotNode
+from shgm_slam.run_view import RunView
 from shgm_slam.scene_scale import effective_fields, resolve_robot_config, sample_scene_scale
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.node import ServerNode
 from shgm_slam.server.placement import PlacementWatch
+from shgm_slam.server.records import MatchRecord
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 from shgm_slam.types import Sequence
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
@@ -198,6 +200,35 @@ class RunSummary:
 ProgressFn = Callable[[int, int], None]
 
 
+@dataclass(frozen=True)
+class FrameStats:
+    """What one step of ``run_slam`` cost (for benchmarks): ``front_end_ms`` the robot's stages without
+    loading and perception (``RobotFrontend.process``: cloud, odometry, extraction, graph); ``load_ms``
+    loading the frame and perception; ``match_ms`` / ``backend_ms`` the server's graph matching and
+    pose-graph work the step triggered; ``server_ms`` the whole server poll (those two, decoding,
+    corrections, results files; ``write_ms`` and ``correction_ms`` of them rewriting the results folder and
+    answering the robots); ``step_ms`` the whole step (all of these and the viewer), wall time;
+    ``step_cpu_ms`` its CPU time (all threads of the process: what it costs, whatever else the machine
+    runs). ``matches`` the attempts it triggered."""
+
+    robot: str
+    frame_index: int
+    keyframe: bool
+    front_end_ms: float
+    load_ms: float
+    match_ms: float
+    backend_ms: float
+    server_ms: float
+    step_ms: float
+    matches: tuple[MatchRecord, ...] = ()
+    step_cpu_ms: float = 0.0
+    write_ms: float = 0.0
+    correction_ms: float = 0.0
+
+
+FrameFn = Callable[[FrameStats], None]
+
+
 class _Timings:
     def __init__(self) -> None:
         self.sums: dict[str, float] = {}
@@ -221,6 +252,7 @@ def run_slam(
     progress: ProgressFn | None = None,
     gt_shared_frame: bool = True,
     write_every_keyframes: int = 25,
+    on_frame: FrameFn | None = None,
     journal: bool = False,
 ) -> RunSummary:
     """Run the whole multi-robot system and write the results folder.
@@ -235,6 +267,7 @@ def run_slam(
         gt_shared_frame: the sequences' ground truths share one world frame (true for our simulator and
             for frame ranges of one KITTI sequence), so fused ATE is measured in the shared frame.
         write_every_keyframes: rewrite the results folder this often (survives crashes and Ctrl-C).
+        on_frame: called after every processed frame with what it cost (``FrameStats``).
         journal: keep the map server's message journal (``journal.bin``) in ``out_dir``: every keyframe
             the robots sent, in order, so the back end can be run again on it (``replay_backend``).
     """
@@ -261,6 +294,7 @@ def run_slam(
     server_node.poll()
     server = server_node.map
     viz.setup({r: seq.intrinsics for r, seq in robots.items()})
+    view = RunView(viz)
     writer.write_text("config.yaml", effective_config(cfg, {r: f.cfg for r, f in fronts.items()}).to_yaml())
     total = sum(len(s) for s in robots.values())
     timings = _Timings()
@@ -276,6 +310,7 @@ def run_slam(
     try:
         for robot, index in interleave(robots):
             done += 1
+            t_step, cpu_step = time.perf_counter(), time.process_time()
             try:
                 res = nodes[robot].step(index)
             except DataError as exc:
@@ -292,15 +327,27 @@ def run_slam(
                     _last_healthy_position(fronts[robot], server),
                 )  # fmt: skip
             t0 = time.perf_counter()
+            n_match, n_backend = len(server.timings_ms["match"]), len(server.timings_ms["backend"])
+            n_write, n_corr = len(server_node.timings_ms["write"]), len(server_node.timings_ms["correction"])
             records = server_node.poll()
             res.timings_ms["server"] = (time.perf_counter() - t0) * 1e3
             nodes[robot].poll()
             timings.add(res.timings_ms)
-            compute_ms += sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
-            _log_frame(viz, server, fronts[robot], res, records)
+            step_compute = sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
+            compute_ms += step_compute
+            _log_frame(viz, view, server, fronts[robot], res, records)
             if records:
                 _log_placements(viz, watch, server)
             kf_total += res.message is not None
+            if on_frame is not None:
+                match_ms = sum(server.timings_ms["match"][n_match:])
+                backend_ms = sum(server.timings_ms["backend"][n_backend:])
+                on_frame(FrameStats(
+                    robot, index, res.message is not None, step_compute - res.timings_ms["server"],
+                    sum(res.timings_ms.values()) - step_compute, match_ms, backend_ms, res.timings_ms["server"],
+                    (time.perf_counter() - t_step) * 1e3, tuple(records), (time.process_time() - cpu_step) * 1e3,
+                    sum(server_node.timings_ms["write"][n_write:]), sum(server_node.timings_ms["correction"][n_corr:]),
+                ))  # fmt: skip
             if progress:
                 progress(done, total)
     except KeyboardInterrupt:
@@ -501,8 +548,13 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
     return reports
 
 
-def _log_frame(viz: Viz, server: MapServer, front: RobotFrontend, res: FrameResult, records) -> None:
+def _log_frame(
+    viz: Viz, view: RunView, server: MapServer, front: RobotFrontend, res: FrameResult, records
+) -> None:
     r, agent = res.robot, res.agent or res.robot
+    if not viz.enabled:  # nothing shown: skip the poses, clouds, trajectories and graphs only the viewer needs
+        _log_matches(viz, server, records)
+        return
     viz.set_time(r, res.frame.index, res.frame.timestamp_s)
     if not np.isfinite(res.T_odom_cam).all():  # between a divergence and the next measured frame
         _log_matches(viz, server, records)
@@ -518,18 +570,7 @@ def _log_frame(viz: Viz, server: MapServer, front: RobotFrontend, res: FrameResu
     )  # fmt: skip
     viz.log_timings(r, res.timings_ms)
     if res.message is not None:
-        upto = slice(0, res.frame.index + 1)
-        odo_xyz = front.T_odom_cam[upto, :3, 3][front.frame_segment[upto] == front.segment.index]  # this segment
-        fused = _fused(front, server)
-        fused_xyz = None
-        if fused is not None:
-            fused_xyz = fused[: res.frame.index + 1, :3, 3]
-            fused_xyz = fused_xyz[np.isfinite(fused_xyz).all(axis=1)]
-        if T_shared_odom is not None:
-            odo_xyz = se3.transform_points(T_shared_odom, odo_xyz)
-        viz.log_trajectories(r, odo_xyz, fused_xyz)
-        graph = server.graph(agent)
-        viz.log_graph(r, graph.transformed(T_shared_odom) if T_shared_odom is not None else graph)
+        view.keyframe(server, front, res)  # only the trajectory stretches and graph parts that changed
     _log_matches(viz, server, records)
 
 

@@ -9,9 +9,9 @@ schema fixes (the count N follows from the byte length, and must agree across co
   (Cityscapes train ids 0..18, 255 = ignore), anchor keyframes int32, positions (N, 3) float32
   (metres in a keyframe camera frame: float32 keeps ~0.1 mm at 1 km), sizes float32 (pixel counts,
   exact below 2^24), observation counts uint16 (saturated at 65535 when encoding);
-- ``up_odom`` (3,) float64 or nil; per agent of a ``CorrectionMessage``: ``T_shared_odom`` one pose or
-  nil, the keyframe count, keyframe indices int32 and their poses (M, 3, 4) float64, ``T_move`` one
-  pose or nil;
+- ``up_odom`` (3,) float64 or nil (the keyframe's own ground normal; version 1 sent a running mean); per
+  agent of a ``CorrectionMessage``: ``T_shared_odom`` one pose or nil, the keyframe count, keyframe
+  indices int32 and their poses (M, 3, 4) float64, ``T_move`` one pose or nil;
 - ``RobotTrajectory``: timestamps float64, segments int32, poses (N, 3, 4) float64 (a frame in no
   segment is all-NaN and comes back as an all-NaN 4x4).
 
@@ -50,7 +50,7 @@ from shgm_slam.messages import (
 
 PROTOCOL_VERSION = 2
 """Version of the payload layout; a peer with another version is refused (``WireError``). 2: corrections
-carry only what changed (``AgentCorrection``), hellos a resync request."""
+carry only what changed (``AgentCorrection``), hellos a resync request, keyframes their own ground normal."""
 
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 """Largest payload ``decode`` reads (and ``encode`` writes)."""

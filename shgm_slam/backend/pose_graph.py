@@ -26,6 +26,17 @@ those are removed from iSAM2 (``removeFactorIndices``); if a removed closure was
 a robot, the graph is rebuilt from the recorded odometry and the accepted closures, so one wrong first
 match cannot leave a robot in the wrong place. Accepted closures additionally carry a robust kernel.
 
+Attitude (``attitude``): each keyframe that measured its ground plane (``up_odom``: the plane's normal in
+its odometry frame) gets a unary ``AttitudeFactorPose3`` once its robot is anchored: the normal in the
+camera frame, rotated by the keyframe's estimated orientation, should point along the shared frame's up,
+with a Huber kernel and the robot's own measured sigma (``attitude.normal_sigma_rad``, from its first
+``attitude_warmup`` measured keyframes; none before). The shared frame's up comes from the first anchored
+robot's first ``attitude_warmup`` measurements, rotated into the shared frame and extrapolated to its
+first keyframe (``attitude.up_at_start``), and is then fixed: unary factors keep the cost of an update
+flat, where a shared "gravity" variable tied to every keyframe made each update cost O(keyframes). This
+stops roll and pitch from drifting with the odometry, and the height error that pitch drift integrates;
+it assumes level ground (see ``attitude.py``).
+
 Numerics: iSAM2 factorizes with QR by default. With CHOLESKY, a long straight chain with the default
 sigmas raised ``IndeterminateSystem`` after ~1100 keyframes: the root clique's information couples
 rotation and translation through a lever arm as long as the chain, and gtsam's partial Cholesky
@@ -41,6 +52,7 @@ ask for poses per keyframe do not pay a full recomputation each time.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import time
 from dataclasses import dataclass, field, replace
@@ -50,6 +62,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
+from shgm_slam.backend.attitude import normal_sigma_rad, up_at_start
 from shgm_slam.backend.consistency import (
     MAX_CLOSURES_PER_PAIR,
     ConsistencyThresholds,
@@ -138,6 +151,8 @@ class PoseGraphState:
         information: (C, 6, 6) each closure's information matrix (gtsam order [rot, trans]).
         pairs: robot pair -> its consistency vote.
         rebuilds, recoveries: counters; factorization: the solver in use (QR after a recovery).
+        up_odom: robot -> (K, 3) each keyframe's ground normal in its odometry frame (NaN rows: none
+            measured); the attitude factors are rebuilt from them.
     """
 
     robots: tuple[str, ...]
@@ -149,6 +164,7 @@ class PoseGraphState:
     rebuilds: int
     recoveries: int
     factorization: Factorization
+    up_odom: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -166,6 +182,7 @@ class PoseGraphStats:
     rebuilds: int
     last_update_ms: float
     recoveries: int = 0  # iSAM2 failures recovered by rebuilding with QR
+    attitude_factors: int = 0  # keyframes whose ground normal is a factor in iSAM2 now
 
 
 @dataclass
@@ -176,12 +193,20 @@ class _Robot:
     anchor_closure: int | None = None  # closure id that anchored it (None for robot 0 or unanchored)
     anchored: bool = False
     T_shared_odom_init: np.ndarray | None = None  # alignment used when it was anchored
+    up_odom: list[np.ndarray] = field(default_factory=list)  # each keyframe's ground normal (NaN: none)
+    measured: list[int] = field(default_factory=list)  # keyframes with a ground normal
+    attitude_sigma_rad: float | None = None  # measured once it has ``attitude_warmup`` normals
+    attitude_next: int = 0  # keyframes before this one have had their attitude factor (if measured)
     _odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_odom_kf as a growing array
     _path: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
-    def append(self, T_odom_kf: np.ndarray) -> None:
-        """Record the next keyframe pose (and the odometry path length up to it)."""
+    def append(self, T_odom_kf: np.ndarray, up_odom: np.ndarray | None = None) -> None:
+        """Record the next keyframe pose, its ground normal (odometry frame; None: not measured) and the
+        odometry path length up to it."""
         k = len(self.T_odom_kf)
+        self.up_odom.append(np.full(3, np.nan) if up_odom is None else up_odom)
+        if up_odom is not None:
+            self.measured.append(k)
         step = 0.0 if k == 0 else float(np.linalg.norm(T_odom_kf[:3, 3] - self.T_odom_kf[-1][:3, 3]))
         self.path_m.append((self.path_m[-1] if k else 0.0) + step)
         self.T_odom_kf.append(T_odom_kf)
@@ -243,7 +268,13 @@ class MultiRobotPoseGraph:
             consistent set holds closures from at least this many independent sources (matches;
             1 = trust a single first match).
         factorization: iSAM2 linear solver.
-        extra_updates: additional ``isam.update()`` passes after closures change the graph.
+        relinearize_threshold: iSAM2 relinearizes a variable whose update exceeds this (rad and m; gtsam's
+            default). On a 1.5 km drive of repeated loops (a loop closure every 10 keyframes) the CPU of a
+            keyframe update grew from 0.44 to 7.6 ms with 0.01 and from 0.34 to 2.1 ms with 0.1, same ATE.
+        extra_updates: additional ``isam.update()`` passes after a large correction (``update``).
+        attitude: attitude factors from the keyframes' ground normals (module docstring).
+        attitude_warmup: measured keyframes a robot needs before its sigma is measured (and the first
+            anchored one's before the shared frame's up is fixed).
         max_closures_per_pair: closures of one robot pair that vote on its consistent set; beyond
             it the oldest closure outside the set (else the oldest in it) leaves the vote and keeps
             its status (``PairConsistency``).
@@ -264,8 +295,10 @@ class MultiRobotPoseGraph:
         consistency_rot_deg_per_m: float = 0.05,
         min_closures_to_anchor: int = 1,
         factorization: Factorization | str = Factorization.QR,
-        relinearize_threshold: float = 0.01,
+        relinearize_threshold: float = 0.1,
         extra_updates: int = 3,
+        attitude: bool = True,
+        attitude_warmup: int = 20,
         max_closures_per_pair: int = MAX_CLOSURES_PER_PAIR,
     ) -> None:
         self.keys = RobotKeys(robot_names)
@@ -292,6 +325,12 @@ class MultiRobotPoseGraph:
         self.max_closures_per_pair = max_closures_per_pair
         self.relinearize_threshold = relinearize_threshold
         self.extra_updates = extra_updates
+        if attitude_warmup < 2:
+            raise BackendError(f"attitude_warmup must be >= 2 (a sigma needs pairs), got {attitude_warmup}")
+        self.attitude = attitude
+        self.attitude_warmup = attitude_warmup
+        self._up_shared: np.ndarray | None = None  # the shared frame's up, fixed once measured
+        self._attitude_factors = 0
         self._robots = {name: _Robot(i) for i, name in enumerate(self.keys.names)}
         self._closures: list[ClosureRecord] = []
         self._closure_noise: list[gtsam.noiseModel.Base] = []
@@ -301,36 +340,50 @@ class MultiRobotPoseGraph:
         self._recoveries = 0
         self._last_update_ms = 0.0
         self._version = 0  # bumped on every change of the graph; keys the estimate cache
+        self._corrections = 0  # bumped when closures enter or leave iSAM2, a robot is anchored, or a rebuild
+        self._large_correction = False  # pending changes need the extra relinearization passes
         self._cache_version = -1
         self._cache: dict[str, np.ndarray] = {}
+        self._converged: tuple[int, gtsam.Values] | None = None  # (version, solution) of ``converge``
         self._reset_isam()
 
     # --- public API ---------------------------------------------------------------------------------
 
-    def add_keyframe(self, robot: str, kf_index: int, T_odom_kf: np.ndarray) -> None:
+    def add_keyframe(
+        self, robot: str, kf_index: int, T_odom_kf: np.ndarray, up_odom: np.ndarray | None = None
+    ) -> None:
         """Add keyframe ``kf_index`` (0, 1, 2, ... per robot) with its pose in the robot's odometry frame.
 
         Anchored robots get the odometry factor (and robot 0's first keyframe the prior) in iSAM2
         right away; keyframes of unanchored robots are recorded until the robot is anchored.
+        ``up_odom`` (3,) is the keyframe's measured ground normal (unit, pointing up) in the robot's
+        odometry frame, or None; it becomes an attitude factor (module docstring).
 
         Raises:
-            BackendError: unknown robot, a keyframe index out of order, or a non-finite pose.
+            BackendError: unknown robot, a keyframe index out of order, a non-finite pose or normal.
         """
         r = self._robot(robot)
         T = _check_pose(T_odom_kf, f"keyframe {kf_index} of {robot}")
+        if up_odom is not None:
+            up_odom = np.asarray(up_odom, dtype=np.float64)
+            norm = float(np.linalg.norm(up_odom)) if up_odom.shape == (3,) else 0.0
+            if not (np.isfinite(up_odom).all() and norm > 0):
+                raise BackendError(f"up_odom of keyframe {kf_index} of {robot} must be a finite non-zero (3,) vector")
+            up_odom = up_odom / norm
         if kf_index != len(r.T_odom_kf):
             raise BackendError(
                 f"keyframe {kf_index} of {robot} is out of order: expected keyframe {len(r.T_odom_kf)} "
                 "(keyframes are numbered 0, 1, 2, ... per robot)"
             )
-        r.append(T)
+        r.append(T, up_odom)
         self._version += 1
         if r.index == 0 and kf_index == 0:
             self._anchor_first_robot()
             self._sync()
         elif r.anchored:
             self._push_keyframe(robot, kf_index)
-        self._flush(closures_changed=False)
+            self._push_attitudes()
+        self._flush()
 
     def add_inter_robot_closure(
         self,
@@ -343,6 +396,7 @@ class MultiRobotPoseGraph:
         num_inliers: int = 1,
         information: np.ndarray | None = None,
         match_id: int | None = None,
+        update: bool = True,
     ) -> ClosureDecision:
         """Add a relative-pose measurement between keyframes of two robots, or two keyframes of one robot.
 
@@ -359,6 +413,8 @@ class MultiRobotPoseGraph:
                 configured closure sigmas otherwise.
             match_id: the graph match the closure was cut from; closures of one match count as one
                 source of evidence for ``min_closures_to_anchor`` (None: the closure is its own source).
+            update: run iSAM2 now; False leaves the factor pending until ``update`` (add the closures of
+                one match, then update once: one re-elimination instead of one per closure).
 
         Returns:
             ``ClosureDecision``: accepted when the closure is in its robot pair's maximum consistent
@@ -392,7 +448,8 @@ class MultiRobotPoseGraph:
             return ClosureDecision(False, rec.reason, rec.closure_id)
         self._update_pair(rec)
         self._sync()
-        self._flush(closures_changed=True)
+        if update:
+            self.update()
         reason = rec.reason
         if rec.status is ClosureStatus.ACCEPTED and not rec.in_graph:
             if rec.robot_a == rec.robot_b:
@@ -406,6 +463,48 @@ class MultiRobotPoseGraph:
                 reason += f"; stored until {rec.robot_a} or {rec.robot_b} is anchored to {self.keys.names[0]}"
         return ClosureDecision(rec.status is ClosureStatus.ACCEPTED, reason, rec.closure_id)
 
+    def update(self) -> None:
+        """Run iSAM2 on the closures added with ``update=False`` (no-op when nothing is pending).
+
+        Extra relinearization passes (``extra_updates``) follow only a large correction: a robot
+        anchored, a closure removed or a rebuild, or a new closure whose translation disagrees with the
+        current estimate by more than its sigma; small corrections settle in the next updates.
+        """
+        self._flush()
+
+    def converge(self, max_iterations: int = 100) -> int:
+        """Solve the whole graph to convergence: Levenberg-Marquardt over every factor in iSAM2 (robust
+        kernels included), started from iSAM2's estimate, which relinearizes only variables that moved by
+        more than ``relinearize_threshold`` and so stops short of the optimum by an amount that depends
+        on the order keyframes and closures arrived in. The solution is what ``estimate`` and every pose
+        query answer until the graph changes next (iSAM2 itself is left as it is). Returns the LM
+        iterations run (0: nothing anchored).
+
+        Raises:
+            BackendError: the optimizer fails (an underconstrained graph).
+        """
+        self._flush()
+        factors = self._isam.getFactorsUnsafe()
+        graph = gtsam.NonlinearFactorGraph()
+        for i in range(factors.size()):
+            if factors.exists(i):
+                graph.add(factors.at(i))
+        initial = self._isam.calculateEstimate()
+        if initial.size() == 0:
+            return 0
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        params.setRelativeErrorTol(1e-9)
+        params.setAbsoluteErrorTol(1e-12)
+        try:
+            optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+            result = optimizer.optimize()
+        except RuntimeError as exc:
+            raise BackendError(f"converging the pose graph failed: {_first_line(exc)}") from None
+        self._version += 1
+        self._converged = (self._version, result)
+        return int(optimizer.iterations())
+
     def add_loop_closure(
         self,
         robot: str,
@@ -416,6 +515,7 @@ class MultiRobotPoseGraph:
         num_inliers: int = 1,
         information: np.ndarray | None = None,
         match_id: int | None = None,
+        update: bool = True,
     ) -> ClosureDecision:
         """Add an intra-robot loop closure: ``T_old_new`` (4, 4) maps points in keyframe ``kf_new``'s
         camera frame into keyframe ``kf_old``'s, both keyframes of ``robot``.
@@ -427,7 +527,7 @@ class MultiRobotPoseGraph:
         """
         return self.add_inter_robot_closure(
             robot, kf_old, robot, kf_new, T_old_new,
-            num_inliers=num_inliers, information=information, match_id=match_id,
+            num_inliers=num_inliers, information=information, match_id=match_id, update=update,
         )  # fmt: skip
 
     def add_robot(self, robot: str) -> None:
@@ -439,6 +539,11 @@ class MultiRobotPoseGraph:
         """
         self._robots[robot] = _Robot(self.keys.add(robot))
         self._version += 1
+
+    @property
+    def up_shared(self) -> np.ndarray | None:
+        """(3,) the shared frame's up (unit) the attitude factors hold keyframes to, once measured."""
+        return None if self._up_shared is None else self._up_shared.copy()
 
     def is_anchored(self, robot: str) -> bool:
         """True when ``robot``'s keyframes are in the shared frame (it has variables in iSAM2)."""
@@ -462,13 +567,33 @@ class MultiRobotPoseGraph:
         """Counter bumped by every change of the graph (keyframe, closure, agent, rebuild)."""
         return self._version
 
+    @property
+    def corrections(self) -> int:
+        """Counter bumped whenever closures enter or leave iSAM2, a robot is anchored or the graph is
+        rebuilt: the changes that can move keyframes far from where they were (new keyframes alone do not)."""
+        return self._corrections
+
+    def T_shared_kfs(self, robot: str, kf_indices: np.ndarray) -> np.ndarray:
+        """(M, 4, 4) current estimates of keyframes ``kf_indices`` of an anchored robot in the shared frame
+        (from the cached estimate when it is current, else one iSAM2 query per keyframe)."""
+        r = self._require_anchored(robot)
+        kfs = np.asarray(kf_indices, dtype=np.int64).reshape(-1)
+        if kfs.size and not (0 <= kfs.min() and kfs.max() < len(r.T_odom_kf)):
+            raise BackendError(f"{robot} has keyframes 0..{len(r.T_odom_kf) - 1}, asked for {kfs.min()}..{kfs.max()}")
+        if self._cache_version == self._version or (self._converged and self._converged[0] == self._version):
+            return self.estimate()[robot][kfs].copy()
+        out = np.zeros((kfs.size, 4, 4))
+        for i, k in enumerate(kfs.tolist()):
+            out[i] = self._isam.calculateEstimatePose3(self.keys.key(robot, k)).matrix()
+        return out
+
     def T_shared_kf(self, robot: str, kf_index: int) -> np.ndarray:
         """(4, 4) current estimate of one keyframe of an anchored robot in the shared frame."""
         r = self._require_anchored(robot)
         if not 0 <= kf_index < len(r.T_odom_kf):
             raise BackendError(f"{robot} has no keyframe {kf_index} ({len(r.T_odom_kf)} keyframes)")
-        if self._cache_version == self._version:
-            return self._cache[robot][kf_index].copy()
+        if self._cache_version == self._version or (self._converged and self._converged[0] == self._version):
+            return self.estimate()[robot][kf_index].copy()
         return self._isam.calculateEstimatePose3(self.keys.key(robot, kf_index)).matrix()
 
     def T_shared_odom(self, robot: str, kf_index: int | None = None) -> np.ndarray:
@@ -485,6 +610,26 @@ class MultiRobotPoseGraph:
         """The closure that anchored ``robot`` and the alignment its keyframes were initialised with."""
         r = self._require_anchored(robot)
         return Anchor(r.anchor_closure, r.T_shared_odom_init.copy())
+
+    def closure_keyframes(self, robot: str) -> np.ndarray:
+        """Sorted (C,) int64 keyframes of ``robot`` that a factor ties to the shared frame beyond its own
+        odometry: ends of its accepted closures in iSAM2 (and keyframe 0 of the shared frame's robot,
+        which carries the prior). Between them the fused estimate's drift is bounded by the closures."""
+        self._robot(robot)
+        kfs = [c.kf_a for c in self._closures if c.in_graph and c.robot_a == robot]
+        kfs += [c.kf_b for c in self._closures if c.in_graph and c.robot_b == robot]
+        if robot == self.keys.names[0] and self._robots[robot].T_odom_kf:
+            kfs.append(0)
+        return np.unique(np.asarray(kfs, dtype=np.int64))
+
+    def evidence_between(self, robot_a: str, robot_b: str) -> int:
+        """How many independent sources of evidence (graph matches, ``ClosureRecord.evidence``) the
+        accepted closures between two robots (either order; a robot with itself: its loop closures) rest on."""
+        pair = {robot_a, robot_b}
+        return len({
+            c.evidence for c in self._closures
+            if c.status is ClosureStatus.ACCEPTED and {c.robot_a, c.robot_b} == pair
+        })  # fmt: skip
 
     def closures(self) -> list[ClosureRecord]:
         """Every closure so far (canonical robot order) with its current status and reason."""
@@ -505,6 +650,7 @@ class MultiRobotPoseGraph:
             rebuilds=self._rebuilds,
             last_update_ms=self._last_update_ms,
             recoveries=self._recoveries,
+            attitude_factors=self._attitude_factors,
         )
 
     def to_g2o(self) -> str:
@@ -512,9 +658,9 @@ class MultiRobotPoseGraph:
 
         Vertex ids are the gtsam keys (``gtsam.readG2o`` restores ``a0, b3, ...``); edges are the
         odometry factors and the closures in the graph, information matrices in g2o order
-        [trans, rot]. Robust kernels and robot 0's prior are not part of the format.
+        [trans, rot]. Robust kernels, robot 0's prior and the attitude factors are not part of the format.
         """
-        values = self._isam.calculateEstimate()
+        values = self._values()
         lines = []
         for k in sorted(values.keys()):
             lines.append(f"VERTEX_SE3:QUAT {k} " + _g2o_pose(values.atPose3(k)))
@@ -550,6 +696,7 @@ class MultiRobotPoseGraph:
             np.array(self._information, dtype=np.float64).reshape(-1, 6, 6),
             {pair: v.vote() for pair, v in self._pairs.items()},
             self._rebuilds, self._recoveries, self.factorization,
+            {n: np.array(r.up_odom, dtype=np.float64).reshape(-1, 3) for n, r in self._robots.items()},
         )  # fmt: skip
 
     def restore_state(self, state: PoseGraphState, T_odom_kf: dict[str, np.ndarray]) -> None:
@@ -572,10 +719,19 @@ class MultiRobotPoseGraph:
                                f"with keyframes of {sorted(T_odom_kf)}")  # fmt: skip
         for name in names[len(self.keys.names):]:
             self.add_robot(name)
+        misfit = []
         for name in names:
-            for k, T in enumerate(np.asarray(T_odom_kf[name], dtype=np.float64).reshape(-1, 4, 4)):
-                self._robots[name].append(_check_pose(T, f"keyframe {k} of {name}"))
+            poses = np.asarray(T_odom_kf[name], dtype=np.float64).reshape(-1, 4, 4)
+            ups = np.asarray(state.up_odom.get(name, np.full((len(poses), 3), np.nan)), dtype=np.float64)
+            if ups.shape != (len(poses), 3):
+                misfit.append(f"{name} has {len(poses)} keyframes but normals of shape {ups.shape}")
+                ups = np.full((len(poses), 3), np.nan)
+            for k, (T, up) in enumerate(zip(poses, ups, strict=True)):
+                measured = bool(np.isfinite(up).all())
+                self._robots[name].append(_check_pose(T, f"keyframe {k} of {name}"), up if measured else None)
         self._check_state(state)
+        if misfit:
+            raise BackendError(f"pose graph state: {'; '.join(misfit)}")
         default_info = np.diag(1.0 / self._closure_sigmas**2)
         for c, info in zip(state.closures, state.information, strict=True):
             self._closures.append(replace(c, T_a_b=np.array(c.T_a_b, dtype=np.float64)))
@@ -608,7 +764,8 @@ class MultiRobotPoseGraph:
                 k_a, k_b = self.keys.key(c.robot_a, c.kf_a), self.keys.key(c.robot_b, c.kf_b)
                 noise = self._closure_noise[c.closure_id]
                 self._add_factor(gtsam.BetweenFactorPose3(k_a, k_b, _pose3(c.T_a_b), noise), c.closure_id)
-        self._flush(closures_changed=True)
+        self._push_attitudes()
+        self._flush()
 
     def _check_state(self, state: PoseGraphState) -> None:
         """``BackendError`` naming the first thing in ``state`` that does not fit itself or the keyframes."""
@@ -798,6 +955,8 @@ class MultiRobotPoseGraph:
             if candidates:
                 c = max(candidates, key=lambda c: (c.num_inliers, -c.closure_id))
                 self._anchor_robot(c.robot_b if self._robots[c.robot_a].anchored else c.robot_a, c)
+                self._corrections += 1
+                self._large_correction = True
                 grown = True
         for c in self._closures:
             both = self._robots[c.robot_a].anchored and self._robots[c.robot_b].anchored
@@ -808,19 +967,77 @@ class MultiRobotPoseGraph:
                     c.closure_id,
                 )
                 c.in_graph = True
+                self._corrections += 1
+                if not self._large_correction:
+                    T_est = inverse(self._current_pose(c.robot_a, c.kf_a)) @ self._current_pose(c.robot_b, c.kf_b)
+                    off_m = float(np.linalg.norm((inverse(c.T_a_b) @ T_est)[:3, 3]))
+                    self._large_correction = off_m > self._closure_sigmas[3]
             elif c.status is ClosureStatus.REJECTED and c.in_graph:
+                if c.closure_id in self._new_tags:  # still pending (added with update=False): give it an index
+                    self._flush()
                 idx = self._factor_index.pop(c.closure_id, None)
-                if idx is None:  # still pending in this batch: cannot happen after a flush, be safe
+                if idx is None:  # cannot happen after a flush; be safe
                     raise BackendError(f"closure {c.closure_id} was rejected before its factor was added")
                 self._to_remove.append(idx)
                 c.in_graph = False
+                self._corrections += 1
+                self._large_correction = True
+        self._push_attitudes()
+
+    def _push_attitudes(self) -> None:
+        """Attitude factors for the measured keyframes of anchored robots that have none yet (once the
+        shared frame's up and the robot's sigma are measured)."""
+        if not self.attitude:
+            return
+        anchored = [(name, r) for name, r in self._robots.items() if r.anchored]
+        if self._up_shared is None:
+            self._up_shared = self._measure_up_shared(anchored)
+            if self._up_shared is None:
+                return
+        nav_up = gtsam.Unit3(self._up_shared)
+        for name, r in anchored:
+            if r.attitude_sigma_rad is None:
+                if len(r.measured) < self.attitude_warmup:
+                    continue
+                first = np.stack([r.up_odom[k] for k in r.measured[: self.attitude_warmup]])
+                r.attitude_sigma_rad = normal_sigma_rad(first)
+            if r.attitude_next == len(r.T_odom_kf):
+                continue
+            noise = gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Huber.Create(_KERNEL_WIDTH[RobustKernel.HUBER]),
+                gtsam.noiseModel.Isotropic.Sigma(2, r.attitude_sigma_rad),
+            )
+            start = bisect.bisect_left(r.measured, r.attitude_next)
+            for k in r.measured[start:]:
+                n_cam = r.T_odom_kf[k][:3, :3].T @ r.up_odom[k]
+                self._add_factor(gtsam.AttitudeFactorPose3(self.keys.key(name, k), nav_up, noise, gtsam.Unit3(n_cam)))
+                self._attitude_factors += 1
+            r.attitude_next = len(r.T_odom_kf)
+
+    def _measure_up_shared(self, anchored: list[tuple[str, _Robot]]) -> np.ndarray | None:
+        """The shared frame's up, from the first anchored robot (in index order) with ``attitude_warmup``
+        measured keyframes: those normals rotated by their current estimates, extrapolated to its first
+        keyframe (``attitude.up_at_start``: free of the odometry's drift over them)."""
+        for name, r in sorted(anchored, key=lambda item: item[1].index):
+            ks = r.measured[: self.attitude_warmup]
+            if len(ks) < self.attitude_warmup:
+                continue
+            ups = [
+                self._current_pose(name, k)[:3, :3] @ (r.T_odom_kf[k][:3, :3].T @ r.up_odom[k]) for k in ks
+            ]
+            return up_at_start(np.stack(ups), np.asarray(ks))
+        return None
 
     def _rebuild(self) -> None:
         """Start iSAM2 afresh from the recorded odometry and the accepted closures (anchor changed)."""
         self._rebuilds += 1
+        self._corrections += 1
+        self._large_correction = True
         self._reset_isam()
         for r in self._robots.values():
             r.anchored, r.anchor_closure, r.T_shared_odom_init = False, None, None
+            r.attitude_next = 0
+        self._attitude_factors = 0
         for c in self._closures:
             c.in_graph = False
         if self._robots[self.keys.names[0]].T_odom_kf:
@@ -831,8 +1048,8 @@ class MultiRobotPoseGraph:
         self._new_factors.add(factor)
         self._new_tags.append(closure_id)
 
-    def _flush(self, *, closures_changed: bool) -> None:
-        """Run iSAM2 on the pending factors/values/removals (plus extra passes after closure changes).
+    def _flush(self) -> None:
+        """Run iSAM2 on the pending factors/values/removals (plus extra passes after a large correction).
 
         An update that raises is recovered by rebuilding the graph with QR (a logged warning);
         ``BackendError`` when that fails too.
@@ -841,6 +1058,7 @@ class MultiRobotPoseGraph:
             return
         t0 = time.perf_counter()
         self._version += 1
+        closures_changed, self._large_correction = self._large_correction, False
         try:
             self._update_isam(closures_changed)
         except RuntimeError as exc:
@@ -880,9 +1098,16 @@ class MultiRobotPoseGraph:
                 f"({_first_line(again)}); the graph is underconstrained or a pose is invalid"
             ) from None
 
+    def _values(self) -> gtsam.Values:
+        """The current estimate: the converged solution while the graph has not changed since
+        ``converge``, else iSAM2's."""
+        if self._converged is not None and self._converged[0] == self._version:
+            return self._converged[1]
+        return self._isam.calculateEstimate()
+
     def _compute_estimate(self) -> dict[str, np.ndarray]:
         """All anchored robots' ``T_shared_kf`` from one ``calculateEstimate`` (vectorised extraction)."""
-        values = self._isam.calculateEstimate()
+        values = self._values()
         keys = np.fromiter(values.keys(), dtype=np.uint64, count=values.size())
         rows = gtsam.utilities.extractPose3(values)  # (N, 12): R row-major, t; in key order
         T = np.zeros((len(keys), 4, 4))
@@ -977,4 +1202,6 @@ def make_pose_graph(robot_names: list[str], cfg: BackendConfig) -> MultiRobotPos
         consistency_trans_per_m=cfg.consistency_trans_per_m,
         consistency_rot_deg_per_m=cfg.consistency_rot_deg_per_m,
         min_closures_to_anchor=cfg.min_closures_to_anchor,
+        attitude=cfg.attitude_factors,
+        attitude_warmup=cfg.attitude_warmup_keyframes,
     )

@@ -71,6 +71,24 @@ def _peak_rss_mb(args: list[str]) -> tuple[float, float]:
     return usage.ru_maxrss / 1024.0, wall  # ru_maxrss is in KiB on Linux
 
 
+def peak_rss_runs(out: Path, runs: list[tuple[str, str, str]], progress: Progress) -> dict:
+    """Each ``(label, robot spec NAME=PATH[:a-b], results subfolder)`` run alone (no viewer) in a fresh
+    process: label -> ``{"peak_rss_mb", "wall_s"}``."""
+    mem = {}
+    for label, robot, folder in runs:
+        progress(f"memory run: {label}")
+        args = ["run", "--robot", robot, "--rerun", "off", "--out", str(Path(out) / folder), "--overwrite"]
+        rss, wall = _peak_rss_mb(args)
+        mem[label] = {"peak_rss_mb": round(rss, 1), "wall_s": round(wall, 1)}
+    return mem
+
+
+def write_report(out: Path, stem: str, results: dict, markdown: Callable[[dict], str]) -> None:
+    """``out/<stem>.json`` (the results) and ``out/<stem>.md`` (``markdown(results)``)."""
+    (Path(out) / f"{stem}.json").write_text(json.dumps(results, indent=1) + "\n")
+    (Path(out) / f"{stem}.md").write_text(markdown(results))
+
+
 def run_system_benchmark(
     out: Path,
     *,
@@ -121,17 +139,10 @@ def run_system_benchmark(
         long_world = _world(cache / "bench", "synthia-like", seed, progress, fps=round(fps, 1), resolution=(320, 96))
         seq = long_world / "forward"
         n_total = sum(1 for _ in open(seq / "times.txt"))
-        mem = {}
-        for n in (1000, min(long_frames, n_total)):
-            progress(f"memory run: {n} frames")
-            rss, wall = _peak_rss_mb(
-                ["run", "--robot", f"car={seq}:0-{n}", "--rerun", "off", "--out", str(out / f"memory_{n}")]
-            )
-            mem[str(n)] = {"peak_rss_mb": round(rss, 1), "wall_s": round(wall, 1)}
-        results["memory"] = mem
+        counts = (1000, min(long_frames, n_total))
+        results["memory"] = peak_rss_runs(out, [(str(n), f"car={seq}:0-{n}", f"memory_{n}") for n in counts], progress)
 
-    (out / "system.json").write_text(json.dumps(results, indent=1) + "\n")
-    (out / "system.md").write_text(system_markdown(results))
+    write_report(out, "system", results, system_markdown)
     return results
 
 

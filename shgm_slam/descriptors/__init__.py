@@ -50,6 +50,12 @@ class NodeDescriptors:
     def __len__(self) -> int:
         return int(self.counts.shape[0])
 
+    def subset(self, rows: np.ndarray) -> NodeDescriptors:
+        """The descriptors of ``rows`` (int indices, in that order): those of a part of the graph, each
+        still counting the paths of the whole graph."""
+        rows = np.asarray(rows, dtype=np.int64)
+        return NodeDescriptors(self.kind, self.counts[rows], self.label_ids[rows])
+
     @property
     def unit(self) -> sp.csr_matrix:
         """(N, D) rows scaled to unit L2 norm (all-zero rows stay zero); cached."""

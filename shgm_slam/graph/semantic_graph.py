@@ -317,6 +317,10 @@ class SemanticGraph:
         kf_ids = np.asarray(self._kf_ids, dtype=np.int64)
         return kf_ids[self._anchor_slot[np.asarray(rows, dtype=np.int64)]] if rows else np.zeros(0, np.int64)
 
+    def anchors(self) -> np.ndarray:
+        """(N,) int64 id of the keyframe each node (row order) is anchored to: ``anchor_keyframes`` of all."""
+        return np.asarray(self._kf_ids, dtype=np.int64)[self._anchor_slot[: self._n]]
+
     def arrays(self) -> GraphArrays:
         """The whole graph as arrays (positions in the world frame, edges as row indices i < j, sorted)."""
         if self._arrays_cache is None:

@@ -229,9 +229,7 @@ class RobotFrontend:
         seg.kf_frames.append(index)
         seg.kf_poses.append(T_odom_cam.copy())
         n_cam = ground_normal(points_cam, point_labels)
-        if n_cam is not None:
-            seg.up_sum += T_odom_cam[:3, :3] @ n_cam
-        up = seg.up_sum / np.linalg.norm(seg.up_sum) if seg.up_sum.any() else None
+        up = None if n_cam is None else T_odom_cam[:3, :3] @ n_cam  # this keyframe's ground normal, odometry frame
         timings["extraction"] = (t_ex - t0) * 1e3
         timings["graph"] = (t_graph - t_ex) * 1e3
         return KeyframeMessage(seg.agent, kf, index, frame.timestamp_s, T_odom_cam.copy(), update, up)

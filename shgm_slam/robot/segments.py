@@ -27,7 +27,6 @@ class TrajectorySegment:
     keyframes: KeyframeSelector
     kf_frames: list[int] = field(default_factory=list)
     kf_poses: list[np.ndarray] = field(default_factory=list)
-    up_sum: np.ndarray = field(default_factory=lambda: np.zeros(3))  # keyframe ground normals, odometry frame
     end_failure: OdometryFailure | None = None  # the divergence that ended it (None: healthy to the end)
 
     @property

@@ -11,7 +11,8 @@ import numpy as np
 from shgm_slam.backend.confirmation import AgentPlacement, Placement, Support, placements
 from shgm_slam.backend.pose_graph import PoseGraphState, make_pose_graph
 from shgm_slam.config import ShgmConfig
-from shgm_slam.descriptors import compute_descriptors
+from shgm_slam.descriptors import NodeDescriptors
+from shgm_slam.descriptors.incremental import IncrementalDescriptors
 from shgm_slam.errors import BackendError, ConfigError
 from shgm_slam.geometry import se3
 from shgm_slam.geometry.ground import rotation_to_z
@@ -19,10 +20,15 @@ from shgm_slam.graph.semantic_graph import GraphState, SemanticGraph
 from shgm_slam.matching import match_graphs
 from shgm_slam.messages import KeyframeMessage
 from shgm_slam.server.closures import SurfaceOffset, local_closures
+from shgm_slam.server.places import free_path_m, near_keyframes, near_keyframes_sparse, tolerance_m
 from shgm_slam.server.records import MatchRecord
 from shgm_slam.types import GraphArrays
 
 log = logging.getLogger(__name__)
+
+CONFIRMING_MATCHES = 2
+"""Independent graph matches behind a placed robot pair's accepted closures before its submaps are matched
+only near where the fused estimate puts them (one match may be a wrong placement: global matching goes on)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -34,7 +40,8 @@ class MapServerState:
         agents: every agent in the order the server learnt of them (the reference first).
         graphs: agent -> its mirrored semantic graph.
         T_odom_kf: agent -> (K, 4, 4) keyframe poses in its odometry frame, as received.
-        up: agent -> (3,) "up" in its odometry frame, or None.
+        up: agent -> (3,) sum of its keyframes' ground normals in its odometry frame (zeros while none
+            fitted the ground; None is read as zeros).
         since_match: agent -> keyframes received since its last match.
         matches: every match attempt so far (the match log).
         closures: accepted closure keys ``(agent_a, kf_a, agent_b, kf_b)``.
@@ -68,13 +75,24 @@ class MapServer:
     segments after odometry failures are agents of their own, added at run time); accepted matches become inter-robot
     relative-pose factors between keyframes. Shared frame = the first robot's odometry frame.
 
+    Candidate places first (cost flat with distance): once two placed robots' closures rest on at least
+    ``CONFIRMING_MATCHES`` independent matches, r's submap is matched only against the other's nodes
+    anchored near it (``places``: within the two robots' object ranges plus the drift tolerance of the
+    fused estimate), and, while r is there, the whole graphs only where they overlap (each graph's nodes
+    anchored near a keyframe of the other); while r is nowhere near the other's map neither is matched.
+    ``finalize`` matches whole graphs once more. Descriptors come from a per-agent cache updated around
+    each change (``IncrementalDescriptors``).
+
     Loop closure (``backend.loop_closure``): r's recent submap is also matched against r's *own* older
     graph (query ``"loop"``), with the same matching, verification and closure cutting; accepted
     closures join two keyframes of r in the pose graph. The older graph leaves out the stretch r just
     drove (``loop_exclusion_m``): objects seen from the submap lie within r's object range of it, so
     only nodes first seen from keyframes more than two object ranges of path (and at least a submap's
     worth of keyframes) before the submap can be shared with it through a revisit, never through the
-    pass that is still in view.
+    pass that is still in view. Of the older graph only the nodes anchored near the submap are matched
+    (``places``): within two object ranges plus the drift tolerance, counted along r's odometry between
+    the two keyframes (exactly what the pose graph's odometry check of a loop closure allows) or, once r
+    is placed, from each to its nearest keyframe tied by a closure, whichever is shorter.
     """
 
     def __init__(self, robot_names: list[str], cfg: ShgmConfig) -> None:
@@ -84,10 +102,13 @@ class MapServer:
         self._agents = list(robot_names)
         self._pose_graph = make_pose_graph(self._agents, cfg.backend)
         self._graphs = {r: SemanticGraph(cfg.graph.merge_radius_m, cfg.graph.connectivity_m) for r in robot_names}
+        # descriptors of each agent's whole graph and of its older graph (loop queries), kept up to date
+        self._descriptors = {r: IncrementalDescriptors(cfg.descriptor) for r in robot_names}
+        self._old_descriptors = {r: IncrementalDescriptors(cfg.descriptor) for r in robot_names}
         # the one home of keyframe poses on the server: each agent's keyframes in its odometry frame
         self._T_odom_kf: dict[str, list[np.ndarray]] = {r: [] for r in robot_names}
         self._path_m: dict[str, list[float]] = {r: [] for r in robot_names}  # odometry path length per keyframe
-        self._up: dict[str, np.ndarray | None] = dict.fromkeys(robot_names)
+        self._up_sum = {r: np.zeros(3) for r in robot_names}  # sum of each agent's keyframe normals (odometry frame)
         self._matches: list[MatchRecord] = []
         self._since_match = dict.fromkeys(robot_names, 0)
         self._closures: set[tuple[str, int, str, int]] = set()
@@ -104,9 +125,11 @@ class MapServer:
         self._pose_graph.add_robot(agent)
         self._agents.append(agent)
         self._graphs[agent] = SemanticGraph(self.cfg.graph.merge_radius_m, self.cfg.graph.connectivity_m)
+        self._descriptors[agent] = IncrementalDescriptors(self.cfg.descriptor)
+        self._old_descriptors[agent] = IncrementalDescriptors(self.cfg.descriptor)
         self._T_odom_kf[agent] = []
         self._path_m[agent] = []
-        self._up[agent] = None
+        self._up_sum[agent] = np.zeros(3)
         self._since_match[agent] = 0
 
     def receive(self, msg: KeyframeMessage) -> list[MatchRecord]:
@@ -125,8 +148,8 @@ class MapServer:
             self.add_agent(msg.robot)
         self._append_keyframe(msg.robot, msg.T_odom_kf)
         if msg.up_odom is not None:
-            self._up[msg.robot] = msg.up_odom
-        self._pose_graph.add_keyframe(msg.robot, msg.kf_index, msg.T_odom_kf)
+            self._up_sum[msg.robot] += msg.up_odom
+        self._pose_graph.add_keyframe(msg.robot, msg.kf_index, msg.T_odom_kf, msg.up_odom)
         self._graphs[msg.robot].apply_update(msg.graph_update, self._T_odom_kf[msg.robot])
         self.timings_ms["backend"].append((time.perf_counter() - t0) * 1e3)
         self._since_match[msg.robot] += 1
@@ -142,53 +165,117 @@ class MapServer:
         poses.append(T_odom_kf)
 
     def finalize(self) -> list[MatchRecord]:
-        """Match every robot once more at the end of the run (whole graphs)."""
+        """Match every robot once more at the end of the run (whole graphs), then solve the pose graph to
+        convergence (``MultiRobotPoseGraph.converge``: the final estimate does not depend on the order
+        in which robots' messages arrived, only on what was accepted)."""
         records: list[MatchRecord] = []
         for r in list(self._agents):
             records += self.match_robot(r, submap=False)
+        t0 = time.perf_counter()
+        iterations = self._pose_graph.converge()
+        self.timings_ms["backend"].append((time.perf_counter() - t0) * 1e3)
+        log.info("pose graph solved to convergence in %d iterations (%.0f ms)", iterations,
+                 self.timings_ms["backend"][-1])  # fmt: skip
         return records
 
     def match_robot(self, robot: str, *, submap: bool = True) -> list[MatchRecord]:
-        """Match ``robot``'s recent submap and whole graph against every other robot's whole graph, and
-        (loop closure) its recent submap against its own older graph."""
+        """Match ``robot``'s recent submap (``submap``) and whole graph against every other robot's graph,
+        and (loop closure) its recent submap against its own older graph; candidate places first (class
+        docstring). Without ``submap`` only whole graphs are matched, every pair."""
         records = []
-        queries: list[tuple[str, GraphArrays]] = []
         n_kf = len(self._T_odom_kf[robot])
+        recent: tuple[np.ndarray, GraphArrays] | None = None
         if submap and n_kf > self.cfg.backend.submap_keyframes:
             kfs = np.arange(n_kf - self.cfg.backend.submap_keyframes, n_kf)
-            queries.append(("submap", self._graphs[robot].submap(kfs)))
+            recent = (kfs, self._graphs[robot].submap(kfs))
             if self.cfg.backend.loop_closure:
-                loop = self._loop_query(robot, queries[0][1])
+                loop = self._loop_query(robot, *recent)
                 if loop is not None:
                     records.append(self._match_pair(robot, robot, "loop", *loop))
-        queries.append(("whole", self._graphs[robot].arrays()))
+        whole = self._graphs[robot].arrays()
         for other in list(self._agents):
             if other == robot or len(self._graphs[other]) == 0:
                 continue
             graph_a = self._graphs[other].arrays()
-            desc_a = compute_descriptors(graph_a, self.cfg.descriptor)
-            for query, graph_b in queries:
-                records.append(self._match_pair(other, robot, query, graph_a, graph_b, desc_a))
+            desc_a = self._descriptors[other].update(graph_a)
+            if not submap or not self._confirmed(other, robot):  # global: where robot is in other's map is open
+                if recent is not None:
+                    records.append(self._match_pair(other, robot, "submap", graph_a, recent[1], desc_a))
+                records.append(self._match_pair(other, robot, "whole", graph_a, whole, desc_a))
+                continue
+            if recent is None:
+                continue
+            rows = self._rows_near(other, robot, recent[0])
+            if rows.size < self.cfg.matching.min_inliers:
+                continue  # robot is not near other's map now: nothing new to find
+            near = graph_a.subset(rows)
+            records.append(self._match_pair(other, robot, "submap", near, recent[1], desc_a.subset(rows)))
+            rows_a, rows_b = self._overlap_rows(other, robot)
+            if min(rows_a.size, rows_b.size) >= self.cfg.matching.min_inliers:
+                desc_b = self._descriptors[robot].update(whole).subset(rows_b)
+                records.append(self._match_pair(other, robot, "whole", graph_a.subset(rows_a), whole.subset(rows_b),
+                                                desc_a.subset(rows_a), desc_b))  # fmt: skip
         self._matches += records
         return records
 
+    def _confirmed(self, a: str, b: str) -> bool:
+        """Both placed and their accepted closures rest on ``CONFIRMING_MATCHES`` independent matches."""
+        return (
+            self.is_placed(a) and self.is_placed(b)
+            and self._pose_graph.evidence_between(a, b) >= CONFIRMING_MATCHES
+        )  # fmt: skip
+
+    def object_range_m(self, agent: str) -> float | None:
+        """How far ``agent``'s objects lie from the keyframes that first saw them: the 95th percentile
+        of node-to-anchor distances (metres); None while its graph is empty."""
+        graph = self._graphs[agent]
+        if len(graph) == 0:
+            return None
+        origins = np.stack(self._T_odom_kf[agent])[graph.anchors(), :3, 3]
+        return float(np.percentile(np.linalg.norm(graph.arrays().positions_xyz - origins, axis=1), 95))
+
     def loop_exclusion_m(self, robot: str) -> float:
         """Metres of path before its submap whose keyframes ``robot``'s loop query leaves out of its older graph:
-        twice the robot's object range (the 95th percentile distance from a node to the keyframe that first
-        saw it; the fleet's extraction depth until the graph has nodes)."""
-        graph = self._graphs[robot].arrays()
-        if len(graph) == 0:
-            return 2.0 * float(self.cfg.extraction.filled().max_depth_m)
-        anchors = self._graphs[robot].anchor_keyframes(graph.node_ids)
-        origins = np.stack([self._T_odom_kf[robot][k][:3, 3] for k in anchors])
-        return 2.0 * float(np.percentile(np.linalg.norm(graph.positions_xyz - origins, axis=1), 95))
+        twice the robot's object range (``object_range_m``; the fleet's extraction depth until the graph has
+        nodes)."""
+        reach = self.object_range_m(robot)
+        return 2.0 * (float(self.cfg.extraction.filled().max_depth_m) if reach is None else reach)
 
-    def _loop_query(self, robot: str, recent: GraphArrays) -> tuple[GraphArrays, GraphArrays, np.ndarray] | None:
-        """``(older graph, recent nodes, descriptors of the older graph)`` of ``robot``'s loop-closure match,
-        or None while the robot has not driven far enough for an older graph.
+    def _free_path_m(self, agent: str) -> np.ndarray:
+        """(K,) metres from each keyframe of placed ``agent`` to its nearest keyframe tied by a closure."""
+        return free_path_m(np.asarray(self._path_m[agent]), self._pose_graph.closure_keyframes(agent))
+
+    def _rows_near(self, a: str, b: str, kfs_b: np.ndarray) -> np.ndarray:
+        """Rows of placed ``a``'s graph anchored near placed ``b``'s keyframes ``kfs_b`` in the fused
+        estimate (``places``): within both object ranges plus the drift tolerance."""
+        estimate = self._pose_graph.estimate()
+        drift_m = self._free_path_m(b)[kfs_b][:, None] + self._free_path_m(a)[None, :]
+        tol = tolerance_m(drift_m, self._pose_graph.thresholds)
+        reach = (self.object_range_m(a) or 0.0) + (self.object_range_m(b) or 0.0)
+        near = near_keyframes(estimate[b][kfs_b, :3, 3], estimate[a][:, :3, 3], tol, reach)
+        return np.flatnonzero(near[self._graphs[a].anchors()])
+
+    def _overlap_rows(self, a: str, b: str) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of placed ``a``'s and ``b``'s graphs anchored near any keyframe of the other (``places``):
+        where their whole graphs can overlap."""
+        estimate, th = self._pose_graph.estimate(), self._pose_graph.thresholds
+        reach = (self.object_range_m(a) or 0.0) + (self.object_range_m(b) or 0.0)
+        xyz_a, xyz_b = estimate[a][:, :3, 3], estimate[b][:, :3, 3]
+        slack_a = th.trans_m / 2 + th.trans_per_m * self._free_path_m(a)
+        slack_b = th.trans_m / 2 + th.trans_per_m * self._free_path_m(b)
+        near_a = near_keyframes_sparse(xyz_b, slack_b, xyz_a, slack_a, reach)
+        near_b = near_keyframes_sparse(xyz_a, slack_a, xyz_b, slack_b, reach)
+        return np.flatnonzero(near_a[self._graphs[a].anchors()]), np.flatnonzero(near_b[self._graphs[b].anchors()])
+
+    def _loop_query(
+        self, robot: str, kfs: np.ndarray, recent: GraphArrays
+    ) -> tuple[GraphArrays, GraphArrays, NodeDescriptors] | None:
+        """``(older nodes near the submap, recent nodes, their descriptors)`` of ``robot``'s loop-closure
+        match, or None while the robot has not driven far enough for an older graph.
 
         Older graph: the nodes first seen from keyframes before the excluded stretch (the submap, the
-        ``submap_keyframes`` before it, and every keyframe within ``loop_exclusion_m`` of path before it).
+        ``submap_keyframes`` before it, and every keyframe within ``loop_exclusion_m`` of path before it);
+        its descriptors count paths within it. Of it, the nodes anchored near the submap (class docstring).
         Recent nodes: the submap's nodes first seen after that stretch began, so no node is in both.
         """
         n_kf, window = len(self._T_odom_kf[robot]), self.cfg.backend.submap_keyframes
@@ -198,18 +285,32 @@ class MapServer:
         if cutoff <= 0:
             return None
         graph = self._graphs[robot]
-        whole = graph.arrays()
-        old = whole.subset(graph.anchor_keyframes(whole.node_ids) < cutoff)
+        anchors = graph.anchors()
+        d_path = np.abs(path[kfs][:, None] - path[None, :cutoff])
+        if self.is_placed(robot):
+            free = self._free_path_m(robot)
+            d_path = np.minimum(d_path, free[kfs][:, None] + free[None, :cutoff])
+            xyz = self._pose_graph.estimate()[robot][:, :3, 3]
+        else:
+            xyz = np.stack(self._T_odom_kf[robot])[:, :3, 3]
+        near = np.zeros(n_kf, dtype=bool)
+        near[:cutoff] = near_keyframes(xyz[kfs], xyz[:cutoff], tolerance_m(d_path, self._pose_graph.thresholds),
+                                       self.loop_exclusion_m(robot))  # fmt: skip
+        older = np.flatnonzero(anchors < cutoff)  # a prefix of the rows: nodes are created in keyframe order
+        rows = np.flatnonzero(near[anchors])
         new = recent.subset(graph.anchor_keyframes(recent.node_ids) >= cutoff)
-        if len(old) < self.cfg.matching.min_inliers or len(new) < self.cfg.matching.min_inliers:
+        if rows.size < self.cfg.matching.min_inliers or len(new) < self.cfg.matching.min_inliers:
             return None
-        return old, new, compute_descriptors(old, self.cfg.descriptor)
+        old_graph = graph.arrays().subset(older)
+        desc = self._old_descriptors[robot].update(old_graph).subset(np.searchsorted(older, rows))
+        return old_graph.subset(np.searchsorted(older, rows)), new, desc
 
     def _match_pair(
-        self, robot_a: str, robot_b: str, query: str, graph_a: GraphArrays, graph_b: GraphArrays, desc_a
+        self, robot_a: str, robot_b: str, query: str, graph_a: GraphArrays, graph_b: GraphArrays, desc_a,
+        desc_b: NodeDescriptors | None = None,
     ) -> MatchRecord:
         t0 = time.perf_counter()
-        up_a, up_b = self._up[robot_a], self._up[robot_b]
+        up_a, up_b = self.up_odom(robot_a), self.up_odom(robot_b)
         if up_a is not None and up_b is not None:
             # both robots know where "up" is (their ground plane): a 4-DoF match in gravity-aligned frames
             R_a, R_b = rotation_to_z(up_a), rotation_to_z(up_b)
@@ -217,12 +318,13 @@ class MapServer:
             result = match_graphs(
                 graph_a.transformed(se3.make_pose(R_a, np.zeros(3))),
                 graph_b.transformed(se3.make_pose(R_b, np.zeros(3))),
-                self.cfg.descriptor, cfg4, descriptors_a=desc_a,
+                self.cfg.descriptor, cfg4, descriptors_a=desc_a, descriptors_b=desc_b,
             )  # fmt: skip
             if result.T_a_b is not None:
                 result.T_a_b = se3.make_pose(R_a.T, np.zeros(3)) @ result.T_a_b @ se3.make_pose(R_b, np.zeros(3))
         else:
-            result = match_graphs(graph_a, graph_b, self.cfg.descriptor, self.cfg.matching, descriptors_a=desc_a)
+            result = match_graphs(graph_a, graph_b, self.cfg.descriptor, self.cfg.matching, descriptors_a=desc_a,
+                                  descriptors_b=desc_b)  # fmt: skip
         self.timings_ms["match"].append((time.perf_counter() - t0) * 1e3)
         rec = MatchRecord(
             self._step, robot_a, robot_b, query, result.success, False, result.reason, None, None,
@@ -275,7 +377,7 @@ class MapServer:
                 continue
             t1 = time.perf_counter()
             decision = self._pose_graph.add_inter_robot_closure(
-                robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n, match_id=self._num_matches
+                robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n, match_id=self._num_matches, update=False
             )
             self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
             if robot_a != robot_b:  # the objects behind it: what makes two matches independent evidence
@@ -294,6 +396,9 @@ class MapServer:
             )
             if decision.accepted:
                 self._closures.add(key)
+        t1 = time.perf_counter()
+        self._pose_graph.update()  # one iSAM2 update for all closures of this match
+        self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
         accepted = [c for c in rec.closures if c["accepted"]]
         rec.accepted = bool(accepted)
         shown = accepted[0] if accepted else rec.closures[0]
@@ -321,7 +426,7 @@ class MapServer:
             tuple(self._agents),
             {a: g.state() for a, g in self._graphs.items()},
             {a: self.keyframe_poses(a) for a in self._agents},
-            {a: None if u is None else np.array(u, dtype=np.float64) for a, u in self._up.items()},
+            {a: np.array(u, dtype=np.float64) for a, u in self._up_sum.items()},
             dict(self._since_match), tuple(self._matches), tuple(sorted(self._closures)),
             self._step, self._num_matches, {k: list(v) for k, v in self.timings_ms.items()},
             self._pose_graph.state(),
@@ -353,8 +458,8 @@ class MapServer:
                 server._append_keyframe(a, T)
             up = state.up[a]
             if up is not None and (np.shape(up) != (3,) or not np.isfinite(up).all()):
-                raise BackendError(f"map server state: {a}'s up vector is not a finite (3,) vector")
-            server._up[a] = None if up is None else np.array(up, dtype=np.float64)
+                raise BackendError(f"map server state: {a}'s sum of ground normals is not a finite (3,) vector")
+            server._up_sum[a] = np.zeros(3) if up is None else np.array(up, dtype=np.float64)
             server._since_match[a] = int(state.since_match[a])
         if any(c[0] not in state.graphs or c[2] not in state.graphs for c in state.closures):
             raise BackendError("map server state: a closure names an unknown agent")
@@ -390,6 +495,13 @@ class MapServer:
         """Every match attempt so far, in order (the rows of ``matches.json``)."""
         return list(self._matches)
 
+    def up_odom(self, agent: str) -> np.ndarray | None:
+        """(3,) ``agent``'s mean ground normal (unit, up) over its keyframes in its odometry frame, or None
+        while none of its keyframes has fitted the ground."""
+        total = self._up_sum[agent]
+        norm = float(np.linalg.norm(total))
+        return total / norm if norm > 0 else None
+
     def received(self, agent: str) -> int:
         """How many keyframes of ``agent`` the server holds (0 for an agent it does not know)."""
         return len(self._T_odom_kf.get(agent, ()))
@@ -414,6 +526,20 @@ class MapServer:
         if not self.is_placed(agent):
             return None
         return self._pose_graph.estimate()[agent]
+
+    def T_shared_kf_at(self, agent: str, kf_indices: np.ndarray) -> np.ndarray | None:
+        """(M, 4, 4) fused poses of keyframes ``kf_indices`` of ``agent`` in the shared frame, or None if
+        not placed (a few keyframes without reading the whole estimate)."""
+        return self._pose_graph.T_shared_kfs(agent, kf_indices) if self.is_placed(agent) else None
+
+    @property
+    def corrections(self) -> int:
+        """Counter of the pose-graph changes that can move old keyframes (``MultiRobotPoseGraph.corrections``)."""
+        return self._pose_graph.corrections
+
+    def graph_anchors(self, agent: str) -> np.ndarray:
+        """(N,) keyframe each node of ``agent``'s mirrored graph (row order of ``graph``) is anchored to."""
+        return self._graphs[agent].anchors()
 
     def T_shared_odom(self, agent: str) -> np.ndarray | None:
         """(4, 4) where ``agent``'s odometry frame lies in the shared frame now (at its latest keyframe),

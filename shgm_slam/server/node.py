@@ -59,6 +59,10 @@ from shgm_slam.wire import decode, encode
 
 log = logging.getLogger(__name__)
 
+CHECKPOINT_SHARE = 0.1
+"""At most this share of the server's time goes into rewriting the results folder: a rewrite waits, beyond
+``write_every_keyframes``, until ten times its last duration has passed (rewrites grow with the map)."""
+
 CLASH_WINDOW_S = 2.5
 """A hello from a new session under a name whose current session was heard within this long is held:
 if the current session speaks again it is a name clash and the newcomer is refused; once the current
@@ -123,7 +127,8 @@ class ServerNode:
         status_every_s: how often the status is broadcast (and stale robots checked).
         correction_every_s: at most this often per robot a correction carries new fused poses
             (acknowledgements go out with every batch).
-        write_every_keyframes: rewrite the results folder this often (0: only at the end).
+        write_every_keyframes: rewrite the results folder this often (0: only at the end), and less often
+            when a rewrite would take more than ``CHECKPOINT_SHARE`` of the time since the last one.
         clock: monotonic seconds (tests pass a fake).
     """
 
@@ -163,6 +168,8 @@ class ServerNode:
         self._last_status_s = -np.inf
         self._last_correction_s: dict[str, float] = {}
         self._keyframes_since_write = 0
+        self.timings_ms: dict[str, list[float]] = {"write": [], "correction": []}  # per call
+        self._last_write_end_s = -np.inf  # perf_counter when the last rewrite ended
         self._inbox = Inbox()
         for key in (ALL_HELLO, ALL_KEYFRAMES, ALL_DONE):
             transport.subscribe(key, self._inbox)
@@ -327,7 +334,9 @@ class ServerNode:
             rs.state = RobotState.DONE
         self._keyframes_since_write += 1
         if live and self.write_every_keyframes and self._keyframes_since_write >= self.write_every_keyframes:
-            self.write_results()
+            last_s = self.timings_ms["write"][-1] / 1e3 if self.timings_ms["write"] else 0.0
+            if time.perf_counter() - self._last_write_end_s >= last_s / CHECKPOINT_SHARE:
+                self.write_results()
         return records
 
     def _refuse(self, reason: str) -> None:
@@ -351,6 +360,7 @@ class ServerNode:
         rs = self.robots.get(robot)
         if rs is None:
             return
+        t0 = time.perf_counter()
         server = self._map()
         agents = [a for a in server.agents if agent_robot(a)[0] == robot]
         due = force or (
@@ -372,6 +382,7 @@ class ServerNode:
         payload = encode(msg)
         self.traffic.sent("correction", len(payload), robot)
         self.transport.publish(correction_key(robot), payload)
+        self.timings_ms["correction"].append((time.perf_counter() - t0) * 1e3)
 
     def _broadcast_status(self) -> None:
         self._last_status_s = self.clock()
@@ -525,8 +536,11 @@ class ServerNode:
         self._keyframes_since_write = 0
         if self.map is None:
             return
+        t0 = time.perf_counter()
         with self.writer.checkpoint():  # all files or none: a full disk keeps the previous checkpoint whole
             self._write_checkpoint(self.map)
+        self._last_write_end_s = time.perf_counter()
+        self.timings_ms["write"].append((self._last_write_end_s - t0) * 1e3)
 
     def _write_checkpoint(self, server: MapServer) -> None:
         for robot in self.robots:

@@ -99,6 +99,7 @@ def _pose_graph(p: PoseGraphState) -> dict:
                           "ch": _arr(v.chosen, "b1"), "exact": v.exact, "n": v.searches}]
                   for (a, b), v in p.pairs.items()],
         "rebuilds": p.rebuilds, "recoveries": p.recoveries, "fact": p.factorization.value,
+        "up": {n: _arr(u, "f8") for n, u in p.up_odom.items()},
     }  # fmt: skip
 
 
@@ -216,6 +217,8 @@ def _unpose_graph(d: dict) -> PoseGraphState:
         tuple(_unclosure(c) for c in _typed(d["closures"], list, "closures")), _unarr(d["info"], "f8", "information"),
         pairs, _typed(d["rebuilds"], int, "rebuilds"), _typed(d["recoveries"], int, "recoveries"),
         Factorization(d["fact"]),
+        {n: _unarr(u, "f8", f"ground normals of {n}").reshape(-1, 3)
+         for n, u in _names(d.get("up", {}), "normals").items()},
     )  # fmt: skip
 
 

@@ -6,8 +6,8 @@ Entity tree (all 3D data in the SHARED world frame = robot 0's odometry frame, c
 /world/<robot>/cam                      Transform3D T_shared_cam + Pinhole (static)
 /world/<robot>/cam/{rgb,depth,seg}      camera images (2D views)
 /world/<robot>/cloud                    current frame's point cloud (class ids)
-/world/<robot>/trajectory/{odometry,fused}
-/world/<robot>/graph/{nodes,edges}      semantic graph
+/world/<robot>/trajectory/{odometry,fused}/<chunk>   trajectory, in stretches (``run_view``)
+/world/<robot>/graph/{nodes,edges}/<chunk>           semantic graph, in parts (``run_view``)
 /world/matches/<a>__<b>/{accepted,rejected}
 /log                                    TextLog
 /timings/<robot>/<stage>                per-stage milliseconds

@@ -138,7 +138,13 @@ def depth_to_mm_u16(depth_m: np.ndarray) -> np.ndarray:
 
 
 class Viz(Protocol):
-    """What the pipeline logs. Implementations: ``RerunLogger`` and ``NullLogger``."""
+    """What the pipeline logs. Implementations: ``RerunLogger`` and ``NullLogger``.
+
+    ``enabled`` is False when nothing is shown: callers skip computing what only the viewer needs
+    (fused trajectories, graphs in the shared frame) instead of handing it to a no-op.
+    """
+
+    enabled: bool
 
     def setup(self, robots: dict[str, Intrinsics]) -> None: ...
 
@@ -156,10 +162,14 @@ class Viz(Protocol):
     ) -> None: ...
 
     def log_trajectories(
-        self, robot: str, odometry_xyz: np.ndarray, fused_xyz: np.ndarray | None
+        self, robot: str, odometry_xyz: np.ndarray, fused_xyz: np.ndarray | None, chunk: int = 0
     ) -> None: ...
 
-    def log_graph(self, robot: str, graph: GraphArrays) -> None: ...
+    def log_graph(
+        self, robot: str, graph: GraphArrays, chunk: int = 0, drawn: np.ndarray | None = None
+    ) -> None: ...
+
+    def clear_map(self, robot: str) -> None: ...
 
     def log_matches(
         self,
@@ -186,6 +196,8 @@ class Viz(Protocol):
 class NullLogger:
     """A ``Viz`` that does nothing (``--rerun off``); every call is a cheap no-op."""
 
+    enabled = False
+
     def setup(self, robots: dict[str, Intrinsics]) -> None:
         pass
 
@@ -204,10 +216,17 @@ class NullLogger:
     ) -> None:
         pass
 
-    def log_trajectories(self, robot: str, odometry_xyz: np.ndarray, fused_xyz: np.ndarray | None) -> None:
+    def log_trajectories(
+        self, robot: str, odometry_xyz: np.ndarray, fused_xyz: np.ndarray | None, chunk: int = 0
+    ) -> None:
         pass
 
-    def log_graph(self, robot: str, graph: GraphArrays) -> None:
+    def log_graph(
+        self, robot: str, graph: GraphArrays, chunk: int = 0, drawn: np.ndarray | None = None
+    ) -> None:
+        pass
+
+    def clear_map(self, robot: str) -> None:
         pass
 
     def log_matches(
@@ -263,6 +282,8 @@ class RerunLogger:
         jpeg_quality: RGB images are JPEG-compressed at this quality (0..100) to keep recordings small.
         image_plane_distance_m: depth of the camera frustum drawn in the 3D view, metres.
     """
+
+    enabled = True
 
     def __init__(
         self,
@@ -378,51 +399,64 @@ class RerunLogger:
             rr.Points3D(points[::stride], class_ids=class_ids, radii=rr.components.Radius.ui_points(1.5)),
         )
 
-    def log_trajectories(self, robot: str, odometry_xyz: np.ndarray, fused_xyz: np.ndarray | None) -> None:
-        """The robot's whole trajectory so far, both in the shared frame (re-logged: fused poses change).
+    def log_trajectories(
+        self, robot: str, odometry_xyz: np.ndarray, fused_xyz: np.ndarray | None, chunk: int = 0
+    ) -> None:
+        """One stretch (``chunk``) of the robot's trajectory, both in the shared frame; the stretches
+        together draw the whole trajectory, so a caller re-sends only the stretches that changed.
 
         ``odometry_xyz`` (N, 3) odometry-only camera positions: thin grey line. ``fused_xyz`` (M, 3)
         back-end (corrected) positions: thick line in the robot's colour; None to skip. Each call
-        stores the whole polyline (12 bytes per point), so call it per keyframe rather than per frame
-        on long sequences.
+        stores the stretch's polyline (12 bytes per point) at ``.../trajectory/{odometry,fused}/<chunk>``.
         """
         base = f"{robot_path(robot)}/trajectory"
         odom = _xyz("odometry_xyz", odometry_xyz)
         self.rec.log(
-            f"{base}/odometry",
+            f"{base}/odometry/{int(chunk)}",
             rr.LineStrips3D([odom], colors=ODOMETRY_COLOR_RGB, radii=rr.components.Radius.ui_points(1.0)),
         )
         if fused_xyz is not None:
             fused = _xyz("fused_xyz", fused_xyz)
             self.rec.log(
-                f"{base}/fused",
+                f"{base}/fused/{int(chunk)}",
                 rr.LineStrips3D(
                     [fused], colors=self.robot_color(robot), radii=rr.components.Radius.ui_points(3.0)
                 ),
             )
 
-    def log_graph(self, robot: str, graph: GraphArrays) -> None:
-        """The robot's semantic graph, positions in the shared frame (``graph.transformed(T_shared_world)``).
+    def clear_map(self, robot: str) -> None:
+        """Remove the robot's trajectory and graph stretches (e.g. when a new trajectory segment starts)."""
+        self.rec.log(f"{robot_path(robot)}/trajectory", rr.Clear(recursive=True))
+        self.rec.log(f"{robot_path(robot)}/graph", rr.Clear(recursive=True))
+
+    def log_graph(
+        self, robot: str, graph: GraphArrays, chunk: int = 0, drawn: np.ndarray | None = None
+    ) -> None:
+        """One part (``chunk``) of the robot's semantic graph, positions in the shared frame
+        (``graph.transformed(T_shared_world)``), at ``.../graph/{nodes,edges}/<chunk>``; the parts together
+        draw the graph, so a caller re-sends only the parts that changed.
 
         Nodes: spheres coloured by class, radius ``node_radius_m(size)`` metres, node ids attached for
-        hovering. Edges: thin lines in the robot's colour, one (2, 3) strip per edge.
+        hovering; only the rows ``drawn`` ((N,) bool; all when None), the others are there for edges to
+        another part. Edges: thin lines in the robot's colour, one (2, 3) strip per edge of ``graph``.
         """
         base = f"{robot_path(robot)}/graph"
         positions = _xyz("graph.positions_xyz", graph.positions_xyz)
+        rows = np.arange(len(graph)) if drawn is None else np.flatnonzero(np.asarray(drawn, dtype=bool))
         self.rec.log(
-            f"{base}/nodes",
+            f"{base}/nodes/{int(chunk)}",
             rr.Points3D(
-                positions,
-                class_ids=np.asarray(graph.label_ids).astype(np.uint16),
-                radii=node_radius_m(graph.sizes).astype(np.float32),
+                positions[rows],
+                class_ids=np.asarray(graph.label_ids)[rows].astype(np.uint16),
+                radii=node_radius_m(graph.sizes[rows]).astype(np.float32),
                 show_labels=False,
             ),
-            rr.AnyValues(node_id=np.asarray(graph.node_ids, dtype=np.int64)),
+            rr.AnyValues(node_id=np.asarray(graph.node_ids, dtype=np.int64)[rows]),
         )
         edges = np.asarray(graph.edges, dtype=np.int64).reshape(-1, 2)
         color = np.append(self.robot_color(robot), 140).astype(np.uint8)
         self.rec.log(
-            f"{base}/edges",
+            f"{base}/edges/{int(chunk)}",
             rr.LineStrips3D(positions[edges], colors=color, radii=rr.components.Radius.ui_points(0.75)),
         )
 

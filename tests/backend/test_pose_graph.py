@@ -345,6 +345,52 @@ def test_agent_added_at_run_time_is_placed_by_closures_to_its_own_robots_earlier
                     if line.startswith("VERTEX")}  # fmt: skip
 
 
+def test_closure_keyframes_and_independent_evidence_between_robots():
+    gt = route(30, np.eye(4))
+    pg = MultiRobotPoseGraph(["a", "b", "c"])
+    for r in ("a", "b", "c"):
+        for k, T in enumerate(gt):
+            pg.add_keyframe(r, k, T)
+    assert pg.closure_keyframes("a").tolist() == [0]  # the prior ties the shared frame's first keyframe
+    assert pg.closure_keyframes("b").size == 0 and pg.evidence_between("a", "b") == 0
+    same = inverse(gt[5]) @ gt[5]
+    for kf in (5, 12):  # two closures cut from one match: one source of evidence
+        assert pg.add_inter_robot_closure("a", kf, "b", kf, same, num_inliers=8, match_id=1).accepted
+    assert pg.evidence_between("a", "b") == pg.evidence_between("b", "a") == 1
+    assert pg.add_inter_robot_closure("b", 20, "a", 20, same, num_inliers=8, match_id=2).accepted
+    assert pg.evidence_between("a", "b") == 2 and pg.evidence_between("a", "c") == 0
+    assert pg.closure_keyframes("a").tolist() == [0, 5, 12, 20]
+    assert pg.closure_keyframes("b").tolist() == [5, 12, 20]
+
+
+def test_closures_of_one_match_update_once_and_give_the_same_estimate(scene):
+    rng = np.random.default_rng(7)
+    closures = scene["closures"]
+    one_by_one, _ = run(scene, closures)
+    pg = MultiRobotPoseGraph(["a", "b"])
+    for k in range(N):
+        pg.add_keyframe("a", k, scene["odo_a"][k])
+        pg.add_keyframe("b", k, scene["odo_b"][k])
+    for m, group in enumerate((closures[: len(closures) // 2], closures[len(closures) // 2 :])):
+        for kf_a, kf_b, T in group:
+            pg.add_inter_robot_closure("a", kf_a, "b", kf_b, T, num_inliers=10, match_id=m, update=False)
+        pg.update()
+    # wrong first, then outvoted inside one batch: its pending factor is removed cleanly
+    bad = MultiRobotPoseGraph(["a", "b"])
+    for k in range(N):
+        bad.add_keyframe("a", k, scene["odo_a"][k])
+        bad.add_keyframe("b", k, scene["odo_b"][k])
+    i, j, T_wrong = wrong_closure(rng, N, N)
+    bad.add_inter_robot_closure("a", i, "b", j, T_wrong, num_inliers=30, match_id=0, update=False)
+    for kf_a, kf_b, T in closures[:6]:
+        bad.add_inter_robot_closure("a", kf_a, "b", kf_b, T, num_inliers=10, match_id=1, update=False)
+    bad.update()
+    reference = fused_ate(scene, one_by_one)
+    assert fused_ate(scene, pg) == pytest.approx(reference, abs=0.1)
+    assert fused_ate(scene, bad) == pytest.approx(fused_ate(scene, run(scene, closures[:6])[0]), abs=0.2)
+    assert bad.closures()[0].status is ClosureStatus.REJECTED and not bad.closures()[0].in_graph
+
+
 def test_odometry_sigmas_grow_with_the_distance_driven():
     pg = MultiRobotPoseGraph(["a"], odometry_sigmas=(0.001, 0.01), odometry_drift=(0.002, 0.02))
     steps = [0.0, 1.0, 3.0]
@@ -359,3 +405,29 @@ def test_odometry_sigmas_grow_with_the_distance_driven():
     np.testing.assert_allclose(trans_info, expected, rtol=1e-4)
     with pytest.raises(BackendError, match="drift"):
         MultiRobotPoseGraph(["a"], odometry_drift=(-1.0, 0.0))
+
+
+def test_converge_gives_the_same_estimate_whatever_order_things_arrived_in(scene):
+    """The same keyframes and closures, interleaved or all of a first: iSAM2's estimates differ (it
+    relinearizes only what moved beyond its threshold), the converged ones agree, and converge lowers
+    the graph's error."""
+    interleaved, _ = run(scene, scene["closures"])
+    a_first = MultiRobotPoseGraph(["a", "b"])
+    for k in range(N):
+        a_first.add_keyframe("a", k, scene["odo_a"][k])
+    for k in range(N):
+        a_first.add_keyframe("b", k, scene["odo_b"][k])
+    for i, j, T in scene["closures"]:
+        a_first.add_inter_robot_closure("a", i, "b", j, T, num_inliers=8)
+    before = {r: interleaved.estimate()[r].copy() for r in ("a", "b")}
+    assert interleaved.converge() > 0 and a_first.converge() > 0
+    for r in ("a", "b"):
+        np.testing.assert_allclose(interleaved.estimate()[r][:, :3, 3], a_first.estimate()[r][:, :3, 3], atol=2e-3)
+        k = N // 2
+        np.testing.assert_allclose(interleaved.T_shared_kf(r, k), interleaved.estimate()[r][k])
+    assert fused_ate(scene, interleaved) <= fused_ate(scene, run(scene, scene["closures"])[0]) + 1e-6
+    moved = max(np.abs(interleaved.estimate()[r][:, :3, 3] - before[r][:, :3, 3]).max() for r in ("a", "b"))
+    assert moved > 0  # the solution did change, and a new keyframe hands the answers back to iSAM2
+    interleaved.add_keyframe("a", N, scene["odo_a"][-1])
+    assert len(interleaved.estimate()["a"]) == N + 1
+    assert MultiRobotPoseGraph(["a"]).converge() == 0

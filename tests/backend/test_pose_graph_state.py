@@ -63,8 +63,9 @@ def test_restored_graph_continues_exactly_like_the_original(events) -> None:
     k = N // 2
     again = restored(first, odo, k)
     for r, T in first.estimate().items():
-        # the original is iSAM2 partly relinearized (threshold 0.01), the restored one a batch solve from it
-        np.testing.assert_allclose(again.estimate()[r], T, atol=0.05)
+        # the original is iSAM2 partly relinearized (threshold 0.1: a robot just anchored, here c, may be
+        # ~0.1 m from convergence), the restored one a batch solve from it
+        np.testing.assert_allclose(again.estimate()[r], T, atol=0.15)
     d_again = play(again, evs[cut:])
     assert [(d.accepted, d.reason) for d in d_first + d_again] == [(d.accepted, d.reason) for d in d_whole]
     assert [(c.status, c.reason, c.in_graph) for c in again.closures()] == [
@@ -98,3 +99,32 @@ def test_inconsistent_state_or_a_used_graph_is_refused(events) -> None:
         MultiRobotPoseGraph(["a", "b"]).restore_state(bad, odo)
     with pytest.raises(BackendError, match="fresh"):
         pg.restore_state(state, odo)
+    bad = replace(state, up_odom={**state.up_odom, "a": np.zeros((2, 3))})
+    with pytest.raises(BackendError, match="normals"):
+        MultiRobotPoseGraph(["a", "b"]).restore_state(bad, odo)
+
+
+def test_attitude_factors_come_back_with_the_ground_normals(events) -> None:
+    """Keyframes that measured their ground normal keep their attitude factors through a snapshot."""
+    evs, odo = events
+    pg = MultiRobotPoseGraph(["a", "b"], attitude_warmup=5)
+    rng = np.random.default_rng(5)
+    for ev in evs:
+        if ev[0] == "kf":
+            _, robot, k, T = ev
+            if robot not in pg.keys.names:
+                pg.add_robot(robot)
+            up_cam = np.array([0.0, -1.0, 0.0]) + rng.normal(0.0, 0.01, 3)  # camera y points down
+            up = T[:3, :3] @ (up_cam / np.linalg.norm(up_cam)) if k % 3 else None  # some keyframes none
+            pg.add_keyframe(robot, k, T, up)
+        else:
+            a, i, b, j, T = ev[1]
+            pg.add_inter_robot_closure(a, i, b, j, T, num_inliers=6 + i % 5, match_id=i)
+    state = pg.state()
+    assert np.isnan(state.up_odom["a"][0]).all() and np.isfinite(state.up_odom["a"][1]).all()
+    again = MultiRobotPoseGraph(["a", "b"], attitude_warmup=5)
+    again.restore_state(state, odo)
+    assert pg.stats().attitude_factors > 0
+    assert again.stats().attitude_factors == pg.stats().attitude_factors
+    for r, T in pg.estimate().items():  # iSAM2 (relinearization threshold 0.1) against a batch solve from it
+        np.testing.assert_allclose(again.estimate()[r][:, :3, 3], T[:, :3, 3], atol=0.3)

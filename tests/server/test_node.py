@@ -4,6 +4,7 @@ uninterrupted run."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ from shgm_slam.errors import ProtocolError
 from shgm_slam.messages import RobotState
 from shgm_slam.robot.node import RobotNode
 from shgm_slam.runner import make_frontend
-from shgm_slam.server.node import CLASH_WINDOW_S, ServerNode
+from shgm_slam.server.node import CHECKPOINT_SHARE, CLASH_WINDOW_S, ServerNode
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 from shgm_slam.transport.keys import hello_key, keyframe_key
 from shgm_slam.wire import encode
@@ -121,6 +122,31 @@ def test_silent_robot_goes_stale_and_comes_back(robots, cfg, tmp_path: Path) -> 
     assert server.robots["car1"].state is RobotState.STALE
     drive(server, nodes, {"car1": range(5, 10)}, clock)
     assert server.robots["car1"].state is RobotState.ACTIVE
+
+
+def test_results_are_rewritten_every_few_keyframes_unless_a_rewrite_costs_too_much(robots, cfg, tmp_path: Path,
+                                                                                  monkeypatch) -> None:
+    def run(write_s: float) -> int:
+        clock, bus = FakeClock(), InProcessBus()
+        server = ServerNode(cfg, InProcessTransport(bus), tmp_path / f"w{write_s}", expect=2, clock=clock,
+                            write_every_keyframes=5)  # fmt: skip
+        original = ServerNode.write_results
+
+        def slow(self):
+            original(self)
+            self.timings_ms["write"][-1] += write_s * 1e3  # as if the rewrite had taken write_s longer
+
+        monkeypatch.setattr(ServerNode, "write_results", slow)
+        drive(server, fresh(robots, cfg, bus, clock), {r: range(40) for r in ("car1", "car2")}, clock)
+        monkeypatch.setattr(ServerNode, "write_results", original)
+        return len(server.timings_ms["write"])
+
+    t0 = time.perf_counter()
+    cheap = run(0.0)
+    elapsed = time.perf_counter() - t0
+    assert cheap >= 2
+    # a rewrite "taking" far longer than the whole drive leaves room for no second one
+    assert run(10 * elapsed / CHECKPOINT_SHARE) == 1
 
 
 def test_a_provisional_placement_reaches_status_server_json_and_the_robot(robots, cfg, tmp_path: Path) -> None:

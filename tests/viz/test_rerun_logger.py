@@ -125,8 +125,8 @@ def test_recording_has_the_documented_entity_tree(recording):
                 ok, f"{ok}/nodes", bad, f"{bad}/nodes"}  # fmt: skip
     for r in ROBOTS:
         expected |= {f"/world/{r}/cam", f"/world/{r}/cam/rgb", f"/world/{r}/cam/depth", f"/world/{r}/cam/seg",
-                     f"/world/{r}/cloud", f"/world/{r}/trajectory/odometry", f"/world/{r}/trajectory/fused",
-                     f"/world/{r}/graph/nodes", f"/world/{r}/graph/edges",
+                     f"/world/{r}/cloud", f"/world/{r}/trajectory/odometry/0", f"/world/{r}/trajectory/fused/0",
+                     f"/world/{r}/graph/nodes/0", f"/world/{r}/graph/edges/0",
                      f"/timings/{r}/odometry", f"/timings/{r}/graph"}  # fmt: skip
     missing = expected - set(entities)
     assert not missing, f"missing entities: {sorted(missing)}"
@@ -154,11 +154,11 @@ def test_logged_values_match_inputs(recording):
         assert np.allclose(pos, last[r]["points"][::3], atol=1e-5)
         assert np.array_equal(cls, last[r]["point_labels"][::3])
         graph = last[r]["graph"]
-        nodes = entities[f"/world/{r}/graph/nodes"]
+        nodes = entities[f"/world/{r}/graph/nodes/0"]
         assert np.allclose(_last(nodes, "Points3D:positions"), graph.positions_xyz, atol=1e-4)
         assert np.allclose(_last(nodes, "Points3D:radii"), node_radius_m(graph.sizes), atol=1e-5)
         assert _last(nodes, "node_id") == graph.node_ids.tolist()
-        strips = np.array(_last(entities[f"/world/{r}/graph/edges"], "LineStrips3D:strips"))
+        strips = np.array(_last(entities[f"/world/{r}/graph/edges/0"], "LineStrips3D:strips"))
         assert strips.shape == (graph.num_edges, 2, 3)
         assert np.allclose(strips, graph.positions_xyz[graph.edges], atol=1e-4)
 

@@ -1,0 +1,120 @@
+"""What ``run`` sends the viewer at each keyframe: only the stretches of the map that changed.
+
+Trajectories are drawn in stretches of ``TRAJECTORY_CHUNK_FRAMES`` frames and graphs in parts of the
+nodes anchored to ``GRAPH_CHUNK_KEYFRAMES`` consecutive keyframes (``Viz.log_trajectories`` /
+``log_graph`` with a chunk index). At a keyframe only the trajectory stretches since the previous
+keyframe and the graph parts its nodes touched (with their neighbours) are re-sent, so the cost per
+keyframe does not grow with the distance driven. When the pose graph changes in a way that can move old
+keyframes (a closure enters or leaves, a robot is placed: ``MapServer.corrections``), or the robot starts
+a new trajectory segment, everything of that robot is sent once more. Between such changes the parts
+already sent are not moved with the small updates every new keyframe brings (centimetres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from shgm_slam.geometry import se3
+from shgm_slam.robot.frontend import FrameResult, RobotFrontend
+from shgm_slam.server.map_server import MapServer
+from shgm_slam.types import GraphArrays
+from shgm_slam.viz.rerun_logger import Viz
+
+TRAJECTORY_CHUNK_FRAMES = 200
+"""Frames per trajectory stretch (a few hundred: small enough to re-send at every keyframe)."""
+GRAPH_CHUNK_KEYFRAMES = 50
+"""Keyframes whose nodes form one graph part."""
+
+
+@dataclass
+class _RobotState:
+    agent: str = ""
+    corrections: int = -1
+    next_frame: int = 0  # frames before this one are in stretches already sent
+    placed: bool = False
+
+
+def fused_positions(front: RobotFrontend, server: MapServer, frames: np.ndarray) -> np.ndarray:
+    """(F, 3) fused camera positions (shared frame) of ``front``'s frames ``frames``: each frame rides on
+    its last keyframe's correction; NaN rows for frames of unplaced segments or before a first keyframe."""
+    out = np.full((frames.size, 3), np.nan)
+    seg_of, kf_of = front.frame_segment[frames], front.frame_kf[frames]
+    for seg in front.segments:
+        rows = np.flatnonzero((seg_of == seg.index) & (kf_of >= 0) & (kf_of < seg.num_keyframes))
+        if not rows.size:
+            continue
+        kfs, inverse = np.unique(kf_of[rows], return_inverse=True)
+        T_shared_kf = server.T_shared_kf_at(seg.agent, kfs)
+        if T_shared_kf is None:
+            continue
+        T_odom_kf = np.stack([seg.kf_poses[k] for k in kfs.tolist()])
+        correction = (T_shared_kf @ se3.inverse(T_odom_kf))[inverse]
+        out[rows] = np.einsum("nij,nj->ni", correction[:, :3, :3], front.T_odom_cam[frames[rows], :3, 3])
+        out[rows] += correction[:, :3, 3]
+    return out
+
+
+class RunView:
+    """Sends each robot's trajectory and graph to a viewer in changed chunks (module docstring)."""
+
+    def __init__(self, viz: Viz) -> None:
+        self.viz = viz
+        self._robots: dict[str, _RobotState] = {}
+        self.points_sent = 0  # trajectory positions and graph nodes sent so far (for tests and benchmarks)
+
+    def keyframe(self, server: MapServer, front: RobotFrontend, res: FrameResult) -> None:
+        """Send what changed of ``res.robot``'s trajectory and graph at its keyframe ``res``."""
+        r, agent = res.robot, res.agent or res.robot
+        st = self._robots.setdefault(r, _RobotState())
+        placed = server.is_placed(agent)
+        if st.agent != agent:
+            self.viz.clear_map(r)
+        full = st.agent != agent or st.corrections != server.corrections or st.placed != placed
+        st.agent, st.corrections, st.placed = agent, server.corrections, placed
+        f = res.frame.index
+        self._trajectory(server, front, 0 if full else st.next_frame, f)
+        st.next_frame = f
+        update = None if full or res.message is None else res.message.graph_update
+        self._graph(server, r, agent, update)
+
+    def _trajectory(self, server: MapServer, front: RobotFrontend, since: int, upto: int) -> None:
+        T_shared_odom = server.T_shared_odom(front.segment.agent)
+        for c in range(since // TRAJECTORY_CHUNK_FRAMES, upto // TRAJECTORY_CHUNK_FRAMES + 1):
+            lo = c * TRAJECTORY_CHUNK_FRAMES
+            frames = np.arange(lo, min(lo + TRAJECTORY_CHUNK_FRAMES + 1, upto + 1))  # +1: stretches join up
+            mine = frames[front.frame_segment[frames] == front.segment.index]
+            odo_xyz = front.T_odom_cam[mine, :3, 3]
+            if T_shared_odom is not None:
+                odo_xyz = se3.transform_points(T_shared_odom, odo_xyz)
+            fused = fused_positions(front, server, frames)
+            fused = fused[np.isfinite(fused).all(axis=1)]
+            self.viz.log_trajectories(front.name, odo_xyz, fused if len(fused) else None, chunk=c)
+            self.points_sent += len(odo_xyz) + len(fused)
+
+    def _graph(self, server: MapServer, robot: str, agent: str, update) -> None:
+        graph = server.graph(agent)
+        if not len(graph):
+            return
+        T_shared_odom = server.T_shared_odom(agent)
+        if T_shared_odom is not None:
+            graph = graph.transformed(T_shared_odom)
+        chunk_of = server.graph_anchors(agent) // GRAPH_CHUNK_KEYFRAMES
+        if update is None:
+            dirty = np.unique(chunk_of)
+        else:
+            touched = np.isin(graph.node_ids, update.observed_node_ids)
+            e = graph.edges
+            near = touched.copy()
+            near[e[touched[e[:, 0]], 1]] = True
+            near[e[touched[e[:, 1]], 0]] = True
+            dirty = np.unique(chunk_of[near])
+        edge_chunk = np.maximum(chunk_of[graph.edges[:, 0]], chunk_of[graph.edges[:, 1]])  # drawn by the later part
+        for c in dirty.tolist():
+            edges = graph.edges[edge_chunk == c]
+            rows = np.union1d(np.flatnonzero(chunk_of == c), edges.reshape(-1))
+            part = GraphArrays(graph.node_ids[rows], graph.label_ids[rows], graph.positions_xyz[rows],
+                               graph.sizes[rows], np.searchsorted(rows, edges))  # fmt: skip
+            self.viz.log_graph(robot, part, chunk=c, drawn=chunk_of[rows] == c)
+            self.points_sent += len(rows)
