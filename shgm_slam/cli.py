@@ -364,8 +364,9 @@ def run(
     odometry: Annotated[
         str | None,
         typer.Option(
-            help="auto | kiss-icp | visual | gt | a KITTI/TUM poses file ({robot} in the path = robot name); "
-            "auto = visual odometry on model depth, KISS-ICP on depth files [default: the config's, auto]"
+            help="auto | kiss-icp | visual | hybrid | gt | a KITTI/TUM poses file ({robot} in the path = robot "
+            "name); auto = visual odometry on model depth, KISS-ICP on depth files (the run says which and why); "
+            "hybrid = KISS-ICP seeded by and fused with the visual odometry [default: the config's, auto]"
         ),
     ] = None,
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
@@ -516,7 +517,7 @@ def robot_command(
         str | None, typer.Option(help="map server's Zenoh endpoint(s), comma-separated [default: tcp/127.0.0.1:7447]")
     ] = None,
     odometry: Annotated[
-        str | None, typer.Option(help="auto | kiss-icp | visual | gt | a KITTI/TUM poses file (as for run)")
+        str | None, typer.Option(help="auto | kiss-icp | visual | hybrid | gt | a KITTI/TUM poses file (as for run)")
     ] = None,
     depth_model: Annotated[Path | None, typer.Option(help="ONNX depth model (card next to it)")] = None,
     seg_model: Annotated[Path | None, typer.Option(help="ONNX segmentation model (card next to it)")] = None,

@@ -155,9 +155,9 @@ class MatchingConfig(_Stage):
 
 
 class OdometryKind(str, Enum):
-    """Where each frame's pose comes from. AUTO: HYBRID when a depth model predicts the depth (ICP alone on
-    predicted depth stalls; ``odometry.sources.choose_odometry``), KISS_ICP when the depth comes from files
-    (a sensor or the simulator)."""
+    """Where each frame's pose comes from. AUTO: VISUAL when a depth model predicts the depth (ICP alone on
+    predicted depth stalls, the hybrid was not clearly better; ``odometry.sources.choose_odometry``),
+    KISS_ICP when the depth comes from files (a sensor or the simulator)."""
 
     AUTO = "auto"
     KISS_ICP = "kiss-icp"

@@ -36,10 +36,10 @@ def test_demo_leaves_the_uav_settings_to_its_data():
 
 
 @pytest.mark.skipif(not (MODELS_DIR / "demo_depth.onnx").is_file(), reason="demo models not in models/")
-def test_rgb_only_demo_uses_models_hybrid_odometry_and_confirmed_anchors():
+def test_rgb_only_demo_uses_models_visual_odometry_and_confirmed_anchors():
     cfg = demo_config(rgb_only=True)
     assert cfg.perception.depth_model == MODELS_DIR / "demo_depth.onnx"
-    assert resolve_kind(cfg.odometry.kind, True) is OdometryKind.HYBRID
+    assert resolve_kind(cfg.odometry.kind, True) is OdometryKind.VISUAL
     assert cfg.backend.min_closures_to_anchor == 2
     assert cfg.odometry.visual_max_depth_m is None  # derived per robot
 

@@ -353,24 +353,26 @@ class OdometryChoice:
 
 AUTO_FILES_REASON = "auto: depth from files (a depth sensor or the simulator), KISS-ICP on its pseudo-LiDAR"
 AUTO_MODEL_REASON = (
-    "auto: depth predicted by a model; KISS-ICP alone stalls on it (its error lies along the street and "
-    "changes from frame to frame), so KISS-ICP runs on the trusted part of the depth, seeded by the visual "
-    "odometry and fused with it by how noisy each one's turns are (the depth-quality study)"
+    "auto: depth predicted by a model, so the visual odometry (image motion gives the turn and the heading, "
+    "many tracked depths the length); KISS-ICP alone drifts far on a network's depth, and the hybrid "
+    "(KISS-ICP seeded by and fused with the visual odometry) was not clearly better on the demo model's depth "
+    "and costs more (README: What depth quality your model needs); --odometry hybrid to choose it"
 )
 
 
 def choose_odometry(kind: OdometryKind | str, depth_from_model: bool) -> OdometryChoice:
-    """``kind`` with AUTO resolved, and why: HYBRID for model-predicted depth, KISS_ICP for depth files.
+    """``kind`` with AUTO resolved, and why: VISUAL for model-predicted depth, KISS_ICP for depth files.
 
     The choice for predicted depth follows ``shgm-slam bench depth-quality`` (README, "What depth quality
-    your model needs"): with network-like depth errors KISS-ICP alone drifts tens of percent, the
-    hybrid no more than the visual odometry and less where the depth is good.
+    your model needs"): with network-like depth errors KISS-ICP alone drifts tens of percent; the hybrid
+    drifts a little less than the visual odometry for cars, no less for the UAV, places no more robots,
+    and takes two to ten times as long per frame.
     """
     kind = OdometryKind(kind)
     if kind is not OdometryKind.AUTO:
         return OdometryChoice(kind, "set in the configuration")
     if depth_from_model:
-        return OdometryChoice(OdometryKind.HYBRID, AUTO_MODEL_REASON)
+        return OdometryChoice(OdometryKind.VISUAL, AUTO_MODEL_REASON)
     return OdometryChoice(OdometryKind.KISS_ICP, AUTO_FILES_REASON)
 
 

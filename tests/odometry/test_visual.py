@@ -187,7 +187,7 @@ def test_source_runs_on_rgb_frames(corridor):
 @pytest.mark.parametrize(
     ("kind", "from_model", "expected"),
     [
-        (OdometryKind.AUTO, True, OdometryKind.HYBRID),
+        (OdometryKind.AUTO, True, OdometryKind.VISUAL),
         (OdometryKind.AUTO, False, OdometryKind.KISS_ICP),
         (OdometryKind.KISS_ICP, True, OdometryKind.KISS_ICP),
         ("visual", False, OdometryKind.VISUAL),
