@@ -366,7 +366,7 @@ def choose_odometry(kind: OdometryKind | str, depth_from_model: bool) -> Odometr
     The choice for predicted depth follows ``shgm-slam bench depth-quality`` (README, "What depth quality
     your model needs"): with network-like depth errors KISS-ICP alone drifts tens of percent; the hybrid
     drifts a little less than the visual odometry for cars, no less for the UAV, places no more robots,
-    and takes two to ten times as long per frame.
+    and takes two to forty times as long per frame.
     """
     kind = OdometryKind(kind)
     if kind is not OdometryKind.AUTO:
