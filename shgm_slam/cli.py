@@ -307,6 +307,12 @@ def _render_summary(summary) -> None:
 
     t = _summary_table(summary)
     console.print(t)
+    chosen: dict[tuple[str, str], list[str]] = {}
+    for r in summary.robots:
+        if r.odometry:
+            chosen.setdefault((r.odometry, r.odometry_reason), []).append(r.name)
+    for (kind, reason), names in chosen.items():
+        console.print(f"odometry {lit(kind)} for {lit(', '.join(names))}: {lit(reason)}")
     for r in summary.robots:
         if r.odometry_failures:
             more = f" (+{r.odometry_failures - 3} more in metrics.json)" if r.odometry_failures > 3 else ""
@@ -358,8 +364,9 @@ def run(
     odometry: Annotated[
         str | None,
         typer.Option(
-            help="auto | kiss-icp | visual | gt | a KITTI/TUM poses file ({robot} in the path = robot name); "
-            "auto = visual odometry on model depth, KISS-ICP on depth files [default: the config's, auto]"
+            help="auto | kiss-icp | visual | hybrid | gt | a KITTI/TUM poses file ({robot} in the path = robot "
+            "name); auto = visual odometry on model depth, KISS-ICP on depth files (the run says which and why); "
+            "hybrid = KISS-ICP seeded by and fused with the visual odometry [default: the config's, auto]"
         ),
     ] = None,
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
@@ -510,7 +517,7 @@ def robot_command(
         str | None, typer.Option(help="map server's Zenoh endpoint(s), comma-separated [default: tcp/127.0.0.1:7447]")
     ] = None,
     odometry: Annotated[
-        str | None, typer.Option(help="auto | kiss-icp | visual | gt | a KITTI/TUM poses file (as for run)")
+        str | None, typer.Option(help="auto | kiss-icp | visual | hybrid | gt | a KITTI/TUM poses file (as for run)")
     ] = None,
     depth_model: Annotated[Path | None, typer.Option(help="ONNX depth model (card next to it)")] = None,
     seg_model: Annotated[Path | None, typer.Option(help="ONNX segmentation model (card next to it)")] = None,
@@ -881,6 +888,23 @@ def bench_distributed(
     console.print(f"wrote {lit(out / 'distributed.json')} and {lit(out / 'distributed.md')}")
 
 
+def _world_seeds(seeds: str) -> tuple[int, ...]:
+    """``--seeds`` of the held-out style benchmarks: 'report', 'tuning' or an inclusive range A-B."""
+    from shgm_slam.bench import heldout
+    from shgm_slam.errors import ConfigError
+
+    named = {"report": heldout.REPORT_SEEDS, "tuning": heldout.TUNING_SEEDS}
+    if seeds in named:
+        return named[seeds]
+    try:
+        a, b = (int(x) for x in seeds.split("-"))
+    except ValueError:
+        raise ConfigError(f"--seeds {seeds!r}: write report, tuning or A-B (inclusive), e.g. 10-14") from None
+    if b < a:
+        raise ConfigError(f"--seeds {seeds!r}: the range is empty (A-B needs A <= B)")
+    return tuple(range(a, b + 1))
+
+
 @bench_app.command("heldout")
 @handle_errors
 def bench_heldout(
@@ -906,17 +930,7 @@ def bench_heldout(
     from shgm_slam.bench import heldout
     from shgm_slam.errors import ConfigError
 
-    named = {"report": heldout.REPORT_SEEDS, "tuning": heldout.TUNING_SEEDS}
-    if seeds in named:
-        seed_list = named[seeds]
-    else:
-        try:
-            a, b = (int(x) for x in seeds.split("-"))
-        except ValueError:
-            raise ConfigError(f"--seeds {seeds!r}: write report, tuning or A-B (inclusive), e.g. 10-14") from None
-        if b < a:
-            raise ConfigError(f"--seeds {seeds!r}: the range is empty (A-B needs A <= B)")
-        seed_list = tuple(range(a, b + 1))
+    seed_list = _world_seeds(seeds)
     for s in scenario or ():
         if s not in heldout.SCENARIOS:
             raise ConfigError(f"--scenario {s!r}: choose from {', '.join(heldout.SCENARIOS)}")
@@ -932,6 +946,70 @@ def bench_heldout(
         results = heldout.run_heldout_benchmark(out, options, progress=lambda msg: status.update(msg), jobs=jobs)
     typer.echo(heldout.heldout_markdown(results))
     console.print(f"wrote {lit(out / 'heldout.json')} and {lit(out / 'heldout.md')}")
+
+
+@bench_app.command("depth-quality")
+@handle_errors
+def bench_depth_quality(
+    out: Annotated[Path, typer.Option("--out", "-o", help="results folder (resumes the runs already in it)")]
+    = Path("results/bench_depth_quality"),
+    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-19) or A-B")]
+    = "report",
+    scenario: Annotated[
+        list[str] | None, typer.Option(help="scenario (repeatable) [airsim-like, synthia-like]")
+    ] = None,
+    level: Annotated[
+        list[str] | None,
+        typer.Option(help="depth level (repeatable): true, an AbsRel such as 0.05, or model [true 0.03 0.05 0.08 "
+                     "0.12 model]"),
+    ] = None,
+    odometry: Annotated[
+        str, typer.Option(help="odometry kinds run alone (comma-separated: kiss-icp, visual, hybrid)")
+    ] = "kiss-icp,visual,hybrid",
+    system: Annotated[
+        str, typer.Option(help="odometry kinds the whole system runs with (comma-separated; 'none' for none)")
+    ] = "visual,hybrid",
+    max_frames: Annotated[
+        int | None, typer.Option(min=10, max=MAX_FRAMES, help="cut every robot's sequence (quick looks)")
+    ] = None,
+    cache: Annotated[Path, typer.Option(help="rendered worlds are cached here (shared with bench heldout)")]
+    = Path("cache/heldout"),
+) -> None:
+    """What depth quality each odometry needs: true depth corrupted the way networks err (smooth scale
+    field, error growing with range, blurred edges, flicker) at AbsRel levels, plus the demo model's
+    depth; drift and ATE of each odometry alone, and robots placed by the whole system."""
+    from shgm_slam.bench import depth_quality as dq
+    from shgm_slam.bench import heldout
+    from shgm_slam.config import OdometryKind
+    from shgm_slam.errors import ConfigError
+
+    for s in scenario or ():
+        if s not in heldout.SCENARIOS:
+            raise ConfigError(f"--scenario {s!r}: choose from {', '.join(heldout.SCENARIOS)}")
+    levels = dq.LEVELS if not level else tuple(dq.parse_level(x) for x in level)
+    studied = (OdometryKind.KISS_ICP, OdometryKind.VISUAL, OdometryKind.HYBRID)
+
+    def kinds(option: str, text: str) -> tuple[OdometryKind, ...]:
+        if text.strip() == "none":
+            return ()
+        try:
+            chosen = tuple(OdometryKind(k.strip()) for k in text.split(",") if k.strip())
+        except ValueError:
+            chosen = ()
+        if not chosen or any(k not in studied for k in chosen):
+            raise ConfigError(f"--{option} {text!r}: comma-separated kiss-icp, visual, hybrid (or none)")
+        return chosen
+
+    options = dq.DepthQualityOptions(
+        scenarios=tuple(scenario or dq.DepthQualityOptions.scenarios), seeds=_world_seeds(seeds), levels=levels,
+        odometry_kinds=kinds("odometry", odometry), system_kinds=kinds("system", system), max_frames=max_frames,
+        cache=cache,
+    )  # fmt: skip
+    with console.status("starting") as status:
+        results = dq.run_depth_quality_benchmark(out, options, progress=lambda msg: status.update(msg))
+    typer.echo(dq.depth_quality_markdown(results))
+    console.print(f"wrote {lit(out / 'depth_quality.json')}, {lit(out / 'depth_quality.md')} and "
+                  f"{lit(out / 'depth_quality.png')}")  # fmt: skip
 
 
 @bench_app.command("table3")

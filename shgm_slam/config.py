@@ -155,14 +155,16 @@ class MatchingConfig(_Stage):
 
 
 class OdometryKind(str, Enum):
-    """Where each frame's pose comes from. AUTO: VISUAL when a depth model predicts the depth (ICP on
-    predicted depth stalls), KISS_ICP when the depth comes from files (a sensor or the simulator)."""
+    """Where each frame's pose comes from. AUTO: VISUAL when a depth model predicts the depth (ICP alone on
+    predicted depth stalls, the hybrid was not clearly better; ``odometry.sources.choose_odometry``),
+    KISS_ICP when the depth comes from files (a sensor or the simulator)."""
 
     AUTO = "auto"
     KISS_ICP = "kiss-icp"
     GT = "gt"
     FILE = "file"
     VISUAL = "visual"  # depth-assisted monocular visual odometry (KLT + PnP), for predicted depth
+    HYBRID = "hybrid"  # KISS-ICP on trusted pseudo-LiDAR, seeded and held along the track by VISUAL
 
 
 class OdometryConfig(_Stage):
@@ -216,6 +218,10 @@ class OdometryConfig(_Stage):
     visual_depth_window_px: int = Field(
         5, ge=1, description="visual odometry: a corner's depth is the largest in this window (networks blur "
         "depth edges toward the foreground); 1 for sensor depth"
+    )
+    hybrid_edge_rel_jump: float = Field(
+        0.1, gt=0, description="hybrid: pixels where inverse depth bends by more than this share of itself "
+        "(occlusion edges, which networks blur) and their neighbours are kept out of ICP's cloud"
     )
     image_rotation: bool = Field(
         True, description="measure each step's turn from image motion: it seeds KISS-ICP's rotation (sharp turns) "

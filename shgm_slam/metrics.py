@@ -224,3 +224,40 @@ def trajectory_length(poses: np.ndarray) -> float:
     if P.shape[0] < 2:
         return 0.0
     return float(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).sum())
+
+
+DRIFT_LENGTHS_M = (50.0, 100.0, 150.0, 200.0)
+"""Segment lengths of ``drift_percent`` (KITTI uses 100-800 m; our drives are 200-950 m long)."""
+
+
+def drift_percent(
+    poses_gt: np.ndarray, poses_est: np.ndarray, *, lengths_m: tuple[float, ...] = DRIFT_LENGTHS_M, step: int = 5
+) -> float:
+    """Translational drift in % of the distance driven (KITTI's t_rel): for segments starting every
+    ``step`` frames and ``lengths_m`` long (ground-truth path), the translation error of the estimated
+    relative motion over the segment divided by its length, averaged over all segments.
+
+    Args:
+        poses_gt: (N, 4, 4) ground-truth ``T_world_cam``.
+        poses_est: (N, 4, 4) estimated poses of the same frames (any frame: only relative motion counts).
+
+    Returns:
+        The mean drift in percent; NaN when the path is shorter than the shortest segment.
+    """
+    gt, est, reason = _check_pair(poses_gt, poses_est)
+    if reason:
+        return float("nan")
+    dist = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))]
+    errors = []
+    for length in lengths_m:
+        start = np.arange(0, len(gt), max(1, step))
+        end = np.searchsorted(dist, dist[start] + length)
+        ok = end < len(gt)
+        i, j = start[ok], end[ok]
+        if len(i) == 0:
+            continue
+        rel_gt = np.linalg.inv(gt[i]) @ gt[j]
+        rel_est = np.linalg.inv(est[i]) @ est[j]
+        err = np.linalg.inv(rel_gt) @ rel_est
+        errors.append(np.linalg.norm(err[:, :3, 3], axis=1) / length)
+    return 100.0 * float(np.mean(np.concatenate(errors))) if errors else float("nan")

@@ -26,7 +26,7 @@ from shgm_slam.fusion import fuse_segments
 from shgm_slam.geometry import se3
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.metrics import ate
-from shgm_slam.odometry.sources import make_odometry
+from shgm_slam.odometry.sources import choose_odometry, make_odometry
 from shgm_slam.odometry.stillness import ImageChange, odometry_motion, stillness_warning
 from shgm_slam.perception import make_perception
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
@@ -111,8 +111,10 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
         log.info("%s: camera %.1f m above the ground, nearest ground at %.1f m", name,
                  scale.camera_height_m or float("nan"), scale.nearest_ground_depth_m)  # fmt: skip
     rcfg = resolve_robot_config(rcfg, scale)
-    odometry = make_odometry(rcfg.odometry, len(sequence), depth_from_model=rcfg.perception.depth_model is not None)
-    return RobotFrontend(name, sequence, rcfg, perception, odometry)
+    choice = choose_odometry(rcfg.odometry.kind, depth_from_model=rcfg.perception.depth_model is not None)
+    log.info("%s: odometry %s (%s)", name, choice.kind.value, choice.reason)
+    odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence))
+    return RobotFrontend(name, sequence, rcfg, perception, odometry, choice)
 
 
 def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConfig:
@@ -174,6 +176,8 @@ class RobotReport:
     # placed from a single piece of evidence (``backend.confirmation``): no independent graph match confirms
     # a segment's place in the shared frame yet; it may be wrong (its fused trajectory is written, marked so)
     provisional: bool = False
+    odometry: str = ""  # the odometry kind the robot ran (``--odometry auto`` resolved)
+    odometry_reason: str = ""  # why (auto's reason, or "set in the configuration")
 
 
 @dataclass
@@ -520,6 +524,8 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
             r, len(seq), processed[r], len(seq) - processed[r], front.num_keyframes,
             sum(len(s.graph) for s in front.segments), bool(with_kf) and all(s.index in placed for s in with_kf),
         )  # fmt: skip
+        if front.odometry_choice is not None:
+            rep.odometry, rep.odometry_reason = front.odometry_choice.kind.value, front.odometry_choice.reason
         rep.segment_start_frames = [int(s.first_frame) for s in front.segments if s.first_frame >= 0]
         rep.segments = len(rep.segment_start_frames)
         rep.segments_placed = len(placed)

@@ -9,7 +9,7 @@ import pytest
 
 from shgm_slam.errors import DataError
 from shgm_slam.geometry.se3 import make_pose, rot_y, rot_z, so3_exp
-from shgm_slam.metrics import AlignMode, RelationKind, ate, rpe, trajectory_length
+from shgm_slam.metrics import AlignMode, RelationKind, ate, drift_percent, rpe, trajectory_length
 
 
 def _trajectory(n: int = 50, seed: int = 0) -> np.ndarray:
@@ -133,3 +133,40 @@ def test_on_kitti_ground_truth(shared_data):
     moved = make_pose(rot_y(1.2), [100.0, -2.0, 50.0]) @ gt
     assert ate(gt, moved).rmse < 1e-6
     assert ate(gt, moved, align="none").rmse > 50.0
+
+
+def _drive(n: int = 400, step_m: float = 1.0) -> np.ndarray:
+    """(n, 4, 4) a drive turning gently (yaw about the camera's y axis), ``step_m`` per frame."""
+    poses = [np.eye(4)]
+    for _ in range(n - 1):
+        poses.append(poses[-1] @ make_pose(rot_y(0.004), [0.0, 0.0, step_m]))
+    return np.stack(poses)
+
+
+def test_drift_is_zero_for_any_rigidly_moved_copy_and_the_scale_error_for_a_scaled_one():
+    gt = _drive()
+    moved = make_pose(rot_z(0.7) @ rot_y(1.1), [40.0, -3.0, 7.0]) @ gt
+    assert drift_percent(gt, moved) < 1e-6
+    scaled = gt.copy()
+    scaled[:, :3, 3] *= 1.1
+    assert 9.5 < drift_percent(gt, scaled) <= 10.0  # 10 % of each stretch's chord (the drive curves)
+
+
+def test_drift_sees_a_heading_error_growing_with_distance():
+    gt = _drive()
+    est = [np.eye(4)]
+    for k in range(1, len(gt)):  # every step turns 0.01 rad too far
+        est.append(est[-1] @ (np.linalg.inv(gt[k - 1]) @ gt[k]) @ make_pose(rot_y(0.01), [0.0, 0.0, 0.0]))
+    short = drift_percent(gt, np.stack(est), lengths_m=(50.0,))
+    long = drift_percent(gt, np.stack(est), lengths_m=(200.0,))
+    assert 0 < short < long  # heading error: the lateral error per metre grows with the stretch
+
+
+def test_drift_of_a_too_short_or_broken_trajectory_is_nan():
+    gt = _drive(20)
+    assert np.isnan(drift_percent(gt, gt))  # 19 m: shorter than the shortest stretch
+    bad = _drive()
+    bad[5, 0, 3] = np.nan
+    assert np.isnan(drift_percent(_drive(), bad))
+    with pytest.raises(DataError):
+        drift_percent(_drive(), _drive(10))

@@ -76,6 +76,8 @@ def test_results_folder_has_every_output(drifting_run) -> None:
     assert "extraction:" in (out / "config.yaml").read_text()
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["closures_accepted"] == summary.closures_accepted
+    for r in metrics["robots"]:  # which odometry ran, and why
+        assert r["odometry"] == "file" and r["odometry_reason"] == "set in the configuration"
 
 
 def test_fused_car2_is_in_car1_frame(drifting_run) -> None:

@@ -6,11 +6,19 @@ uses, so the odometry sees exactly the points this module keeps.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from shgm_slam.errors import DataError
 from shgm_slam.geometry.camera import backproject
+from shgm_slam.labels import Label
 from shgm_slam.types import Intrinsics
+
+UNTRUSTED_LABELS: tuple[int, ...] = (
+    Label.SKY, Label.PERSON, Label.RIDER, Label.POLE, Label.TRAFFIC_LIGHT, Label.TRAFFIC_SIGN,
+)  # fmt: skip
+"""Classes whose predicted depth ICP should not see: sky (no surface), people (moving) and thin
+structures (a network smears their few pixels into the background)."""
 
 
 def depth_to_cloud(
@@ -115,3 +123,65 @@ def sampling_spacing_m(points_cam: np.ndarray, intrinsics: Intrinsics, *, stride
     spacing2 = np.where(np.isnan(horizontal) | np.isnan(vertical), np.inf, spacing2)
     spacing[on_grid] = np.sqrt(spacing2[v, u])
     return spacing
+
+
+def depth_edges(depth_m: np.ndarray, rel_jump: float) -> np.ndarray:
+    """Pixels at depth discontinuities: where inverse depth bends by more than ``rel_jump`` of itself.
+
+    Inverse depth is linear in the pixel coordinates across any plane (road, facade, even at grazing
+    angles), so its second difference along u or v vanishes on surfaces and is large only where one
+    surface occludes another. A pixel next to an invalid one (sky, no return) is an edge too.
+
+    Args:
+        depth_m: (H, W) z-depth, metres; 0 or non-finite = invalid.
+        rel_jump: threshold on ``|second difference of 1/d| * d`` (0.1: a 10 % jump).
+
+    Returns:
+        (H, W) bool, True on edges (invalid pixels are False).
+    """
+    d = np.asarray(depth_m, dtype=np.float32)
+    valid = np.isfinite(d) & (d > 0)
+    inv = np.where(valid, 1.0 / np.where(valid, d, 1.0), np.nan).astype(np.float32)
+    pad = np.pad(inv, 1, mode="reflect", reflect_type="odd")  # linear extrapolation: planes stay planar
+    centre = pad[1:-1, 1:-1]
+    bend_u = np.abs(pad[1:-1, :-2] - 2.0 * centre + pad[1:-1, 2:])
+    bend_v = np.abs(pad[:-2, 1:-1] - 2.0 * centre + pad[2:, 1:-1])
+    with np.errstate(invalid="ignore"):
+        bend = np.maximum(bend_u, bend_v) * np.where(valid, d, np.nan)  # NaN where a neighbour is missing
+    edge = ~(bend <= rel_jump)  # NaN (a missing neighbour) counts as an edge
+    return edge & valid
+
+
+def trusted_depth(
+    depth_m: np.ndarray,
+    label_ids: np.ndarray | None,
+    *,
+    max_depth_m: float,
+    edge_rel_jump: float,
+    edge_margin_px: int,
+    untrusted_labels: tuple[int, ...] = UNTRUSTED_LABELS,
+) -> np.ndarray:
+    """Predicted depth with the pixels a monocular network gets worst set invalid (0), for ICP.
+
+    Args:
+        depth_m: (H, W) z-depth, metres; 0 or non-finite = invalid.
+        label_ids: (H, W) Cityscapes train ids, or None.
+        max_depth_m: farther depth is dropped (a network's error grows with range), metres.
+        edge_rel_jump: ``depth_edges`` threshold.
+        edge_margin_px: pixels within this many of an edge are dropped too (networks blur edges).
+        untrusted_labels: train ids whose pixels are dropped (default ``UNTRUSTED_LABELS``).
+
+    Returns:
+        (H, W) float32 depth, 0 where untrusted or invalid.
+    """
+    d = np.where(np.isfinite(depth_m) & (depth_m > 0), depth_m, 0.0).astype(np.float32)
+    drop = depth_edges(d, edge_rel_jump)
+    if edge_margin_px > 0:
+        k = 2 * edge_margin_px + 1
+        drop = cv2.dilate(drop.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+    drop |= d > max_depth_m
+    if label_ids is not None and untrusted_labels:
+        if np.shape(label_ids) != d.shape:
+            raise DataError(f"label image {np.shape(label_ids)} and depth map {d.shape} differ in size")
+        drop |= np.isin(label_ids, untrusted_labels)
+    return np.where(drop, 0.0, d).astype(np.float32)

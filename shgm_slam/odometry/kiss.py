@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 
@@ -168,7 +169,12 @@ class KissOdometry:
         """(M, 3) float64 points of KISS-ICP's local voxel map, odometry frame."""
         return np.asarray(self._icp.local_map.point_cloud(), dtype=np.float64)
 
-    def register(self, points_cam: np.ndarray, delta_prior: np.ndarray | None = None) -> Registration:
+    def register(
+        self,
+        points_cam: np.ndarray,
+        delta_prior: np.ndarray | None = None,
+        fuse_step: Callable[[np.ndarray], np.ndarray] | None = None,
+    ) -> Registration:
         """Register one cloud against the local map and return the new camera pose.
 
         Args:
@@ -177,6 +183,9 @@ class KissOdometry:
             delta_prior: (4, 4) predicted motion of this frame in the previous camera frame, replacing
                 KISS-ICP's constant-velocity prediction as ICP's initial guess (e.g. with a rotation
                 measured from the images).
+            fuse_step: maps ICP's step (4, 4), the motion of this frame in the previous camera frame,
+                to the step to keep (e.g. fused with another odometry's); the adaptive threshold, the
+                local map and the pose are then updated with the kept step, as KISS-ICP does with its own.
 
         Returns:
             ``Registration`` with a copy of ``T_odom_cam`` (4, 4). Clouds with fewer than
@@ -194,13 +203,35 @@ class KissOdometry:
             return Registration(self._coast(), OdometryStatus.DEGENERATE_CLOUD, num_in_range)
 
         last_pose, last_delta = self._icp.last_pose.copy(), self._icp.last_delta.copy()
-        self._icp.register_frame(np.ascontiguousarray(pts), self._no_stamps)
+        if fuse_step is None:
+            self._icp.register_frame(np.ascontiguousarray(pts), self._no_stamps)
+        else:
+            self._register_fused(np.ascontiguousarray(pts), fuse_step)
         if not np.isfinite(self._icp.last_pose).all():
             # the map may now hold points placed with a non-finite pose: restart it from the next frame
             self._icp.local_map.clear()
             self._icp.last_pose, self._icp.last_delta = last_pose, last_delta
             return Registration(self._coast(), OdometryStatus.ICP_FAILED, num_in_range)
         return Registration(self._icp.last_pose.copy(), OdometryStatus.OK, num_in_range)
+
+    def _register_fused(self, pts: np.ndarray, fuse_step: Callable[[np.ndarray], np.ndarray]) -> None:
+        """``KissICP.register_frame`` with ICP's step passed through ``fuse_step`` before the update of
+        the threshold, the map and the pose (the same steps, in KISS-ICP's order)."""
+        icp = self._icp
+        frame = icp.preprocessor.preprocess(pts, self._no_stamps, icp.last_delta)
+        source, frame_downsample = icp.voxelize(frame)
+        sigma = icp.adaptive_threshold.get_threshold()
+        initial_guess = icp.last_pose @ icp.last_delta
+        new_pose = icp.registration.align_points_to_map(
+            points=source, voxel_map=icp.local_map, initial_guess=initial_guess,
+            max_correspondance_distance=3 * sigma, kernel=sigma,
+        )  # fmt: skip
+        step = np.asarray(fuse_step(np.linalg.inv(icp.last_pose) @ new_pose), dtype=np.float64)
+        new_pose = icp.last_pose @ step
+        icp.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
+        icp.local_map.update(frame_downsample, new_pose)
+        icp.last_delta = step
+        icp.last_pose = new_pose
 
     def _coast(self) -> np.ndarray:
         """Advance the pose by the last frame-to-frame motion without touching the map."""

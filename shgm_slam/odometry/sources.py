@@ -21,7 +21,7 @@ from shgm_slam.odometry.clouds import sampling_spacing_m
 from shgm_slam.odometry.image_rotation import ImageYawEstimator, rot_y, yaw_of
 from shgm_slam.odometry.kiss import KissOdometry
 from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus
-from shgm_slam.types import Frame
+from shgm_slam.types import Frame, Intrinsics
 
 
 @dataclass(frozen=True)
@@ -67,6 +67,29 @@ MIN_SPACED_POINTS = 1000
 """The spacing filter keeps at least this many points (the best-sampled ones): a UAV whose nearest
 ground is ~60 m away has only ~250 of its 7680 points under 0.6 m spacing, too few for ICP (it then
 coasts and the health check ends the trajectory segment); KISS-ICP registers the 1000 best fine."""
+
+
+def keep_well_sampled(
+    points_cam: np.ndarray, intrinsics: Intrinsics, cloud_stride: int, max_spacing_m: float
+) -> np.ndarray:
+    """The points of a pseudo-LiDAR cloud whose image-grid neighbours are at most ``max_spacing_m``
+    apart (``clouds.sampling_spacing_m``), or the ``MIN_SPACED_POINTS`` best-sampled ones when fewer.
+
+    Args:
+        points_cam: (N, 3) camera-frame points as back-projected with ``cloud_stride``, metres.
+        intrinsics: intrinsics of the depth map they came from.
+
+    Returns:
+        (M, 3) the kept points, in their order.
+    """
+    if len(points_cam) == 0:
+        return points_cam
+    spacing_m = sampling_spacing_m(points_cam, intrinsics, stride=cloud_stride)
+    keep = spacing_m <= max_spacing_m
+    if keep.sum() < MIN_SPACED_POINTS:  # all far (a UAV over distant ground): the best-sampled ones
+        keep = np.zeros(len(points_cam), dtype=bool)
+        keep[np.argsort(spacing_m, kind="stable")[:MIN_SPACED_POINTS]] = True
+    return points_cam[keep]
 
 
 class KissIcpSource:
@@ -118,13 +141,8 @@ class KissIcpSource:
         self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
         label_ids: np.ndarray | None = None,
     ) -> OdometryEstimate:
-        if self.max_spacing_m is not None and len(points_cam):
-            spacing_m = sampling_spacing_m(points_cam, frame.intrinsics, stride=self.cloud_stride)
-            keep = spacing_m <= self.max_spacing_m
-            if keep.sum() < MIN_SPACED_POINTS:  # all far (a UAV over distant ground): the best-sampled ones
-                keep = np.zeros(len(points_cam), dtype=bool)
-                keep[np.argsort(spacing_m, kind="stable")[:MIN_SPACED_POINTS]] = True
-            points_cam = points_cam[keep]
+        if self.max_spacing_m is not None:
+            points_cam = keep_well_sampled(points_cam, frame.intrinsics, self.cloud_stride, self.max_spacing_m)
         if self._rng is not None:
             points_cam = points_cam[self._rng.permutation(len(points_cam))]
         yaw_img = None
@@ -142,7 +160,7 @@ class KissIcpSource:
                 prior = delta
         reg = self.odometry.register(points_cam, prior)
         note = "" if reg.ok else f"frame {frame.index}: {reg.status.value} ({reg.num_points} points in range)"
-        disagreement = None if yaw_img is None else _yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
+        disagreement = None if yaw_img is None else yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
         return OdometryEstimate(reg.T_odom_cam, reg.ok, note, self.odometry.threshold_m, disagreement)
 
 
@@ -250,17 +268,17 @@ class VisualOdometrySource:
         )
         yaw_img = None if self.image_yaw is None else self.image_yaw.update(frame.image_rgb, frame.intrinsics.fx)
         first = reg.status is VisualStatus.FIRST_FRAME
-        disagreement = None if yaw_img is None or first else _yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
+        disagreement = None if yaw_img is None or first else yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
         return OdometryEstimate(reg.T_odom_cam, reg.ok, note, rotation_disagreement_deg=disagreement)
 
 
-def _yaw_disagreement_deg(T_prev: np.ndarray, T_new: np.ndarray, yaw_img_rad: float) -> float:
+def yaw_disagreement_deg(T_prev: np.ndarray, T_new: np.ndarray, yaw_img_rad: float) -> float:
     """|yaw of the step T_prev -> T_new (odometry frame poses) - yaw from image motion|, degrees."""
     yaw_step = yaw_of(inverse(T_prev) @ T_new)
     return float(np.degrees(abs(np.angle(np.exp(1j * (yaw_step - yaw_img_rad))))))
 
 
-def _visual(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
+def _visual_factory(cfg: OdometryConfig) -> Callable[[], DepthVisualOdometry]:
     def factory() -> DepthVisualOdometry:
         return DepthVisualOdometry(
             max_features=cfg.visual_max_features,
@@ -271,6 +289,11 @@ def _visual(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
             depth_window_px=cfg.visual_depth_window_px,
         )
 
+    return factory
+
+
+def _visual(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
+    factory = _visual_factory(cfg)
     return VisualOdometrySource(factory(), factory, ImageYawEstimator() if cfg.image_rotation else None)
 
 
@@ -290,6 +313,21 @@ def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
     )
 
 
+def _hybrid(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
+    from shgm_slam.odometry.hybrid import HybridOdometrySource  # (it builds on this module's helpers)
+
+    kiss = _kiss(cfg, num_frames)
+    return HybridOdometrySource(
+        kiss.odometry,
+        _visual_factory(cfg),
+        cloud_stride=cfg.cloud_stride,
+        max_depth_m=cfg.visual_max_depth_m,
+        edge_rel_jump=cfg.hybrid_edge_rel_jump,
+        max_spacing_m=cfg.max_spacing_m,
+        image_yaw=ImageYawEstimator() if cfg.image_rotation else None,
+    )
+
+
 def _file(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
     if cfg.poses_file is None:
         raise ConfigError("odometry kind 'file' needs odometry.poses_file (a KITTI or TUM poses file)")
@@ -301,21 +339,52 @@ ODOMETRY_SOURCES: dict[OdometryKind, Callable[[OdometryConfig, int], OdometrySou
     OdometryKind.GT: lambda cfg, num_frames: GroundTruthSource(),
     OdometryKind.FILE: _file,
     OdometryKind.VISUAL: _visual,
+    OdometryKind.HYBRID: _hybrid,
 }
 
 
-def resolve_kind(kind: OdometryKind | str, depth_from_model: bool) -> OdometryKind:
-    """``kind`` with AUTO resolved: VISUAL for model-predicted depth, KISS_ICP for depth files."""
+@dataclass(frozen=True)
+class OdometryChoice:
+    """The odometry a robot runs and why (``reason`` is shown in the log, the summary and metrics.json)."""
+
+    kind: OdometryKind
+    reason: str
+
+
+AUTO_FILES_REASON = "auto: depth from files (a depth sensor or the simulator), KISS-ICP on its pseudo-LiDAR"
+AUTO_MODEL_REASON = (
+    "auto: depth predicted by a model, so the visual odometry (image motion gives the turn and the heading, "
+    "many tracked depths the length); KISS-ICP alone drifts far on a network's depth, and the hybrid "
+    "(KISS-ICP seeded by and fused with the visual odometry) was not clearly better on the demo model's depth "
+    "and costs more (README: What depth quality your model needs); --odometry hybrid to choose it"
+)
+
+
+def choose_odometry(kind: OdometryKind | str, depth_from_model: bool) -> OdometryChoice:
+    """``kind`` with AUTO resolved, and why: VISUAL for model-predicted depth, KISS_ICP for depth files.
+
+    The choice for predicted depth follows ``shgm-slam bench depth-quality`` (README, "What depth quality
+    your model needs"): with network-like depth errors KISS-ICP alone drifts tens of percent; the hybrid
+    drifts a little less than the visual odometry for cars, no less for the UAV, places no more robots,
+    and takes two to forty times as long per frame.
+    """
     kind = OdometryKind(kind)
-    if kind is OdometryKind.AUTO:
-        return OdometryKind.VISUAL if depth_from_model else OdometryKind.KISS_ICP
-    return kind
+    if kind is not OdometryKind.AUTO:
+        return OdometryChoice(kind, "set in the configuration")
+    if depth_from_model:
+        return OdometryChoice(OdometryKind.VISUAL, AUTO_MODEL_REASON)
+    return OdometryChoice(OdometryKind.KISS_ICP, AUTO_FILES_REASON)
+
+
+def resolve_kind(kind: OdometryKind | str, depth_from_model: bool) -> OdometryKind:
+    """``kind`` with AUTO resolved (``choose_odometry``)."""
+    return choose_odometry(kind, depth_from_model).kind
 
 
 def make_odometry(cfg: OdometryConfig, num_frames: int, *, depth_from_model: bool = False) -> OdometrySource:
     """Build the odometry source ``cfg.kind`` for a sequence of ``num_frames`` frames.
 
-    ``depth_from_model`` tells AUTO whether the depth is predicted (then visual odometry) or read
-    from files (then KISS-ICP). Data-derived fields still None (``scene_scale``) take the fleet values.
+    ``depth_from_model`` tells AUTO whether the depth is predicted or read from files
+    (``choose_odometry``). Data-derived fields still None (``scene_scale``) take the fleet values.
     """
     return ODOMETRY_SOURCES[resolve_kind(cfg.kind, depth_from_model)](cfg.filled(), num_frames)

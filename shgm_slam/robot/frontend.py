@@ -16,7 +16,7 @@ from shgm_slam.graph.semantic_graph import SemanticGraph
 from shgm_slam.messages import KeyframeMessage
 from shgm_slam.odometry.clouds import depth_to_cloud
 from shgm_slam.odometry.health import HealthLimits, OdometryFailure, OdometryHealthMonitor
-from shgm_slam.odometry.sources import OdometryEstimate, OdometrySource
+from shgm_slam.odometry.sources import OdometryChoice, OdometryEstimate, OdometrySource
 from shgm_slam.perception import PerceptionSource
 from shgm_slam.robot.keyframes import KeyframeSelector
 from shgm_slam.robot.segments import TrajectorySegment
@@ -70,12 +70,14 @@ class RobotFrontend:
         cfg: ShgmConfig,
         perception: PerceptionSource,
         odometry: OdometrySource,
+        odometry_choice: OdometryChoice | None = None,
     ) -> None:
         self.name = name
         self.sequence = sequence
         self.cfg = cfg
         self.perception = perception
         self.odometry = odometry
+        self.odometry_choice = odometry_choice  # which odometry and why (reported in the summary)
         self.health = (
             OdometryHealthMonitor(HealthLimits.from_config(cfg.odometry)) if cfg.odometry.health_check else None
         )

@@ -7,7 +7,8 @@ import pytest
 
 from shgm_slam.errors import DataError
 from shgm_slam.geometry.camera import project
-from shgm_slam.odometry.clouds import depth_to_cloud, sampling_spacing_m
+from shgm_slam.labels import Label
+from shgm_slam.odometry.clouds import depth_edges, depth_to_cloud, sampling_spacing_m, trusted_depth
 from shgm_slam.types import Intrinsics
 
 INTR = Intrinsics(50.0, 50.0, 15.5, 11.5, 32, 24)
@@ -123,3 +124,43 @@ def test_isolated_points_and_points_behind_the_camera_have_infinite_spacing():
     assert sampling_spacing_m(np.zeros((0, 3)), INTR, stride=2).shape == (0,)
     with pytest.raises(DataError, match="points must be"):
         sampling_spacing_m(np.zeros((4, 2)), INTR, stride=1)
+
+
+def _plane_depth(intr: Intrinsics, normal: np.ndarray, offset: float) -> np.ndarray:
+    """Exact z-depth of the plane ``normal . p = offset`` (camera frame), 0 where it is behind."""
+    u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64), np.arange(intr.height, dtype=np.float64))
+    rays = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], -1)
+    with np.errstate(divide="ignore"):
+        z = offset / (rays @ normal)
+    return np.where(z > 0, z, 0.0).astype(np.float32)
+
+
+@pytest.mark.parametrize("normal", [np.array([0.0, 1.0, 0.0]), np.array([0.6, 0.3, 0.74]), np.array([0.0, 0.0, 1.0])])
+def test_planes_have_no_depth_edges_even_at_grazing_angles(normal):
+    intr = Intrinsics(40.0, 40.0, 31.5, 23.5, 64, 48)
+    depth = _plane_depth(intr, normal / np.linalg.norm(normal), 1.6)
+    valid = depth > 0
+    edges = depth_edges(depth, 0.1)
+    pad = np.pad(valid, 1, constant_values=True)  # beyond the image the plane is extrapolated
+    inner = valid & pad[:-2, 1:-1] & pad[2:, 1:-1] & pad[1:-1, :-2] & pad[1:-1, 2:]  # 4 valid neighbours
+    assert not edges[inner].any()
+    assert not edges[~valid].any()
+
+
+def test_an_occlusion_is_an_edge_and_trusted_depth_drops_it_with_its_margin():
+    depth = np.full((24, 32), 20.0, np.float32)
+    depth[:, 16:] = 8.0  # a near wall on the right
+    depth[:3] = 0.0  # sky
+    labels = np.full((24, 32), 2, np.uint8)
+    labels[10:14, 4:6] = Label.POLE
+    edges = depth_edges(depth, 0.1)
+    assert edges[5:, 15:17].all() and not edges[5:, 2:13].any() and not edges[5:, 19:30].any()
+    assert edges[3, 5]  # next to the sky (no neighbour): an edge
+    trusted = trusted_depth(depth, labels, max_depth_m=15.0, edge_rel_jump=0.1, edge_margin_px=1)
+    assert (trusted[5:, :16] == 0).all()  # the far wall is beyond the range cap
+    assert (trusted[5:, 16:18] == 0).all() and (trusted[5:, 19:30] == 8.0).all()  # edge + margin dropped
+    assert (trusted[:3] == 0).all()
+    trusted = trusted_depth(depth, labels, max_depth_m=50.0, edge_rel_jump=0.1, edge_margin_px=0)
+    assert (trusted[10:14, 4:6] == 0).all() and (trusted[15:20, 4:6] == 20.0).all()  # thin structure dropped
+    with pytest.raises(DataError, match="differ in size"):
+        trusted_depth(depth, labels[:-1], max_depth_m=50.0, edge_rel_jump=0.1, edge_margin_px=0)

@@ -9,7 +9,7 @@ from shgm_slam.config import OdometryConfig, OdometryKind
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry.se3 import inverse, pose_error
 from shgm_slam.metrics import ate, trajectory_length
-from shgm_slam.odometry.sources import VisualOdometrySource, make_odometry, resolve_kind
+from shgm_slam.odometry.sources import VisualOdometrySource, choose_odometry, make_odometry, resolve_kind
 from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus, backproject_pixels
 from shgm_slam.types import Frame
 from tests.odometry.corridor import INTRINSICS, path, render
@@ -193,5 +193,8 @@ def test_source_runs_on_rgb_frames(corridor):
         ("visual", False, OdometryKind.VISUAL),
     ],
 )
-def test_auto_picks_visual_odometry_for_model_depth(kind, from_model, expected):
+def test_auto_picks_by_where_the_depth_comes_from_and_says_why(kind, from_model, expected):
     assert resolve_kind(kind, from_model) is expected
+    choice = choose_odometry(kind, from_model)
+    assert choice.kind is expected
+    assert choice.reason.startswith("auto: ") == (OdometryKind(kind) is OdometryKind.AUTO)
