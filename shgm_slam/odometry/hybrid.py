@@ -23,15 +23,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import cv2
 import numpy as np
 
-from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.errors import ConfigError
 from shgm_slam.geometry.se3 import inverse
 from shgm_slam.odometry.clouds import depth_to_cloud, trusted_depth
 from shgm_slam.odometry.image_rotation import ImageYawEstimator
 from shgm_slam.odometry.kiss import KissOdometry
-from shgm_slam.odometry.sources import OdometryEstimate, keep_well_sampled, yaw_disagreement_deg
+from shgm_slam.odometry.sources import OdometryEstimate, image_gray, keep_well_sampled, yaw_disagreement_deg
 from shgm_slam.odometry.step_fusion import YawNoiseTracker, fuse_steps, step_yaw
 from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus
 from shgm_slam.types import Frame
@@ -104,12 +103,7 @@ class HybridOdometrySource:
         label_ids: np.ndarray | None = None,
     ) -> OdometryEstimate:
         """Pose of ``frame``; ``points_cam`` is not used (the cloud is rebuilt from trusted depth)."""
-        if frame.image_rgb is None or depth_m is None:
-            raise DataError(
-                f"frame {frame.index}: hybrid odometry needs the RGB image and a depth image "
-                "(a depth model or depth/ files); use odometry kind 'kiss-icp' for clouds only"
-            )
-        gray = cv2.cvtColor(np.ascontiguousarray(frame.image_rgb), cv2.COLOR_RGB2GRAY)
+        gray = image_gray(frame, depth_m, "hybrid")
         T_visual_prev = self.visual.T_odom_cam.copy()
         reg_v = self.visual.register(gray, depth_m, frame.intrinsics, label_ids)
         step_v = inverse(T_visual_prev) @ reg_v.T_odom_cam

@@ -255,12 +255,7 @@ class VisualOdometrySource:
         self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
         label_ids: np.ndarray | None = None,
     ) -> OdometryEstimate:
-        if frame.image_rgb is None or depth_m is None:
-            raise DataError(
-                f"frame {frame.index}: visual odometry needs the RGB image and a depth image "
-                "(a depth model or depth/ files); use odometry kind 'kiss-icp' for clouds only"
-            )
-        gray = cv2.cvtColor(np.ascontiguousarray(frame.image_rgb), cv2.COLOR_RGB2GRAY)
+        gray = image_gray(frame, depth_m, "visual")
         T_prev = self.odometry.T_odom_cam.copy()
         reg = self.odometry.register(gray, depth_m, frame.intrinsics, label_ids)
         note = "" if reg.ok else (
@@ -270,6 +265,20 @@ class VisualOdometrySource:
         first = reg.status is VisualStatus.FIRST_FRAME
         disagreement = None if yaw_img is None or first else yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
         return OdometryEstimate(reg.T_odom_cam, reg.ok, note, rotation_disagreement_deg=disagreement)
+
+
+def image_gray(frame: Frame, depth_m: np.ndarray | None, kind: str) -> np.ndarray:
+    """(H, W) uint8 grayscale of ``frame``'s RGB image for an odometry that tracks image motion.
+
+    Raises:
+        DataError: the frame has no RGB image or no depth image (``kind`` names the odometry).
+    """
+    if frame.image_rgb is None or depth_m is None:
+        raise DataError(
+            f"frame {frame.index}: {kind} odometry needs the RGB image and a depth image "
+            "(a depth model or depth/ files); use odometry kind 'kiss-icp' for clouds only"
+        )
+    return cv2.cvtColor(np.ascontiguousarray(frame.image_rgb), cv2.COLOR_RGB2GRAY)
 
 
 def yaw_disagreement_deg(T_prev: np.ndarray, T_new: np.ndarray, yaw_img_rad: float) -> float:
