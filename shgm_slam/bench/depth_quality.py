@@ -33,6 +33,7 @@ from shgm_slam.bench.heldout import (
     ensure_world,
     judge_run,
 )
+from shgm_slam.bench.system import write_report
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.demo import MODELS_DIR
@@ -334,9 +335,7 @@ def run_depth_quality_benchmark(out: Path, options: DepthQualityOptions, progres
         "rows": rows,
         "wall_s": round(time.perf_counter() - t0, 1),
     }  # fmt: skip
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "depth_quality.json").write_text(json.dumps(results, indent=1, default=float) + "\n")
-    (out / "depth_quality.md").write_text(depth_quality_markdown(results))
+    write_report(out, "depth_quality", results, depth_quality_markdown)
     plot_depth_quality(results, out / "depth_quality.png")
     return results
 

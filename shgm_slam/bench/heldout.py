@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from shgm_slam.bench.system import write_report
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.demo import MODELS_DIR
@@ -408,9 +409,7 @@ def run_heldout_benchmark(
         "robots": rows,
         "wall_s": round(time.perf_counter() - t0, 1),
     }  # fmt: skip
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "heldout.json").write_text(json.dumps(results, indent=1, default=float) + "\n")
-    (out / "heldout.md").write_text(heldout_markdown(results))
+    write_report(out, "heldout", results, heldout_markdown)
     return results
 
 

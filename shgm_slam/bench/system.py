@@ -84,8 +84,10 @@ def peak_rss_runs(out: Path, runs: list[tuple[str, str, str]], progress: Progres
 
 
 def write_report(out: Path, stem: str, results: dict, markdown: Callable[[dict], str]) -> None:
-    """``out/<stem>.json`` (the results) and ``out/<stem>.md`` (``markdown(results)``)."""
-    (Path(out) / f"{stem}.json").write_text(json.dumps(results, indent=1) + "\n")
+    """``out/<stem>.json`` (the results; numpy scalars as floats) and ``out/<stem>.md`` (``markdown(results)``);
+    ``out`` is created."""
+    Path(out).mkdir(parents=True, exist_ok=True)
+    (Path(out) / f"{stem}.json").write_text(json.dumps(results, indent=1, default=float) + "\n")
     (Path(out) / f"{stem}.md").write_text(markdown(results))
 
 
