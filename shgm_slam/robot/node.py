@@ -12,8 +12,9 @@ code path). The node
 - applies the corrections it receives (only what moved since the last one, ``shgm_slam.corrections``; a
   full one when it (re)connects, or when it missed one and asks with ``resync``) to its own frames
   (``fused``);
-- after its last frame sends a ``DoneMessage`` with its per-frame odometry and waits (bounded) until
-  the server holds every keyframe.
+- after its last frame sends a ``DoneMessage`` with its per-frame odometry, re-sends it until the
+  server's status says the robot is done (a done sent while the server still held a restarted robot's
+  hello back is ignored, so it must come again), and waits (bounded) until the server holds every keyframe.
 """
 
 from __future__ import annotations
@@ -30,7 +31,14 @@ from shgm_slam.agents import agent_robot
 from shgm_slam.corrections import FusedView
 from shgm_slam.errors import ProtocolError, ShgmError
 from shgm_slam.fusion import fuse_segments
-from shgm_slam.messages import CorrectionMessage, DoneMessage, HelloMessage, RobotTrajectory, StatusMessage
+from shgm_slam.messages import (
+    CorrectionMessage,
+    DoneMessage,
+    HelloMessage,
+    RobotState,
+    RobotTrajectory,
+    StatusMessage,
+)
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
 from shgm_slam.transport.base import Inbox, Transport
 from shgm_slam.transport.keys import STATUS_KEY, correction_key, done_key, hello_key, keyframe_key
@@ -40,6 +48,10 @@ log = logging.getLogger(__name__)
 
 HEARTBEAT_S = 0.5
 """A robot says hello this often (its heartbeat)."""
+
+DONE_RESEND_MAX_S = 30.0
+"""Until the server's status says it holds a robot's done, the robot re-sends it after ``resend_after_s``,
+then twice as long each time, at most this long apart."""
 
 
 class RobotNode:
@@ -80,6 +92,9 @@ class RobotNode:
         self._resync = False  # a correction was missed: ask for a full one with every hello until it comes
         self._last_hello_s = -np.inf
         self._done: bytes | None = None
+        self._done_sent_s = -np.inf
+        self._done_every_s = resend_after_s  # doubles with every re-send (a done carries every frame's pose)
+        self._done_held = False  # the server's latest status says it holds the done (this robot is DONE)
         self.server_session: str | None = None
         self.server_finished = False
         self.provisional_agents: tuple[str, ...] = ()  # its agents the server placed provisionally (status)
@@ -87,6 +102,7 @@ class RobotNode:
         self.bytes_received: dict[str, int] = {"correction": 0, "status": 0}
         self.keyframes_sent = 0
         self.resent = 0
+        self.resent_done = 0
 
     # --- sending -------------------------------------------------------------------------------
 
@@ -129,6 +145,11 @@ class RobotNode:
                                f.T_odom_cam.copy())  # fmt: skip
         counts = {s.agent: s.num_keyframes for s in f.segments if s.num_keyframes}
         self._done = encode(DoneMessage(self.name, self.session, counts, traj))
+        self._send_done()
+
+    def _send_done(self) -> None:
+        assert self._done is not None
+        self._done_sent_s = self.clock()
         self._publish("done", done_key(self.name), self._done)
 
     def _publish(self, kind: str, key: str, payload: bytes) -> None:
@@ -193,9 +214,10 @@ class RobotNode:
             for agent in self._payloads:
                 self._last_progress_s[agent] = -np.inf
             if self._done is not None:
-                self._publish("done", done_key(self.name), self._done)
+                self._send_done()
         self.server_finished = msg.finished
         mine = msg.robots.get(self.name)
+        self._done_held = mine is not None and mine.state is RobotState.DONE
         self.provisional_agents = mine.provisional_agents if mine is not None else ()
 
     def _resend_stalled(self) -> None:
@@ -210,9 +232,11 @@ class RobotNode:
                 self._publish("keyframe", keyframe_key(self.name), p)
             self.resent += len(missing)
             self._last_progress_s[agent] = now
-        if self._done is not None and not self.all_acknowledged() and now - self._last_hello_s >= self.resend_after_s:
-            self.hello()
-            self._publish("done", done_key(self.name), self._done)
+        if (self._done is not None and not (self._done_held or self.server_finished)
+                and now - self._done_sent_s >= self._done_every_s):
+            self._send_done()
+            self.resent_done += 1
+            self._done_every_s = min(2 * self._done_every_s, DONE_RESEND_MAX_S)
 
     # --- state ---------------------------------------------------------------------------------
 

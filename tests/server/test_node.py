@@ -54,6 +54,46 @@ def test_robot_killed_and_restarted_resumes_without_loss(uninterrupted, robots, 
     np.testing.assert_allclose(fused(server, "car2"), fused(uninterrupted, "car2"), atol=0.05)
 
 
+def test_a_done_sent_while_the_restart_is_held_back_is_sent_again(robots, cfg, tmp_path: Path) -> None:
+    """A robot restarted within the clash window runs its whole (short) sequence while the server still
+    holds its hello back, so the server ignores its keyframes and its done; the robot must send both again
+    (the done until the server's status says it holds it) and the server must finish."""
+    clock, bus = FakeClock(), InProcessBus()
+    server = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=2, clock=clock)
+    nodes = fresh(robots, cfg, bus, clock)
+    drive(server, nodes, {"car1": range(len(robots["car1"]))}, clock)
+    drive(server, nodes, {"car2": range(5)}, clock)
+    nodes["car2"].transport.close()  # killed
+    restarted = RobotNode(make_frontend("car2", robots["car2"], cfg), InProcessTransport(bus), clock=clock)
+    nodes["car2"] = restarted
+    restarted.hello()
+    clock.t += 1.0
+    server.poll()
+    restarted.poll()  # it has heard the server's status: no new server session will make it send anything
+    for i in range(len(robots["car2"])):
+        restarted.step(i)
+        clock.t += 0.01
+        server.poll()
+        restarted.poll()
+    nodes["car1"].done()
+    restarted.done()  # the old session was heard < CLASH_WINDOW_S ago: held, so this done is ignored
+    server.poll()
+    assert server.robots["car2"].session != restarted.session
+    for _ in range(100):
+        clock.t += 0.25
+        for n in nodes.values():
+            n.heartbeat()
+        server.poll()
+        for n in nodes.values():
+            n.poll()
+        if server.finished:
+            break
+    assert server.finished
+    assert server.robots["car2"].session == restarted.session
+    assert server.map.received("car2") == len(restarted._payloads["car2"])
+    assert restarted.resent_done >= 1
+
+
 def test_server_killed_and_restarted_recovers_from_its_journal(uninterrupted, robots, cfg, tmp_path: Path) -> None:
     clock, bus = FakeClock(), InProcessBus()
     first = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=2, clock=clock)
