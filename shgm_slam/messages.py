@@ -24,12 +24,17 @@ from shgm_slam.graph.semantic_graph import GraphUpdate
 class HelloMessage:
     """A robot process announces itself (and repeats it as its heartbeat). ``session`` is random per
     process start: a hello with a new session under a known name is a restart (resume) if the old
-    session went silent, else a clash. ``resync``: the robot missed a correction and asks for a full one."""
+    session went silent, else a clash. ``resync``: the robot missed a correction and asks for a full one.
+    ``start_s``: the timestamp of its sequence's first frame (s); ``progress_s``: how far it has got, in
+    seconds since that first frame (None before its first frame): every keyframe it makes of frames up to
+    there has been sent (the map server takes keyframes of all robots in this time order)."""
 
     robot: str
     session: str
     num_frames: int
     resync: bool = False
+    start_s: float = 0.0
+    progress_s: float | None = None
 
 
 @dataclass(frozen=True)

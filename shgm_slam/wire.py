@@ -48,9 +48,10 @@ from shgm_slam.messages import (
     StatusMessage,
 )
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 """Version of the payload layout; a peer with another version is refused (``WireError``). 2: corrections
-carry only what changed (``AgentCorrection``), hellos a resync request, keyframes their own ground normal."""
+carry only what changed (``AgentCorrection``), hellos a resync request, keyframes their own ground normal.
+3: hellos carry the robot's sequence start and progress (the map server orders keyframes by time)."""
 
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 """Largest payload ``decode`` reads (and ``encode`` writes)."""
@@ -125,6 +126,13 @@ def _float(value: Any, what: str) -> float:
     value = float(value)
     if not math.isfinite(value):
         raise WireError(f"{what} must be finite, got {value}")
+    return value
+
+
+def _progress(value: Any) -> float:
+    value = _float(value, "hello progress_s")
+    if value < 0:
+        raise WireError(f"hello progress_s must be >= 0 s, got {value}")
     return value
 
 
@@ -388,7 +396,8 @@ def _encode_fields(msg: Message) -> dict[str, Any]:
     if isinstance(msg, HelloMessage):
         return {"k": MessageKind.HELLO, "r": _robot(msg.robot, "hello robot"),
                 "s": _session(msg.session, "hello session"), "n": _int(msg.num_frames, "hello num_frames"),
-                "y": _bool(msg.resync, "hello resync")}  # fmt: skip
+                "y": _bool(msg.resync, "hello resync"), "b": _float(msg.start_s, "hello start_s"),
+                "p": None if msg.progress_s is None else _progress(msg.progress_s)}  # fmt: skip
     if isinstance(msg, KeyframeMessage):
         g = msg.graph_update
         T = np.asarray(msg.T_odom_kf, dtype=np.float64)
@@ -463,7 +472,7 @@ def encode(msg: Message) -> bytes:
 # --- decode -----------------------------------------------------------------------------------------
 
 _KEYS = {
-    MessageKind.HELLO: ("r", "s", "n", "y"),
+    MessageKind.HELLO: ("r", "s", "n", "y", "b", "p"),
     MessageKind.KEYFRAME: ("r", "s", "i", "f", "t", "T", "u", "gk", "gT", "gn", "gu"),
     MessageKind.DONE: ("r", "s", "c", "j"),
     MessageKind.CORRECTION: ("r", "s", "c", "q", "F", "A"),
@@ -475,7 +484,8 @@ def _decode_fields(kind: MessageKind, f: _Fields) -> Message:
     d = f.d
     if kind is MessageKind.HELLO:
         return HelloMessage(_robot(d["r"], "hello robot"), _session(d["s"], "hello session"),
-                            _int(d["n"], "hello num_frames"), _bool(d["y"], "hello resync"))  # fmt: skip
+                            _int(d["n"], "hello num_frames"), _bool(d["y"], "hello resync"),
+                            _float(d["b"], "hello start_s"), None if d["p"] is None else _progress(d["p"]))  # fmt: skip
     if kind is MessageKind.KEYFRAME:
         T = _unpack_poses(f.raw("T", _POSE_BYTES, 1), 1, "keyframe T_odom_kf")[0]
         raw_world = f.raw("gT", _POSE_BYTES, 1, nullable=True)

@@ -74,6 +74,7 @@ def all_messages() -> list:
     return [
         HelloMessage("car1", "0123456789abcdef", 4541),
         HelloMessage("car1", "0123456789abcdef", 4541, resync=True),
+        HelloMessage("car1", "0123456789abcdef", 4541, start_s=1.3e9, progress_s=12.5),
         *[keyframe(u) for u in updates],
         keyframe(updates[0], up=False, robot="car1"),
         KeyframeMessage("r", 0, 0, 0.0, pose(3), updates[1], None, ""),  # graph pose differs from the keyframe pose
@@ -301,6 +302,12 @@ def test_names_sessions_and_indices_are_checked():
         encode(HelloMessage("car1", "x" * 65, 1))
     with pytest.raises(WireError, match="session"):
         encode(HelloMessage("car1", "a b", 1))
+    with pytest.raises(WireError, match="progress_s must be >= 0"):
+        encode(HelloMessage("car1", "s", 1, progress_s=-1.0))
+    d = _envelope(HelloMessage("car1", "s", 1))
+    d["b"] = float("nan")
+    with pytest.raises(WireError, match="start_s must be finite"):
+        decode(_pack(d))
     with pytest.raises(WireError, match="not an agent of robot"):
         encode(CorrectionMessage("car1", "", {"car2": 1}))
     d = _envelope(keyframe(random_update(2)))

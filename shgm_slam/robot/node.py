@@ -80,6 +80,9 @@ class RobotNode:
         self.session = session or uuid.uuid4().hex[:16]
         self.resend_after_s = resend_after_s
         self.clock = clock
+        ts = frontend.sequence.timestamps_s
+        self._start_s = float(ts[0]) if len(ts) else 0.0
+        self._progress_s: float | None = None  # seconds since its first frame of the last frame processed
         self._inbox = Inbox()
         transport.subscribe(correction_key(self.name), self._inbox)
         transport.subscribe(STATUS_KEY, self._inbox)
@@ -117,7 +120,8 @@ class RobotNode:
             self.hello()
 
     def _hello_message(self) -> HelloMessage:
-        return HelloMessage(self.name, self.session, len(self.front.sequence), self._resync)
+        return HelloMessage(self.name, self.session, len(self.front.sequence), self._resync, self._start_s,
+                            self._progress_s)  # fmt: skip
 
     def step(self, index: int) -> FrameResult:
         """Run frame ``index`` through the front end and send its keyframe, if it made one.
@@ -126,7 +130,11 @@ class RobotNode:
             DataError: the frame cannot be used (the caller logs and skips it).
         """
         self.heartbeat()
-        res = self.front.process(index)
+        try:
+            res = self.front.process(index)
+        finally:  # a skipped frame is passed too
+            t = float(self.front.sequence.timestamps_s[index]) - self._start_s
+            self._progress_s = max(t, self._progress_s or 0.0)
         if res.message is not None:
             msg = replace(res.message, session=self.session)
             payload = encode(msg)

@@ -7,7 +7,8 @@ next to its robots, ``shgm-slam server`` drives one over Eclipse Zenoh. The node
   get a log line and are refused; nothing a peer sends can crash it;
 - tracks each robot's process (``HelloMessage`` sessions): a new session under a live name is a clash
   and refused, under a silent one it is a restart and resumes where the robot left off;
-- feeds keyframes to the ``MapServer`` (idempotent: re-sent keyframes are ignored) and answers each
+- feeds keyframes to the ``MapServer`` in one time order over all robots (``ordering``: the order
+  ``shgm-slam run`` uses, whatever the robots' speeds; idempotent: re-sent keyframes are ignored) and answers each
   robot with a ``CorrectionMessage`` (keyframes it holds; where its agents are in the shared frame, only
   what moved since the robot last heard, ``shgm_slam.corrections``);
 - marks robots that went silent stale (kept; they resume when they come back);
@@ -48,6 +49,7 @@ from shgm_slam.messages import (
 )
 from shgm_slam.server.journal import Journal
 from shgm_slam.server.map_server import MapServer
+from shgm_slam.server.ordering import KeyframeOrder
 from shgm_slam.server.records import MatchRecord
 from shgm_slam.server.recovery import RecoveryReport, recover
 from shgm_slam.server.sessions import RobotSession
@@ -68,6 +70,10 @@ CLASH_WINDOW_S = 2.5
 if the current session speaks again it is a name clash and the newcomer is refused; once the current
 session has been silent this long the newcomer is a restart and takes over (robots say hello every
 ``robot.node.HEARTBEAT_S``)."""
+
+CONNECT_WAIT_S = 30.0
+"""With ``expect``, keyframes wait (in the server's time order, ``ordering``) at most this long after the
+server started for the expected robots that have not connected yet."""
 
 
 @dataclass
@@ -129,6 +135,7 @@ class ServerNode:
             (acknowledgements go out with every batch).
         write_every_keyframes: rewrite the results folder this often (0: only at the end), and less often
             when a rewrite would take more than ``CHECKPOINT_SHARE`` of the time since the last one.
+        connect_wait_s: with ``expect``, how long keyframes wait for expected robots not connected yet.
         clock: monotonic seconds (tests pass a fake).
     """
 
@@ -145,6 +152,7 @@ class ServerNode:
         status_every_s: float = 1.0,
         correction_every_s: float = 0.5,
         write_every_keyframes: int = 50,
+        connect_wait_s: float = CONNECT_WAIT_S,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.cfg = cfg
@@ -157,6 +165,8 @@ class ServerNode:
         self.correction_every_s = correction_every_s
         self.write_every_keyframes = write_every_keyframes
         self.clock = clock
+        self.connect_wait_s = connect_wait_s
+        self._order = KeyframeOrder()  # keyframes that arrived, waiting for their turn
         self.session = uuid.uuid4().hex[:16]
         self.map: MapServer | None = None
         self.robots: dict[str, RobotSession] = {}
@@ -180,6 +190,7 @@ class ServerNode:
         self.recovered_messages = self.recovery.replayed
         self._snapshot_at = (self.recovery.snapshot_records, self.clock())  # journal records, time
         self._snapshot_ms: list[float] = []  # wall time of each snapshot written
+        self._started_s = self.clock()
         if self.reference is not None:
             self._map()
 
@@ -201,13 +212,16 @@ class ServerNode:
             records += recs
             if robot is not None:
                 touched.add(robot)
+        now = self.clock()
+        stale_due = now - self._last_status_s >= self.status_every_s
+        if stale_due:
+            self._check_stale(now)
+        records += self._release(now)
         if records:
             self._pose_version += 1
-        now = self.clock()
         for robot in sorted(touched):
             self._send_correction(robot, now)
-        if now - self._last_status_s >= self.status_every_s:
-            self._check_stale(now)
+        if stale_due:
             self._broadcast_status()
         if self.expect is not None and not self.finished and self._all_expected_done():
             records += self.finish()
@@ -217,9 +231,9 @@ class ServerNode:
     def finish(self, *, match: bool = True) -> list[MatchRecord]:
         """Match whole graphs once more (``match``), write the results folder, send every robot its
         final correction and broadcast that the server has finished."""
-        records: list[MatchRecord] = []
+        records = self._release(self.clock(), flush=True)
         if match and self.map is not None:
-            records = self.map.finalize()
+            records += self.map.finalize()
             self._pose_version += 1
         self.finished = True
         self.write_results()
@@ -265,6 +279,9 @@ class ServerNode:
                 log.debug("%s from %s session %s ignored (not its current session)", kind, robot, msg.session)
             return (robot if rs is not None else None), []
         self._heard(rs, now)
+        if live and isinstance(msg, KeyframeMessage) and rs.start_s is not None:
+            self._offer(rs, msg, payload)
+            return robot, []
         if isinstance(msg, DoneMessage):
             if live and self.journal is not None and rs.done is None:
                 self.journal.append(payload)
@@ -287,8 +304,9 @@ class ServerNode:
                 return None
             log.info("%s restarted (session %s); resuming after %d keyframes", msg.robot, msg.session,
                      sum(self._map().received(a) for a in rs.kf_frames) if self.map else 0)  # fmt: skip
-            rs.session, rs.done = msg.session, None
+            rs.session, rs.done, rs.progress_s = msg.session, None, None
             rs.state = RobotState.ACTIVE
+            self._order.drop(msg.robot)  # the new process sends them again
         elif rs is None:
             if self.reference is None:
                 self.reference = msg.robot
@@ -297,6 +315,9 @@ class ServerNode:
             ref = " (the reference: its frame is the shared frame)" if msg.robot == self.reference else ""
             log.info("%s connected (session %s)%s", msg.robot, msg.session, ref)
         self._refused.pop(msg.robot, None)
+        rs.start_s = msg.start_s
+        if msg.progress_s is not None:
+            rs.progress_s = max(msg.progress_s, rs.progress_s or 0.0)
         self._heard(rs, now)
         if new_session:
             if live and self.journal is not None:  # heartbeats of a known session change nothing to recover
@@ -320,6 +341,33 @@ class ServerNode:
             self._refused[rs.name] = f"{pending[0]}: {reason}"
             self._refuse(f"hello of {rs.name} (session {pending[0]}): {reason}")
             self._broadcast_status()
+
+    def _offer(self, rs: RobotSession, msg: KeyframeMessage, payload: bytes) -> None:
+        """Queue a live keyframe for its turn in the time order (``ordering``); re-sent ones are ignored."""
+        if msg.kf_index != self._map().received(msg.robot) + self._order.held(msg.robot):
+            return  # a re-sent duplicate, or a gap after a lost message (the correction asks again)
+        assert rs.start_s is not None
+        rank = 0 if rs.name == self.reference else 1
+        self._order.offer(msg, payload, rs.start_s, rank)
+        rs.progress_s = max(msg.timestamp_s - rs.start_s, rs.progress_s or 0.0)
+
+    def _release(self, now: float, *, flush: bool = False) -> list[MatchRecord]:
+        """Hand the map server every queued keyframe whose turn has come (all of them with ``flush``)."""
+        if not len(self._order):
+            return []
+        progress: dict[str, float | None] = {}
+        if not flush:
+            for rs in self.robots.values():
+                waited = rs.state is RobotState.ACTIVE and rs.done is None
+                progress[rs.name] = rs.progress_s if waited else float("inf")
+            missing = (self.expect or 0) - len(self.robots)
+            if missing > 0 and now - self._started_s < self.connect_wait_s:
+                progress[""] = None  # an expected robot that has not connected yet
+        records: list[MatchRecord] = []
+        for held in self._order.release(progress):
+            rs = self.robots[agent_robot(held.msg.robot)[0]]
+            records += self._keyframe(rs, held.msg, held.payload, live=True)
+        return records
 
     def _keyframe(self, rs: RobotSession, msg: KeyframeMessage, payload: bytes, *, live: bool) -> list[MatchRecord]:
         server = self._map()
@@ -377,7 +425,10 @@ class ServerNode:
             seq = rs.view.seq + 1 if changes or full else 0
             rs.corrected_version = self._pose_version
             self._last_correction_s[robot] = now
-        msg = CorrectionMessage(robot, rs.session, {a: server.received(a) for a in agents}, seq, full, changes)
+        received = {a: server.received(a) + self._order.held(a) for a in agents}  # queued ones are held too
+        received |= {a: self._order.held(a) for a in self._order.agents() if agent_robot(a)[0] == robot
+                     and a not in received}  # fmt: skip
+        msg = CorrectionMessage(robot, rs.session, received, seq, full, changes)
         rs.view.apply(msg)
         payload = encode(msg)
         self.traffic.sent("correction", len(payload), robot)

@@ -23,6 +23,8 @@ class RobotSession:
     went_stale: int = 0  # how often it went silent (and was kept)
     corrected_version: int = -1  # pose-graph version of the last correction with poses (-1: send one now)
     view: FusedView = field(default_factory=FusedView)  # what the robot holds of its fused poses
+    start_s: float | None = None  # its sequence's first timestamp (from its hellos; not kept in snapshots)
+    progress_s: float | None = None  # how far it has got, seconds since start_s (hellos and keyframes)
 
     def complete(self, server: MapServer) -> bool:
         """True when the robot said it is done and every keyframe it sent has arrived."""
