@@ -83,6 +83,8 @@ class RobotNode:
         ts = frontend.sequence.timestamps_s
         self._start_s = float(ts[0]) if len(ts) else 0.0
         self._progress_s: float | None = None  # seconds since its first frame of the last frame processed
+        self._kf_times_s: dict[str, list[float]] = {}  # agent -> its keyframes' seconds since the first frame
+        self._server_answered = False  # a correction of the current server session has arrived
         self._inbox = Inbox()
         transport.subscribe(correction_key(self.name), self._inbox)
         transport.subscribe(STATUS_KEY, self._inbox)
@@ -121,7 +123,23 @@ class RobotNode:
 
     def _hello_message(self) -> HelloMessage:
         return HelloMessage(self.name, self.session, len(self.front.sequence), self._resync, self._start_s,
-                            self._progress_s)  # fmt: skip
+                            self.progress_s())  # fmt: skip
+
+    def progress_s(self) -> float | None:
+        """How far the server holds this robot's keyframes, in seconds since its first frame: the last frame
+        processed, or just before the first keyframe the server has not acknowledged; None before the
+        first frame and until the current server has answered (after a server restart the old
+        acknowledgements may overstate what the new one holds)."""
+        if self._progress_s is None or not self._server_answered:
+            return None
+        p = self._progress_s
+        for agent, times in self._kf_times_s.items():
+            n = self._acked.get(agent, 0)
+            if n < len(times):
+                if times[n] <= 0.0:
+                    return None
+                p = min(p, float(np.nextafter(times[n], -np.inf)))
+        return p
 
     def step(self, index: int) -> FrameResult:
         """Run frame ``index`` through the front end and send its keyframe, if it made one.
@@ -140,6 +158,7 @@ class RobotNode:
             payload = encode(msg)
             sent = self._payloads.setdefault(msg.robot, [])
             sent.append(payload)
+            self._kf_times_s.setdefault(msg.robot, []).append(msg.timestamp_s - self._start_s)
             self._last_progress_s.setdefault(msg.robot, self.clock())
             self.keyframes_sent += 1
             if msg.kf_index >= self._acked.get(msg.robot, 0):
@@ -193,6 +212,7 @@ class RobotNode:
     def _correction(self, msg: CorrectionMessage) -> None:
         if msg.session not in ("", self.session):
             return
+        self._server_answered = True
         now = self.clock()
         for agent, n in msg.received.items():
             if agent_robot(agent)[0] != self.name:
@@ -218,6 +238,7 @@ class RobotNode:
             if self.server_session is not None:
                 log.warning("%s: the map server restarted; resuming with it", self.name)
             self.server_session = msg.server_session
+            self._server_answered = False
             self.hello()  # the (new) server answers with what it holds; missing keyframes follow
             for agent in self._payloads:
                 self._last_progress_s[agent] = -np.inf

@@ -316,7 +316,7 @@ class ServerNode:
             log.info("%s connected (session %s)%s", msg.robot, msg.session, ref)
         self._refused.pop(msg.robot, None)
         rs.start_s = msg.start_s
-        if msg.progress_s is not None:
+        if live and msg.progress_s is not None:
             rs.progress_s = max(msg.progress_s, rs.progress_s or 0.0)
         self._heard(rs, now)
         if new_session:
@@ -473,9 +473,8 @@ class ServerNode:
         report = recover(self.journal, self.snapshots, digest=config_digest(self.cfg), reference=self.reference,
                          restore=self.restore, replay=self._replay)  # fmt: skip
         if report.snapshot_records or report.replayed:
-            for rs in self.robots.values():
-                rs.state = RobotState.STALE if rs.state is RobotState.ACTIVE else rs.state
-                rs.last_heard_s = self.clock()
+            for rs in self.robots.values():  # waited for (keyframe order) until they speak or go stale
+                rs.last_heard_s, rs.progress_s = self.clock(), None
             log.info("recovered from %s in %.1f s (%d records from a snapshot, %d replayed): %s", self.journal.path,
                      report.seconds, report.snapshot_records, report.replayed,
                      ", ".join(f"{r} {sum(self._map().received(a) for a in rs.kf_frames)} keyframes"

@@ -9,12 +9,14 @@ from pathlib import Path
 import numpy as np
 
 from shgm_slam.graph.semantic_graph import GraphUpdate
-from shgm_slam.messages import KeyframeMessage
+from shgm_slam.messages import CorrectionMessage, KeyframeMessage
 from shgm_slam.robot.node import RobotNode
 from shgm_slam.runner import make_frontend
 from shgm_slam.server.node import ServerNode
 from shgm_slam.server.ordering import KeyframeOrder
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
+from shgm_slam.transport.keys import correction_key
+from shgm_slam.wire import encode
 from tests.server.conftest import FakeClock, fresh, fused
 
 
@@ -97,3 +99,23 @@ def test_the_map_server_result_does_not_depend_on_how_fast_each_robot_ran(robots
         (m.robot_a, m.robot_b, m.accepted) for m in b.map.matches
     ]
     np.testing.assert_allclose(fused(a, "car2"), fused(b, "car2"), atol=1e-6)
+
+
+def test_a_robot_reports_progress_only_up_to_what_the_server_acknowledged(robots, cfg) -> None:
+    bus = InProcessBus()
+    node = RobotNode(make_frontend("car1", robots["car1"], cfg), InProcessTransport(bus))
+    assert node.progress_s() is None  # no frame yet
+    for i in range(12):
+        node.step(i)
+    t = np.asarray(robots["car1"].timestamps_s) - robots["car1"].timestamps_s[0]
+    times = node._kf_times_s["car1"]
+    assert len(times) >= 3
+    assert node.progress_s() is None  # no server has answered: nothing is known to have arrived
+    server = InProcessTransport(bus)
+    server.publish(correction_key("car1"), encode(CorrectionMessage("car1", node.session, {"car1": 2})))
+    node.poll()
+    assert times[1] < node.progress_s() < times[2]  # keyframe 2 on is not acknowledged
+    n = len(times)
+    server.publish(correction_key("car1"), encode(CorrectionMessage("car1", node.session, {"car1": n})))
+    node.poll()
+    assert node.progress_s() == t[11]  # everything acknowledged: the last frame processed
