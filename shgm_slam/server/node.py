@@ -286,8 +286,7 @@ class ServerNode:
             if live and self.journal is not None and rs.done is None:
                 self.journal.append(payload)
             rs.done = msg
-            if rs.complete(self._map()):
-                rs.state = RobotState.DONE
+            rs.state = RobotState.DONE  # it sent its last keyframe (the status tells it the done arrived)
             return robot, []
         return robot, self._keyframe(rs, msg, payload, live=live)
 
@@ -378,8 +377,6 @@ class ServerNode:
         rs.kf_timestamps.setdefault(msg.robot, []).append(msg.timestamp_s)
         rs.kf_frames.setdefault(msg.robot, []).append(msg.frame_index)
         records = server.receive(msg)
-        if rs.done is not None and rs.complete(server):
-            rs.state = RobotState.DONE
         self._keyframes_since_write += 1
         if live and self.write_every_keyframes and self._keyframes_since_write >= self.write_every_keyframes:
             last_s = self.timings_ms["write"][-1] / 1e3 if self.timings_ms["write"] else 0.0
