@@ -26,7 +26,7 @@ from shgm_slam.matching.result import MatchResult
 from shgm_slam.matching.verification import (
     LabelledTree,
     Verification,
-    partner_pairs,
+    partner_pairs_stack,
     shift_vectors,
     support_counts,
     verify_alignment,
@@ -243,10 +243,13 @@ def _refined(
     counts = support_counts(tree_a, b.positions_xyz, b.label_ids, hypotheses, radius)
     Ts = hypotheses[np.argsort(-counts, kind="stable")[: cfg.verified_hypotheses]].copy()
 
-    def partners(T: np.ndarray) -> np.ndarray:
-        return partner_pairs(tree_a, transform_points(T, b.positions_xyz), b.label_ids, radius)[0]
+    def partners(T_stack: list[np.ndarray]) -> list[np.ndarray]:
+        if not T_stack:
+            return []
+        mapped = np.stack([transform_points(T, b.positions_xyz) for T in T_stack])
+        return [p for p, _ in partner_pairs_stack(tree_a, mapped, b.label_ids, radius)]
 
-    pairs = [partners(T) for T in Ts]
+    pairs = partners(list(Ts))
     active = [k for k in range(len(Ts)) if pairs[k].shape[0] >= MIN_NODES]
     for _ in range(cfg.refine_iterations):
         if not active:
@@ -263,8 +266,7 @@ def _refined(
         up = np.asarray(cfg.up_axis)
         fits = fit_pose(b.positions_xyz[rows_b], a.positions_xyz[rows_a], w, cfg.gravity_aligned, up)
         still = []
-        for i, k in enumerate(active):
-            new = partners(fits[i])
+        for i, (k, new) in enumerate(zip(active, partners(list(fits)), strict=True)):
             if new.shape[0] < pairs[k].shape[0]:
                 continue
             stable = np.array_equal(new, pairs[k])

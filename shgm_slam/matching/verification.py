@@ -165,10 +165,17 @@ def label_chance(hits: np.ndarray, label_ids: np.ndarray, inside: np.ndarray, pr
     not judged on one shift.
     """
     out = prior.copy()
-    for label in np.unique(label_ids[inside]):
-        rows = np.flatnonzero(inside & (label_ids == label))
-        best = np.sort(hits[:, rows].sum(axis=1))[-2]
-        out[rows] = np.maximum(prior[rows], (best + prior[rows]) / (rows.size + 1.0))
+    rows = np.flatnonzero(inside)
+    if rows.size == 0:
+        return out
+    labels, group = np.unique(label_ids[rows], return_inverse=True)
+    group = group.reshape(-1)
+    one_hot = group[:, None] == np.arange(labels.size)  # (R, L)
+    per_shift = hits[:, rows].astype(np.int64) @ one_hot  # (S, L) hits of each label under each shift
+    best = np.sort(per_shift, axis=0)[-2]
+    size = np.bincount(group, minlength=labels.size)
+    p = prior[rows]
+    out[rows] = np.maximum(p, (best[group] + p) / (size[group] + 1.0))
     return out
 
 
@@ -180,10 +187,22 @@ def partner_pairs(
     Returns:
         (S, 2) int64 row pairs (row_a, row_b), closest first per node, and their (S,) distances in metres.
     """
-    d_b, j_a = nearest_same_label(tree_a, points_b_in_a, labels_b, radius_m)
-    close = np.flatnonzero(np.isfinite(d_b))
-    keep = _one_to_one(j_a[close], close, d_b[close])
-    return np.stack([j_a[close][keep], close[keep]], axis=1).astype(np.int64), d_b[close][keep]
+    return partner_pairs_stack(tree_a, points_b_in_a[None], labels_b, radius_m)[0]
+
+
+def partner_pairs_stack(
+    tree_a: LabelledTree, points_b_in_a: np.ndarray, labels_b: np.ndarray, radius_m: float
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``partner_pairs`` of B's nodes placed by H hypotheses, (H, N_b, 3) in A's frame, with one tree query
+    (each point's nearest neighbour does not depend on the other points queried with it)."""
+    h, n = points_b_in_a.shape[:2]
+    d, j = nearest_same_label(tree_a, points_b_in_a.reshape(-1, 3), np.tile(labels_b, h), radius_m)
+    out = []
+    for d_b, j_a in zip(d.reshape(h, n), j.reshape(h, n), strict=True):
+        close = np.flatnonzero(np.isfinite(d_b))
+        keep = _one_to_one(j_a[close], close, d_b[close])
+        out.append((np.stack([j_a[close][keep], close[keep]], axis=1).astype(np.int64), d_b[close][keep]))
+    return out
 
 
 def _direction_llr(
