@@ -42,12 +42,44 @@ def adjacency_matrix(graph: GraphArrays) -> sp.csr_matrix:
         raise GraphError(f"graph edge references row {int(edges.max())} but the graph has {n} nodes")
     if edges.size and np.any(edges[:, 0] == edges[:, 1]):
         raise GraphError("graph has a self-loop edge (i, i); edges must join two different nodes")
-    rows = np.concatenate([edges[:, 0], edges[:, 1]])
-    cols = np.concatenate([edges[:, 1], edges[:, 0]])
-    A = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
-    A.sum_duplicates()
-    A.data[:] = 1.0
-    return A
+    keys = np.unique(np.concatenate([edges[:, 0] * n + edges[:, 1], edges[:, 1] * n + edges[:, 0]]))
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(keys // max(n, 1), minlength=n))])
+    return sp.csr_matrix((np.ones(keys.size), keys % max(n, 1), indptr), shape=(n, n))  # canonical: sorted rows
+
+
+CsrArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""(indptr, indices, data) of a CSR matrix, without scipy's per-object overhead."""
+
+
+def count_product(A: sp.csr_matrix, X: CsrArrays, width: int) -> CsrArrays:
+    """``A @ X`` for an (N, M) CSR matrix and (M, width) CSR arrays of non-negative integer counts.
+
+    Sums of integer counts are exact in float64 in any order. The entries are listed as scipy's product
+    lists them (each row's columns in reverse order of first touch, walking A's row and then X's rows in
+    their stored order): that order is the summation order of the Eq. 1 products downstream, so it is
+    kept and the scores do not change.
+    """
+    x_indptr, x_indices, x_data = X
+    n = A.shape[0]
+    lengths = np.diff(x_indptr)[A.indices]  # X entries reached through each entry of A
+    rows = np.repeat(np.repeat(np.arange(n), np.diff(A.indptr)), lengths)
+    within = np.arange(rows.size) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    src = np.repeat(x_indptr[:-1][A.indices], lengths) + within  # (T,) X entries in traversal order
+    keys = rows * width + x_indices[src]
+    unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    sums = np.bincount(inverse.reshape(-1), weights=np.repeat(A.data, lengths) * x_data[src], minlength=unique.size)
+    out_rows = unique // max(width, 1)
+    order = np.lexsort((-first, out_rows))
+    order = order[sums[order] != 0]
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(out_rows[order], minlength=n))])
+    return indptr, unique[order] % max(width, 1), sums[order]
+
+
+def prepend_label_arrays(X: CsrArrays, labels: np.ndarray, dim: int) -> CsrArrays:
+    """``prepend_label`` on (R, dim) CSR arrays: column c of row r moves to ``labels[r] * dim + c``."""
+    indptr, indices, data = X
+    row_of = np.repeat(np.arange(indptr.size - 1), np.diff(indptr))
+    return indptr, indices + labels[row_of] * dim, data
 
 
 def one_hot(labels: np.ndarray, num_classes: int = NUM_CLASSES) -> sp.csr_matrix:
