@@ -22,11 +22,12 @@ import scipy.sparse as sp
 from shgm_slam.descriptors.sparse_graph import (
     adjacency_matrix,
     check_labels,
-    count_product,
+    csr_arrays,
     directed_edges,
     one_hot,
     prepend_label,
     prepend_label_arrays,
+    sparse_product,
 )
 from shgm_slam.labels import NUM_CLASSES
 from shgm_slam.types import GraphArrays
@@ -72,7 +73,7 @@ def _walk_histogram(A: sp.csr_matrix, labels: np.ndarray, steps: int, num_classe
     n, dim = A.shape[0], 1
     W = np.arange(n + 1), np.zeros(n, dtype=np.int64), np.ones(n)  # CSR arrays of an (N, 1) column of ones
     for _ in range(steps):
-        W = count_product(A, prepend_label_arrays(W, labels, dim), dim * num_classes)
+        W = sparse_product(csr_arrays(A), prepend_label_arrays(W, labels, dim), n, dim * num_classes)
         dim *= num_classes
     return sp.csr_matrix(W[::-1], shape=(n, dim))
 

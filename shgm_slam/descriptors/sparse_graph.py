@@ -51,27 +51,35 @@ CsrArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
 """(indptr, indices, data) of a CSR matrix, without scipy's per-object overhead."""
 
 
-def count_product(A: sp.csr_matrix, X: CsrArrays, width: int) -> CsrArrays:
-    """``A @ X`` for an (N, M) CSR matrix and (M, width) CSR arrays of non-negative integer counts.
+def csr_arrays(M: sp.csr_matrix) -> CsrArrays:
+    """The (indptr, indices, data) arrays of a CSR matrix."""
+    return M.indptr, M.indices, M.data
 
-    Sums of integer counts are exact in float64 in any order. The entries are listed as scipy's product
-    lists them (each row's columns in reverse order of first touch, walking A's row and then X's rows in
-    their stored order): that order is the summation order of the Eq. 1 products downstream, so it is
-    kept and the scores do not change.
+
+def sparse_product(A: CsrArrays, X: CsrArrays, n_rows: int, width: int) -> CsrArrays:
+    """``A @ X`` of (n_rows, M) and (M, width) CSR arrays, bit-identical to scipy's product, without its
+    per-product overhead (descriptors and scores of small graphs are dominated by it).
+
+    scipy walks each row of A in stored order and, for each entry, X's row in stored order, adding each
+    product to its column's sum; ``np.bincount`` adds in the same (input) order, so even float sums are the
+    same to the last bit, and exact zeros are dropped as scipy drops them. The entries are listed as scipy
+    lists them (each row's columns in reverse order of first touch): a row's order is the summation order
+    of any later product with it.
     """
+    a_indptr, a_indices, a_data = A
     x_indptr, x_indices, x_data = X
-    n = A.shape[0]
-    lengths = np.diff(x_indptr)[A.indices]  # X entries reached through each entry of A
-    rows = np.repeat(np.repeat(np.arange(n), np.diff(A.indptr)), lengths)
+    lengths = np.diff(x_indptr)[a_indices]  # X entries reached through each entry of A
+    rows = np.repeat(np.repeat(np.arange(n_rows), np.diff(a_indptr)), lengths)
     within = np.arange(rows.size) - np.repeat(np.cumsum(lengths) - lengths, lengths)
-    src = np.repeat(x_indptr[:-1][A.indices], lengths) + within  # (T,) X entries in traversal order
+    src = np.repeat(x_indptr[:-1][a_indices], lengths) + within  # (T,) X entries in traversal order
     keys = rows * width + x_indices[src]
     unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    sums = np.bincount(inverse.reshape(-1), weights=np.repeat(A.data, lengths) * x_data[src], minlength=unique.size)
+    products = np.repeat(a_data, lengths) * x_data[src]
+    sums = np.bincount(inverse.reshape(-1), weights=products, minlength=unique.size)
     out_rows = unique // max(width, 1)
     order = np.lexsort((-first, out_rows))
     order = order[sums[order] != 0]
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(out_rows[order], minlength=n))])
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(out_rows[order], minlength=n_rows))])
     return indptr, unique[order] % max(width, 1), sums[order]
 
 

@@ -29,7 +29,7 @@ from shgm_slam.matching.verification import (
     partner_pairs_stack,
     shift_vectors,
     support_counts,
-    verify_alignment,
+    verify_alignments,
 )
 from shgm_slam.types import GraphArrays
 
@@ -186,7 +186,8 @@ def match_graphs(
 
     tree_a, tree_b = LabelledTree(a.positions_xyz, a.label_ids), LabelledTree(b.positions_xyz, b.label_ids)
     shifts = shift_vectors(np.asarray(cfg.up_axis))
-    scored = [(T, _verify(tree_a, tree_b, T, cfg, shifts)) for T in _refined(np.stack(hypotheses), a, b, tree_a, cfg)]
+    refined = _refined(np.stack(hypotheses), a, b, tree_a, cfg)
+    scored = list(zip(refined, _verify(tree_a, tree_b, np.stack(refined), cfg, shifts), strict=True))
     best, rival = _best_and_rival(scored, b, cfg.verification_radius_m)
     T, v = best
     rows_a, rows_b = v.pairs[:, 0], v.pairs[:, 1]
@@ -224,10 +225,10 @@ def match_graphs(
 
 
 def _verify(
-    tree_a: LabelledTree, tree_b: LabelledTree, T: np.ndarray, cfg: MatchingConfig, shifts_m: np.ndarray
-) -> Verification:
-    return verify_alignment(
-        tree_a, tree_b, T, radius_m=cfg.verification_radius_m, coverage_m=cfg.coverage_radius_m,
+    tree_a: LabelledTree, tree_b: LabelledTree, T_stack: np.ndarray, cfg: MatchingConfig, shifts_m: np.ndarray
+) -> list[Verification]:
+    return verify_alignments(
+        tree_a, tree_b, T_stack, radius_m=cfg.verification_radius_m, coverage_m=cfg.coverage_radius_m,
         density_radius_m=cfg.density_radius_m, partner_probability=cfg.partner_probability, shifts_m=shifts_m,
     )  # fmt: skip
 

@@ -218,7 +218,7 @@ def _direction_llr(
     if hits is not None and label_ids is not None:
         p0 = label_chance(hits, label_ids, inside, p0)
     s = np.isfinite(residual_m[inside])
-    p1 = float(np.clip(s.mean(), p1, MAX_PARTNER_PROBABILITY)) if s.size else p1  # generalized LR
+    p1 = min(max(float(s.mean()), p1), MAX_PARTNER_PROBABILITY) if s.size else p1  # generalized LR
     p0 = np.clip(p0[inside], 1e-3, p1)
     llr = np.where(s, np.log(p1 / p0), np.log((1.0 - p1) / (1.0 - p0)))
     return float(llr.sum()), float(p0.sum())
@@ -251,37 +251,62 @@ def verify_alignment(
         shifts_m: (S, 3) shifts in A's frame (``shift_vectors``): when given, each label's chance of a partner
             is also measured under the hypothesis shifted by each (``label_chance``), and the larger counts.
     """
-    n_a, n_b = len(tree_a), len(tree_b)
-    pb = transform(T_a_b, tree_b.positions_xyz)
-    R, t = T_a_b[:3, :3], T_a_b[:3, 3]
-    pa_in_b = (tree_a.positions_xyz - t) @ R  # A's nodes in B's frame: B's trees are reused
+    return verify_alignments(
+        tree_a, tree_b, np.asarray(T_a_b)[None], radius_m=radius_m, coverage_m=coverage_m,
+        density_radius_m=density_radius_m, partner_probability=partner_probability, shifts_m=shifts_m,
+    )[0]  # fmt: skip
+
+
+def verify_alignments(
+    tree_a: LabelledTree,
+    tree_b: LabelledTree,
+    T_stack: np.ndarray,
+    *,
+    radius_m: float,
+    coverage_m: float,
+    density_radius_m: float,
+    partner_probability: float,
+    shifts_m: np.ndarray | None = None,
+) -> list[Verification]:
+    """``verify_alignment`` of each of (H, 4, 4) hypotheses; the overlap queries of all hypotheses are
+    stacked into one query per tree (a point's nearest neighbour does not depend on the other points)."""
+    h, n_a, n_b = len(T_stack), len(tree_a), len(tree_b)
+    pb = [transform(T, tree_b.positions_xyz) for T in T_stack]
+    pa_in_b = [(tree_a.positions_xyz - T[:3, 3]) @ T[:3, :3] for T in T_stack]  # B's trees are reused
+    inside_b = _within(tree_a.any, pb, coverage_m).reshape(h, n_b)
+    inside_a = _within(tree_b.any, pa_in_b, coverage_m).reshape(h, n_a)
     reach = density_radius_m
     if shifts_m is not None and len(shifts_m):
         reach = max(reach, float(np.linalg.norm(shifts_m, axis=1).max()) + radius_m)
-    near = cKDTree(embed(pb, tree_b.label_ids)).sparse_distance_matrix(tree_a.same, reach, output_type="ndarray")
-    i_b, j_a, d = near["i"].astype(np.int64), near["j"].astype(np.int64), near["v"]
-    pairs, dist = _partners_from_near(i_b, j_a, d, radius_m)
-    res_a = np.full(n_a, np.inf)
-    res_b = np.full(n_b, np.inf)
-    res_a[pairs[:, 0]] = res_b[pairs[:, 1]] = dist
-    sup_a, sup_b = np.isfinite(res_a), np.isfinite(res_b)
-    inside_b = np.isfinite(tree_a.any.query(pb, k=1, distance_upper_bound=coverage_m)[0])
-    inside_a = np.isfinite(tree_b.any.query(pa_in_b, k=1, distance_upper_bound=coverage_m)[0])
-    dense = d <= density_radius_m
-    near_b = np.bincount(i_b[dense], minlength=n_b)
-    near_a = np.bincount(j_a[dense], minlength=n_a)
-    hits_b = hits_a = None
-    if shifts_m is not None:
-        offsets = tree_a.positions_xyz[j_a] - pb[i_b]  # (P, 3) in A's frame
-        hits_b, hits_a = _shifted_hits_both(offsets, i_b, j_a, n_b, n_a, shifts_m, radius_m)
-    args = (radius_m, density_radius_m, partner_probability)
-    llr_b, chance_b = _direction_llr(res_b, inside_b, near_b, *args, hits_b, tree_b.label_ids)
-    llr_a, _ = _direction_llr(res_a, inside_a, near_a, *args, hits_a, tree_a.label_ids)
-    contradictions = int((inside_b & ~sup_b).sum() + (inside_a & ~sup_a).sum())
-    return Verification(
-        support=int(pairs.shape[0]), overlap_a=int(inside_a.sum()), overlap_b=int(inside_b.sum()),
-        contradictions=contradictions, expected_chance=chance_b, llr=min(llr_a, llr_b), pairs=pairs,
-    )  # fmt: skip
+    out = []
+    for k in range(h):
+        near = cKDTree(embed(pb[k], tree_b.label_ids)).sparse_distance_matrix(tree_a.same, reach, output_type="ndarray")
+        i_b, j_a, d = near["i"].astype(np.int64), near["j"].astype(np.int64), near["v"]
+        pairs, dist = _partners_from_near(i_b, j_a, d, radius_m)
+        res_a = np.full(n_a, np.inf)
+        res_b = np.full(n_b, np.inf)
+        res_a[pairs[:, 0]] = res_b[pairs[:, 1]] = dist
+        dense = d <= density_radius_m
+        near_b = np.bincount(i_b[dense], minlength=n_b)
+        near_a = np.bincount(j_a[dense], minlength=n_a)
+        hits_b = hits_a = None
+        if shifts_m is not None:
+            offsets = tree_a.positions_xyz[j_a] - pb[k][i_b]  # (P, 3) in A's frame
+            hits_b, hits_a = _shifted_hits_both(offsets, i_b, j_a, n_b, n_a, shifts_m, radius_m)
+        args = (radius_m, density_radius_m, partner_probability)
+        llr_b, chance_b = _direction_llr(res_b, inside_b[k], near_b, *args, hits_b, tree_b.label_ids)
+        llr_a, _ = _direction_llr(res_a, inside_a[k], near_a, *args, hits_a, tree_a.label_ids)
+        contradictions = int((inside_b[k] & ~np.isfinite(res_b)).sum() + (inside_a[k] & ~np.isfinite(res_a)).sum())
+        out.append(Verification(
+            support=int(pairs.shape[0]), overlap_a=int(inside_a[k].sum()), overlap_b=int(inside_b[k].sum()),
+            contradictions=contradictions, expected_chance=chance_b, llr=min(llr_a, llr_b), pairs=pairs,
+        ))  # fmt: skip
+    return out
+
+
+def _within(tree: cKDTree, points: list[np.ndarray], radius_m: float) -> np.ndarray:
+    """(sum of N,) bool: each of the stacked (N, 3) point sets' points has a tree point within ``radius_m``."""
+    return np.isfinite(tree.query(np.concatenate(points), k=1, distance_upper_bound=radius_m)[0])
 
 
 def _partners_from_near(

@@ -10,7 +10,7 @@ import scipy.sparse as sp
 from shgm_slam.config import DescriptorConfig, DescriptorKind
 from shgm_slam.descriptors import compute_descriptors, unit_rows
 from shgm_slam.descriptors.histogram import semantic_histogram
-from shgm_slam.descriptors.sparse_graph import adjacency_matrix, prepend_label
+from shgm_slam.descriptors.sparse_graph import adjacency_matrix, csr_arrays, prepend_label, sparse_product
 from shgm_slam.types import GraphArrays
 
 
@@ -60,3 +60,13 @@ def test_unit_rows_equal_the_diagonal_product(kind):
         norms = np.sqrt(np.asarray(counts.multiply(counts).sum(axis=1)).ravel())
         scale = np.divide(1.0, norms, out=np.zeros_like(norms), where=norms > 0)
         _assert_same_csr(unit_rows(counts), sp.csr_matrix(sp.diags(scale) @ counts))
+
+
+def test_sparse_product_of_floats_equals_scipy_to_the_last_bit():
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        A = sp.random(30, 40, density=0.2, random_state=rng, format="csr")
+        X = sp.random(40, 25, density=0.2, random_state=rng, format="csr")
+        A.data, X.data = rng.normal(size=A.nnz), rng.normal(size=X.nnz)
+        indptr, indices, data = sparse_product(csr_arrays(A), csr_arrays(X), 30, 25)
+        _assert_same_csr(sp.csr_matrix((data, indices, indptr), shape=(30, 25)), (A @ X).tocsr())

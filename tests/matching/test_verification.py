@@ -17,7 +17,9 @@ from shgm_slam.matching.verification import (
     nearest_same_label,
     partner_pairs,
     partner_pairs_stack,
+    shift_vectors,
     verify_alignment,
+    verify_alignments,
 )
 
 from .synthetic import graph_of
@@ -167,3 +169,19 @@ def test_partner_pairs_of_a_stack_equal_one_query_per_hypothesis():
         np.testing.assert_array_equal(pairs, np.stack([j_a[close][keep], close[keep]], axis=1))
         np.testing.assert_array_equal(dist, d_b[close][keep])
         np.testing.assert_array_equal(partner_pairs(tree_a, points, lab_b, 3.0)[0], pairs)
+
+
+def test_verifying_a_stack_equals_verifying_one_hypothesis_at_a_time():
+    rng = np.random.default_rng(5)
+    pos_a, lab_a = rng.uniform(0, 80, (70, 3)) * [1.0, 1.0, 0.1], rng.integers(0, 4, 70)
+    pos_b, lab_b = pos_a[20:] + rng.normal(0, 0.8, (50, 3)), lab_a[20:]
+    tree_a, tree_b = LabelledTree(pos_a, lab_a), LabelledTree(pos_b, lab_b)
+    Ts = np.stack([make_pose(rot_z(0.1 * k), [2.0 * k, -k, 0.0]) for k in range(4)])
+    args = dict(radius_m=3.0, coverage_m=10.0, density_radius_m=15.0, partner_probability=0.4,
+                shifts_m=shift_vectors(np.array([0.0, 0.0, 1.0])))  # fmt: skip
+    for v, T in zip(verify_alignments(tree_a, tree_b, Ts, **args), Ts, strict=True):
+        one = verify_alignment(tree_a, tree_b, T, **args)
+        assert (v.support, v.overlap_a, v.overlap_b, v.contradictions) == (
+            one.support, one.overlap_a, one.overlap_b, one.contradictions)  # fmt: skip
+        assert v.llr == one.llr and v.expected_chance == one.expected_chance
+        np.testing.assert_array_equal(v.pairs, one.pairs)
