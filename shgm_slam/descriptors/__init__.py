@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from shgm_slam.arrays import unique_sorted
 from shgm_slam.config import DescriptorConfig, DescriptorKind
 from shgm_slam.descriptors.histogram import semantic_histogram
 from shgm_slam.descriptors.neighbor_vector import neighbor_vector
@@ -85,7 +86,7 @@ def unit_rows(counts: sp.csr_matrix) -> sp.csr_matrix:
     norms = np.sqrt(np.bincount(row_of, weights=counts.data * counts.data, minlength=n))
     scale = np.divide(1.0, norms, out=np.zeros_like(norms), where=norms > 0)
     keys = row_of * counts.shape[1] + counts.indices
-    if np.unique(keys).size < keys.size:  # duplicate entries (no builder makes them): the product merges them
+    if unique_sorted(keys).size < keys.size:  # duplicate entries (no builder makes them): the product merges them
         return sp.csr_matrix(sp.diags(scale) @ counts)
     within = np.arange(counts.data.size) - np.repeat(counts.indptr[:-1], lengths)
     reverse = np.repeat(counts.indptr[1:] - 1, lengths) - within  # each row's entries last to first

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from shgm_slam.arrays import unique_first, unique_sorted
 from shgm_slam.errors import GraphError
 from shgm_slam.labels import NUM_CLASSES
 from shgm_slam.types import GraphArrays
@@ -42,7 +43,7 @@ def adjacency_matrix(graph: GraphArrays) -> sp.csr_matrix:
         raise GraphError(f"graph edge references row {int(edges.max())} but the graph has {n} nodes")
     if edges.size and np.any(edges[:, 0] == edges[:, 1]):
         raise GraphError("graph has a self-loop edge (i, i); edges must join two different nodes")
-    keys = np.unique(np.concatenate([edges[:, 0] * n + edges[:, 1], edges[:, 1] * n + edges[:, 0]]))
+    keys = unique_sorted(np.concatenate([edges[:, 0] * n + edges[:, 1], edges[:, 1] * n + edges[:, 0]]))
     indptr = np.concatenate([[0], np.cumsum(np.bincount(keys // max(n, 1), minlength=n))])
     return sp.csr_matrix((np.ones(keys.size), keys % max(n, 1), indptr), shape=(n, n))  # canonical: sorted rows
 
@@ -73,9 +74,9 @@ def sparse_product(A: CsrArrays, X: CsrArrays, n_rows: int, width: int) -> CsrAr
     within = np.arange(rows.size) - np.repeat(np.cumsum(lengths) - lengths, lengths)
     src = np.repeat(x_indptr[:-1][a_indices], lengths) + within  # (T,) X entries in traversal order
     keys = rows * width + x_indices[src]
-    unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    unique, first, inverse = unique_first(keys)
     products = np.repeat(a_data, lengths) * x_data[src]
-    sums = np.bincount(inverse.reshape(-1), weights=products, minlength=unique.size)
+    sums = np.bincount(inverse, weights=products, minlength=unique.size)
     out_rows = unique // max(width, 1)
     order = np.lexsort((-first, out_rows))
     order = order[sums[order] != 0]

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from shgm_slam.arrays import unique_first
 from shgm_slam.matching.pose import DEFAULT_UP, fit_pose
 
 HYPOTHESIS_SEEDS = 48
@@ -45,8 +46,7 @@ def _node_table(points: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.nd
     case), every candidate is its own node.
     """
     points = np.asarray(points, dtype=np.float64)
-    _, first, index = np.unique(rows, return_index=True, return_inverse=True)
-    index = index.reshape(-1)
+    _, first, index = unique_first(np.asarray(rows))
     by_row = bool(np.array_equal(points[first][index], points))
     if not by_row:
         first, index = np.arange(points.shape[0]), np.arange(points.shape[0])

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from shgm_slam.arrays import first_indices
 from shgm_slam.geometry.se3 import kabsch, kabsch_yaw
 
 WEIGHT_CLIP = (0.1, 10.0)
@@ -97,9 +98,9 @@ def one_to_one(rows_a: np.ndarray, rows_b: np.ndarray, residuals: np.ndarray, ma
     """
     idx = np.flatnonzero(mask)
     idx = idx[np.argsort(residuals[idx], kind="stable")]
-    idx = idx[np.unique(rows_a[idx], return_index=True)[1]]
+    idx = idx[first_indices(rows_a[idx])]
     idx = idx[np.argsort(residuals[idx], kind="stable")]
-    idx = idx[np.unique(rows_b[idx], return_index=True)[1]]
+    idx = idx[first_indices(rows_b[idx])]
     out = np.zeros(mask.shape[0], dtype=bool)
     out[idx] = True
     return out

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from shgm_slam.arrays import first_indices, unique_first
+
 MAX_PARTNER_PROBABILITY = 0.95
 """Cap of the H1 partner rate estimated from the overlap (generalized likelihood ratio)."""
 
@@ -115,9 +117,9 @@ def support_counts(
 def _one_to_one(rows_a: np.ndarray, rows_b: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """Indices of a greedy one-to-one subset of candidate pairs, closest first."""
     order = np.argsort(dist, kind="stable")
-    keep = order[np.unique(rows_a[order], return_index=True)[1]]
+    keep = order[first_indices(rows_a[order])]
     keep = keep[np.argsort(dist[keep], kind="stable")]
-    return keep[np.unique(rows_b[keep], return_index=True)[1]]
+    return keep[first_indices(rows_b[keep])]
 
 
 def shift_vectors(
@@ -168,8 +170,7 @@ def label_chance(hits: np.ndarray, label_ids: np.ndarray, inside: np.ndarray, pr
     rows = np.flatnonzero(inside)
     if rows.size == 0:
         return out
-    labels, group = np.unique(label_ids[rows], return_inverse=True)
-    group = group.reshape(-1)
+    labels, _, group = unique_first(label_ids[rows])
     one_hot = group[:, None] == np.arange(labels.size)  # (R, L)
     per_shift = hits[:, rows].astype(np.int64) @ one_hot  # (S, L) hits of each label under each shift
     best = np.sort(per_shift, axis=0)[-2]
@@ -317,7 +318,7 @@ def _partners_from_near(
     close = d <= radius_m
     i_b, j_a, d = i_b[close], j_a[close], d[close]
     order = np.lexsort((j_a, d, i_b))  # by B node, then distance (ties: lower A row, as a KD-tree query)
-    first = order[np.unique(i_b[order], return_index=True)[1]]
+    first = order[first_indices(i_b[order])]
     keep = _one_to_one(j_a[first], i_b[first], d[first])
     rows = np.stack([j_a[first][keep], i_b[first][keep]], axis=1).astype(np.int64).reshape(-1, 2)
     return rows, d[first][keep]
