@@ -198,12 +198,14 @@ def partner_pairs_stack(
     (each point's nearest neighbour does not depend on the other points queried with it)."""
     h, n = points_b_in_a.shape[:2]
     d, j = nearest_same_label(tree_a, points_b_in_a.reshape(-1, 3), np.tile(labels_b, h), radius_m)
-    out = []
-    for d_b, j_a in zip(d.reshape(h, n), j.reshape(h, n), strict=True):
-        close = np.flatnonzero(np.isfinite(d_b))
-        keep = _one_to_one(j_a[close], close, d_b[close])
-        out.append((np.stack([j_a[close][keep], close[keep]], axis=1).astype(np.int64), d_b[close][keep]))
-    return out
+    close = np.flatnonzero(np.isfinite(d))  # (h * N_b) flat rows, by hypothesis then row of B
+    hyp, row_b, row_a = close // n, close % n, j[close].astype(np.int64)
+    # one greedy one-to-one over all hypotheses: keys offset by hypothesis never collide across them, and
+    # each hypothesis' entries keep their relative order (the selection and ties are those of one call)
+    keep = _one_to_one(hyp * (len(tree_a) + 1) + row_a, close, d[close])
+    pairs = np.stack([row_a[keep], row_b[keep]], axis=1)
+    split = np.cumsum(np.bincount(hyp[keep], minlength=h))[:-1]
+    return list(zip(np.split(pairs, split), np.split(d[close][keep], split), strict=True))
 
 
 def _direction_llr(
