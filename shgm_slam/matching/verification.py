@@ -30,6 +30,7 @@ Labels are folded into a fourth coordinate so that one KD-tree query finds same-
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property, lru_cache
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -76,8 +77,16 @@ class LabelledTree:
     def __init__(self, positions_xyz: np.ndarray, label_ids: np.ndarray) -> None:
         self.positions_xyz = np.asarray(positions_xyz, dtype=np.float64)
         self.label_ids = np.asarray(label_ids, dtype=np.int64)
-        self.any = cKDTree(self.positions_xyz)
-        self.same = cKDTree(embed(self.positions_xyz, self.label_ids))
+
+    @cached_property
+    def any(self) -> cKDTree:
+        """Tree of the (N, 3) positions (built on first use)."""
+        return cKDTree(self.positions_xyz)
+
+    @cached_property
+    def same(self) -> cKDTree:
+        """Tree of the (N, 4) ``embed`` points: same-label queries (built on first use)."""
+        return cKDTree(embed(self.positions_xyz, self.label_ids))
 
     def __len__(self) -> int:
         return int(self.label_ids.shape[0])
@@ -125,14 +134,22 @@ def _one_to_one(rows_a: np.ndarray, rows_b: np.ndarray, dist: np.ndarray) -> np.
 def shift_vectors(
     up: np.ndarray, distances_m: tuple[float, ...] = (6.0, 10.0, 14.0), directions: int = 8
 ) -> np.ndarray:
-    """(S, 3) horizontal shifts (perpendicular to ``up``): ``directions`` headings times ``distances_m``."""
+    """(S, 3) horizontal shifts (perpendicular to ``up``): ``directions`` headings times ``distances_m``
+    (read-only; cached, every match of a run uses the same)."""
+    return _shift_vectors(tuple(np.asarray(up, dtype=np.float64).tolist()), tuple(distances_m), directions)
+
+
+@lru_cache(maxsize=16)
+def _shift_vectors(up: tuple[float, float, float], distances_m: tuple[float, ...], directions: int) -> np.ndarray:
     u = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     e1 = np.cross(u, [1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.cross(u, [0.0, 1.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(u, e1)
     ang = np.arange(directions) * (2.0 * np.pi / directions)
     heads = np.outer(np.cos(ang), e1) + np.outer(np.sin(ang), e2)
-    return (np.asarray(distances_m)[:, None, None] * heads[None]).reshape(-1, 3)
+    shifts = (np.asarray(distances_m)[:, None, None] * heads[None]).reshape(-1, 3)
+    shifts.flags.writeable = False
+    return shifts
 
 
 def shifted_hits(
