@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
+from itertools import pairwise
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -225,23 +226,44 @@ def partner_pairs_stack(
     return list(zip(np.split(pairs, split), np.split(d[close][keep], split), strict=True))
 
 
-def _direction_llr(
+def _direction_llrs(
     residual_m: np.ndarray, inside: np.ndarray, same_nearby: np.ndarray,
     radius_m: float, density_radius_m: float, partner_probability: float,
     hits: np.ndarray | None = None, label_ids: np.ndarray | None = None,
-) -> tuple[float, float]:  # fmt: skip
-    """(LLR, expected chance count) of one direction over its overlap nodes (module docstring).
+) -> list[tuple[float, float]]:  # fmt: skip
+    """(LLR, expected chance count) of one direction over its overlap nodes (module docstring), for H
+    hypotheses at once.
 
-    ``residual_m`` is each node's distance to its partner (inf without one)."""
-    p1 = partner_probability
-    p0 = 1.0 - np.exp(-same_nearby * (radius_m / density_radius_m) ** 2)
+    Args:
+        residual_m: (H, N) each node's distance to its partner (inf without one).
+        inside: (H, N) bool, the node lies in the other graph's observed area.
+        same_nearby: (H, N) same-label nodes of the other graph within ``density_radius_m``.
+        hits: (S, H * N) bool shifted hits (``_shifted_hits_both`` on stacked nodes) or None.
+        label_ids: (N,) the nodes' labels (with ``hits``).
+
+    Every value is computed element by element as for one hypothesis; label groups are (hypothesis,
+    label) pairs and each hypothesis' sums run over its own contiguous slice, so the results are those
+    of one hypothesis at a time.
+    """
+    h, n = residual_m.shape
+    p0 = 1.0 - np.exp(-same_nearby.reshape(-1) * (radius_m / density_radius_m) ** 2)
+    inside_flat = inside.reshape(-1)
     if hits is not None and label_ids is not None:
-        p0 = label_chance(hits, label_ids, inside, p0)
-    s = np.isfinite(residual_m[inside])
-    p1 = min(max(float(s.mean()), p1), MAX_PARTNER_PROBABILITY) if s.size else p1  # generalized LR
-    p0 = np.clip(p0[inside], 1e-3, p1)
-    llr = np.where(s, np.log(p1 / p0), np.log((1.0 - p1) / (1.0 - p0)))
-    return float(llr.sum()), float(p0.sum())
+        _, _, label_index = unique_first(np.asarray(label_ids))
+        groups = np.arange(h)[:, None] * (n + 1) + label_index[None, :]  # (hypothesis, label) keys
+        p0 = label_chance(hits, groups.reshape(-1), inside_flat, p0)
+    s = np.isfinite(residual_m.reshape(-1)[inside_flat])  # by hypothesis, then node
+    counts = inside.sum(axis=1)
+    hyp = np.repeat(np.arange(h), counts)
+    p1 = np.full(h, partner_probability)
+    seen = counts > 0  # generalized LR: the observed partner share, clipped
+    share = np.bincount(hyp, weights=s, minlength=h)[seen] / counts[seen]
+    p1[seen] = np.minimum(np.maximum(share, partner_probability), MAX_PARTNER_PROBABILITY)
+    p1_of = p1[hyp]
+    p0 = np.clip(p0[inside_flat], 1e-3, p1_of)
+    llr = np.where(s, np.log(p1_of / p0), np.log((1.0 - p1_of) / (1.0 - p0)))
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    return [(float(llr[i:j].sum()), float(p0[i:j].sum())) for i, j in pairwise(bounds)]
 
 
 def verify_alignment(
@@ -298,30 +320,42 @@ def verify_alignments(
     reach = density_radius_m
     if shifts_m is not None and len(shifts_m):
         reach = max(reach, float(np.linalg.norm(shifts_m, axis=1).max()) + radius_m)
-    out = []
-    for k in range(h):
-        near = cKDTree(embed(pb[k], tree_b.label_ids)).sparse_distance_matrix(tree_a.same, reach, output_type="ndarray")
-        i_b, j_a, d = near["i"].astype(np.int64), near["j"].astype(np.int64), near["v"]
-        pairs, dist = _partners_from_near(i_b, j_a, d, radius_m)
-        res_a = np.full(n_a, np.inf)
-        res_b = np.full(n_b, np.inf)
-        res_a[pairs[:, 0]] = res_b[pairs[:, 1]] = dist
-        dense = d <= density_radius_m
-        near_b = np.bincount(i_b[dense], minlength=n_b)
-        near_a = np.bincount(j_a[dense], minlength=n_a)
-        hits_b = hits_a = None
-        if shifts_m is not None:
-            offsets = tree_a.positions_xyz[j_a] - pb[k][i_b]  # (P, 3) in A's frame
-            hits_b, hits_a = _shifted_hits_both(offsets, i_b, j_a, n_b, n_a, shifts_m, radius_m)
-        args = (radius_m, density_radius_m, partner_probability)
-        llr_b, chance_b = _direction_llr(res_b, inside_b[k], near_b, *args, hits_b, tree_b.label_ids)
-        llr_a, _ = _direction_llr(res_a, inside_a[k], near_a, *args, hits_a, tree_a.label_ids)
-        contradictions = int((inside_b[k] & ~np.isfinite(res_b)).sum() + (inside_a[k] & ~np.isfinite(res_a)).sum())
-        out.append(Verification(
-            support=int(pairs.shape[0]), overlap_a=int(inside_a[k].sum()), overlap_b=int(inside_b[k].sum()),
-            contradictions=contradictions, expected_chance=chance_b, llr=min(llr_a, llr_b), pairs=pairs,
-        ))  # fmt: skip
-    return out
+    near = [
+        cKDTree(embed(p, tree_b.label_ids)).sparse_distance_matrix(tree_a.same, reach, output_type="ndarray")
+        for p in pb
+    ]
+    # the hypotheses' graphs side by side: B's node i of hypothesis k is k * N_b + i (A's likewise), so
+    # every step below works on all hypotheses at once and, per hypothesis, as on one
+    hyp = np.repeat(np.arange(h), [x.size for x in near])
+    i_b = np.concatenate([x["i"] for x in near]).astype(np.int64) + hyp * n_b
+    j_a = np.concatenate([x["j"] for x in near]).astype(np.int64) + hyp * n_a
+    d = np.concatenate([x["v"] for x in near])
+    pairs, dist = _partners_from_near(i_b, j_a, d, radius_m)
+    res_a = np.full(h * n_a, np.inf)
+    res_b = np.full(h * n_b, np.inf)
+    res_a[pairs[:, 0]] = res_b[pairs[:, 1]] = dist
+    dense = d <= density_radius_m
+    near_b = np.bincount(i_b[dense], minlength=h * n_b).reshape(h, n_b)
+    near_a = np.bincount(j_a[dense], minlength=h * n_a).reshape(h, n_a)
+    hits_b = hits_a = None
+    if shifts_m is not None:
+        offsets = tree_a.positions_xyz[j_a - hyp * n_a] - np.concatenate(pb)[i_b]  # (P, 3) in A's frame
+        hits_b, hits_a = _shifted_hits_both(offsets, i_b, j_a, h * n_b, h * n_a, shifts_m, radius_m)
+    res_a, res_b = res_a.reshape(h, n_a), res_b.reshape(h, n_b)
+    args = (radius_m, density_radius_m, partner_probability)
+    llr_b = _direction_llrs(res_b, inside_b, near_b, *args, hits_b, tree_b.label_ids)
+    llr_a = _direction_llrs(res_a, inside_a, near_a, *args, hits_a, tree_a.label_ids)
+    contradictions = (inside_b & ~np.isfinite(res_b)).sum(axis=1) + (inside_a & ~np.isfinite(res_a)).sum(axis=1)
+    of = pairs[:, 1] // max(n_b, 1)  # pairs come by hypothesis, then B's row
+    rows = np.split(pairs - of[:, None] * np.array([n_a, n_b]), np.cumsum(np.bincount(of, minlength=h))[:-1])
+    return [
+        Verification(
+            support=int(rows[k].shape[0]), overlap_a=int(inside_a[k].sum()), overlap_b=int(inside_b[k].sum()),
+            contradictions=int(contradictions[k]), expected_chance=llr_b[k][1], llr=min(llr_a[k][0], llr_b[k][0]),
+            pairs=rows[k],
+        )
+        for k in range(h)
+    ]  # fmt: skip
 
 
 def _within(tree: cKDTree, points: list[np.ndarray], radius_m: float) -> np.ndarray:
