@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shgm_slam.arrays import unique_first
+from shgm_slam.arrays import unique_first, unique_sorted
 from shgm_slam.matching.pose import DEFAULT_UP, fit_pose
 
 HYPOTHESIS_SEEDS = 48
@@ -158,18 +158,29 @@ def _count(adjacency: np.ndarray, axis: int) -> np.ndarray:
     return adjacency.view(np.uint8).sum(axis=axis, dtype=acc).astype(np.int64)
 
 
-def _bit_rows(adjacency: np.ndarray) -> list[int]:
-    """The rows of a (K, K) bool matrix as Python ints: bit j of row i is ``adjacency[i, j]``."""
-    packed = np.packbits(adjacency, axis=1, bitorder="little")
+def _bit_rows(adjacency: np.ndarray, needed: np.ndarray | None = None) -> list[int]:
+    """The rows of a (K, K) bool matrix as Python ints: bit j of row i is ``adjacency[i, j]``; only the
+    ``needed`` rows (ascending indices, default all) are converted, the others are 0."""
+    if needed is None:
+        needed = np.arange(adjacency.shape[0])
+    packed = np.packbits(adjacency[needed], axis=1, bitorder="little")
     data, width = packed.tobytes(), packed.shape[1]
-    return [int.from_bytes(data[i : i + width], "little") for i in range(0, len(data), width)]
+    rows = [0] * adjacency.shape[0]
+    for i, start in zip(needed.tolist(), range(0, len(data), width), strict=True):
+        rows[i] = int.from_bytes(data[start : start + width], "little")
+    return rows
 
 
 def _greedy_clique(adjacency: np.ndarray, rows: list[int], seed: int, beat: int) -> np.ndarray:
+    """``_grow_clique`` as an int64 array (empty when it gives up)."""
+    return np.asarray(_grow_clique(adjacency, rows, seed, beat), dtype=np.int64)
+
+
+def _grow_clique(adjacency: np.ndarray, rows: list[int], seed: int, beat: int) -> list[int]:
     """Grow a clique from ``seed``: repeatedly add the candidate adjacent to most other candidates
     (the first of them in candidate order on ties).
 
-    Gives up (returns an empty array) as soon as the clique cannot exceed ``beat`` vertices.
+    Gives up (returns an empty list) as soon as the clique cannot exceed ``beat`` vertices.
 
     Args:
         adjacency: (K, K) bool consistency matrix.
@@ -183,7 +194,7 @@ def _greedy_clique(adjacency: np.ndarray, rows: list[int], seed: int, beat: int)
     mask = rows[seed]
     while members:
         if len(clique) + len(members) <= beat:
-            return np.zeros(0, dtype=np.int64)
+            return []
         degree = [(rows[i] & mask).bit_count() for i in members]
         full = len(members) - 1  # adjacent to every other candidate: in any maximal clique
         universal = [i for i, d in zip(members, degree, strict=True) if d == full]
@@ -196,7 +207,7 @@ def _greedy_clique(adjacency: np.ndarray, rows: list[int], seed: int, beat: int)
             clique.append(v)
             mask &= rows[v]
         members = [i for i in members if mask >> i & 1]
-    return np.asarray(clique, dtype=np.int64) if len(clique) > beat else np.zeros(0, dtype=np.int64)
+    return clique if len(clique) > beat else []
 
 
 def recheck_threshold_m(consistency_threshold_m: float) -> float:
@@ -241,24 +252,26 @@ def clique_hypotheses(
     adjacency = consistency_matrix(pa, pb, rows_a[:m], rows_b[:m], consistency_threshold_m, True, gravity_aligned, up)
     degree = _count(adjacency, axis=1)
     seeds = np.argsort(-degree, kind="stable")[:max_hypotheses]
-    rows = _bit_rows(adjacency)
-    seen: set[bytes] = set()
-    cliques: list[np.ndarray] = []
-    covered = np.zeros(m, dtype=bool)
-    for seed in seeds:
-        if degree[seed] < 2:
-            break
-        if covered[seed]:  # it would mostly regrow a clique already found
-            continue
-        clique = _greedy_clique(adjacency, rows, int(seed), 2)
-        key = np.sort(clique).tobytes()
-        if clique.size >= 3 and key not in seen:
-            seen.add(key)
-            cliques.append(clique)
-            covered[clique] = True
-    if not cliques:
+    seeds = seeds[degree[seeds] >= 2]  # by descending degree: the search stops at the first of degree < 2
+    if seeds.size == 0:
         return []
-    cliques.sort(key=lambda c: -c.size)
+    # a clique grown from a seed uses only the rows of the seed and its neighbours
+    rows = _bit_rows(adjacency, unique_sorted(np.concatenate([seeds, np.flatnonzero(adjacency[seeds].any(axis=0))])))
+    seen: set[tuple[int, ...]] = set()
+    found: list[list[int]] = []
+    covered: set[int] = set()
+    for seed in seeds.tolist():
+        if seed in covered:  # it would mostly regrow a clique already found
+            continue
+        clique = _grow_clique(adjacency, rows, seed, 2)
+        key = tuple(sorted(clique))
+        if len(clique) >= 3 and key not in seen:
+            seen.add(key)
+            found.append(clique)
+            covered.update(clique)
+    if not found:
+        return []
+    cliques = [np.asarray(c, dtype=np.int64) for c in sorted(found, key=lambda c: -len(c))]
     # one batched Eq. 2 fit: cliques padded to the largest with zero weights
     size = cliques[0].size
     index = np.zeros((len(cliques), size), dtype=np.int64)
