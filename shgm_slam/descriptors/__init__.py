@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from shgm_slam.arrays import unique_sorted
 from shgm_slam.config import DescriptorConfig, DescriptorKind
 from shgm_slam.descriptors.histogram import semantic_histogram
 from shgm_slam.descriptors.neighbor_vector import neighbor_vector
@@ -60,9 +61,7 @@ class NodeDescriptors:
     def unit(self) -> sp.csr_matrix:
         """(N, D) rows scaled to unit L2 norm (all-zero rows stay zero); cached."""
         if self._unit is None:
-            norms = np.sqrt(np.asarray(self.counts.multiply(self.counts).sum(axis=1)).ravel())
-            scale = np.divide(1.0, norms, out=np.zeros_like(norms), where=norms > 0)
-            self._unit = sp.csr_matrix(sp.diags(scale) @ self.counts)
+            self._unit = unit_rows(self.counts)
         return self._unit
 
     @property
@@ -71,6 +70,30 @@ class NodeDescriptors:
         if self._unit_by_label is None:
             self._unit_by_label = prepend_label(self.unit, self.label_ids, NUM_CLASSES)
         return self._unit_by_label
+
+
+def unit_rows(counts: sp.csr_matrix) -> sp.csr_matrix:
+    """(N, D) CSR ``counts`` with every row scaled to unit L2 norm; all-zero rows stay empty.
+
+    The same matrix, entry order included, as the product ``diags(1 / norms) @ counts`` (which lists
+    each row's entries in reverse): the order of a row's entries is the summation order of the Eq. 1
+    products, so it is kept.
+    """
+    counts = sp.csr_matrix(counts)
+    n = counts.shape[0]
+    lengths = np.diff(counts.indptr)
+    row_of = np.repeat(np.arange(n), lengths)
+    norms = np.sqrt(np.bincount(row_of, weights=counts.data * counts.data, minlength=n))
+    scale = np.divide(1.0, norms, out=np.zeros_like(norms), where=norms > 0)
+    keys = row_of * counts.shape[1] + counts.indices
+    if unique_sorted(keys).size < keys.size:  # duplicate entries (no builder makes them): the product merges them
+        return sp.csr_matrix(sp.diags(scale) @ counts)
+    within = np.arange(counts.data.size) - np.repeat(counts.indptr[:-1], lengths)
+    reverse = np.repeat(counts.indptr[1:] - 1, lengths) - within  # each row's entries last to first
+    data = counts.data[reverse] * scale[row_of]
+    keep = data != 0
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(row_of[keep], minlength=n))])
+    return sp.csr_matrix((data[keep], counts.indices[reverse][keep], indptr), shape=counts.shape)
 
 
 def compute_descriptors(graph: GraphArrays, cfg: DescriptorConfig) -> NodeDescriptors:
@@ -101,4 +124,5 @@ __all__ = [
     "NodeDescriptors",
     "compute_descriptors",
     "similarity",
+    "unit_rows",
 ]

@@ -22,9 +22,12 @@ import scipy.sparse as sp
 from shgm_slam.descriptors.sparse_graph import (
     adjacency_matrix,
     check_labels,
+    csr_arrays,
     directed_edges,
     one_hot,
     prepend_label,
+    prepend_label_arrays,
+    sparse_product,
 )
 from shgm_slam.labels import NUM_CLASSES
 from shgm_slam.types import GraphArrays
@@ -67,10 +70,12 @@ def with_own_label(
 
 def _walk_histogram(A: sp.csr_matrix, labels: np.ndarray, steps: int, num_classes: int) -> sp.csr_matrix:
     """All walks: W_h = A @ prepend(l, W_{h-1}), W_0 = ones (every node ends a 0-step walk once)."""
-    W = sp.csr_matrix(np.ones((A.shape[0], 1)))
+    n, dim = A.shape[0], 1
+    W = np.arange(n + 1), np.zeros(n, dtype=np.int64), np.ones(n)  # CSR arrays of an (N, 1) column of ones
     for _ in range(steps):
-        W = (A @ prepend_label(W, labels, num_classes)).tocsr()
-    return W
+        W = sparse_product(csr_arrays(A), prepend_label_arrays(W, labels, dim), n, dim * num_classes)
+        dim *= num_classes
+    return sp.csr_matrix(W[::-1], shape=(n, dim))
 
 
 def _non_backtracking_histogram(

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from shgm_slam.arrays import unique_first, unique_sorted
 from shgm_slam.errors import GraphError
 from shgm_slam.labels import NUM_CLASSES
 from shgm_slam.types import GraphArrays
@@ -42,12 +43,52 @@ def adjacency_matrix(graph: GraphArrays) -> sp.csr_matrix:
         raise GraphError(f"graph edge references row {int(edges.max())} but the graph has {n} nodes")
     if edges.size and np.any(edges[:, 0] == edges[:, 1]):
         raise GraphError("graph has a self-loop edge (i, i); edges must join two different nodes")
-    rows = np.concatenate([edges[:, 0], edges[:, 1]])
-    cols = np.concatenate([edges[:, 1], edges[:, 0]])
-    A = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
-    A.sum_duplicates()
-    A.data[:] = 1.0
-    return A
+    keys = unique_sorted(np.concatenate([edges[:, 0] * n + edges[:, 1], edges[:, 1] * n + edges[:, 0]]))
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(keys // max(n, 1), minlength=n))])
+    return sp.csr_matrix((np.ones(keys.size), keys % max(n, 1), indptr), shape=(n, n))  # canonical: sorted rows
+
+
+CsrArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""(indptr, indices, data) of a CSR matrix, without scipy's per-object overhead."""
+
+
+def csr_arrays(M: sp.csr_matrix) -> CsrArrays:
+    """The (indptr, indices, data) arrays of a CSR matrix."""
+    return M.indptr, M.indices, M.data
+
+
+def sparse_product(A: CsrArrays, X: CsrArrays, n_rows: int, width: int) -> CsrArrays:
+    """``A @ X`` of (n_rows, M) and (M, width) CSR arrays, bit-identical to scipy's product, without its
+    per-product overhead (descriptors and scores of small graphs are dominated by it).
+
+    scipy walks each row of A in stored order and, for each entry, X's row in stored order, adding each
+    product to its column's sum; ``np.bincount`` adds in the same (input) order, so even float sums are the
+    same to the last bit, and exact zeros are dropped as scipy drops them. The entries are listed as scipy
+    lists them (each row's columns in reverse order of first touch): a row's order is the summation order
+    of any later product with it.
+    """
+    a_indptr, a_indices, a_data = A
+    x_indptr, x_indices, x_data = X
+    lengths = np.diff(x_indptr)[a_indices]  # X entries reached through each entry of A
+    rows = np.repeat(np.repeat(np.arange(n_rows), np.diff(a_indptr)), lengths)
+    within = np.arange(rows.size) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+    src = np.repeat(x_indptr[:-1][a_indices], lengths) + within  # (T,) X entries in traversal order
+    keys = rows * width + x_indices[src]
+    unique, first, inverse = unique_first(keys)
+    products = np.repeat(a_data, lengths) * x_data[src]
+    sums = np.bincount(inverse, weights=products, minlength=unique.size)
+    out_rows = unique // max(width, 1)
+    order = np.lexsort((-first, out_rows))
+    order = order[sums[order] != 0]
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(out_rows[order], minlength=n_rows))])
+    return indptr, unique[order] % max(width, 1), sums[order]
+
+
+def prepend_label_arrays(X: CsrArrays, labels: np.ndarray, dim: int) -> CsrArrays:
+    """``prepend_label`` on (R, dim) CSR arrays: column c of row r moves to ``labels[r] * dim + c``."""
+    indptr, indices, data = X
+    row_of = np.repeat(np.arange(indptr.size - 1), np.diff(indptr))
+    return indptr, indices + labels[row_of] * dim, data
 
 
 def one_hot(labels: np.ndarray, num_classes: int = NUM_CLASSES) -> sp.csr_matrix:

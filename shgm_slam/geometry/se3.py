@@ -6,6 +6,8 @@ Every function accepts a single (4, 4) pose or an (N, 4, 4) stack where it says 
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 
@@ -128,6 +130,19 @@ def kabsch(
     return T[0] if single else T
 
 
+@lru_cache(maxsize=16)
+def _yaw_basis(up: tuple[float, float, float]) -> np.ndarray:
+    """(3, 3) read-only rows (e1, e2, up) for a unit ``up``: yaw is a rotation in the e1-e2 plane (cached:
+    every gravity-aligned fit of a run uses the same axis)."""
+    u = np.asarray(up)
+    e1 = np.cross(u, [1.0, 0, 0]) if abs(u[0]) < 0.9 else np.cross(u, [0, 1.0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    B = np.stack([e1, e2, u])
+    B.flags.writeable = False
+    return B
+
+
 def kabsch_yaw(
     points_src: np.ndarray, points_dst: np.ndarray, weights: np.ndarray | None = None, up: np.ndarray | None = None
 ) -> np.ndarray:
@@ -152,11 +167,7 @@ def kabsch_yaw(
     wn = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-12)
     mp = np.einsum("bk,bki->bi", wn, P)
     mq = np.einsum("bk,bki->bi", wn, Q)
-    # basis (e1, e2, up) so that yaw is a rotation in the e1-e2 plane
-    e1 = np.cross(up, [1.0, 0, 0]) if abs(up[0]) < 0.9 else np.cross(up, [0, 1.0, 0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)
-    B = np.stack([e1, e2, up])  # rows
+    B = _yaw_basis(tuple(up.tolist()))
     p = np.einsum("ij,bkj->bki", B, P - mp[:, None])
     q = np.einsum("ij,bkj->bki", B, Q - mq[:, None])
     s = np.einsum("bk,bk->b", wn, p[..., 0] * q[..., 1] - p[..., 1] * q[..., 0])

@@ -125,7 +125,7 @@ def fill_same_label(
     rows_a, rows_b = np.nonzero(same)
     if rows_a.size == 0:
         return cands
-    s = np.asarray(sp.csr_matrix(scores)[rows_a, rows_b]).ravel()
+    s = sp.csr_matrix(scores).toarray()[rows_a, rows_b]  # dense: n_a * n_b is at most MAX_FILL_PAIRS
     rank = _rank_in_groups(rows_b, s, rows_a)
     order = np.lexsort((rows_a, -s, rows_b, rank))[: budget - len(cands)]
     return Candidates(

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from shgm_slam.arrays import unique_first, unique_sorted
 from shgm_slam.matching.pose import DEFAULT_UP, fit_pose
 
 HYPOTHESIS_SEEDS = 48
@@ -30,35 +31,47 @@ _BLOCK_ROWS = 128
 """Rows of the consistency matrix computed at once (keeps the float temporaries in cache)."""
 
 
-class _Centred:
-    """(K, 3) points centred, in float64, with their squared norms, for blocks of pairwise distances.
+def pairwise_distances(points: np.ndarray) -> np.ndarray:
+    """(K, K) float32 distances between (K, 3) points (computed in float64, see ``_node_distances``)."""
+    points = np.asarray(points, dtype=np.float64)
+    return _node_distances(points - points.mean(axis=0))
+
+
+def _node_table(points: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The distinct nodes behind (K, 3) candidate points: (U, 3) node points (centred on the mean of
+    the K candidates), (K,) index of each candidate's node and whether ``rows`` identify them.
+
+    Candidates share nodes (K = 600 from 150 nodes), so the pairwise distances are computed once per node
+    pair and gathered. When candidates with the same row have different points (not the matcher's
+    case), every candidate is its own node.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    _, first, index = unique_first(np.asarray(rows))
+    by_row = bool(np.array_equal(points[first][index], points))
+    if not by_row:
+        first, index = np.arange(points.shape[0]), np.arange(points.shape[0])
+    return points[first] - points.mean(axis=0), index, by_row
+
+
+def _node_distances(x: np.ndarray, diagonal: float | None = None) -> np.ndarray:
+    """(U, U) float32 distances between (U, 3) centred points; the diagonal set to ``diagonal`` if given.
 
     The Gram form ``|x|² + |y|² - 2 x·y`` cancels terms of ``extent²``: in float32 it lost up to
     1.4 m at a 5 km map extent (2.5 km after centring) against metre tolerances. It is evaluated in
     float64 and only the result is cast to float32 (relative error 6e-8, below 1 mm at 5 km), which
-    keeps the comparisons that follow as fast as before.
+    keeps the comparisons that follow fast.
     """
-
-    def __init__(self, points: np.ndarray) -> None:
-        points = np.asarray(points, dtype=np.float64)
-        self.x = points - points.mean(axis=0)
-        self.sq = np.einsum("ij,ij->i", self.x, self.x)
-
-    def distances(self, start: int, stop: int) -> np.ndarray:
-        """(stop - start, K) float32 distances from points ``start:stop`` to all points (Gram form in
-        float64, cast to float32 once the cancelling terms are subtracted: relative error 6e-8)."""
-        d = self.x[start:stop] @ self.x.T
-        d *= -2.0
-        d += self.sq[start:stop, None]
-        d += self.sq[None, :]
-        out = d.astype(np.float32)
-        np.maximum(out, 0.0, out=out)
-        return np.sqrt(out, out=out)
-
-
-def pairwise_distances(points: np.ndarray) -> np.ndarray:
-    """(K, K) float32 distances between (K, 3) points (computed in float64, see ``_Centred``)."""
-    return _Centred(points).distances(0, points.shape[0])
+    sq = np.einsum("ij,ij->i", x, x)
+    d = x @ x.T
+    d *= -2.0
+    d += sq[:, None]
+    d += sq[None, :]
+    out = d.astype(np.float32)
+    np.maximum(out, 0.0, out=out)
+    np.sqrt(out, out=out)
+    if diagonal is not None:
+        np.fill_diagonal(out, diagonal)
+    return out
 
 
 def consistency_matrix(
@@ -73,6 +86,10 @@ def consistency_matrix(
 ) -> np.ndarray:
     """Pairwise consistency of K candidate correspondences, vectorised by broadcasting (in row blocks).
 
+    The float32 distances between candidates are gathered from per-node tables (``_node_table``); with
+    ``distinct_nodes`` two candidates of the same node get +inf on A's side and -inf on B's side, whose
+    difference is never below the threshold.
+
     Args:
         points_a, points_b: (K, 3) candidate positions in A's and B's frames, metres.
         rows_a, rows_b: (K,) node rows of the candidates.
@@ -82,7 +99,7 @@ def consistency_matrix(
         gravity_aligned: compare horizontal distances and vertical offsets about ``up`` separately.
 
     Returns:
-        (K, K) symmetric bool matrix with a False diagonal.
+        (K, K) bool matrix with a False diagonal (symmetric up to float32 rounding of the distances).
     """
     k = points_a.shape[0]
     dh = None
@@ -94,16 +111,24 @@ def consistency_matrix(
         # centre in float64 before casting (a common vertical offset of kilometres cancels exactly)
         dh = ha - hb
         dh = (dh - dh.mean()).astype(np.float32)
-    ca, cb = _Centred(points_a), _Centred(points_b)
+    nodes_a, index_a, by_row_a = _node_table(points_a, rows_a)
+    nodes_b, index_b, by_row_b = _node_table(points_b, rows_b)
+    inf = np.inf if distinct_nodes else None
+    # (U, K) tables with their columns gathered once; a block's rows are then plain row copies
+    cols_a = np.take(_node_distances(nodes_a, inf), index_a, axis=1)
+    cols_b = np.take(_node_distances(nodes_b, None if inf is None else -inf), index_b, axis=1)
     ok = np.empty((k, k), dtype=bool)
     for start in range(0, k, _BLOCK_ROWS):
         stop = min(start + _BLOCK_ROWS, k)
-        ok[start:stop] = _close(ca.distances(start, stop), cb.distances(start, stop), threshold_m)
+        d_a = np.take(cols_a, index_a[start:stop], axis=0)
+        ok[start:stop] = _close(d_a, np.take(cols_b, index_b[start:stop], axis=0), threshold_m)
         if dh is not None:
-            ok[start:stop] &= _close(dh[start:stop, None] - dh[None, :], 0.0, threshold_m)
+            d_h = np.subtract.outer(dh[start:stop], dh)
+            ok[start:stop] &= np.abs(d_h, out=d_h) < threshold_m
     if distinct_nodes:
-        for rows in (rows_a, rows_b):
-            ok[_same_node_pairs(rows)] = False
+        for by_row, rows in ((by_row_a, rows_a), (by_row_b, rows_b)):
+            if not by_row:  # every candidate its own node: the tables know only the diagonal
+                ok[_same_node_pairs(rows)] = False
     np.fill_diagonal(ok, False)
     return ok
 
@@ -133,28 +158,56 @@ def _count(adjacency: np.ndarray, axis: int) -> np.ndarray:
     return adjacency.view(np.uint8).sum(axis=axis, dtype=acc).astype(np.int64)
 
 
-def _greedy_clique(adjacency: np.ndarray, seed: int, alive: np.ndarray, beat: int) -> np.ndarray:
-    """Grow a clique from ``seed``: repeatedly add the candidate adjacent to most other candidates.
+def _bit_rows(adjacency: np.ndarray, needed: np.ndarray | None = None) -> list[int]:
+    """The rows of a (K, K) bool matrix as Python ints: bit j of row i is ``adjacency[i, j]``; only the
+    ``needed`` rows (ascending indices, default all) are converted, the others are 0."""
+    if needed is None:
+        needed = np.arange(adjacency.shape[0])
+    packed = np.packbits(adjacency[needed], axis=1, bitorder="little")
+    data, width = packed.tobytes(), packed.shape[1]
+    rows = [0] * adjacency.shape[0]
+    for i, start in zip(needed.tolist(), range(0, len(data), width), strict=True):
+        rows[i] = int.from_bytes(data[start : start + width], "little")
+    return rows
 
-    Gives up (returns an empty array) as soon as the clique cannot exceed ``beat`` vertices.
+
+def _greedy_clique(adjacency: np.ndarray, rows: list[int], seed: int, beat: int) -> np.ndarray:
+    """``_grow_clique`` as an int64 array (empty when it gives up)."""
+    return np.asarray(_grow_clique(adjacency, rows, seed, beat), dtype=np.int64)
+
+
+def _grow_clique(adjacency: np.ndarray, rows: list[int], seed: int, beat: int) -> list[int]:
+    """Grow a clique from ``seed``: repeatedly add the candidate adjacent to most other candidates
+    (the first of them in candidate order on ties).
+
+    Gives up (returns an empty list) as soon as the clique cannot exceed ``beat`` vertices.
+
+    Args:
+        adjacency: (K, K) bool consistency matrix.
+        rows: its rows as bit sets (``_bit_rows``): a degree among the candidates left is one ``&``
+            and a popcount.
+        seed: the candidate to grow from.
+        beat: clique size to exceed.
     """
     clique = [seed]
-    cand = np.flatnonzero(adjacency[seed] & alive)
-    sub = adjacency[cand][:, cand]
-    while cand.size:
-        if len(clique) + cand.size <= beat:
-            return np.zeros(0, dtype=np.int64)
-        degree = _count(sub, axis=1)
-        universal = degree == cand.size - 1  # adjacent to every other candidate: in any maximal clique
-        if universal.any():
-            clique.extend(cand[universal].tolist())
-            keep = ~universal
+    members = np.flatnonzero(adjacency[seed]).tolist()  # the candidates left, ascending
+    mask = rows[seed]
+    while members:
+        if len(clique) + len(members) <= beat:
+            return []
+        degree = [(rows[i] & mask).bit_count() for i in members]
+        full = len(members) - 1  # adjacent to every other candidate: in any maximal clique
+        universal = [i for i, d in zip(members, degree, strict=True) if d == full]
+        if universal:
+            clique.extend(universal)
+            for i in universal:
+                mask &= ~(1 << i)
         else:
-            v = int(np.argmax(degree))
-            clique.append(int(cand[v]))
-            keep = sub[v]
-        cand, sub = cand[keep], sub[keep][:, keep]
-    return np.asarray(clique, dtype=np.int64) if len(clique) > beat else np.zeros(0, dtype=np.int64)
+            v = members[degree.index(max(degree))]
+            clique.append(v)
+            mask &= rows[v]
+        members = [i for i in members if mask >> i & 1]
+    return clique if len(clique) > beat else []
 
 
 def recheck_threshold_m(consistency_threshold_m: float) -> float:
@@ -199,24 +252,26 @@ def clique_hypotheses(
     adjacency = consistency_matrix(pa, pb, rows_a[:m], rows_b[:m], consistency_threshold_m, True, gravity_aligned, up)
     degree = _count(adjacency, axis=1)
     seeds = np.argsort(-degree, kind="stable")[:max_hypotheses]
-    alive = np.ones(m, dtype=bool)
-    seen: set[bytes] = set()
-    cliques: list[np.ndarray] = []
-    covered = np.zeros(m, dtype=bool)
-    for seed in seeds:
-        if degree[seed] < 2:
-            break
-        if covered[seed]:  # it would mostly regrow a clique already found
-            continue
-        clique = _greedy_clique(adjacency, int(seed), alive, 2)
-        key = np.sort(clique).tobytes()
-        if clique.size >= 3 and key not in seen:
-            seen.add(key)
-            cliques.append(clique)
-            covered[clique] = True
-    if not cliques:
+    seeds = seeds[degree[seeds] >= 2]  # by descending degree: the search stops at the first of degree < 2
+    if seeds.size == 0:
         return []
-    cliques.sort(key=lambda c: -c.size)
+    # a clique grown from a seed uses only the rows of the seed and its neighbours
+    rows = _bit_rows(adjacency, unique_sorted(np.concatenate([seeds, np.flatnonzero(adjacency[seeds].any(axis=0))])))
+    seen: set[tuple[int, ...]] = set()
+    found: list[list[int]] = []
+    covered: set[int] = set()
+    for seed in seeds.tolist():
+        if seed in covered:  # it would mostly regrow a clique already found
+            continue
+        clique = _grow_clique(adjacency, rows, seed, 2)
+        key = tuple(sorted(clique))
+        if len(clique) >= 3 and key not in seen:
+            seen.add(key)
+            found.append(clique)
+            covered.update(clique)
+    if not found:
+        return []
+    cliques = [np.asarray(c, dtype=np.int64) for c in sorted(found, key=lambda c: -len(c))]
     # one batched Eq. 2 fit: cliques padded to the largest with zero weights
     size = cliques[0].size
     index = np.zeros((len(cliques), size), dtype=np.int64)

@@ -26,10 +26,10 @@ from shgm_slam.matching.result import MatchResult
 from shgm_slam.matching.verification import (
     LabelledTree,
     Verification,
-    partner_pairs,
+    partner_pairs_stack,
     shift_vectors,
     support_counts,
-    verify_alignment,
+    verify_alignments,
 )
 from shgm_slam.types import GraphArrays
 
@@ -186,7 +186,8 @@ def match_graphs(
 
     tree_a, tree_b = LabelledTree(a.positions_xyz, a.label_ids), LabelledTree(b.positions_xyz, b.label_ids)
     shifts = shift_vectors(np.asarray(cfg.up_axis))
-    scored = [(T, _verify(tree_a, tree_b, T, cfg, shifts)) for T in _refined(np.stack(hypotheses), a, b, tree_a, cfg)]
+    refined = _refined(np.stack(hypotheses), a, b, tree_a, cfg)
+    scored = list(zip(refined, _verify(tree_a, tree_b, np.stack(refined), cfg, shifts), strict=True))
     best, rival = _best_and_rival(scored, b, cfg.verification_radius_m)
     T, v = best
     rows_a, rows_b = v.pairs[:, 0], v.pairs[:, 1]
@@ -224,10 +225,10 @@ def match_graphs(
 
 
 def _verify(
-    tree_a: LabelledTree, tree_b: LabelledTree, T: np.ndarray, cfg: MatchingConfig, shifts_m: np.ndarray
-) -> Verification:
-    return verify_alignment(
-        tree_a, tree_b, T, radius_m=cfg.verification_radius_m, coverage_m=cfg.coverage_radius_m,
+    tree_a: LabelledTree, tree_b: LabelledTree, T_stack: np.ndarray, cfg: MatchingConfig, shifts_m: np.ndarray
+) -> list[Verification]:
+    return verify_alignments(
+        tree_a, tree_b, T_stack, radius_m=cfg.verification_radius_m, coverage_m=cfg.coverage_radius_m,
         density_radius_m=cfg.density_radius_m, partner_probability=cfg.partner_probability, shifts_m=shifts_m,
     )  # fmt: skip
 
@@ -243,10 +244,13 @@ def _refined(
     counts = support_counts(tree_a, b.positions_xyz, b.label_ids, hypotheses, radius)
     Ts = hypotheses[np.argsort(-counts, kind="stable")[: cfg.verified_hypotheses]].copy()
 
-    def partners(T: np.ndarray) -> np.ndarray:
-        return partner_pairs(tree_a, transform_points(T, b.positions_xyz), b.label_ids, radius)[0]
+    def partners(T_stack: list[np.ndarray]) -> list[np.ndarray]:
+        if not T_stack:
+            return []
+        mapped = np.stack([transform_points(T, b.positions_xyz) for T in T_stack])
+        return [p for p, _ in partner_pairs_stack(tree_a, mapped, b.label_ids, radius)]
 
-    pairs = [partners(T) for T in Ts]
+    pairs = partners(list(Ts))
     active = [k for k in range(len(Ts)) if pairs[k].shape[0] >= MIN_NODES]
     for _ in range(cfg.refine_iterations):
         if not active:
@@ -263,8 +267,7 @@ def _refined(
         up = np.asarray(cfg.up_axis)
         fits = fit_pose(b.positions_xyz[rows_b], a.positions_xyz[rows_a], w, cfg.gravity_aligned, up)
         still = []
-        for i, k in enumerate(active):
-            new = partners(fits[i])
+        for i, (k, new) in enumerate(zip(active, partners(list(fits)), strict=True)):
             if new.shape[0] < pairs[k].shape[0]:
                 continue
             stable = np.array_equal(new, pairs[k])

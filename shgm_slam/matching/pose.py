@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from shgm_slam.arrays import first_indices
 from shgm_slam.geometry.se3 import kabsch, kabsch_yaw
 
 WEIGHT_CLIP = (0.1, 10.0)
@@ -60,10 +61,18 @@ def correspondence_weights(sizes_a: np.ndarray, sizes_b: np.ndarray) -> np.ndarr
     w = np.sqrt(np.maximum(sizes_a, 0.0) * np.maximum(sizes_b, 0.0))
     if w.size == 0:
         return w
-    median = np.median(w)
+    median = _median(w)
     if not median > 0:
         return np.ones_like(w)
     return np.clip(w / median, *WEIGHT_CLIP)
+
+
+def _median(values: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-D array of finite values (the same arithmetic: the middle value, or
+    the mean of the two middle values), without its overhead."""
+    s = np.sort(values)
+    half = s.shape[0] // 2
+    return float(s[half]) if s.shape[0] % 2 else float((s[half - 1] + s[half]) / 2.0)
 
 
 def fit_pose(
@@ -97,9 +106,9 @@ def one_to_one(rows_a: np.ndarray, rows_b: np.ndarray, residuals: np.ndarray, ma
     """
     idx = np.flatnonzero(mask)
     idx = idx[np.argsort(residuals[idx], kind="stable")]
-    idx = idx[np.unique(rows_a[idx], return_index=True)[1]]
+    idx = idx[first_indices(rows_a[idx])]
     idx = idx[np.argsort(residuals[idx], kind="stable")]
-    idx = idx[np.unique(rows_b[idx], return_index=True)[1]]
+    idx = idx[first_indices(rows_b[idx])]
     out = np.zeros(mask.shape[0], dtype=bool)
     out[idx] = True
     return out

@@ -30,9 +30,13 @@ Labels are folded into a fourth coordinate so that one KD-tree query finds same-
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property, lru_cache
+from itertools import pairwise
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from shgm_slam.arrays import first_indices, unique_first
 
 MAX_PARTNER_PROBABILITY = 0.95
 """Cap of the H1 partner rate estimated from the overlap (generalized likelihood ratio)."""
@@ -74,8 +78,16 @@ class LabelledTree:
     def __init__(self, positions_xyz: np.ndarray, label_ids: np.ndarray) -> None:
         self.positions_xyz = np.asarray(positions_xyz, dtype=np.float64)
         self.label_ids = np.asarray(label_ids, dtype=np.int64)
-        self.any = cKDTree(self.positions_xyz)
-        self.same = cKDTree(embed(self.positions_xyz, self.label_ids))
+
+    @cached_property
+    def any(self) -> cKDTree:
+        """Tree of the (N, 3) positions (built on first use)."""
+        return cKDTree(self.positions_xyz)
+
+    @cached_property
+    def same(self) -> cKDTree:
+        """Tree of the (N, 4) ``embed`` points: same-label queries (built on first use)."""
+        return cKDTree(embed(self.positions_xyz, self.label_ids))
 
     def __len__(self) -> int:
         return int(self.label_ids.shape[0])
@@ -115,22 +127,30 @@ def support_counts(
 def _one_to_one(rows_a: np.ndarray, rows_b: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """Indices of a greedy one-to-one subset of candidate pairs, closest first."""
     order = np.argsort(dist, kind="stable")
-    keep = order[np.unique(rows_a[order], return_index=True)[1]]
+    keep = order[first_indices(rows_a[order])]
     keep = keep[np.argsort(dist[keep], kind="stable")]
-    return keep[np.unique(rows_b[keep], return_index=True)[1]]
+    return keep[first_indices(rows_b[keep])]
 
 
 def shift_vectors(
     up: np.ndarray, distances_m: tuple[float, ...] = (6.0, 10.0, 14.0), directions: int = 8
 ) -> np.ndarray:
-    """(S, 3) horizontal shifts (perpendicular to ``up``): ``directions`` headings times ``distances_m``."""
+    """(S, 3) horizontal shifts (perpendicular to ``up``): ``directions`` headings times ``distances_m``
+    (read-only; cached, every match of a run uses the same)."""
+    return _shift_vectors(tuple(np.asarray(up, dtype=np.float64).tolist()), tuple(distances_m), directions)
+
+
+@lru_cache(maxsize=16)
+def _shift_vectors(up: tuple[float, float, float], distances_m: tuple[float, ...], directions: int) -> np.ndarray:
     u = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     e1 = np.cross(u, [1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.cross(u, [0.0, 1.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(u, e1)
     ang = np.arange(directions) * (2.0 * np.pi / directions)
     heads = np.outer(np.cos(ang), e1) + np.outer(np.sin(ang), e2)
-    return (np.asarray(distances_m)[:, None, None] * heads[None]).reshape(-1, 3)
+    shifts = (np.asarray(distances_m)[:, None, None] * heads[None]).reshape(-1, 3)
+    shifts.flags.writeable = False
+    return shifts
 
 
 def shifted_hits(
@@ -165,10 +185,16 @@ def label_chance(hits: np.ndarray, label_ids: np.ndarray, inside: np.ndarray, pr
     not judged on one shift.
     """
     out = prior.copy()
-    for label in np.unique(label_ids[inside]):
-        rows = np.flatnonzero(inside & (label_ids == label))
-        best = np.sort(hits[:, rows].sum(axis=1))[-2]
-        out[rows] = np.maximum(prior[rows], (best + prior[rows]) / (rows.size + 1.0))
+    rows = np.flatnonzero(inside)
+    if rows.size == 0:
+        return out
+    labels, _, group = unique_first(label_ids[rows])
+    one_hot = group[:, None] == np.arange(labels.size)  # (R, L)
+    per_shift = hits[:, rows].astype(np.int64) @ one_hot  # (S, L) hits of each label under each shift
+    best = np.sort(per_shift, axis=0)[-2]
+    size = np.bincount(group, minlength=labels.size)
+    p = prior[rows]
+    out[rows] = np.maximum(p, (best[group] + p) / (size[group] + 1.0))
     return out
 
 
@@ -180,29 +206,64 @@ def partner_pairs(
     Returns:
         (S, 2) int64 row pairs (row_a, row_b), closest first per node, and their (S,) distances in metres.
     """
-    d_b, j_a = nearest_same_label(tree_a, points_b_in_a, labels_b, radius_m)
-    close = np.flatnonzero(np.isfinite(d_b))
-    keep = _one_to_one(j_a[close], close, d_b[close])
-    return np.stack([j_a[close][keep], close[keep]], axis=1).astype(np.int64), d_b[close][keep]
+    return partner_pairs_stack(tree_a, points_b_in_a[None], labels_b, radius_m)[0]
 
 
-def _direction_llr(
+def partner_pairs_stack(
+    tree_a: LabelledTree, points_b_in_a: np.ndarray, labels_b: np.ndarray, radius_m: float
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``partner_pairs`` of B's nodes placed by H hypotheses, (H, N_b, 3) in A's frame, with one tree query
+    (each point's nearest neighbour does not depend on the other points queried with it)."""
+    h, n = points_b_in_a.shape[:2]
+    d, j = nearest_same_label(tree_a, points_b_in_a.reshape(-1, 3), np.tile(labels_b, h), radius_m)
+    close = np.flatnonzero(np.isfinite(d))  # (h * N_b) flat rows, by hypothesis then row of B
+    hyp, row_b, row_a = close // n, close % n, j[close].astype(np.int64)
+    # one greedy one-to-one over all hypotheses: keys offset by hypothesis never collide across them, and
+    # each hypothesis' entries keep their relative order (the selection and ties are those of one call)
+    keep = _one_to_one(hyp * (len(tree_a) + 1) + row_a, close, d[close])
+    pairs = np.stack([row_a[keep], row_b[keep]], axis=1)
+    split = np.cumsum(np.bincount(hyp[keep], minlength=h))[:-1]
+    return list(zip(np.split(pairs, split), np.split(d[close][keep], split), strict=True))
+
+
+def _direction_llrs(
     residual_m: np.ndarray, inside: np.ndarray, same_nearby: np.ndarray,
     radius_m: float, density_radius_m: float, partner_probability: float,
     hits: np.ndarray | None = None, label_ids: np.ndarray | None = None,
-) -> tuple[float, float]:  # fmt: skip
-    """(LLR, expected chance count) of one direction over its overlap nodes (module docstring).
+) -> list[tuple[float, float]]:  # fmt: skip
+    """(LLR, expected chance count) of one direction over its overlap nodes (module docstring), for H
+    hypotheses at once.
 
-    ``residual_m`` is each node's distance to its partner (inf without one)."""
-    p1 = partner_probability
-    p0 = 1.0 - np.exp(-same_nearby * (radius_m / density_radius_m) ** 2)
+    Args:
+        residual_m: (H, N) each node's distance to its partner (inf without one).
+        inside: (H, N) bool, the node lies in the other graph's observed area.
+        same_nearby: (H, N) same-label nodes of the other graph within ``density_radius_m``.
+        hits: (S, H * N) bool shifted hits (``_shifted_hits_both`` on stacked nodes) or None.
+        label_ids: (N,) the nodes' labels (with ``hits``).
+
+    Every value is computed element by element as for one hypothesis; label groups are (hypothesis,
+    label) pairs and each hypothesis' sums run over its own contiguous slice, so the results are those
+    of one hypothesis at a time.
+    """
+    h, n = residual_m.shape
+    p0 = 1.0 - np.exp(-same_nearby.reshape(-1) * (radius_m / density_radius_m) ** 2)
+    inside_flat = inside.reshape(-1)
     if hits is not None and label_ids is not None:
-        p0 = label_chance(hits, label_ids, inside, p0)
-    s = np.isfinite(residual_m[inside])
-    p1 = float(np.clip(s.mean(), p1, MAX_PARTNER_PROBABILITY)) if s.size else p1  # generalized LR
-    p0 = np.clip(p0[inside], 1e-3, p1)
-    llr = np.where(s, np.log(p1 / p0), np.log((1.0 - p1) / (1.0 - p0)))
-    return float(llr.sum()), float(p0.sum())
+        _, _, label_index = unique_first(np.asarray(label_ids))
+        groups = np.arange(h)[:, None] * (n + 1) + label_index[None, :]  # (hypothesis, label) keys
+        p0 = label_chance(hits, groups.reshape(-1), inside_flat, p0)
+    s = np.isfinite(residual_m.reshape(-1)[inside_flat])  # by hypothesis, then node
+    counts = inside.sum(axis=1)
+    hyp = np.repeat(np.arange(h), counts)
+    p1 = np.full(h, partner_probability)
+    seen = counts > 0  # generalized LR: the observed partner share, clipped
+    share = np.bincount(hyp, weights=s, minlength=h)[seen] / counts[seen]
+    p1[seen] = np.minimum(np.maximum(share, partner_probability), MAX_PARTNER_PROBABILITY)
+    p1_of = p1[hyp]
+    p0 = np.clip(p0[inside_flat], 1e-3, p1_of)
+    llr = np.where(s, np.log(p1_of / p0), np.log((1.0 - p1_of) / (1.0 - p0)))
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    return [(float(llr[i:j].sum()), float(p0[i:j].sum())) for i, j in pairwise(bounds)]
 
 
 def verify_alignment(
@@ -232,37 +293,74 @@ def verify_alignment(
         shifts_m: (S, 3) shifts in A's frame (``shift_vectors``): when given, each label's chance of a partner
             is also measured under the hypothesis shifted by each (``label_chance``), and the larger counts.
     """
-    n_a, n_b = len(tree_a), len(tree_b)
-    pb = transform(T_a_b, tree_b.positions_xyz)
-    R, t = T_a_b[:3, :3], T_a_b[:3, 3]
-    pa_in_b = (tree_a.positions_xyz - t) @ R  # A's nodes in B's frame: B's trees are reused
+    return verify_alignments(
+        tree_a, tree_b, np.asarray(T_a_b)[None], radius_m=radius_m, coverage_m=coverage_m,
+        density_radius_m=density_radius_m, partner_probability=partner_probability, shifts_m=shifts_m,
+    )[0]  # fmt: skip
+
+
+def verify_alignments(
+    tree_a: LabelledTree,
+    tree_b: LabelledTree,
+    T_stack: np.ndarray,
+    *,
+    radius_m: float,
+    coverage_m: float,
+    density_radius_m: float,
+    partner_probability: float,
+    shifts_m: np.ndarray | None = None,
+) -> list[Verification]:
+    """``verify_alignment`` of each of (H, 4, 4) hypotheses; the overlap queries of all hypotheses are
+    stacked into one query per tree (a point's nearest neighbour does not depend on the other points)."""
+    h, n_a, n_b = len(T_stack), len(tree_a), len(tree_b)
+    pb = [transform(T, tree_b.positions_xyz) for T in T_stack]
+    pa_in_b = [(tree_a.positions_xyz - T[:3, 3]) @ T[:3, :3] for T in T_stack]  # B's trees are reused
+    inside_b = _within(tree_a.any, pb, coverage_m).reshape(h, n_b)
+    inside_a = _within(tree_b.any, pa_in_b, coverage_m).reshape(h, n_a)
     reach = density_radius_m
     if shifts_m is not None and len(shifts_m):
         reach = max(reach, float(np.linalg.norm(shifts_m, axis=1).max()) + radius_m)
-    near = cKDTree(embed(pb, tree_b.label_ids)).sparse_distance_matrix(tree_a.same, reach, output_type="ndarray")
-    i_b, j_a, d = near["i"].astype(np.int64), near["j"].astype(np.int64), near["v"]
+    near = [
+        cKDTree(embed(p, tree_b.label_ids)).sparse_distance_matrix(tree_a.same, reach, output_type="ndarray")
+        for p in pb
+    ]
+    # the hypotheses' graphs side by side: B's node i of hypothesis k is k * N_b + i (A's likewise), so
+    # every step below works on all hypotheses at once and, per hypothesis, as on one
+    hyp = np.repeat(np.arange(h), [x.size for x in near])
+    i_b = np.concatenate([x["i"] for x in near]).astype(np.int64) + hyp * n_b
+    j_a = np.concatenate([x["j"] for x in near]).astype(np.int64) + hyp * n_a
+    d = np.concatenate([x["v"] for x in near])
     pairs, dist = _partners_from_near(i_b, j_a, d, radius_m)
-    res_a = np.full(n_a, np.inf)
-    res_b = np.full(n_b, np.inf)
+    res_a = np.full(h * n_a, np.inf)
+    res_b = np.full(h * n_b, np.inf)
     res_a[pairs[:, 0]] = res_b[pairs[:, 1]] = dist
-    sup_a, sup_b = np.isfinite(res_a), np.isfinite(res_b)
-    inside_b = np.isfinite(tree_a.any.query(pb, k=1, distance_upper_bound=coverage_m)[0])
-    inside_a = np.isfinite(tree_b.any.query(pa_in_b, k=1, distance_upper_bound=coverage_m)[0])
     dense = d <= density_radius_m
-    near_b = np.bincount(i_b[dense], minlength=n_b)
-    near_a = np.bincount(j_a[dense], minlength=n_a)
+    near_b = np.bincount(i_b[dense], minlength=h * n_b).reshape(h, n_b)
+    near_a = np.bincount(j_a[dense], minlength=h * n_a).reshape(h, n_a)
     hits_b = hits_a = None
     if shifts_m is not None:
-        offsets = tree_a.positions_xyz[j_a] - pb[i_b]  # (P, 3) in A's frame
-        hits_b, hits_a = _shifted_hits_both(offsets, i_b, j_a, n_b, n_a, shifts_m, radius_m)
+        offsets = tree_a.positions_xyz[j_a - hyp * n_a] - np.concatenate(pb)[i_b]  # (P, 3) in A's frame
+        hits_b, hits_a = _shifted_hits_both(offsets, i_b, j_a, h * n_b, h * n_a, shifts_m, radius_m)
+    res_a, res_b = res_a.reshape(h, n_a), res_b.reshape(h, n_b)
     args = (radius_m, density_radius_m, partner_probability)
-    llr_b, chance_b = _direction_llr(res_b, inside_b, near_b, *args, hits_b, tree_b.label_ids)
-    llr_a, _ = _direction_llr(res_a, inside_a, near_a, *args, hits_a, tree_a.label_ids)
-    contradictions = int((inside_b & ~sup_b).sum() + (inside_a & ~sup_a).sum())
-    return Verification(
-        support=int(pairs.shape[0]), overlap_a=int(inside_a.sum()), overlap_b=int(inside_b.sum()),
-        contradictions=contradictions, expected_chance=chance_b, llr=min(llr_a, llr_b), pairs=pairs,
-    )  # fmt: skip
+    llr_b = _direction_llrs(res_b, inside_b, near_b, *args, hits_b, tree_b.label_ids)
+    llr_a = _direction_llrs(res_a, inside_a, near_a, *args, hits_a, tree_a.label_ids)
+    contradictions = (inside_b & ~np.isfinite(res_b)).sum(axis=1) + (inside_a & ~np.isfinite(res_a)).sum(axis=1)
+    of = pairs[:, 1] // max(n_b, 1)  # pairs come by hypothesis, then B's row
+    rows = np.split(pairs - of[:, None] * np.array([n_a, n_b]), np.cumsum(np.bincount(of, minlength=h))[:-1])
+    return [
+        Verification(
+            support=int(rows[k].shape[0]), overlap_a=int(inside_a[k].sum()), overlap_b=int(inside_b[k].sum()),
+            contradictions=int(contradictions[k]), expected_chance=llr_b[k][1], llr=min(llr_a[k][0], llr_b[k][0]),
+            pairs=rows[k],
+        )
+        for k in range(h)
+    ]  # fmt: skip
+
+
+def _within(tree: cKDTree, points: list[np.ndarray], radius_m: float) -> np.ndarray:
+    """(sum of N,) bool: each of the stacked (N, 3) point sets' points has a tree point within ``radius_m``."""
+    return np.isfinite(tree.query(np.concatenate(points), k=1, distance_upper_bound=radius_m)[0])
 
 
 def _partners_from_near(
@@ -273,7 +371,7 @@ def _partners_from_near(
     close = d <= radius_m
     i_b, j_a, d = i_b[close], j_a[close], d[close]
     order = np.lexsort((j_a, d, i_b))  # by B node, then distance (ties: lower A row, as a KD-tree query)
-    first = order[np.unique(i_b[order], return_index=True)[1]]
+    first = order[first_indices(i_b[order])]
     keep = _one_to_one(j_a[first], i_b[first], d[first])
     rows = np.stack([j_a[first][keep], i_b[first][keep]], axis=1).astype(np.int64).reshape(-1, 2)
     return rows, d[first][keep]

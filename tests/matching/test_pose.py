@@ -107,3 +107,12 @@ def test_spread_detects_degenerate_inliers():
     square = np.array([[0, 0, 0], [20, 0, 0], [0, 0, 20], [20, 0, 20]], float)
     assert spread_m(square) > 19
     assert spread_m(square[:1]) == 0.0
+
+
+def test_median_equals_np_median():
+    from shgm_slam.matching.pose import _median
+
+    rng = np.random.default_rng(0)
+    for size in range(1, 40):
+        values = rng.lognormal(size=size)
+        assert _median(values) == np.median(values)

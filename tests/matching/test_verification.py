@@ -10,7 +10,17 @@ from shgm_slam.config import DescriptorConfig, MatchingConfig
 from shgm_slam.geometry.se3 import inverse, make_pose, pose_error, rot_z
 from shgm_slam.labels import Label
 from shgm_slam.matching import match_graphs
-from shgm_slam.matching.verification import LabelledTree, verify_alignment
+from shgm_slam.matching.verification import (
+    LabelledTree,
+    _one_to_one,
+    label_chance,
+    nearest_same_label,
+    partner_pairs,
+    partner_pairs_stack,
+    shift_vectors,
+    verify_alignment,
+    verify_alignments,
+)
 
 from .synthetic import graph_of
 
@@ -121,3 +131,57 @@ def test_chance_expectation_grows_with_density():
                                  partner_probability=0.4)  # fmt: skip
         assert right.support == num and right.llr > v.llr
     assert expected[0] < expected[1] < expected[2]
+
+
+def _label_chance_per_label(hits, label_ids, inside, prior):
+    """``label_chance`` label by label (the definition)."""
+    out = prior.copy()
+    for label in np.unique(label_ids[inside]):
+        rows = np.flatnonzero(inside & (label_ids == label))
+        best = np.sort(hits[:, rows].sum(axis=1))[-2]
+        out[rows] = np.maximum(prior[rows], (best + prior[rows]) / (rows.size + 1.0))
+    return out
+
+
+def test_label_chance_equals_the_per_label_loop():
+    rng = np.random.default_rng(3)
+    for trial in range(200):
+        n, shifts = int(rng.integers(1, 80)), int(rng.integers(2, 30))
+        hits = rng.random((shifts, n)) < rng.random()
+        labels = rng.integers(0, 19 if trial % 2 else 3, n)
+        inside = rng.random(n) < rng.random()
+        prior = rng.random(n) * rng.random()
+        expected = _label_chance_per_label(hits, labels, inside, prior)
+        np.testing.assert_array_equal(label_chance(hits, labels, inside, prior), expected)
+
+
+def test_partner_pairs_of_a_stack_equal_one_query_per_hypothesis():
+    rng = np.random.default_rng(4)
+    pos_a, lab_a = rng.uniform(0, 40, (60, 3)) * [1.0, 1.0, 0.1], rng.integers(0, 3, 60)
+    tree_a = LabelledTree(pos_a, lab_a)
+    lab_b = lab_a[:45]
+    mapped = pos_a[None, :45] + rng.normal(0, 1.5, (5, 45, 3))
+    for (pairs, dist), points in zip(partner_pairs_stack(tree_a, mapped, lab_b, 3.0), mapped, strict=True):
+        d_b, j_a = nearest_same_label(tree_a, points, lab_b, 3.0)  # one query per hypothesis
+        close = np.flatnonzero(np.isfinite(d_b))
+        keep = _one_to_one(j_a[close], close, d_b[close])
+        assert 10 < pairs.shape[0] == keep.size
+        np.testing.assert_array_equal(pairs, np.stack([j_a[close][keep], close[keep]], axis=1))
+        np.testing.assert_array_equal(dist, d_b[close][keep])
+        np.testing.assert_array_equal(partner_pairs(tree_a, points, lab_b, 3.0)[0], pairs)
+
+
+def test_verifying_a_stack_equals_verifying_one_hypothesis_at_a_time():
+    rng = np.random.default_rng(5)
+    pos_a, lab_a = rng.uniform(0, 80, (70, 3)) * [1.0, 1.0, 0.1], rng.integers(0, 4, 70)
+    pos_b, lab_b = pos_a[20:] + rng.normal(0, 0.8, (50, 3)), lab_a[20:]
+    tree_a, tree_b = LabelledTree(pos_a, lab_a), LabelledTree(pos_b, lab_b)
+    Ts = np.stack([make_pose(rot_z(0.1 * k), [2.0 * k, -k, 0.0]) for k in range(4)])
+    args = dict(radius_m=3.0, coverage_m=10.0, density_radius_m=15.0, partner_probability=0.4,
+                shifts_m=shift_vectors(np.array([0.0, 0.0, 1.0])))  # fmt: skip
+    for v, T in zip(verify_alignments(tree_a, tree_b, Ts, **args), Ts, strict=True):
+        one = verify_alignment(tree_a, tree_b, T, **args)
+        assert (v.support, v.overlap_a, v.overlap_b, v.contradictions) == (
+            one.support, one.overlap_a, one.overlap_b, one.contradictions)  # fmt: skip
+        assert v.llr == one.llr and v.expected_chance == one.expected_chance
+        np.testing.assert_array_equal(v.pairs, one.pairs)
