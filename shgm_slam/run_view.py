@@ -38,14 +38,17 @@ class _RobotState:
 
 def fused_positions(front: RobotFrontend, server: MapServer, frames: np.ndarray) -> np.ndarray:
     """(F, 3) fused camera positions (shared frame) of ``front``'s frames ``frames``: each frame rides on
-    its last keyframe's correction; NaN rows for frames of unplaced segments or before a first keyframe."""
+    its last keyframe's correction (the server's latest keyframe of the segment for keyframes still on their
+    way to it, or waiting their turn there); NaN rows for frames of unplaced segments or before a first
+    keyframe."""
     out = np.full((frames.size, 3), np.nan)
     seg_of, kf_of = front.frame_segment[frames], front.frame_kf[frames]
     for seg in front.segments:
+        held = min(seg.num_keyframes, server.received(seg.agent))
         rows = np.flatnonzero((seg_of == seg.index) & (kf_of >= 0) & (kf_of < seg.num_keyframes))
-        if not rows.size:
+        if not rows.size or not held:
             continue
-        kfs, inverse = np.unique(kf_of[rows], return_inverse=True)
+        kfs, inverse = np.unique(np.minimum(kf_of[rows], held - 1), return_inverse=True)
         T_shared_kf = server.T_shared_kf_at(seg.agent, kfs)
         if T_shared_kf is None:
             continue

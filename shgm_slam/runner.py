@@ -300,6 +300,7 @@ def run_slam(
     server_node = ServerNode(
         cfg, InProcessTransport(bus), out_dir, reference=names[0], expect=len(names), journal=journal,
         write_every_keyframes=write_every_keyframes, stale_after_s=float("inf"),  # one process: never silent
+        order_keyframes=False,  # interleave() steps the robots in the server's keyframe order already
     )  # fmt: skip
     nodes = {r: RobotNode(f, InProcessTransport(bus)) for r, f in fronts.items()}
     for node in nodes.values():

@@ -240,6 +240,9 @@ def test_interleave_orders_robots_by_time() -> None:
 
     order = list(interleave({"a": Seq([100.0, 100.2, 100.4]), "b": Seq([0.0, 0.1, 0.3])}))
     assert order == [("a", 0), ("b", 0), ("b", 1), ("a", 1), ("b", 2), ("a", 2)]
+    # equal times: the first robot (the reference), then the others by name, as the map server orders them
+    ties = list(interleave({"m": Seq([0.0, 1.0]), "z": Seq([5.0, 6.0]), "a": Seq([0.0, 1.0])}))
+    assert ties == [("m", 0), ("a", 0), ("z", 0), ("m", 1), ("a", 1), ("z", 1)]
 
 
 def test_saved_recording_holds_the_run(tiny_scenario: Path, tmp_path: Path) -> None:

@@ -136,6 +136,9 @@ class ServerNode:
         write_every_keyframes: rewrite the results folder this often (0: only at the end), and less often
             when a rewrite would take more than ``CHECKPOINT_SHARE`` of the time since the last one.
         connect_wait_s: with ``expect``, how long keyframes wait for expected robots not connected yet.
+        order_keyframes: take keyframes in one time order over all robots (``ordering``); off where the
+            caller already sends them in that order (``shgm-slam run`` steps its robots so,
+            ``data.interleave``), so each keyframe reaches the map at once.
         clock: monotonic seconds (tests pass a fake).
     """
 
@@ -153,6 +156,7 @@ class ServerNode:
         correction_every_s: float = 0.5,
         write_every_keyframes: int = 50,
         connect_wait_s: float = CONNECT_WAIT_S,
+        order_keyframes: bool = True,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.cfg = cfg
@@ -166,6 +170,7 @@ class ServerNode:
         self.write_every_keyframes = write_every_keyframes
         self.clock = clock
         self.connect_wait_s = connect_wait_s
+        self.order_keyframes = order_keyframes
         self._order = KeyframeOrder()  # keyframes that arrived, waiting for their turn
         self.session = uuid.uuid4().hex[:16]
         self.map: MapServer | None = None
@@ -279,7 +284,7 @@ class ServerNode:
                 log.debug("%s from %s session %s ignored (not its current session)", kind, robot, msg.session)
             return (robot if rs is not None else None), []
         self._heard(rs, now)
-        if live and isinstance(msg, KeyframeMessage) and rs.start_s is not None:
+        if live and self.order_keyframes and isinstance(msg, KeyframeMessage) and rs.start_s is not None:
             self._offer(rs, msg, payload)
             return robot, []
         if isinstance(msg, DoneMessage):
