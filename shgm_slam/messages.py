@@ -26,8 +26,9 @@ class HelloMessage:
     process start: a hello with a new session under a known name is a restart (resume) if the old
     session went silent, else a clash. ``resync``: the robot missed a correction and asks for a full one.
     ``start_s``: the timestamp of its sequence's first frame (s); ``progress_s``: how far it has got, in
-    seconds since that first frame (None before its first frame): every keyframe it makes of frames up to
-    there has been sent (the map server takes keyframes of all robots in this time order)."""
+    seconds since that first frame (None before its first frame): every keyframe it made of frames up to
+    there has arrived at the map server session ``server_session`` ("" = none known yet), by that server's
+    acknowledgements (the map server takes keyframes of all robots in this time order)."""
 
     robot: str
     session: str
@@ -35,6 +36,7 @@ class HelloMessage:
     resync: bool = False
     start_s: float = 0.0
     progress_s: float | None = None
+    server_session: str = ""
 
 
 @dataclass(frozen=True)

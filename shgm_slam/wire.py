@@ -397,7 +397,8 @@ def _encode_fields(msg: Message) -> dict[str, Any]:
         return {"k": MessageKind.HELLO, "r": _robot(msg.robot, "hello robot"),
                 "s": _session(msg.session, "hello session"), "n": _int(msg.num_frames, "hello num_frames"),
                 "y": _bool(msg.resync, "hello resync"), "b": _float(msg.start_s, "hello start_s"),
-                "p": None if msg.progress_s is None else _progress(msg.progress_s)}  # fmt: skip
+                "p": None if msg.progress_s is None else _progress(msg.progress_s),
+                "g": _session(msg.server_session, "hello server_session")}  # fmt: skip
     if isinstance(msg, KeyframeMessage):
         g = msg.graph_update
         T = np.asarray(msg.T_odom_kf, dtype=np.float64)
@@ -472,7 +473,7 @@ def encode(msg: Message) -> bytes:
 # --- decode -----------------------------------------------------------------------------------------
 
 _KEYS = {
-    MessageKind.HELLO: ("r", "s", "n", "y", "b", "p"),
+    MessageKind.HELLO: ("r", "s", "n", "y", "b", "p", "g"),
     MessageKind.KEYFRAME: ("r", "s", "i", "f", "t", "T", "u", "gk", "gT", "gn", "gu"),
     MessageKind.DONE: ("r", "s", "c", "j"),
     MessageKind.CORRECTION: ("r", "s", "c", "q", "F", "A"),
@@ -485,7 +486,8 @@ def _decode_fields(kind: MessageKind, f: _Fields) -> Message:
     if kind is MessageKind.HELLO:
         return HelloMessage(_robot(d["r"], "hello robot"), _session(d["s"], "hello session"),
                             _int(d["n"], "hello num_frames"), _bool(d["y"], "hello resync"),
-                            _float(d["b"], "hello start_s"), None if d["p"] is None else _progress(d["p"]))  # fmt: skip
+                            _float(d["b"], "hello start_s"), None if d["p"] is None else _progress(d["p"]),
+                            _session(d["g"], "hello server_session"))  # fmt: skip
     if kind is MessageKind.KEYFRAME:
         T = _unpack_poses(f.raw("T", _POSE_BYTES, 1), 1, "keyframe T_odom_kf")[0]
         raw_world = f.raw("gT", _POSE_BYTES, 1, nullable=True)

@@ -123,7 +123,7 @@ class RobotNode:
 
     def _hello_message(self) -> HelloMessage:
         return HelloMessage(self.name, self.session, len(self.front.sequence), self._resync, self._start_s,
-                            self.progress_s())  # fmt: skip
+                            self.progress_s(), self.server_session or "")  # fmt: skip
 
     def progress_s(self) -> float | None:
         """How far the server holds this robot's keyframes, in seconds since its first frame: the last frame

@@ -320,7 +320,7 @@ class ServerNode:
             log.info("%s connected (session %s)%s", msg.robot, msg.session, ref)
         self._refused.pop(msg.robot, None)
         rs.start_s = msg.start_s
-        if live and msg.progress_s is not None:
+        if live and msg.progress_s is not None and msg.server_session == self.session:  # (not a dead server's)
             rs.progress_s = max(msg.progress_s, rs.progress_s or 0.0)
         self._heard(rs, now)
         if new_session:
@@ -362,7 +362,12 @@ class ServerNode:
         progress: dict[str, float | None] = {}
         if not flush:
             for rs in self.robots.values():
-                waited = rs.state is RobotState.ACTIVE and rs.done is None
+                if rs.done is None:
+                    waited = rs.state is RobotState.ACTIVE
+                else:  # done, but keyframes are missing (e.g. lost with a killed server): it re-sends them
+                    waited = now - rs.last_heard_s <= self.stale_after_s and any(
+                        self._map().received(a) + self._order.held(a) < n for a, n in rs.done.keyframes.items()
+                    )
                 progress[rs.name] = rs.progress_s if waited else float("inf")
             missing = (self.expect or 0) - len(self.robots)
             if missing > 0 and now - self._started_s < self.connect_wait_s:

@@ -119,3 +119,64 @@ def test_a_robot_reports_progress_only_up_to_what_the_server_acknowledged(robots
     server.publish(correction_key("car1"), encode(CorrectionMessage("car1", node.session, {"car1": n})))
     node.poll()
     assert node.progress_s() == t[11]  # everything acknowledged: the last frame processed
+
+
+def _journal_keyframes(path: Path) -> list[tuple[str, int]]:
+    from shgm_slam.server.journal import Journal
+    from shgm_slam.wire import decode
+
+    out = []
+    for payload in Journal(path).replay():
+        m = decode(payload)
+        if isinstance(m, KeyframeMessage):
+            out.append((m.robot, m.kf_index))
+    return out
+
+
+def test_the_order_holds_across_a_server_killed_while_a_finished_robot_waited(robots, cfg, tmp_path: Path) -> None:
+    """car1 runs its whole sequence and says it is done while car2 is half-way: the server queues car1's
+    later keyframes (car2 may still send earlier ones) and dies. The restarted server must wait for car1's
+    re-sent keyframes instead of taking car2's first: the journal ends up in the uninterrupted order."""
+    n1, n2 = len(robots["car1"]), len(robots["car2"])
+
+    def run(out: Path, kill: bool) -> list[tuple[str, int]]:
+        clock, bus = FakeClock(), InProcessBus()
+        server = ServerNode(cfg, InProcessTransport(bus), out, expect=2, reference="car1", clock=clock)
+        nodes = fresh(robots, cfg, bus, clock)
+        half = n2 // 2
+        for i in range(n1):  # car1 all the way, car2 half-way, in step
+            for r in ("car1", "car2") if i < half else ("car1",):
+                nodes[r].step(i)
+                clock.t += 0.01
+                server.poll()
+                nodes[r].poll()
+        nodes["car1"].done()
+        clock.t += 0.01
+        server.poll()
+        if kill:
+            assert len(server._order) > 0  # car1's keyframes past car2's progress wait their turn
+            server.transport.close()
+            clock.t += 1.0
+            server = ServerNode(cfg, InProcessTransport(bus), out, expect=2, reference="car1", clock=clock)
+        for i in range(half, n2):
+            nodes["car2"].step(i)
+            clock.t += 0.05
+            server.poll()
+            for n in nodes.values():
+                n.heartbeat()
+                n.poll()
+        nodes["car2"].done()
+        for _ in range(200):
+            clock.t += 0.25
+            server.poll()
+            for n in nodes.values():
+                n.heartbeat()
+                n.poll()
+            if server.finished:
+                break
+        assert server.finished
+        return _journal_keyframes(out / "journal.bin")
+
+    plain = run(tmp_path / "plain", kill=False)
+    killed = run(tmp_path / "killed", kill=True)
+    assert killed == plain
