@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import os
 import signal
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
@@ -443,7 +445,20 @@ def _stop_signals_as_interrupt():
         yield
     finally:
         for sig, handler in previous.items():
-            signal.signal(sig, handler)
+            signal.signal(sig, _late_stop if _OWN_PROCESS else handler)
+
+
+_OWN_PROCESS = False
+"""True when this module's ``main`` runs the process (the ``shgm-slam`` command), not a test calling it."""
+
+
+def _late_stop(_signum, _frame) -> None:
+    """A stop signal after the results are written (the summary printed, the process exiting): end now
+    with the interrupted exit code instead of dying by the signal mid-shutdown."""
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(130)
 
 
 @app.command("server")
@@ -1060,5 +1075,12 @@ def bench_table3(
     console.print(f"wrote {lit(json_path)} and {lit(md_path)} ({results.wall_s:.0f} s)")
 
 
-if __name__ == "__main__":
+def main() -> None:
+    """The ``shgm-slam`` command (``python -m shgm_slam.cli``)."""
+    global _OWN_PROCESS
+    _OWN_PROCESS = True
     app()
+
+
+if __name__ == "__main__":
+    main()

@@ -45,3 +45,21 @@ def test_a_stop_signal_at_any_moment_keeps_the_results(tiny_scenario: Path, sig:
             assert json.loads(metrics.read_text())["interrupted"] is (proc.returncode == 130)
             for robot in ("car1", "car2"):
                 assert (out / f"{robot}_odometry_tum.txt").is_file()
+
+
+def test_a_stop_signal_after_the_run_ended_exits_as_interrupted_not_killed() -> None:
+    """Once the results are written and the command returns, a SIGTERM/SIGHUP during the process's
+    shutdown ends it with 130 (interrupted) instead of killing it by the signal."""
+    code = (
+        "import os, signal, time\n"
+        "import shgm_slam.cli as cli\n"
+        "cli._OWN_PROCESS = True\n"
+        "with cli._stop_signals_as_interrupt():\n"
+        "    pass\n"
+        "print('done', flush=True)\n"
+        "os.kill(os.getpid(), signal.SIGHUP)\n"
+        "time.sleep(30)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 130, proc.stderr[-2000:]
+    assert proc.stdout.strip() == "done"
