@@ -365,8 +365,8 @@ class ServerNode:
                 if rs.done is None:
                     waited = rs.state is RobotState.ACTIVE
                 else:  # done, but keyframes are missing (e.g. lost with a killed server): it re-sends them
-                    waited = now - rs.last_heard_s <= self.stale_after_s and any(
-                        self._map().received(a) + self._order.held(a) < n for a, n in rs.done.keyframes.items()
+                    waited = now - rs.last_heard_s <= self.stale_after_s and not rs.complete(
+                        self._map(), self._order.held
                     )
                 progress[rs.name] = rs.progress_s if waited else float("inf")
             missing = (self.expect or 0) - len(self.robots)
@@ -432,9 +432,8 @@ class ServerNode:
             seq = rs.view.seq + 1 if changes or full else 0
             rs.corrected_version = self._pose_version
             self._last_correction_s[robot] = now
-        received = {a: server.received(a) + self._order.held(a) for a in agents}  # queued ones are held too
-        received |= {a: self._order.held(a) for a in self._order.agents() if agent_robot(a)[0] == robot
-                     and a not in received}  # fmt: skip
+        queued = [a for a in self._order.agents() if agent_robot(a)[0] == robot and a not in agents]
+        received = {a: server.received(a) + self._order.held(a) for a in agents + queued}  # queued ones held too
         msg = CorrectionMessage(robot, rs.session, received, seq, full, changes)
         rs.view.apply(msg)
         payload = encode(msg)

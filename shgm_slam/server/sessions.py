@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from shgm_slam.corrections import FusedView
@@ -26,6 +27,9 @@ class RobotSession:
     start_s: float | None = None  # its sequence's first timestamp (from its hellos; not kept in snapshots)
     progress_s: float | None = None  # how far it has got, seconds since start_s (hellos and keyframes)
 
-    def complete(self, server: MapServer) -> bool:
-        """True when the robot said it is done and every keyframe it sent has arrived."""
-        return self.done is not None and all(server.received(a) >= n for a, n in self.done.keyframes.items())
+    def complete(self, server: MapServer, queued: Callable[[str], int] = lambda _agent: 0) -> bool:
+        """True when the robot said it is done and every keyframe it sent has arrived (in the map, or
+        ``queued(agent)`` more waiting for their turn)."""
+        return self.done is not None and all(
+            server.received(a) + queued(a) >= n for a, n in self.done.keyframes.items()
+        )
