@@ -23,6 +23,8 @@ from shgm_slam.odometry.kiss import KissOdometry
 from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus
 from shgm_slam.types import Frame, Intrinsics
 
+YAW_PRIOR_MIN_DEG = 1.0
+"""A step's yaw measured from image motion replaces the odometry's predicted yaw when they differ by more."""
 
 @dataclass(frozen=True)
 class OdometryEstimate:
@@ -118,7 +120,7 @@ class KissIcpSource:
         shuffle_points: bool = False,
         seed: int = 0,
         image_yaw: ImageYawEstimator | None = None,
-        prior_min_deg: float = 1.0,
+        prior_min_deg: float = YAW_PRIOR_MIN_DEG,
     ) -> None:
         if max_spacing_m is not None and max_spacing_m <= 0:
             raise ConfigError(f"odometry max_spacing_m must be > 0 or None, got {max_spacing_m}")
@@ -151,13 +153,7 @@ class KissIcpSource:
         elif self.image_yaw is not None and frame.image_rgb is not None:
             self.image_yaw.update(frame.image_rgb, frame.intrinsics.fx)  # the first frame: reference only
         T_prev = self.odometry.T_odom_cam
-        prior = None
-        if yaw_img is not None:
-            delta = self.odometry.predicted_delta
-            dyaw = yaw_img - yaw_of(delta)
-            if abs(dyaw) > self.prior_min_rad:
-                delta[:3, :3] = rot_y(dyaw) @ delta[:3, :3]
-                prior = delta
+        prior = None if yaw_img is None else yaw_prior(self.odometry.predicted_delta, yaw_img, self.prior_min_rad)
         reg = self.odometry.register(points_cam, prior)
         note = "" if reg.ok else f"frame {frame.index}: {reg.status.value} ({reg.num_points} points in range)"
         disagreement = None if yaw_img is None else yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
@@ -228,10 +224,12 @@ class VisualOdometrySource:
     image and its depth image (frames must arrive in order). Made for depth predicted by a monocular
     network, where ICP on the pseudo-LiDAR cloud stalls; the cloud itself is not used.
 
-    With ``image_yaw`` each step's turn is also measured from the images' global shift and the
-    difference is reported for the health check: when PnP fails in a sharp turn, the constant-velocity
-    prediction under-turns by up to 10°/frame (airsim-like, demo depth), which no motion limit sees.
-    ``factory`` builds a fresh ``DepthVisualOdometry`` for ``reset``.
+    With ``image_yaw`` each step's turn is also measured from the images' global shift: it replaces the
+    constant-velocity prediction's yaw (when they differ by more than ``prior_min_deg``) as PnP's initial
+    guess and as the pose kept when PnP fails (in a sharp turn, and in the first frames of a new segment,
+    the prediction alone under-turns by up to 10°/frame, airsim-like with demo depth), and the
+    difference after PnP is reported for the health check. ``factory`` builds a fresh
+    ``DepthVisualOdometry`` for ``reset``.
     """
 
     def __init__(
@@ -239,10 +237,12 @@ class VisualOdometrySource:
         odometry: DepthVisualOdometry,
         factory: Callable[[], DepthVisualOdometry] | None = None,
         image_yaw: ImageYawEstimator | None = None,
+        prior_min_deg: float = YAW_PRIOR_MIN_DEG,
     ) -> None:
         self.odometry = odometry
         self._factory = factory
         self.image_yaw = image_yaw
+        self.prior_min_rad = float(np.radians(prior_min_deg))
 
     def reset(self) -> None:
         if self._factory is None:
@@ -257,11 +257,12 @@ class VisualOdometrySource:
     ) -> OdometryEstimate:
         gray = image_gray(frame, depth_m, "visual")
         T_prev = self.odometry.T_odom_cam.copy()
-        reg = self.odometry.register(gray, depth_m, frame.intrinsics, label_ids)
+        yaw_img = None if self.image_yaw is None else self.image_yaw.update(frame.image_rgb, frame.intrinsics.fx)
+        prior = None if yaw_img is None else yaw_prior(self.odometry.predicted_delta, yaw_img, self.prior_min_rad)
+        reg = self.odometry.register(gray, depth_m, frame.intrinsics, label_ids, prior)
         note = "" if reg.ok else (
             f"frame {frame.index}: {reg.status.value} ({reg.num_tracks} tracks, {reg.num_inliers} inliers)"
         )
-        yaw_img = None if self.image_yaw is None else self.image_yaw.update(frame.image_rgb, frame.intrinsics.fx)
         first = reg.status is VisualStatus.FIRST_FRAME
         disagreement = None if yaw_img is None or first else yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
         return OdometryEstimate(reg.T_odom_cam, reg.ok, note, rotation_disagreement_deg=disagreement)
@@ -279,6 +280,17 @@ def image_gray(frame: Frame, depth_m: np.ndarray | None, kind: str) -> np.ndarra
             "(a depth model or depth/ files); use odometry kind 'kiss-icp' for clouds only"
         )
     return cv2.cvtColor(np.ascontiguousarray(frame.image_rgb), cv2.COLOR_RGB2GRAY)
+
+
+def yaw_prior(delta: np.ndarray, yaw_img_rad: float, min_rad: float) -> np.ndarray | None:
+    """(4, 4) the predicted step ``delta`` (this camera in the previous one) turned to the yaw measured from
+    image motion, or None when they differ by at most ``min_rad`` (the prediction is good enough)."""
+    dyaw = yaw_img_rad - yaw_of(delta)
+    if abs(dyaw) <= min_rad:
+        return None
+    out = np.array(delta, dtype=np.float64, copy=True)
+    out[:3, :3] = rot_y(dyaw) @ out[:3, :3]
+    return out
 
 
 def yaw_disagreement_deg(T_prev: np.ndarray, T_new: np.ndarray, yaw_img_rad: float) -> float:

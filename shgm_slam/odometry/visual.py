@@ -224,8 +224,18 @@ class DepthVisualOdometry:
         self.num_frames = 0
         self.num_references = 0
 
+    @property
+    def predicted_delta(self) -> np.ndarray:
+        """(4, 4) the constant-velocity model's next frame-to-frame motion (the last measured step), a copy."""
+        return self._T_prev_cam.copy()
+
     def register(
-        self, image_gray: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics, label_ids: np.ndarray | None = None
+        self,
+        image_gray: np.ndarray,
+        depth_m: np.ndarray,
+        intrinsics: Intrinsics,
+        label_ids: np.ndarray | None = None,
+        motion_prior: np.ndarray | None = None,
     ) -> VisualRegistration:
         """Estimate the pose of the next frame.
 
@@ -234,6 +244,9 @@ class DepthVisualOdometry:
             depth_m: (H, W) metric depth of the same frame, metres; 0 or non-finite = unknown.
             intrinsics: pinhole intrinsics of the image.
             label_ids: optional (H, W) Cityscapes train ids; ``exclude_labels`` pixels give no corners.
+            motion_prior: optional (4, 4) frame-to-frame motion (this camera in the previous one) to predict
+                with instead of the constant-velocity model's: PnP's initial guess, and the pose kept when PnP
+                fails (e.g. the step with its yaw measured from image motion, which a sharp turn needs).
 
         Returns:
             ``VisualRegistration`` with the new ``T_odom_cam`` (4, 4).
@@ -252,7 +265,7 @@ class DepthVisualOdometry:
                 f"image size changed from {self._prev_gray.shape[::-1]} to {gray.shape[::-1]} inside one sequence"
             )
 
-        T_pred = self.T_odom_cam @ self._T_prev_cam
+        T_pred = self.T_odom_cam @ (self._T_prev_cam if motion_prior is None else motion_prior)
         num_tracks = self._track(gray)
         status, num_inliers, T_new = VisualStatus.FEW_TRACKS, 0, T_pred
         if num_tracks >= self.min_inliers:

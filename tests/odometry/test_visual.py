@@ -9,7 +9,14 @@ from shgm_slam.config import OdometryConfig, OdometryKind
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry.se3 import inverse, pose_error
 from shgm_slam.metrics import ate, trajectory_length
-from shgm_slam.odometry.sources import VisualOdometrySource, choose_odometry, make_odometry, resolve_kind
+from shgm_slam.odometry.image_rotation import rot_y, yaw_of
+from shgm_slam.odometry.sources import (
+    VisualOdometrySource,
+    choose_odometry,
+    make_odometry,
+    resolve_kind,
+    yaw_prior,
+)
 from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus, backproject_pixels
 from shgm_slam.types import Frame
 from tests.odometry.corridor import INTRINSICS, path, render
@@ -198,3 +205,64 @@ def test_auto_picks_by_where_the_depth_comes_from_and_says_why(kind, from_model,
     choice = choose_odometry(kind, from_model)
     assert choice.kind is expected
     assert choice.reason.startswith("auto: ") == (OdometryKind(kind) is OdometryKind.AUTO)
+
+
+def test_a_motion_prior_replaces_the_constant_velocity_prediction_when_pnp_fails(corridor):
+    """A blank frame keeps the given prior step exactly (not the last measured motion)."""
+    vo = DepthVisualOdometry(depth_window_px=1)
+    for T in corridor[:6]:
+        vo.register(*render(T), INTRINSICS)
+    prior = np.eye(4)
+    prior[:3, :3] = rot_y(np.radians(8.0))
+    prior[:3, 3] = [0.0, 0.0, 0.7]
+    T_before = vo.T_odom_cam.copy()
+    gray, depth = render(corridor[6])
+    reg = vo.register(np.full_like(gray, 128), depth, INTRINSICS, motion_prior=prior)
+    assert reg.status is not VisualStatus.OK
+    np.testing.assert_allclose(inverse(T_before) @ reg.T_odom_cam, prior, atol=1e-9)
+
+
+def test_yaw_prior_turns_the_prediction_to_the_image_yaw_and_keeps_its_translation():
+    delta = np.eye(4)
+    delta[:3, :3] = rot_y(np.radians(2.0))
+    delta[:3, 3] = [0.1, 0.0, 1.0]
+    assert yaw_prior(delta, np.radians(2.5), np.radians(1.0)) is None  # close enough: no prior
+    prior = yaw_prior(delta, np.radians(-7.0), np.radians(1.0))
+    assert prior is not None
+    assert np.degrees(yaw_of(prior)) == pytest.approx(-7.0)
+    np.testing.assert_array_equal(prior[:3, 3], delta[:3, 3])
+    assert np.degrees(yaw_of(delta)) == pytest.approx(2.0)  # the input is not modified
+
+
+class _FixedYaw:
+    """Stands in for ``ImageYawEstimator``: every frame after the first turned by ``yaw_rad``."""
+
+    def __init__(self, yaw_rad: float) -> None:
+        self.yaw_rad, self._seen = yaw_rad, False
+
+    def reset(self) -> None:
+        self._seen = False
+
+    def update(self, image_rgb: np.ndarray, fx_px: float) -> float | None:
+        seen, self._seen = self._seen, True
+        return self.yaw_rad if seen else None
+
+
+def test_source_follows_the_image_turn_while_pnp_fails(corridor):
+    """A textureless frame in a turn: the source's pose turns by the image yaw, not by the last step's."""
+    src = make_odometry(OdometryConfig(kind=OdometryKind.VISUAL, visual_depth_window_px=1), 5)
+    assert isinstance(src, VisualOdometrySource)
+    src.image_yaw = _FixedYaw(0.0)
+    poses = []
+    for i, T in enumerate(corridor[:7]):
+        gray, depth = render(T)
+        if i == 6:
+            src.image_yaw.yaw_rad = np.radians(9.0)
+            gray = np.full_like(gray, 128)
+        frame = Frame(index=i, timestamp_s=0.1 * i, intrinsics=INTRINSICS, image_rgb=np.repeat(gray[..., None], 3, 2))
+        est = src.update(frame, np.zeros((0, 3)), depth)
+        poses.append(est.T_odom_cam)
+    assert not est.ok
+    assert np.degrees(yaw_of(inverse(poses[5]) @ poses[6])) == pytest.approx(9.0, abs=0.2)
+    assert est.rotation_disagreement_deg == pytest.approx(0.0, abs=0.2)
+
