@@ -84,6 +84,29 @@ def sparse_product(A: CsrArrays, X: CsrArrays, n_rows: int, width: int) -> CsrAr
     return indptr, unique[order] % max(width, 1), sums[order]
 
 
+def product_with_transpose(A: CsrArrays, B: CsrArrays, n_a: int, n_b: int) -> CsrArrays:
+    """``A @ B.T`` of (n_a, D) and (n_b, D) CSR arrays as (n_a, n_b) CSR arrays, bit-identical to scipy's
+    product (``sparse_product``) whatever D is.
+
+    ``B.T`` is built on the columns B uses only (compacted, ascending); columns of A that B does not use
+    point at one extra empty row. Each sum of the product gets one term per shared column, in the order of
+    A's row, so the order of ``B.T``'s rows' entries does not change any bit. Rows of B without entries
+    are fine; duplicate column indices within a row of A or B are not (Eq. 1's unit rows have none).
+    """
+    a_indptr, a_indices, a_data = A
+    b_indptr, b_indices, b_data = B
+    order = np.argsort(b_indices, kind="stable")
+    columns = b_indices[order]
+    used = unique_sorted(columns)
+    t_indptr = np.concatenate([[0], np.searchsorted(columns, used, side="right"), [columns.size]])
+    rows_b = np.repeat(np.arange(n_b), np.diff(b_indptr))[order]
+    slot = np.searchsorted(used, a_indices)
+    found = slot < used.size
+    found[found] = used[slot[found]] == a_indices[found]
+    slot[~found] = used.size  # the empty row
+    return sparse_product((a_indptr, slot, a_data), (t_indptr, rows_b, b_data[order]), n_a, n_b)
+
+
 def prepend_label_arrays(X: CsrArrays, labels: np.ndarray, dim: int) -> CsrArrays:
     """``prepend_label`` on (R, dim) CSR arrays: column c of row r moves to ``labels[r] * dim + c``."""
     indptr, indices, data = X
