@@ -14,6 +14,9 @@ from shgm_slam.errors import GraphError
 from shgm_slam.labels import NUM_CLASSES
 from shgm_slam.types import GraphArrays
 
+CsrArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""(indptr, indices, data) of a CSR matrix, without scipy's per-object overhead."""
+
 
 def check_labels(graph: GraphArrays, num_classes: int = NUM_CLASSES) -> np.ndarray:
     """The graph's (N,) int64 label ids, validated to lie in ``[0, num_classes)``.
@@ -37,6 +40,17 @@ def adjacency_matrix(graph: GraphArrays) -> sp.csr_matrix:
     Raises:
         GraphError: an edge references a row outside ``[0, N)`` or is a self loop.
     """
+    indptr, indices, data = adjacency_arrays(graph)
+    return sp.csr_matrix((data, indices, indptr), shape=(len(graph), len(graph)))  # canonical: sorted rows
+
+
+def adjacency_arrays(graph: GraphArrays) -> CsrArrays:
+    """The CSR arrays of ``adjacency_matrix`` (int64 indices, each row's columns ascending), without scipy's
+    per-matrix overhead.
+
+    Raises:
+        GraphError: an edge references a row outside ``[0, N)`` or is a self loop.
+    """
     n = len(graph)
     edges = np.asarray(graph.edges, dtype=np.int64).reshape(-1, 2)
     if edges.size and (edges.min() < 0 or edges.max() >= n):
@@ -45,11 +59,7 @@ def adjacency_matrix(graph: GraphArrays) -> sp.csr_matrix:
         raise GraphError("graph has a self-loop edge (i, i); edges must join two different nodes")
     keys = unique_sorted(np.concatenate([edges[:, 0] * n + edges[:, 1], edges[:, 1] * n + edges[:, 0]]))
     indptr = np.concatenate([[0], np.cumsum(np.bincount(keys // max(n, 1), minlength=n))])
-    return sp.csr_matrix((np.ones(keys.size), keys % max(n, 1), indptr), shape=(n, n))  # canonical: sorted rows
-
-
-CsrArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
-"""(indptr, indices, data) of a CSR matrix, without scipy's per-object overhead."""
+    return indptr, keys % max(n, 1), np.ones(keys.size)
 
 
 def csr_arrays(M: sp.csr_matrix) -> CsrArrays:

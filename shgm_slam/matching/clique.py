@@ -191,22 +191,21 @@ def _grow_clique(adjacency: np.ndarray, rows: list[int], seed: int, beat: int) -
     """
     clique = [seed]
     members = np.flatnonzero(adjacency[seed]).tolist()  # the candidates left, ascending
-    mask = rows[seed]
+    mask = rows[seed]  # the same set as bits
     while members:
         if len(clique) + len(members) <= beat:
             return []
         degree = [(rows[i] & mask).bit_count() for i in members]
         full = len(members) - 1  # adjacent to every other candidate: in any maximal clique
-        universal = [i for i, d in zip(members, degree, strict=True) if d == full]
-        if universal:
-            clique.extend(universal)
-            for i in universal:
-                mask &= ~(1 << i)
+        if full in degree:
+            clique.extend(i for i, d in zip(members, degree, strict=True) if d == full)
+            members = [i for i, d in zip(members, degree, strict=True) if d != full]
+            mask = sum(1 << i for i in members)
         else:
             v = members[degree.index(max(degree))]
             clique.append(v)
             mask &= rows[v]
-        members = [i for i in members if mask >> i & 1]
+            members = [i for i in members if mask >> i & 1]
     return clique if len(clique) > beat else []
 
 

@@ -119,9 +119,19 @@ def support_counts(
 ) -> np.ndarray:
     """(H,) nodes of B with a same-label node of A within ``radius_m`` under each of (H, 4, 4) hypotheses
     (not one-to-one: a fast screening score for many hypotheses at once)."""
-    mapped = np.einsum("hij,nj->hni", T_stack[:, :3, :3], points_b) + T_stack[:, None, :3, 3]
+    mapped = map_stack(T_stack, points_b)
     d, _ = nearest_same_label(tree_a, mapped.reshape(-1, 3), np.tile(labels_b, len(T_stack)), radius_m)
     return np.isfinite(d).reshape(len(T_stack), -1).sum(axis=1)
+
+
+def map_stack(T_stack: np.ndarray, points_xyz: np.ndarray) -> np.ndarray:
+    """(H, N, 3) the (N, 3) points mapped by each of (H, 4, 4) transforms (one einsum).
+
+    The rotations are copied to a contiguous (H, 3, 3) block first: einsum then takes a loop twice as fast as
+    on the strided view, with the same products summed in the same order (the same bits).
+    """
+    rotations = np.ascontiguousarray(T_stack[:, :3, :3])
+    return np.einsum("hij,nj->hni", rotations, points_xyz) + T_stack[:, None, :3, 3]
 
 
 def _one_to_one(rows_a: np.ndarray, rows_b: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -189,9 +199,10 @@ def label_chance(hits: np.ndarray, label_ids: np.ndarray, inside: np.ndarray, pr
     if rows.size == 0:
         return out
     labels, _, group = unique_first(label_ids[rows])
-    one_hot = group[:, None] == np.arange(labels.size)  # (R, L)
-    per_shift = hits[:, rows].astype(np.int64) @ one_hot  # (S, L) hits of each label under each shift
-    best = np.sort(per_shift, axis=0)[-2]
+    s_idx, r_idx = np.nonzero(hits[:, rows])
+    num_shifts, num_labels = hits.shape[0], labels.size
+    per_shift = np.bincount(s_idx * num_labels + group[r_idx], minlength=num_shifts * num_labels)
+    best = np.sort(per_shift.reshape(num_shifts, num_labels), axis=0)[-2]  # hits of each label under each shift
     size = np.bincount(group, minlength=labels.size)
     p = prior[rows]
     out[rows] = np.maximum(p, (best[group] + p) / (size[group] + 1.0))
