@@ -88,7 +88,7 @@ def sparse_product(A: CsrArrays, X: CsrArrays, n_rows: int, width: int) -> CsrAr
     products = np.repeat(a_data, lengths) * x_data[src]
     sums = np.bincount(inverse, weights=products, minlength=unique.size)
     out_rows = unique // max(width, 1)
-    order = np.lexsort((-first, out_rows))
+    order = np.argsort(out_rows * keys.size - first)  # by row, then last touched first (unique keys)
     order = order[sums[order] != 0]
     indptr = np.concatenate([[0], np.cumsum(np.bincount(out_rows[order], minlength=n_rows))])
     return indptr, unique[order] % max(width, 1), sums[order]

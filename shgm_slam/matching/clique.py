@@ -27,8 +27,9 @@ HYPOTHESIS_SEEDS = 48
 """``clique_hypotheses``: greedy cliques grown from this many highest-degree candidates."""
 
 
-_BLOCK_ROWS = 128
-"""Rows of the consistency matrix computed at once (keeps the float temporaries in cache)."""
+_BLOCK_ROWS = 32
+"""Rows of the consistency matrix computed at once: keeps the float temporaries in cache (32 x K float32 is
+75 kB at K = 600; blocks of 128 rows measured 10-15 % slower on a shared 1 MB L2)."""
 
 
 def pairwise_distances(points: np.ndarray) -> np.ndarray:
@@ -270,13 +271,12 @@ def clique_hypotheses(
             covered.update(clique)
     if not found:
         return []
-    cliques = [np.asarray(c, dtype=np.int64) for c in sorted(found, key=lambda c: -len(c))]
-    # one batched Eq. 2 fit: cliques padded to the largest with zero weights
-    size = cliques[0].size
-    index = np.zeros((len(cliques), size), dtype=np.int64)
-    w = np.zeros((len(cliques), size))
+    cliques = sorted(found, key=lambda c: -len(c))
+    # one batched Eq. 2 fit: cliques padded to the largest (with candidate 0) with zero weights
+    lengths = np.array([len(c) for c in cliques])
+    filled = np.arange(lengths[0])[None, :] < lengths[:, None]  # row-major: the cliques' concatenated order
+    index = np.zeros(filled.shape, dtype=np.int64)
+    index[filled] = np.concatenate(cliques)
     wc = np.ones(m) if weights is None else weights[:m]
-    for i, c in enumerate(cliques):
-        index[i, : c.size] = c
-        w[i, : c.size] = wc[c]
+    w = np.where(filled, wc[index], 0.0)
     return list(fit_pose(pb[index], pa[index], w, gravity_aligned, up))

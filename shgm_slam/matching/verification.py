@@ -232,9 +232,9 @@ def partner_pairs_stack(
     # one greedy one-to-one over all hypotheses: keys offset by hypothesis never collide across them, and
     # each hypothesis' entries keep their relative order (the selection and ties are those of one call)
     keep = _one_to_one(hyp * (len(tree_a) + 1) + row_a, close, d[close])
-    pairs = np.stack([row_a[keep], row_b[keep]], axis=1)
-    split = np.cumsum(np.bincount(hyp[keep], minlength=h))[:-1]
-    return list(zip(np.split(pairs, split), np.split(d[close][keep], split), strict=True))
+    pairs, dist = np.stack([row_a[keep], row_b[keep]], axis=1), d[close][keep]
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(hyp[keep], minlength=h))]).tolist()
+    return [(pairs[i:j], dist[i:j]) for i, j in pairwise(bounds)]
 
 
 def _direction_llrs(
@@ -358,14 +358,15 @@ def verify_alignments(
     llr_a = _direction_llrs(res_a, inside_a, near_a, *args, hits_a, tree_a.label_ids)
     contradictions = (inside_b & ~np.isfinite(res_b)).sum(axis=1) + (inside_a & ~np.isfinite(res_a)).sum(axis=1)
     of = pairs[:, 1] // max(n_b, 1)  # pairs come by hypothesis, then B's row
-    rows = np.split(pairs - of[:, None] * np.array([n_a, n_b]), np.cumsum(np.bincount(of, minlength=h))[:-1])
+    local = pairs - of[:, None] * np.array([n_a, n_b])
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(of, minlength=h))]).tolist()
+    overlap_a, overlap_b = inside_a.sum(axis=1).tolist(), inside_b.sum(axis=1).tolist()
     return [
         Verification(
-            support=int(rows[k].shape[0]), overlap_a=int(inside_a[k].sum()), overlap_b=int(inside_b[k].sum()),
-            contradictions=int(contradictions[k]), expected_chance=llr_b[k][1], llr=min(llr_a[k][0], llr_b[k][0]),
-            pairs=rows[k],
+            support=j - i, overlap_a=overlap_a[k], overlap_b=overlap_b[k], contradictions=int(contradictions[k]),
+            expected_chance=llr_b[k][1], llr=min(llr_a[k][0], llr_b[k][0]), pairs=local[i:j],
         )
-        for k in range(h)
+        for k, (i, j) in enumerate(pairwise(bounds))
     ]  # fmt: skip
 
 
