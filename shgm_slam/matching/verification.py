@@ -44,9 +44,6 @@ MAX_PARTNER_PROBABILITY = 0.95
 _LABEL_GAP_M = 1e6
 """Distance between label layers in the (x, y, z, label) embedding: same-label queries never cross."""
 
-_LAYER_GAP_M = 1e9
-"""Distance between hypothesis layers of ``near_pairs`` (beyond all label layers)."""
-
 
 @dataclass(frozen=True)
 class Verification:
@@ -334,10 +331,16 @@ def verify_alignments(
     reach = density_radius_m
     if shifts_m is not None and len(shifts_m):
         reach = max(reach, float(np.linalg.norm(shifts_m, axis=1).max()) + radius_m)
+    near = [
+        cKDTree(embed(p, tree_b.label_ids)).sparse_distance_matrix(tree_a.same, reach, output_type="ndarray")
+        for p in pb
+    ]
     # the hypotheses' graphs side by side: B's node i of hypothesis k is k * N_b + i (A's likewise), so
     # every step below works on all hypotheses at once and, per hypothesis, as on one
-    i_b, j_a, d = near_pairs(tree_a, np.stack(pb), tree_b.label_ids, reach)
-    hyp = i_b // max(n_b, 1)
+    hyp = np.repeat(np.arange(h), [x.size for x in near])
+    i_b = np.concatenate([x["i"] for x in near]).astype(np.int64) + hyp * n_b
+    j_a = np.concatenate([x["j"] for x in near]).astype(np.int64) + hyp * n_a
+    d = np.concatenate([x["v"] for x in near])
     pairs, dist = _partners_from_near(i_b, j_a, d, radius_m)
     res_a = np.full(h * n_a, np.inf)
     res_b = np.full(h * n_b, np.inf)
@@ -365,28 +368,6 @@ def verify_alignments(
         )
         for k, (i, j) in enumerate(pairwise(bounds))
     ]  # fmt: skip
-
-
-def near_pairs(
-    tree_a: LabelledTree, points_b_in_a: np.ndarray, labels_b: np.ndarray, reach_m: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Same-label pairs within ``reach_m`` between B's nodes placed by H hypotheses, (H, N_b, 3) in A's frame,
-    and A's nodes, with the hypotheses side by side: (P,) int64 B index k * N_b + i, (P,) int64 A index
-    k * N_a + j and (P,) distances in metres, in no particular order.
-
-    One sparse distance query between two trees instead of one per hypothesis: both graphs' nodes of
-    hypothesis k lie in layer k of the label coordinate (``_LAYER_GAP_M`` apart), so layers never meet,
-    and within a layer equal label coordinates cancel exactly: every distance has the bits of a query per
-    hypothesis.
-    """
-    h, n_b = points_b_in_a.shape[:2]
-    n_a = len(tree_a)
-    b = embed(points_b_in_a.reshape(-1, 3), np.tile(labels_b, h))
-    b[:, 3] += np.repeat(np.arange(h) * _LAYER_GAP_M, n_b)
-    a = np.tile(embed(tree_a.positions_xyz, tree_a.label_ids), (h, 1))
-    a[:, 3] += np.repeat(np.arange(h) * _LAYER_GAP_M, n_a)
-    near = cKDTree(b).sparse_distance_matrix(cKDTree(a), reach_m, output_type="ndarray")
-    return near["i"].astype(np.int64), near["j"].astype(np.int64), near["v"]
 
 
 def _within(tree: cKDTree, points: list[np.ndarray], radius_m: float) -> np.ndarray:

@@ -15,7 +15,6 @@ from shgm_slam.matching.verification import (
     _one_to_one,
     label_chance,
     map_stack,
-    near_pairs,
     nearest_same_label,
     partner_pairs,
     partner_pairs_stack,
@@ -197,22 +196,3 @@ def test_map_stack_has_the_bits_of_the_einsum_on_the_strided_view():
         points = rng.normal(size=(n, 3)) * 10 ** rng.uniform(-1, 4)
         direct = np.einsum("hij,nj->hni", Ts[:, :3, :3], points) + Ts[:, None, :3, 3]
         np.testing.assert_array_equal(map_stack(Ts, points), direct)
-
-
-def test_near_pairs_of_a_stack_equal_one_sparse_query_per_hypothesis():
-    from scipy.spatial import cKDTree
-
-    from shgm_slam.matching.verification import embed
-
-    rng = np.random.default_rng(7)
-    pos_a, lab_a = rng.uniform(0, 60, (80, 3)) * [1.0, 1.0, 0.1], rng.integers(0, 4, 80)
-    tree_a = LabelledTree(pos_a, lab_a)
-    lab_b = lab_a[10:70]
-    mapped = pos_a[None, 10:70] + rng.normal(0, 3.0, (5, 60, 3))
-    i_b, j_a, d = near_pairs(tree_a, mapped, lab_b, 12.0)
-    got = sorted(zip(i_b.tolist(), j_a.tolist(), d.tolist(), strict=True))
-    expected = []
-    for k, points in enumerate(mapped):
-        one = cKDTree(embed(points, lab_b)).sparse_distance_matrix(tree_a.same, 12.0, output_type="ndarray")
-        expected += zip((one["i"] + k * 60).tolist(), (one["j"] + k * 80).tolist(), one["v"].tolist(), strict=True)
-    assert len(got) > 500 and got == sorted(expected)  # the same pairs with the same distance bits
