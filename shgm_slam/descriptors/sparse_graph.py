@@ -94,9 +94,15 @@ def sparse_product(A: CsrArrays, X: CsrArrays, n_rows: int, width: int) -> CsrAr
     return indptr, unique[order] % max(width, 1), sums[order]
 
 
+SCIPY_PRODUCT_PAIRS = 100_000
+"""``product_with_transpose`` of more row pairs than this runs scipy's product (its dense accumulator beats
+sorting the traversal of big graphs; small products are dominated by scipy's per-matrix overhead)."""
+
+
 def product_with_transpose(A: CsrArrays, B: CsrArrays, n_a: int, n_b: int) -> CsrArrays:
-    """``A @ B.T`` of (n_a, D) and (n_b, D) CSR arrays as (n_a, n_b) CSR arrays, bit-identical to scipy's
-    product (``sparse_product``) whatever D is.
+    """``A @ B.T`` of (n_a, D) and (n_b, D) CSR arrays as (n_a, n_b) CSR arrays (each row's entries in any
+    order), bit-identical to scipy's product whatever D is: ``sparse_product`` up to ``SCIPY_PRODUCT_PAIRS``
+    row pairs, scipy's beyond.
 
     ``B.T`` is built on the columns B uses only (compacted, ascending); columns of A that B does not use
     point at one extra empty row. Each sum of the product gets one term per shared column, in the order of
@@ -105,6 +111,11 @@ def product_with_transpose(A: CsrArrays, B: CsrArrays, n_a: int, n_b: int) -> Cs
     """
     a_indptr, a_indices, a_data = A
     b_indptr, b_indices, b_data = B
+    if n_a * n_b > SCIPY_PRODUCT_PAIRS:
+        width = int(max(a_indices.max(initial=-1), b_indices.max(initial=-1))) + 1
+        a = sp.csr_matrix((a_data, a_indices, a_indptr), shape=(n_a, width))
+        b = sp.csr_matrix((b_data, b_indices, b_indptr), shape=(n_b, width))
+        return csr_arrays((a @ b.T).tocsr())
     order = np.argsort(b_indices, kind="stable")
     columns = b_indices[order]
     used = unique_sorted(columns)

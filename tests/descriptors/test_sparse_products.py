@@ -8,7 +8,7 @@ import pytest
 import scipy.sparse as sp
 
 from shgm_slam.config import DescriptorConfig, DescriptorKind
-from shgm_slam.descriptors import compute_descriptors, score_entries, similarity, unit_rows
+from shgm_slam.descriptors import compute_descriptors, score_entries, similarity, sparse_graph, unit_rows
 from shgm_slam.descriptors.histogram import semantic_histogram
 from shgm_slam.descriptors.sparse_graph import (
     adjacency_matrix,
@@ -102,7 +102,9 @@ def test_score_entries_equal_scipys_product_to_the_last_bit(kind, same_label_onl
         np.testing.assert_array_equal(similarity(da, db, same_label_only).toarray(), expected.toarray())
 
 
-def test_product_with_transpose_of_floats_equals_scipy_to_the_last_bit():
+@pytest.mark.parametrize("scipy_pairs", [sparse_graph.SCIPY_PRODUCT_PAIRS, 0])
+def test_product_with_transpose_of_floats_equals_scipy_to_the_last_bit(scipy_pairs, monkeypatch):
+    monkeypatch.setattr(sparse_graph, "SCIPY_PRODUCT_PAIRS", scipy_pairs)  # both ways of computing it
     rng = np.random.default_rng(3)
     for n_a, n_b, width in [(30, 25, 40), (1, 7, 5000), (12, 0, 9), (0, 4, 3), (20, 20, 1)]:
         A = sp.random(n_a, width, density=0.3, random_state=rng, format="csr")
