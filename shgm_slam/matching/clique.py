@@ -29,9 +29,8 @@ HYPOTHESIS_SEEDS = 48
 """``clique_hypotheses``: greedy cliques grown from this many highest-degree candidates."""
 
 
-_BLOCK_ROWS = 32
-"""Rows of the consistency matrix computed at once: keeps the float temporaries in cache (32 x K float32 is
-75 kB at K = 600; blocks of 128 rows measured about 10 % slower on a shared 1 MB L2)."""
+_BLOCK_ROWS = 128
+"""Rows of the consistency matrix computed at once (keeps the float temporaries in cache)."""
 
 
 def pairwise_distances(points: np.ndarray) -> np.ndarray:
@@ -161,20 +160,11 @@ def _count(adjacency: np.ndarray, axis: int) -> np.ndarray:
     return adjacency.view(np.uint8).sum(axis=axis, dtype=acc).astype(np.int64)
 
 
-def _bit_rows(adjacency: np.ndarray, needed: np.ndarray | None = None) -> list[int]:
-    """The rows of a (K, K) bool matrix as Python ints: bit j of row i is ``adjacency[i, j]``; only the
-    ``needed`` rows (ascending indices, default all) are converted, the others are 0."""
-    if needed is None:
-        needed = np.arange(adjacency.shape[0])
-    return _bit_sets(adjacency[needed], needed.tolist(), adjacency.shape[0])
-
-
-def _bit_sets(bits: np.ndarray, where: list[int], length: int) -> list[int]:
-    """Rows of an (R, K) bool matrix as Python ints (bit j of a row is its column j), placed at ``where`` in
-    a list of ``length`` (0 elsewhere)."""
+def _bit_sets(bits: np.ndarray, where: list[int], out: list[int]) -> list[int]:
+    """Rows of an (R, K) bool matrix as Python ints (bit j of a row is its column j), written to ``out`` at
+    ``where``; returns ``out``."""
     packed = np.packbits(bits, axis=1, bitorder="little")
     data, width = packed.tobytes(), packed.shape[1]
-    out = [0] * length
     for i, start in zip(where, range(0, len(data), width), strict=True):
         out[i] = int.from_bytes(data[start : start + width], "little")
     return out
@@ -223,7 +213,7 @@ def _first_steps(adjacency: np.ndarray, seeds: np.ndarray) -> tuple[list[GrowthS
     added[first] = True
     left = np.zeros((s, adjacency.shape[0]), dtype=bool)
     left[seg[keep], mem[keep]] = True
-    masks = _bit_sets(left, list(range(s)), s)
+    masks = _bit_sets(left, list(range(s)), [0] * s)
     members = _split_by(seg[keep], mem[keep], s)
     cliques = _split_by(seg[added], mem[added], s)
     states = [([seed, *c], m, mask) for seed, c, m, mask in zip(seeds.tolist(), cliques, members, masks, strict=True)]
@@ -245,7 +235,7 @@ def _grow_clique(rows: list[int], state: GrowthState, beat: int) -> list[int]:
     Gives up (returns an empty list) as soon as the clique cannot exceed ``beat`` vertices.
 
     Args:
-        rows: the (K, K) bool consistency matrix's rows as bit sets (``_bit_rows``; those of the candidates
+        rows: the (K, K) bool consistency matrix's rows as bit sets (``_bit_sets``; those of the candidates
             left are needed): a degree among the candidates left is one ``&`` and a popcount.
         state: the clique so far, the candidates left and their bits.
         beat: clique size to exceed.
@@ -266,6 +256,35 @@ def _grow_clique(rows: list[int], state: GrowthState, beat: int) -> list[int]:
             mask &= rows[v]
             members = [i for i in members if mask >> i & 1]
     return clique if len(clique) > beat else []
+
+
+def _seed_cliques(adjacency: np.ndarray, seeds: list[int]) -> list[list[int]]:
+    """The greedy cliques from ``seeds`` in order, skipping seeds inside a clique already found (they would
+    mostly regrow it); cliques of fewer than 3 candidates and repeats dropped.
+
+    The first steps (``_first_steps``) are taken for the first seed alone, then for every seed not covered
+    yet at once: when the first clique covers all other seeds (one large overlap) nothing is wasted.
+    """
+    rows = [0] * adjacency.shape[0]  # the consistency rows as bit sets, filled as the growth needs them
+    states: dict[int, GrowthState] = {}
+    seen: set[tuple[int, ...]] = set()
+    found: list[list[int]] = []
+    covered: set[int] = set()
+    for i, seed in enumerate(seeds):
+        if seed in covered:
+            continue
+        if seed not in states:
+            batch = [s for s in seeds[i:] if s not in covered][: 1 if i == 0 else None]
+            first, left = _first_steps(adjacency, np.asarray(batch))
+            states.update(zip(batch, first, strict=True))
+            _bit_sets(adjacency[left], left.tolist(), rows)  # after the first step, only the candidates left
+        clique = _grow_clique(rows, states[seed], 2)
+        key = tuple(sorted(clique))
+        if len(clique) >= 3 and key not in seen:
+            seen.add(key)
+            found.append(clique)
+            covered.update(clique)
+    return found
 
 
 def recheck_threshold_m(consistency_threshold_m: float) -> float:
@@ -293,9 +312,9 @@ def clique_hypotheses(
 
     The maximum clique is often not the true alignment on sparse, noisy graphs (a chance clique of
     repeated classes can be as large as the true one, whose size noise caps), so the matcher verifies
-    several: greedy cliques (``_first_steps``, then ``_grow_clique``) from the ``max_hypotheses`` candidates
-    of highest consistency degree, in that order, skipping seeds inside a clique already found; cliques of
-    fewer than 3 candidates and repeats dropped.
+    several: greedy cliques (``_seed_cliques``) from the ``max_hypotheses`` candidates of highest consistency
+    degree, in that order, skipping seeds inside a clique already found; cliques of fewer than 3 candidates
+    and repeats dropped.
 
     Args:
         points_b, points_a: (K, 3) candidate positions in B's and A's frames (decreasing score order).
@@ -313,20 +332,7 @@ def clique_hypotheses(
     seeds = seeds[degree[seeds] >= 2]  # by descending degree: the search stops at the first of degree < 2
     if seeds.size == 0:
         return []
-    states, left = _first_steps(adjacency, seeds)
-    rows = _bit_rows(adjacency, left)  # after the first step, a clique grows only among the candidates left
-    seen: set[tuple[int, ...]] = set()
-    found: list[list[int]] = []
-    covered: set[int] = set()
-    for seed, state in zip(seeds.tolist(), states, strict=True):
-        if seed in covered:  # it would mostly regrow a clique already found
-            continue
-        clique = _grow_clique(rows, state, 2)
-        key = tuple(sorted(clique))
-        if len(clique) >= 3 and key not in seen:
-            seen.add(key)
-            found.append(clique)
-            covered.update(clique)
+    found = _seed_cliques(adjacency, seeds.tolist())
     if not found:
         return []
     cliques = sorted(found, key=lambda c: -len(c))
