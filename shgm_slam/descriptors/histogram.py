@@ -20,9 +20,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from shgm_slam.descriptors.sparse_graph import (
+    CsrArrays,
+    adjacency_arrays,
     adjacency_matrix,
     check_labels,
-    csr_arrays,
     directed_edges,
     one_hot,
     prepend_label,
@@ -54,11 +55,10 @@ def semantic_histogram(
     if not 2 <= path_length <= 6:
         raise ValueError(f"path_length must be in [2, 6], got {path_length}")
     labels = check_labels(graph, num_classes)
-    A = adjacency_matrix(graph)
     steps = path_length - 1
     if count_backtracking or steps == 1:
-        return _walk_histogram(A, labels, steps, num_classes)
-    return _non_backtracking_histogram(A, labels, steps, num_classes)
+        return _walk_histogram(adjacency_arrays(graph), labels, steps, num_classes)
+    return _non_backtracking_histogram(adjacency_matrix(graph), labels, steps, num_classes)
 
 
 def with_own_label(
@@ -68,12 +68,13 @@ def with_own_label(
     return prepend_label(histogram, np.asarray(label_ids, dtype=np.int64), num_classes)
 
 
-def _walk_histogram(A: sp.csr_matrix, labels: np.ndarray, steps: int, num_classes: int) -> sp.csr_matrix:
-    """All walks: W_h = A @ prepend(l, W_{h-1}), W_0 = ones (every node ends a 0-step walk once)."""
-    n, dim = A.shape[0], 1
+def _walk_histogram(A: CsrArrays, labels: np.ndarray, steps: int, num_classes: int) -> sp.csr_matrix:
+    """All walks: W_h = A @ prepend(l, W_{h-1}), W_0 = ones (every node ends a 0-step walk once); ``A`` the
+    CSR arrays of the (N, N) adjacency."""
+    n, dim = labels.shape[0], 1
     W = np.arange(n + 1), np.zeros(n, dtype=np.int64), np.ones(n)  # CSR arrays of an (N, 1) column of ones
     for _ in range(steps):
-        W = sparse_product(csr_arrays(A), prepend_label_arrays(W, labels, dim), n, dim * num_classes)
+        W = sparse_product(A, prepend_label_arrays(W, labels, dim), n, dim * num_classes)
         dim *= num_classes
     return sp.csr_matrix(W[::-1], shape=(n, dim))
 

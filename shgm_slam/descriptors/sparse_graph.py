@@ -14,6 +14,9 @@ from shgm_slam.errors import GraphError
 from shgm_slam.labels import NUM_CLASSES
 from shgm_slam.types import GraphArrays
 
+CsrArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""(indptr, indices, data) of a CSR matrix, without scipy's per-object overhead."""
+
 
 def check_labels(graph: GraphArrays, num_classes: int = NUM_CLASSES) -> np.ndarray:
     """The graph's (N,) int64 label ids, validated to lie in ``[0, num_classes)``.
@@ -37,6 +40,17 @@ def adjacency_matrix(graph: GraphArrays) -> sp.csr_matrix:
     Raises:
         GraphError: an edge references a row outside ``[0, N)`` or is a self loop.
     """
+    indptr, indices, data = adjacency_arrays(graph)
+    return sp.csr_matrix((data, indices, indptr), shape=(len(graph), len(graph)))  # canonical: sorted rows
+
+
+def adjacency_arrays(graph: GraphArrays) -> CsrArrays:
+    """The CSR arrays of ``adjacency_matrix`` (int64 indices, each row's columns ascending), without scipy's
+    per-matrix overhead.
+
+    Raises:
+        GraphError: an edge references a row outside ``[0, N)`` or is a self loop.
+    """
     n = len(graph)
     edges = np.asarray(graph.edges, dtype=np.int64).reshape(-1, 2)
     if edges.size and (edges.min() < 0 or edges.max() >= n):
@@ -45,11 +59,7 @@ def adjacency_matrix(graph: GraphArrays) -> sp.csr_matrix:
         raise GraphError("graph has a self-loop edge (i, i); edges must join two different nodes")
     keys = unique_sorted(np.concatenate([edges[:, 0] * n + edges[:, 1], edges[:, 1] * n + edges[:, 0]]))
     indptr = np.concatenate([[0], np.cumsum(np.bincount(keys // max(n, 1), minlength=n))])
-    return sp.csr_matrix((np.ones(keys.size), keys % max(n, 1), indptr), shape=(n, n))  # canonical: sorted rows
-
-
-CsrArrays = tuple[np.ndarray, np.ndarray, np.ndarray]
-"""(indptr, indices, data) of a CSR matrix, without scipy's per-object overhead."""
+    return indptr, keys % max(n, 1), np.ones(keys.size)
 
 
 def csr_arrays(M: sp.csr_matrix) -> CsrArrays:
@@ -78,10 +88,44 @@ def sparse_product(A: CsrArrays, X: CsrArrays, n_rows: int, width: int) -> CsrAr
     products = np.repeat(a_data, lengths) * x_data[src]
     sums = np.bincount(inverse, weights=products, minlength=unique.size)
     out_rows = unique // max(width, 1)
-    order = np.lexsort((-first, out_rows))
+    order = np.argsort(out_rows * keys.size - first)  # by row, then last touched first (unique keys)
     order = order[sums[order] != 0]
     indptr = np.concatenate([[0], np.cumsum(np.bincount(out_rows[order], minlength=n_rows))])
     return indptr, unique[order] % max(width, 1), sums[order]
+
+
+SCIPY_PRODUCT_PAIRS = 100_000
+"""``product_with_transpose`` of more row pairs than this runs scipy's product (its dense accumulator beats
+sorting the traversal of big graphs; small products are dominated by scipy's per-matrix overhead)."""
+
+
+def product_with_transpose(A: CsrArrays, B: CsrArrays, n_a: int, n_b: int) -> CsrArrays:
+    """``A @ B.T`` of (n_a, D) and (n_b, D) CSR arrays as (n_a, n_b) CSR arrays (each row's entries in any
+    order), bit-identical to scipy's product whatever D is: ``sparse_product`` up to ``SCIPY_PRODUCT_PAIRS``
+    row pairs, scipy's beyond.
+
+    ``B.T`` is built on the columns B uses only (compacted, ascending); columns of A that B does not use
+    point at one extra empty row. Each sum of the product gets one term per shared column, in the order of
+    A's row, so the order of ``B.T``'s rows' entries does not change any bit. Rows of B without entries
+    are fine; duplicate column indices within a row of A or B are not (Eq. 1's unit rows have none).
+    """
+    a_indptr, a_indices, a_data = A
+    b_indptr, b_indices, b_data = B
+    if n_a * n_b > SCIPY_PRODUCT_PAIRS:
+        width = int(max(a_indices.max(initial=-1), b_indices.max(initial=-1))) + 1
+        a = sp.csr_matrix((a_data, a_indices, a_indptr), shape=(n_a, width))
+        b = sp.csr_matrix((b_data, b_indices, b_indptr), shape=(n_b, width))
+        return csr_arrays((a @ b.T).tocsr())
+    order = np.argsort(b_indices, kind="stable")
+    columns = b_indices[order]
+    used = unique_sorted(columns)
+    t_indptr = np.concatenate([[0], np.searchsorted(columns, used, side="right"), [columns.size]])
+    rows_b = np.repeat(np.arange(n_b), np.diff(b_indptr))[order]
+    slot = np.searchsorted(used, a_indices)
+    found = slot < used.size
+    found[found] = used[slot[found]] == a_indices[found]
+    slot[~found] = used.size  # the empty row
+    return sparse_product((a_indptr, slot, a_data), (t_indptr, rows_b, b_data[order]), n_a, n_b)
 
 
 def prepend_label_arrays(X: CsrArrays, labels: np.ndarray, dim: int) -> CsrArrays:

@@ -1,6 +1,6 @@
 """Matching candidates from descriptor scores (Eq. 1 and the first loop of Alg. 2).
 
-All node pairs are scored by one sparse product (``descriptors.similarity``); pairs scoring above
+All node pairs are scored by one sparse product (``descriptors.score_entries``); pairs scoring above
 the threshold are kept according to ``CandidateMode``: every pair (ALL, Alg. 2), the best node of A
 for each node of B (BEST, the authors' release), mutual best pairs (MUTUAL) or the k best nodes of A
 for each node of B (TOP_K, what the maximum-clique outlier rejection wants).
@@ -14,7 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from shgm_slam.config import CandidateMode, MatchingConfig
-from shgm_slam.descriptors import NodeDescriptors, similarity
+from shgm_slam.descriptors import NodeDescriptors, ScoreEntries, score_entries
 
 
 @dataclass(frozen=True)
@@ -78,8 +78,14 @@ def select_candidates(
         top_k: k of TOP_K.
     """
     S = sp.coo_matrix(scores)
-    keep = S.data > threshold
-    rows_a, rows_b, s = S.row[keep].astype(np.int64), S.col[keep].astype(np.int64), S.data[keep]
+    return select_entries((S.row.astype(np.int64), S.col.astype(np.int64), S.data), mode, threshold, top_k)
+
+
+def select_entries(entries: ScoreEntries, mode: CandidateMode, threshold: float, top_k: int = 1) -> Candidates:
+    """``select_candidates`` from the (rows_a, rows_b, scores) entries of the score matrix (any order, no
+    pair twice): the result does not depend on their order."""
+    keep = entries[2] > threshold
+    rows_a, rows_b, s = entries[0][keep], entries[1][keep], entries[2][keep]
     if s.size == 0:
         return Candidates.empty()
     if mode is CandidateMode.ALL:
@@ -102,7 +108,7 @@ MAX_FILL_PAIRS = 4_000_000
 
 
 def fill_same_label(
-    cands: Candidates, scores: sp.spmatrix, labels_a: np.ndarray, labels_b: np.ndarray, budget: int
+    cands: Candidates, scores: ScoreEntries, labels_a: np.ndarray, labels_b: np.ndarray, budget: int
 ) -> Candidates:
     """Append further same-label pairs to ``cands`` until there are ``budget`` candidates.
 
@@ -113,7 +119,7 @@ def fill_same_label(
 
     Args:
         cands: the selected candidates (kept first, in their order).
-        scores: (N_a, N_b) Eq. 1 scores (absent = 0).
+        scores: the (rows_a, rows_b, scores) entries of the (N_a, N_b) Eq. 1 scores (absent = 0).
         labels_a, labels_b: (N_a,), (N_b,) train ids.
         budget: total candidates wanted.
     """
@@ -125,7 +131,9 @@ def fill_same_label(
     rows_a, rows_b = np.nonzero(same)
     if rows_a.size == 0:
         return cands
-    s = sp.csr_matrix(scores).toarray()[rows_a, rows_b]  # dense: n_a * n_b is at most MAX_FILL_PAIRS
+    dense = np.zeros((n_a, n_b))  # n_a * n_b is at most MAX_FILL_PAIRS
+    dense[scores[0], scores[1]] = scores[2]
+    s = dense[rows_a, rows_b]
     rank = _rank_in_groups(rows_b, s, rows_a)
     order = np.lexsort((rows_a, -s, rows_b, rank))[: budget - len(cands)]
     return Candidates(
@@ -144,8 +152,8 @@ def match_candidates(
 ) -> Candidates:
     """Eq. 1 scores between two graphs' descriptors, then the candidate selection of ``cfg``; with
     ``cfg.fill_candidates`` and both graphs' (N,) train ids, filled up to ``cfg.max_candidates``."""
-    scores = similarity(a, b, same_label_only=cfg.same_label_only)
-    cands = select_candidates(scores, cfg.candidate_mode, cfg.score_threshold, cfg.top_k)
+    scores = score_entries(a, b, same_label_only=cfg.same_label_only)
+    cands = select_entries(scores, cfg.candidate_mode, cfg.score_threshold, cfg.top_k)
     if cfg.fill_candidates and labels_a is not None and labels_b is not None:
         cands = fill_same_label(cands, scores, labels_a, labels_b, cfg.max_candidates)
     return cands

@@ -67,6 +67,21 @@ def correspondence_weights(sizes_a: np.ndarray, sizes_b: np.ndarray) -> np.ndarr
     return np.clip(w / median, *WEIGHT_CLIP)
 
 
+def padded_correspondence_weights(sizes_a: np.ndarray, sizes_b: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """(B, M) ``correspondence_weights`` of B padded rows at once: row i of the (B, M) sizes holds its
+    correspondences in its first ``lengths[i]`` entries; their weights are those of
+    ``correspondence_weights`` on them (the same arithmetic, so the same bits), the padding gets 0."""
+    valid = np.arange(sizes_a.shape[1])[None, :] < lengths[:, None]
+    w = np.sqrt(np.maximum(sizes_a, 0.0) * np.maximum(sizes_b, 0.0))
+    s = np.sort(np.where(valid, w, np.inf), axis=1)  # the padding sorts last
+    rows, half = np.arange(s.shape[0]), np.minimum(lengths // 2, max(s.shape[1] - 1, 0))
+    upper, lower = s[rows, half], s[rows, np.maximum(half - 1, 0)]
+    median = np.where(lengths % 2 == 1, upper, (lower + upper) / 2.0)
+    ok = (median > 0)[:, None]
+    scaled = np.divide(w, median[:, None], out=np.ones_like(w), where=ok)  # no median: uniform
+    return np.where(valid, np.clip(scaled, *WEIGHT_CLIP), 0.0)
+
+
 def _median(values: np.ndarray) -> float:
     """``np.median`` of a non-empty 1-D array of finite values (the same arithmetic: the middle value, or
     the mean of the two middle values), without its overhead."""

@@ -119,9 +119,19 @@ def support_counts(
 ) -> np.ndarray:
     """(H,) nodes of B with a same-label node of A within ``radius_m`` under each of (H, 4, 4) hypotheses
     (not one-to-one: a fast screening score for many hypotheses at once)."""
-    mapped = np.einsum("hij,nj->hni", T_stack[:, :3, :3], points_b) + T_stack[:, None, :3, 3]
+    mapped = map_stack(T_stack, points_b)
     d, _ = nearest_same_label(tree_a, mapped.reshape(-1, 3), np.tile(labels_b, len(T_stack)), radius_m)
     return np.isfinite(d).reshape(len(T_stack), -1).sum(axis=1)
+
+
+def map_stack(T_stack: np.ndarray, points_xyz: np.ndarray) -> np.ndarray:
+    """(H, N, 3) the (N, 3) points mapped by each of (H, 4, 4) transforms (one einsum).
+
+    The rotations are copied to a contiguous (H, 3, 3) block first: einsum then takes a loop twice as fast as
+    on the strided view, with the same products summed in the same order (the same bits).
+    """
+    rotations = np.ascontiguousarray(T_stack[:, :3, :3])
+    return np.einsum("hij,nj->hni", rotations, points_xyz) + T_stack[:, None, :3, 3]
 
 
 def _one_to_one(rows_a: np.ndarray, rows_b: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -189,9 +199,10 @@ def label_chance(hits: np.ndarray, label_ids: np.ndarray, inside: np.ndarray, pr
     if rows.size == 0:
         return out
     labels, _, group = unique_first(label_ids[rows])
-    one_hot = group[:, None] == np.arange(labels.size)  # (R, L)
-    per_shift = hits[:, rows].astype(np.int64) @ one_hot  # (S, L) hits of each label under each shift
-    best = np.sort(per_shift, axis=0)[-2]
+    s_idx, r_idx = np.nonzero(hits[:, rows])
+    num_shifts, num_labels = hits.shape[0], labels.size
+    per_shift = np.bincount(s_idx * num_labels + group[r_idx], minlength=num_shifts * num_labels)
+    best = np.sort(per_shift.reshape(num_shifts, num_labels), axis=0)[-2]  # hits of each label under each shift
     size = np.bincount(group, minlength=labels.size)
     p = prior[rows]
     out[rows] = np.maximum(p, (best[group] + p) / (size[group] + 1.0))
@@ -221,9 +232,9 @@ def partner_pairs_stack(
     # one greedy one-to-one over all hypotheses: keys offset by hypothesis never collide across them, and
     # each hypothesis' entries keep their relative order (the selection and ties are those of one call)
     keep = _one_to_one(hyp * (len(tree_a) + 1) + row_a, close, d[close])
-    pairs = np.stack([row_a[keep], row_b[keep]], axis=1)
-    split = np.cumsum(np.bincount(hyp[keep], minlength=h))[:-1]
-    return list(zip(np.split(pairs, split), np.split(d[close][keep], split), strict=True))
+    pairs, dist = np.stack([row_a[keep], row_b[keep]], axis=1), d[close][keep]
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(hyp[keep], minlength=h))]).tolist()
+    return [(pairs[i:j], dist[i:j]) for i, j in pairwise(bounds)]
 
 
 def _direction_llrs(
@@ -347,14 +358,15 @@ def verify_alignments(
     llr_a = _direction_llrs(res_a, inside_a, near_a, *args, hits_a, tree_a.label_ids)
     contradictions = (inside_b & ~np.isfinite(res_b)).sum(axis=1) + (inside_a & ~np.isfinite(res_a)).sum(axis=1)
     of = pairs[:, 1] // max(n_b, 1)  # pairs come by hypothesis, then B's row
-    rows = np.split(pairs - of[:, None] * np.array([n_a, n_b]), np.cumsum(np.bincount(of, minlength=h))[:-1])
+    local = pairs - of[:, None] * np.array([n_a, n_b])
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(of, minlength=h))]).tolist()
+    overlap_a, overlap_b = inside_a.sum(axis=1).tolist(), inside_b.sum(axis=1).tolist()
     return [
         Verification(
-            support=int(rows[k].shape[0]), overlap_a=int(inside_a[k].sum()), overlap_b=int(inside_b[k].sum()),
-            contradictions=int(contradictions[k]), expected_chance=llr_b[k][1], llr=min(llr_a[k][0], llr_b[k][0]),
-            pairs=rows[k],
+            support=j - i, overlap_a=overlap_a[k], overlap_b=overlap_b[k], contradictions=int(contradictions[k]),
+            expected_chance=llr_b[k][1], llr=min(llr_a[k][0], llr_b[k][0]), pairs=local[i:j],
         )
-        for k in range(h)
+        for k, (i, j) in enumerate(pairwise(bounds))
     ]  # fmt: skip
 
 

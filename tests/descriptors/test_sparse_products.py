@@ -1,4 +1,4 @@
-"""The numpy sparse products of the descriptors equal scipy's products entry for entry, order included
+"""The numpy sparse products of the descriptors and the Eq. 1 scores equal scipy's products entry for entry
 (a row's entry order is the summation order of the Eq. 1 scores, so it decides their last bits)."""
 
 from __future__ import annotations
@@ -8,9 +8,15 @@ import pytest
 import scipy.sparse as sp
 
 from shgm_slam.config import DescriptorConfig, DescriptorKind
-from shgm_slam.descriptors import compute_descriptors, unit_rows
+from shgm_slam.descriptors import compute_descriptors, score_entries, similarity, sparse_graph, unit_rows
 from shgm_slam.descriptors.histogram import semantic_histogram
-from shgm_slam.descriptors.sparse_graph import adjacency_matrix, csr_arrays, prepend_label, sparse_product
+from shgm_slam.descriptors.sparse_graph import (
+    adjacency_matrix,
+    csr_arrays,
+    prepend_label,
+    product_with_transpose,
+    sparse_product,
+)
 from shgm_slam.types import GraphArrays
 
 
@@ -70,3 +76,43 @@ def test_sparse_product_of_floats_equals_scipy_to_the_last_bit():
         A.data, X.data = rng.normal(size=A.nnz), rng.normal(size=X.nnz)
         indptr, indices, data = sparse_product(csr_arrays(A), csr_arrays(X), 30, 25)
         _assert_same_csr(sp.csr_matrix((data, indices, indptr), shape=(30, 25)), (A @ X).tocsr())
+
+
+def _scipy_scores(ua: sp.csr_matrix, ub: sp.csr_matrix) -> sp.csr_matrix:
+    """The straightforward Eq. 1 product of unit rows with scipy (as ``similarity`` computed it before)."""
+    scores = (ua @ ub.T).tocsr()
+    scores.data = np.minimum(scores.data, 1.0)
+    scores.eliminate_zeros()
+    return scores
+
+
+@pytest.mark.parametrize("kind", list(DescriptorKind))
+@pytest.mark.parametrize("same_label_only", [True, False])
+def test_score_entries_equal_scipys_product_to_the_last_bit(kind, same_label_only):
+    cfg = DescriptorConfig(kind=kind)
+    for seed in range(8):
+        da, db = compute_descriptors(_graph(seed), cfg), compute_descriptors(_graph(seed + 100), cfg)
+        ua, ub = unit_rows(da.counts), unit_rows(db.counts)
+        if same_label_only:
+            ua, ub = prepend_label(ua, da.label_ids, 19), prepend_label(ub, db.label_ids, 19)
+        expected = _scipy_scores(ua, ub).tocoo()
+        rows_a, rows_b, scores = score_entries(da, db, same_label_only)
+        got = sorted(zip(rows_a.tolist(), rows_b.tolist(), scores.tolist(), strict=True))
+        assert got == sorted(zip(expected.row.tolist(), expected.col.tolist(), expected.data.tolist(), strict=True))
+        np.testing.assert_array_equal(similarity(da, db, same_label_only).toarray(), expected.toarray())
+
+
+@pytest.mark.parametrize("scipy_pairs", [sparse_graph.SCIPY_PRODUCT_PAIRS, 0])
+def test_product_with_transpose_of_floats_equals_scipy_to_the_last_bit(scipy_pairs, monkeypatch):
+    monkeypatch.setattr(sparse_graph, "SCIPY_PRODUCT_PAIRS", scipy_pairs)  # both ways of computing it
+    rng = np.random.default_rng(3)
+    for n_a, n_b, width in [(30, 25, 40), (1, 7, 5000), (12, 0, 9), (0, 4, 3), (20, 20, 1)]:
+        A = sp.random(n_a, width, density=0.3, random_state=rng, format="csr")
+        B = sp.random(n_b, width, density=0.05, random_state=rng, format="csr")
+        A.data, B.data = rng.normal(size=A.nnz), rng.normal(size=B.nnz)
+        indptr, indices, data = product_with_transpose(csr_arrays(A), csr_arrays(B), n_a, n_b)
+        got = sp.csr_matrix((data, indices, indptr), shape=(n_a, n_b))
+        expected = (A @ B.T).tocsr()
+        expected.eliminate_zeros()
+        got.sort_indices(), expected.sort_indices()
+        _assert_same_csr(got, expected)

@@ -97,10 +97,11 @@ def test_fill_adds_same_label_pairs_round_robin_up_to_the_budget():
 
     labels_a, labels_b = np.array([5, 5, 8, 8, 8]), np.array([8, 5, 8])
     chosen = select_candidates(sp.csr_matrix(np.zeros((5, 3))), CandidateMode.TOP_K, 0.5, 2)
-    filled = fill_same_label(chosen, sp.csr_matrix((5, 3)), labels_a, labels_b, budget=5)
+    no_scores = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    filled = fill_same_label(chosen, no_scores, labels_a, labels_b, budget=5)
     assert len(filled) == 5
     assert np.all(labels_a[filled.rows_a] == labels_b[filled.rows_b])
     assert len(set(_pairs(filled))) == 5
     assert sorted(filled.rows_b[:3].tolist()) == [0, 1, 2]  # every node of B gets its first partner first
-    again = fill_same_label(chosen, sp.csr_matrix((5, 3)), labels_a, labels_b, budget=5)
+    again = fill_same_label(chosen, no_scores, labels_a, labels_b, budget=5)
     assert _pairs(again) == _pairs(filled)

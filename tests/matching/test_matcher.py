@@ -12,6 +12,7 @@ from shgm_slam.descriptors import compute_descriptors
 from shgm_slam.errors import ConfigError, GraphError
 from shgm_slam.geometry.se3 import pose_error, transform_points
 from shgm_slam.matching import match_graphs
+from shgm_slam.matching.matcher import transform_points_each
 from shgm_slam.matching.result import TIMING_KEYS
 from shgm_slam.types import GraphArrays
 
@@ -134,3 +135,12 @@ def test_gravity_aligned_matching(overlapping):
     assert _displacement_m(r.T_a_b, T_a_b, b) < 1.0
     with pytest.raises(ConfigError, match="up_axis"):
         match_graphs(a, b, DescriptorConfig(), MatchingConfig(gravity_aligned=True, up_axis=(0.0, 0.0, 0.0)))
+
+
+def test_transform_points_each_has_the_bits_of_one_transform_at_a_time():
+    rng = np.random.default_rng(9)
+    for _ in range(200):
+        Ts = rng.normal(size=(int(rng.integers(1, 6)), 4, 4)) * 10 ** rng.uniform(-2, 3)
+        points = rng.normal(size=(int(rng.integers(1, 160)), 3)) * 10 ** rng.uniform(-1, 4)
+        expected = np.stack([transform_points(T, points) for T in Ts])
+        np.testing.assert_array_equal(transform_points_each(Ts, points), expected)

@@ -11,6 +11,7 @@ from shgm_slam.matching.pose import (
     correspondence_weights,
     fit_pose,
     one_to_one,
+    padded_correspondence_weights,
     refine_alignment,
     residuals_m,
     spread_m,
@@ -62,6 +63,19 @@ def test_gravity_aligned_fit_is_a_yaw_and_minimises_eq2_over_yaw():
         Ty = np.eye(4)
         Ty[:3, :3], Ty[:3, 3] = R, t
         assert _energy(T, p, q, w) <= _energy(Ty, p, q, w) + 1e-9
+
+
+def test_padded_weights_equal_the_weights_of_each_row():
+    rng = np.random.default_rng(8)
+    for _ in range(50):
+        b, m = int(rng.integers(1, 6)), int(rng.integers(1, 30))
+        lengths = rng.integers(0, m + 1, b)
+        sizes_a = rng.choice([0.0, -1.0, 2.0, 1e4], size=(b, m)) * rng.random((b, m)) ** int(rng.integers(0, 3))
+        sizes_b = rng.uniform(0, 1e3, (b, m)) * (rng.random((b, m)) < 0.8)
+        got = padded_correspondence_weights(sizes_a, sizes_b, lengths)
+        for row, n in enumerate(lengths):
+            np.testing.assert_array_equal(got[row, :n], correspondence_weights(sizes_a[row, :n], sizes_b[row, :n]))
+            assert not got[row, n:].any()
 
 
 def test_correspondence_weights_are_normalised_geometric_means():

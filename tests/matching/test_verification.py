@@ -14,6 +14,7 @@ from shgm_slam.matching.verification import (
     LabelledTree,
     _one_to_one,
     label_chance,
+    map_stack,
     nearest_same_label,
     partner_pairs,
     partner_pairs_stack,
@@ -185,3 +186,13 @@ def test_verifying_a_stack_equals_verifying_one_hypothesis_at_a_time():
             one.support, one.overlap_a, one.overlap_b, one.contradictions)  # fmt: skip
         assert v.llr == one.llr and v.expected_chance == one.expected_chance
         np.testing.assert_array_equal(v.pairs, one.pairs)
+
+
+def test_map_stack_has_the_bits_of_the_einsum_on_the_strided_view():
+    rng = np.random.default_rng(6)
+    for _ in range(200):
+        h, n = int(rng.integers(1, 60)), int(rng.integers(1, 160))
+        Ts = rng.normal(size=(h, 4, 4)) * 10 ** rng.uniform(-2, 3)
+        points = rng.normal(size=(n, 3)) * 10 ** rng.uniform(-1, 4)
+        direct = np.einsum("hij,nj->hni", Ts[:, :3, :3], points) + Ts[:, None, :3, 3]
+        np.testing.assert_array_equal(map_stack(Ts, points), direct)
