@@ -7,7 +7,11 @@ Two closures between the same robots, ``T_ai_bj`` (keyframe i of robot a to keyf
 
 The tolerances grow with the odometry distance inside the loop (drift). Correct closures agree with
 each other; wrong ones (perceptual aliasing) agree with nothing in particular, so the largest
-mutually consistent subset (a maximum clique of the consistency graph) is kept.
+mutually consistent subset (a maximum clique of the consistency graph) is kept. "Largest" counts
+independent evidence first: the closures one graph match is cut into (one per stretch of overlap) agree
+with each other by construction, so a set counts its distinct *sources* (matches) before its closures;
+otherwise one wrong match over a long stretch of an aliased street outvotes an earlier, independent
+right one (airsim-like RGB tuning seed 16: car2 merged 193 m off).
 
 The set is maintained incrementally per robot pair (``PairConsistency``): a new closure is tested
 against the pair's other closures only (O(n)); it joins the current set when it agrees with all of it,
@@ -149,18 +153,23 @@ def consistent_with_odometry(
 
 
 def max_consistent_set(
-    adjacency: np.ndarray, weights: np.ndarray | None = None, preferred: np.ndarray | None = None
+    adjacency: np.ndarray,
+    weights: np.ndarray | None = None,
+    preferred: np.ndarray | None = None,
+    sources: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Maximum clique of a consistency graph, ties broken for stability and evidence.
+    """Maximum clique of a consistency graph by independent evidence, ties broken for stability.
 
-    Among the cliques of maximum size, the one with the most ``preferred`` members wins (keeps the
-    established set when new evidence is only a tie), then the largest total weight, then the one
-    with the earliest members.
+    The clique with the most distinct ``sources`` wins, then the one with most members, then the one with
+    the most ``preferred`` members (keeps the established set when new evidence is only a tie), then the
+    largest total weight, then the one with the earliest members.
 
     Args:
         adjacency: (n, n) symmetric bool, True where two closures are consistent (diagonal ignored).
         weights: (n,) non-negative evidence per closure (e.g. inlier counts); ones when None.
         preferred: (n,) bool, the currently accepted closures; none when None.
+        sources: (n,) int64 id of each closure's independent source (its graph match); every closure its
+            own source when None.
 
     Returns:
         Sorted int64 indices of the chosen clique (empty only for n = 0). Exact up to
@@ -173,8 +182,19 @@ def max_consistent_set(
         return np.zeros(0, dtype=np.int64)
     w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
     pref = np.zeros(n, dtype=bool) if preferred is None else np.asarray(preferred, dtype=bool)
-    found, _ = best_clique(A, w, pref, min_size=1, budget=CLIQUE_BUDGET)
+    src = np.arange(n) if sources is None else np.asarray(sources, dtype=np.int64)
+    found, _ = best_clique(A, w, pref, min_size=1, budget=CLIQUE_BUDGET, sources=src)
     return found
+
+
+def clique_score(members: np.ndarray, weights: np.ndarray, preferred: np.ndarray, sources: np.ndarray) -> tuple:
+    """Rank of a clique (larger is better): (distinct sources, members, preferred members, total weight,
+    earliest members first), for the (k,) int ``members`` of (m,) ``weights``, ``preferred`` and ``sources``."""
+    mem = np.sort(np.asarray(members, dtype=np.int64))
+    return (
+        int(np.unique(sources[mem]).size), int(mem.size), int(preferred[mem].sum()), float(weights[mem].sum()),
+        tuple(-int(i) for i in mem),
+    )  # fmt: skip
 
 
 def best_clique(
@@ -184,8 +204,10 @@ def best_clique(
     min_size: int,
     budget: int,
     start: np.ndarray | None = None,
+    sources: np.ndarray | None = None,
 ) -> tuple[np.ndarray | None, bool]:
-    """Best clique of at least ``min_size`` vertices by (size, preferred members, weight, earliest).
+    """Best clique of at least ``min_size`` vertices by ``clique_score`` (distinct sources, size,
+    preferred members, weight, earliest).
 
     Degree peeling first drops vertices that cannot be in such a clique, greedy cliques (from the
     highest degree and from ``start``, improved by 1-for-2 swaps) give the first bound, then branch
@@ -198,33 +220,38 @@ def best_clique(
         min_size: smallest clique of interest (>= 1).
         budget: branch-and-bound work (vertices scanned for pivots).
         start: (m,) bool clique to grow the second greedy clique from (e.g. the current set's members).
+        sources: (m,) int64 independent source of each vertex; each vertex its own when None.
 
     Returns:
         (sorted int64 indices or None when no clique reaches ``min_size``, whether the search was exact).
     """
     A = adjacency
     m = A.shape[0]
+    src_all = np.arange(m) if sources is None else np.asarray(sources, dtype=np.int64)
     alive = _peel(A, np.ones(m, dtype=bool), min_size)
     if alive.sum() < min_size:
         return None, True
+
+    def rank(mask: np.ndarray) -> tuple:
+        return clique_score(np.flatnonzero(mask), weights, preferred, src_all)
+
     greedy = _improve(A, _greedy(A, alive), alive)
     if start is not None and (start := start & alive).any():
         grown = _improve(A, _greedy(A, alive, start), alive)
-        if grown.sum() > greedy.sum():
+        if rank(grown) > rank(greedy):
             greedy = grown
-    best_size = max(min_size, int(greedy.sum()))
+    # a clique ranked above the greedy one has at least as many distinct sources, so as many members
+    best_size = max(min_size, int(np.unique(src_all[greedy]).size))
     alive = _peel(A, alive, best_size)
     idx = np.flatnonzero(alive)
     if idx.size < best_size:  # cannot happen for a clique found inside alive; be safe
         return (np.flatnonzero(greedy) if greedy.sum() >= min_size else None), True
     sub = A[np.ix_(idx, idx)]
     nbr = [int.from_bytes(r.tobytes(), "little") for r in np.packbits(sub, axis=1, bitorder="little")]
-    pref_bits = _to_bits(preferred[idx])
-    w = weights[idx]
+    w, pref, src = weights[idx], preferred[idx], src_all[idx]
 
     def score(bits: int) -> tuple:
-        mem = _members(bits)
-        return (len(mem), (bits & pref_bits).bit_count(), float(w[mem].sum()), tuple(-i for i in mem))
+        return clique_score(np.array(_members(bits), dtype=np.int64), w, pref, src)
 
     g = greedy[idx]
     best_bits = _to_bits(g) if g.sum() >= min_size else 0
@@ -234,7 +261,7 @@ def best_clique(
 
     def push(R: int, P: int, X: int) -> None:
         nonlocal left, best_bits, best
-        if R.bit_count() + P.bit_count() < best[0]:
+        if R.bit_count() + P.bit_count() < best[0]:  # members bound sources from above
             return
         left -= 1 + (P | X).bit_count()  # the pivot choice scans P and X
         if P == 0:
@@ -284,12 +311,12 @@ class PairVote:
 class PairConsistency:
     """Incremental maximum consistent set of one robot pair's closures, bounded in size.
 
-    Keeps the pair's voting closures (at most ``capacity``), their consistency adjacency and the
-    chosen set. ``add`` costs O(n) when the new closure joins the set or cannot change it; only when
-    it agrees with at least as many closures as the set holds (a larger set through it may exist) a
-    bounded search over its consistent neighbours runs. Semantics are those of
-    ``max_consistent_set`` with the current set preferred: a larger consistent set replaces the
-    current one, a tie does not.
+    Keeps the pair's voting closures (at most ``capacity``), their consistency adjacency, their
+    sources (the graph match each was cut from) and the chosen set. ``add`` costs O(n) when the new
+    closure joins the set or cannot change it; only when its consistent neighbours could form a set
+    ranked above the current one (``clique_score``: more distinct sources, then more closures) a bounded
+    search over them runs. Semantics are those of ``max_consistent_set`` with the current set preferred:
+    a better-ranked consistent set replaces the current one, a tie does not.
 
     When the pair is full, the oldest closure outside the set leaves the vote (it stays rejected);
     when every closure is in the set, the oldest one leaves (it stays accepted).
@@ -303,6 +330,7 @@ class PairConsistency:
     _A: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
     _w: np.ndarray = field(default_factory=lambda: np.zeros(0))
     _chosen: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    _src: list = field(default_factory=list)  # each voting closure's source (hashable), in ``ids`` order
 
     def __post_init__(self) -> None:
         if self.capacity < 1:
@@ -327,8 +355,11 @@ class PairConsistency:
                         self._chosen[:n].copy(), self.exact, self.searches)  # fmt: skip
 
     @classmethod
-    def from_vote(cls, vote: PairVote, capacity: int = MAX_CLOSURES_PER_PAIR) -> PairConsistency:
-        """Rebuild a pair from ``vote()``; it then votes on new closures exactly as the original would.
+    def from_vote(
+        cls, vote: PairVote, capacity: int = MAX_CLOSURES_PER_PAIR, sources: list | None = None
+    ) -> PairConsistency:
+        """Rebuild a pair from ``vote()`` and its closures' ``sources`` (in ``vote.ids`` order; each closure its
+        own when None); it then votes on new closures exactly as the original would.
 
         Raises:
             BackendError: the arrays are inconsistent (shapes, an asymmetric adjacency, more closures
@@ -347,11 +378,17 @@ class PairConsistency:
                 f"consistency vote is inconsistent ({n} closures for capacity {capacity}, or an asymmetric "
                 "adjacency, or non-finite weights)"
             )
+        src = [("closure", int(i)) for i in ids] if sources is None else list(sources)
+        if len(src) != n:
+            raise BackendError(f"consistency vote has {n} closures but {len(src)} sources")
         return cls(capacity, ids=ids.tolist(), exact=bool(vote.exact), searches=int(vote.searches),
-                   _A=A.copy(), _w=w.copy(), _chosen=chosen.copy())  # fmt: skip
+                   _A=A.copy(), _w=w.copy(), _chosen=chosen.copy(), _src=src)  # fmt: skip
 
-    def add(self, closure_id: int, consistent: np.ndarray, weight: float = 1.0) -> tuple[int, bool] | None:
-        """Add a closure given its consistency with the current ``ids`` (an (n,) bool row).
+    def add(
+        self, closure_id: int, consistent: np.ndarray, weight: float = 1.0, source: object = None
+    ) -> tuple[int, bool] | None:
+        """Add a closure given its consistency with the current ``ids`` (an (n,) bool row), its evidence
+        ``weight`` and its ``source`` (hashable: the graph match it was cut from; the closure itself when None).
 
         Returns:
             The closure that left the vote to make room, with whether it was in the set, or None.
@@ -374,29 +411,41 @@ class PairConsistency:
         self._w[n] = float(weight)
         self._chosen[n] = False
         self.ids.append(int(closure_id))
+        self._src.append(("closure", int(closure_id)) if source is None else source)
         self._select(n, row)
         return evicted
 
+    def _source_ids(self, n: int) -> np.ndarray:
+        """(n,) int64: the first ``n`` voting closures' sources numbered densely."""
+        number: dict = {}
+        return np.array([number.setdefault(x, len(number)) for x in self._src[:n]], dtype=np.int64)
+
     def _select(self, v: int, row: np.ndarray) -> None:
         S = self._chosen[:v]
-        s = int(S.sum())
-        if s == 0:
+        if not S.any():
             self._chosen[v] = True
             return
-        if row[S].all():  # joins: |S| + 1 is the largest a clique can grow by one vertex
+        if row[S].all():  # joins: a consistent closure only adds sources and members
             self._chosen[v] = True
             return
-        cand = np.flatnonzero(row)
-        if cand.size < s:  # no clique of |S| among its neighbours: S stays (it wins ties)
+        src = self._source_ids(v + 1)
+        w, pref = self._w[: v + 1], np.r_[S, False]
+        current = clique_score(np.flatnonzero(S), w, pref, src)
+        # every clique through v lies in v's consistent neighbourhood: it cannot rank above S when even all
+        # of the neighbourhood's sources and members could not
+        cand = np.r_[np.flatnonzero(row), v]
+        if (np.unique(src[cand]).size, cand.size) <= current[:2]:
             return
         self.searches += 1
-        A = self._A[np.ix_(cand, cand)]
-        found, exact = best_clique(A, self._w[cand], S[cand], s, self.budget, start=S[cand])
+        sub = self._A[np.ix_(cand, cand)].copy()
+        sub[-1, :-1] = sub[:-1, -1] = True  # v agrees with each of its neighbours
+        found, exact = best_clique(
+            sub, w[cand], pref[cand], current[0], self.budget, start=pref[cand], sources=src[cand]
+        )
         self.exact &= exact
-        if found is not None:
-            self._chosen[:v] = False
+        if found is not None and clique_score(cand[found], w, pref, src) > current:
+            self._chosen[: v + 1] = False
             self._chosen[cand[found]] = True
-            self._chosen[v] = True
 
     def _grow(self, n: int) -> None:
         cap = self._A.shape[0]
@@ -418,6 +467,7 @@ class PairConsistency:
         self._chosen[i : n - 1] = self._chosen[i + 1 : n]
         self._chosen[n - 1] = False
         del self.ids[i]
+        del self._src[i]
 
 
 def _clean(adjacency: np.ndarray) -> np.ndarray:

@@ -739,7 +739,11 @@ class MultiRobotPoseGraph:
             self._closure_noise.append(noise)
             self._information.append(info)
         cap = self.max_closures_per_pair
-        self._pairs = {pair: PairConsistency.from_vote(v, cap) for pair, v in state.pairs.items()}
+        evidence = {c.closure_id: c.evidence for c in self._closures}
+        self._pairs = {
+            pair: PairConsistency.from_vote(v, cap, [evidence[int(i)] for i in v.ids])
+            for pair, v in state.pairs.items()
+        }
         self._rebuilds, self._recoveries = int(state.rebuilds), int(state.recoveries)
         self.factorization = Factorization(state.factorization)
         self._reset_isam()
@@ -835,7 +839,7 @@ class MultiRobotPoseGraph:
             np.array([c.kf_b for c in others], dtype=np.int64),
             odom_a, odom_b, path_a, path_b, self.thresholds,
         )  # fmt: skip
-        evicted = voting.add(rec.closure_id, row, rec.num_inliers)
+        evicted = voting.add(rec.closure_id, row, rec.num_inliers, rec.evidence)
         where = f"{rec.robot_a}-{rec.robot_b}"
         if evicted is not None:
             c = self._closures[evicted[0]]

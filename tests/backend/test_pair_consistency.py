@@ -35,6 +35,43 @@ def test_incremental_set_equals_the_exact_search_after_every_closure(seed):
     assert pc.exact
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_incremental_set_equals_the_exact_search_with_closures_from_shared_matches(seed):
+    """Closures come in runs cut from one match (shared sources): the incremental set still equals the
+    exact search ranked by distinct sources first."""
+    rng = np.random.default_rng(100 + seed)
+    A = random_graph(rng, 40, 14, 0.9, 0.3)
+    w = rng.integers(1, 10, 40).astype(float)
+    src = np.cumsum(rng.random(40) < 0.4)  # runs of 1-4 closures per match
+    pc = PairConsistency()
+    for v in range(40):
+        before = pc.chosen_mask()
+        pc.add(v, A[v, :v], w[v], ("match", int(src[v])))
+        exact = max_consistent_set(A[: v + 1, : v + 1], w[: v + 1], np.r_[before, False], src[: v + 1])
+        np.testing.assert_array_equal(np.flatnonzero(pc.chosen_mask()), exact)
+    assert pc.exact
+
+
+def test_closures_of_one_match_count_once_against_independent_matches():
+    """One match cut into three mutually consistent closures (an alias along a street) does not outvote two
+    independent matches that agree; a third closure of the alias match changes nothing either."""
+    pc = PairConsistency()
+    pc.add(0, np.zeros(0, dtype=bool), 20.0, "m1")  # right
+    pc.add(1, np.array([False]), 30.0, "m2")  # alias, cut into closures 1-3
+    pc.add(2, np.array([False, True]), 30.0, "m2")
+    pc.add(3, np.array([False, True, True]), 30.0, "m2")
+    assert pc.chosen_ids == [1, 2, 3]  # three closures from one source against one: more closures win
+    pc.add(4, np.array([True, False, False, False]), 20.0, "m3")  # an independent match agrees with the first
+    assert pc.chosen_ids == [0, 4]
+    pc.add(5, np.array([False, True, True, True, False]), 30.0, "m2")
+    assert pc.chosen_ids == [0, 4]
+    # the same closures, each its own source (the old rule): the alias' closures outvote
+    old = PairConsistency()
+    for v, row in enumerate([[], [False], [False, True], [False, True, True], [True, False, False, False]]):
+        old.add(v, np.array(row, dtype=bool))
+    assert old.chosen_ids == [1, 2, 3]
+
+
 def test_a_larger_consistent_set_outvotes_the_earlier_one_and_ties_do_not():
     pc = PairConsistency()
     # closures 0, 1 agree; 2, 3 agree with each other only: a tie keeps {0, 1}

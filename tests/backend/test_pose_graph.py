@@ -310,6 +310,23 @@ def test_closures_of_one_match_do_not_confirm_each_other():
     assert pg.is_anchored("b")
 
 
+def test_one_match_cut_into_many_closures_does_not_outvote_two_independent_matches():
+    """b drives beside a's track (true offset 0): two matches agree on it; one alias match, cut into three
+    mutually consistent closures, puts b 40 m further along. The independent matches win."""
+    pg = MultiRobotPoseGraph(["a", "b"])
+    for k in range(30):
+        pg.add_keyframe("a", k, make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]))
+        pg.add_keyframe("b", k, make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]))
+    alias = make_pose(np.eye(3), [0.0, 0.0, 40.0])
+    pg.add_inter_robot_closure("a", 2, "b", 2, np.eye(4), num_inliers=15, match_id=1)
+    for k in (4, 6, 8):
+        pg.add_inter_robot_closure("a", k + 20, "b", k, alias, num_inliers=30, match_id=2)
+    pg.add_inter_robot_closure("a", 12, "b", 12, np.eye(4), num_inliers=15, match_id=3)
+    accepted = [(c.kf_a, c.kf_b) for c in pg.closures() if c.status is ClosureStatus.ACCEPTED]
+    assert accepted == [(2, 2), (12, 12)]
+    assert np.linalg.norm(pg.estimate()["b"][5][:3, 3] - [0.0, 0.0, 10.0]) < 0.5
+
+
 def test_agent_added_at_run_time_is_placed_by_closures_to_its_own_robots_earlier_segment(scene):
     """A robot's odometry fails halfway: its second segment is a new agent with an unknown frame, placed by
     closures to the first segment (the robot's own past) and to another robot, like any robot."""
