@@ -22,7 +22,7 @@ RGB_ONLY_RESULTS_DIR = Path("results/demo-rgb")
 """Default results folders: the plain and the ``--rgb-only`` demo never overwrite each other."""
 
 RGB_ONLY_MATCH_EVERY_KEYFRAMES = 5
-RGB_ONLY_MIN_MATCHES_TO_ANCHOR = 2
+"""The RGB-only demo matches twice as often (its graphs from predicted depth are noisier)."""
 
 
 def prepare_world(
@@ -68,7 +68,6 @@ def demo_config(*, rgb_only: bool = False, base: ShgmConfig | None = None) -> Sh
                 raise DataError(f"{p} is missing: train the demo models with `python tools/train_demo_models.py`")
         cfg.perception.depth_model, cfg.perception.seg_model = depth, seg
         # graphs from predicted depth and labels are noisier and alias more often (repeated city
-        # blocks): match twice as often and anchor a robot only when two matches agree
+        # blocks): match twice as often (two agreeing matches to anchor is the default for predicted depth)
         cfg.backend.match_every_keyframes = RGB_ONLY_MATCH_EVERY_KEYFRAMES
-        cfg.backend.min_closures_to_anchor = RGB_ONLY_MIN_MATCHES_TO_ANCHOR
     return ShgmConfig.model_validate(cfg.model_dump())

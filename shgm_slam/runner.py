@@ -118,14 +118,15 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
 
 
 def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConfig:
-    """``cfg`` with the back end's odometry drift rates (still None) set from where the fleet's depth comes
-    from (``BackendConfig.with_drift``: predicted when any robot's depth model predicts it)."""
+    """``cfg`` with the back end's depth-dependent values (still None) set from where the fleet's depth comes
+    from (``BackendConfig.for_depth``: predicted when any robot's depth model predicts it)."""
     predicted = [r for r, f in fronts.items() if f.cfg.perception.depth_model is not None]
-    backend = cfg.backend.with_drift(predicted_depth=bool(predicted))
+    backend = cfg.backend.for_depth(predicted_depth=bool(predicted))
     if predicted and backend != cfg.backend:
         log.info("odometry on predicted depth (%s): pose-graph odometry sigmas grow %.3f rad and %.0f %% per "
-                 "metre", ", ".join(predicted), backend.odometry_drift_rot_rad_per_m,
-                 100 * backend.odometry_drift_trans_per_m)  # fmt: skip
+                 "metre; a robot enters the shared frame once %d independent matches agree", ", ".join(predicted),
+                 backend.odometry_drift_rot_rad_per_m, 100 * backend.odometry_drift_trans_per_m,
+                 backend.min_closures_to_anchor)  # fmt: skip
     return cfg.model_copy(update={"backend": backend})
 
 

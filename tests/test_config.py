@@ -59,12 +59,14 @@ def test_odometry_drift_follows_where_the_depth_comes_from() -> None:
     from shgm_slam.runner import fleet_backend
 
     b = BackendConfig()
-    measured, predicted = b.with_drift(predicted_depth=False), b.with_drift(predicted_depth=True)
+    measured, predicted = b.for_depth(predicted_depth=False), b.for_depth(predicted_depth=True)
     assert (measured.odometry_drift_rot_rad_per_m, measured.odometry_drift_trans_per_m) == MEASURED_DEPTH_DRIFT
     assert (predicted.odometry_drift_rot_rad_per_m, predicted.odometry_drift_trans_per_m) == PREDICTED_DEPTH_DRIFT
     assert PREDICTED_DEPTH_DRIFT[1] > MEASURED_DEPTH_DRIFT[1]
-    user = BackendConfig(odometry_drift_trans_per_m=0.02).with_drift(predicted_depth=True)  # the user's value wins
+    user = BackendConfig(odometry_drift_trans_per_m=0.02).for_depth(predicted_depth=True)  # the user's value wins
     assert user.odometry_drift_trans_per_m == 0.02 and user.odometry_drift_rot_rad_per_m == PREDICTED_DEPTH_DRIFT[0]
+    assert (measured.min_closures_to_anchor, predicted.min_closures_to_anchor) == (1, 2)
+    assert BackendConfig(min_closures_to_anchor=1).for_depth(predicted_depth=True).min_closures_to_anchor == 1
 
     cfg = ShgmConfig()
     rgb = cfg.model_copy(deep=True)

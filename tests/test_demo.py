@@ -19,7 +19,8 @@ def test_files_demo_uses_kiss_icp_and_trusts_single_matches():
     cfg = demo_config()
     assert cfg.perception.depth_model is None
     assert resolve_kind(cfg.odometry.kind, cfg.perception.depth_model is not None) is OdometryKind.KISS_ICP
-    assert cfg.backend.min_closures_to_anchor == 1
+    assert cfg.backend.min_closures_to_anchor is None  # from the depth source: one match from files
+    assert cfg.backend.for_depth(predicted_depth=False).min_closures_to_anchor == 1
     assert cfg.robots == {}
 
 
@@ -40,7 +41,7 @@ def test_rgb_only_demo_uses_models_visual_odometry_and_confirmed_anchors():
     cfg = demo_config(rgb_only=True)
     assert cfg.perception.depth_model == MODELS_DIR / "demo_depth.onnx"
     assert resolve_kind(cfg.odometry.kind, True) is OdometryKind.VISUAL
-    assert cfg.backend.min_closures_to_anchor == 2
+    assert cfg.backend.for_depth(predicted_depth=True).min_closures_to_anchor == 2
     assert cfg.odometry.visual_max_depth_m is None  # derived per robot
 
 

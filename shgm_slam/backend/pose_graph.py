@@ -1195,8 +1195,8 @@ def _g2o_edge(k1: int, k2: int, T: np.ndarray, info_rot_trans: np.ndarray) -> st
 
 def make_pose_graph(robot_names: list[str], cfg: BackendConfig) -> MultiRobotPoseGraph:
     """Build the pose graph from the back-end configuration (drift rates still None: depth from files,
-    ``BackendConfig.with_drift``)."""
-    cfg = cfg.with_drift(predicted_depth=False)
+    ``BackendConfig.for_depth``)."""
+    cfg = cfg.for_depth(predicted_depth=False)
     return MultiRobotPoseGraph(
         robot_names,
         odometry_sigmas=(cfg.odometry_sigma_rot_rad, cfg.odometry_sigma_trans_m),

@@ -319,7 +319,7 @@ def replay_one(recorded: Path, mode: InputMode, run_dir: Path, robots: list[str]
     ``metrics.json`` dict: the recorded front-end facts (segments, failures, path lengths) with this
     back end's matches and closures."""
     cfg = heldout_config(mode)
-    cfg = cfg.model_copy(update={"backend": cfg.backend.with_drift(predicted_depth=mode is InputMode.RGB)})
+    cfg = cfg.model_copy(update={"backend": cfg.backend.for_depth(predicted_depth=mode is InputMode.RGB)})
     node = replay_backend(recorded, cfg, run_dir, robots)
     metrics = json.loads((Path(recorded) / "metrics.json").read_text())
     matches = node.map.matches
