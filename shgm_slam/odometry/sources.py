@@ -26,6 +26,7 @@ from shgm_slam.types import Frame, Intrinsics
 YAW_PRIOR_MIN_DEG = 1.0
 """A step's yaw measured from image motion replaces the odometry's predicted yaw when they differ by more."""
 
+
 @dataclass(frozen=True)
 class OdometryEstimate:
     """Pose of one frame. ``ok`` is False when the pose is a prediction (e.g. a degenerate cloud).
