@@ -66,9 +66,11 @@ def test_stretches_draw_the_whole_trajectory_and_graph(tiny_scenario: Path, tmp_
         truth = fused[: last_kf_frame + 1, :3, 3]
         truth = truth[np.isfinite(truth).all(axis=1)]
         drawn = np.concatenate([viz.fused[k] for k in sorted(k for k in viz.fused if k[0] == name)])
-        # every fused position is drawn (chunks overlap by one frame), each close to today's estimate
+        # every fused position is drawn (chunks overlap by one frame), each close to today's estimate: the
+        # stretches are those of the last correction, and the keyframes after it and the final convergence
+        # move a robot placed by closures weighted with their fits (``fit_information``) by decimetres
         d = np.linalg.norm(truth[:, None, :] - drawn[None, :, :], axis=2).min(axis=1)
-        assert d.max() < 0.5, (name, d.max())
+        assert d.max() < 1.0, (name, d.max())
         nodes = np.concatenate([viz.nodes[k] for k in viz.nodes if k[0] == name])
         assert sorted(nodes.tolist()) == sorted(server.graph(front.segments[-1].agent).node_ids.tolist())
     # between corrections a keyframe sends at most the two latest stretches, however long the trajectory

@@ -106,3 +106,22 @@ def test_local_closures_cut_a_long_match_into_unbiased_stretches():
     for _kf_a, _kf_b, T, n, rows in out:
         assert n == len(rows) >= 4
         assert _error_m(T, np.eye(4), centres[rows]) < 0.2
+
+
+def test_a_uav_and_a_car_agree_on_the_height_of_flat_ground_not_on_that_of_objects():
+    """A UAV sees the tops of poles and trees, a car their sides: their centroids differ in height, while
+    road and sidewalk patches (flat) have the same height from anywhere but a viewpoint-dependent
+    horizontal centroid. The 4-DoF refit takes its height from the flat nodes."""
+    rng = np.random.default_rng(9)
+    centres, labels = _street(rng, n_solid=0, n_thin=8)
+    flat = np.column_stack([rng.uniform(0, 60, 6), rng.uniform(-5, 5, 6), np.zeros(6)])
+    pos_a = np.r_[centres, flat]
+    lift = np.array([0.0, 0.0, 1.5])
+    pos_b = np.r_[centres + lift, flat + np.c_[rng.normal(0, 2.0, (6, 2)), np.zeros(6)]]
+    labels = np.r_[labels, [Label.ROAD, Label.SIDEWALK] * 3]
+    T_b_world = se3.make_pose(se3.rot_z(0.4), np.array([5.0, -3.0, 48.0]))
+    T = refit(pos_a, se3.transform_points(T_b_world, pos_b), labels, UP, T_b_world[:3, :3] @ UP)
+    assert _error_m(T, se3.inverse(T_b_world), centres) < 1e-6  # poles: yaw and horizontal; ground: height
+    no_ground = refit(pos_a[:8], se3.transform_points(T_b_world, pos_b[:8]), labels[:8], UP, T_b_world[:3, :3] @ UP)
+    drop = se3.transform_points(no_ground @ T_b_world, centres) - centres
+    np.testing.assert_allclose(drop, np.tile([0.0, 0.0, -1.5], (8, 1)), atol=1e-6)  # the poles' tops put it 1.5 m low
