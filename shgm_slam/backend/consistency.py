@@ -9,9 +9,13 @@ The tolerances grow with the odometry distance inside the loop (drift). Correct 
 each other; wrong ones (perceptual aliasing) agree with nothing in particular, so the largest
 mutually consistent subset (a maximum clique of the consistency graph) is kept. "Largest" counts
 independent evidence first: the closures one graph match is cut into (one per stretch of overlap) agree
-with each other by construction, so a set counts its distinct *sources* (matches) before its closures;
-otherwise one wrong match over a long stretch of an aliased street outvotes an earlier, independent
-right one (airsim-like RGB tuning seed 16: car2 merged 193 m off).
+with each other by construction, so a set counts its *sources* (matches) before its closures; otherwise
+one wrong match over a long stretch of an aliased street outvotes an earlier, independent right one
+(airsim-like RGB tuning seed 16: car2 merged 193 m off). Matches are independent only when they rest on
+different objects (``independent_sources``): the matches of consecutive steps that find the same aliased
+trees, lamps and cars again agree with each other by construction too (synthia-like RGB tuning seed 10:
+four submap matches 31 m off, each sharing 23-52 objects with the others), so a set counts the largest
+group of its matches whose objects are mutually disjoint (greedy), not its distinct matches.
 
 The set is maintained incrementally per robot pair (``PairConsistency``): a new closure is tested
 against the pair's other closures only (O(n)); it joins the current set when it agrees with all of it,
@@ -25,6 +29,7 @@ first agree with that odometry alone (``consistent_with_odometry``).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -157,19 +162,22 @@ def max_consistent_set(
     weights: np.ndarray | None = None,
     preferred: np.ndarray | None = None,
     sources: np.ndarray | None = None,
+    source_masks: list[int] | None = None,
 ) -> np.ndarray:
     """Maximum clique of a consistency graph by independent evidence, ties broken for stability.
 
-    The clique with the most distinct ``sources`` wins, then the one with most members, then the one with
-    the most ``preferred`` members (keeps the established set when new evidence is only a tie), then the
-    largest total weight, then the one with the earliest members.
+    The clique with the most independent ``sources`` (``independent_sources``) wins, then the one with
+    most members, then the one with the most ``preferred`` members (keeps the established set when new
+    evidence is only a tie), then the largest total weight, then the one with the earliest members.
 
     Args:
         adjacency: (n, n) symmetric bool, True where two closures are consistent (diagonal ignored).
         weights: (n,) non-negative evidence per closure (e.g. inlier counts); ones when None.
         preferred: (n,) bool, the currently accepted closures; none when None.
-        sources: (n,) int64 id of each closure's independent source (its graph match); every closure its
+        sources: (n,) int64 id (0, 1, 2, ...) of each closure's source (its graph match); every closure its
             own source when None.
+        source_masks: the objects each source rests on as a bit mask, indexed by source id (0: none
+            recorded); every distinct source is independent when None.
 
     Returns:
         Sorted int64 indices of the chosen clique (empty only for n = 0). Exact up to
@@ -183,17 +191,45 @@ def max_consistent_set(
     w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
     pref = np.zeros(n, dtype=bool) if preferred is None else np.asarray(preferred, dtype=bool)
     src = np.arange(n) if sources is None else np.asarray(sources, dtype=np.int64)
-    found, _ = best_clique(A, w, pref, min_size=1, budget=CLIQUE_BUDGET, sources=src)
+    found, _ = best_clique(A, w, pref, min_size=1, budget=CLIQUE_BUDGET, sources=src, source_masks=source_masks)
     return found
 
 
-def clique_score(members: np.ndarray, weights: np.ndarray, preferred: np.ndarray, sources: np.ndarray) -> tuple:
-    """Rank of a clique (larger is better): (distinct sources, members, preferred members, total weight,
-    earliest members first), for the (k,) int ``members`` of (m,) ``weights``, ``preferred`` and ``sources``."""
+def independent_sources(sources: np.ndarray, source_masks: list[int] | None = None) -> int:
+    """How many of the distinct ``sources`` rest on mutually disjoint objects.
+
+    Greedy, fewest objects first (ties: the lower source id): a source counts when it shares no object
+    with the sources counted before it. A source without recorded objects (mask 0) always counts.
+
+    Args:
+        sources: (k,) int64 source ids (repeats allowed).
+        source_masks: each source id's objects as a bit mask; every distinct source counts when None.
+    """
+    ids = np.unique(np.asarray(sources, dtype=np.int64))
+    if source_masks is None:
+        return int(ids.size)
+    taken, count = 0, 0
+    for mask in sorted((source_masks[s] for s in ids.tolist()), key=int.bit_count):  # stable: ties by id
+        if not mask & taken:
+            taken |= mask
+            count += 1
+    return count
+
+
+def clique_score(
+    members: np.ndarray,
+    weights: np.ndarray,
+    preferred: np.ndarray,
+    sources: np.ndarray,
+    source_masks: list[int] | None = None,
+) -> tuple:
+    """Rank of a clique (larger is better): (independent sources, members, preferred members, total weight,
+    earliest members first), for the (k,) int ``members`` of (m,) ``weights``, ``preferred`` and ``sources``
+    (``independent_sources`` with ``source_masks``)."""
     mem = np.sort(np.asarray(members, dtype=np.int64))
     return (
-        int(np.unique(sources[mem]).size), int(mem.size), int(preferred[mem].sum()), float(weights[mem].sum()),
-        tuple(-int(i) for i in mem),
+        independent_sources(sources[mem], source_masks), int(mem.size), int(preferred[mem].sum()),
+        float(weights[mem].sum()), tuple(-int(i) for i in mem),
     )  # fmt: skip
 
 
@@ -205,8 +241,9 @@ def best_clique(
     budget: int,
     start: np.ndarray | None = None,
     sources: np.ndarray | None = None,
+    source_masks: list[int] | None = None,
 ) -> tuple[np.ndarray | None, bool]:
-    """Best clique of at least ``min_size`` vertices by ``clique_score`` (distinct sources, size,
+    """Best clique of at least ``min_size`` vertices by ``clique_score`` (independent sources, size,
     preferred members, weight, earliest).
 
     Degree peeling first drops vertices that cannot be in such a clique, greedy cliques (from the
@@ -220,7 +257,9 @@ def best_clique(
         min_size: smallest clique of interest (>= 1).
         budget: branch-and-bound work (vertices scanned for pivots).
         start: (m,) bool clique to grow the second greedy clique from (e.g. the current set's members).
-        sources: (m,) int64 independent source of each vertex; each vertex its own when None.
+        sources: (m,) int64 source id of each vertex; each vertex its own when None.
+        source_masks: each source id's objects as a bit mask (``independent_sources``); None: every
+            distinct source is independent.
 
     Returns:
         (sorted int64 indices or None when no clique reaches ``min_size``, whether the search was exact).
@@ -233,15 +272,15 @@ def best_clique(
         return None, True
 
     def rank(mask: np.ndarray) -> tuple:
-        return clique_score(np.flatnonzero(mask), weights, preferred, src_all)
+        return clique_score(np.flatnonzero(mask), weights, preferred, src_all, source_masks)
 
     greedy = _improve(A, _greedy(A, alive), alive)
     if start is not None and (start := start & alive).any():
         grown = _improve(A, _greedy(A, alive, start), alive)
         if rank(grown) > rank(greedy):
             greedy = grown
-    # a clique ranked above the greedy one has at least as many distinct sources, so as many members
-    best_size = max(min_size, int(np.unique(src_all[greedy]).size))
+    # a clique ranked above the greedy one has at least as many independent sources, so as many members
+    best_size = max(min_size, rank(greedy)[0])
     alive = _peel(A, alive, best_size)
     idx = np.flatnonzero(alive)
     if idx.size < best_size:  # cannot happen for a clique found inside alive; be safe
@@ -251,7 +290,7 @@ def best_clique(
     w, pref, src = weights[idx], preferred[idx], src_all[idx]
 
     def score(bits: int) -> tuple:
-        return clique_score(np.array(_members(bits), dtype=np.int64), w, pref, src)
+        return clique_score(np.array(_members(bits), dtype=np.int64), w, pref, src, source_masks)
 
     g = greedy[idx]
     best_bits = _to_bits(g) if g.sum() >= min_size else 0
@@ -261,7 +300,7 @@ def best_clique(
 
     def push(R: int, P: int, X: int) -> None:
         nonlocal left, best_bits, best
-        if R.bit_count() + P.bit_count() < best[0]:  # members bound sources from above
+        if R.bit_count() + P.bit_count() < best[0]:  # members bound independent sources from above
             return
         left -= 1 + (P | X).bit_count()  # the pivot choice scans P and X
         if P == 0:
@@ -312,11 +351,12 @@ class PairConsistency:
     """Incremental maximum consistent set of one robot pair's closures, bounded in size.
 
     Keeps the pair's voting closures (at most ``capacity``), their consistency adjacency, their
-    sources (the graph match each was cut from) and the chosen set. ``add`` costs O(n) when the new
-    closure joins the set or cannot change it; only when its consistent neighbours could form a set
-    ranked above the current one (``clique_score``: more distinct sources, then more closures) a bounded
-    search over them runs. Semantics are those of ``max_consistent_set`` with the current set preferred:
-    a better-ranked consistent set replaces the current one, a tie does not.
+    sources (the graph match each was cut from), the objects each rests on and the chosen set. A source's
+    objects are those of all its voting closures. ``add`` costs O(n) when the new closure joins the set or
+    cannot change it; only when its consistent neighbours could form a set ranked above the current one
+    (``clique_score``: more independent sources, then more closures) a bounded search over them runs.
+    Semantics are those of ``max_consistent_set`` with the current set preferred: a better-ranked
+    consistent set replaces the current one, a tie does not.
 
     When the pair is full, the oldest closure outside the set leaves the vote (it stays rejected);
     when every closure is in the set, the oldest one leaves (it stays accepted).
@@ -331,6 +371,8 @@ class PairConsistency:
     _w: np.ndarray = field(default_factory=lambda: np.zeros(0))
     _chosen: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     _src: list = field(default_factory=list)  # each voting closure's source (hashable), in ``ids`` order
+    _mask: list[int] = field(default_factory=list)  # each voting closure's objects as a bit mask (``_bit``)
+    _bit: dict = field(default_factory=dict)  # object (hashable) -> its bit
 
     def __post_init__(self) -> None:
         if self.capacity < 1:
@@ -348,6 +390,12 @@ class PairConsistency:
         """(n,) bool over ``ids``: in the current set."""
         return self._chosen[: len(self.ids)].copy()
 
+    def evidence(self) -> int:
+        """Independent sources (``independent_sources``) of the current set: the evidence it rests on."""
+        n = len(self.ids)
+        src, masks = self._sources(n)
+        return independent_sources(src[self._chosen[:n]], masks)
+
     def vote(self) -> PairVote:
         """The pair's vote as arrays (copies)."""
         n = len(self.ids)
@@ -356,10 +404,12 @@ class PairConsistency:
 
     @classmethod
     def from_vote(
-        cls, vote: PairVote, capacity: int = MAX_CLOSURES_PER_PAIR, sources: list | None = None
+        cls, vote: PairVote, capacity: int = MAX_CLOSURES_PER_PAIR, sources: list | None = None,
+        supports: list | None = None,
     ) -> PairConsistency:
-        """Rebuild a pair from ``vote()`` and its closures' ``sources`` (in ``vote.ids`` order; each closure its
-        own when None); it then votes on new closures exactly as the original would.
+        """Rebuild a pair from ``vote()``, its closures' ``sources`` (in ``vote.ids`` order; each closure its
+        own when None) and the objects each rests on (``supports``, same order; none when None); it then
+        votes on new closures exactly as the original would.
 
         Raises:
             BackendError: the arrays are inconsistent (shapes, an asymmetric adjacency, more closures
@@ -379,16 +429,22 @@ class PairConsistency:
                 "adjacency, or non-finite weights)"
             )
         src = [("closure", int(i)) for i in ids] if sources is None else list(sources)
-        if len(src) != n:
-            raise BackendError(f"consistency vote has {n} closures but {len(src)} sources")
-        return cls(capacity, ids=ids.tolist(), exact=bool(vote.exact), searches=int(vote.searches),
+        sup = [()] * n if supports is None else list(supports)
+        if len(src) != n or len(sup) != n:
+            raise BackendError(f"consistency vote has {n} closures but {len(src)} sources, {len(sup)} supports")
+        pair = cls(capacity, ids=ids.tolist(), exact=bool(vote.exact), searches=int(vote.searches),
                    _A=A.copy(), _w=w.copy(), _chosen=chosen.copy(), _src=src)  # fmt: skip
+        pair._mask = [pair._objects_mask(objects) for objects in sup]
+        return pair
 
     def add(
-        self, closure_id: int, consistent: np.ndarray, weight: float = 1.0, source: object = None
+        self, closure_id: int, consistent: np.ndarray, weight: float = 1.0, source: object = None,
+        support: Iterable = (),
     ) -> tuple[int, bool] | None:
         """Add a closure given its consistency with the current ``ids`` (an (n,) bool row), its evidence
-        ``weight`` and its ``source`` (hashable: the graph match it was cut from; the closure itself when None).
+        ``weight``, its ``source`` (hashable: the graph match it was cut from; the closure itself when None)
+        and its ``support`` (hashable objects it rests on, e.g. ``(agent, node id)``: two sources that share
+        one are not independent evidence).
 
         Returns:
             The closure that left the vote to make room, with whether it was in the set, or None.
@@ -412,27 +468,40 @@ class PairConsistency:
         self._chosen[n] = False
         self.ids.append(int(closure_id))
         self._src.append(("closure", int(closure_id)) if source is None else source)
+        self._mask.append(self._objects_mask(support))
         self._select(n, row)
         return evicted
 
-    def _source_ids(self, n: int) -> np.ndarray:
-        """(n,) int64: the first ``n`` voting closures' sources numbered densely."""
+    def _objects_mask(self, objects: Iterable) -> int:
+        """``objects`` as a bit mask (new objects get the next bits)."""
+        mask = 0
+        for obj in objects:
+            mask |= 1 << self._bit.setdefault(obj, len(self._bit))
+        return mask
+
+    def _sources(self, n: int) -> tuple[np.ndarray, list[int]]:
+        """(n,) int64 the first ``n`` voting closures' sources numbered densely (first seen first), and each
+        source number's objects: the union of its closures' bit masks."""
         number: dict = {}
-        return np.array([number.setdefault(x, len(number)) for x in self._src[:n]], dtype=np.int64)
+        src = np.array([number.setdefault(x, len(number)) for x in self._src[:n]], dtype=np.int64)
+        masks = [0] * len(number)
+        for s, mask in zip(src.tolist(), self._mask[:n], strict=True):
+            masks[s] |= mask
+        return src, masks
 
     def _select(self, v: int, row: np.ndarray) -> None:
         S = self._chosen[:v]
         if not S.any():
             self._chosen[v] = True
             return
-        if row[S].all():  # joins: a consistent closure only adds sources and members
+        if row[S].all():  # joins: a closure consistent with the whole set adds to it
             self._chosen[v] = True
             return
-        src = self._source_ids(v + 1)
+        src, masks = self._sources(v + 1)
         w, pref = self._w[: v + 1], np.r_[S, False]
-        current = clique_score(np.flatnonzero(S), w, pref, src)
+        current = clique_score(np.flatnonzero(S), w, pref, src, masks)
         # every clique through v lies in v's consistent neighbourhood: it cannot rank above S when even all
-        # of the neighbourhood's sources and members could not
+        # of the neighbourhood's distinct sources (independent or not) and members could not
         cand = np.r_[np.flatnonzero(row), v]
         if (np.unique(src[cand]).size, cand.size) <= current[:2]:
             return
@@ -440,10 +509,11 @@ class PairConsistency:
         sub = self._A[np.ix_(cand, cand)].copy()
         sub[-1, :-1] = sub[:-1, -1] = True  # v agrees with each of its neighbours
         found, exact = best_clique(
-            sub, w[cand], pref[cand], current[0], self.budget, start=pref[cand], sources=src[cand]
-        )
+            sub, w[cand], pref[cand], current[0], self.budget, start=pref[cand], sources=src[cand],
+            source_masks=masks,
+        )  # fmt: skip
         self.exact &= exact
-        if found is not None and clique_score(cand[found], w, pref, src) > current:
+        if found is not None and clique_score(cand[found], w, pref, src, masks) > current:
             self._chosen[: v + 1] = False
             self._chosen[cand[found]] = True
 
@@ -468,6 +538,7 @@ class PairConsistency:
         self._chosen[n - 1] = False
         del self.ids[i]
         del self._src[i]
+        del self._mask[i]
 
 
 def _clean(adjacency: np.ndarray) -> np.ndarray:

@@ -61,6 +61,7 @@ from __future__ import annotations
 import bisect
 import logging
 import time
+from collections.abc import Hashable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
@@ -292,8 +293,9 @@ class MultiRobotPoseGraph:
             its default width (Huber 1.345, Cauchy 1.0, Tukey 4.685, in sigmas).
         consistency_*: pairwise-consistency tolerances (``ConsistencyThresholds``).
         min_closures_to_anchor: a robot is anchored through a robot pair only when that pair's
-            consistent set holds closures from at least this many independent sources (matches;
-            1 = trust a single first match).
+            consistent set holds closures from at least this many independent sources (matches that rest
+            on mutually disjoint objects, ``consistency.independent_sources``; 1 = trust a single first
+            match).
         factorization: iSAM2 linear solver.
         relinearize_threshold: iSAM2 relinearizes a variable whose update exceeds this (rad and m; gtsam's
             default). On a 1.5 km drive of repeated loops (a loop closure every 10 keyframes) the CPU of a
@@ -360,6 +362,7 @@ class MultiRobotPoseGraph:
         self._attitude_factors = 0
         self._robots = {name: _Robot(i) for i, name in enumerate(self.keys.names)}
         self._closures: list[ClosureRecord] = []
+        self._support: dict[int, frozenset] = {}  # closure id -> the objects it rests on (when given)
         self._closure_noise: list[gtsam.noiseModel.Base] = []
         self._information: list[np.ndarray] = []  # 6x6 [rot, trans] information, for g2o export
         self._pairs: dict[tuple[str, str], PairConsistency] = {}
@@ -424,6 +427,7 @@ class MultiRobotPoseGraph:
         information: np.ndarray | None = None,
         support_b: np.ndarray | None = None,
         match_id: int | None = None,
+        support: Iterable[Hashable] = (),
         update: bool = True,
     ) -> ClosureDecision:
         """Add a relative-pose measurement between keyframes of two robots, or two keyframes of one robot.
@@ -445,6 +449,8 @@ class MultiRobotPoseGraph:
                 them, and growing with their number and spread.
             match_id: the graph match the closure was cut from; closures of one match count as one
                 source of evidence for ``min_closures_to_anchor`` (None: the closure is its own source).
+            support: the objects the closure rests on (hashable, e.g. ``(robot, node id)``); two matches
+                whose closures share one are not independent evidence (``consistency.independent_sources``).
             update: run iSAM2 now; False leaves the factor pending until ``update`` (add the closures of
                 one match, then update once: one re-elimination instead of one per closure).
 
@@ -475,6 +481,8 @@ class MultiRobotPoseGraph:
         noise, info = self._closure_noise_model(information)
         rec = ClosureRecord(len(self._closures), robot_a, kf_a, robot_b, kf_b, T, int(num_inliers), match_id=match_id)
         self._closures.append(rec)
+        if support:
+            self._support[rec.closure_id] = frozenset(support)
         self._version += 1
         self._closure_noise.append(noise)
         self._information.append(info)
@@ -549,6 +557,7 @@ class MultiRobotPoseGraph:
         num_inliers: int = 1,
         information: np.ndarray | None = None,
         match_id: int | None = None,
+        support: Iterable[Hashable] = (),
         update: bool = True,
     ) -> ClosureDecision:
         """Add an intra-robot loop closure: ``T_old_new`` (4, 4) maps points in keyframe ``kf_new``'s
@@ -561,7 +570,7 @@ class MultiRobotPoseGraph:
         """
         return self.add_inter_robot_closure(
             robot, kf_old, robot, kf_new, T_old_new,
-            num_inliers=num_inliers, information=information, match_id=match_id, update=update,
+            num_inliers=num_inliers, information=information, match_id=match_id, support=support, update=update,
         )  # fmt: skip
 
     def add_robot(self, robot: str) -> None:
@@ -657,13 +666,12 @@ class MultiRobotPoseGraph:
         return np.unique(np.asarray(kfs, dtype=np.int64))
 
     def evidence_between(self, robot_a: str, robot_b: str) -> int:
-        """How many independent sources of evidence (graph matches, ``ClosureRecord.evidence``) the
-        accepted closures between two robots (either order; a robot with itself: its loop closures) rest on."""
-        pair = {robot_a, robot_b}
-        return len({
-            c.evidence for c in self._closures
-            if c.status is ClosureStatus.ACCEPTED and {c.robot_a, c.robot_b} == pair
-        })  # fmt: skip
+        """How many independent sources of evidence (graph matches on mutually disjoint objects,
+        ``PairConsistency.evidence``) the consistent set of two robots' closures (either order; a robot
+        with itself: its loop closures) rests on."""
+        ia, ib = self.keys.index(robot_a), self.keys.index(robot_b)
+        vote = self._pairs.get((robot_a, robot_b) if ia <= ib else (robot_b, robot_a))
+        return 0 if vote is None else vote.evidence()
 
     def closures(self) -> list[ClosureRecord]:
         """Every closure so far (canonical robot order) with its current status and reason."""
@@ -733,7 +741,9 @@ class MultiRobotPoseGraph:
             {n: np.array(r.up_odom, dtype=np.float64).reshape(-1, 3) for n, r in self._robots.items()},
         )  # fmt: skip
 
-    def restore_state(self, state: PoseGraphState, T_odom_kf: dict[str, np.ndarray]) -> None:
+    def restore_state(
+        self, state: PoseGraphState, T_odom_kf: dict[str, np.ndarray], support: Mapping[int, Iterable] | None = None
+    ) -> None:
         """Load ``state`` into this fresh graph (made with the same settings and first robot) and build
         iSAM2 from it in one batch, starting at the stored estimate: afterwards the graph answers and
         votes as the one ``state`` came from (estimates equal to solver precision).
@@ -741,6 +751,8 @@ class MultiRobotPoseGraph:
         Args:
             state: from ``state()``.
             T_odom_kf: robot -> (K, 4, 4) its keyframe poses in its odometry frame (every robot of ``state``).
+            support: closure id -> the objects it rests on, as given to ``add_inter_robot_closure`` (none
+                when None).
 
         Raises:
             BackendError: the graph is not fresh, or the state is inconsistent with itself or the keyframes.
@@ -774,8 +786,11 @@ class MultiRobotPoseGraph:
             self._information.append(info)
         cap = self.max_closures_per_pair
         evidence = {c.closure_id: c.evidence for c in self._closures}
+        self._support = {int(cid): frozenset(objects) for cid, objects in (support or {}).items() if objects}
         self._pairs = {
-            pair: PairConsistency.from_vote(v, cap, [evidence[int(i)] for i in v.ids])
+            pair: PairConsistency.from_vote(
+                v, cap, [evidence[int(i)] for i in v.ids], [self._support.get(int(i), ()) for i in v.ids]
+            )
             for pair, v in state.pairs.items()
         }
         self._rebuilds, self._recoveries = int(state.rebuilds), int(state.recoveries)
@@ -873,7 +888,7 @@ class MultiRobotPoseGraph:
             np.array([c.kf_b for c in others], dtype=np.int64),
             odom_a, odom_b, path_a, path_b, self.thresholds,
         )  # fmt: skip
-        evicted = voting.add(rec.closure_id, row, rec.num_inliers, rec.evidence)
+        evicted = voting.add(rec.closure_id, row, rec.num_inliers, rec.evidence, self._support.get(rec.closure_id, ()))
         where = f"{rec.robot_a}-{rec.robot_b}"
         if evicted is not None:
             c = self._closures[evicted[0]]
@@ -978,10 +993,7 @@ class MultiRobotPoseGraph:
         if broken:
             self._rebuild()
             return
-        pair_sources: dict[tuple[str, str], set] = {}
-        for c in accepted:
-            pair_sources.setdefault((c.robot_a, c.robot_b), set()).add(c.evidence)
-        pair_size = {pair: len(sources) for pair, sources in pair_sources.items()}
+        pair_size = {pair: vote.evidence() for pair, vote in self._pairs.items()}
         grown = True
         while grown:  # anchoring spreads through accepted closures (replays closures of unanchored robots)
             grown = False

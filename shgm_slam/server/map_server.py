@@ -27,8 +27,9 @@ from shgm_slam.types import GraphArrays
 log = logging.getLogger(__name__)
 
 CONFIRMING_MATCHES = 2
-"""Independent graph matches behind a placed robot pair's accepted closures before its submaps are matched
-only near where the fused estimate puts them (one match may be a wrong placement: global matching goes on)."""
+"""Independent graph matches (on mutually disjoint objects, ``MultiRobotPoseGraph.evidence_between``) behind a
+placed robot pair's accepted closures before its submaps are matched only near where the fused estimate puts
+them (one match may be a wrong placement: global matching goes on)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -376,18 +377,18 @@ class MapServer:
                     }
                 )
                 continue
+            # the objects behind it: what makes two matches independent evidence
+            support = {robot_a: frozenset(result.inliers[rows, 0].tolist()),
+                       robot_b: frozenset(result.inliers[rows, 1].tolist())}  # fmt: skip
             t1 = time.perf_counter()
             support_b = se3.transform_points(se3.inverse(self._T_odom_kf[robot_b][kf_b]), rec.inlier_positions_b[rows])
             decision = self._pose_graph.add_inter_robot_closure(
                 robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n, support_b=support_b,
-                match_id=self._num_matches, update=False,
+                match_id=self._num_matches, support=_objects(support) if robot_a != robot_b else (), update=False,
             )  # fmt: skip
             self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
-            if robot_a != robot_b:  # the objects behind it: what makes two matches independent evidence
-                self._support[decision.closure_id] = {
-                    robot_a: frozenset(result.inliers[rows, 0].tolist()),
-                    robot_b: frozenset(result.inliers[rows, 1].tolist()),
-                }
+            if robot_a != robot_b:
+                self._support[decision.closure_id] = support
             rec.closures.append(
                 {
                     "keyframe_a": kf_a,
@@ -471,10 +472,11 @@ class MapServer:
         server._step, server._num_matches = int(state.step), int(state.num_matches)
         server.timings_ms = {"match": list(state.timings_ms.get("match", [])),
                              "backend": list(state.timings_ms.get("backend", []))}  # fmt: skip
-        server._pose_graph.restore_state(state.pose_graph, {a: server.keyframe_poses(a) for a in agents})
         server._support = {
             int(cid): {a: frozenset(ids) for a, ids in sup.items()} for cid, sup in state.support.items()
         }
+        server._pose_graph.restore_state(state.pose_graph, {a: server.keyframe_poses(a) for a in agents},
+                                         {cid: _objects(sup) for cid, sup in server._support.items()})  # fmt: skip
         try:
             server._surface_offset = SurfaceOffset.from_state(state.surface_offset)
         except ValueError as exc:
@@ -565,6 +567,11 @@ class MapServer:
     def mean_match_ms(self) -> float:
         """Mean wall time of one graph match so far (0 before the first)."""
         return float(np.mean(self.timings_ms["match"])) if self.timings_ms["match"] else 0.0
+
+
+def _objects(support: Support) -> frozenset[tuple[str, int]]:
+    """A closure's support (agent -> node ids) as the pose graph's objects: ``(agent, node id)`` pairs."""
+    return frozenset((agent, node) for agent, nodes in support.items() for node in nodes)
 
 
 def _rows_of(graph: GraphArrays, node_ids: np.ndarray) -> np.ndarray:

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from shgm_slam.backend.consistency import PairConsistency, max_consistent_set
+from shgm_slam.backend.consistency import PairConsistency, independent_sources, max_consistent_set
 from shgm_slam.backend.pose_graph import ClosureStatus, MultiRobotPoseGraph
 from shgm_slam.geometry.se3 import inverse, make_pose, rot_y, so3_exp
 from tests.backend.test_pose_graph import noisy_odometry, route, wrong_closure
@@ -70,6 +70,33 @@ def test_closures_of_one_match_count_once_against_independent_matches():
     for v, row in enumerate([[], [False], [False, True], [False, True, True], [True, False, False, False]]):
         old.add(v, np.array(row, dtype=bool))
     assert old.chosen_ids == [1, 2, 3]
+
+
+def test_matches_that_refind_the_same_objects_count_once_against_object_disjoint_matches():
+    """An aliased street found again at three consecutive matching steps (each match shares objects with the
+    others, so they agree by construction) does not outvote two matches on other objects that agree."""
+    pc = PairConsistency()
+    pc.add(0, np.zeros(0, dtype=bool), 20.0, "m1", {("a", 1), ("b", 1)})  # right
+    for v, m in ((1, "m2"), (2, "m3"), (3, "m4")):  # the alias, re-found: trees a5-a7 every time
+        pc.add(v, np.r_[False, np.ones(v - 1, dtype=bool)], 30.0, m, {("a", 5 + v), ("a", 6), ("b", 5 + v)})
+    assert pc.chosen_ids == [1, 2, 3] and pc.evidence() == 1  # one piece of evidence, three closures
+    pc.add(4, np.array([True, False, False, False]), 20.0, "m5", {("a", 9), ("b", 9)})  # agrees with the first
+    assert pc.chosen_ids == [0, 4] and pc.evidence() == 2
+    # counted by distinct matches (the old rule) the three re-finds of the alias outvote
+    old = PairConsistency()
+    for v, row in enumerate([[], [False], [False, True], [False, True, True], [True, False, False, False]]):
+        old.add(v, np.array(row, dtype=bool), 1.0, f"m{v}")
+    assert old.chosen_ids == [1, 2, 3]
+
+
+def test_independent_sources_counts_object_disjoint_sources_greedily():
+    """Fewest objects first: a broad match that shares objects with two narrow disjoint ones counts as
+    neither of them; sources without objects always count."""
+    masks = [0b0111, 0b0001, 0b0100, 0, 0b1000]
+    assert independent_sources(np.array([0, 1, 2]), masks) == 2
+    assert independent_sources(np.array([0, 1, 1, 3]), masks) == 2
+    assert independent_sources(np.array([0, 4]), masks) == 2
+    assert independent_sources(np.array([0, 1, 2])) == 3  # no objects recorded: every distinct source
 
 
 def test_a_larger_consistent_set_outvotes_the_earlier_one_and_ties_do_not():

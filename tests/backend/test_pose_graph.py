@@ -351,6 +351,21 @@ def test_closures_of_one_match_do_not_confirm_each_other():
     assert pg.is_anchored("b")
 
 
+def test_matches_that_share_objects_do_not_anchor_and_object_disjoint_ones_do():
+    """With min_closures_to_anchor=2, a second match that finds some of the first match's objects again (an
+    aliased street re-found at the next matching step) does not anchor b; a match on other objects does."""
+    pg = MultiRobotPoseGraph(["a", "b"], min_closures_to_anchor=2)
+    for k in range(6):
+        pg.add_keyframe("a", k, make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]))
+        pg.add_keyframe("b", k, make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]))
+    first = {("a", 1), ("a", 2), ("b", 1), ("b", 2)}
+    pg.add_inter_robot_closure("a", 0, "b", 0, np.eye(4), match_id=1, support=first)
+    pg.add_inter_robot_closure("a", 1, "b", 1, np.eye(4), match_id=2, support={("a", 2), ("a", 3), ("b", 3)})
+    assert pg.evidence_between("a", "b") == 1 and not pg.is_anchored("b")
+    pg.add_inter_robot_closure("a", 4, "b", 4, np.eye(4), match_id=3, support={("a", 7), ("b", 7)})
+    assert pg.evidence_between("b", "a") == 2 and pg.is_anchored("b")
+
+
 def test_one_match_cut_into_many_closures_does_not_outvote_two_independent_matches():
     """b drives beside a's track (true offset 0): two matches agree on it; one alias match, cut into three
     mutually consistent closures, puts b 40 m further along. The independent matches win."""

@@ -128,3 +128,20 @@ def test_attitude_factors_come_back_with_the_ground_normals(events) -> None:
     assert again.stats().attitude_factors == pg.stats().attitude_factors
     for r, T in pg.estimate().items():  # iSAM2 (relinearization threshold 0.1) against a batch solve from it
         np.testing.assert_allclose(again.estimate()[r][:, :3, 3], T[:, :3, 3], atol=0.3)
+
+
+def test_restored_graph_keeps_the_objects_behind_each_closure() -> None:
+    """Restored with the closures' supports, a match that re-finds objects of an earlier one still does not
+    count as independent (nor anchor b); restored without them it would."""
+    pg = MultiRobotPoseGraph(["a", "b"], min_closures_to_anchor=2)
+    odo = {r: np.stack([make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]) for k in range(4)]) for r in ("a", "b")}
+    for k in range(4):
+        pg.add_keyframe("a", k, odo["a"][k])
+        pg.add_keyframe("b", k, odo["b"][k])
+    pg.add_inter_robot_closure("a", 0, "b", 0, np.eye(4), match_id=1, support={("a", 1), ("b", 1)})
+    support = {0: {("a", 1), ("b", 1)}}
+    for given, anchored in ((support, False), (None, True)):
+        again = MultiRobotPoseGraph(["a", "b"], min_closures_to_anchor=2)
+        again.restore_state(pg.state(), odo, given)
+        again.add_inter_robot_closure("a", 2, "b", 2, np.eye(4), match_id=2, support={("a", 1), ("b", 2)})
+        assert again.is_anchored("b") is anchored
