@@ -7,11 +7,14 @@ keyframe and the graph parts its nodes touched (with their neighbours) are re-se
 keyframe does not grow with the distance driven. When the pose graph changes in a way that can move old
 keyframes (a closure enters or leaves, a robot is placed: ``MapServer.corrections``), or the robot starts
 a new trajectory segment, everything of that robot is sent once more. Between such changes the parts
-already sent are not moved with the small updates every new keyframe brings (centimetres).
+already sent are not moved with the small updates every new keyframe brings (centimetres to decimetres).
+At the end of the run (``finish``), after the final matching and convergence, every robot's whole
+trajectory and graph are sent once more: the viewer ends on the results written to disk.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,6 +84,20 @@ class RunView:
         st.next_frame = f
         update = None if full or res.message is None else res.message.graph_update
         self._graph(server, r, agent, update)
+
+    def finish(self, server: MapServer, fronts: Iterable[RobotFrontend]) -> None:
+        """Send each robot's whole trajectory (up to its last frame with a pose) and graph once more, at its
+        last frame's time: after the final matching and convergence, the state the results files hold."""
+        for front in fronts:
+            if front.name not in self._robots:
+                continue
+            posed = np.flatnonzero(front.frame_segment == front.segment.index)
+            if not posed.size:
+                continue
+            last = int(posed[-1])
+            self.viz.set_time(front.name, last, float(front.sequence.timestamps_s[last]))
+            self._trajectory(server, front, 0, last)
+            self._graph(server, front.name, front.segment.agent, None)
 
     def _trajectory(self, server: MapServer, front: RobotFrontend, since: int, upto: int) -> None:
         T_shared_odom = server.T_shared_odom(front.segment.agent)

@@ -380,6 +380,8 @@ def run_slam(
         server_node.finish(match=not interrupted)
     _log_matches(viz, server, records)
     _log_placements(viz, watch, server)
+    if viz.enabled:
+        view.finish(server, fronts.values())  # the viewer ends on the final estimate, not the last keyframe's
     for node in nodes.values():
         node.poll()
     reports = _evaluate(fronts, server, robots, processed, gt_shared_frame)

@@ -50,8 +50,14 @@ def test_stretches_draw_the_whole_trajectory_and_graph(tiny_scenario: Path, tmp_
         captured["corrections"] = corrections
 
     per_keyframe: list[tuple[int, bool]] = []
+    original_finish = RunView.finish
+
+    def spy_finish(self, server, fronts):
+        captured["before_finish"] = dict(viz.fused)  # what the keyframes drew
+        original_finish(self, server, fronts)
 
     monkeypatch.setattr(RunView, "keyframe", spy)
+    monkeypatch.setattr(RunView, "finish", spy_finish)
     viz = ChunkViz()
     cfg = ShgmConfig()
     cfg.odometry.kind = OdometryKind.GT
@@ -65,12 +71,18 @@ def test_stretches_draw_the_whole_trajectory_and_graph(tiny_scenario: Path, tmp_
         last_kf_frame = front.segments[-1].kf_frames[-1]
         truth = fused[: last_kf_frame + 1, :3, 3]
         truth = truth[np.isfinite(truth).all(axis=1)]
-        drawn = np.concatenate([viz.fused[k] for k in sorted(k for k in viz.fused if k[0] == name)])
-        # every fused position is drawn (chunks overlap by one frame), each close to today's estimate: the
-        # stretches are those of the last correction, and the keyframes after it and the final convergence
-        # move a robot placed by closures weighted with their fits (``fit_information``) by decimetres
+        kept = captured["before_finish"]
+        drawn = np.concatenate([kept[k] for k in sorted(k for k in kept if k[0] == name)])
+        # during the run every fused position is drawn (chunks overlap by one frame), each close to the final
+        # estimate: the stretches are those of the last correction, and the keyframes after it and the final
+        # convergence move a robot placed by closures weighted with their fits (``fit_information``) by
+        # decimetres ...
         d = np.linalg.norm(truth[:, None, :] - drawn[None, :, :], axis=2).min(axis=1)
         assert d.max() < 1.0, (name, d.max())
+        # ... and the run ends by drawing exactly the final estimate
+        final = np.concatenate([viz.fused[k] for k in sorted(k for k in viz.fused if k[0] == name)])
+        d = np.linalg.norm(truth[:, None, :] - final[None, :, :], axis=2).min(axis=1)
+        assert d.max() < 1e-6, (name, d.max())
         nodes = np.concatenate([viz.nodes[k] for k in viz.nodes if k[0] == name])
         assert sorted(nodes.tolist()) == sorted(server.graph(front.segments[-1].agent).node_ids.tolist())
     # between corrections a keyframe sends at most the two latest stretches, however long the trajectory
