@@ -329,13 +329,8 @@ class BackendConfig(_Stage):
         None, ge=0, le=1, description="odometry step translation sigma growth per metre driven (0.01 = 1 %); "
         "None: from where the depth comes from"
     )
-    closure_sigma_rot_rad: float = Field(
-        0.1, gt=0, description="rotation sigma of a closure; a prior added to what its objects' spread says"
-    )
-    closure_sigma_trans_m: float = Field(
-        3.0, gt=0, description="sigma of one matched object's position in a closure's fit (the closure's "
-        "information is that of the fit: ``pose_graph.fit_information``); a closure without objects: its translation"
-    )
+    closure_sigma_rot_rad: float = Field(0.1, gt=0, description="rotation sigma of an inter-robot or loop closure")
+    closure_sigma_trans_m: float = Field(3.0, gt=0, description="translation sigma of a closure at its keyframe")
     robust_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="huber | cauchy | tukey | none")
     min_closures_to_anchor: int | None = Field(
         None, ge=1, description="a robot enters the shared frame only when a robot pair's consistent set has closures "

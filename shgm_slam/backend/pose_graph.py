@@ -25,12 +25,6 @@ at most ``max_closures_per_pair`` voting closures. When a later, larger consiste
 those are removed from iSAM2 (``removeFactorIndices``); if a removed closure was the one that anchored
 a robot, the graph is rebuilt from the recorded odometry and the accepted closures, so one wrong first
 match cannot leave a robot in the wrong place. Accepted closures additionally carry a robust kernel.
-A closure cut from a graph match carries the information of its fit to the matched objects
-(``fit_information``): its translation is known where the objects are, and at a keyframe far from them
-(a UAV's, 50 m above what it sees) only up to the fit's rotation error times the lever arm. Fixed sigmas
-at the keyframe claimed that keyframe as precise as the objects: on the airsim-like tuning worlds a
-car-UAV closure's error was 1.38 m RMS at the UAV keyframe and 0.79 m at the objects' centroid (rotation
-errors of 1.4° yaw and 0.8° tilt over a 42 m lever).
 
 Attitude (``attitude``): each keyframe that measured its ground plane (``up_odom``: the plane's normal in
 its odometry frame) gets a unary ``AttitudeFactorPose3`` once its robot is anchored: the normal in the
@@ -242,27 +236,6 @@ def _check_pose(T: np.ndarray, what: str) -> np.ndarray:
     return T
 
 
-def fit_information(support_b: np.ndarray, sigma_object_m: float, sigma_rot_rad: float) -> np.ndarray:
-    """Information (6, 6; gtsam [rot, trans] order, right perturbation at b) of a closure ``T_a_b`` fitted
-    to matched objects at (n, 3) ``support_b`` (metres, b's frame), each seen with isotropic noise
-    ``sigma_object_m``: the Gauss-Newton information of the Eq. 2 fit, sum_i J_iᵀ J_i / sigma² with
-    J_i = [-[p_i]x, I] (the change of T_a_b·Exp(xi)·p_i). The translation is known best at the objects'
-    centroid (n / sigma²) and the rotation from their spread; a keyframe far from the objects (a UAV
-    50 m above what it sees) inherits the rotation's uncertainty times the lever arm, where fixed
-    sigmas at the keyframe would claim it as precise as the objects. ``sigma_rot_rad`` adds a rotation
-    prior (the fit's own rotation, or the ground normals of a 4-DoF fit): it keeps the information
-    positive definite when the objects lie on a line.
-    """
-    p = np.asarray(support_b, dtype=np.float64).reshape(-1, 3)
-    skew = np.zeros((len(p), 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
-    skew -= skew.transpose(0, 2, 1)  # [p]x
-    J = np.concatenate([-skew, np.broadcast_to(np.eye(3), skew.shape)], axis=2)  # (n, 3, 6)
-    info = np.einsum("nij,nik->jk", J, J) / sigma_object_m**2
-    info[:3, :3] += np.eye(3) / sigma_rot_rad**2
-    return info
-
-
 def _sigmas6(rot_trans: tuple[float, float]) -> np.ndarray:
     rot, trans = (float(v) for v in rot_trans)
     if rot <= 0 or trans <= 0:
@@ -425,7 +398,6 @@ class MultiRobotPoseGraph:
         *,
         num_inliers: int = 1,
         information: np.ndarray | None = None,
-        support_b: np.ndarray | None = None,
         match_id: int | None = None,
         support: Iterable[Hashable] = (),
         update: bool = True,
@@ -441,12 +413,8 @@ class MultiRobotPoseGraph:
             T_akf_bkf: (4, 4) pose of b's keyframe camera in a's keyframe camera frame.
             num_inliers: evidence behind the closure (matched objects); breaks ties between
                 equally large consistent sets.
-            information: optional (6, 6) information matrix in gtsam order [rot, trans]; else the one
-                ``support_b`` gives; else the configured closure sigmas.
-            support_b: (n, 3) positions (metres, in b's keyframe ``kf_b`` camera frame) of the matched
-                objects the closure was fitted to: its information is then that of a rigid fit to them
-                (``fit_information``), precise where the objects are and less so at a keyframe far from
-                them, and growing with their number and spread.
+            information: optional (6, 6) information matrix in gtsam order [rot, trans]; the
+                configured closure sigmas otherwise.
             match_id: the graph match the closure was cut from; closures of one match count as one
                 source of evidence for ``min_closures_to_anchor`` (None: the closure is its own source).
             support: the objects the closure rests on (hashable, e.g. ``(robot, node id)``); two matches
@@ -472,8 +440,6 @@ class MultiRobotPoseGraph:
                     f"closure refers to keyframe {kf} of {name}, which has only "
                     f"{len(self._robots[name].T_odom_kf)} keyframes; add keyframes before closures"
                 )
-        if information is None and support_b is not None:
-            information = fit_information(support_b, self._closure_sigmas[3], self._closure_sigmas[0])
         if ia > ib or (ia == ib and kf_a > kf_b):  # canonical order: lower robot index, older keyframe first
             robot_a, kf_a, robot_b, kf_b, T = robot_b, kf_b, robot_a, kf_a, inverse(T)
             if information is not None:

@@ -74,8 +74,7 @@ class MapServer:
     Every ``match_every_keyframes`` keyframes of a robot r, r's recent submap and r's whole graph are
     matched against every other robot's whole graph (robots here are agents: a robot's trajectory
     segments after odometry failures are agents of their own, added at run time); accepted matches become inter-robot
-    relative-pose factors between keyframes, each with the information of its fit to the objects behind it
-    (``pose_graph.fit_information``). Shared frame = the first robot's odometry frame.
+    relative-pose factors between keyframes. Shared frame = the first robot's odometry frame.
 
     Candidate places first (cost flat with distance): once two placed robots' closures rest on at least
     ``CONFIRMING_MATCHES`` independent matches, r's submap is matched only against the other's nodes
@@ -381,9 +380,8 @@ class MapServer:
             support = {robot_a: frozenset(result.inliers[rows, 0].tolist()),
                        robot_b: frozenset(result.inliers[rows, 1].tolist())}  # fmt: skip
             t1 = time.perf_counter()
-            support_b = se3.transform_points(se3.inverse(self._T_odom_kf[robot_b][kf_b]), rec.inlier_positions_b[rows])
             decision = self._pose_graph.add_inter_robot_closure(
-                robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n, support_b=support_b,
+                robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n,
                 match_id=self._num_matches, support=_objects(support) if robot_a != robot_b else (), update=False,
             )  # fmt: skip
             self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
