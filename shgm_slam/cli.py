@@ -368,11 +368,12 @@ def run(
         typer.Option(
             help="auto | kiss-icp | visual | hybrid | gt | a KITTI/TUM poses file ({robot} in the path = robot "
             "name); auto = visual odometry on model depth, KISS-ICP on depth files (the run says which and why); "
-            "hybrid = KISS-ICP seeded by and fused with the visual odometry [default: the config's, auto]"
+            "hybrid = KISS-ICP seeded by and fused with the visual odometry",
+            show_default="the config's, auto",
         ),
     ] = None,
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
-    out: Annotated[Path | None, typer.Option("--out", help="results folder [default: results/<time>]")] = None,
+    out: Annotated[Path | None, typer.Option("--out", help="results folder", show_default="results/<time>")] = None,
     rerun: Annotated[str, typer.Option("--rerun", help="spawn | save | connect | off")] = "save",
     rerun_url: Annotated[str | None, typer.Option(help="gRPC URL for --rerun connect")] = None,
     depth_model: Annotated[Path | None, typer.Option(help="ONNX depth model (card next to it)")] = None,
@@ -466,10 +467,12 @@ def _late_stop(_signum, _frame) -> None:
 def server_command(
     out: Annotated[Path, typer.Option("--out", help="results folder (a journal there is replayed: restart)")],
     listen: Annotated[
-        str | None, typer.Option(help="Zenoh endpoint(s) to listen on, comma-separated [default: tcp/127.0.0.1:7447]")
+        str | None, typer.Option(help="Zenoh endpoint(s) to listen on, comma-separated",
+                                  show_default="tcp/127.0.0.1:7447")
     ] = None,
     reference: Annotated[
-        str | None, typer.Option(help="robot whose frame is the shared frame [default: the first to connect]")
+        str | None, typer.Option(help="robot whose frame is the shared frame",
+                                  show_default="the first to connect")
     ] = None,
     expect: Annotated[
         int | None,
@@ -529,7 +532,8 @@ def _placed_text(placed: list[str], provisional: list[str]) -> str:
 def robot_command(
     robot: Annotated[str, typer.Argument(help="NAME=PATH[:start-end] (frames start..end-1)")],
     connect: Annotated[
-        str | None, typer.Option(help="map server's Zenoh endpoint(s), comma-separated [default: tcp/127.0.0.1:7447]")
+        str | None, typer.Option(help="map server's Zenoh endpoint(s), comma-separated",
+                                  show_default="tcp/127.0.0.1:7447")
     ] = None,
     odometry: Annotated[
         str | None, typer.Option(help="auto | kiss-icp | visual | hybrid | gt | a KITTI/TUM poses file (as for run)")
@@ -538,7 +542,7 @@ def robot_command(
     seg_model: Annotated[Path | None, typer.Option(help="ONNX segmentation model (card next to it)")] = None,
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
     realtime: Annotated[
-        bool, typer.Option(help="pace frames by their timestamps [default: as fast as it can]")
+        bool, typer.Option(help="pace frames by their timestamps", show_default="as fast as it can")
     ] = False,
     out: Annotated[Path | None, typer.Option("--out", help="write this robot's trajectories here")] = None,
     wait: Annotated[
@@ -570,7 +574,7 @@ def robot_command(
 @handle_errors
 def demo(
     out: Annotated[
-        Path | None, typer.Option(help="results folder [default: results/demo; with --rgb-only results/demo-rgb]")
+        Path | None, typer.Option(help="results folder", show_default="results/demo; with --rgb-only results/demo-rgb")
     ] = None,
     cache: Annotated[Path, typer.Option(help="where the simulated world is cached")] = Path("cache"),
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
@@ -927,8 +931,8 @@ def bench_heldout(
     = Path("results/bench_heldout"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-19) or A-B")]
     = "report",
-    scenario: Annotated[list[str] | None, typer.Option(help="scenario (repeatable) [all four]")] = None,
-    mode: Annotated[list[str] | None, typer.Option(help="files | rgb (repeatable) [both]")] = None,
+    scenario: Annotated[list[str] | None, typer.Option(help="scenario (repeatable)", show_default="all four")] = None,
+    mode: Annotated[list[str] | None, typer.Option(help="files | rgb (repeatable)", show_default="both")] = None,
     max_frames: Annotated[
         int | None, typer.Option(min=10, max=MAX_FRAMES, help="cut every robot's sequence (quick looks)")
     ] = None,
@@ -971,12 +975,12 @@ def bench_depth_quality(
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-19) or A-B")]
     = "report",
     scenario: Annotated[
-        list[str] | None, typer.Option(help="scenario (repeatable) [airsim-like, synthia-like]")
+        list[str] | None, typer.Option(help="scenario (repeatable)", show_default="airsim-like, synthia-like")
     ] = None,
     level: Annotated[
         list[str] | None,
-        typer.Option(help="depth level (repeatable): true, an AbsRel such as 0.05, or model [true 0.03 0.05 0.08 "
-                     "0.12 model]"),
+        typer.Option(help="depth level (repeatable): true, an AbsRel such as 0.05, or model",
+                     show_default="true 0.03 0.05 0.08 0.12 model"),
     ] = None,
     odometry: Annotated[
         str, typer.Option(help="odometry kinds run alone (comma-separated: kiss-icp, visual, hybrid)")
@@ -1037,9 +1041,12 @@ def bench_table3(
     runs: Annotated[
         int, typer.Option(min=1, max=100000, help="random transforms per split, descriptor and world")
     ] = 10,
-    split: Annotated[list[str] | None, typer.Option(help="02 | 08A | 08B | 00-07 (repeatable) [all]")] = None,
-    descriptor: Annotated[list[DescriptorKind] | None, typer.Option(help="descriptor (repeatable) [all three]")]
-    = None,
+    split: Annotated[
+        list[str] | None, typer.Option(help="02 | 08A | 08B | 00-07 (repeatable)", show_default="all")
+    ] = None,
+    descriptor: Annotated[
+        list[DescriptorKind] | None, typer.Option(help="descriptor (repeatable)", show_default="all three")
+    ] = None,
     max_frames: Annotated[int | None, typer.Option(min=2, max=MAX_FRAMES, help="cut every drive to its first frames "
                                                    "(quick looks; may cut the overlap away)")] = None,
     resolution: Annotated[str, typer.Option(help="render size WIDTHxHEIGHT")] = "320x96",

@@ -130,3 +130,39 @@ def test_check_model_writes_a_preview_only_when_asked(tmp_path, monkeypatch):
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     row = next(line for line in readme.splitlines() if line.startswith("| `shgm-slam check-model"))
     assert "--preview" in row  # the README says a preview needs --preview
+
+
+def _commands(group, path=()):
+    from typer.core import TyperGroup
+
+    for name, cmd in group.commands.items():
+        if isinstance(cmd, TyperGroup):
+            yield from _commands(cmd, (*path, name))
+        else:
+            yield (*path, name), cmd
+
+
+def test_every_help_text_is_shown_whole():
+    """Help texts are printed as written: no ``[default: …]`` or ``[all]`` swallowed as rich markup."""
+    import re
+
+    import typer
+
+    def flat(text: str) -> str:
+        return re.sub(r"[\s│]+", " ", text)
+
+    for path, cmd in _commands(typer.main.get_command(app)):
+        res = runner.invoke(app, [*path, "--help"], env={"COLUMNS": "250"})
+        assert res.exit_code == 0, (path, res.output)
+        shown = flat(res.output)
+        assert flat(cmd.help or "") in shown, (path, cmd.help)
+        for param in cmd.params:
+            if getattr(param, "help", None):
+                assert flat(param.help) in shown, (path, param.name, param.help)
+            if isinstance(getattr(param, "show_default", None), str):
+                assert f"[default: ({param.show_default})]" in shown, (path, param.name)
+
+
+def test_demo_help_names_both_default_folders():
+    res = runner.invoke(app, ["demo", "--help"], env={"COLUMNS": "250"})
+    assert "results/demo;" in res.output and "results/demo-rgb" in res.output
