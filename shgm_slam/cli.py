@@ -22,6 +22,7 @@ from rich.markup import escape
 from shgm_slam import __version__
 from shgm_slam.config import DescriptorKind, OutlierMode
 from shgm_slam.errors import ShgmError
+from shgm_slam.io.json_text import to_json_text
 
 console = Console()
 err_console = Console(stderr=True)
@@ -221,7 +222,6 @@ def match(
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
 ) -> None:
     """Match two semantic graphs: T_a_b (B -> A), the inlier node pairs and the stage timings."""
-    import json
 
     from shgm_slam.config import load_config
     from shgm_slam.io.graph_json import read_graph
@@ -234,7 +234,7 @@ def match(
     b = read_graph(graph_b, connectivity_m=cfg.graph.connectivity_m)
     result = match_graphs(a, b, descriptor_cfg, matching_cfg)
     if json_output:
-        typer.echo(json.dumps(result.to_json_dict()))
+        typer.echo(to_json_text(result.to_json_dict(), indent=None))
         return
     _render_match(result, len(a), len(b), descriptor_cfg.kind, matching_cfg.outlier_mode)
 
@@ -619,7 +619,6 @@ def eval_command(
 ) -> None:
     """Fused ATE of every robot against ground truth in the shared frame (evo, no alignment) and SE(3)-aligned.
     With --gt, also writes <robot>_gt_tum.txt into RESULTS for evo_ape."""
-    import json
 
     from rich.table import Table
 
@@ -628,7 +627,7 @@ def eval_command(
     sequences = open_ground_truth(gt) if gt else None
     result = evaluate_results(results, sequences, gt_shared_frame=gt_shared_frame)
     if json_output:
-        typer.echo(json.dumps(result.to_json_dict()))
+        typer.echo(to_json_text(result.to_json_dict(), indent=None))
         return
     table = Table(title=f"fused ATE in the shared frame ({lit(result.reference_robot)}'s), metres")
     for col in ("robot", "poses", "ATE", "aligned", "max", "note"):
@@ -815,7 +814,6 @@ def bench_sparse(
 ) -> None:
     """Sparse, map-like localization (no rendering): map classes only, 30-60 % missed, 0.5-2 m noise,
     label confusions, drives sharing 50-300 m, far-apart negatives; localized / wrong / negatives / ms."""
-    import json
 
     from shgm_slam.bench.localization_sparse import SparseOptions, parse_seeds, run_sparse_benchmark, sparse_markdown
     from shgm_slam.config import load_config
@@ -827,7 +825,7 @@ def bench_sparse(
         results = run_sparse_benchmark(options, cfg.descriptor, cfg.matching, cfg.graph,
                                        progress=lambda msg: status.update(msg))
     out.mkdir(parents=True, exist_ok=True)
-    (out / "sparse.json").write_text(json.dumps(results.to_json(), indent=1))
+    (out / "sparse.json").write_text(to_json_text(results.to_json()) + "\n")
     text = sparse_markdown(results, seed_list)
     (out / "sparse.md").write_text(text)
     console.print(text, markup=False)

@@ -86,7 +86,7 @@ class EvaluationResult:
     gt_files_written: list[Path] = field(default_factory=list)
 
     def to_json_dict(self) -> dict:
-        from shgm_slam.io.export import finite_or_none
+        from shgm_slam.io.json_text import finite_or_none
 
         return finite_or_none({
             "results_dir": str(self.results_dir), "reference_robot": self.reference_robot,

@@ -45,6 +45,7 @@ from shgm_slam.data import open_sequence
 from shgm_slam.demo import MODELS_DIR
 from shgm_slam.errors import DataError
 from shgm_slam.geometry import se3
+from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import read_tum
 from shgm_slam.runner import open_robots, replay_backend, run_slam
 from shgm_slam.sim.simulate import simulate
@@ -329,7 +330,7 @@ def replay_one(recorded: Path, mode: InputMode, run_dir: Path, robots: list[str]
     metrics["replayed_from"] = str(recorded)
     for gt in Path(recorded).glob("*_gt_*.txt"):
         (Path(run_dir) / gt.name).write_bytes(gt.read_bytes())
-    (Path(run_dir) / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float) + "\n")
+    (Path(run_dir) / "metrics.json").write_text(to_json_text(metrics) + "\n")
     return metrics
 
 
@@ -363,7 +364,7 @@ def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, pr
             "per_keyframe_ms": metrics.get("per_keyframe_ms"),
             "verdicts": [vars(v) for v in verdicts],
         }  # fmt: skip
-        cached.write_text(json.dumps(done, indent=1, default=float) + "\n")
+        cached.write_text(to_json_text(done) + "\n")
         done_runs.append(done)
     return done_runs
 

@@ -26,6 +26,7 @@ from shgm_slam.errors import SimulationError
 from shgm_slam.graph.build import select_keyframes
 from shgm_slam.graph.extraction import ObjectObservations, extract_objects
 from shgm_slam.graph.semantic_graph import SemanticGraph
+from shgm_slam.io.json_text import to_json_text
 from shgm_slam.sim.corruption import CorruptionLevels, apply_corruption
 from shgm_slam.sim.render import Renderer, make_intrinsics
 from shgm_slam.sim.scenarios import ScenarioOptions, build_scenario
@@ -161,7 +162,7 @@ def load_scene(
             "intrinsics": intrinsics.__dict__,
             "robots": robots_meta,
         }
-        meta_path.write_text(json.dumps(meta, indent=1) + "\n")
+        meta_path.write_text(to_json_text(meta) + "\n")
     meta = json.loads(meta_path.read_text())
     intrinsics = Intrinsics(**meta["intrinsics"])
     out = {}

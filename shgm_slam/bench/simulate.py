@@ -8,7 +8,6 @@ benchmark machine is shared.
 
 from __future__ import annotations
 
-import json
 import os
 import resource
 import tempfile
@@ -17,6 +16,7 @@ from pathlib import Path
 
 import psutil
 
+from shgm_slam.io.json_text import to_json_text
 from shgm_slam.sim.render import Renderer, make_intrinsics
 from shgm_slam.sim.scenarios import ScenarioOptions, build_scenario
 from shgm_slam.sim.simulate import simulate
@@ -120,7 +120,7 @@ def run_simulate_benchmark(
     if out is not None:
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(results, indent=1) + "\n")
+        out.write_text(to_json_text(results) + "\n")
     return results
 
 

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from shgm_slam.config import ShgmConfig
 from shgm_slam.demo import demo_config, prepare_world
+from shgm_slam.io.json_text import to_json_text
 from shgm_slam.runner import RunSummary, open_robots, run_slam
 from shgm_slam.sim.simulate import simulate
 
@@ -84,10 +85,11 @@ def peak_rss_runs(out: Path, runs: list[tuple[str, str, str]], progress: Progres
 
 
 def write_report(out: Path, stem: str, results: dict, markdown: Callable[[dict], str]) -> None:
-    """``out/<stem>.json`` (the results; numpy scalars as floats) and ``out/<stem>.md`` (``markdown(results)``);
+    """``out/<stem>.json`` (the results, strict JSON: numpy scalars as floats, NaN as null) and
+    ``out/<stem>.md`` (``markdown(results)``);
     ``out`` is created."""
     Path(out).mkdir(parents=True, exist_ok=True)
-    (Path(out) / f"{stem}.json").write_text(json.dumps(results, indent=1, default=float) + "\n")
+    (Path(out) / f"{stem}.json").write_text(to_json_text(results) + "\n")
     (Path(out) / f"{stem}.md").write_text(markdown(results))
 
 

@@ -44,6 +44,7 @@ from shgm_slam.data import open_sequence
 from shgm_slam.errors import ConfigError
 from shgm_slam.geometry.se3 import inverse, transform_points
 from shgm_slam.graph.build import build_graph_from_sequence
+from shgm_slam.io.json_text import to_json_text
 from shgm_slam.matching import match_graphs
 from shgm_slam.sim.corruption import CorruptionLevels
 from shgm_slam.sim.simulate import simulate
@@ -448,6 +449,6 @@ def write_table3(results: Table3Results, out: Path) -> tuple[Path, Path]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     js, md = out / "table3.json", out / "table3.md"
-    js.write_text(json.dumps(results.to_json(), indent=1) + "\n")
+    js.write_text(to_json_text(results.to_json()) + "\n")
     md.write_text(table3_markdown(results))
     return js, md

@@ -14,7 +14,6 @@ Every file is written atomically (temp file + rename) so an interrupted run neve
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import tempfile
 from collections.abc import Callable, Iterable, Iterator
@@ -25,6 +24,7 @@ import numpy as np
 
 from shgm_slam.errors import DataError
 from shgm_slam.io.graph_json import write_graph
+from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import write_kitti_poses, write_tum
 from shgm_slam.types import GraphArrays, Sequence
 
@@ -177,17 +177,6 @@ def _remove(path: Path) -> None:
         raise DataError(f"cannot remove {path}: {exc.strerror or exc}; check the folder's permissions") from None
 
 
-def finite_or_none(value: object) -> object:
-    """``value`` with every non-finite float (NaN, inf) replaced by None, recursively: valid JSON."""
-    if isinstance(value, float | np.floating):
-        return float(value) if np.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: finite_or_none(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [finite_or_none(v) for v in value]
-    return value
-
-
 def _valid_rows(poses: np.ndarray) -> np.ndarray:
     return np.isfinite(poses.reshape(len(poses), -1)).all(axis=1)
 
@@ -309,8 +298,7 @@ class ResultsWriter:
         self._put(self.path(f"graph_{robot}.json"), lambda p: write_graph(p, graph))
 
     def write_json(self, name: str, data: object) -> None:
-        data = json.loads(json.dumps(data, default=_json_default))  # numpy, paths -> plain values
-        text = json.dumps(finite_or_none(data), indent=1, allow_nan=False) + "\n"
+        text = to_json_text(data) + "\n"  # strict JSON: NaN (not measurable) as null
         self._put(self.path(name), lambda p: p.write_text(text))
 
     def write_matches(self, records: Iterable) -> None:
@@ -347,13 +335,3 @@ class ResultsWriter:
             self._put(kitti, lambda p, T=T_shared_cam: write_kitti_poses(p, T))
             written += [tum, kitti]
         return written
-
-
-def _json_default(o: object) -> object:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"cannot serialize {type(o).__name__}")

@@ -21,6 +21,7 @@ import numpy as np
 
 from shgm_slam.errors import GraphError
 from shgm_slam.graph.semantic_graph import edges_within_radius
+from shgm_slam.io.json_text import to_json_text
 from shgm_slam.labels import CITYSCAPES_CLASSES
 from shgm_slam.types import GraphArrays
 
@@ -186,7 +187,7 @@ def write_graph(path: Path | str, graph: GraphArrays, classes: Sequence[str] = C
     doc = graph_to_dict(graph, classes)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(doc, indent=None, separators=(",", ":")) + "\n")
+        path.write_text(to_json_text(doc, compact=True) + "\n")
     except OSError as exc:
         raise GraphError(f"cannot write graph file {path}: {exc.strerror}; check the folder") from None
     return path

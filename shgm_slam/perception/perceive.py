@@ -39,6 +39,7 @@ from shgm_slam.data.base import open_sequence, parse_sequence_spec
 from shgm_slam.data.kitti import IMAGE_SOURCES, frame_file
 from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, encode_depth
 from shgm_slam.errors import ConfigError, DataError, ModelError
+from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import format_kitti_pose
 from shgm_slam.perception.card import card_to_yaml
 from shgm_slam.perception.depth import DepthModel
@@ -326,7 +327,7 @@ def perceive(
     try:  # the output folder's skeleton: a read-only or full folder is one clear error
         _check_out(out, root, manifest, overwrite)
         out.mkdir(parents=True, exist_ok=True)
-        _write_text_atomic(out / MANIFEST, json.dumps(manifest, indent=1) + "\n")
+        _write_text_atomic(out / MANIFEST, to_json_text(manifest) + "\n")
         _write_static(out, sequence, root / source.folder, source.folder, start, images)
         for folder, _ in outputs:
             (out / folder).mkdir(exist_ok=True)
@@ -392,5 +393,5 @@ def perceive(
     result.wall_s = time.perf_counter() - t_start
     if result.complete:
         manifest["complete"] = True
-        _write_text_atomic(out / MANIFEST, json.dumps({**manifest, "last_run": result.to_json_dict()}, indent=1) + "\n")
+        _write_text_atomic(out / MANIFEST, to_json_text({**manifest, "last_run": result.to_json_dict()}) + "\n")
     return result

@@ -11,7 +11,8 @@ import pytest
 
 from shgm_slam.errors import DataError
 from shgm_slam.io import export
-from shgm_slam.io.export import ResultsWriter, finite_or_none
+from shgm_slam.io.export import ResultsWriter
+from shgm_slam.io.json_text import finite_or_none
 
 
 def test_metrics_with_nan_are_valid_json(tmp_path):
