@@ -620,7 +620,6 @@ def eval_command(
     """Fused ATE of every robot against ground truth in the shared frame (evo, no alignment) and SE(3)-aligned.
     With --gt, also writes <robot>_gt_tum.txt into RESULTS for evo_ape."""
 
-    from rich.table import Table
 
     from shgm_slam.evaluation import evaluate_results, open_ground_truth
 
@@ -629,20 +628,28 @@ def eval_command(
     if json_output:
         typer.echo(to_json_text(result.to_json_dict(), indent=None))
         return
-    table = Table(title=f"fused ATE in the shared frame ({lit(result.reference_robot)}'s), metres")
-    for col in ("robot", "poses", "ATE", "aligned", "max", "note"):
-        table.add_column(col, justify="left" if col in ("robot", "note") else "right")
-    def metres(v: float) -> str:
-        return f"{v:.2f}" if v == v else "-"  # NaN: not measurable
-
-    for r in result.robots:
-        table.add_row(lit(r.name), f"{r.evaluated_poses}/{r.fused_poses}", metres(r.ate_fused_m),
-                      metres(r.ate_fused_aligned_m), metres(r.max_error_m), lit(r.note))  # fmt: skip
-    table.caption = f"ground truth from the {result.gt_source}; aligned = SE(3)-aligned per robot"
-    console.print(table)
+    console.print(_eval_table(result))
     if result.gt_files_written:
         console.print(f"wrote {len(result.gt_files_written) // 2} ground-truth trajectories; e.g. evo_ape tum "
                       f"{lit(result.gt_files_written[0])} {lit(results / (result.reference_robot + '_fused_tum.txt'))}")
+
+
+def _eval_table(result):
+    """The per-robot ``eval`` table; fits 80 columns (numbers never wrap, long names and notes fold)."""
+    from rich import box
+    from rich.table import Table
+
+    table = Table(title=f"fused ATE in the shared frame ({lit(result.reference_robot)}'s), metres",
+                  box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)  # fmt: skip
+    table.add_column("robot", overflow="fold")
+    for col in ("poses", "ATE", "aligned", "max"):
+        table.add_column(col, justify="right", no_wrap=True)
+    table.add_column("note", overflow="fold", ratio=1)
+    for r in result.robots:
+        table.add_row(lit(r.name), f"{r.evaluated_poses}/{r.fused_poses}", _metres(r.ate_fused_m),
+                      _metres(r.ate_fused_aligned_m), _metres(r.max_error_m), lit(r.note))  # fmt: skip
+    table.caption = f"ground truth from the {result.gt_source}; aligned = SE(3)-aligned per robot"
+    return table
 
 
 # --- check-model (perception/) ----------------------------------------------------------------------
