@@ -751,6 +751,55 @@ def perceive_command(
 # --- bench (bench.py) -------------------------------------------------------------------------------
 
 
+def markdown_tables(text: str, width: int):
+    """``text`` (a benchmark's markdown report) as rich renderables for a terminal ``width`` columns wide:
+    each markdown table whose rows are wider becomes a table that folds its cells (nothing cut), other
+    lines stay as they are."""
+    from rich import box
+    from rich.table import Table
+    from rich.text import Text
+
+    out, rows = [], []
+
+    def flush() -> None:
+        if not rows:
+            return
+        cells = [[c.strip() for c in row.strip().strip("|").split("|")] for row in rows]
+        if len(cells) < 2 or max(map(len, rows)) <= width or not set("".join(cells[1])) <= set("-: "):
+            out.extend(Text(row) for row in rows)
+        else:
+            t = Table(box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
+            longest = [max((len(w) for row in (cells[0], *cells[2:]) if k < len(row) for w in row[k].split()),
+                           default=1) for k in range(len(cells[0]))]  # fmt: skip
+            whole_words = sum(longest) + 3 * len(longest) <= width  # else rich folds words to fit
+            for k, (head, rule) in enumerate(zip(cells[0], cells[1], strict=False)):
+                t.add_column(head, overflow="fold", justify="right" if rule.endswith(":") else "left",
+                             min_width=longest[k] if whole_words else None)
+            for row in cells[2:]:
+                t.add_row(*row[: len(cells[0])])
+            out.append(t)
+        rows.clear()
+
+    for line in text.splitlines():
+        if line.lstrip().startswith("|"):
+            rows.append(line)
+            continue
+        flush()
+        out.append(Text(line))
+    flush()
+    return out
+
+
+def print_report(text: str) -> None:
+    """Print a benchmark's markdown report: raw markdown when piped (the .md file is written anyway), tables
+    that fit the terminal when it is one."""
+    if not console.is_terminal:
+        typer.echo(text)
+        return
+    for item in markdown_tables(text, console.width):
+        console.print(item)
+
+
 @bench_app.command("simulate")
 @handle_errors
 def bench_simulate(
@@ -766,7 +815,7 @@ def bench_simulate(
 
     results = run_simulate_benchmark(out, resolution=parse_resolution(resolution), short_frames=short_frames,
                                      long_frames=long_frames, seed=seed)
-    console.print(simulate_markdown(results), markup=False)
+    print_report(simulate_markdown(results))
     console.print(f"wrote {lit(out)}")
 
 
@@ -835,7 +884,7 @@ def bench_sparse(
     (out / "sparse.json").write_text(to_json_text(results.to_json()) + "\n")
     text = sparse_markdown(results, seed_list)
     (out / "sparse.md").write_text(text)
-    console.print(text, markup=False)
+    print_report(text)
     console.print(f"wrote {lit(out / 'sparse.json')} and {lit(out / 'sparse.md')}")
 
 
@@ -856,7 +905,7 @@ def bench_system(
     with console.status("starting") as status:
         results = run_system_benchmark(out, cache=cache, seed=seed, memory=memory, rgb_only=rgb_only,
                                        progress=lambda msg: status.update(msg))
-    console.print(system_markdown(results), markup=False)
+    print_report(system_markdown(results))
     console.print(f"wrote {lit(out / 'system.json')} and {lit(out / 'system.md')}")
 
 
@@ -879,7 +928,7 @@ def bench_scale(
     with console.status("starting") as status:
         results = run_scale_benchmark(out, cache=cache, seed=seed, memory=memory, kitti_root=kitti_root,
                                       config=load_config(config), progress=lambda msg: status.update(msg))  # fmt: skip
-    typer.echo(scale_markdown(results))
+    print_report(scale_markdown(results))
     console.print(f"wrote {lit(out / 'scale.json')} and {lit(out / 'scale.md')}")
 
 
@@ -908,7 +957,7 @@ def bench_distributed(
     with console.status("starting") as status:
         result = run_distributed_benchmark(world, out, faults=modes, config=config,
                                            progress=lambda msg: status.update(msg))  # fmt: skip
-    console.print(distributed_markdown(result), markup=False)
+    print_report(distributed_markdown(result))
     console.print(f"wrote {lit(out / 'distributed.json')} and {lit(out / 'distributed.md')}")
 
 
@@ -968,7 +1017,7 @@ def bench_heldout(
         raise ConfigError(f"--replay-from {replay_from}: no runs/ folder there (a `bench heldout` results folder)")
     with console.status("starting") as status:
         results = heldout.run_heldout_benchmark(out, options, progress=lambda msg: status.update(msg), jobs=jobs)
-    typer.echo(heldout.heldout_markdown(results))
+    print_report(heldout.heldout_markdown(results))
     console.print(f"wrote {lit(out / 'heldout.json')} and {lit(out / 'heldout.md')}")
 
 
@@ -1031,7 +1080,7 @@ def bench_depth_quality(
     )  # fmt: skip
     with console.status("starting") as status:
         results = dq.run_depth_quality_benchmark(out, options, progress=lambda msg: status.update(msg))
-    typer.echo(dq.depth_quality_markdown(results))
+    print_report(dq.depth_quality_markdown(results))
     console.print(f"wrote {lit(out / 'depth_quality.json')}, {lit(out / 'depth_quality.md')} and "
                   f"{lit(out / 'depth_quality.png')}")  # fmt: skip
 
@@ -1083,7 +1132,7 @@ def bench_table3(
         results = table3.run_table3(options, progress=lambda msg: status.update(msg), jobs=jobs,
                                     kitti_root=kitti_root)  # fmt: skip
     json_path, md_path = table3.write_table3(results, out)
-    typer.echo(table3.table3_markdown(results))
+    print_report(table3.table3_markdown(results))
     console.print(f"wrote {lit(json_path)} and {lit(md_path)} ({results.wall_s:.0f} s)")
 
 

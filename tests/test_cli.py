@@ -189,3 +189,24 @@ def test_eval_table_fits_80_columns_without_cutting(monkeypatch):
     for value in ("4541/4541", "1235", "12.35", "2346", "4540/4541", "0.39", "0.13", "0.67", "aligned"):
         assert value in res.output
     assert "not placed (no fused trajectory)" in " ".join(res.output.split())
+
+
+def test_bench_reports_fit_80_columns_on_a_terminal():
+    """A benchmark's markdown table wider than the terminal is shown as a folding table: nothing cut."""
+    from rich.console import Console
+
+    from shgm_slam.cli import markdown_tables
+
+    head = ["recovered folder", "journal records", "from snapshot", "replayed", "snapshot MB", "s with snapshots",
+            "s journal only", "speed-up", "server → robots KB (corrections + status)"]  # fmt: skip
+    row = ["at the kill", "300", "200", "100", "1.23", "2.0", "10.0", "5.0x", "5 + 0"]
+    md = "\n".join(["intro line", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head),
+                    "| " + " | ".join(row) + " |", "", "| a | b |", "|---|---:|", "| 1 | 2 |"])  # fmt: skip
+    console = Console(width=80, record=True, color_system=None)
+    for item in markdown_tables(md, 80):
+        console.print(item)
+    text = console.export_text()
+    assert "…" not in text and max(len(line) for line in text.splitlines()) <= 80
+    assert "intro line" in text and "| a | b |" in text  # narrow tables and text stay markdown
+    for cell in ["300", "200", "100", "1.23", "2.0", "10.0", "5.0x", "5 + 0"]:
+        assert cell in text, cell  # numbers stay whole; long header words fold only when they must
