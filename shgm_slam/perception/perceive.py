@@ -203,7 +203,9 @@ def _check_out(out: Path, source_root: Path, manifest: dict, overwrite: bool) ->
         raise DataError(f"--out {out} is not empty and was not written by perceive; choose a new folder")
     try:
         previous = json.loads(previous_path.read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
+        previous = {}
+    if not isinstance(previous, dict):  # not a manifest: treated like one of another job
         previous = {}
     changed = [k for k in ("format", "source", "start", "end") if previous.get(k) != manifest[k]]
     for k in ("depth_model", "seg_model"):  # the same model may sit elsewhere now: compare contents only
