@@ -343,7 +343,7 @@ def _render_summary(summary) -> None:
     console.print(f"results in [bold]{lit(summary.out_dir)}[/]")
 
 
-def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool):
+def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool, fronts=None):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
     from shgm_slam.runner import run_slam
@@ -351,7 +351,7 @@ def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool):
     with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
                   TimeRemainingColumn(), console=console, transient=True) as bar:
         task = bar.add_task("frames", total=sum(len(s) for s in robots.values()))
-        return run_slam(robots, cfg, out_dir, viz=viz, gt_shared_frame=gt_shared_frame,
+        return run_slam(robots, cfg, out_dir, viz=viz, gt_shared_frame=gt_shared_frame, fronts=fronts,
                         progress=lambda done, total: bar.update(task, completed=done))
 
 
@@ -417,19 +417,24 @@ def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_
 def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_frame: bool, overwrite: bool = False):
     from shgm_slam.errors import ConfigError
     from shgm_slam.io.export import make_results_dir
-    from shgm_slam.runner import open_robots
-    from shgm_slam.viz.rerun_logger import RerunMode, make_viz
+    from shgm_slam.runner import open_robots, prepare_frontends
+    from shgm_slam.viz.rerun_logger import DEFAULT_CONNECT_URL, RerunMode, make_viz, viewer_address
 
     robots = open_robots(robot_args)
     try:
         mode = RerunMode(rerun_mode)
     except ValueError:
         raise ConfigError(f"--rerun {rerun_mode!r}: choose spawn, save, connect or off") from None
+    if mode is RerunMode.CONNECT:
+        viewer_address(rerun_url or DEFAULT_CONNECT_URL)  # a malformed URL is refused before any work
+    # everything that can refuse the run (config, models, first frames) before --out gets a file: a refused
+    # run must not leave files that make the next run with the same --out ask for --overwrite
+    fronts = prepare_frontends(robots, cfg)
     out_dir = make_results_dir(out, overwrite=overwrite)
     viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=rerun_url,
                    max_cloud_points=8000)
     with _stop_signals_as_interrupt():
-        return _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame)
+        return _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame, fronts)
 
 
 @contextlib.contextmanager

@@ -130,3 +130,22 @@ def test_check_model_writes_a_preview_only_when_asked(tmp_path, monkeypatch):
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     row = next(line for line in readme.splitlines() if line.startswith("| `shgm-slam check-model"))
     assert "--preview" in row  # the README says a preview needs --preview
+
+
+def test_a_refused_run_leaves_nothing_in_its_out_folder(tmp_path):
+    """A run refused for its config, a model or its poses file exits 2 before --out gets a file: it used to
+    leave <robot>_gt_*.txt and run.rrd there, so the corrected run was told to pass --overwrite."""
+    from tests.data.conftest import make_frames, write_frames
+
+    seq = write_frames(tmp_path / "seq", make_frames(6))
+    ranges = tmp_path / "ranges.yaml"
+    ranges.write_text("odometry:\n  min_range_m: 50\n  max_range_m: 10\n")
+    out = tmp_path / "out"
+    refused = [["--config", str(ranges)], ["--depth-model", str(tmp_path / "missing.onnx")],
+               ["--odometry", str(tmp_path / "{robot}_poses.txt")], ["--rerun", "connect", "--rerun-url", "nope"]]
+    for args in refused:
+        res = CliRunner().invoke(app, ["run", "--robot", f"a={seq}", "--out", str(out), *args])
+        assert res.exit_code == 2 and "error:" in res.output, (args, res.output)
+        assert not out.exists() or not any(out.iterdir()), (args, sorted(p.name for p in out.iterdir()))
+    res = CliRunner().invoke(app, ["run", "--robot", f"a={seq}", "--out", str(out), "--rerun", "off"])
+    assert res.exit_code == 0, res.output
