@@ -694,6 +694,13 @@ def check_model_command(
         what = "depth (all non-finite or <= 0)" if not report.label_fractions else "label (all ignore, 255)"
         raise ModelError(f"{model}: valid output 0 %: every {what} on {report.image_source}; check the card "
                          "(output kind, scale, classes) and the model")
+    if report.value_min == report.value_max:  # `run` refuses such a model: so does its check
+        from shgm_slam.errors import ModelError
+
+        what = f"{report.value_min:.3g} m" if not report.label_fractions else f"train id {report.value_min:.0f}"
+        raise ModelError(f"{model}: constant output ({what} wherever valid) on {report.image_source}; `run` "
+                         "refuses such a model: check the card (output kind, scale, clamp range, classes) and "
+                         "the model")
 
 
 @app.command("perceive")
