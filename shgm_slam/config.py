@@ -390,7 +390,7 @@ class PerceptionConfig(_Stage):
 
     depth_model: Path | None = None
     seg_model: Path | None = None
-    threads: int = Field(2, ge=0)
+    threads: int = Field(2, ge=0, le=256, description="onnxruntime intra-op threads (0 = all cores), as --threads")
 
 
 class RobotOverrides(_Stage):
