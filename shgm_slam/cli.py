@@ -1087,11 +1087,40 @@ def bench_table3(
     console.print(f"wrote {lit(json_path)} and {lit(md_path)} ({results.wall_s:.0f} s)")
 
 
+_EXIT_CODE = 1
+"""The command's exit code for ``_skip_teardown`` (1 until the command ends normally or by SystemExit)."""
+
+
+def _skip_teardown() -> None:
+    """The last exit hook: end the process with the command's exit code, skipping the interpreter's teardown.
+
+    Python puts the default signal handlers back for that teardown (finalizers of modules and objects), so a
+    stop signal arriving then killed a finished run by the signal (exit -15, results written, summary
+    printed) instead of ending it with 0 or 130. Non-daemon threads are joined and the other exit hooks
+    (logging, Rerun) have run before this one, which ``main`` registers first so that it runs last.
+    """
+    import logging
+
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(_EXIT_CODE)
+
+
 def main() -> None:
     """The ``shgm-slam`` command (``python -m shgm_slam.cli``)."""
-    global _OWN_PROCESS
+    import atexit
+
+    global _OWN_PROCESS, _EXIT_CODE
     _OWN_PROCESS = True
-    app()
+    atexit.register(_skip_teardown)
+    try:
+        app()
+        _EXIT_CODE = 0
+    except SystemExit as exc:
+        _EXIT_CODE = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        raise
 
 
 if __name__ == "__main__":
