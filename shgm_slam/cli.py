@@ -343,7 +343,7 @@ def _render_summary(summary) -> None:
     console.print(f"results in [bold]{lit(summary.out_dir)}[/]")
 
 
-def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool):
+def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool, fronts=None):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
     from shgm_slam.runner import run_slam
@@ -351,7 +351,7 @@ def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool):
     with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
                   TimeRemainingColumn(), console=console, transient=True) as bar:
         task = bar.add_task("frames", total=sum(len(s) for s in robots.values()))
-        return run_slam(robots, cfg, out_dir, viz=viz, gt_shared_frame=gt_shared_frame,
+        return run_slam(robots, cfg, out_dir, viz=viz, gt_shared_frame=gt_shared_frame, fronts=fronts,
                         progress=lambda done, total: bar.update(task, completed=done))
 
 
@@ -418,19 +418,24 @@ def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_
 def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_frame: bool, overwrite: bool = False):
     from shgm_slam.errors import ConfigError
     from shgm_slam.io.export import make_results_dir
-    from shgm_slam.runner import open_robots
-    from shgm_slam.viz.rerun_logger import RerunMode, make_viz
+    from shgm_slam.runner import open_robots, prepare_frontends
+    from shgm_slam.viz.rerun_logger import DEFAULT_CONNECT_URL, RerunMode, make_viz, viewer_address
 
     robots = open_robots(robot_args)
     try:
         mode = RerunMode(rerun_mode)
     except ValueError:
         raise ConfigError(f"--rerun {rerun_mode!r}: choose spawn, save, connect or off") from None
+    if mode is RerunMode.CONNECT:
+        viewer_address(rerun_url or DEFAULT_CONNECT_URL)  # a malformed URL is refused before any work
+    # everything that can refuse the run (config, models, first frames) before --out gets a file: a refused
+    # run must not leave files that make the next run with the same --out ask for --overwrite
+    fronts = prepare_frontends(robots, cfg)
     out_dir = make_results_dir(out, overwrite=overwrite)
     viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=rerun_url,
                    max_cloud_points=8000)
     with _stop_signals_as_interrupt():
-        return _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame)
+        return _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame, fronts)
 
 
 @contextlib.contextmanager
@@ -699,6 +704,13 @@ def check_model_command(
         what = "depth (all non-finite or <= 0)" if not report.label_fractions else "label (all ignore, 255)"
         raise ModelError(f"{model}: valid output 0 %: every {what} on {report.image_source}; check the card "
                          "(output kind, scale, classes) and the model")
+    if report.value_min == report.value_max:  # `run` refuses such a model: so does its check
+        from shgm_slam.errors import ModelError
+
+        what = f"{report.value_min:.3g} m" if not report.label_fractions else f"train id {report.value_min:.0f}"
+        raise ModelError(f"{model}: constant output ({what} wherever valid) on {report.image_source}; `run` "
+                         "refuses such a model: check the card (output kind, scale, clamp range, classes) and "
+                         "the model")
 
 
 @app.command("perceive")
@@ -1136,11 +1148,40 @@ def bench_table3(
     console.print(f"wrote {lit(json_path)} and {lit(md_path)} ({results.wall_s:.0f} s)")
 
 
+_EXIT_CODE = 1
+"""The command's exit code for ``_skip_teardown`` (1 until the command ends normally or by SystemExit)."""
+
+
+def _skip_teardown() -> None:
+    """The last exit hook: end the process with the command's exit code, skipping the interpreter's teardown.
+
+    Python puts the default signal handlers back for that teardown (finalizers of modules and objects), so a
+    stop signal arriving then killed a finished run by the signal (exit -15, results written, summary
+    printed) instead of ending it with 0 or 130. Non-daemon threads are joined and the other exit hooks
+    (logging, Rerun) have run before this one, which ``main`` registers first so that it runs last.
+    """
+    import logging
+
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(_EXIT_CODE)
+
+
 def main() -> None:
     """The ``shgm-slam`` command (``python -m shgm_slam.cli``)."""
-    global _OWN_PROCESS
+    import atexit
+
+    global _OWN_PROCESS, _EXIT_CODE
     _OWN_PROCESS = True
-    app()
+    atexit.register(_skip_teardown)
+    try:
+        app()
+        _EXIT_CODE = 0
+    except SystemExit as exc:
+        _EXIT_CODE = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        raise
 
 
 if __name__ == "__main__":

@@ -390,7 +390,7 @@ class PerceptionConfig(_Stage):
 
     depth_model: Path | None = None
     seg_model: Path | None = None
-    threads: int = Field(2, ge=0)
+    threads: int = Field(2, ge=0, le=256, description="onnxruntime intra-op threads (0 = all cores), as --threads")
 
 
 class RobotOverrides(_Stage):
@@ -463,6 +463,8 @@ def load_config(path: Path | str | None) -> ShgmConfig:
         data = yaml.safe_load(path.read_text()) or {}
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
+    except (ValueError, RecursionError) as exc:  # an integer of thousands of digits, nesting too deep
+        raise ConfigError(f"config file {path} cannot be read: {exc}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"config file {path} must hold a mapping of stages, got {type(data).__name__}")
     try:

@@ -44,7 +44,7 @@ def prepare_world(
     try:
         robots = json.loads(scenario.read_text())["robots"]
         kinds = {r["name"]: r.get("kind", "car") for r in robots}
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
         raise DataError(f"{scenario} is unreadable ({exc}); delete {world} to simulate it again") from None
     return world, kinds
 

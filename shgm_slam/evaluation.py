@@ -119,7 +119,7 @@ def run_robot_order(results_dir: Path) -> list[str]:
     if metrics.is_file():
         try:
             return [r["name"] for r in json.loads(metrics.read_text())["robots"]]
-        except (ValueError, KeyError, TypeError) as exc:
+        except (ValueError, KeyError, TypeError, RecursionError) as exc:
             raise DataError(f"{metrics} is unreadable ({exc}); is {results_dir} a results folder of `run`?") from None
     names = sorted(p.name.removesuffix("_odometry_tum.txt") for p in results_dir.glob("*_odometry_tum.txt"))
     if not names:

@@ -256,6 +256,25 @@ class _Timings:
         return {k: self.sums[k] / self.counts[k] for k in self.sums}
 
 
+def prepare_frontends(robots: dict[str, Sequence], cfg: ShgmConfig) -> dict[str, RobotFrontend]:
+    """Every robot's front end (``make_frontend``), after checking that ``cfg.robots`` names only these robots.
+
+    This is everything that can refuse a run (config, models, the first frames); the CLI calls it before it
+    creates the results folder, so a refused run leaves nothing behind that the next one would have to clear.
+
+    Raises:
+        ConfigError, DataError, ModelError: what ``make_frontend`` raises; overrides for unknown robots.
+    """
+    names = list(robots)
+    unknown = sorted(set(cfg.robots) - set(names))
+    if unknown:
+        raise ConfigError(
+            f"the config has settings for robot(s) {', '.join(unknown)} that are not in this run "
+            f"({', '.join(names)}); fix the names under 'robots:'"
+        )
+    return {r: make_frontend(r, seq, cfg) for r, seq in robots.items()}
+
+
 def run_slam(
     robots: dict[str, Sequence],
     cfg: ShgmConfig,
@@ -267,6 +286,7 @@ def run_slam(
     write_every_keyframes: int = 25,
     on_frame: FrameFn | None = None,
     journal: bool = False,
+    fronts: dict[str, RobotFrontend] | None = None,
 ) -> RunSummary:
     """Run the whole multi-robot system and write the results folder.
 
@@ -283,18 +303,14 @@ def run_slam(
         on_frame: called after every processed frame with what it cost (``FrameStats``).
         journal: keep the map server's message journal (``journal.bin``) in ``out_dir``: every keyframe
             the robots sent, in order, so the back end can be run again on it (``replay_backend``).
+        fronts: the robots' front ends from ``prepare_frontends`` (None: opened here, before anything is written).
     """
     viz = viz or NullLogger()
     names = list(robots)
-    unknown = sorted(set(cfg.robots) - set(names))
-    if unknown:
-        raise ConfigError(
-            f"the config has settings for robot(s) {', '.join(unknown)} that are not in this run "
-            f"({', '.join(names)}); fix the names under 'robots:'"
-        )
+    if fronts is None:
+        fronts = prepare_frontends(robots, cfg)
     writer = ResultsWriter(out_dir)
     writer.write_ground_truth(robots, gt_shared_frame)  # <robot>_gt_tum.txt, for evo and `shgm-slam eval`
-    fronts = {r: make_frontend(r, seq, cfg) for r, seq in robots.items()}
     cfg = fleet_backend(cfg, fronts)
     # the same nodes as the distributed deployment, on the in-process bus (every message is encoded)
     bus = InProcessBus()

@@ -210,3 +210,22 @@ def test_bench_reports_fit_80_columns_on_a_terminal():
     assert "intro line" in text and "| a | b |" in text  # narrow tables and text stay markdown
     for cell in ["300", "200", "100", "1.23", "2.0", "10.0", "5.0x", "5 + 0"]:
         assert cell in text, cell  # numbers stay whole; long header words fold only when they must
+
+
+def test_a_refused_run_leaves_nothing_in_its_out_folder(tmp_path):
+    """A run refused for its config, a model or its poses file exits 2 before --out gets a file: it used to
+    leave <robot>_gt_*.txt and run.rrd there, so the corrected run was told to pass --overwrite."""
+    from tests.data.conftest import make_frames, write_frames
+
+    seq = write_frames(tmp_path / "seq", make_frames(6))
+    ranges = tmp_path / "ranges.yaml"
+    ranges.write_text("odometry:\n  min_range_m: 50\n  max_range_m: 10\n")
+    out = tmp_path / "out"
+    refused = [["--config", str(ranges)], ["--depth-model", str(tmp_path / "missing.onnx")],
+               ["--odometry", str(tmp_path / "{robot}_poses.txt")], ["--rerun", "connect", "--rerun-url", "nope"]]
+    for args in refused:
+        res = CliRunner().invoke(app, ["run", "--robot", f"a={seq}", "--out", str(out), *args])
+        assert res.exit_code == 2 and "error:" in res.output, (args, res.output)
+        assert not out.exists() or not any(out.iterdir()), (args, sorted(p.name for p in out.iterdir()))
+    res = CliRunner().invoke(app, ["run", "--robot", f"a={seq}", "--out", str(out), "--rerun", "off"])
+    assert res.exit_code == 0, res.output

@@ -114,18 +114,18 @@ def graph_from_dict(
     sizes = np.ones(n)
     for k, node in enumerate(nodes):
         if not isinstance(node, dict) or not {"id", "label", "position"} <= node.keys():
-            raise fail(f'node #{k} needs "id", "label" and "position" fields, got {node!r}')
+            raise fail(f'node #{k} needs "id", "label" and "position" fields, got {_short(node)}')
         nid, lab, pos, size = node["id"], node["label"], node["position"], node.get("size", 1.0)
         if isinstance(nid, bool) or not isinstance(nid, int) or not _fits_int64(nid):
-            raise fail(f"node #{k}: id must be an integer within +-2^63, got {nid!r}")
+            raise fail(f"node #{k}: id must be an integer within +-2^63, got {_short(nid)}")
         if isinstance(lab, bool) or not isinstance(lab, int) or not 0 <= lab < len(classes):
-            raise fail(f"node {nid}: label {lab!r} is not an index into the {len(classes)} classes")
+            raise fail(f"node {nid}: label {_short(lab)} is not an index into the {len(classes)} classes")
         if not (isinstance(pos, list) and len(pos) == 3 and all(_is_finite_number(v) for v in pos)):
-            raise fail(f"node {nid}: position must be three finite numbers, got {pos!r}")
+            raise fail(f"node {nid}: position must be three finite numbers, got {_short(pos)}")
         if any(abs(v) > MAX_COORDINATE_M for v in pos):
-            raise fail(f"node {nid}: position {pos!r} is farther than {MAX_COORDINATE_M:g} m from the origin")
+            raise fail(f"node {nid}: position {_short(pos)} is farther than {MAX_COORDINATE_M:g} m from the origin")
         if not _is_finite_number(size) or not 0 < size < MAX_SIZE:
-            raise fail(f"node {nid}: size must be a positive finite number, got {size!r}")
+            raise fail(f"node {nid}: size must be a positive finite number, got {_short(size)}")
         node_ids[k], label_idx[k], positions[k], sizes[k] = nid, lab, pos, size
 
     uniq, counts = np.unique(node_ids, return_counts=True)
@@ -148,12 +148,23 @@ def graph_from_dict(
     return GraphArrays(node_ids, label_ids, positions, sizes, edges)
 
 
+def _short(value: Any, limit: int = 80) -> str:
+    """``repr(value)``, cut to ``limit`` characters (a message stays one readable line)."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[: limit - 3]}..."
+
+
 def _fits_int64(v: int) -> bool:
     return -(2**63) <= v < 2**63
 
 
 def _is_finite_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:  # an integer too large for a float
+        return False
 
 
 def _edges_to_rows(edges_in: Any, node_ids: np.ndarray, fail: Any) -> np.ndarray:
@@ -216,4 +227,6 @@ def read_graph(path: Path | str, *, connectivity_m: float = 10.0) -> GraphArrays
         raise GraphError(
             f"graph file {path} is not JSON ({exc.msg}, line {exc.lineno}); expected a {FORMAT_TAG} document"
         ) from None
+    except (ValueError, RecursionError) as exc:  # an integer of thousands of digits, nesting too deep
+        raise GraphError(f"graph file {path} cannot be read as a {FORMAT_TAG} document: {exc}") from None
     return graph_from_dict(data, connectivity_m=connectivity_m, source=f"graph file {path}")

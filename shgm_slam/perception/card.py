@@ -324,6 +324,8 @@ def load_card(model_path: Path | str, card_path: Path | str | None = None) -> De
         data = yaml.safe_load(path.read_text())
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise ModelError(f"model card {path} is not valid YAML: {exc}") from None
+    except (ValueError, RecursionError) as exc:  # an integer of thousands of digits, nesting too deep
+        raise ModelError(f"model card {path} cannot be read: {exc}") from None
     return parse_card(data, where=f"model card {path}")
 
 

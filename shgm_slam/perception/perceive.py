@@ -38,6 +38,7 @@ import onnxruntime as ort
 from shgm_slam.data.base import open_sequence, parse_sequence_spec
 from shgm_slam.data.kitti import IMAGE_SOURCES, frame_file
 from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, encode_depth
+from shgm_slam.data.validate import check_sequence_start
 from shgm_slam.errors import ConfigError, DataError, ModelError
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import format_kitti_pose
@@ -204,7 +205,9 @@ def _check_out(out: Path, source_root: Path, manifest: dict, overwrite: bool) ->
         raise DataError(f"--out {out} is not empty and was not written by perceive; choose a new folder")
     try:
         previous = json.loads(previous_path.read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
+        previous = {}
+    if not isinstance(previous, dict):  # not a manifest: treated like one of another job
         previous = {}
     changed = [k for k in ("format", "source", "start", "end") if previous.get(k) != manifest[k]]
     for k in ("depth_model", "seg_model"):  # the same model may sit elsewhere now: compare contents only
@@ -266,6 +269,24 @@ def _open_models(
     return depth, seg
 
 
+def _check_outputs(sequence, depth: DepthModel | None, seg: SegmentationModel | None) -> None:
+    """The models' outputs on a few frames spread over the sequence, checked as ``run`` checks them (some valid
+    depth, not constant) before the whole sequence is computed: a useless model is refused, not written out.
+
+    Raises:
+        ModelError: no valid output, or the same value everywhere, on every probed frame.
+        DataError: no probed frame can be read.
+    """
+
+    def predict(frame):
+        h, w = frame.image_rgb.shape[:2]
+        d = depth.predict(frame.image_rgb, sequence.intrinsics) if depth else np.ones((h, w), np.float32)
+        return d, seg.predict(frame.image_rgb) if seg else None
+
+    check_sequence_start(sequence.name, sequence, predict, depth_model=depth.model_path if depth else None,
+                         seg_model=seg.model_path if seg else None)  # fmt: skip
+
+
 def perceive(
     spec: str | Path,
     out: Path | str,
@@ -297,7 +318,8 @@ def perceive(
 
     Raises:
         ConfigError: no model, or a batch size below 1.
-        ModelError: a model or its card is missing or does not fit; CUDA asked for but absent.
+        ModelError: a model or its card is missing or does not fit, or its output on the first frames is
+            useless (no valid value, or constant); CUDA asked for but absent.
         DataError: the sequence cannot be read, or ``out`` is the source or holds other data.
     """
     t_start = time.perf_counter()
@@ -314,6 +336,7 @@ def perceive(
         Path(depth_model) if depth_model else None, Path(seg_model) if seg_model else None,
         threads, session_providers(provider),
     )  # fmt: skip
+    _check_outputs(sequence, depth, seg)
     providers = {name: m.providers for name, m in (("depth", depth), ("segmentation", seg)) if m is not None}
     notes = check_providers(provider, providers, ort.get_available_providers())
     out = Path(out)

@@ -17,6 +17,8 @@ import logging
 import os
 import socket
 import sys
+import threading
+import time
 from enum import Enum
 from pathlib import Path
 from typing import Protocol
@@ -65,13 +67,34 @@ def viewer_address(url: str) -> tuple[str, int]:
     return host, port
 
 
-def viewer_reachable(host: str, port: int, timeout_s: float = CONNECT_TIMEOUT_S) -> bool:
-    """True when something accepts TCP connections at ``host:port`` within ``timeout_s``."""
+_H2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+"""The HTTP/2 client connection preface and an empty SETTINGS frame (RFC 9113, 3.4 and 6.5)."""
+
+
+def viewer_reachable(host: str, port: int, timeout_s: float = CONNECT_TIMEOUT_S, *, tls: bool = False) -> bool:
+    """True when a gRPC server (a Rerun viewer) answers at ``host:port`` within ``timeout_s``.
+
+    A gRPC server answers the HTTP/2 connection preface with a SETTINGS frame. Anything else listening
+    there (a web server, a socket that never replies) is not a viewer: streaming the recording to it would
+    fail at the end of the run or block it. With ``tls`` (``rerun+https``) only the TCP connection is tried.
+    """
+    deadline = time.monotonic() + timeout_s
     try:
-        with socket.create_connection((host, port), timeout=timeout_s):
-            return True
-    except OSError:
+        with socket.create_connection((host, port), timeout=timeout_s) as sock:
+            if tls:
+                return True
+            sock.sendall(_H2_PREFACE)
+            head = b""
+            while len(head) < 9:  # a frame header: length (3), type (1), flags (1), stream id (4)
+                sock.settimeout(max(deadline - time.monotonic(), 0.01))
+                chunk = sock.recv(9 - len(head))
+                if not chunk:
+                    return False
+                head += chunk
+            return head[3] == 0x04  # SETTINGS
+    except OSError:  # refused, unreachable, reset, or no answer in time
         return False
+
 
 ROBOT_COLORS_RGB = np.array(
     [(0, 150, 255), (255, 140, 0), (200, 60, 255), (0, 210, 200), (255, 215, 0), (255, 90, 170),
@@ -281,6 +304,8 @@ class RerunLogger:
         max_cloud_points: clouds are subsampled with a fixed stride to at most this many points.
         jpeg_quality: RGB images are JPEG-compressed at this quality (0..100) to keep recordings small.
         image_plane_distance_m: depth of the camera frustum drawn in the 3D view, metres.
+        remote_url: the viewer the sink streams to (``--rerun connect``), None for a file or a spawned viewer;
+            ``close`` never waits long for it.
     """
 
     enabled = True
@@ -293,8 +318,10 @@ class RerunLogger:
         max_cloud_points: int = 20_000,
         jpeg_quality: int = 80,
         image_plane_distance_m: float = 2.0,
+        remote_url: str | None = None,
     ) -> None:
         self.rec = rec
+        self.remote_url = remote_url
         self.robots = list(robots)
         self.max_cloud_points = int(max_cloud_points)
         self.jpeg_quality = int(jpeg_quality)
@@ -550,9 +577,44 @@ class RerunLogger:
         self.rec.log(full, rr.Scalars(float(value)))
 
     def close(self) -> None:
-        """Flush everything to the sink and disconnect (the stream accepts no more data)."""
-        self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
-        self.rec.disconnect()
+        """Flush everything to the sink and disconnect (the stream accepts no more data).
+
+        A viewer (``remote_url``) that went away, refuses the stream or stops reading it costs the rest of
+        the recording (a warning says so), never the run: closing waits at most ``FLUSH_TIMEOUT_S`` for it.
+        """
+        if self.remote_url is None:
+            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+            self.rec.disconnect()
+            return
+        failed: list[RuntimeError] = []
+
+        def finish() -> None:
+            try:
+                self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+                self.rec.disconnect()
+            except RuntimeError as exc:  # the SDK's error for a severed gRPC stream
+                failed.append(exc)
+
+        closer = threading.Thread(target=finish, name="rerun-close", daemon=True)
+        closer.start()
+        closer.join(FLUSH_TIMEOUT_S + 2.0)
+        if closer.is_alive() or failed:
+            # the sink no longer drains: dropping the stream (Rerun's __del__, its exit hook) would wait for ever
+            rr.unregister_shutdown()
+            self.rec.__class__ = _AbandonedStream
+        if closer.is_alive():
+            log.warning("the Rerun viewer at %s did not take the end of the recording within %.0f s; what it "
+                        "shows is incomplete (the results are written)", self.remote_url, FLUSH_TIMEOUT_S)
+        elif failed:
+            log.warning("the Rerun viewer at %s did not take the recording (%s); what it shows is incomplete "
+                        "(the results are written)", self.remote_url, failed[0])
+
+
+class _AbandonedStream(rr.RecordingStream):
+    """A recording stream whose viewer stopped taking data: dropping it must not wait for that viewer."""
+
+    def __del__(self) -> None:
+        pass
 
 
 def _has_display() -> bool:
@@ -587,7 +649,7 @@ def make_viz(
     blueprint = default_blueprint(list(robots))
     if mode is RerunMode.CONNECT:
         url = connect_url or DEFAULT_CONNECT_URL
-        if not viewer_reachable(*viewer_address(url)):
+        if not viewer_reachable(*viewer_address(url), tls=url.startswith("rerun+https")):
             where = f"saving the recording to {save_path} instead" if save_path is not None else "logging nothing"
             log.warning("no Rerun viewer answers at %s within %.0f s: %s", url, CONNECT_TIMEOUT_S, where)
             if save_path is None:
@@ -595,6 +657,7 @@ def make_viz(
             mode = RerunMode.SAVE
         else:
             rec.connect_grpc(url, default_blueprint=blueprint)
+            return RerunLogger(rec, robots, max_cloud_points=max_cloud_points, remote_url=url)
     if mode is RerunMode.SAVE:
         if save_path is None:
             raise ConfigError("--rerun save needs an output file: pass --rerun-file run.rrd")

@@ -8,6 +8,7 @@ import math
 
 import cv2
 import numpy as np
+import pytest
 import yaml
 from hypothesis import given
 from hypothesis import strategies as st
@@ -20,7 +21,7 @@ from shgm_slam.errors import ShgmError
 from shgm_slam.io.graph_json import read_graph
 from tests.fuzz.conftest import fuzz_settings, scratch
 
-HUGE = [2**63, -(2**63) - 1, 2**64, 10**30, 2**31, -1, 0]
+HUGE = [2**63, -(2**63) - 1, 2**64, 10**30, 10**400, 2**31, -1, 0]
 numbers = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True), st.sampled_from([0.0, -0.0, -50.0, 1e308, 1e-308, 16.0, 12.0]),
 )
@@ -175,3 +176,38 @@ def test_dump_config_cli_on_fuzzed_configs_exits_0_or_2(doc):
         path.write_text(yaml.safe_dump(doc))
         res = CliRunner().invoke(app, ["dump-config", "--config", str(path)])
         assert res.exit_code in (0, 2), (res.output, repr(res.exception))
+
+
+_GRAPH_NODE = '{"format":"shgm-graph/1","classes":["road"],"nodes":[{"id":0,"label":0,"position":[1,2,3],"size":%s}]}'
+EXTREME_TEXTS = {
+    "nested": "[" * 100_000 + "]" * 100_000,  # deeper than Python's recursion limit
+    "long-int": "9" * 5000,  # more digits than int() converts
+    "graph-size-beyond-float": _GRAPH_NODE % ("1" + "0" * 400),
+    "graph-long-int": _GRAPH_NODE % ("9" * 5000),
+}
+
+
+@pytest.mark.parametrize("name", list(EXTREME_TEXTS))
+def test_extreme_documents_are_clean_errors_in_every_reader(tmp_path, name):
+    """Nesting deeper than the recursion limit, integers beyond float or int(): one line and exit 2 from every
+    command that reads JSON or YAML (they were RecursionError, ValueError and OverflowError tracebacks)."""
+    text = EXTREME_TEXTS[name]
+    good_graph = tmp_path / "good.json"
+    good_graph.write_text(_GRAPH_NODE % "1.0")
+    (tmp_path / "doc.json").write_text(text)
+    (tmp_path / "cfg.yaml").write_text(text if not name.startswith("graph") else f"odometry: {text}")
+    model = tmp_path / "m.onnx"
+    model.write_bytes(b"")
+    (tmp_path / "m.yaml").write_text(text)
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "metrics.json").write_text(text)
+    commands = [
+        ["match", str(good_graph), str(tmp_path / "doc.json")],
+        ["dump-config", "--config", str(tmp_path / "cfg.yaml")],
+        ["check-model", str(model), "--runs", "1"],
+        ["eval", str(results)],
+    ]
+    for args in commands:
+        res = CliRunner().invoke(app, args)
+        assert res.exit_code == 2 and "error:" in res.output, (args[0], res.exception, res.output[-300:])

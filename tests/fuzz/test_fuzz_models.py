@@ -193,3 +193,38 @@ def test_check_model_exits_2_when_no_output_is_valid(tmp_path):
     write_card(tmp_path / "ok.yaml", {"task": "depth", "input": {"size": [32, 24], "scale": 1.0}})
     assert CliRunner().invoke(app, ["check-model", str(ok), "--runs", "1", "--threads", "1"]).exit_code == 0
     assert onnx.load(str(path)).ir_version == 10
+
+
+def _affine_of_channel_0(path: Path, k: float, c: float) -> Path:
+    """A depth model whose output is ``k * (channel 0 of the input) + c`` (k = 0: the constant c)."""
+    nodes = [helper.make_node("Slice", ["x", "s", "e", "a"], ["sl"]), helper.make_node("Mul", ["sl", "k"], ["m"]),
+             helper.make_node("Add", ["m", "c"], ["out"])]  # fmt: skip
+    inits = [numpy_helper.from_array(np.asarray(v, np.int64), n) for n, v in (("s", [0]), ("e", [1]), ("a", [1]))]
+    inits += [numpy_helper.from_array(np.asarray([v], np.float32), n) for n, v in (("k", k), ("c", c))]
+    save_model(path, nodes, [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["N", 3, "H", "W"])],
+               [helper.make_tensor_value_info("out", TensorProto.FLOAT, ["N", 1, "H", "W"])], inits)  # fmt: skip
+    write_card(path.with_suffix(".yaml"), {"task": "depth", "input": {"size": [32, 24]}})
+    return path
+
+
+def test_check_model_exits_2_on_a_constant_output(tmp_path):
+    """5 m everywhere: `run` refuses such a model, so check-model does too (it printed the report, exit 0)."""
+    path = _affine_of_channel_0(tmp_path / "const.onnx", 0.0, 5.0)
+    res = CliRunner().invoke(app, ["check-model", str(path), "--runs", "1", "--threads", "1"])
+    assert res.exit_code == 2, res.output
+    assert "constant output" in res.output.replace("\n", " ")
+
+
+def test_perceive_refuses_a_useless_model_before_writing(tmp_path):
+    """A depth model with no valid output or a constant one: perceive exits 2 and writes nothing (it wrote a
+    whole sequence of empty depth, exit 0, that `run` then refused)."""
+    from tests.data.conftest import make_frames, write_frames
+
+    seq = write_frames(tmp_path / "seq", make_frames(4))
+    for name, k, c in (("zero", 0.0, 0.0), ("const", 0.0, 5.0)):
+        model = _affine_of_channel_0(tmp_path / f"{name}.onnx", k, c)
+        out = tmp_path / f"out_{name}"
+        res = CliRunner().invoke(app, ["perceive", str(seq), "--out", str(out), "--depth-model", str(model),
+                                       "--threads", "1"])  # fmt: skip
+        assert res.exit_code == 2 and "error:" in res.output, res.output
+        assert not out.exists()

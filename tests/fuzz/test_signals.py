@@ -63,3 +63,22 @@ def test_a_stop_signal_after_the_run_ended_exits_as_interrupted_not_killed() -> 
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 130, proc.stderr[-2000:]
     assert proc.stdout.strip() == "done"
+
+
+def test_a_stop_signal_in_the_interpreter_teardown_does_not_kill_a_finished_command() -> None:
+    """Python puts the default handlers back for its teardown: a SIGTERM arriving then (a finalizer runs
+    late) killed a run that had written everything by the signal (-15). The command now ends before it."""
+    code = (
+        "import os, signal, sys, time\n"
+        "import shgm_slam.cli as cli\n"
+        "class Late:\n"
+        "    def __del__(self):\n"
+        "        os.kill(os.getpid(), signal.SIGTERM)\n"
+        "        time.sleep(5)\n"
+        "cli._late = Late()\n"  # a module global: finalized in the interpreter's teardown
+        "sys.argv = ['shgm-slam', '--version']\n"
+        "cli.main()\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, (proc.returncode, proc.stderr[-2000:])
+    assert proc.stdout.startswith("shgm-slam")

@@ -302,3 +302,81 @@ def test_saving_into_a_read_only_folder_is_a_config_error(tmp_path):
             make_viz(RerunMode.SAVE, robots=["a"], save_path=ro / "run.rrd")
     finally:
         ro.chmod(0o700)
+
+
+class _FakeServer:
+    """A TCP server on a free local port that answers each connection with ``reply`` and then only reads."""
+
+    def __init__(self, reply: bytes) -> None:
+        import socket
+        import threading
+
+        self.reply = reply
+        self.sock = socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(8)
+        self.port = self.sock.getsockname()[1]
+        self.conns: list = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        import threading
+
+        while True:
+            try:
+                conn, _ = self.sock.accept()
+            except OSError:
+                return
+            self.conns.append(conn)
+            threading.Thread(target=self._serve, args=(conn,), daemon=True).start()
+
+    def _serve(self, conn) -> None:
+        try:
+            conn.sendall(self.reply)
+            while conn.recv(65536):
+                pass
+        except OSError:
+            pass
+
+    @property
+    def url(self) -> str:
+        return f"rerun+http://127.0.0.1:{self.port}/proxy"
+
+
+@pytest.mark.parametrize("reply", [b"", b"HTTP/1.0 400 Bad Request\r\n\r\n"], ids=["silent", "web-server"])
+def test_connect_to_something_that_is_not_a_viewer_saves_instead(tmp_path, caplog, reply):
+    """A port that accepts TCP but is no gRPC server (a web server, a socket that never answers) is no viewer:
+    streaming to it failed at the end of the run (RuntimeError) or blocked it for ever."""
+    import time
+
+    from shgm_slam.viz.rerun_logger import RerunLogger, RerunMode, make_viz
+
+    server = _FakeServer(reply)
+    t0 = time.perf_counter()
+    viz = make_viz(RerunMode.CONNECT, robots=["a"], save_path=tmp_path / "run.rrd", connect_url=server.url)
+    viz.close()
+    assert isinstance(viz, RerunLogger) and viz.remote_url is None
+    assert time.perf_counter() - t0 < 10.0
+    assert (tmp_path / "run.rrd").is_file()
+    assert "no Rerun viewer answers" in caplog.text
+
+
+def test_closing_does_not_wait_for_a_viewer_that_stops_reading(tmp_path, caplog, monkeypatch):
+    """A gRPC peer that takes the connection but never the data: close() warns and returns, never raises or hangs."""
+    import time
+
+    from shgm_slam.viz import rerun_logger
+    from shgm_slam.viz.rerun_logger import RerunLogger, RerunMode, make_viz
+
+    monkeypatch.setattr(rerun_logger, "FLUSH_TIMEOUT_S", 1.0)
+    server = _FakeServer(bytes([0, 0, 0, 4, 0, 0, 0, 0, 0]))  # an HTTP/2 SETTINGS frame, then silence
+    viz = make_viz(RerunMode.CONNECT, robots=["a"], save_path=tmp_path / "run.rrd", connect_url=server.url)
+    assert isinstance(viz, RerunLogger) and viz.remote_url == server.url
+    points = np.random.default_rng(0).random((20_000, 3))
+    for _ in range(20):
+        viz.rec.log("world/cloud", rr.Points3D(points))
+    t0 = time.perf_counter()
+    viz.close()
+    assert time.perf_counter() - t0 < 8.0
+    assert "did not take" in caplog.text
+    del viz  # dropping the stream must not wait for the viewer either
