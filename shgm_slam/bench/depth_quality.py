@@ -38,6 +38,7 @@ from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.demo import MODELS_DIR
 from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.io.json_text import to_json_text
 from shgm_slam.metrics import AlignMode, ate, drift_percent, trajectory_length
 from shgm_slam.odometry.clouds import depth_to_cloud
 from shgm_slam.odometry.sources import make_odometry
@@ -256,13 +257,26 @@ def _robot_names(world: Path) -> list[str]:
     return [r["name"] for r in json.loads((world / "scenario.json").read_text())["robots"]]
 
 
+def _nan_for_null(value: object) -> object:
+    """``value`` read back from strict JSON with every null as NaN, recursively: the cached records hold only
+    numbers, strings and booleans, and a null there is a number that was not measurable."""
+    if value is None:
+        return float("nan")
+    if isinstance(value, dict):
+        return {k: _nan_for_null(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_nan_for_null(v) for v in value]
+    return value
+
+
 def _cached(path: Path, compute: Callable[[], dict]) -> dict:
-    """``path``'s JSON when it exists, else ``compute()`` written there (the study resumes)."""
+    """``path``'s JSON when it exists, else ``compute()`` written there as strict JSON (the study resumes;
+    non-finite numbers are written as null and read back as NaN)."""
     if path.is_file():
-        return json.loads(path.read_text())
+        return _nan_for_null(json.loads(path.read_text()))
     result = compute()
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result, indent=1, default=float) + "\n")
+    path.write_text(to_json_text(result) + "\n")
     return result
 
 

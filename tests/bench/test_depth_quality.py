@@ -15,6 +15,7 @@ from shgm_slam.cli import app
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.errors import ConfigError
+from shgm_slam.io.json_text import to_json_text
 from shgm_slam.sim.depth_errors import abs_rel
 
 
@@ -70,7 +71,7 @@ def test_study_pipeline_on_a_tiny_world(tiny_scenario, tmp_path):
     assert true["odometry"]["kiss-icp"]["all"]["robots"] == 3
     assert true["system"]["hybrid"]["overlapping"] == 2  # car2 and the UAV; car1 is the reference
     again = dq.run_depth_quality_benchmark(out, options)  # resumes: everything comes from the cache
-    assert again["rows"] == json.loads(json.dumps(results["rows"], default=float))
+    assert to_json_text(again["rows"]) == to_json_text(results["rows"])  # NaN-aware: both as strict JSON
 
 
 def test_cli_refuses_bad_levels_and_kinds(tmp_path):
@@ -78,3 +79,21 @@ def test_cli_refuses_bad_levels_and_kinds(tmp_path):
     for args in (["--level", "abc"], ["--odometry", "gt"], ["--system", "visual,nonsense"], ["--seeds", "9-3"]):
         res = runner.invoke(app, ["bench", "depth-quality", "-o", str(tmp_path / "o"), *args])
         assert res.exit_code == 2, res.output
+
+
+def test_resume_cache_is_strict_json_and_reads_nan_back(tmp_path):
+    """The study's resume cache holds numbers that were not measurable (a robot not placed): written as null
+    (strict JSON), read back as NaN; computed once."""
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return {"outcome": "not placed", "placed": False, "placement_error_m": float("nan"), "rows": [1.5, np.nan]}
+
+    path = tmp_path / "cache" / "verdicts.json"
+    first = dq._cached(path, compute)
+    json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"bare {c} in the cache"))
+    again = dq._cached(path, compute)
+    assert len(calls) == 1
+    assert np.isnan(again["placement_error_m"]) and np.isnan(again["rows"][1]) and again["rows"][0] == 1.5
+    assert again["outcome"] == first["outcome"] and again["placed"] is False
