@@ -625,7 +625,6 @@ def eval_command(
     """Fused ATE of every robot against ground truth in the shared frame (evo, no alignment) and SE(3)-aligned.
     With --gt, also writes <robot>_gt_tum.txt into RESULTS for evo_ape."""
 
-
     from shgm_slam.evaluation import evaluate_results, open_ground_truth
 
     sequences = open_ground_truth(gt) if gt else None
