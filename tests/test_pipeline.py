@@ -317,6 +317,7 @@ def test_early_stop_leaves_a_provisional_robot_and_every_output_says_so(early_st
     assert any("provisionally" in w for w in metrics["robots"][1]["warnings"])
     server = json.loads((out / "server.json").read_text())
     assert server["robots"]["car2"]["provisional"] == ["car2"] and server["robots"]["car1"]["provisional"] == []
+    assert [(a["agent"], a["confirmed"]) for a in server["anchorings"]] == [("car2", False)]
     # written, but never silently certain: the TUM file says so in a comment line; the KITTI file stays
     # plain 12-number rows (KITTI tools do not skip comments), metrics.json and server.json say it instead
     assert read_comments(out / "car2_fused_tum.txt")[0].startswith("provisional: car2 is placed provisionally")
@@ -335,7 +336,12 @@ def test_early_stop_leaves_a_provisional_robot_and_every_output_says_so(early_st
 def test_a_later_independent_match_confirms_the_robot(early_stop) -> None:
     summary, out, viz = early_stop["full"]
     assert [r.provisional for r in summary.robots] == [False, False] and summary.robots[1].localized
-    assert json.loads((out / "server.json").read_text())["robots"]["car2"]["provisional"] == []
+    server = json.loads((out / "server.json").read_text())
+    assert server["robots"]["car2"]["provisional"] == []
+    # car2 entered the shared frame through a closure of car1's, and its place was confirmed on it
+    anchoring = [a for a in server["anchorings"] if a["agent"] == "car2"]
+    assert anchoring and anchoring[-1]["confirmed"] and not anchoring[-1]["withdrawn"]
+    assert {anchoring[-1]["robot_a"], anchoring[-1]["robot_b"]} == {"car1", "car2"}
     said = [(t.split(" is ")[1].split()[0], level) for t, level in viz.texts if t.startswith("car2 is ")]
     assert said == [("placed", "WARN"), ("confirmed", "INFO")]  # first provisional, then confirmed, once each
     assert read_comments(out / "car2_fused_tum.txt") == []

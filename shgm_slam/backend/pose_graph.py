@@ -341,6 +341,7 @@ class MultiRobotPoseGraph:
         self._pairs: dict[tuple[str, str], PairConsistency] = {}
         self._rebuilds = 0
         self._recoveries = 0
+        self._anchorings: list[tuple[str, int]] = []  # (robot, closure id) each time a robot was anchored
         self._last_update_ms = 0.0
         self._version = 0  # bumped on every change of the graph; keys the estimate cache
         self._corrections = 0  # bumped when closures enter or leave iSAM2, a robot is anchored, or a rebuild
@@ -638,6 +639,18 @@ class MultiRobotPoseGraph:
         ia, ib = self.keys.index(robot_a), self.keys.index(robot_b)
         vote = self._pairs.get((robot_a, robot_b) if ia <= ib else (robot_b, robot_a))
         return 0 if vote is None else vote.evidence()
+
+    def anchor_closure(self, robot: str) -> int | None:
+        """Id of the closure through which ``robot`` is anchored now (None: the first robot, or not anchored)."""
+        r = self._robots.get(robot)
+        return None if r is None else r.anchor_closure
+
+    def anchorings(self) -> list[tuple[str, ClosureRecord]]:
+        """Every (robot, closure) through which a robot entered the shared frame during this graph's life,
+        in order, each pair once: a robot re-anchored after a closure was withdrawn appears again with the
+        new closure, so a robot once placed through a false closure stays on record (snapshots do not keep
+        this history: a restored graph starts it afresh)."""
+        return [(robot, self._closures[cid]) for robot, cid in self._anchorings]
 
     def closures(self) -> list[ClosureRecord]:
         """Every closure so far (canonical robot order) with its current status and reason."""
@@ -938,6 +951,8 @@ class MultiRobotPoseGraph:
             kf = closure.kf_a
         T_shared_odom = T_shared_kf @ inverse(r.T_odom_kf[kf])
         r.anchored, r.anchor_closure, r.T_shared_odom_init = True, closure.closure_id, T_shared_odom
+        if (robot, closure.closure_id) not in self._anchorings:
+            self._anchorings.append((robot, closure.closure_id))
         self._new_values.insert(self.keys.key(robot, 0), _pose3(T_shared_odom @ r.T_odom_kf[0]))
         for k in range(1, len(r.T_odom_kf)):
             self._push_keyframe(robot, k)

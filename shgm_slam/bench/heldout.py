@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from shgm_slam.bench.match_truth import judge_matches
 from shgm_slam.bench.system import write_report
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
@@ -334,6 +335,12 @@ def replay_one(recorded: Path, mode: InputMode, run_dir: Path, robots: list[str]
     return metrics
 
 
+def _match_truth(run_dir: Path, world: Path, mode: InputMode) -> dict:
+    """The run's accepted matches judged at their own place (``match_truth``), as a JSON-friendly dict."""
+    gt = {name: open_sequence(str(world / name)).gt_poses for name in _robots_of(world)}
+    return vars(judge_matches(run_dir, gt, PLACED_RIGHT_M[mode], GROSS_ERROR_M))
+
+
 def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, progress: Progress) -> list[dict]:
     """Render one world (cached) and run every mode on it; returns one dict per run (cached as JSON)."""
     world = ensure_world(options.cache, scenario, seed, options.resolution, progress)
@@ -345,7 +352,8 @@ def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, pr
             done = json.loads(cached.read_text())
             metrics = json.loads((run_dir / "metrics.json").read_text())
             verdicts = judge_run(run_dir, world, _robots_of(world), mode, scenario, seed, metrics)
-            done_runs.append({**done, "verdicts": [vars(v) for v in verdicts]})
+            done_runs.append({**done, "matches": _match_truth(run_dir, world, mode),
+                              "verdicts": [vars(v) for v in verdicts]})
             continue
         t_run = time.perf_counter()
         if options.replay_from is not None:
@@ -362,6 +370,7 @@ def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, pr
             "matches_tried": metrics.get("matches_tried"),
             "closures_accepted": metrics.get("closures_accepted"),
             "per_keyframe_ms": metrics.get("per_keyframe_ms"),
+            "matches": _match_truth(run_dir, world, mode),
             "verdicts": [vars(v) for v in verdicts],
         }  # fmt: skip
         cached.write_text(to_json_text(done) + "\n")
@@ -405,7 +414,7 @@ def run_heldout_benchmark(
             "max_frames": options.max_frames, "tuning_seeds": list(TUNING_SEEDS),
             "report_seeds": list(REPORT_SEEDS), "placed_right_m": {m.value: v for m, v in PLACED_RIGHT_M.items()},
         },
-        "summary": summarize(rows),
+        "summary": summarize(rows, runs),
         "runs": runs,
         "robots": rows,
         "wall_s": round(time.perf_counter() - t0, 1),
@@ -414,8 +423,9 @@ def run_heldout_benchmark(
     return results
 
 
-def summarize(rows: list[dict]) -> dict:
-    """Rates per mode and per (mode, scenario): placed right, wrong (false merges), not placed, odometry."""
+def summarize(rows: list[dict], runs: list[dict] | None = None) -> dict:
+    """Rates per mode and per (mode, scenario): placed right, wrong (false merges), not placed, odometry;
+    with ``runs`` (their ``matches`` entries), the accepted matches and how many were off at their place."""
 
     def tol(r: dict) -> float:
         return PLACED_RIGHT_M[InputMode(r["mode"])]
@@ -453,12 +463,25 @@ def summarize(rows: list[dict]) -> dict:
             if right else float("nan"),
         }
 
+    def match_stats(mode: str, scenario: str | None) -> dict:
+        judged = [r["matches"] for r in runs or [] if r["mode"] == mode and "matches" in r
+                  and scenario in (None, r["scenario"])]  # fmt: skip
+        return {
+            "matches_accepted": sum(m["accepted"] for m in judged),
+            "matches_off": sum(m["off"] for m in judged),
+            "matches_gross": sum(m["gross"] for m in judged),
+            "anchorings": sum(m.get("anchorings") or 0 for m in judged),
+            "anchorings_gross": sum(m.get("anchorings_gross", 0) for m in judged),
+            "anchorings_gross_confirmed": sum(m.get("anchorings_gross_confirmed", 0) for m in judged),
+            "anchorings_unrecorded": sum(m.get("anchorings") is None for m in judged),
+        }
+
     out: dict = {}
     for mode in sorted({r["mode"] for r in rows}):
         sel = [r for r in rows if r["mode"] == mode]
-        out[mode] = {"all": stats(sel)}
+        out[mode] = {"all": stats(sel) | match_stats(mode, None)}
         for scenario in sorted({r["scenario"] for r in sel}):
-            out[mode][scenario] = stats([r for r in sel if r["scenario"] == scenario])
+            out[mode][scenario] = stats([r for r in sel if r["scenario"] == scenario]) | match_stats(mode, scenario)
         bad = [r for r in sel if r["outcome"] != Outcome.RIGHT.value]
         bad.sort(key=lambda r: (r["reference"], r["outcome"] != Outcome.WRONG.value,
                                 -np.nan_to_num(r["placement_error_m"]), -np.nan_to_num(r["ate_fused_m"])))
@@ -482,13 +505,21 @@ def heldout_markdown(results: dict) -> str:
         + ": the rigid transform that best lays its fused trajectory onto the truth moves it less than that "
         "(placement, not its own drift). 'Fused ATE within': its fused ATE in the shared frame within the "
         "same tolerance once the shared frame's gauge is fixed by the reference robot's trajectory (one rigid "
-        "transform for all robots); '(unaligned)': with no alignment at all.",
+        "transform for all robots); '(unaligned)': with no alignment at all. 'Accepted matches off': the map "
+        "server's accepted graph matches whose transform, read at the two keyframes it joins, is farther from "
+        "the truth than the same tolerance (> 20 m: an alias); a robot placed wrong whose matches were all "
+        "right at their place was bent away by its own drift, not merged by a false match. 'Placed through "
+        "a false closure': times a robot entered the shared frame through a closure more than 20 m off at its "
+        "place, of all times a robot entered it, even if later matches withdrew it (a false merge the final "
+        "trajectories no longer show); in brackets those the server ever confirmed (two independent matches "
+        "agreeing), the rest stayed provisional and were reported so; '?' where the run predates that record.",
         "",
         "| input | scenario | robot-worlds | overlapping placed right | fused ATE within | (unaligned) | wrong |"
         " of which > 20 m | not placed |"
         " disjoint kept apart | reference within | odometry failures detected (robots) |"
-        " undetected breaks (robots) | median ATE right m |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        " undetected breaks (robots) | median ATE right m | accepted matches off (> 20 m) |"
+        " placed through a false closure (confirmed) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for mode, per in results["summary"].items():
         for scenario, s in per.items():
@@ -505,7 +536,11 @@ def heldout_markdown(results: dict) -> str:
                 f"{s['references_within']}/{s['references']} | "
                 f"{s['failures_detected']} ({s['robots_with_failures_detected']}) | "
                 f"{s['undetected_breaks']} ({s['robots_with_undetected_breaks']}) | "
-                f"{s['median_ate_right_m']:.2f} |"
+                f"{s['median_ate_right_m']:.2f} | "
+                f"{s.get('matches_off', 0)}/{s.get('matches_accepted', 0)} ({s.get('matches_gross', 0)}) | "
+                + ("?" if s.get("anchorings_unrecorded") else f"{s.get('anchorings_gross', 0)}/{s.get('anchorings')} "
+                   f"({s.get('anchorings_gross_confirmed', 0)})")
+                + " |"
             )
     for mode, per in results["summary"].items():
         if per["worst"]:

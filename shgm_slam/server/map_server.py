@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shgm_slam.backend.confirmation import AgentPlacement, Placement, Support, placements
-from shgm_slam.backend.pose_graph import PoseGraphState, make_pose_graph
+from shgm_slam.backend.pose_graph import ClosureStatus, PoseGraphState, make_pose_graph
 from shgm_slam.config import ShgmConfig
 from shgm_slam.descriptors import NodeDescriptors
 from shgm_slam.descriptors.incremental import IncrementalDescriptors
@@ -118,6 +118,7 @@ class MapServer:
         self._surface_offset = SurfaceOffset()  # how far solid objects' centres lie behind what cameras see
         self._support: dict[int, Support] = {}  # closure id -> the matched objects (node ids) behind it
         self._placements: tuple[int, dict[str, AgentPlacement]] = (-1, {})  # (pose-graph version, cache)
+        self._confirmed_anchors: set[tuple[str, int]] = set()  # (agent, anchoring closure id) once confirmed
         self.timings_ms: dict[str, list[float]] = {"match": [], "backend": []}
 
     def add_agent(self, agent: str) -> None:
@@ -400,6 +401,7 @@ class MapServer:
                 self._closures.add(key)
         t1 = time.perf_counter()
         self._pose_graph.update()  # one iSAM2 update for all closures of this match
+        self._note_confirmed_anchors()
         self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
         accepted = [c for c in rec.closures if c["accepted"]]
         rec.accepted = bool(accepted)
@@ -561,6 +563,28 @@ class MapServer:
     def to_g2o(self) -> str:
         """The pose graph in g2o text form."""
         return self._pose_graph.to_g2o()
+
+    def _note_confirmed_anchors(self) -> None:
+        """Remember, for every agent confirmed now, the closure it is anchored through (``anchorings``)."""
+        for agent in self._agents:
+            if self.placement(agent).placement is Placement.CONFIRMED:
+                closure_id = self._pose_graph.anchor_closure(agent)
+                if closure_id is not None:
+                    self._confirmed_anchors.add((agent, closure_id))
+
+    def anchorings(self) -> list[dict]:
+        """Each time an agent entered the shared frame, in order: the agent, the closure that placed it
+        (``MultiRobotPoseGraph.anchorings``; ``T_a_b`` maps keyframe ``kf_b``'s camera frame of ``robot_b``
+        into keyframe ``kf_a``'s of ``robot_a``), whether that closure was withdrawn later and whether the
+        agent's place was ever confirmed while it stood on that closure (checked after every match; not
+        kept in snapshots), as JSON-friendly values for ``server.json``."""
+        return [
+            {"agent": agent, "closure_id": c.closure_id, "robot_a": c.robot_a, "kf_a": c.kf_a,
+             "robot_b": c.robot_b, "kf_b": c.kf_b, "T_a_b": np.round(c.T_a_b, 9).tolist(),
+             "withdrawn": c.status is not ClosureStatus.ACCEPTED,
+             "confirmed": (agent, c.closure_id) in self._confirmed_anchors}
+            for agent, c in self._pose_graph.anchorings()
+        ]  # fmt: skip
 
     def mean_match_ms(self) -> float:
         """Mean wall time of one graph match so far (0 before the first)."""

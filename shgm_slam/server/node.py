@@ -655,5 +655,6 @@ class ServerNode:
             "matches_tried": len(server.matches) if server else 0,
             "closures_accepted": sum(m.accepted for m in server.matches) if server else 0,
             "mean_match_ms": server.mean_match_ms() if server else 0.0,
+            "anchorings": server.anchorings() if server else [],
             "traffic": self.traffic.to_json_dict(),
         }

@@ -468,3 +468,23 @@ def test_converge_gives_the_same_estimate_whatever_order_things_arrived_in(scene
     interleaved.add_keyframe("a", N, scene["odo_a"][-1])
     assert len(interleaved.estimate()["a"]) == N + 1
     assert MultiRobotPoseGraph(["a"]).converge() == 0
+
+
+def test_anchorings_keep_a_robot_once_placed_through_a_closure_that_was_withdrawn():
+    """b is first anchored through an alias (b 40 m further along); two independent true matches outvote
+    it: b is anchored again through a true closure, and the history keeps both, in order, each once."""
+    pg = MultiRobotPoseGraph(["a", "b"])
+    for k in range(30):
+        pg.add_keyframe("a", k, make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]))
+        pg.add_keyframe("b", k, make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]))
+    assert pg.anchorings() == [] and pg.anchor_closure("a") is None
+    alias = make_pose(np.eye(3), [0.0, 0.0, 40.0])
+    first = pg.add_inter_robot_closure("a", 24, "b", 4, alias, num_inliers=30, match_id=1)
+    assert pg.anchor_closure("b") == first.closure_id
+    pg.add_inter_robot_closure("a", 2, "b", 2, np.eye(4), num_inliers=15, match_id=2)
+    pg.add_inter_robot_closure("a", 12, "b", 12, np.eye(4), num_inliers=15, match_id=3)
+    history = pg.anchorings()
+    assert [robot for robot, _ in history] == ["b", "b"]
+    assert history[0][1].closure_id == first.closure_id and history[0][1].status is ClosureStatus.REJECTED
+    assert history[1][1].status is ClosureStatus.ACCEPTED and pg.anchor_closure("b") == history[1][1].closure_id
+    assert np.linalg.norm(pg.estimate()["b"][5][:3, 3] - [0.0, 0.0, 10.0]) < 0.5

@@ -156,3 +156,26 @@ def test_a_robot_that_shares_no_view_is_right_only_when_left_apart(tiny_scenario
     assert "disjoint" in heldout_markdown({"options": {
         "seeds": [0], "resolution": [320, 96], "tuning_seeds": [10, 19], "placed_right_m": {"files": 2.0}},
         "summary": summarize(rows)})
+
+
+def test_summary_adds_up_the_runs_judged_matches_per_scenario(tiny_scenario, tmp_path):
+    metrics = _fake_run(tiny_scenario, tmp_path / "a", {"car1": 0.0, "car2": 0.5, "uav": 0.5})
+    rows = [vars(x) for x in judge_run(tmp_path / "a", tiny_scenario, ["car1", "car2", "uav"], InputMode.FILES,
+                                       "airsim-like", 0, metrics)]  # fmt: skip
+    runs = [
+        {"scenario": "airsim-like", "mode": "files", "matches": {"accepted": 7, "off": 2, "gross": 1, "worst_m": 31.0,
+                                                                 "anchorings": 3, "anchorings_gross": 1,
+                                                                 "anchorings_gross_confirmed": 1}},
+        {"scenario": "synthia-like", "mode": "files", "matches": {"accepted": 5, "off": 0, "gross": 0, "worst_m": 1.0,
+                                                                  "anchorings": 1, "anchorings_gross": 0}},
+        {"scenario": "airsim-like", "mode": "rgb", "matches": {"accepted": 9, "off": 9, "gross": 9, "worst_m": 99.0}},
+    ]
+    s = summarize(rows, runs)["files"]
+    assert (s["all"]["matches_accepted"], s["all"]["matches_off"], s["all"]["matches_gross"]) == (12, 2, 1)
+    assert (s["airsim-like"]["matches_accepted"], s["airsim-like"]["matches_off"]) == (7, 2)
+    options = {"seeds": [0], "resolution": [320, 96], "tuning_seeds": [10, 19], "placed_right_m": {"files": 2.0}}
+    md = heldout_markdown({"options": options, "summary": summarize(rows, runs)})
+    assert "| 2/12 (1) | 1/4 (1) |" in md
+    runs[1]["matches"]["anchorings"] = None  # a run from before anchorings were recorded
+    md = heldout_markdown({"options": options, "summary": summarize(rows, runs)})
+    assert "| 2/12 (1) | ? |" in md

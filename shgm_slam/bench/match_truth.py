@@ -1,0 +1,142 @@
+"""Accepted graph matches judged against ground truth at their own place (held-out benchmark).
+
+A robot can be placed far from the truth for two reasons: a **false match** (an alias: the map server
+joined two places that are not the same) or a right match under a trajectory that drifts (its own
+odometry bends it away from the place where it was joined). The placement verdicts cannot tell them
+apart; this check can. Each accepted match is read at the keyframes it anchors (``keyframe_a`` of agent
+A, ``keyframe_b`` of agent B): the match's transform puts B's keyframe at
+
+    T_kfa_kfb = inv(T_odom_kf[A][keyframe_a]) @ T_a_b @ T_odom_kf[B][keyframe_b]
+
+in A's keyframe camera frame, while the truth is ``inv(T_world_cam[A][frame_a]) @ T_world_cam[B][frame_b]``.
+The translation between the two is the match's error at its place: odometry drift over the few keyframes
+between the anchors and the matched nodes adds little, so a right match stays within a few metres and an
+alias is off by its street's repetition.
+
+The final trajectories hide a false match that placed a robot for a while and was withdrawn when later
+matches outvoted it. ``server.json`` lists every **anchoring** (each time an agent entered the shared
+frame, with the closure that placed it); the closure's keyframe-to-keyframe transform is judged the same
+way, so a robot once placed through a false closure is counted even when it ends up right.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shgm_slam.agents import agent_robot
+from shgm_slam.errors import DataError
+from shgm_slam.geometry import se3
+
+
+@dataclass(frozen=True)
+class MatchTruth:
+    """Accepted matches of one run against the truth.
+
+    Attributes:
+        accepted: accepted matches judged (both anchor keyframes known).
+        off: of those, matches whose error at their place exceeds the mode's placement tolerance.
+        gross: of those, matches off by more than the gross-error bound (aliases, not imprecision).
+        worst_m: the largest error at its place, metres (NaN without accepted matches).
+        anchorings: times an agent entered the shared frame (None: the run's ``server.json`` predates
+            the record).
+        anchorings_off, anchorings_gross: of those, through a closure off by more than the tolerance
+            (the gross bound): a robot placed wrong, at least for a while.
+        anchorings_gross_confirmed: of the gross ones, those whose place the server ever confirmed (two
+            independent matches agreed on it); the others stayed provisional, and said so, until withdrawn.
+    """
+
+    accepted: int
+    off: int
+    gross: int
+    worst_m: float
+    anchorings: int | None = None
+    anchorings_off: int = 0
+    anchorings_gross: int = 0
+    anchorings_gross_confirmed: int = 0
+
+
+def match_errors_m(
+    T_a_b: np.ndarray, T_odom_kfa: np.ndarray, T_odom_kfb: np.ndarray, T_world_a: np.ndarray, T_world_b: np.ndarray
+) -> np.ndarray:
+    """(M,) translation error in metres of M matches at their anchor keyframes (module docstring).
+
+    Args:
+        T_a_b: (M, 4, 4) each match's transform from agent B's odometry frame into agent A's.
+        T_odom_kfa, T_odom_kfb: (M, 4, 4) the anchor keyframes' camera poses in their agents' odometry frames.
+        T_world_a, T_world_b: (M, 4, 4) the same keyframes' ground-truth camera poses (one world frame).
+    """
+    measured = se3.inverse(T_odom_kfa) @ T_a_b @ T_odom_kfb
+    truth = se3.inverse(T_world_a) @ T_world_b
+    return np.linalg.norm(measured[:, :3, 3] - truth[:, :3, 3], axis=1)
+
+
+def judge_matches(
+    run_dir: Path, gt_poses: dict[str, np.ndarray], tolerance_m: float, gross_m: float
+) -> MatchTruth:
+    """Judge the accepted matches and the anchorings of one results folder (its ``matches.json``,
+    ``server.json`` and ``journal.bin``).
+
+    Args:
+        run_dir: a results folder written with a journal (the held-out benchmark's runs are).
+        gt_poses: robot name -> (N, 4, 4) ground-truth camera poses of its frames (world frame).
+        tolerance_m: a match (closure) farther off than this at its place counts as off.
+        gross_m: ... and farther than this as gross.
+    """
+    run_dir = Path(run_dir)
+    keyframes = _keyframes(run_dir / "journal.bin")
+
+    def truth(agent_a: str, kf_a: int, agent_b: str, kf_b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(T_odom_kfa, T_odom_kfb, T_kfa_kfb true) of two keyframes."""
+        (fa, Ta), (fb, Tb) = keyframes[(agent_a, kf_a)], keyframes[(agent_b, kf_b)]
+        T_true = se3.inverse(gt_poses[agent_robot(agent_a)[0]][fa]) @ gt_poses[agent_robot(agent_b)[0]][fb]
+        return Ta, Tb, T_true
+
+    rows = []
+    for m in json.loads((run_dir / "matches.json").read_text()):
+        ka, kb = (m["robot_a"], m["keyframe_a"]), (m["robot_b"], m["keyframe_b"])
+        if m.get("accepted") and ka in keyframes and kb in keyframes:
+            Ta, Tb, T_true = truth(*ka, *kb)
+            rows.append((np.asarray(m["T_a_b"], dtype=np.float64), Ta, Tb, T_true))
+    err = np.zeros(0)
+    if rows:
+        T_a_b, Ta, Tb, T_true = (np.stack(col) for col in zip(*rows, strict=True))
+        err = match_errors_m(T_a_b, Ta, Tb, np.eye(4)[None].repeat(len(rows), 0), T_true)
+    worst = float(err.max()) if err.size else float("nan")
+    server = run_dir / "server.json"
+    records = json.loads(server.read_text()).get("anchorings") if server.is_file() else None
+    if records is None:
+        return MatchTruth(len(err), int((err > tolerance_m).sum()), int((err > gross_m).sum()), worst)
+    judged = [a for a in records if a["robot_a"] != a["robot_b"]
+              and (a["robot_a"], a["kf_a"]) in keyframes and (a["robot_b"], a["kf_b"]) in keyframes]  # fmt: skip
+    anchor_err = np.array([
+        np.linalg.norm(np.asarray(a["T_a_b"], dtype=np.float64)[:3, 3] - truth(a["robot_a"], a["kf_a"], a["robot_b"],
+                                                                                a["kf_b"])[2][:3, 3])
+        for a in judged
+    ]).reshape(-1)  # fmt: skip
+    confirmed = np.array([bool(a.get("confirmed")) for a in judged], dtype=bool)
+    return MatchTruth(
+        len(err), int((err > tolerance_m).sum()), int((err > gross_m).sum()), worst,
+        anchorings=len(anchor_err), anchorings_off=int((anchor_err > tolerance_m).sum()),
+        anchorings_gross=int((anchor_err > gross_m).sum()),
+        anchorings_gross_confirmed=int(((anchor_err > gross_m) & confirmed).sum()),
+    )  # fmt: skip
+
+
+def _keyframes(journal: Path) -> dict[tuple[str, int], tuple[int, np.ndarray]]:
+    """(agent, keyframe index) -> (frame index, (4, 4) T_odom_kf) of every keyframe a run's journal holds."""
+    from shgm_slam.messages import KeyframeMessage
+    from shgm_slam.server.journal import Journal
+    from shgm_slam.wire import decode
+
+    if not journal.is_file():
+        raise DataError(f"{journal} is missing: matches are judged from the run's journal")
+    keyframes = {}
+    for payload in Journal(journal).replay():
+        m = decode(payload)
+        if isinstance(m, KeyframeMessage):
+            keyframes[(m.robot, m.kf_index)] = (m.frame_index, np.asarray(m.T_odom_kf, dtype=np.float64))
+    return keyframes
