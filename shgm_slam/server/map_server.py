@@ -401,9 +401,10 @@ class MapServer:
                 self._closures.add(key)
         t1 = time.perf_counter()
         self._pose_graph.update()  # one iSAM2 update for all closures of this match
-        self._note_confirmed_anchors()
-        self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
         accepted = [c for c in rec.closures if c["accepted"]]
+        if accepted:  # only an accepted closure can confirm an agent
+            self._note_confirmed_anchors()
+        self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
         rec.accepted = bool(accepted)
         shown = accepted[0] if accepted else rec.closures[0]
         rec.kf_a, rec.kf_b, rec.reason = shown["keyframe_a"], shown["keyframe_b"], shown["reason"]
