@@ -1010,7 +1010,8 @@ def bench_heldout(
     ] = None,
 ) -> None:
     """The system with the default configuration on many unseen worlds: placed right, false merges,
-    not placed, odometry failures (ground truth and detected), per scenario and input."""
+    not placed, odometry failures (ground truth and detected), accepted matches and placements judged
+    at their own place (false ones withdrawn later included), per scenario and input."""
     from shgm_slam.bench import heldout
     from shgm_slam.errors import ConfigError
 
