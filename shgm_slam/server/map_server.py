@@ -218,6 +218,8 @@ class MapServer:
                 records.append(self._match_pair(other, robot, "whole", graph_a.subset(rows_a), whole.subset(rows_b),
                                                 desc_a.subset(rows_a), desc_b))  # fmt: skip
         self._matches += records
+        if any(r.accepted for r in records):  # only an accepted closure can confirm an agent
+            self._note_confirmed_anchors()
         return records
 
     def _confirmed(self, a: str, b: str) -> bool:
@@ -401,10 +403,8 @@ class MapServer:
                 self._closures.add(key)
         t1 = time.perf_counter()
         self._pose_graph.update()  # one iSAM2 update for all closures of this match
-        accepted = [c for c in rec.closures if c["accepted"]]
-        if accepted:  # only an accepted closure can confirm an agent
-            self._note_confirmed_anchors()
         self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
+        accepted = [c for c in rec.closures if c["accepted"]]
         rec.accepted = bool(accepted)
         shown = accepted[0] if accepted else rec.closures[0]
         rec.kf_a, rec.kf_b, rec.reason = shown["keyframe_a"], shown["keyframe_b"], shown["reason"]
@@ -566,7 +566,9 @@ class MapServer:
         return self._pose_graph.to_g2o()
 
     def _note_confirmed_anchors(self) -> None:
-        """Remember, for every agent confirmed now, the closure it is anchored through (``anchorings``)."""
+        """Remember, for every agent confirmed now, the closure it is anchored through (``anchorings``).
+        Called once a keyframe's matches are all done (``match_robot``): the state a robot, the log and the
+        viewer can see, not the passing state between two matches of one keyframe."""
         for agent in self._agents:
             if self.placement(agent).placement is Placement.CONFIRMED:
                 closure_id = self._pose_graph.anchor_closure(agent)
@@ -577,8 +579,8 @@ class MapServer:
         """Each time an agent entered the shared frame, in order: the agent, the closure that placed it
         (``MultiRobotPoseGraph.anchorings``; ``T_a_b`` maps keyframe ``kf_b``'s camera frame of ``robot_b``
         into keyframe ``kf_a``'s of ``robot_a``), whether that closure was withdrawn later and whether the
-        agent's place was ever confirmed while it stood on that closure (checked after every match; not
-        kept in snapshots), as JSON-friendly values for ``server.json``."""
+        agent's place was ever confirmed while it stood on that closure (checked after each keyframe's
+        matches; not kept in snapshots), as JSON-friendly values for ``server.json``."""
         return [
             {"agent": agent, "closure_id": c.closure_id, "robot_a": c.robot_a, "kf_a": c.kf_a,
              "robot_b": c.robot_b, "kf_b": c.kf_b, "T_a_b": np.round(c.T_a_b, 9).tolist(),
