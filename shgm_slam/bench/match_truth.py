@@ -69,9 +69,13 @@ def match_errors_m(
         T_odom_kfa, T_odom_kfb: (M, 4, 4) the anchor keyframes' camera poses in their agents' odometry frames.
         T_world_a, T_world_b: (M, 4, 4) the same keyframes' ground-truth camera poses (one world frame).
     """
-    measured = se3.inverse(T_odom_kfa) @ T_a_b @ T_odom_kfb
-    truth = se3.inverse(T_world_a) @ T_world_b
-    return np.linalg.norm(measured[:, :3, 3] - truth[:, :3, 3], axis=1)
+    return _translation_gap_m(se3.inverse(T_odom_kfa) @ T_a_b @ T_odom_kfb, se3.inverse(T_world_a) @ T_world_b)
+
+
+def _translation_gap_m(T_kfa_kfb: np.ndarray, T_kfa_kfb_true: np.ndarray) -> np.ndarray:
+    """(M,) distance in metres between measured and true positions of keyframe b in keyframe a's camera frame,
+    for (M, 4, 4) stacks (M may be 0)."""
+    return np.linalg.norm(T_kfa_kfb[:, :3, 3] - T_kfa_kfb_true[:, :3, 3], axis=1).reshape(-1)
 
 
 def judge_matches(
@@ -89,34 +93,33 @@ def judge_matches(
     run_dir = Path(run_dir)
     keyframes = _keyframes(run_dir / "journal.bin")
 
-    def truth(agent_a: str, kf_a: int, agent_b: str, kf_b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(T_odom_kfa, T_odom_kfb, T_kfa_kfb true) of two keyframes."""
-        (fa, Ta), (fb, Tb) = keyframes[(agent_a, kf_a)], keyframes[(agent_b, kf_b)]
-        T_true = se3.inverse(gt_poses[agent_robot(agent_a)[0]][fa]) @ gt_poses[agent_robot(agent_b)[0]][fb]
-        return Ta, Tb, T_true
+    def known(agent_a: str, kf_a: int, agent_b: str, kf_b: int) -> bool:
+        return (agent_a, kf_a) in keyframes and (agent_b, kf_b) in keyframes
 
-    rows = []
+    def true_kfa_kfb(agent_a: str, kf_a: int, agent_b: str, kf_b: int) -> np.ndarray:
+        """(4, 4) true pose of keyframe ``kf_b`` of ``agent_b`` in keyframe ``kf_a``'s camera frame of ``agent_a``."""
+        fa, fb = keyframes[(agent_a, kf_a)][0], keyframes[(agent_b, kf_b)][0]
+        return se3.inverse(gt_poses[agent_robot(agent_a)[0]][fa]) @ gt_poses[agent_robot(agent_b)[0]][fb]
+
+    measured, truth = [np.zeros((0, 4, 4))], [np.zeros((0, 4, 4))]  # an empty run stacks too
     for m in json.loads((run_dir / "matches.json").read_text()):
-        ka, kb = (m["robot_a"], m["keyframe_a"]), (m["robot_b"], m["keyframe_b"])
-        if m.get("accepted") and ka in keyframes and kb in keyframes:
-            Ta, Tb, T_true = truth(*ka, *kb)
-            rows.append((np.asarray(m["T_a_b"], dtype=np.float64), Ta, Tb, T_true))
-    err = np.zeros(0)
-    if rows:
-        T_a_b, Ta, Tb, T_true = (np.stack(col) for col in zip(*rows, strict=True))
-        err = match_errors_m(T_a_b, Ta, Tb, np.eye(4)[None].repeat(len(rows), 0), T_true)
+        pair = (m["robot_a"], m["keyframe_a"], m["robot_b"], m["keyframe_b"])
+        if m.get("accepted") and known(*pair):
+            T_odom_kfa, T_odom_kfb = keyframes[pair[:2]][1], keyframes[pair[2:]][1]
+            measured.append((se3.inverse(T_odom_kfa) @ np.asarray(m["T_a_b"], dtype=np.float64) @ T_odom_kfb)[None])
+            truth.append(true_kfa_kfb(*pair)[None])
+    err = _translation_gap_m(np.concatenate(measured), np.concatenate(truth))
     worst = float(err.max()) if err.size else float("nan")
     server = run_dir / "server.json"
     records = json.loads(server.read_text()).get("anchorings") if server.is_file() else None
     if records is None:
         return MatchTruth(len(err), int((err > tolerance_m).sum()), int((err > gross_m).sum()), worst)
-    judged = [a for a in records if a["robot_a"] != a["robot_b"]
-              and (a["robot_a"], a["kf_a"]) in keyframes and (a["robot_b"], a["kf_b"]) in keyframes]  # fmt: skip
-    anchor_err = np.array([
-        np.linalg.norm(np.asarray(a["T_a_b"], dtype=np.float64)[:3, 3] - truth(a["robot_a"], a["kf_a"], a["robot_b"],
-                                                                                a["kf_b"])[2][:3, 3])
-        for a in judged
-    ]).reshape(-1)  # fmt: skip
+    judged = [a for a in records
+              if a["robot_a"] != a["robot_b"] and known(a["robot_a"], a["kf_a"], a["robot_b"], a["kf_b"])]  # fmt: skip
+    anchor_err = _translation_gap_m(
+        np.asarray([a["T_a_b"] for a in judged], dtype=np.float64).reshape(-1, 4, 4),
+        np.asarray([true_kfa_kfb(a["robot_a"], a["kf_a"], a["robot_b"], a["kf_b"]) for a in judged]).reshape(-1, 4, 4),
+    )
     confirmed = np.array([bool(a.get("confirmed")) for a in judged], dtype=bool)
     return MatchTruth(
         len(err), int((err > tolerance_m).sum()), int((err > gross_m).sum()), worst,
