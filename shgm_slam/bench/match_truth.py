@@ -92,6 +92,20 @@ def judge_matches(
     """
     run_dir = Path(run_dir)
     keyframes = _keyframes(run_dir / "journal.bin")
+    try:
+        return _judge(run_dir, keyframes, gt_poses, tolerance_m, gross_m)
+    except (KeyError, IndexError, TypeError, ValueError) as exc:  # JSONDecodeError is a ValueError
+        raise DataError(
+            f"{run_dir}: matches.json or server.json does not hold what a run writes ({exc!r}); judge the "
+            "results folder of a finished run, or run it again"
+        ) from None
+
+
+def _judge(
+    run_dir: Path, keyframes: dict[tuple[str, int], tuple[int, np.ndarray]], gt_poses: dict[str, np.ndarray],
+    tolerance_m: float, gross_m: float,
+) -> MatchTruth:  # fmt: skip
+    """``judge_matches`` on the keyframes of the run's journal."""
 
     def known(agent_a: str, kf_a: int, agent_b: str, kf_b: int) -> bool:
         return (agent_a, kf_a) in keyframes and (agent_b, kf_b) in keyframes

@@ -121,3 +121,14 @@ def test_no_accepted_match_and_a_missing_journal(tmp_path: Path):
     (run / "journal.bin").unlink()
     with pytest.raises(DataError, match="journal"):
         judge_matches(run, gt, tolerance_m=2.0, gross_m=20.0)
+
+
+def test_malformed_results_are_a_clear_error(tmp_path: Path):
+    gt = _world()
+    run = _run_dir(tmp_path, gt, [{"robot_a": "a", "accepted": True}])  # a match without keyframes
+    with pytest.raises(DataError, match=r"matches\.json or server\.json"):
+        judge_matches(run, gt, tolerance_m=2.0, gross_m=20.0)
+    (run / "matches.json").write_text("[]")
+    (run / "server.json").write_text("{not json")
+    with pytest.raises(DataError, match=r"matches\.json or server\.json"):
+        judge_matches(run, gt, tolerance_m=2.0, gross_m=20.0)
