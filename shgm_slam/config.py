@@ -219,6 +219,10 @@ class OdometryConfig(_Stage):
         5, ge=1, description="visual odometry: a corner's depth is the largest in this window (networks blur "
         "depth edges toward the foreground); 1 for sensor depth"
     )
+    visual_planar_motion: bool = Field(
+        True, description="visual odometry: each frame's turn from the tracks under a ground vehicle's planar "
+        "circular motion wherever they agree with it (odometry/planar_motion.py; a UAV's frames fall back to PnP)"
+    )
     hybrid_edge_rel_jump: float = Field(
         0.1, gt=0, description="hybrid: pixels where inverse depth bends by more than this share of itself "
         "(occlusion edges, which networks blur) and their neighbours are kept out of ICP's cloud"

@@ -309,6 +309,7 @@ def _visual_factory(cfg: OdometryConfig) -> Callable[[], DepthVisualOdometry]:
             min_track_fraction=cfg.visual_min_track_fraction,
             reprojection_px=cfg.visual_reprojection_px,
             depth_window_px=cfg.visual_depth_window_px,
+            planar_motion=cfg.visual_planar_motion,
         )
 
     return factory

@@ -21,8 +21,9 @@ STRIDE = 2
 
 
 def config(kind: OdometryKind) -> OdometryConfig:
+    """The corridor's camera slides sideways as it weaves (not a car's planar circular motion)."""
     return OdometryConfig(kind=kind, voxel_size_m=0.5, max_range_m=60.0, cloud_stride=STRIDE, shuffle_points=False,
-                          visual_max_depth_m=60.0, visual_depth_window_px=1)  # fmt: skip
+                          visual_max_depth_m=60.0, visual_depth_window_px=1, visual_planar_motion=False)  # fmt: skip
 
 
 def run(kind: OdometryKind, poses: np.ndarray, depth_fn=lambda d, i: d):
