@@ -315,6 +315,9 @@ def _render_summary(summary) -> None:
             chosen.setdefault((r.odometry, r.odometry_reason), []).append(r.name)
     for (kind, reason), names in chosen.items():
         console.print(f"odometry {lit(kind)} for {lit(', '.join(names))}: {lit(reason)}")
+    shares = [f"{r.name} {100 * r.planar_turn_share:.0f} %" for r in summary.robots if r.planar_turn_share is not None]
+    if shares:
+        console.print("turns from planar (car-like) motion, share of measured frames: " + lit(", ".join(shares)))
     for r in summary.robots:
         if r.odometry_failures:
             more = f" (+{r.odometry_failures - 3} more in metrics.json)" if r.odometry_failures > 3 else ""

@@ -179,6 +179,9 @@ class RobotReport:
     provisional: bool = False
     odometry: str = ""  # the odometry kind the robot ran (``--odometry auto`` resolved)
     odometry_reason: str = ""  # why (auto's reason, or "set in the configuration")
+    # visual odometry: share of its measured frames whose turn came from a ground vehicle's planar motion
+    # (``odometry/planar_motion.py``; a UAV's frames keep PnP's); None for other odometries
+    planar_turn_share: float | None = None
 
 
 @dataclass
@@ -546,6 +549,8 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
         )  # fmt: skip
         if front.odometry_choice is not None:
             rep.odometry, rep.odometry_reason = front.odometry_choice.kind.value, front.odometry_choice.reason
+        if rep.odometry == OdometryKind.VISUAL.value and front.measured_frames:
+            rep.planar_turn_share = front.planar_turns / front.measured_frames
         rep.segment_start_frames = [int(s.first_frame) for s in front.segments if s.first_frame >= 0]
         rep.segments = len(rep.segment_start_frames)
         rep.segments_placed = len(placed)

@@ -33,7 +33,8 @@ class OdometryEstimate:
 
     The optional diagnostics feed ``health.OdometryHealthMonitor``: ``threshold_m`` is the source's
     registration threshold after this frame (KISS-ICP's adaptive σ, metres), ``rotation_disagreement_deg``
-    how far the source's rotation of this step is from the rotation measured from image motion.
+    how far the source's rotation of this step is from the rotation measured from image motion;
+    ``planar_turn`` whether the step's turn came from a ground vehicle's planar motion (visual odometry).
     """
 
     T_odom_cam: np.ndarray
@@ -41,6 +42,7 @@ class OdometryEstimate:
     note: str = ""
     threshold_m: float | None = None
     rotation_disagreement_deg: float | None = None
+    planar_turn: bool = False
 
 
 @runtime_checkable
@@ -266,7 +268,9 @@ class VisualOdometrySource:
         )
         first = reg.status is VisualStatus.FIRST_FRAME
         disagreement = None if yaw_img is None or first else yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
-        return OdometryEstimate(reg.T_odom_cam, reg.ok, note, rotation_disagreement_deg=disagreement)
+        return OdometryEstimate(
+            reg.T_odom_cam, reg.ok, note, rotation_disagreement_deg=disagreement, planar_turn=reg.planar_turn
+        )
 
 
 def image_gray(frame: Frame, depth_m: np.ndarray | None, kind: str) -> np.ndarray:

@@ -65,6 +65,7 @@ class VisualRegistration:
         num_tracks: reference corners tracked into this frame (before PnP).
         num_inliers: PnP inliers (0 when PnP did not run or failed).
         new_reference: whether this frame became the tracking reference.
+        planar_turn: whether this frame's turn came from planar circular motion (``planar_motion``).
     """
 
     T_odom_cam: np.ndarray
@@ -72,6 +73,7 @@ class VisualRegistration:
     num_tracks: int
     num_inliers: int
     new_reference: bool
+    planar_turn: bool = False
 
     @property
     def ok(self) -> bool:
@@ -226,6 +228,7 @@ class DepthVisualOdometry:
         self.planar_motion = planar_motion
         self.planar_frames = 0  # frames whose turn came from the planar model
         self._turn: PlanarTurn | None = None  # this frame's planar turn (accepted ones only)
+        self._turn_used = False  # this frame's pose took it
         self._lk = {
             "winSize": (lk_window_px, lk_window_px),
             "maxLevel": lk_levels,
@@ -284,6 +287,7 @@ class DepthVisualOdometry:
             )
 
         T_pred = self.T_odom_cam @ (self._T_prev_cam if motion_prior is None else motion_prior)
+        self._turn_used = False
         num_tracks = self._track(gray, intrinsics)
         status, num_inliers, T_new = VisualStatus.FEW_TRACKS, 0, T_pred
         if num_tracks >= self.min_inliers:
@@ -299,7 +303,9 @@ class DepthVisualOdometry:
         renew = len(self._ref_points) < max(self.min_tracks, self.min_track_fraction * self._ref_count)
         if renew:
             self._new_reference(gray, depth, intrinsics, label_ids)
-        return VisualRegistration(self.T_odom_cam.copy(), status, num_tracks, num_inliers, renew)
+        planar = self._turn_used and status is VisualStatus.OK
+        self.planar_frames += planar
+        return VisualRegistration(self.T_odom_cam.copy(), status, num_tracks, num_inliers, renew, planar)
 
     # ----------------------------------------------------------------------------------------------
 
@@ -412,7 +418,7 @@ class DepthVisualOdometry:
             out[:3, :3], self._ref_points[inliers], self._tracks_uv[inliers, 0].astype(np.float64), intrinsics
         )
         out[:3, 3] = T_cam_ref[:3, 3] if t is None else t
-        self.planar_frames += 1
+        self._turn_used = True
         return out
 
 

@@ -78,6 +78,8 @@ class RobotFrontend:
         self.perception = perception
         self.odometry = odometry
         self.odometry_choice = odometry_choice  # which odometry and why (reported in the summary)
+        self.measured_frames = 0  # frames the odometry measured (not predicted)
+        self.planar_turns = 0  # of them, frames whose turn came from planar motion (visual odometry)
         self.health = (
             OdometryHealthMonitor(HealthLimits.from_config(cfg.odometry)) if cfg.odometry.health_check else None
         )
@@ -172,6 +174,8 @@ class RobotFrontend:
             else:
                 self.odometry.reset()
                 self.health.reset()
+        self.measured_frames += bool(est.ok)
+        self.planar_turns += bool(est.planar_turn)
         T_odom_cam = est.T_odom_cam if seg.first_frame >= 0 else np.full((4, 4), np.nan)
         t_odo = time.perf_counter()
         message = None

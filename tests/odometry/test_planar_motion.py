@@ -5,11 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from shgm_slam.config import OdometryConfig, OdometryKind
 from shgm_slam.geometry.se3 import inverse
 from shgm_slam.odometry.image_rotation import rot_y, yaw_of
 from shgm_slam.odometry.planar_motion import MIN_CORNERS, essential_planar, planar_turn
+from shgm_slam.odometry.sources import make_odometry
 from shgm_slam.odometry.visual import MIN_PLANAR_SUPPORT, DepthVisualOdometry, translation_given_rotation
-from shgm_slam.types import Intrinsics
+from shgm_slam.types import Frame, Intrinsics
 from tests.odometry.corridor import INTRINSICS, render
 
 K = Intrinsics(fx=300.0, fy=300.0, cx=160.0, cy=48.0, width=320, height=96)
@@ -126,3 +128,18 @@ def test_planar_turns_stop_the_heading_drift_of_pnp_on_skewed_depth():
         assert vo.planar_frames == (len(poses) - 1 if planar else 0)
     assert heading_err[True] < 0.1  # PnP alone: 0.24 deg here; 40-48 deg over 950 m on a network's depth
     assert heading_err[True] < 0.5 * heading_err[False]
+
+
+def test_the_default_visual_source_takes_a_cars_turns_from_planar_motion_and_says_so():
+    """The configured source (planar motion on by default) reports each step whose turn came from it."""
+    poses = weaving_drive(8)
+    src = make_odometry(OdometryConfig(kind=OdometryKind.VISUAL, visual_depth_window_px=1), len(poses))
+    flags = []
+    for i, T in enumerate(poses):
+        gray, depth = render(T)
+        frame = Frame(index=i, timestamp_s=0.1 * i, intrinsics=INTRINSICS, image_rgb=np.repeat(gray[..., None], 3, 2))
+        est = src.update(frame, np.zeros((0, 3)), depth)
+        flags.append(est.planar_turn)
+        assert est.ok or not est.planar_turn  # a predicted pose never claims a measured turn
+    assert not flags[0]  # the first frame has no turn
+    assert sum(flags) >= len(poses) // 2  # frames where the corridor gives PnP enough tracks
