@@ -182,3 +182,19 @@ def test_real_kitti_07_turns_from_tracks_beat_the_image_shift(shared_data):
     assert agreed.mean() > 0.9  # real car motion fits the model (1 px truncation left half the frames out)
     assert np.sqrt(np.mean(err_planar[agreed] ** 2)) < 0.2  # deg per frame
     assert abs(err_planar.sum()) < 0.5 * abs(np.degrees(np.sum(err_shift)))
+
+
+def test_the_written_out_sampson_distance_is_the_matrix_one(scene):
+    from shgm_slam.odometry.planar_motion import _sampson_px2
+
+    rng = np.random.default_rng(5)
+    uv0, uv1 = project(scene, car_step(np.radians(3.0), 1.0))
+    uv1 += rng.normal(0.0, 1.0, uv1.shape)
+    x0 = np.column_stack([(uv0 - [K.cx, K.cy]) / [K.fx, K.fy], np.ones(len(uv0))])
+    x1 = np.column_stack([(uv1 - [K.cx, K.cy]) / [K.fx, K.fy], np.ones(len(uv1))])
+    yaw = np.radians(np.array([-7.0, 0.0, 2.9, 3.0, 12.0]))
+    E = essential_planar(yaw)
+    Ex0, Etx1 = np.einsum("gij,nj->gni", E, x0), np.einsum("gji,nj->gni", E, x1)
+    num = np.einsum("ni,gni->gn", x1, Ex0)
+    den = Ex0[..., 0] ** 2 + Ex0[..., 1] ** 2 + Etx1[..., 0] ** 2 + Etx1[..., 1] ** 2
+    np.testing.assert_allclose(_sampson_px2(yaw, x0, x1, K.fx), num**2 / den * K.fx**2, rtol=1e-9, atol=1e-12)
