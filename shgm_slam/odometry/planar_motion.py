@@ -102,28 +102,14 @@ def _rays(uv: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
     ])  # fmt: skip
 
 
-def essential_planar(yaw_rad: np.ndarray) -> np.ndarray:
-    """(G, 3, 3) essential matrices ``E`` with ``x_cur^T E x_prev = 0`` for turns θ under circular motion:
-    the current camera rotated by ``R_y(θ)`` in the previous one, its centre along ``(sin θ/2, 0, cos θ/2)``."""
-    th = np.asarray(yaw_rad, dtype=np.float64).reshape(-1)
-    c, s = np.cos(th), np.sin(th)
-    R_cur_prev = np.zeros((len(th), 3, 3))  # R_y(θ)^T
-    R_cur_prev[:, 0, 0], R_cur_prev[:, 0, 2], R_cur_prev[:, 1, 1] = c, -s, 1.0
-    R_cur_prev[:, 2, 0], R_cur_prev[:, 2, 2] = s, c
-    centre = np.stack([np.sin(th / 2), np.zeros_like(th), np.cos(th / 2)], axis=1)
-    t = -np.einsum("gij,gj->gi", R_cur_prev, centre)  # the previous camera's origin in the current frame
-    tx = np.zeros((len(th), 3, 3))
-    tx[:, 0, 1], tx[:, 0, 2], tx[:, 1, 2] = -t[:, 2], t[:, 1], -t[:, 0]
-    tx[:, 1, 0], tx[:, 2, 0], tx[:, 2, 1] = t[:, 2], -t[:, 1], t[:, 0]
-    return tx @ R_cur_prev
-
-
 def _sampson_px2(yaw_rad: np.ndarray, x1: np.ndarray, x2: np.ndarray, fx: float) -> np.ndarray:
     """(G, N) squared Sampson distances, pixels², of the corners under each turn.
 
-    ``essential_planar`` up to scale is ``[[0, c, 0], [-c, 0, s], [0, s, 0]]`` with ``c, s = cos, sin(θ/2)``,
-    so the epipolar residual of rays (a1, b1, 1) and (a2, b2, 1) is ``c (a2 b1 - a1 b2) + s (b1 + b2)``:
-    written out, the (G, N) grid costs a few products instead of 3x3 matrix products per pair.
+    The essential matrix (``x_cur^T E x_prev = 0``) of a turn θ under circular motion (the current camera
+    rotated by ``R_y(θ)`` in the previous one, its centre along ``(sin θ/2, 0, cos θ/2)``) is
+    ``[[0, c, 0], [-c, 0, s], [0, s, 0]]`` with ``c, s = cos, sin(θ/2)``, so the epipolar residual of rays
+    (a1, b1, 1) and (a2, b2, 1) is ``c (a2 b1 - a1 b2) + s (b1 + b2)``: written out, the (G, N) grid costs
+    a few products instead of 3x3 matrix products per pair (the tests check it against the matrices).
     """
     half = 0.5 * np.asarray(yaw_rad, dtype=np.float64).reshape(-1, 1)
     c, s = np.cos(half), np.sin(half)

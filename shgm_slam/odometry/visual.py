@@ -227,7 +227,6 @@ class DepthVisualOdometry:
         self.triangulated_scale = triangulated_scale
         self.depth_window_px = depth_window_px
         self.planar_motion = planar_motion
-        self.planar_frames = 0  # frames whose turn came from the planar model
         self._turn: PlanarTurn | None = None  # this frame's planar turn (accepted ones only)
         self._turn_used = False  # this frame's pose took it
         self._lk = {
@@ -305,7 +304,6 @@ class DepthVisualOdometry:
         if renew:
             self._new_reference(gray, depth, intrinsics, label_ids)
         planar = self._turn_used and status is VisualStatus.OK
-        self.planar_frames += planar
         return VisualRegistration(self.T_odom_cam.copy(), status, num_tracks, num_inliers, renew, planar)
 
     # ----------------------------------------------------------------------------------------------
