@@ -395,6 +395,15 @@ class PerceptionConfig(_Stage):
     depth_model: Path | None = None
     seg_model: Path | None = None
     threads: int = Field(2, ge=0, le=256, description="onnxruntime intra-op threads (0 = all cores), as --threads")
+    camera_height_m: float | None = Field(
+        1.65,
+        gt=0.0,
+        le=10.0,
+        description="the camera's height above the road, metres (KITTI and the simulator's cars: 1.65): a depth "
+        "model's output is scaled so that the road plane lies this far below the camera "
+        "(perception/ground_scale.py); frames without a level road plane at a plausible height (a UAV) "
+        "keep the predicted depth; null turns it off. Depth from files is never scaled",
+    )
 
 
 class RobotOverrides(_Stage):

@@ -182,6 +182,10 @@ class RobotReport:
     # visual odometry: share of its measured frames whose turn came from a ground vehicle's planar motion
     # (``odometry/planar_motion.py``; a UAV's frames keep PnP's); None for other odometries
     planar_turn_share: float | None = None
+    # depth from a model scaled to the camera's height above the road (``perception/ground_scale.py``): the
+    # median factor and the share of processed frames scaled; None when no frame was (files, off, a UAV)
+    depth_scale: float | None = None
+    depth_scale_share: float | None = None
 
 
 @dataclass
@@ -551,6 +555,9 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
             rep.odometry, rep.odometry_reason = front.odometry_choice.kind.value, front.odometry_choice.reason
         if rep.odometry == OdometryKind.VISUAL.value and front.measured_frames:
             rep.planar_turn_share = front.planar_turns / front.measured_frames
+        if front.depth_scales:
+            rep.depth_scale = float(np.median(front.depth_scales))
+            rep.depth_scale_share = len(front.depth_scales) / max(processed[r], 1)
         rep.segment_start_frames = [int(s.first_frame) for s in front.segments if s.first_frame >= 0]
         rep.segments = len(rep.segment_start_frames)
         rep.segments_placed = len(placed)

@@ -11,6 +11,7 @@ frame and gets a ``PerceptionOutput``::
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -20,13 +21,20 @@ from shgm_slam.config import PerceptionConfig
 from shgm_slam.errors import DataError
 from shgm_slam.perception.card import DepthCard, SegmentationCard, load_card
 from shgm_slam.perception.depth import DepthModel
+from shgm_slam.perception.ground_scale import GroundScale
 from shgm_slam.perception.onnx_model import PerceptionTimings, measure_overhead
 from shgm_slam.perception.segmentation import SegmentationModel
 from shgm_slam.types import Frame, Sequence
 
+log = logging.getLogger(__name__)
+
+GROUND_SCALE_WARN_FRAMES = 20
+"""A depth model's road plane out of range this many times with none in range is warned about once."""
+
 __all__ = [
     "DepthCard",
     "DepthModel",
+    "GroundScale",
     "OnnxPerception",
     "PerceptionOutput",
     "PerceptionSource",
@@ -48,11 +56,14 @@ class PerceptionOutput:
         depth_m: (H, W) float32 z-depth in metres, camera frame; 0 = invalid.
         label_ids: (H, W) uint8 Cityscapes train ids; 255 = ignore.
         timings_ms: per-step milliseconds (``depth_preprocess``, ``depth_inference``, ...; empty for files).
+        depth_scale: the factor the predicted depth was multiplied by to put the road at the camera's
+            known height (``ground_scale``); None when it was not scaled (files, no road plane yet, off).
     """
 
     depth_m: np.ndarray
     label_ids: np.ndarray
     timings_ms: dict[str, float] = field(default_factory=dict)
+    depth_scale: float | None = None
 
 
 @runtime_checkable
@@ -94,13 +105,20 @@ class OnnxPerception:
     Args:
         depth_model: monocular depth adapter, or None to use the frame's ``depth_m``.
         seg_model: segmentation adapter, or None to use the frame's ``label_ids``.
+        ground_scale: scales the depth model's output to a known camera height above the road
+            (``ground_scale.GroundScale``), or None; never applied to depth from files.
     """
 
     def __init__(
-        self, depth_model: DepthModel | None = None, seg_model: SegmentationModel | None = None
+        self,
+        depth_model: DepthModel | None = None,
+        seg_model: SegmentationModel | None = None,
+        ground_scale: GroundScale | None = None,
     ) -> None:
         self.depth_model = depth_model
         self.seg_model = seg_model
+        self.ground_scale = ground_scale if depth_model is not None else None
+        self._warned = False
 
     def process(self, frame: Frame) -> PerceptionOutput:
         """Run the configured models on ``frame.image_rgb``; timings keyed ``depth_*`` and ``seg_*``."""
@@ -117,7 +135,24 @@ class OnnxPerception:
             timings.update(self.seg_model.last_timings.as_dict("seg_"))
         else:
             labels = _file_labels(frame)
-        return PerceptionOutput(depth, labels, timings)
+        scale = None
+        if self.ground_scale is not None:
+            scale = self.ground_scale.update(depth, labels, frame.intrinsics)
+            self._warn_if_never_level()
+            if scale is not None:
+                depth = depth * np.float32(scale)
+        return PerceptionOutput(depth, labels, timings, scale)
+
+    def _warn_if_never_level(self) -> None:
+        gs = self.ground_scale
+        if self._warned or gs is None or gs.planes or gs.rejected < GROUND_SCALE_WARN_FRAMES:
+            return
+        self._warned = True
+        log.warning(
+            "the depth model puts the road %.1f m below the camera, not perception.camera_height_m = %.2f m: depth "
+            "left as predicted (a UAV or a tilted camera does this; for a car set camera_height_m to its mounting "
+            "height, or null)", gs.rejected_height, gs.camera_height_m,
+        )  # fmt: skip
 
 
 def make_perception(
@@ -151,4 +186,5 @@ def make_perception(
         return SequenceFilesSource()
     depth = DepthModel(cfg.depth_model, threads=cfg.threads) if cfg.depth_model is not None else None
     seg = SegmentationModel(cfg.seg_model, threads=cfg.threads) if cfg.seg_model is not None else None
-    return OnnxPerception(depth, seg)
+    ground = GroundScale(cfg.camera_height_m) if cfg.camera_height_m is not None else None
+    return OnnxPerception(depth, seg, ground)

@@ -80,6 +80,7 @@ class RobotFrontend:
         self.odometry_choice = odometry_choice  # which odometry and why (reported in the summary)
         self.measured_frames = 0  # frames the odometry measured (not predicted)
         self.planar_turns = 0  # of them, frames whose turn came from planar motion (visual odometry)
+        self.depth_scales: list[float] = []  # per perceived frame whose depth was scaled to the road: the factor
         self.health = (
             OdometryHealthMonitor(HealthLimits.from_config(cfg.odometry)) if cfg.odometry.health_check else None
         )
@@ -146,6 +147,8 @@ class RobotFrontend:
         frame = self.sequence[index]
         t_load = time.perf_counter()
         perceived = self.perception.process(frame)
+        if perceived.depth_scale is not None:
+            self.depth_scales.append(perceived.depth_scale)
         t_perc = time.perf_counter()
         o = self.cfg.odometry
         points_cam, point_labels = depth_to_cloud(
