@@ -319,11 +319,13 @@ def _render_summary(summary) -> None:
     if shares:
         console.print("turns from planar (car-like) motion, share of measured frames: " + lit(", ".join(shares)))
     scaled = [
-        f"{r.name} x{r.depth_scale:.3f} ({100 * r.depth_scale_share:.0f} % of frames)"
-        for r in summary.robots if r.depth_scale is not None and r.depth_scale_share is not None
+        f"{r.name} x{r.depth_scale:.3f} ({100 * r.depth_scale_share:.0f} % of frames)" if r.depth_scale is not None
+        else f"{r.name} not scaled (no level road at that height: a UAV or a tilted camera)"
+        for r in summary.robots if r.depth_scale_share is not None
     ]  # fmt: skip
     if scaled:
-        console.print("predicted depth scaled to the camera height above the road: " + lit(", ".join(scaled)))
+        console.print("predicted depth scaled to the camera height above the road (perception.camera_height_m): "
+                      + lit(", ".join(scaled)))  # fmt: skip
     for r in summary.robots:
         if r.odometry_failures:
             more = f" (+{r.odometry_failures - 3} more in metrics.json)" if r.odometry_failures > 3 else ""

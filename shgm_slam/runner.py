@@ -29,6 +29,7 @@ from shgm_slam.metrics import ate
 from shgm_slam.odometry.sources import choose_odometry, make_odometry
 from shgm_slam.odometry.stillness import ImageChange, odometry_motion, stillness_warning
 from shgm_slam.perception import make_perception
+from shgm_slam.perception.perceive import depth_model_of
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
 from shgm_slam.robot.node import RobotNode
 from shgm_slam.run_view import RunView
@@ -95,7 +96,12 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
             f"robot {name!r}: --odometry gt needs ground-truth poses (poses.txt, or <root>/poses/<seq>.txt for "
             "KITTI), and its sequence has none; use --odometry auto"
         )
-    perception = make_perception(rcfg.perception, sequence)
+    written_by = depth_model_of(sequence) if rcfg.perception.depth_model is None else None
+    if written_by is not None:
+        log.info("%s: its depth files were predicted by %s (perceive.json): treated as predicted depth", name,
+                 written_by)  # fmt: skip
+    predicted = rcfg.perception.depth_model is not None or written_by is not None
+    perception = make_perception(rcfg.perception, sequence, files_depth_predicted=written_by is not None)
 
     def perceive(frame):
         out = perception.process(frame)
@@ -111,16 +117,16 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
         log.info("%s: camera %.1f m above the ground, nearest ground at %.1f m", name,
                  scale.camera_height_m or float("nan"), scale.nearest_ground_depth_m)  # fmt: skip
     rcfg = resolve_robot_config(rcfg, scale)
-    choice = choose_odometry(rcfg.odometry.kind, depth_from_model=rcfg.perception.depth_model is not None)
+    choice = choose_odometry(rcfg.odometry.kind, depth_from_model=predicted)
     log.info("%s: odometry %s (%s)", name, choice.kind.value, choice.reason)
     odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence))
-    return RobotFrontend(name, sequence, rcfg, perception, odometry, choice)
+    return RobotFrontend(name, sequence, rcfg, perception, odometry, choice, depth_predicted=predicted)
 
 
 def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConfig:
     """``cfg`` with the back end's depth-dependent values (still None) set from where the fleet's depth comes
     from (``BackendConfig.for_depth``: predicted when any robot's depth model predicts it)."""
-    predicted = [r for r, f in fronts.items() if f.cfg.perception.depth_model is not None]
+    predicted = [r for r, f in fronts.items() if f.depth_predicted]
     backend = cfg.backend.for_depth(predicted_depth=bool(predicted))
     if predicted and backend != cfg.backend:
         log.info("odometry on predicted depth (%s): pose-graph odometry sigmas grow %.3f rad and %.0f %% per "
@@ -182,8 +188,10 @@ class RobotReport:
     # visual odometry: share of its measured frames whose turn came from a ground vehicle's planar motion
     # (``odometry/planar_motion.py``; a UAV's frames keep PnP's); None for other odometries
     planar_turn_share: float | None = None
-    # depth from a model scaled to the camera's height above the road (``perception/ground_scale.py``): the
-    # median factor and the share of processed frames scaled; None when no frame was (files, off, a UAV)
+    # predicted depth scaled to the camera's height above the road (``perception/ground_scale.py``): the
+    # median factor (None: no frame scaled) and the share of processed frames scaled (None: not on for this
+    # robot - measured depth, or perception.camera_height_m null; 0.0: on, but no level road at a plausible
+    # height was found, e.g. a UAV)
     depth_scale: float | None = None
     depth_scale_share: float | None = None
 
@@ -555,9 +563,9 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
             rep.odometry, rep.odometry_reason = front.odometry_choice.kind.value, front.odometry_choice.reason
         if rep.odometry == OdometryKind.VISUAL.value and front.measured_frames:
             rep.planar_turn_share = front.planar_turns / front.measured_frames
-        if front.depth_scales:
-            rep.depth_scale = float(np.median(front.depth_scales))
+        if front.ground_scale_on:
             rep.depth_scale_share = len(front.depth_scales) / max(processed[r], 1)
+            rep.depth_scale = float(np.median(front.depth_scales)) if front.depth_scales else None
         rep.segment_start_frames = [int(s.first_frame) for s in front.segments if s.first_frame >= 0]
         rep.segments = len(rep.segment_start_frames)
         rep.segments_placed = len(placed)

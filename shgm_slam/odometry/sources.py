@@ -378,7 +378,9 @@ class OdometryChoice:
     reason: str
 
 
-AUTO_FILES_REASON = "auto: depth from files (a depth sensor or the simulator), KISS-ICP on its pseudo-LiDAR"
+AUTO_FILES_REASON = (
+    "auto: depth from files no model wrote (a depth sensor or the simulator), KISS-ICP on its pseudo-LiDAR"
+)
 AUTO_MODEL_REASON = (
     "auto: depth predicted by a model, so the visual odometry (image motion gives the turn and the heading, "
     "many tracked depths the length); KISS-ICP alone drifts far on a network's depth, and the hybrid "

@@ -28,9 +28,6 @@ from shgm_slam.types import Frame, Sequence
 
 log = logging.getLogger(__name__)
 
-GROUND_SCALE_WARN_FRAMES = 20
-"""A depth model's road plane out of range this many times with none in range is warned about once."""
-
 __all__ = [
     "DepthCard",
     "DepthModel",
@@ -91,12 +88,35 @@ def _file_labels(frame: Frame) -> np.ndarray:
     return frame.label_ids
 
 
+def _apply_ground_scale(
+    ground_scale: GroundScale | None, depth_m: np.ndarray, label_ids: np.ndarray, frame: Frame
+) -> tuple[np.ndarray, float | None]:
+    """``depth_m`` scaled to put the road at the camera's height (``GroundScale``), and the factor (None:
+    not scaled)."""
+    if ground_scale is None:
+        return depth_m, None
+    factor = ground_scale.update(depth_m, label_ids, frame.intrinsics)
+    if factor is None:
+        return depth_m, None
+    return depth_m * np.float32(factor), factor
+
+
 class SequenceFilesSource:
-    """Depth and labels straight from the sequence's ``depth/`` and ``semantic/`` files."""
+    """Depth and labels straight from the sequence's ``depth/`` and ``semantic/`` files.
+
+    Args:
+        ground_scale: for depth files a depth model wrote (``shgm-slam perceive``): scales them to a known
+            camera height above the road, as ``OnnxPerception`` does; None for measured depth.
+    """
+
+    def __init__(self, ground_scale: GroundScale | None = None) -> None:
+        self.ground_scale = ground_scale
 
     def process(self, frame: Frame) -> PerceptionOutput:
         """The frame's own ``depth_m`` and ``label_ids``; DataError naming the missing modality."""
-        return PerceptionOutput(_file_depth(frame), _file_labels(frame), {})
+        labels = _file_labels(frame)
+        depth, factor = _apply_ground_scale(self.ground_scale, _file_depth(frame), labels, frame)
+        return PerceptionOutput(depth, labels, {}, factor)
 
 
 class OnnxPerception:
@@ -105,8 +125,8 @@ class OnnxPerception:
     Args:
         depth_model: monocular depth adapter, or None to use the frame's ``depth_m``.
         seg_model: segmentation adapter, or None to use the frame's ``label_ids``.
-        ground_scale: scales the depth model's output to a known camera height above the road
-            (``ground_scale.GroundScale``), or None; never applied to depth from files.
+        ground_scale: scales the depth to a known camera height above the road
+            (``ground_scale.GroundScale``) when it is predicted (``make_perception`` decides), or None.
     """
 
     def __init__(
@@ -117,8 +137,7 @@ class OnnxPerception:
     ) -> None:
         self.depth_model = depth_model
         self.seg_model = seg_model
-        self.ground_scale = ground_scale if depth_model is not None else None
-        self._warned = False
+        self.ground_scale = ground_scale
 
     def process(self, frame: Frame) -> PerceptionOutput:
         """Run the configured models on ``frame.image_rgb``; timings keyed ``depth_*`` and ``seg_*``."""
@@ -135,36 +154,29 @@ class OnnxPerception:
             timings.update(self.seg_model.last_timings.as_dict("seg_"))
         else:
             labels = _file_labels(frame)
-        scale = None
-        if self.ground_scale is not None:
-            scale = self.ground_scale.update(depth, labels, frame.intrinsics)
-            self._warn_if_never_level()
-            if scale is not None:
-                depth = depth * np.float32(scale)
-        return PerceptionOutput(depth, labels, timings, scale)
-
-    def _warn_if_never_level(self) -> None:
-        gs = self.ground_scale
-        if self._warned or gs is None or gs.planes or gs.rejected < GROUND_SCALE_WARN_FRAMES:
-            return
-        self._warned = True
-        log.warning(
-            "the depth model puts the road %.1f m below the camera, not perception.camera_height_m = %.2f m: depth "
-            "left as predicted (a UAV or a tilted camera does this; for a car set camera_height_m to its mounting "
-            "height, or null)", gs.rejected_height, gs.camera_height_m,
-        )  # fmt: skip
+        depth, factor = _apply_ground_scale(self.ground_scale, depth, labels, frame)
+        return PerceptionOutput(depth, labels, timings, factor)
 
 
 def make_perception(
-    cfg: PerceptionConfig, sequence_has_depth: bool | Sequence, sequence_has_labels: bool | None = None
+    cfg: PerceptionConfig,
+    sequence_has_depth: bool | Sequence,
+    sequence_has_labels: bool | None = None,
+    *,
+    files_depth_predicted: bool = False,
 ) -> SequenceFilesSource | OnnxPerception:
     """The perception source for a sequence: models where configured, the sequence's files elsewhere.
 
+    Predicted depth (from ``cfg.depth_model``, or files a depth model wrote: ``files_depth_predicted``) is
+    scaled to ``cfg.camera_height_m`` above the road where set (``ground_scale``); measured depth never is.
+
     Args:
-        cfg: perception config (model paths, threads); cards sit next to the models.
+        cfg: perception config (model paths, threads, camera height); cards sit next to the models.
         sequence_has_depth: whether the sequence has depth files, or the ``Sequence`` itself (then
             both flags are read from its ``has_depth`` / ``has_labels``).
         sequence_has_labels: whether the sequence has label files (omit when passing a ``Sequence``).
+        files_depth_predicted: the sequence's depth files were written by a depth model
+            (``perceive.depth_model_of``).
 
     Raises:
         DataError: a modality has neither files nor a model (the message names it and the config key).
@@ -182,9 +194,10 @@ def make_perception(
             "the sequence has no semantic/ folder and no segmentation model is configured: set "
             "perception.seg_model (an .onnx model with a YAML card next to it) or add label PNGs"
         )
+    predicted = cfg.depth_model is not None or files_depth_predicted
+    ground = GroundScale(cfg.camera_height_m) if predicted and cfg.camera_height_m is not None else None
     if cfg.depth_model is None and cfg.seg_model is None:
-        return SequenceFilesSource()
+        return SequenceFilesSource(ground)
     depth = DepthModel(cfg.depth_model, threads=cfg.threads) if cfg.depth_model is not None else None
     seg = SegmentationModel(cfg.seg_model, threads=cfg.threads) if cfg.seg_model is not None else None
-    ground = GroundScale(cfg.camera_height_m) if cfg.camera_height_m is not None else None
     return OnnxPerception(depth, seg, ground)

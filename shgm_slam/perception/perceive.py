@@ -100,6 +100,28 @@ class PerceiveResult:
         }  # fmt: skip
 
 
+def depth_model_of(sequence: object) -> str | None:
+    """The depth model that wrote ``sequence``'s depth files (``perceive``'s manifest), or None.
+
+    ``sequence`` is any reader with a ``root`` folder, or a view with a ``base`` one; a folder without
+    ``perceive.json``, or one whose manifest names no depth model (labels only), gives None. A manifest
+    that cannot be read gives None too: the depth is then treated as measured, as before.
+    """
+    while getattr(sequence, "root", None) is None and getattr(sequence, "base", None) is not None:
+        sequence = sequence.base  # type: ignore[attr-defined]
+    root = getattr(sequence, "root", None)
+    if root is None or not (Path(root) / MANIFEST).is_file():
+        return None
+    try:
+        manifest = json.loads((Path(root) / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return None
+    model = manifest.get("depth_model") if isinstance(manifest, dict) else None
+    if not isinstance(model, dict):
+        return None
+    return str(model.get("path") or model.get("name") or "a depth model")
+
+
 def session_providers(provider: Provider) -> list[str] | None:
     """ONNX Runtime providers for ``provider`` (None = the adapters' default, CUDA first when present).
 

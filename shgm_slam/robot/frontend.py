@@ -71,8 +71,12 @@ class RobotFrontend:
         perception: PerceptionSource,
         odometry: OdometrySource,
         odometry_choice: OdometryChoice | None = None,
+        *,
+        depth_predicted: bool | None = None,
     ) -> None:
         self.name = name
+        # depth from a network (a configured model, or files a model wrote), not measured
+        self.depth_predicted = cfg.perception.depth_model is not None if depth_predicted is None else depth_predicted
         self.sequence = sequence
         self.cfg = cfg
         self.perception = perception
@@ -80,7 +84,10 @@ class RobotFrontend:
         self.odometry_choice = odometry_choice  # which odometry and why (reported in the summary)
         self.measured_frames = 0  # frames the odometry measured (not predicted)
         self.planar_turns = 0  # of them, frames whose turn came from planar motion (visual odometry)
-        self.depth_scales: list[float] = []  # per perceived frame whose depth was scaled to the road: the factor
+        # predicted depth scaled to the camera's height above the road (``perception.ground_scale``): whether
+        # it is on for this robot, and the factor of each processed frame it scaled
+        self.ground_scale_on = getattr(perception, "ground_scale", None) is not None
+        self.depth_scales: list[float] = []
         self.health = (
             OdometryHealthMonitor(HealthLimits.from_config(cfg.odometry)) if cfg.odometry.health_check else None
         )
