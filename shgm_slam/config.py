@@ -217,7 +217,8 @@ class OdometryConfig(_Stage):
     visual_reprojection_px: float = Field(2.0, gt=0, description="visual odometry: PnP RANSAC inlier threshold")
     visual_depth_window_px: int = Field(
         5, ge=1, description="visual odometry: a corner's depth is the largest in this window (networks blur "
-        "depth edges toward the foreground); 1 for sensor depth"
+        "depth edges toward the foreground), in pixels of the depth model's input: on images larger than that "
+        "input it grows with them (odometry/visual.py depth_window_on_image); 1 for sensor depth"
     )
     visual_planar_motion: bool = Field(
         True, description="visual odometry: each frame's turn from the tracks under a ground vehicle's planar "

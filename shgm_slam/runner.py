@@ -28,6 +28,7 @@ from shgm_slam.io.export import ResultsWriter
 from shgm_slam.metrics import ate
 from shgm_slam.odometry.sources import choose_odometry, make_odometry
 from shgm_slam.odometry.stillness import ImageChange, odometry_motion, stillness_warning
+from shgm_slam.odometry.visual import depth_window_on_image
 from shgm_slam.perception import make_perception
 from shgm_slam.perception.perceive import depth_model_of
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
@@ -99,7 +100,7 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
     written_by = depth_model_of(sequence) if rcfg.perception.depth_model is None else None
     if written_by is not None:
         log.info("%s: its depth files were predicted by %s (perceive.json): treated as predicted depth", name,
-                 written_by)  # fmt: skip
+                 written_by.get("path", "a depth model"))  # fmt: skip
     predicted = rcfg.perception.depth_model is not None or written_by is not None
     perception = make_perception(rcfg.perception, sequence, files_depth_predicted=written_by is not None)
 
@@ -117,10 +118,33 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
         log.info("%s: camera %.1f m above the ground, nearest ground at %.1f m", name,
                  scale.camera_height_m or float("nan"), scale.nearest_ground_depth_m)  # fmt: skip
     rcfg = resolve_robot_config(rcfg, scale)
+    rcfg = _window_on_image(name, rcfg, sequence, perception, written_by)
     choice = choose_odometry(rcfg.odometry.kind, depth_from_model=predicted)
     log.info("%s: odometry %s (%s)", name, choice.kind.value, choice.reason)
     odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence))
     return RobotFrontend(name, sequence, rcfg, perception, odometry, choice, depth_predicted=predicted)
+
+
+def _window_on_image(
+    name: str, rcfg: ShgmConfig, sequence: Sequence, perception: object, written_by: dict | None
+) -> ShgmConfig:
+    """``rcfg`` with the visual odometry's corner-depth window grown to the image when the depth model ran
+    on a smaller input (``visual.depth_window_on_image``); unchanged for measured depth or an unknown input."""
+    model = getattr(perception, "depth_model", None)
+    image_wh = (sequence.intrinsics.width, sequence.intrinsics.height)
+    if model is not None:
+        model_w = int(model.target_size(image_wh)[0])
+    elif written_by is not None and isinstance(written_by.get("input_wh"), list) and written_by["input_wh"]:
+        model_w = int(written_by["input_wh"][0])
+    else:
+        return rcfg
+    window = rcfg.odometry.visual_depth_window_px
+    on_image = depth_window_on_image(window, image_wh[0], model_w)
+    if on_image == window:
+        return rcfg
+    log.info("%s: visual odometry corner-depth window %d px on the %d px wide images (%d px on the depth "
+             "model's %d px input)", name, on_image, image_wh[0], window, model_w)  # fmt: skip
+    return rcfg.model_copy(update={"odometry": rcfg.odometry.model_copy(update={"visual_depth_window_px": on_image})})
 
 
 def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConfig:

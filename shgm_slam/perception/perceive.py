@@ -100,12 +100,16 @@ class PerceiveResult:
         }  # fmt: skip
 
 
-def depth_model_of(sequence: object) -> str | None:
+def depth_model_of(sequence: object) -> dict | None:
     """The depth model that wrote ``sequence``'s depth files (``perceive``'s manifest), or None.
 
     ``sequence`` is any reader with a ``root`` folder, or a view with a ``base`` one; a folder without
     ``perceive.json``, or one whose manifest names no depth model (labels only), gives None. A manifest
     that cannot be read gives None too: the depth is then treated as measured, as before.
+
+    Returns:
+        The manifest's model identity: ``path``, ``sha256``, ``card_sha256`` and (manifests written since
+        it was added) ``input_wh``, the model's input size for this sequence's images.
     """
     while getattr(sequence, "root", None) is None and getattr(sequence, "base", None) is not None:
         sequence = sequence.base  # type: ignore[attr-defined]
@@ -117,9 +121,7 @@ def depth_model_of(sequence: object) -> str | None:
     except (OSError, ValueError):
         return None
     model = manifest.get("depth_model") if isinstance(manifest, dict) else None
-    if not isinstance(model, dict):
-        return None
-    return str(model.get("path") or model.get("name") or "a depth model")
+    return model if isinstance(model, dict) else None
 
 
 def session_providers(provider: Provider) -> list[str] | None:
@@ -166,11 +168,14 @@ def _file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _model_identity(model: OnnxModel | None) -> dict | None:
+def _model_identity(model: OnnxModel | None, image_wh: tuple[int, int]) -> dict | None:
     if model is None:
         return None
     card = hashlib.sha256(card_to_yaml(model.card).encode()).hexdigest()
-    return {"path": str(model.model_path.absolute()), "sha256": _file_sha256(model.model_path), "card_sha256": card}
+    return {
+        "path": str(model.model_path.absolute()), "sha256": _file_sha256(model.model_path), "card_sha256": card,
+        "input_wh": list(model.target_size(image_wh)),
+    }  # fmt: skip
 
 
 def write_png_atomic(path: Path, image: np.ndarray) -> None:
@@ -362,9 +367,11 @@ def perceive(
     providers = {name: m.providers for name, m in (("depth", depth), ("segmentation", seg)) if m is not None}
     notes = check_providers(provider, providers, ort.get_available_providers())
     out = Path(out)
+    image_wh = (sequence.intrinsics.width, sequence.intrinsics.height)
     manifest = {
         "format": MANIFEST_FORMAT, "source": str(root.absolute()), "start": start, "end": end, "frames": n,
-        "depth_model": _model_identity(depth), "seg_model": _model_identity(seg), "complete": False,
+        "depth_model": _model_identity(depth, image_wh), "seg_model": _model_identity(seg, image_wh),
+        "complete": False,
     }  # fmt: skip
     outputs: list[tuple[str, type]] = [(DEPTH_DIR, np.uint16)] * (depth is not None) + [(LABEL_DIR, np.uint8)] * (
         seg is not None

@@ -17,7 +17,7 @@ from shgm_slam.odometry.sources import (
     resolve_kind,
     yaw_prior,
 )
-from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus, backproject_pixels
+from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus, backproject_pixels, depth_window_on_image
 from shgm_slam.types import Frame
 from tests.odometry.corridor import INTRINSICS, path, render
 
@@ -79,6 +79,15 @@ def test_depth_window_undoes_foreground_bleeding(corridor):
     window, _ = run_vo(corridor, bleed, depth_window_px=5)
     assert abs(trajectory_length(window) - gt_len) < abs(trajectory_length(own) - gt_len)
     assert trajectory_length(window) == pytest.approx(gt_len, rel=0.03)
+
+
+@pytest.mark.parametrize(
+    ("window", "image_w", "model_w", "expected"),
+    [(5, 320, 320, 5), (5, 640, 320, 9), (5, 1226, 320, 19), (5, 1226, 518, 11), (1, 1226, 320, 1), (5, 200, 320, 5)],
+)
+def test_depth_window_on_image_is_odd_and_never_shrinks(window, image_w, model_w, expected):
+    out = depth_window_on_image(window, image_w, model_w)
+    assert out == expected and out % 2 == 1 and out >= window
 
 
 def test_static_camera_invents_no_motion():

@@ -178,8 +178,8 @@ def test_depth_model_of_reads_the_perceive_manifest(tiny_scenario: Path, tmp_pat
 
     model = '{"format": "shgm-perceive/1", "depth_model": {"path": "/m/depth.onnx"}, "seg_model": null}'
     seq = open_sequence(_perceived_copy(tiny_scenario / "car1", tmp_path / "a", model))
-    assert depth_model_of(seq) == "/m/depth.onnx"
-    assert depth_model_of(SequenceView(seq, 2, 9)) == "/m/depth.onnx"  # a frame range of it
+    assert depth_model_of(seq) == {"path": "/m/depth.onnx"}
+    assert depth_model_of(SequenceView(seq, 2, 9)) == {"path": "/m/depth.onnx"}  # a frame range of it
     labels_only = '{"format": "shgm-perceive/1", "depth_model": null, "seg_model": {"path": "s.onnx"}}'
     assert depth_model_of(open_sequence(_perceived_copy(tiny_scenario / "car1", tmp_path / "b", labels_only))) is None
     assert depth_model_of(open_sequence(_perceived_copy(tiny_scenario / "car1", tmp_path / "c", "{not json"))) is None
@@ -207,6 +207,10 @@ def test_a_perceived_sequence_runs_as_predicted_depth(tiny_scenario: Path, tmp_p
     plain = make_frontend("car1", open_sequence(tiny_scenario / "car1"), cfg)
     assert not plain.depth_predicted and not plain.ground_scale_on
     assert plain.odometry_choice is not None and plain.odometry_choice.kind is OdometryKind.KISS_ICP
+    assert car.cfg.odometry.visual_depth_window_px == 5  # no model input size on record: as configured
+    half = '{"depth_model": {"path": "/m/depth.onnx", "input_wh": [160, 48]}}'  # a model at half the width
+    grown = make_frontend("car1", open_sequence(_perceived_copy(tiny_scenario / "car1", tmp_path / "half", half)), cfg)
+    assert grown.cfg.odometry.visual_depth_window_px == 9  # its edge blur is upsampled with its output
     no_height = cfg.model_copy(update={"perception": PerceptionConfig(camera_height_m=None)})
     off = make_frontend("car1", open_sequence(tmp_path / "car"), no_height)
     assert off.depth_predicted and not off.ground_scale_on

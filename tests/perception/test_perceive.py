@@ -18,7 +18,7 @@ from shgm_slam.data import ShgmSequence, open_sequence
 from shgm_slam.data.kitti import frame_file
 from shgm_slam.errors import ConfigError, DataError, ModelError
 from shgm_slam.perception import DepthModel, SegmentationModel
-from shgm_slam.perception.perceive import MANIFEST, ImageMode, perceive
+from shgm_slam.perception.perceive import MANIFEST, ImageMode, depth_model_of, perceive
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 DEPTH_ONNX, SEG_ONNX = MODELS / "demo_depth.onnx", MODELS / "demo_seg.onnx"
@@ -65,6 +65,10 @@ def test_outputs_round_trip_through_the_sequence_reader(sim_seq, models, tmp_pat
     assert (out / "image_2" / "000000.png").is_symlink()
     manifest = json.loads((out / MANIFEST).read_text())
     assert manifest["complete"] and (manifest["start"], manifest["end"]) == (2, 9)
+    # the depth model's input size for these images (the visual odometry's corner-depth window grows from it)
+    wh = (src.intrinsics.width, src.intrinsics.height)
+    assert manifest["depth_model"]["input_wh"] == list(depth_model.target_size(wh))
+    assert depth_model_of(seq) == manifest["depth_model"]  # a run treats this depth as predicted
 
 
 def test_resume_skips_done_frames_and_redoes_missing_or_partial_ones(sim_seq, models, tmp_path):
