@@ -71,7 +71,8 @@ def test_odometry_drift_follows_where_the_depth_comes_from() -> None:
     cfg = ShgmConfig()
     rgb = cfg.model_copy(deep=True)
     rgb.perception.depth_model = Path("d.onnx")
-    fronts = {"a": SimpleNamespace(cfg=cfg), "b": SimpleNamespace(cfg=rgb)}  # one robot on a depth model
+    # one robot on a depth model (or on files a depth model wrote: the front end says which)
+    fronts = {"a": SimpleNamespace(cfg=cfg, depth_predicted=False), "b": SimpleNamespace(cfg=rgb, depth_predicted=True)}
     assert fleet_backend(cfg, fronts).backend.odometry_drift_trans_per_m == PREDICTED_DEPTH_DRIFT[1]
     assert fleet_backend(cfg, {"a": fronts["a"]}).backend.odometry_drift_trans_per_m == MEASURED_DEPTH_DRIFT[1]
     # written resolved into config.yaml and read back unchanged

@@ -77,10 +77,10 @@ def road_plane(depth_m: np.ndarray, label_ids: np.ndarray, intrinsics: Intrinsic
     triples = points[rng.integers(0, len(points), size=(RANSAC_HYPOTHESES, 3))]  # (K, 3, 3)
     normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
     norms = np.linalg.norm(normals, axis=1)
-    level = norms > 1e-9
-    normals = normals[level] / norms[level, None]
+    spread = norms > 1e-9  # a triple with a repeated or collinear point spans no plane
+    normals, anchors = normals[spread] / norms[spread, None], triples[spread, 0]
     level = np.abs(normals[:, 1]) >= np.cos(np.radians(MAX_TILT_DEG))
-    normals, anchors = normals[level], triples[level, 0]
+    normals, anchors = normals[level], anchors[level]
     if len(normals) == 0:
         return None
     offsets = -np.sum(normals * anchors, axis=1)  # plane n.x + d = 0; |d| = the camera's height above it

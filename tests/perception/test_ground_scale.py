@@ -74,6 +74,15 @@ def test_outliers_labelled_road_do_not_move_the_plane() -> None:
     assert plane is not None and plane.height == pytest.approx(1.65, rel=0.02)
 
 
+def test_few_road_points_with_repeated_samples_still_fit() -> None:
+    """A small road patch: some of the RANSAC triples repeat a point (no plane); the others still fit it."""
+    depth, labels = flat_road(1.65)
+    patch = np.full_like(labels, Label.SKY)
+    patch[80:86, 100:120] = Label.ROAD  # 120 pixels: repeated draws among the 64 triples are likely
+    plane = road_plane(depth, patch, INTR)
+    assert plane is not None and plane.height == pytest.approx(1.65, rel=1e-3)
+
+
 def test_no_road_or_a_steep_view_gives_no_plane() -> None:
     depth, labels = flat_road(1.65)
     assert road_plane(depth, np.full_like(labels, Label.BUILDING), INTR) is None
