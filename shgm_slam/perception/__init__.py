@@ -11,7 +11,6 @@ frame and gets a ``PerceptionOutput``::
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -25,8 +24,6 @@ from shgm_slam.perception.ground_scale import GroundScale
 from shgm_slam.perception.onnx_model import PerceptionTimings, measure_overhead
 from shgm_slam.perception.segmentation import SegmentationModel
 from shgm_slam.types import Frame, Sequence
-
-log = logging.getLogger(__name__)
 
 __all__ = [
     "DepthCard",

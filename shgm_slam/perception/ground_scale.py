@@ -17,11 +17,13 @@ leaves the depth as predicted, which the caller reports.
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
+from shgm_slam.geometry.camera import backproject
 from shgm_slam.labels import Label
 from shgm_slam.types import Intrinsics
 
@@ -36,6 +38,10 @@ MAX_FIT_POINTS = 1000
 RANSAC_HYPOTHESES = 64
 INLIER_FRACTION = 0.05  # a point is on the plane within this fraction of the camera's height above it
 WINDOW_FRAMES = 30
+WARN_AFTER_REJECTED = 20
+"""A road plane refused this many times with none accepted is logged once (a UAV, a wrong mounting height)."""
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -56,6 +62,10 @@ class RoadPlane:
 def road_plane(depth_m: np.ndarray, label_ids: np.ndarray, intrinsics: Intrinsics) -> RoadPlane | None:
     """Plane fitted to the road pixels of one depth image (RANSAC on 3 points, then least squares).
 
+    Unlike ``scene_scale.fit_ground_plane`` (any ground: road, sidewalk, terrain or the lowest image rows,
+    any tilt, at any range; for the scene's scale, a UAV's included), only the road near a level camera
+    counts: the kerb's 15 cm and a far road's depth error would bias the height this scale is read from.
+
     Args:
         depth_m: (H, W) z-depth, metres (0 or non-finite: unknown).
         label_ids: (H, W) Cityscapes train ids; pixels labelled road are fitted.
@@ -65,14 +75,11 @@ def road_plane(depth_m: np.ndarray, label_ids: np.ndarray, intrinsics: Intrinsic
         The plane, or None with fewer than ``MIN_ROAD_POINTS`` road points in ``ROAD_RANGE_M``, or when
         no plane within ``MAX_TILT_DEG`` of level holds enough of them. Deterministic.
     """
-    depth = np.asarray(depth_m, dtype=np.float64)
-    v, u = np.nonzero((np.asarray(label_ids) == Label.ROAD) & (depth > ROAD_RANGE_M[0]) & (depth < ROAD_RANGE_M[1]))
-    if len(v) < MIN_ROAD_POINTS:
+    road_depth = np.where(np.asarray(label_ids) == Label.ROAD, np.asarray(depth_m, dtype=np.float64), 0.0)
+    points, _ = backproject(road_depth, intrinsics, min_depth_m=ROAD_RANGE_M[0], max_depth_m=ROAD_RANGE_M[1])
+    if len(points) < MIN_ROAD_POINTS:
         return None
-    step = max(1, len(v) // MAX_FIT_POINTS)
-    v, u = v[::step], u[::step]
-    z = depth[v, u]
-    points = np.stack([(u - intrinsics.cx) / intrinsics.fx * z, (v - intrinsics.cy) / intrinsics.fy * z, z], axis=1)
+    points = points[:: max(1, len(points) // MAX_FIT_POINTS)]
     rng = np.random.default_rng(0)
     triples = points[rng.integers(0, len(points), size=(RANSAC_HYPOTHESES, 3))]  # (K, 3, 3)
     normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
@@ -130,4 +137,10 @@ class GroundScale:
             else:
                 self.rejected += 1
                 self.rejected_height = plane.height
+                if self.rejected == WARN_AFTER_REJECTED and not self.planes:
+                    log.warning(
+                        "the road lies %.1f m below the camera by the predicted depth, not perception.camera_height_m"
+                        " = %.2f m: depth left as predicted (for a car, set camera_height_m to its mounting height)",
+                        plane.height, self.camera_height_m,
+                    )  # fmt: skip
         return float(np.median(self._factors)) if self._factors else None
