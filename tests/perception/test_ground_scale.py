@@ -223,3 +223,15 @@ def test_a_perceived_sequence_runs_as_predicted_depth(tiny_scenario: Path, tmp_p
     no_height = cfg.model_copy(update={"perception": PerceptionConfig(camera_height_m=None)})
     off = make_frontend("car1", open_sequence(tmp_path / "car"), no_height)
     assert off.depth_predicted and not off.ground_scale_on
+
+
+def test_a_road_never_at_the_configured_height_is_logged_once(caplog: pytest.LogCaptureFixture) -> None:
+    from shgm_slam.perception.ground_scale import WARN_AFTER_REJECTED
+
+    depth, labels = flat_road(3.3)  # twice the configured height: every frame refused
+    scale = GroundScale(1.65)
+    with caplog.at_level("WARNING", logger="shgm_slam.perception.ground_scale"):
+        for _ in range(WARN_AFTER_REJECTED + 5):
+            assert scale.update(depth, labels, INTR) is None
+    warnings = [r for r in caplog.records if "camera_height_m" in r.getMessage()]
+    assert len(warnings) == 1 and "3.3 m below the camera" in warnings[0].getMessage()
