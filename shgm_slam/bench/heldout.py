@@ -474,6 +474,9 @@ def summarize(rows: list[dict], runs: list[dict] | None = None) -> dict:
             "anchorings_gross": sum(m.get("anchorings_gross", 0) for m in judged),
             "anchorings_gross_confirmed": sum(m.get("anchorings_gross_confirmed", 0) for m in judged),
             "anchorings_unrecorded": sum(m.get("anchorings") is None for m in judged),
+            "rejected": sum(m.get("rejected") or 0 for m in judged),
+            "rejected_right": sum(m.get("rejected_right", 0) for m in judged),
+            "rejected_unrecorded": sum(m.get("rejected") is None for m in judged),
         }
 
     out: dict = {}
@@ -512,14 +515,17 @@ def heldout_markdown(results: dict) -> str:
         "a false closure': times a robot entered the shared frame through a closure more than 20 m off at its "
         "place, of all times a robot entered it, even if later matches withdrew it (a false merge the final "
         "trajectories no longer show); in brackets those the server ever confirmed (two independent matches "
-        "agreeing), the rest stayed provisional and were reported so; '?' where the run predates that record.",
+        "agreeing), the rest stayed provisional and were reported so; '?' where the run predates that record. "
+        "'Rejected matches right': matches the verification rejected whose best hypothesis, read at B's newest "
+        "keyframe, was within the tolerance anyway (right alignments missed), of all rejected matches with a "
+        "hypothesis.",
         "",
         "| input | scenario | robot-worlds | overlapping placed right | fused ATE within | (unaligned) | wrong |"
         " of which > 20 m | not placed |"
         " disjoint kept apart | reference within | odometry failures detected (robots) |"
         " undetected breaks (robots) | median ATE right m | accepted matches off (> 20 m) |"
-        " placed through a false closure (confirmed) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        " placed through a false closure (confirmed) | rejected matches right |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for mode, per in results["summary"].items():
         for scenario, s in per.items():
@@ -540,6 +546,8 @@ def heldout_markdown(results: dict) -> str:
                 f"{s.get('matches_off', 0)}/{s.get('matches_accepted', 0)} ({s.get('matches_gross', 0)}) | "
                 + ("?" if s.get("anchorings_unrecorded") else f"{s.get('anchorings_gross', 0)}/{s.get('anchorings')} "
                    f"({s.get('anchorings_gross_confirmed', 0)})")
+                + " | "
+                + ("?" if s.get("rejected_unrecorded") else f"{s.get('rejected_right', 0)}/{s.get('rejected', 0)}")
                 + " |"
             )
     for mode, per in results["summary"].items():

@@ -13,6 +13,13 @@ The translation between the two is the match's error at its place: odometry drif
 between the anchors and the matched nodes adds little, so a right match stays within a few metres and an
 alias is off by its street's repetition.
 
+A **rejected** match (the verification found its best hypothesis not beyond chance, or too few, too
+clustered or too loose partners) is judged the same way where the run recorded that hypothesis
+(``evidence`` in ``matches.json``): at B's newest keyframe when the match was made and the keyframe of A
+nearest to it under the hypothesis. One within the tolerance is a right alignment the verification
+missed: the share of those is the verification's sensitivity, next to the accepted aliases (its false
+alarms).
+
 The final trajectories hide a false match that placed a robot for a while and was withdrawn when later
 matches outvoted it. ``server.json`` lists every **anchoring** (each time an agent entered the shared
 frame, with the closure that placed it); the closure's keyframe-to-keyframe transform is judged the same
@@ -47,6 +54,9 @@ class MatchTruth:
             (the gross bound): a robot placed wrong, at least for a while.
         anchorings_gross_confirmed: of the gross ones, those whose place the server ever confirmed (two
             independent matches agreed on it); the others stayed provisional, and said so, until withdrawn.
+        rejected: matches the matcher rejected whose best hypothesis was recorded and judged (None: the
+            run's ``matches.json`` predates the record).
+        rejected_right: of those, hypotheses within the tolerance at their place (right alignments missed).
     """
 
     accepted: int
@@ -57,6 +67,8 @@ class MatchTruth:
     anchorings_off: int = 0
     anchorings_gross: int = 0
     anchorings_gross_confirmed: int = 0
+    rejected: int | None = None
+    rejected_right: int = 0
 
 
 def match_errors_m(
@@ -116,18 +128,35 @@ def _judge(
         return se3.inverse(gt_poses[agent_robot(agent_a)[0]][fa]) @ gt_poses[agent_robot(agent_b)[0]][fb]
 
     measured, truth = [np.zeros((0, 4, 4))], [np.zeros((0, 4, 4))]  # an empty run stacks too
-    for m in json.loads((run_dir / "matches.json").read_text()):
+    missed_measured, missed_truth = [np.zeros((0, 4, 4))], [np.zeros((0, 4, 4))]
+    rows = json.loads((run_dir / "matches.json").read_text())
+    positions = _keyframe_positions(keyframes)
+    for m in rows:
         pair = (m["robot_a"], m["keyframe_a"], m["robot_b"], m["keyframe_b"])
         if m.get("accepted") and known(*pair):
             T_odom_kfa, T_odom_kfb = keyframes[pair[:2]][1], keyframes[pair[2:]][1]
             measured.append((se3.inverse(T_odom_kfa) @ np.asarray(m["T_a_b"], dtype=np.float64) @ T_odom_kfb)[None])
             truth.append(true_kfa_kfb(*pair)[None])
+        evidence = m.get("evidence")
+        if m.get("success") or evidence is None or (m["robot_b"], evidence["keyframe_b"]) not in keyframes:
+            continue
+        T_hyp = np.asarray(evidence["T_a_b_hypothesis"], dtype=np.float64)
+        T_odom_kfb = keyframes[(m["robot_b"], evidence["keyframe_b"])][1]
+        kf_a = _nearest_keyframe(positions, m["robot_a"], (T_hyp @ T_odom_kfb)[:3, 3])
+        if kf_a is None:
+            continue
+        missed_measured.append((se3.inverse(keyframes[(m["robot_a"], kf_a)][1]) @ T_hyp @ T_odom_kfb)[None])
+        missed_truth.append(true_kfa_kfb(m["robot_a"], kf_a, m["robot_b"], evidence["keyframe_b"])[None])
     err = _translation_gap_m(np.concatenate(measured), np.concatenate(truth))
     worst = float(err.max()) if err.size else float("nan")
+    missed_err = _translation_gap_m(np.concatenate(missed_measured), np.concatenate(missed_truth))
+    recorded = any("evidence" in m for m in rows) or not rows
+    rejected = {"rejected": len(missed_err) if recorded else None,
+                "rejected_right": int((missed_err <= tolerance_m).sum())}  # fmt: skip
     server = run_dir / "server.json"
     records = json.loads(server.read_text()).get("anchorings") if server.is_file() else None
     if records is None:
-        return MatchTruth(len(err), int((err > tolerance_m).sum()), int((err > gross_m).sum()), worst)
+        return MatchTruth(len(err), int((err > tolerance_m).sum()), int((err > gross_m).sum()), worst, **rejected)
     judged = [a for a in records
               if a["robot_a"] != a["robot_b"] and known(a["robot_a"], a["kf_a"], a["robot_b"], a["kf_b"])]  # fmt: skip
     anchor_err = _translation_gap_m(
@@ -139,8 +168,31 @@ def _judge(
         len(err), int((err > tolerance_m).sum()), int((err > gross_m).sum()), worst,
         anchorings=len(anchor_err), anchorings_off=int((anchor_err > tolerance_m).sum()),
         anchorings_gross=int((anchor_err > gross_m).sum()),
-        anchorings_gross_confirmed=int(((anchor_err > gross_m) & confirmed).sum()),
+        anchorings_gross_confirmed=int(((anchor_err > gross_m) & confirmed).sum()), **rejected,
     )  # fmt: skip
+
+
+def _keyframe_positions(
+    keyframes: dict[tuple[str, int], tuple[int, np.ndarray]],
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Agent -> ((K,) keyframe indices, (K, 3) camera positions in its odometry frame)."""
+    out: dict[str, tuple[list[int], list[np.ndarray]]] = {}
+    for (agent, k), (_, T) in keyframes.items():
+        out.setdefault(agent, ([], []))
+        out[agent][0].append(k)
+        out[agent][1].append(T[:3, 3])
+    return {a: (np.asarray(ks, dtype=np.int64), np.stack(ps)) for a, (ks, ps) in out.items()}
+
+
+def _nearest_keyframe(
+    positions: dict[str, tuple[np.ndarray, np.ndarray]], agent: str, point_odom: np.ndarray
+) -> int | None:
+    """Index of ``agent``'s keyframe whose camera is nearest to (3,) ``point_odom`` (its odometry frame), or None
+    when the journal holds none of its keyframes (``positions``: ``_keyframe_positions``)."""
+    if agent not in positions:
+        return None
+    kfs, xyz = positions[agent]
+    return int(kfs[int(np.argmin(np.linalg.norm(xyz - point_odom, axis=1)))])
 
 
 def _keyframes(journal: Path) -> dict[tuple[str, int], tuple[int, np.ndarray]]:

@@ -17,11 +17,11 @@ from shgm_slam.errors import BackendError, ConfigError
 from shgm_slam.geometry import se3
 from shgm_slam.geometry.ground import rotation_to_z
 from shgm_slam.graph.semantic_graph import GraphState, SemanticGraph
-from shgm_slam.matching import match_graphs
+from shgm_slam.matching import MatchResult, match_graphs
 from shgm_slam.messages import KeyframeMessage
 from shgm_slam.server.closures import SurfaceOffset, local_closures
 from shgm_slam.server.places import free_path_m, near_keyframes, near_keyframes_sparse, tolerance_m
-from shgm_slam.server.records import MatchRecord
+from shgm_slam.server.records import MatchEvidence, MatchRecord
 from shgm_slam.types import GraphArrays
 
 log = logging.getLogger(__name__)
@@ -324,8 +324,11 @@ class MapServer:
                 graph_b.transformed(se3.make_pose(R_b, np.zeros(3))),
                 self.cfg.descriptor, cfg4, descriptors_a=desc_a, descriptors_b=desc_b,
             )  # fmt: skip
+            to_a, from_b = se3.make_pose(R_a.T, np.zeros(3)), se3.make_pose(R_b, np.zeros(3))
             if result.T_a_b is not None:
-                result.T_a_b = se3.make_pose(R_a.T, np.zeros(3)) @ result.T_a_b @ se3.make_pose(R_b, np.zeros(3))
+                result.T_a_b = to_a @ result.T_a_b @ from_b
+            if result.T_a_b_hypothesis is not None:
+                result.T_a_b_hypothesis = to_a @ result.T_a_b_hypothesis @ from_b
         else:
             result = match_graphs(graph_a, graph_b, self.cfg.descriptor, self.cfg.matching, descriptors_a=desc_a,
                                   descriptors_b=desc_b)  # fmt: skip
@@ -333,6 +336,7 @@ class MapServer:
         rec = MatchRecord(
             self._step, robot_a, robot_b, query, result.success, False, result.reason, None, None,
             result.T_a_b, result.inliers, result.candidates, len(graph_a), len(graph_b), dict(result.timings_ms),
+            evidence=_evidence(result, len(self._T_odom_kf[robot_b]) - 1),
         )  # fmt: skip
         if not result.success:
             return rec
@@ -592,6 +596,17 @@ class MapServer:
     def mean_match_ms(self) -> float:
         """Mean wall time of one graph match so far (0 before the first)."""
         return float(np.mean(self.timings_ms["match"])) if self.timings_ms["match"] else 0.0
+
+
+def _evidence(result: MatchResult, keyframe_b: int) -> MatchEvidence | None:
+    """The match's best hypothesis and its verification numbers (None when it formed no hypothesis)."""
+    if result.T_a_b_hypothesis is None:
+        return None
+    return MatchEvidence(
+        np.asarray(result.T_a_b_hypothesis, dtype=np.float64), keyframe_b, float(result.llr),
+        float(result.llr_threshold), int(result.support), float(result.expected_chance), int(result.overlap_a),
+        int(result.overlap_b),
+    )  # fmt: skip
 
 
 def _objects(support: Support) -> frozenset[tuple[str, int]]:

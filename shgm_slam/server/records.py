@@ -10,6 +10,49 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class MatchEvidence:
+    """The best hypothesis of a match attempt and the verification's numbers, kept also when the match was
+    rejected: what the held-out benchmark judges to tell a rejected right alignment (a miss) from a rejected
+    wrong one, and what a user reads to see how far from the decision a match was.
+
+    Attributes:
+        T_a_b_hypothesis: (4, 4) the best hypothesis, B's odometry frame into A's (as ``T_a_b``).
+        keyframe_b: B's newest keyframe when the match was made (the place a rejected hypothesis is judged at).
+        llr: its log likelihood ratio against chance, nats (``verification``).
+        llr_threshold: the ratio it had to beat, nats.
+        support: its same-label partners.
+        expected_chance: B's overlapping nodes expected to find a partner by chance.
+        overlap_a, overlap_b: nodes of A (B) inside the area the other robot observed.
+    """
+
+    T_a_b_hypothesis: np.ndarray
+    keyframe_b: int
+    llr: float
+    llr_threshold: float
+    support: int
+    expected_chance: float
+    overlap_a: int
+    overlap_b: int
+
+    def to_json_dict(self) -> dict:
+        return {
+            "T_a_b_hypothesis": np.round(self.T_a_b_hypothesis, 9).tolist(),
+            "keyframe_b": self.keyframe_b,
+            "llr": _finite_or_none(self.llr),
+            "llr_threshold": _finite_or_none(self.llr_threshold),
+            "support": self.support,
+            "expected_chance": round(float(self.expected_chance), 3),
+            "overlap_a": self.overlap_a,
+            "overlap_b": self.overlap_b,
+        }
+
+
+def _finite_or_none(x: float) -> float | None:
+    """``x`` rounded to 3 decimals, or None where it is not finite (JSON has no inf)."""
+    return round(float(x), 3) if np.isfinite(x) else None
+
+
 @dataclass
 class MatchRecord:
     """One inter-robot match attempt and what the back end decided (a row of ``matches.json``)."""
@@ -34,6 +77,7 @@ class MatchRecord:
     inlier_positions_b: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     closures: list[dict] = field(default_factory=list)
     duplicate: bool = False  # every closure it gave was already in the pose graph (neither new nor rejected)
+    evidence: MatchEvidence | None = None  # the best hypothesis and its verification (None: none was formed)
 
     def to_json_dict(self) -> dict:
         return {
@@ -53,4 +97,5 @@ class MatchRecord:
             "nodes_b": self.nodes_b,
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
             "closures": self.closures,
+            "evidence": None if self.evidence is None else self.evidence.to_json_dict(),
         }

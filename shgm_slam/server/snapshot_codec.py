@@ -22,7 +22,7 @@ from shgm_slam.errors import DataError, ShgmError
 from shgm_slam.graph.semantic_graph import GraphState
 from shgm_slam.messages import DoneMessage, RobotState
 from shgm_slam.server.map_server import MapServerState
-from shgm_slam.server.records import MatchRecord
+from shgm_slam.server.records import MatchEvidence, MatchRecord
 from shgm_slam.server.sessions import RobotSession
 from shgm_slam.wire import decode, encode
 
@@ -80,7 +80,13 @@ def _match(m: MatchRecord) -> dict:
         "nb": m.nodes_b, "ms": {k: float(v) for k, v in m.timings_ms.items()},
         "pa": _arr(m.inlier_positions_a, "f8"), "pb": _arr(m.inlier_positions_b, "f8"),
         "cl": [{k: c[k] for k in _CLOSURE_KEYS} for c in m.closures], "dup": m.duplicate,
+        "ev": None if m.evidence is None else _evidence(m.evidence),
     }  # fmt: skip
+
+
+def _evidence(e: MatchEvidence) -> dict:
+    return {"T": _arr(e.T_a_b_hypothesis, "f8"), "kb": e.keyframe_b, "llr": e.llr, "thr": e.llr_threshold,
+            "sup": e.support, "ch": e.expected_chance, "oa": e.overlap_a, "ob": e.overlap_b}  # fmt: skip
 
 
 def _closure(c: ClosureRecord) -> dict:
@@ -186,6 +192,17 @@ def _unmatch(d: dict) -> MatchRecord:
         _unarr(d["pa"], "f8", "match positions a").reshape(-1, 3),
         _unarr(d["pb"], "f8", "match positions b").reshape(-1, 3),
         cl, _typed(d["dup"], bool, "match duplicate"),
+        None if d.get("ev") is None else _unevidence(_names(d["ev"], "match evidence")),  # older snapshots: none
+    )  # fmt: skip
+
+
+def _unevidence(d: dict) -> MatchEvidence:
+    num = (int, float)
+    return MatchEvidence(
+        _unarr(d["T"], "f8", "evidence T_a_b").reshape(4, 4), _typed(d["kb"], int, "evidence keyframe_b"),
+        float(_typed(d["llr"], num, "evidence llr")), float(_typed(d["thr"], num, "evidence llr_threshold")),
+        _typed(d["sup"], int, "evidence support"), float(_typed(d["ch"], num, "evidence expected_chance")),
+        _typed(d["oa"], int, "evidence overlap_a"), _typed(d["ob"], int, "evidence overlap_b"),
     )  # fmt: skip
 
 

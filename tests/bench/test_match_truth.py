@@ -132,3 +132,33 @@ def test_malformed_results_are_a_clear_error(tmp_path: Path):
     (run / "server.json").write_text("{not json")
     with pytest.raises(DataError, match=r"matches\.json or server\.json"):
         judge_matches(run, gt, tolerance_m=2.0, gross_m=20.0)
+
+
+def _rejected(T_hyp: np.ndarray, kf_b: int = 7, success: bool = False) -> dict:
+    """A match the matcher rejected (``success`` False) with its recorded best hypothesis."""
+    return {"robot_a": "a", "robot_b": "b#1", "keyframe_a": None, "keyframe_b": None, "accepted": False,
+            "success": success, "T_a_b": None, "evidence": {"T_a_b_hypothesis": T_hyp.tolist(), "keyframe_b": kf_b,
+            "llr": 2.0, "llr_threshold": 9.0, "support": 12, "expected_chance": 8.0, "overlap_a": 30,
+            "overlap_b": 28}}  # fmt: skip
+
+
+def test_rejected_hypotheses_are_judged_at_bs_newest_keyframe(tmp_path: Path):
+    gt = _world()
+    T_a_b = se3.inverse(gt["a"][0]) @ gt["b"][0]
+    near = se3.make_pose(np.eye(3), np.array([1.5, 0.0, 0.0])) @ T_a_b  # right, within 2 m: a miss
+    alias = se3.make_pose(np.eye(3), np.array([0.0, 0.0, 30.0])) @ T_a_b
+    rows = [_rejected(T_a_b), _rejected(near, kf_b=2), _rejected(alias), _rejected(T_a_b, kf_b=99),
+            _rejected(alias, success=True), _match(T_a_b)]  # fmt: skip
+    truth = judge_matches(_run_dir(tmp_path, gt, rows), gt, tolerance_m=2.0, gross_m=20.0)
+    # kf_b 99 is not in the journal; a successful match (closures refused by the back end) is not a miss
+    assert (truth.rejected, truth.rejected_right) == (3, 2)
+    assert (truth.accepted, truth.off) == (1, 0)
+
+
+def test_rejected_matches_of_a_run_without_the_record_are_unknown(tmp_path: Path):
+    gt = _world()
+    rows = [{**_rejected(np.eye(4)), "evidence": None}]
+    assert judge_matches(_run_dir(tmp_path, gt, rows), gt, tolerance_m=2.0, gross_m=20.0).rejected == 0
+    legacy = [{k: v for k, v in rows[0].items() if k != "evidence"}]
+    (tmp_path / "run" / "matches.json").write_text(json.dumps(legacy))
+    assert judge_matches(tmp_path / "run", gt, tolerance_m=2.0, gross_m=20.0).rejected is None

@@ -201,3 +201,33 @@ def test_sampled_extents_and_thin_objects_on_a_larger_image():
     np.testing.assert_allclose(objs.extents_m[0], [0.9 * 300 * px, 0.9 * 200 * px, 0.0], atol=grid_step)
     np.testing.assert_allclose(objs.extents_m[1], [0.0, 0.9 * 200 * px, 0.0], atol=px)  # every pixel: exact
     np.testing.assert_allclose(objs.centroids_cam[1], [(pole_u - intr.cx) * px, (149.5 - intr.cy) * px, z])
+
+
+def test_depth_percentiles_put_a_blended_thin_object_at_its_near_part_and_leave_others_alone():
+    """A pole 2 px wide at 10 m whose predicted depth blurs towards the facade behind it over 3 more columns
+    (as a network's output does: no 1 m depth step, one object), beside a car at 8 m: with the 25th percentile
+    for poles the pole's node is at 10 m on the ray through its centroid (the mean puts it at 10.8 m); the
+    car keeps its mean."""
+    depth, labels = blank()
+    ramp = np.array([10.0, 10.0, 10.9, 11.4, 11.8], np.float32)
+    depth[10:50, 20:25], labels[10:50, 20:25] = ramp, Label.POLE
+    depth[30:45, 50:70], labels[30:45, 50:70] = 8.0, Label.CAR
+    mean = extract(depth, labels)
+    near = extract(depth, labels, depth_percentiles={Label.POLE: 25.0})
+    pole = int(np.flatnonzero(mean.label_ids == Label.POLE)[0])
+    car = int(np.flatnonzero(mean.label_ids == Label.CAR)[0])
+    assert len(mean) == 2
+    assert mean.centroids_cam[pole, 2] == pytest.approx(ramp.mean(), abs=1e-4)
+    assert near.centroids_cam[pole, 2] == pytest.approx(10.0)  # nearest rank of 200 px: a 10 m pixel
+    ray = mean.centroids_cam[pole] / np.linalg.norm(mean.centroids_cam[pole])  # same ray, nearer
+    np.testing.assert_allclose(near.centroids_cam[pole] / np.linalg.norm(near.centroids_cam[pole]), ray)
+    np.testing.assert_array_equal(near.centroids_cam[car], mean.centroids_cam[car])
+    np.testing.assert_array_equal(near.label_ids, mean.label_ids)
+    np.testing.assert_array_equal(near.pixel_counts, mean.pixel_counts)
+    T = make_pose(rot_y(0.3), np.array([1.0, 0.0, 2.0]))
+    moved = extract(depth, labels, T=T, depth_percentiles={Label.POLE: 25.0})
+    np.testing.assert_allclose(moved.centroids_world, transform_points(T, near.centroids_cam))
+    same = extract(depth, labels, depth_percentiles={Label.BUILDING: 10.0})  # no such object: unchanged
+    np.testing.assert_array_equal(same.centroids_cam, mean.centroids_cam)
+    far = extract(depth, labels, depth_percentiles={Label.POLE: 100.0, Label.CAR: 0.0})  # the ends: max, min
+    assert far.centroids_cam[pole, 2] == pytest.approx(11.8) and far.centroids_cam[car, 2] == pytest.approx(8.0)

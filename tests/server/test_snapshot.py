@@ -178,3 +178,22 @@ def test_file_header_is_checked(half_run, tmp_path: Path) -> None:
         p.write_bytes(blob)
         with pytest.raises(SnapshotError):
             store.read(p)
+
+
+def test_match_evidence_survives_a_snapshot_and_older_snapshots_decode_without_it(uninterrupted) -> None:
+    from shgm_slam.server.snapshot_codec import _match, _unmatch
+
+    snap = uninterrupted.snapshot()
+    records = snap.map.matches
+    assert any(m.evidence is not None and not m.success for m in records)  # rejected hypotheses are kept
+    for m in (m for m in records if m.success):  # an accepted hypothesis is the match's transform
+        np.testing.assert_allclose(m.evidence.T_a_b_hypothesis, m.T_a_b)
+        assert m.evidence.llr >= m.evidence.llr_threshold
+    back = decode_snapshot(encode_snapshot(snap)).map.matches
+    for a, b in zip(records, back, strict=True):
+        assert (a.evidence is None) == (b.evidence is None)
+        if a.evidence is not None:
+            np.testing.assert_array_equal(a.evidence.T_a_b_hypothesis, b.evidence.T_a_b_hypothesis)
+            assert replace(a.evidence, T_a_b_hypothesis=None) == replace(b.evidence, T_a_b_hypothesis=None)
+    older = {k: v for k, v in _match(records[0]).items() if k != "ev"}  # written before the record existed
+    assert _unmatch(older).evidence is None
