@@ -192,12 +192,14 @@ def graph(
             cfg.graph = GraphConfig.model_validate({**cfg.graph.model_dump(), **overrides})
         except ValidationError as exc:
             raise ConfigError(f"--connectivity/--merge-radius: {exc.errors()[0]['msg']}") from None
+    from shgm_slam.perception.perceive import depth_model_of
+
     seq = open_sequence(sequence)
     with Progress("{task.description}", BarColumn(), MofNCompleteColumn(), console=err_console,
                   transient=True) as bar:  # fmt: skip
         task = bar.add_task("keyframes", total=None)
         sg = build_graph_from_sequence(
-            seq, cfg, keyframe_every_m=keyframe_every,
+            seq, cfg, keyframe_every_m=keyframe_every, depth_predicted=depth_model_of(seq) is not None,
             progress=lambda done, total: bar.update(task, completed=done, total=total),
         )  # fmt: skip
     path = write_graph(out, sg.arrays())

@@ -50,6 +50,7 @@ def build_graph_from_sequence(
     cfg: ShgmConfig,
     *,
     keyframe_every_m: float | None = None,
+    depth_predicted: bool = False,
     progress: ProgressFn | None = None,
 ) -> SemanticGraph:
     """Build the semantic graph of a sequence from its ground-truth poses, depth and labels.
@@ -59,6 +60,8 @@ def build_graph_from_sequence(
         cfg: ``extraction``, ``graph`` and ``keyframes`` sections are used; extraction fields left None
             are derived from the sequence's first frames (``scene_scale``).
         keyframe_every_m: overrides ``cfg.keyframes.distance_m``.
+        depth_predicted: the depth files were written by a depth model (``perceive.depth_model_of``): thin
+            objects are placed as ``cfg.extraction.predicted_depth_percentiles`` says.
         progress: optional ``progress(done, total)`` callback per keyframe.
 
     Returns:
@@ -90,7 +93,7 @@ def build_graph_from_sequence(
     extraction = resolve_robot_config(cfg, sample_scene_scale(sequence, lambda f: (f.depth_m, f.label_ids))).extraction
     for done, i in enumerate(keyframes.tolist(), start=1):
         frame = sequence[i]
-        objects = extract_objects_from_config(frame, extraction, T_world_cam=gt[i])
+        objects = extract_objects_from_config(frame, extraction, T_world_cam=gt[i], depth_predicted=depth_predicted)
         graph.add_keyframe(i, gt[i], objects)
         if progress is not None:
             progress(done, keyframes.size)

@@ -264,13 +264,14 @@ def extract_objects(
 
 
 def extract_objects_from_config(
-    frame: Frame, cfg: ExtractionConfig, T_world_cam: np.ndarray | None = None
+    frame: Frame, cfg: ExtractionConfig, T_world_cam: np.ndarray | None = None, *, depth_predicted: bool = False
 ) -> ObjectObservations:
     """``extract_objects`` on a ``Frame`` with an ``ExtractionConfig``.
 
     ``T_world_cam`` overrides the frame's (ground-truth) pose, e.g. with an odometry estimate; when
     both are None the centroids stay in the camera frame. Data-derived fields still None (``scene_scale``)
-    take the fleet values.
+    take the fleet values. ``depth_predicted``: the frame's depth comes from a depth model, so thin objects
+    take ``cfg.predicted_depth_percentiles`` (measured depth keeps the mean).
 
     Raises:
         DataError: the frame carries no depth or no labels.
@@ -290,4 +291,5 @@ def extract_objects_from_config(
         T_world_cam if T_world_cam is not None else frame.T_world_cam,
         labels=cfg.labels, max_depth_m=cfg.max_depth_m, min_depth_m=cfg.min_depth_m,
         depth_step_m=cfg.depth_step_m, min_blob_fraction=cfg.min_blob_fraction,
+        depth_percentiles=cfg.predicted_depth_percentiles if depth_predicted else None,
     )  # fmt: skip

@@ -113,3 +113,37 @@ def test_graph_command_reports_bad_input_in_one_line(tmp_path):
     assert "does not exist" in " ".join(result.output.split())
     result = CliRunner().invoke(app, ["graph", str(tmp_path), "--out", "g.json", "--merge-radius", "-1"])
     assert result.exit_code == 2 and "merge-radius" in result.output
+
+
+def test_depth_a_model_wrote_places_thin_objects_as_configured(plate_sequence, tmp_path, monkeypatch):
+    """A perceived copy (``perceive.json`` names a depth model) builds with the predicted-depth percentiles,
+    through ``build_graph_from_sequence`` and the ``graph`` command; rendered depth keeps the mean."""
+    import shutil
+
+    import shgm_slam.graph.extraction as extraction_module
+
+    seen = []
+    original = extraction_module.extract_objects
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("depth_percentiles"))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(extraction_module, "extract_objects", spy)
+    cfg = plate_config()
+    build_graph_from_sequence(open_sequence(plate_sequence), cfg, depth_predicted=True)
+    assert seen and all(s == cfg.extraction.predicted_depth_percentiles for s in seen)
+    seen.clear()
+    plain = build_graph_from_sequence(open_sequence(plate_sequence), cfg)
+    assert seen and all(s is None for s in seen)
+    perceived = tmp_path / "perceived"
+    shutil.copytree(plate_sequence, perceived)
+    (perceived / "perceive.json").write_text('{"format": "shgm-perceive/1", "depth_model": {"path": "d.onnx"}}')
+    seen.clear()
+    out = tmp_path / "g.json"
+    result = CliRunner().invoke(app, ["graph", str(perceived), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert seen and all(s == ShgmConfig().extraction.predicted_depth_percentiles for s in seen)
+    # fronto-parallel plates have one depth per plate: any percentile is the mean, the same graph
+    ours = build_graph_from_sequence(open_sequence(perceived), cfg, depth_predicted=True).arrays()
+    np.testing.assert_allclose(ours.positions_xyz, plain.arrays().positions_xyz, atol=1e-5)
