@@ -38,7 +38,7 @@ from shgm_slam.scene_scale import effective_fields, resolve_robot_config, sample
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.node import ServerNode
 from shgm_slam.server.placement import PlacementWatch
-from shgm_slam.server.records import MatchRecord
+from shgm_slam.server.records import MatchRecord, PairMatches, pair_matches
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 from shgm_slam.types import Sequence
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
@@ -234,6 +234,7 @@ class RunSummary:
     wall_s: float
     interrupted: bool = False
     skipped_reasons: list[str] = field(default_factory=list)
+    pairs: list[PairMatches] = field(default_factory=list)  # how the matches between each two robots went
 
     def to_json_dict(self) -> dict:
         return {
@@ -241,6 +242,7 @@ class RunSummary:
             "matches_tried": self.matches_tried,
             "closures_accepted": self.closures_accepted,
             "closures_rejected": self.closures_rejected,
+            "pairs": [p.to_json_dict() for p in self.pairs],
             "timings_ms": self.timings_ms,
             "per_keyframe_ms": self.per_keyframe_ms,
             "wall_s": self.wall_s,
@@ -449,6 +451,7 @@ def run_slam(
         matches_tried=len(server.matches),
         closures_accepted=accepted,
         closures_rejected=sum(m.success and not m.accepted and not m.duplicate for m in server.matches),
+        pairs=pair_matches(server.matches),
         timings_ms={
             **timings.means(),
             "match": server.mean_match_ms(),

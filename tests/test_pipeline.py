@@ -76,6 +76,14 @@ def test_results_folder_has_every_output(drifting_run) -> None:
     assert "extraction:" in (out / "config.yaml").read_text()
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["closures_accepted"] == summary.closures_accepted
+    (pair,) = metrics["pairs"]  # how the matches between car1 and car2 went
+    assert pair["robots"] == ["car1", "car2"] and pair["tried"] == summary.matches_tried - sum(
+        m["robot_a"] == m["robot_b"] for m in matches)  # fmt: skip
+    assert pair["accepted"] == sum(m["accepted"] for m in matches if m["robot_a"] != m["robot_b"]) > 0
+    rejected = [m["evidence"] for m in matches if not m["success"] and m["evidence"] is not None]
+    if rejected:  # the closest rejection, in nats from the threshold
+        best = max(e["llr"] - e["llr_threshold"] for e in rejected if e["llr"] is not None)
+        assert pair["closest_margin_nats"] == pytest.approx(best, abs=0.01)
     for r in metrics["robots"]:  # which odometry ran, and why
         assert r["odometry"] == "file" and r["odometry_reason"] == "set in the configuration"
         assert r["planar_turn_share"] is None  # reported for the visual odometry only

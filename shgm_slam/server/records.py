@@ -7,6 +7,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from shgm_slam.agents import agent_robot
+
 log = logging.getLogger(__name__)
 
 
@@ -99,3 +101,47 @@ class MatchRecord:
             "closures": self.closures,
             "evidence": None if self.evidence is None else self.evidence.to_json_dict(),
         }
+
+
+@dataclass(frozen=True)
+class PairMatches:
+    """How the matches between two robots went, over all their trajectory segments (a row of ``metrics.json``'s
+    ``pairs``): what tells a user why two robots never met.
+
+    Attributes:
+        robot_a, robot_b: the robots (names sorted).
+        tried: graph matches between them, both ways, submaps and whole graphs.
+        accepted: of those, matches the back end accepted.
+        closest_margin_nats: of the matches the verification rejected, the best log likelihood ratio minus the
+            threshold it had to beat (negative, nats); None when no rejected match formed a hypothesis.
+    """
+
+    robot_a: str
+    robot_b: str
+    tried: int
+    accepted: int
+    closest_margin_nats: float | None
+
+    def to_json_dict(self) -> dict:
+        margin = self.closest_margin_nats
+        return {"robots": [self.robot_a, self.robot_b], "tried": self.tried, "accepted": self.accepted,
+                "closest_margin_nats": None if margin is None else round(margin, 2)}  # fmt: skip
+
+
+def pair_matches(records: list[MatchRecord]) -> list[PairMatches]:
+    """The inter-robot match records grouped by robot pair (segments count as their robot; loop closures,
+    a robot with itself, are left out), pairs in name order."""
+    tried: dict[tuple[str, str], list[MatchRecord]] = {}
+    for r in records:
+        a, b = agent_robot(r.robot_a)[0], agent_robot(r.robot_b)[0]
+        if a != b:
+            tried.setdefault((min(a, b), max(a, b)), []).append(r)
+    out = []
+    for (a, b), rows in sorted(tried.items()):
+        margins = [
+            r.evidence.llr - r.evidence.llr_threshold
+            for r in rows
+            if not r.success and r.evidence is not None and np.isfinite(r.evidence.llr - r.evidence.llr_threshold)
+        ]
+        out.append(PairMatches(a, b, len(rows), sum(r.accepted for r in rows), max(margins) if margins else None))
+    return out
