@@ -305,23 +305,6 @@ def _summary_table(summary):
     return t
 
 
-def _never_met(pairs) -> list[str]:
-    """One line per robot pair of which no match was accepted, saying how close the closest came."""
-    lines = []
-    for p in pairs:
-        if p.accepted:
-            continue
-        margin = p.closest_margin_nats
-        why = (
-            "no match formed a hypothesis (too few candidates)" if margin is None
-            else "one beat the chance threshold but had too few, too loose or too clustered partners" if margin >= 0
-            else f"the closest was {-margin:.1f} nats below the chance threshold: their maps do not overlap, or too "
-            "little of what both mapped agrees"
-        )  # fmt: skip
-        lines.append(f"{p.robot_a} - {p.robot_b}: none of {p.tried} matches accepted ({why})")
-    return lines
-
-
 def _render_summary(summary) -> None:
     """Print the run summary as rich tables."""
     from rich.table import Table
@@ -358,7 +341,7 @@ def _render_summary(summary) -> None:
         f"inter-robot matches tried {summary.matches_tried}, closures accepted "
         f"[green]{summary.closures_accepted}[/], rejected [yellow]{summary.closures_rejected}[/]"
     )
-    for line in _never_met(summary.pairs):
+    for line in filter(None, (p.never_met() for p in summary.pairs)):
         console.print(f"[yellow]{lit(line)}[/]")
     tt = Table(title="per-stage time (mean ms per call)")
     tt.add_column("stage")

@@ -461,6 +461,8 @@ def run_slam(
         interrupted=interrupted,
         skipped_reasons=skipped,
     )
+    for line in filter(None, (p.never_met() for p in summary.pairs)):
+        viz.log_text(line, "WARN")  # the viewer's log panel says why two robots never met
     writer.write_json("metrics.json", summary.to_json_dict())
     viz.close()
     return summary

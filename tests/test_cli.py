@@ -229,16 +229,3 @@ def test_a_refused_run_leaves_nothing_in_its_out_folder(tmp_path):
         assert not out.exists() or not any(out.iterdir()), (args, sorted(p.name for p in out.iterdir()))
     res = CliRunner().invoke(app, ["run", "--robot", f"a={seq}", "--out", str(out), "--rerun", "off"])
     assert res.exit_code == 0, res.output
-
-
-def test_summary_says_why_two_robots_never_met():
-    from shgm_slam.cli import _never_met
-    from shgm_slam.server.records import PairMatches
-
-    pairs = [PairMatches("car1", "car2", 40, 6, -2.0), PairMatches("car1", "uav", 120, 0, -3.46),
-             PairMatches("car2", "uav", 9, 0, None), PairMatches("car1", "van", 5, 0, 1.5)]  # fmt: skip
-    lines = _never_met(pairs)
-    assert len(lines) == 3 and not any(line.startswith("car1 - car2") for line in lines)  # they met
-    assert lines[0].startswith("car1 - uav: none of 120 matches accepted (the closest was 3.5 nats below the chance")
-    assert lines[1].startswith("car2 - uav: none of 9 matches accepted (no match formed a hypothesis")
-    assert lines[2].startswith("car1 - van: none of 5 matches accepted (one beat the chance threshold but had too few")

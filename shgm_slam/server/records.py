@@ -122,6 +122,19 @@ class PairMatches:
     accepted: int
     closest_margin_nats: float | None
 
+    def never_met(self) -> str | None:
+        """A line saying that no match of the pair was accepted and how close the closest came (None when one was)."""
+        if self.accepted:
+            return None
+        margin = self.closest_margin_nats
+        why = (
+            "no match formed a hypothesis (too few candidates)" if margin is None
+            else "one beat the chance threshold but had too few, too loose or too clustered partners" if margin >= 0
+            else f"the closest was {-margin:.1f} nats below the chance threshold: their maps do not overlap, or too "
+            "little of what both mapped agrees"
+        )  # fmt: skip
+        return f"{self.robot_a} - {self.robot_b}: none of {self.tried} matches accepted ({why})"
+
     def to_json_dict(self) -> dict:
         margin = self.closest_margin_nats
         return {"robots": [self.robot_a, self.robot_b], "tried": self.tried, "accepted": self.accepted,

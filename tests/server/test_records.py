@@ -35,3 +35,13 @@ def test_pairs_count_both_directions_and_segments_and_keep_the_closest_rejection
     assert pairs[("car2", "uav")].to_json_dict() == {
         "robots": ["car2", "uav"], "tried": 2, "accepted": 0, "closest_margin_nats": -8.5}  # fmt: skip
     assert pair_matches([]) == []
+
+
+def test_a_pair_that_never_met_says_how_close_it_came():
+    from shgm_slam.server.records import PairMatches
+
+    assert PairMatches("car1", "car2", 40, 6, -2.0).never_met() is None  # they met
+    assert PairMatches("car1", "uav", 120, 0, -3.46).never_met().startswith(
+        "car1 - uav: none of 120 matches accepted (the closest was 3.5 nats below the chance threshold")
+    assert "no match formed a hypothesis" in PairMatches("car2", "uav", 9, 0, None).never_met()
+    assert "one beat the chance threshold but had too few" in PairMatches("car1", "van", 5, 0, 1.5).never_met()
