@@ -135,6 +135,7 @@ class RobotVerdict:
     failures_detected: int  # divergences the system detected and cut (new segments)
     path_length_m: float
     notes: list[str] = field(default_factory=list)
+    provisional: bool = False  # placed at the end only provisionally: the run said the place was unconfirmed
 
 
 def world_folder(cache: Path, scenario: str, seed: int, resolution: tuple[int, int]) -> Path:
@@ -282,6 +283,9 @@ def judge_run(
             outcome = Outcome.NOT_PLACED if overlaps else Outcome.RIGHT
         if 0 < frac < 0.999 and placed.sum() >= 3:
             notes.append(f"{frac:.0%} of frames placed")
+        provisional = bool(rep.get("provisional")) and placed.sum() >= 3
+        if provisional:
+            notes.append("provisional: the run flagged this place as unconfirmed")
         verdicts.append(
             RobotVerdict(
                 scenario=scenario, seed=seed, mode=mode.value, robot=name, reference=k == 0, overlaps=overlaps,
@@ -293,6 +297,7 @@ def judge_run(
                 failures_detected=int(rep.get("odometry_failures", 0) or 0),
                 path_length_m=_number(rep.get("path_length_m")),
                 notes=notes,
+                provisional=provisional,
             )
         )
     return verdicts
@@ -450,6 +455,10 @@ def summarize(rows: list[dict], runs: list[dict] | None = None) -> dict:
             "wrong_gross": sum(
                 r["outcome"] == Outcome.WRONG.value and not r["placement_error_m"] <= GROSS_ERROR_M for r in ovl + apart
             ),
+            "wrong_gross_provisional": sum(
+                r["outcome"] == Outcome.WRONG.value and not r["placement_error_m"] <= GROSS_ERROR_M
+                and bool(r.get("provisional")) for r in ovl + apart
+            ),
             "not_placed": sum(r["outcome"] == Outcome.NOT_PLACED.value for r in ovl),
             "references": len(refs),
             "references_within": sum(r["outcome"] == Outcome.RIGHT.value for r in refs),
@@ -536,7 +545,9 @@ def heldout_markdown(results: dict) -> str:
             )
             lines.append(
                 f"| {mode} | {'**all**' if scenario == 'all' else scenario} | {s['robot_worlds']} | {rate} | "
-                f"{s['fused_within']} | {s['fused_within_unaligned']} | {s['wrong']} | {s['wrong_gross']} | "
+                f"{s['fused_within']} | {s['fused_within_unaligned']} | {s['wrong']} | {s['wrong_gross']}"
+                + (f" ({s['wrong_gross_provisional']} provisional)" if s.get("wrong_gross_provisional") else "")
+                + " | "
                 f"{s['not_placed']} | "
                 f"{s['apart_kept_apart']}/{s['apart']} | "
                 f"{s['references_within']}/{s['references']} | "

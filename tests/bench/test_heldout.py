@@ -107,6 +107,20 @@ def test_judge_places_right_wrong_and_not_placed(tiny_scenario, tmp_path):
     assert [x.outcome for x in rgb] == ["right", "right", "right"]
 
 
+def test_a_false_merge_the_run_flagged_as_provisional_is_counted_and_marked(tiny_scenario, tmp_path):
+    metrics = _fake_run(tiny_scenario, tmp_path, {"car1": 0.0, "car2": 300.0, "uav": 250.0})
+    metrics["robots"][1]["provisional"] = True  # the run said car2's place was unconfirmed
+    v = judge_run(tmp_path, tiny_scenario, ["car1", "car2", "uav"], InputMode.FILES, "airsim-like", 0, metrics)
+    assert [x.outcome for x in v] == ["right", "wrong", "wrong"]
+    assert [x.provisional for x in v] == [False, True, False]
+    assert any("provisional" in n for n in v[1].notes) and not any("provisional" in n for n in v[2].notes)
+    s = summarize([vars(x) for x in v])["files"]["all"]
+    assert (s["wrong"], s["wrong_gross"], s["wrong_gross_provisional"]) == (2, 2, 1)
+    md = heldout_markdown({"options": {"seeds": [0], "resolution": [320, 96], "tuning_seeds": [10, 19],
+                                       "placed_right_m": {"files": 2.0}}, "summary": summarize([vars(x) for x in v])})
+    assert "| 2 | 2 (1 provisional) |" in md
+
+
 def test_a_gauge_error_of_the_shared_frame_is_not_a_placement_error(tiny_scenario, tmp_path):
     _fake_run(tiny_scenario, tmp_path, {"car1": 0.0, "car2": 0.0, "uav": 0.0})
     up = se3.inverse(open_sequence(str(tiny_scenario / "car1")).gt_poses[0])[:3, :3] @ np.array([0.0, 0.0, 1.0])
