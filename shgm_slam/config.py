@@ -65,6 +65,11 @@ class ExtractionConfig(_Stage):
             raise ValueError(f"min_depth_m {self.min_depth_m} must be below max_depth_m {self.max_depth_m}")
         return self
 
+    def depth_percentiles(self, depth_predicted: bool) -> dict[int, float] | None:
+        """What ``extract_objects`` takes as ``depth_percentiles``: this stage's ``predicted_depth_percentiles``
+        when a depth model predicted the depth, None (the mean) when it was measured."""
+        return self.predicted_depth_percentiles if depth_predicted else None
+
     def filled(self) -> ExtractionConfig:
         """This stage with every data-derived field still None set to its ``FLEET`` value."""
         return self.model_copy(update={k: v for k, v in self.FLEET.items() if getattr(self, k) is None})

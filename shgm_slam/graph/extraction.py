@@ -291,5 +291,5 @@ def extract_objects_from_config(
         T_world_cam if T_world_cam is not None else frame.T_world_cam,
         labels=cfg.labels, max_depth_m=cfg.max_depth_m, min_depth_m=cfg.min_depth_m,
         depth_step_m=cfg.depth_step_m, min_blob_fraction=cfg.min_blob_fraction,
-        depth_percentiles=cfg.predicted_depth_percentiles if depth_predicted else None,
+        depth_percentiles=cfg.depth_percentiles(depth_predicted),
     )  # fmt: skip

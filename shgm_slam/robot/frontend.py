@@ -235,7 +235,7 @@ class RobotFrontend:
             min_depth_m=ex.min_depth_m,
             depth_step_m=ex.depth_step_m,
             min_blob_fraction=ex.min_blob_fraction,
-            depth_percentiles=ex.predicted_depth_percentiles if self.depth_predicted else None,
+            depth_percentiles=ex.depth_percentiles(self.depth_predicted),
         )
         t_ex = time.perf_counter()
         kf = seg.num_keyframes

@@ -19,6 +19,7 @@ from shgm_slam.graph.build import build_graph_from_sequence, select_keyframes
 from shgm_slam.io.graph_json import read_graph
 from shgm_slam.labels import Label
 from shgm_slam.types import Frame, Intrinsics
+from tests.spies import record_depth_percentiles
 
 INTR = Intrinsics(fx=40.0, fy=40.0, cx=31.5, cy=23.5, width=64, height=48)
 # fronto-parallel plates: label, centre (x, y, z) in the world, width, height (m); never occlude each other
@@ -122,14 +123,7 @@ def test_depth_a_model_wrote_places_thin_objects_as_configured(plate_sequence, t
 
     import shgm_slam.graph.extraction as extraction_module
 
-    seen = []
-    original = extraction_module.extract_objects
-
-    def spy(*args, **kwargs):
-        seen.append(kwargs.get("depth_percentiles"))
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(extraction_module, "extract_objects", spy)
+    seen = record_depth_percentiles(monkeypatch, extraction_module)
     cfg = plate_config()
     build_graph_from_sequence(open_sequence(plate_sequence), cfg, depth_predicted=True)
     assert seen and all(s == cfg.extraction.predicted_depth_percentiles for s in seen)

@@ -12,17 +12,11 @@ from shgm_slam.data import open_sequence
 from shgm_slam.labels import THIN_OBJECT_DEPTH_PERCENTILES, Label
 from shgm_slam.runner import make_frontend
 from tests.perception.test_ground_scale import _perceived_copy
+from tests.spies import record_depth_percentiles
 
 
 def _percentiles_used(front, monkeypatch: pytest.MonkeyPatch, frames: int = 6) -> list:
-    seen = []
-    original = frontend_module.extract_objects
-
-    def spy(*args, **kwargs):
-        seen.append(kwargs.get("depth_percentiles"))
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(frontend_module, "extract_objects", spy)
+    seen = record_depth_percentiles(monkeypatch, frontend_module)
     for i in range(frames):
         front.process(i)
     return seen
