@@ -9,10 +9,10 @@ from __future__ import annotations
 
 from enum import Enum
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from shgm_slam.errors import ConfigError
 from shgm_slam.labels import DEFAULT_GRAPH_LABELS, THIN_OBJECT_DEPTH_PERCENTILES
@@ -306,17 +306,19 @@ PREDICTED_DEPTH_DRIFT = (0.005, 0.05)
 the visual and hybrid odometry with the demo models (``bench depth-quality``); about what one 0.01 rad /
 0.1 m sigma per 2 m keyframe step allowed before."""
 
-MATCHES_TO_ANCHOR = {False: 1, True: 2}
-"""Independent graph matches that must agree before a robot enters the shared frame, by whether the
-fleet's depth is predicted by a model (True) or measured (False, files). Graphs from predicted depth are
-noisy enough that one whole-graph match can pass the chance test on an alias: on the RGB tuning worlds
-(seeds 10-16) two matches removed a 193 m false merge (airsim-like seed 16) and a 6.7 m wrong placement,
-and lost one right placement (seed 12, 2.5 m off, which one match had placed); from files one match has
-placed every overlapping robot with no false merge (held-out tables). Independent means on mutually
-disjoint objects (``consistency.independent_sources``): matches at consecutive steps that find the same
-aliased objects again count once. On the RGB tuning worlds (seeds 10-14) that removed a 30.9 m and a
-7.1 m wrong placement and lost one right one (kitti-paths seed 12, where every match re-found the same
-short overlap); files unchanged."""
+MATCHES_TO_ANCHOR = 2
+"""Independent graph matches that must agree before a robot enters the shared frame, whatever the depth
+source. One whole-graph match can pass the chance test on an alias that fits its whole overlap, and
+nothing in that match alone reveals it. Graphs from predicted depth alias most: on the RGB tuning
+worlds (seeds 10-16) two matches removed a 193 m false merge (airsim-like seed 16) and a 6.7 m wrong
+placement and lost one right placement. From measured depth (files) one match used to be enough, but
+on the files tuning worlds 10-29 five of 81 placements went through an alias (withdrawn later, each a
+false merge while it lasted, and kept by a run stopped then); with two: none of 72, and 72 of 80
+overlapping robots placed right instead of 74, 0 wrong instead of 1 (``bench heldout --replay-from``).
+Independent means on mutually disjoint objects (``consistency.independent_sources``): matches at
+consecutive steps that find the same aliased objects again count once; on the RGB tuning worlds
+(seeds 10-14) that removed a 30.9 m and a 7.1 m wrong placement and lost one right one (kitti-paths
+seed 12, where every match re-found the same short overlap)."""
 
 
 class BackendConfig(_Stage):
@@ -352,10 +354,10 @@ class BackendConfig(_Stage):
     closure_sigma_rot_rad: float = Field(0.1, gt=0, description="rotation sigma of an inter-robot or loop closure")
     closure_sigma_trans_m: float = Field(3.0, gt=0, description="translation sigma of a closure at its keyframe")
     robust_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="huber | cauchy | tukey | none")
-    min_closures_to_anchor: int | None = Field(
-        None, ge=1, description="a robot enters the shared frame only when a robot pair's consistent set has closures "
-        "from this many matches (closures of one match count once; 1 = trust the first accepted match); None: "
-        "from where the depth comes from (MATCHES_TO_ANCHOR: 2 when a model predicts it, 1 from files)"
+    min_closures_to_anchor: int = Field(
+        MATCHES_TO_ANCHOR, ge=1, description="a robot enters the shared frame only when a robot pair's consistent "
+        "set has closures from this many independent matches (closures of one match, and matches on shared "
+        "objects, count once; 1 = trust the first accepted match)"
     )
     consistency_trans_m: float = Field(5.0, gt=0, description="pairwise closure consistency, translation")
     consistency_rot_deg: float = Field(10.0, gt=0, description="pairwise closure consistency, rotation")
@@ -368,16 +370,20 @@ class BackendConfig(_Stage):
 
 
 
+    @field_validator("min_closures_to_anchor", mode="before")
+    @classmethod
+    def _null_anchor_is_default(cls, value: Any) -> Any:
+        """``null`` (configs written before it stopped depending on the depth source) means the default."""
+        return MATCHES_TO_ANCHOR if value is None else value
+
     def for_depth(self, predicted_depth: bool) -> BackendConfig:
         """This stage with the values still None set from where the depth comes from (any robot's depth
         predicted by a model, or all measured): the odometry drift rates (``PREDICTED_DEPTH_DRIFT`` or
-        ``MEASURED_DEPTH_DRIFT``) and the matches a robot needs to enter the shared frame
-        (``MATCHES_TO_ANCHOR``)."""
+        ``MEASURED_DEPTH_DRIFT``)."""
         rot, trans = PREDICTED_DEPTH_DRIFT if predicted_depth else MEASURED_DEPTH_DRIFT
         derived = {
             "odometry_drift_rot_rad_per_m": rot,
             "odometry_drift_trans_per_m": trans,
-            "min_closures_to_anchor": MATCHES_TO_ANCHOR[bool(predicted_depth)],
         }
         return self.model_copy(update={k: v for k, v in derived.items() if getattr(self, k) is None})
 

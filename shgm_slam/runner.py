@@ -154,9 +154,8 @@ def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConf
     backend = cfg.backend.for_depth(predicted_depth=bool(predicted))
     if predicted and backend != cfg.backend:
         log.info("odometry on predicted depth (%s): pose-graph odometry sigmas grow %.3f rad and %.0f %% per "
-                 "metre; a robot enters the shared frame once %d independent matches agree", ", ".join(predicted),
-                 backend.odometry_drift_rot_rad_per_m, 100 * backend.odometry_drift_trans_per_m,
-                 backend.min_closures_to_anchor)  # fmt: skip
+                 "metre", ", ".join(predicted), backend.odometry_drift_rot_rad_per_m,
+                 100 * backend.odometry_drift_trans_per_m)  # fmt: skip
     return cfg.model_copy(update={"backend": backend})
 
 

@@ -55,7 +55,7 @@ def test_gt_odometry_without_ground_truth_is_refused_before_the_run(tiny_scenari
 def test_odometry_drift_follows_where_the_depth_comes_from() -> None:
     from types import SimpleNamespace
 
-    from shgm_slam.config import MEASURED_DEPTH_DRIFT, PREDICTED_DEPTH_DRIFT, BackendConfig
+    from shgm_slam.config import MATCHES_TO_ANCHOR, MEASURED_DEPTH_DRIFT, PREDICTED_DEPTH_DRIFT, BackendConfig
     from shgm_slam.runner import fleet_backend
 
     b = BackendConfig()
@@ -65,7 +65,8 @@ def test_odometry_drift_follows_where_the_depth_comes_from() -> None:
     assert PREDICTED_DEPTH_DRIFT[1] > MEASURED_DEPTH_DRIFT[1]
     user = BackendConfig(odometry_drift_trans_per_m=0.02).for_depth(predicted_depth=True)  # the user's value wins
     assert user.odometry_drift_trans_per_m == 0.02 and user.odometry_drift_rot_rad_per_m == PREDICTED_DEPTH_DRIFT[0]
-    assert (measured.min_closures_to_anchor, predicted.min_closures_to_anchor) == (1, 2)
+    # anchoring does not depend on the depth source; the user's value stays
+    assert measured.min_closures_to_anchor == predicted.min_closures_to_anchor == MATCHES_TO_ANCHOR
     assert BackendConfig(min_closures_to_anchor=1).for_depth(predicted_depth=True).min_closures_to_anchor == 1
 
     cfg = ShgmConfig()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shgm_slam.config import ExtractionConfig, OdometryConfig, OdometryKind
+from shgm_slam.config import MATCHES_TO_ANCHOR, ExtractionConfig, OdometryConfig, OdometryKind
 from shgm_slam.demo import MODELS_DIR, demo_config
 from shgm_slam.errors import DataError
 from shgm_slam.odometry.sources import resolve_kind
@@ -15,12 +15,11 @@ UAV_SCALE = SceneScale(5, 50.0, 50.0, 53.0, 110.0, (50.0, 62.0, 80.0))
 """What the airsim-like UAV's first frames measure (44-54 m up, 50 deg oblique)."""
 
 
-def test_files_demo_uses_kiss_icp_and_trusts_single_matches():
+def test_files_demo_uses_kiss_icp_and_anchors_on_two_independent_matches():
     cfg = demo_config()
     assert cfg.perception.depth_model is None
     assert resolve_kind(cfg.odometry.kind, cfg.perception.depth_model is not None) is OdometryKind.KISS_ICP
-    assert cfg.backend.min_closures_to_anchor is None  # from the depth source: one match from files
-    assert cfg.backend.for_depth(predicted_depth=False).min_closures_to_anchor == 1
+    assert cfg.backend.for_depth(predicted_depth=False).min_closures_to_anchor == MATCHES_TO_ANCHOR == 2
     assert cfg.robots == {}
 
 
@@ -41,7 +40,7 @@ def test_rgb_only_demo_uses_models_visual_odometry_and_confirmed_anchors():
     cfg = demo_config(rgb_only=True)
     assert cfg.perception.depth_model == MODELS_DIR / "demo_depth.onnx"
     assert resolve_kind(cfg.odometry.kind, True) is OdometryKind.VISUAL
-    assert cfg.backend.for_depth(predicted_depth=True).min_closures_to_anchor == 2
+    assert cfg.backend.for_depth(predicted_depth=True).min_closures_to_anchor == MATCHES_TO_ANCHOR
     assert cfg.odometry.visual_max_depth_m is None  # derived per robot
 
 

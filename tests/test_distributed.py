@@ -28,8 +28,17 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+MATCH_OFTEN = "backend:\n  match_every_keyframes: 3\n"
+"""The tiny world's cars meet once, briefly: matched every 3 keyframes they get the two independent
+matches a robot needs to enter the shared frame (every 10, the default, all find the same objects)."""
+
+
 def _server(out: Path, port: int, *extra: str, expect: int = 2) -> subprocess.Popen:
     rerun = () if "--rerun" in extra else ("--rerun", "off")
+    if "--config" not in extra:
+        out.mkdir(parents=True, exist_ok=True)
+        (config := out / "test-server.yaml").write_text(MATCH_OFTEN)
+        extra = (*extra, "--config", str(config))
     return subprocess.Popen(
         [*CLI, "server", "--out", str(out), "--expect", str(expect), "--listen", f"tcp/127.0.0.1:{port}",
          "--reference", "car1", *rerun, *extra],
@@ -118,7 +127,7 @@ def test_robot_killed_mid_run_and_restarted_resumes(tiny_scenario: Path, tmp_pat
 
 def test_server_killed_mid_run_and_restarted_recovers(tiny_scenario: Path, tmp_path: Path) -> None:
     config = tmp_path / "snapshots.yaml"
-    config.write_text("server:\n  snapshot_every_messages: 10\n")  # snapshots this short run does reach
+    config.write_text(MATCH_OFTEN + "server:\n  snapshot_every_messages: 10\n")  # snapshots this short run does reach
     out_dir = tmp_path / "out"
     port = _free_port()
     server = _server(out_dir, port, "--config", str(config))
@@ -187,8 +196,10 @@ def test_live_view_streams_to_a_viewer_while_robots_run(tiny_scenario: Path, tmp
                               start_new_session=True)  # fmt: skip
     try:
         assert collector_up(), "the headless Rerun collector did not start"
+        config = tmp_path / "single.yaml"  # car2 placed by its first match: what is streamed, not when
+        config.write_text(MATCH_OFTEN + "  min_closures_to_anchor: 1\n")
         server = _server(tmp_path / "out", port, "--rerun", "connect", "--rerun-url",
-                         f"rerun+http://127.0.0.1:{view_port}/proxy")  # fmt: skip
+                         f"rerun+http://127.0.0.1:{view_port}/proxy", "--config", str(config))  # fmt: skip
         deadline = time.monotonic() + 60
         while not (live.is_file() and live.stat().st_size) and time.monotonic() < deadline:
             time.sleep(0.2)  # the server is up and connected to the viewer (its blueprint arrived)

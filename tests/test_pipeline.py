@@ -40,7 +40,7 @@ def drifting_run(tiny_scenario: Path, tmp_path_factory: pytest.TempPathFactory):
         write_kitti_poses(tmp / f"odo_{name}.txt", drifting_odometry(seq.gt_poses, 0.03, 1.01))
     cfg = ShgmConfig()
     cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, tmp / "odo_{robot}.txt"
-    cfg.backend.match_every_keyframes = 5
+    cfg.backend.match_every_keyframes = 3  # car2 meets car1 once, briefly: two independent matches to enter
     out = tmp / "out"
     summary = run_slam(robots, cfg, out)
     return summary, robots, out
@@ -299,9 +299,12 @@ class RecordingViz:
 @pytest.fixture(scope="module")
 def early_stop(tiny_scenario: Path, tmp_path_factory: pytest.TempPathFactory):
     """car2 stopped after 30 frames: every match it got found the same objects of car1 (ground-truth
-    odometry, so the run is deterministic); and the full run, where later matches confirm it."""
+    odometry, so the run is deterministic); and the full run, where later matches confirm it. The map
+    server trusts single matches here (``min_closures_to_anchor: 1``; the default waits for two), the
+    setting whose early stop the provisional flag guards."""
     cfg = ShgmConfig()
     cfg.odometry.kind = OdometryKind.GT
+    cfg.backend.min_closures_to_anchor = 1
     runs = {}
     for name, car2 in (("early", ":0-30"), ("full", "")):
         out = tmp_path_factory.mktemp(name)
@@ -405,7 +408,8 @@ def test_blank_stretch_starts_a_new_segment_after_it(tiny_scenario: Path, tmp_pa
 
 def test_injected_jump_is_detected_and_the_new_segment_is_placed_again(tiny_scenario: Path, tmp_path: Path) -> None:
     """car2's odometry teleports 30 m sideways at frame 25: the failure is reported, segment car2#1 starts
-    there in its own frame, and graph matching places both segments in the shared frame again."""
+    there in its own frame, and graph matching places both segments in the shared frame again (each from
+    single matches here: a 25-frame segment of the tiny world never gets two independent ones)."""
     robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
     for name, seq in robots.items():
         odo = se3.inverse(seq.gt_poses[0]) @ seq.gt_poses
@@ -414,7 +418,8 @@ def test_injected_jump_is_detected_and_the_new_segment_is_placed_again(tiny_scen
         write_kitti_poses(tmp_path / f"odo_{name}.txt", odo)
     cfg = ShgmConfig()
     cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, tmp_path / "odo_{robot}.txt"
-    cfg.backend.match_every_keyframes = 5
+    cfg.backend.match_every_keyframes = 3
+    cfg.backend.min_closures_to_anchor = 1
     summary = run_slam(robots, cfg, tmp_path / "out")
     car1, car2 = summary.robots
     assert car1.odometry_failures == 0 and car1.segments == 1

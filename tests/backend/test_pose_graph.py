@@ -298,7 +298,8 @@ def test_kitti00_geometry_two_robots_with_outliers(shared_data):
 
 
 def test_backend_config_sets_the_anchoring_threshold():
-    assert make_pose_graph(["a", "b"], BackendConfig()).min_closures_to_anchor == 1
+    assert make_pose_graph(["a", "b"], BackendConfig()).min_closures_to_anchor == 2
+    assert BackendConfig.model_validate({"min_closures_to_anchor": None}).min_closures_to_anchor == 2  # old dumps
     assert make_pose_graph(["a", "b"], BackendConfig(min_closures_to_anchor=3)).min_closures_to_anchor == 3
 
 

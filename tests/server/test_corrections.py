@@ -33,6 +33,8 @@ def test_corrections_carry_only_what_moved(uninterrupted_run) -> None:
 
 
 def test_a_lost_correction_is_repaired_by_a_full_one(robots, cfg, tmp_path: Path) -> None:
+    cfg = cfg.model_copy(deep=True)
+    cfg.backend.min_closures_to_anchor = 1  # car2 placed early: corrections flow while it still drives
     clock, bus = FakeClock(), InProcessBus()
     server = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=2, clock=clock)
     nodes = fresh(robots, cfg, bus, clock)

@@ -190,12 +190,13 @@ def test_results_are_rewritten_every_few_keyframes_unless_a_rewrite_costs_too_mu
 
 
 def test_a_provisional_placement_reaches_status_server_json_and_the_robot(robots, cfg, tmp_path: Path) -> None:
-    """car2 stopped early, placed from one piece of evidence: the status, server.json, the server's fused
-    file and the robot process all say it is provisional."""
+    """car2 stopped early, placed from one piece of evidence (a server told to trust single matches): the
+    status, server.json, the server's fused file and the robot process all say it is provisional."""
     from shgm_slam.io.trajectories import read_comments
 
     cfg = cfg.model_copy(deep=True)
     cfg.backend.match_every_keyframes = 10  # the default: car2's matches in 30 frames all find the same objects
+    cfg.backend.min_closures_to_anchor = 1
     clock, bus = FakeClock(), InProcessBus()
     server = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=2, clock=clock)
     nodes = fresh(robots, cfg, bus, clock)
