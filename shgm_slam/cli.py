@@ -533,6 +533,8 @@ def server_command(
     for name, r in s["robots"].items():
         placed = _placed_text(r["placed"], r["provisional"])
         console.print(f"  {lit(name)}: {r['keyframes']} keyframes, {r['state']}, placed: {lit(placed)}")
+        for note in r.get("waiting", ()):
+            console.print(f"    {lit(note)}")
     t = s["traffic"]
     per_kf = t["bytes_per_keyframe"]
     console.print(f"{s['matches_tried']} matches, {s['closures_accepted']} accepted; "
@@ -1009,7 +1011,7 @@ def _world_seeds(seeds: str) -> tuple[int, ...]:
 def bench_heldout(
     out: Annotated[Path, typer.Option("--out", "-o", help="results folder (resumes the runs already in it)")]
     = Path("results/bench_heldout"),
-    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-19) or A-B")]
+    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-29) or A-B")]
     = "report",
     scenario: Annotated[list[str] | None, typer.Option(help="scenario (repeatable)", show_default="all four")] = None,
     mode: Annotated[list[str] | None, typer.Option(help="files | rgb (repeatable)", show_default="both")] = None,
@@ -1053,7 +1055,7 @@ def bench_heldout(
 def bench_depth_quality(
     out: Annotated[Path, typer.Option("--out", "-o", help="results folder (resumes the runs already in it)")]
     = Path("results/bench_depth_quality"),
-    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-19) or A-B")]
+    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-29) or A-B")]
     = "report",
     scenario: Annotated[
         list[str] | None, typer.Option(help="scenario (repeatable)", show_default="airsim-like, synthia-like")

@@ -441,7 +441,7 @@ def run_slam(
     for node in nodes.values():
         node.poll()
     reports = _evaluate(fronts, server, robots, processed, gt_shared_frame)
-    _report_provisional(reports, fronts, server)
+    _report_placement(reports, fronts, server)
     _report_degenerate(reports, fronts, image_change, viz)
     accepted = sum(m.accepted for m in server.matches)
     summary = RunSummary(
@@ -525,14 +525,17 @@ def _report_degenerate(
             viz.log_text(f"{rep.name}: {text}", "WARN")
 
 
-def _report_provisional(reports: list[RobotReport], fronts: dict[str, RobotFrontend], server: MapServer) -> None:
-    """Flag each robot with a segment placed from a single piece of evidence (a warning saying so)."""
+def _report_placement(reports: list[RobotReport], fronts: dict[str, RobotFrontend], server: MapServer) -> None:
+    """Flag each robot with a segment placed from a single piece of evidence, and say why a segment with
+    accepted closures is not placed (too few independent matches): a warning each."""
     for rep in reports:
         for seg in fronts[rep.name].segments:
             p = server.placement(seg.agent)
             if p.provisional:
                 rep.provisional = True
                 rep.warnings.append(describe(seg.agent, p))
+            elif (waiting := server.waiting_note(seg.agent)) is not None:
+                rep.warnings.append(waiting)
 
 
 def _log_placements(viz: Viz, watch: PlacementWatch, server: MapServer) -> None:

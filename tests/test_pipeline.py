@@ -302,16 +302,35 @@ def early_stop(tiny_scenario: Path, tmp_path_factory: pytest.TempPathFactory):
     odometry, so the run is deterministic); and the full run, where later matches confirm it. The map
     server trusts single matches here (``min_closures_to_anchor: 1``; the default waits for two), the
     setting whose early stop the provisional flag guards."""
-    cfg = ShgmConfig()
-    cfg.odometry.kind = OdometryKind.GT
-    cfg.backend.min_closures_to_anchor = 1
+    trusting = ShgmConfig()
+    trusting.odometry.kind = OdometryKind.GT
+    trusting.backend.min_closures_to_anchor = 1
+    default = ShgmConfig()
+    default.odometry.kind = OdometryKind.GT
     runs = {}
-    for name, car2 in (("early", ":0-30"), ("full", "")):
+    for name, car2, cfg in (("early", ":0-30", trusting), ("full", "", trusting), ("early_default", ":0-30", default)):
         out = tmp_path_factory.mktemp(name)
         viz = RecordingViz()
         robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}{car2}"])
         runs[name] = (run_slam(robots, cfg, out, viz=viz), out, viz)
     return runs
+
+
+def test_early_stop_with_the_default_leaves_the_robot_out_and_says_why(early_stop) -> None:
+    """Its matches all found the same objects: one piece of evidence, so with the default (two independent
+    matches) car2 is not placed; the summary, metrics.json and server.json say why."""
+    summary, out, _ = early_stop["early_default"]
+    car1, car2 = summary.robots
+    assert not car2.localized and not car2.provisional and car1.localized
+    assert summary.closures_accepted >= 1  # matches were accepted: a plain "never met" would be wrong
+    why = [w for w in car2.warnings if w.startswith("car2 is not placed in the shared frame")]
+    assert len(why) == 1 and "with car1 are one piece of evidence" in why[0], car2.warnings
+    assert "min_closures_to_anchor" in why[0]
+    assert json.loads((out / "metrics.json").read_text())["robots"][1]["warnings"] == car2.warnings
+    server = json.loads((out / "server.json").read_text())
+    assert server["robots"]["car2"]["placed"] == [] and server["robots"]["car2"]["waiting"] == why
+    assert server["robots"]["car1"]["waiting"] == []
+    assert not (out / "car2_fused_tum.txt").exists()
 
 
 def test_early_stop_leaves_a_provisional_robot_and_every_output_says_so(early_stop) -> None:

@@ -199,3 +199,17 @@ def describe(agent: str, p: AgentPlacement) -> str:
         f"{agent} is placed provisionally: its place in the shared frame rests on {evidence}; "
         "it may be wrong and may still move until a match on other objects confirms it"
     )
+
+
+def describe_waiting(agent: str, partner: str, evidence: int, needed: int, matches: int) -> str:
+    """One line for users: why ``agent`` is not placed although ``matches`` graph matches with placed
+    ``partner`` gave accepted closures: they are ``evidence`` independent pieces of evidence, fewer than the
+    ``needed`` (``backend.min_closures_to_anchor``)."""
+    pieces = "one piece of evidence" if evidence == 1 else f"{evidence} independent pieces of evidence"
+    these = f"{matches} accepted graph match{'es' if matches != 1 else ''} with {partner}"
+    verb = "are" if matches != 1 else "is"
+    return (
+        f"{agent} is not placed in the shared frame: its {these} {verb} {pieces} (matches that found the same "
+        f"objects count once), and a robot enters it once {needed} independent matches agree "
+        "(backend.min_closures_to_anchor; 1 trusts single matches and reports them provisional)"
+    )

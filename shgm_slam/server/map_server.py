@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from shgm_slam.backend.confirmation import AgentPlacement, Placement, Support, placements
+from shgm_slam.backend.confirmation import AgentPlacement, Placement, Support, describe_waiting, placements
 from shgm_slam.backend.pose_graph import ClosureStatus, PoseGraphState, make_pose_graph
 from shgm_slam.config import ShgmConfig
 from shgm_slam.descriptors import NodeDescriptors
@@ -529,6 +529,24 @@ class MapServer:
             self._placements = (pg.version, placements(self._agents, self.reference, anchored, pg.closures(),
                                                        self._support))  # fmt: skip
         return self._placements[1].get(agent, AgentPlacement(Placement.UNPLACED))
+
+    def waiting_note(self, agent: str) -> str | None:
+        """Why unplaced ``agent`` is not in the shared frame although some of its inter-robot closures were
+        accepted (too few independent matches, ``describe_waiting``), or None (placed, or nothing accepted)."""
+        if agent not in self._graphs or self.is_placed(agent):
+            return None
+        pg = self._pose_graph
+        matches: dict[str, set] = {}  # placed partner -> the graph matches its accepted closures came from
+        for c in pg.closures():
+            if c.status is ClosureStatus.ACCEPTED and c.robot_a != c.robot_b and agent in (c.robot_a, c.robot_b):
+                other = c.robot_b if c.robot_a == agent else c.robot_a
+                if self.is_placed(other):
+                    matches.setdefault(other, set()).add(c.evidence)
+        if not matches:
+            return None
+        partner = max(matches, key=lambda o: (pg.evidence_between(agent, o), len(matches[o]), o))
+        return describe_waiting(agent, partner, max(1, pg.evidence_between(agent, partner)),
+                                pg.min_closures_to_anchor, len(matches[partner]))  # fmt: skip
 
     def T_shared_kf(self, agent: str) -> np.ndarray | None:
         """(K, 4, 4) fused keyframe poses of ``agent`` in the shared frame, or None if not placed (or not

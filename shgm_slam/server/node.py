@@ -638,6 +638,7 @@ class ServerNode:
                 "agents": mine,
                 "placed": [a for a in mine if server.is_placed(a)],
                 "provisional": [a for a in mine if server.placement(a).provisional],
+                "waiting": [note for a in mine if (note := server.waiting_note(a)) is not None],
                 "keyframes": sum(server.received(a) for a in mine) if server else 0,
                 "done": rs.done is not None,
                 "went_stale": rs.went_stale,

@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shgm_slam.backend.confirmation import AgentPlacement, Placement, confirms, describe, placements
+from shgm_slam.backend.confirmation import (
+    AgentPlacement,
+    Placement,
+    confirms,
+    describe,
+    describe_waiting,
+    placements,
+)
 from shgm_slam.backend.pose_graph import ClosureStatus, MultiRobotPoseGraph
 from shgm_slam.geometry.se3 import inverse, make_pose, rot_y
 from tests.backend.test_pose_graph import noisy_odometry, route
@@ -167,3 +174,10 @@ def test_the_object_index_decides_like_confirms_on_random_pairs() -> None:
         assert (placed.placement is Placement.CONFIRMED) == expected
         outcomes.add(expected)
     assert outcomes == {True, False}  # both cases were drawn
+
+
+def test_waiting_line_counts_matches_and_evidence() -> None:
+    one = describe_waiting("car2", "car1", evidence=1, needed=2, matches=1)
+    assert one.startswith("car2 is not placed") and "1 accepted graph match with car1 is one piece of evidence" in one
+    many = describe_waiting("car2", "car1", evidence=1, needed=3, matches=4)
+    assert "4 accepted graph matches with car1 are one piece of evidence" in many and "once 3 independent" in many
