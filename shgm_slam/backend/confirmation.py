@@ -1,6 +1,8 @@
 """Whether an agent's place in the shared frame is confirmed or still provisional (early-stop safeguard).
 
-The pose graph anchors an agent with its first accepted closure to the shared frame. One graph match
+The pose graph anchors an agent to the shared frame once a robot pair's consistent closures come from
+``backend.min_closures_to_anchor`` independent matches (default 2; with 1, its first accepted closure
+anchors it). One graph match
 can be wrong in a way no check of that match alone reveals (perceptual aliasing that fits the whole
 overlap), and every closure cut from one match shares its error: together they are one piece of
 evidence (``ClosureRecord.evidence``). A run stopped early would keep such a wrong place without a word,
