@@ -137,6 +137,7 @@ class RobotVerdict:
     path_length_m: float
     notes: list[str] = field(default_factory=list)
     provisional: bool = False  # placed at the end only provisionally: the run said the place was unconfirmed
+    waiting: bool = False  # not placed although matches were accepted: too few independent ones (server.json)
 
 
 def world_folder(cache: Path, scenario: str, seed: int, resolution: tuple[int, int]) -> Path:
@@ -236,6 +237,8 @@ def judge_run(
     scen = json.loads((world / "scenario.json").read_text())
     shared = scen.get("overlap", {}).get("shared_view_m", {})
     reports = {r["name"]: r for r in metrics.get("robots", [])}
+    server = run_dir / "server.json"
+    server_robots = json.loads(server.read_text()).get("robots", {}) if server.is_file() else {}
     loaded = []
     for name in robots:
         seq = open_sequence(str(world / name))
@@ -287,6 +290,9 @@ def judge_run(
         provisional = bool(rep.get("provisional")) and placed.sum() >= 3
         if provisional:
             notes.append("provisional: the run flagged this place as unconfirmed")
+        waiting = outcome is Outcome.NOT_PLACED and bool(server_robots.get(name, {}).get("waiting"))
+        if waiting:
+            notes.append("matches accepted, but too few independent ones to enter the shared frame")
         verdicts.append(
             RobotVerdict(
                 scenario=scenario, seed=seed, mode=mode.value, robot=name, reference=k == 0, overlaps=overlaps,
@@ -299,6 +305,7 @@ def judge_run(
                 path_length_m=_number(rep.get("path_length_m")),
                 notes=notes,
                 provisional=provisional,
+                waiting=waiting,
             )
         )
     return verdicts
@@ -461,6 +468,7 @@ def summarize(rows: list[dict], runs: list[dict] | None = None) -> dict:
                 and bool(r.get("provisional")) for r in ovl + apart
             ),
             "not_placed": sum(r["outcome"] == Outcome.NOT_PLACED.value for r in ovl),
+            "not_placed_waiting": sum(r["outcome"] == Outcome.NOT_PLACED.value and bool(r.get("waiting")) for r in ovl),
             "references": len(refs),
             "references_within": sum(r["outcome"] == Outcome.RIGHT.value for r in refs),
             "apart_kept_apart": sum(r["outcome"] == Outcome.RIGHT.value for r in apart),
@@ -526,6 +534,8 @@ def heldout_markdown(results: dict) -> str:
         "place, of all times a robot entered it, even if later matches withdrew it (a false merge the final "
         "trajectories no longer show); in brackets those the server ever confirmed (two independent matches "
         "agreeing), the rest stayed provisional and were reported so; '?' where the run predates that record. "
+        "'Not placed': in brackets those 'waiting', whose accepted matches were fewer independent pieces of "
+        "evidence than a robot needs to enter the shared frame. "
         "'Rejected matches right': matches the verification rejected whose best hypothesis, read at B's newest "
         "keyframe, was within the tolerance anyway (right alignments missed), of all rejected matches with a "
         "hypothesis.",
@@ -549,7 +559,9 @@ def heldout_markdown(results: dict) -> str:
                 f"{s['fused_within']} | {s['fused_within_unaligned']} | {s['wrong']} | {s['wrong_gross']}"
                 + (f" ({s['wrong_gross_provisional']} provisional)" if s.get("wrong_gross_provisional") else "")
                 + " | "
-                f"{s['not_placed']} | "
+                f"{s['not_placed']}"
+                + (f" ({s['not_placed_waiting']} waiting)" if s.get("not_placed_waiting") else "")
+                + " | "
                 f"{s['apart_kept_apart']}/{s['apart']} | "
                 f"{s['references_within']}/{s['references']} | "
                 f"{s['failures_detected']} ({s['robots_with_failures_detected']}) | "

@@ -121,6 +121,22 @@ def test_a_false_merge_the_run_flagged_as_provisional_is_counted_and_marked(tiny
     assert "| 2 | 2 (1 provisional) |" in md
 
 
+def test_a_robot_left_out_for_too_few_independent_matches_is_counted_as_waiting(tiny_scenario, tmp_path):
+    metrics = _fake_run(tiny_scenario, tmp_path, {"car1": 0.0, "car2": None, "uav": None})
+    (tmp_path / "server.json").write_text(json.dumps({"robots": {
+        "car1": {"waiting": []}, "car2": {"waiting": ["car2 is not placed in the shared frame: ..."]},
+        "uav": {"waiting": []}}}))  # fmt: skip
+    v = judge_run(tmp_path, tiny_scenario, ["car1", "car2", "uav"], InputMode.FILES, "airsim-like", 0, metrics)
+    assert [x.outcome for x in v] == ["right", "not placed", "not placed"]
+    assert [x.waiting for x in v] == [False, True, False]
+    assert any("independent" in n for n in v[1].notes) and not v[2].notes
+    s = summarize([vars(x) for x in v])["files"]["all"]
+    assert (s["not_placed"], s["not_placed_waiting"]) == (2, 1)
+    md = heldout_markdown({"options": {"seeds": [0], "resolution": [320, 96], "tuning_seeds": [10, 19],
+                                       "placed_right_m": {"files": 2.0}}, "summary": summarize([vars(x) for x in v])})
+    assert "| 2 (1 waiting) |" in md
+
+
 def test_a_gauge_error_of_the_shared_frame_is_not_a_placement_error(tiny_scenario, tmp_path):
     _fake_run(tiny_scenario, tmp_path, {"car1": 0.0, "car2": 0.0, "uav": 0.0})
     up = se3.inverse(open_sequence(str(tiny_scenario / "car1")).gt_poses[0])[:3, :3] @ np.array([0.0, 0.0, 1.0])
