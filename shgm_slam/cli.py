@@ -585,6 +585,9 @@ def robot_command(
     console.print(f"{lit(name)}: {s.frames_processed}/{s.frames} frames, {s.keyframes} keyframes "
                   f"({s.bytes_per_keyframe:.0f} B each, {s.resent} re-sent; {down_kb:.0f} KB of corrections), "
                   f"placed: {lit(placed)}")  # fmt: skip
+    if s.waiting_agents:
+        console.print(f"  not placed yet: {lit(', '.join(s.waiting_agents))} (accepted matches, but too few "
+                      "independent ones to enter the shared frame; the server's summary says which)")  # fmt: skip
     if s.interrupted:
         raise typer.Exit(130)
     if not s.acknowledged:

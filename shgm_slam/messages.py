@@ -138,6 +138,7 @@ class RobotStatus:
     placed_agents: tuple[str, ...]
     agents: tuple[str, ...]
     provisional_agents: tuple[str, ...] = ()  # placed, not confirmed by an independent graph match yet
+    waiting_agents: tuple[str, ...] = ()  # not placed: accepted matches, too few independent ones to enter
 
 
 @dataclass(frozen=True)

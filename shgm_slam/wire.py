@@ -440,7 +440,7 @@ def _encode_fields(msg: Message) -> dict[str, Any]:
             _robot(r, "status robot")
             if not isinstance(st, RobotStatus) or st.state not in _STATE_CODES:
                 raise WireError(f"status of robot {r!r} must be a RobotStatus with a RobotState")
-            lists = [list(st.placed_agents), list(st.agents), list(st.provisional_agents)]
+            lists = [list(st.placed_agents), list(st.agents), list(st.provisional_agents), list(st.waiting_agents)]
             if any(len(x) > MAX_AGENTS for x in lists):
                 raise WireError(f"status of robot {r!r} lists more than {MAX_AGENTS} agents")
             for x in lists:
@@ -517,15 +517,18 @@ def _decode_fields(kind: MessageKind, f: _Fields) -> Message:
     # STATUS
     robots = {}
     for r, v in f.map("b", _robot).items():
-        # the provisional agents (fifth) came later: a four-item status of an older server is still read
-        if not (isinstance(v, list) and len(v) in (4, 5) and all(isinstance(x, list) for x in v[2:])):
+        # the provisional (fifth) and waiting (sixth) agents came later: shorter statuses of older servers are read
+        if not (isinstance(v, list) and len(v) in (4, 5, 6) and all(isinstance(x, list) for x in v[2:])):
             raise WireError(
-                f"status of robot {r!r} must be [state, keyframes, placed agents, agents, provisional agents]"
+                f"status of robot {r!r} must be [state, keyframes, placed agents, agents, provisional agents, "
+                "waiting agents]"
             )
         code = _int(v[0], f"status state of {r!r}", 0, len(_CODE_STATES) - 1)
-        placed, agents, provisional = (tuple(_agent(a, f"status agent of {r!r}") for a in x) for x in (*v[2:], [])[:3])
+        placed, agents, provisional, waiting = (
+            tuple(_agent(a, f"status agent of {r!r}") for a in x) for x in (*v[2:], [], [])[:4]
+        )
         robots[r] = RobotStatus(
-            _CODE_STATES[code], _int(v[1], f"status keyframes of {r!r}"), placed, agents, provisional
+            _CODE_STATES[code], _int(v[1], f"status keyframes of {r!r}"), placed, agents, provisional, waiting
         )
     refused = {r: _text(why, f"refusal of {r!r}") for r, why in f.map("y", _robot).items()}
     reference = d["e"] if d["e"] == "" else _robot(d["e"], "status reference")

@@ -96,7 +96,7 @@ def all_messages() -> list:
             {
                 "car1": RobotStatus(RobotState.ACTIVE, 12, ("car1",), ("car1", "car1#1")),
                 "car3": RobotStatus(RobotState.ACTIVE, 7, ("car3", "car3#1"), ("car3", "car3#1"), ("car3#1",)),
-                "car2": RobotStatus(RobotState.DONE, 0, (), ()),
+                "car2": RobotStatus(RobotState.DONE, 4, (), ("car2",), (), ("car2",)),
                 "b-3": RobotStatus(RobotState.STALE, 5, (), ("b-3",)),
             },
             True,
@@ -147,19 +147,25 @@ def test_every_message_round_trips(msg):
     assert encode(out) == payload  # decoded values are fixed points: both runs see identical values
 
 
-def test_a_status_without_provisional_agents_is_still_read():
-    """An older server's status has four items per robot (no provisional agents): read as none."""
+def test_a_status_without_provisional_or_waiting_agents_is_still_read():
+    """Older servers' statuses have four items per robot (no provisional agents) or five (no waiting
+    agents): read as none."""
     import msgpack
 
     payload = encode(StatusMessage("srv", "car1", {"car1": RobotStatus(RobotState.ACTIVE, 3, ("car1",), ("car1",),
-                                                                       ("car1",))}))  # fmt: skip
+                                                                       ("car1",), ("car1#1",))}))  # fmt: skip
     fields = msgpack.unpackb(payload, raw=False)
-    assert len(fields["b"]["car1"]) == 5
-    fields["b"]["car1"] = fields["b"]["car1"][:4]
+    assert len(fields["b"]["car1"]) == 6
+    assert decode(payload).robots["car1"].waiting_agents == ("car1#1",)
+    full = list(fields["b"]["car1"])
+    fields["b"]["car1"] = full[:5]
     status = decode(msgpack.packb(fields, use_bin_type=True)).robots["car1"]
-    assert status.placed_agents == ("car1",) and status.provisional_agents == ()
-    fields["b"]["car1"] = [*fields["b"]["car1"], ["car1"], ["car1"]]  # six items: refused
-    with pytest.raises(WireError, match="provisional agents"):
+    assert status.provisional_agents == ("car1",) and status.waiting_agents == ()
+    fields["b"]["car1"] = full[:4]
+    status = decode(msgpack.packb(fields, use_bin_type=True)).robots["car1"]
+    assert status.placed_agents == ("car1",) and status.provisional_agents == () and status.waiting_agents == ()
+    fields["b"]["car1"] = [*full, ["car1"]]  # seven items: refused
+    with pytest.raises(WireError, match="waiting agents"):
         decode(msgpack.packb(fields, use_bin_type=True))
 
 

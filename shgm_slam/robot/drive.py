@@ -46,6 +46,7 @@ class DriveSummary:
     interrupted: bool = False
     skipped: list[str] = field(default_factory=list)
     provisional_agents: list[str] = field(default_factory=list)  # placed, not confirmed by an independent match
+    waiting_agents: list[str] = field(default_factory=list)  # not placed: too few independent accepted matches
 
     @property
     def bytes_per_keyframe(self) -> float:
@@ -116,4 +117,5 @@ def drive_robot(
         name, node.session, len(sequence), processed, node.keyframes_sent, node.all_acknowledged(),
         node.server_finished and acknowledged, placed, dict(node.bytes_sent), dict(node.bytes_received),
         node.resent, time.perf_counter() - t_start, interrupted, skipped, provisional,
+        [s.agent for s in front.segments if s.agent in node.waiting_agents],
     )  # fmt: skip

@@ -103,6 +103,7 @@ class RobotNode:
         self.server_session: str | None = None
         self.server_finished = False
         self.provisional_agents: tuple[str, ...] = ()  # its agents the server placed provisionally (status)
+        self.waiting_agents: tuple[str, ...] = ()  # its unplaced agents with too few independent matches (status)
         self.bytes_sent: dict[str, int] = {"hello": 0, "keyframe": 0, "done": 0}
         self.bytes_received: dict[str, int] = {"correction": 0, "status": 0}
         self.keyframes_sent = 0
@@ -248,6 +249,7 @@ class RobotNode:
         mine = msg.robots.get(self.name)
         self._done_held = mine is not None and mine.state is RobotState.DONE
         self.provisional_agents = mine.provisional_agents if mine is not None else ()
+        self.waiting_agents = mine.waiting_agents if mine is not None else ()
 
     def _resend_stalled(self) -> None:
         now = self.clock()

@@ -452,6 +452,7 @@ class ServerNode:
                 tuple(a for a in agents if self._map().is_placed(a)),
                 agents,
                 tuple(a for a in agents if self._map().placement(a).provisional),
+                tuple(a for a in agents if self._map().waiting_note(a) is not None),
             )
         payload = encode(StatusMessage(self.session, self.reference or "", robots, self.finished, dict(self._refused)))
         self.traffic.sent("status", len(payload))

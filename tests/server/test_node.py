@@ -189,6 +189,22 @@ def test_results_are_rewritten_every_few_keyframes_unless_a_rewrite_costs_too_mu
     assert run(10 * elapsed / CHECKPOINT_SHARE) == 1
 
 
+def test_a_robot_waiting_for_independent_matches_hears_so_in_the_status(robots, cfg, tmp_path: Path) -> None:
+    """car2 stopped early with the default anchoring: its matches all found the same objects, so it is not
+    placed; server.json says why and the robot process learns it is waiting (the status)."""
+    cfg = cfg.model_copy(deep=True)
+    cfg.backend.match_every_keyframes = 10
+    clock, bus = FakeClock(), InProcessBus()
+    server = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=2, clock=clock)
+    nodes = fresh(robots, cfg, bus, clock)
+    drive(server, nodes, {"car1": range(len(robots["car1"])), "car2": range(30)}, clock)
+    finish(server, nodes, clock)
+    assert not server.map.is_placed("car2") and server.map.waiting_note("car2") is not None
+    s = server.summary()
+    assert s["robots"]["car2"]["placed"] == [] and s["robots"]["car2"]["waiting"] == [server.map.waiting_note("car2")]
+    assert nodes["car2"].waiting_agents == ("car2",) and nodes["car1"].waiting_agents == ()
+
+
 def test_a_provisional_placement_reaches_status_server_json_and_the_robot(robots, cfg, tmp_path: Path) -> None:
     """car2 stopped early, placed from one piece of evidence (a server told to trust single matches): the
     status, server.json, the server's fused file and the robot process all say it is provisional."""
