@@ -189,16 +189,24 @@ def test_results_are_rewritten_every_few_keyframes_unless_a_rewrite_costs_too_mu
     assert run(10 * elapsed / CHECKPOINT_SHARE) == 1
 
 
-def test_a_robot_waiting_for_independent_matches_hears_so_in_the_status(robots, cfg, tmp_path: Path) -> None:
-    """car2 stopped early with the default anchoring: its matches all found the same objects, so it is not
-    placed; server.json says why and the robot process learns it is waiting (the status)."""
+def _car2_stopped_early(robots, cfg, out: Path, min_closures_to_anchor: int):
+    """Server and robot nodes after car1's whole drive and car2's first 30 frames, matched every 10 keyframes
+    (the default: car2's matches in 30 frames all find the same objects)."""
     cfg = cfg.model_copy(deep=True)
     cfg.backend.match_every_keyframes = 10
+    cfg.backend.min_closures_to_anchor = min_closures_to_anchor
     clock, bus = FakeClock(), InProcessBus()
-    server = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=2, clock=clock)
+    server = ServerNode(cfg, InProcessTransport(bus), out, expect=2, clock=clock)
     nodes = fresh(robots, cfg, bus, clock)
     drive(server, nodes, {"car1": range(len(robots["car1"])), "car2": range(30)}, clock)
     finish(server, nodes, clock)
+    return server, nodes
+
+
+def test_a_robot_waiting_for_independent_matches_hears_so_in_the_status(robots, cfg, tmp_path: Path) -> None:
+    """car2 stopped early with the default anchoring: its matches all found the same objects, so it is not
+    placed; server.json says why and the robot process learns it is waiting (the status)."""
+    server, nodes = _car2_stopped_early(robots, cfg, tmp_path, min_closures_to_anchor=2)
     assert not server.map.is_placed("car2") and server.map.waiting_note("car2") is not None
     s = server.summary()
     assert s["robots"]["car2"]["placed"] == [] and s["robots"]["car2"]["waiting"] == [server.map.waiting_note("car2")]
@@ -210,14 +218,7 @@ def test_a_provisional_placement_reaches_status_server_json_and_the_robot(robots
     status, server.json, the server's fused file and the robot process all say it is provisional."""
     from shgm_slam.io.trajectories import read_comments
 
-    cfg = cfg.model_copy(deep=True)
-    cfg.backend.match_every_keyframes = 10  # the default: car2's matches in 30 frames all find the same objects
-    cfg.backend.min_closures_to_anchor = 1
-    clock, bus = FakeClock(), InProcessBus()
-    server = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=2, clock=clock)
-    nodes = fresh(robots, cfg, bus, clock)
-    drive(server, nodes, {"car1": range(len(robots["car1"])), "car2": range(30)}, clock)
-    finish(server, nodes, clock)
+    server, nodes = _car2_stopped_early(robots, cfg, tmp_path, min_closures_to_anchor=1)
     assert server.map.placement("car2").provisional
     s = server.summary()
     assert s["robots"]["car2"]["placed"] == ["car2"] and s["robots"]["car2"]["provisional"] == ["car2"]
