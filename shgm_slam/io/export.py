@@ -128,28 +128,37 @@ def _write_temp(path: Path, write: Callable[[Path], object]) -> Path:
 
     Raises:
         DataError: the folder is not writable or the disk is full (the temporary file is removed).
+        KeyboardInterrupt: a stop signal arrived while writing (the temporary file is removed).
     """
     tmp = None
     try:
         fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-        os.close(fd)
         tmp = Path(name)
+        os.close(fd)
         write(tmp)
         os.chmod(tmp, _FILE_MODE)
         return tmp
-    except OSError as exc:
+    except BaseException as exc:  # a stop signal (KeyboardInterrupt) mid-write leaves no temporary either
         if tmp is not None:
             tmp.unlink(missing_ok=True)
-        raise DataError(f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out") from None
+        if isinstance(exc, OSError):
+            raise DataError(
+                f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out"
+            ) from None
+        raise
 
 
 def _commit(tmp: Path, path: Path) -> None:
     """Rename the finished temporary ``tmp`` onto ``path`` (atomic: readers see the old or the new file)."""
     try:
         os.replace(tmp, path)
-    except OSError as exc:
+    except BaseException as exc:  # the rename did not happen (an error, or a stop signal just before it)
         tmp.unlink(missing_ok=True)
-        raise DataError(f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out") from None
+        if isinstance(exc, OSError):
+            raise DataError(
+                f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out"
+            ) from None
+        raise
 
 
 def _atomic(path: Path, write: Callable[[Path], object]) -> None:
@@ -227,7 +236,7 @@ class ResultsWriter:
                     _remove(path)
                 else:
                     _commit(tmp, path)
-            except DataError:
+            except BaseException:  # an error or a stop signal: the rest of the checkpoint leaves no temporaries
                 _discard(batch[i + 1 :])
                 raise
 

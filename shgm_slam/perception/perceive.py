@@ -196,9 +196,13 @@ def _write_bytes_atomic(path: Path, data: bytes) -> None:
     try:
         tmp.write_bytes(data)
         os.replace(tmp, path)
-    except OSError as exc:
+    except BaseException as exc:  # an error, or Ctrl-C mid-write: no partial temporary left behind
         tmp.unlink(missing_ok=True)
-        raise DataError(f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out") from None
+        if isinstance(exc, OSError):
+            raise DataError(
+                f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out"
+            ) from None
+        raise
 
 
 def _write_text_atomic(path: Path, text: str) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import stat
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -142,3 +143,37 @@ def test_a_checkpoint_replaces_all_files_or_none(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json", "c.json"]
     _checkpoint(w, 4)
     assert {json.loads((tmp_path / n).read_text())["checkpoint"] for n in ("a.json", "b.json", "c.json")} == {4}
+
+
+@pytest.mark.parametrize("in_checkpoint", [False, True])
+@pytest.mark.parametrize("where", ["write", "rename"])
+def test_a_stop_signal_mid_write_leaves_no_temporary(tmp_path, monkeypatch, in_checkpoint, where):
+    """A stop signal (KeyboardInterrupt) while a file's temporary is written or renamed: the previous file
+    stays, and no temporary is left beside it (a signal can land between any two bytecodes)."""
+    w = ResultsWriter(tmp_path)
+    _checkpoint(w, 1)
+    real_write_text, real_replace = type(tmp_path).write_text, os.replace
+
+    def interrupted_write(self, text, *args, **kwargs):
+        if self.name.startswith(".b.json."):
+            real_write_text(self, text[:5], *args, **kwargs)  # half written
+            raise KeyboardInterrupt
+        return real_write_text(self, text, *args, **kwargs)
+
+    def interrupted_rename(src, dst, *args, **kwargs):
+        if Path(dst).name == "b.json":
+            raise KeyboardInterrupt
+        return real_replace(src, dst, *args, **kwargs)
+
+    if where == "write":
+        monkeypatch.setattr(type(tmp_path), "write_text", interrupted_write)
+    else:
+        monkeypatch.setattr(os, "replace", interrupted_rename)
+    with pytest.raises(KeyboardInterrupt):
+        if in_checkpoint:
+            _checkpoint(w, 2)
+        else:
+            w.write_json("b.json", {"checkpoint": 2})
+    monkeypatch.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json", "c.json"]
+    assert json.loads((tmp_path / "b.json").read_text())["checkpoint"] == 1
