@@ -123,6 +123,12 @@ _FILE_MODE = 0o666 & ~_umask()
 """Mode of results files: what ``open()`` would give (mkstemp's 0600 would hide results from other users)."""
 
 
+def _raise_write_error(path: Path, exc: BaseException) -> None:
+    """Raise DataError for an OS error writing ``path``; return for anything else (the caller re-raises it)."""
+    if isinstance(exc, OSError):
+        raise DataError(f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out") from None
+
+
 def _write_temp(path: Path, write: Callable[[Path], object]) -> Path:
     """Call ``write(tmp)`` on a new temporary file beside ``path`` (normal file mode) and return it.
 
@@ -141,10 +147,7 @@ def _write_temp(path: Path, write: Callable[[Path], object]) -> Path:
     except BaseException as exc:  # a stop signal (KeyboardInterrupt) mid-write leaves no temporary either
         if tmp is not None:
             tmp.unlink(missing_ok=True)
-        if isinstance(exc, OSError):
-            raise DataError(
-                f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out"
-            ) from None
+        _raise_write_error(path, exc)
         raise
 
 
@@ -154,10 +157,7 @@ def _commit(tmp: Path, path: Path) -> None:
         os.replace(tmp, path)
     except BaseException as exc:  # the rename did not happen (an error, or a stop signal just before it)
         tmp.unlink(missing_ok=True)
-        if isinstance(exc, OSError):
-            raise DataError(
-                f"cannot write {path}: {exc.strerror or exc}; free space or choose another --out"
-            ) from None
+        _raise_write_error(path, exc)
         raise
 
 
