@@ -131,13 +131,14 @@ def _group_spread(groups: np.ndarray, values: np.ndarray, num_groups: int) -> np
 
 def _group_percentile(comp_flat: np.ndarray, values: np.ndarray, ids: np.ndarray, percentile: float) -> np.ndarray:
     """(K,) the ``percentile`` (nearest rank) of ``values`` over the pixels of each component in (K,) ``ids``."""
+    sorted_ids = np.sort(ids)
     rows = np.flatnonzero(np.isin(comp_flat, ids))
-    group = np.searchsorted(np.sort(ids), comp_flat[rows])
+    group = np.searchsorted(sorted_ids, comp_flat[rows])
     order = np.lexsort((values[rows], group))
     counts = np.bincount(group, minlength=ids.size)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     picked = values[rows][order][starts + np.rint(percentile / 100.0 * (counts - 1)).astype(np.int64)]
-    return picked[np.searchsorted(np.sort(ids), ids)]
+    return picked[np.searchsorted(sorted_ids, ids)]
 
 
 def extract_objects(

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from shgm_slam.agents import agent_robot
+from shgm_slam.io.json_text import finite_or_none
 
 log = logging.getLogger(__name__)
 
@@ -41,18 +42,13 @@ class MatchEvidence:
         return {
             "T_a_b_hypothesis": np.round(self.T_a_b_hypothesis, 9).tolist(),
             "keyframe_b": self.keyframe_b,
-            "llr": _finite_or_none(self.llr),
-            "llr_threshold": _finite_or_none(self.llr_threshold),
+            "llr": finite_or_none(round(float(self.llr), 3)),
+            "llr_threshold": finite_or_none(round(float(self.llr_threshold), 3)),
             "support": self.support,
             "expected_chance": round(float(self.expected_chance), 3),
             "overlap_a": self.overlap_a,
             "overlap_b": self.overlap_b,
         }
-
-
-def _finite_or_none(x: float) -> float | None:
-    """``x`` rounded to 3 decimals, or None where it is not finite (JSON has no inf)."""
-    return round(float(x), 3) if np.isfinite(x) else None
 
 
 @dataclass
