@@ -963,6 +963,34 @@ def bench_scale(
     console.print(f"wrote {lit(out / 'scale.json')} and {lit(out / 'scale.md')}")
 
 
+@bench_app.command("robots")
+@handle_errors
+def bench_robots(
+    out: Annotated[Path, typer.Option("--out", "-o", help="results folder")] = Path("results/bench_robots"),
+    fleets: Annotated[str, typer.Option(help="comma-separated fleet sizes, 1-8")] = "1,2,4,8",
+    sequence: Annotated[str, typer.Option(help="KITTI sequence cut into the robots (00-10; 00: bench scale's world)")]
+    = "00",
+    cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
+    seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
+    memory: Annotated[bool, typer.Option(help="also each fleet's peak RSS alone in a fresh process")] = True,
+    kitti_root: Annotated[Path | None, typer.Option(help="KITTI folder with poses/")] = None,
+    config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
+) -> None:
+    """Cost with the number of robots: a KITTI sequence cut into 8 stretches, the first N driving at once; per
+    keyframe, the front end, matching and the pose graph, matches per keyframe, CPU per second driven, memory;
+    robots placed right / wrong and aliases among the accepted matches."""
+    from shgm_slam.bench.robots import robots_markdown, run_robots_benchmark
+    from shgm_slam.config import load_config
+
+    sizes = _int_list(fleets, "--fleets")
+    with console.status("starting") as status:
+        results = run_robots_benchmark(out, fleets=sizes, sequence=sequence, cache=cache, seed=seed, memory=memory,
+                                       kitti_root=kitti_root, config=load_config(config),
+                                       progress=lambda msg: status.update(msg))  # fmt: skip
+    print_report(robots_markdown(results))
+    console.print(f"wrote {lit(out / 'robots.json')} and {lit(out / 'robots.md')}")
+
+
 @bench_app.command("distributed")
 @handle_errors
 def bench_distributed(
@@ -990,6 +1018,19 @@ def bench_distributed(
                                            progress=lambda msg: status.update(msg))  # fmt: skip
     print_report(distributed_markdown(result))
     console.print(f"wrote {lit(out / 'distributed.json')} and {lit(out / 'distributed.md')}")
+
+
+def _int_list(text: str, option: str) -> tuple[int, ...]:
+    """Comma-separated integers of ``option`` (e.g. ``--fleets 1,2,4``)."""
+    from shgm_slam.errors import ConfigError
+
+    try:
+        values = tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ConfigError(f"{option} {text!r}: write comma-separated whole numbers, e.g. 1,2,4,8") from None
+    if not values:
+        raise ConfigError(f"{option} {text!r} names no value")
+    return values
 
 
 def _world_seeds(seeds: str) -> tuple[int, ...]:

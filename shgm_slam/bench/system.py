@@ -72,13 +72,15 @@ def _peak_rss_mb(args: list[str]) -> tuple[float, float]:
     return usage.ru_maxrss / 1024.0, wall  # ru_maxrss is in KiB on Linux
 
 
-def peak_rss_runs(out: Path, runs: list[tuple[str, str, str]], progress: Progress) -> dict:
-    """Each ``(label, robot spec NAME=PATH[:a-b], results subfolder)`` run alone (no viewer) in a fresh
-    process: label -> ``{"peak_rss_mb", "wall_s"}``."""
+def peak_rss_runs(out: Path, runs: list[tuple[str, str | list[str], str]], progress: Progress) -> dict:
+    """Each ``(label, robot spec NAME=PATH[:a-b] or a list of them, results subfolder)`` run alone (no viewer)
+    in a fresh process: label -> ``{"peak_rss_mb", "wall_s"}``."""
     mem = {}
     for label, robot, folder in runs:
         progress(f"memory run: {label}")
-        args = ["run", "--robot", robot, "--rerun", "off", "--out", str(Path(out) / folder), "--overwrite"]
+        specs = [robot] if isinstance(robot, str) else list(robot)
+        robot_args = [a for spec in specs for a in ("--robot", spec)]
+        args = ["run", *robot_args, "--rerun", "off", "--out", str(Path(out) / folder), "--overwrite"]
         rss, wall = _peak_rss_mb(args)
         mem[label] = {"peak_rss_mb": round(rss, 1), "wall_s": round(wall, 1)}
     return mem
