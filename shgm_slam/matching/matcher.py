@@ -185,7 +185,7 @@ def match_graphs(
         return MatchResult.failure(reason, len(cands), timings)
 
     tree_a, tree_b = LabelledTree(a.positions_xyz, a.label_ids), LabelledTree(b.positions_xyz, b.label_ids)
-    shifts = shift_vectors(np.asarray(cfg.up_axis))
+    shifts = shift_vectors(np.asarray(cfg.up_axis), cfg.verification_radius_m)
     refined = _refined(np.stack(hypotheses), a, b, tree_a, cfg)
     scored = list(zip(refined, _verify(tree_a, tree_b, np.stack(refined), cfg, shifts), strict=True))
     best, rival = _best_and_rival(scored, b, cfg.verification_radius_m)

@@ -14,7 +14,8 @@ inside the area B observed should find one of B. Each such node is one Bernoulli
   trees along a street are dense, a lone traffic light is not). A uniform density underrates objects
   in rows and repeated templates (street trees and lamps at regular spacing, an intersection's signals
   laid out alike everywhere): they align again under a shift by their spacing. So, given ``shifts_m``
-  (the matcher passes ``shift_vectors``: 8 headings x 6, 10, 14 m), each label's chance is also measured
+  (the matcher passes ``shift_vectors``: 6, 10 and 14 m along enough headings that one runs
+  within the radius of any street's own direction, 16 for a 3 m radius), each label's chance is also measured
   under the hypothesis shifted by each vector (``label_chance``), and the larger p0 counts.
 
 The log likelihood ratio sums ``log(p1 / p0)`` over supported nodes and ``log((1 - p1) / (1 - p0))``
@@ -29,6 +30,7 @@ Labels are folded into a fourth coordinate so that one KD-tree query finds same-
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from itertools import pairwise
@@ -40,6 +42,12 @@ from shgm_slam.arrays import first_indices, unique_first
 
 MAX_PARTNER_PROBABILITY = 0.95
 """Cap of the H1 partner rate estimated from the overlap (generalized likelihood ratio)."""
+
+CHANCE_PRIOR_OBSERVATIONS = 4.0
+"""Weight of the density model in a label's shifted chance rate, in pseudo-observations: the second-best of
+many shifts (48 with a 3 m radius) is lucky on a label of few nodes, so few nodes are judged mostly by
+their density, while a row of many repeats outweighs it (chosen on the tuning seeds: 1, 2, 4, 8 compared
+in the README)."""
 
 _LABEL_GAP_M = 1e6
 """Distance between label layers in the (x, y, z, label) embedding: same-label queries never cross."""
@@ -142,11 +150,33 @@ def _one_to_one(rows_a: np.ndarray, rows_b: np.ndarray, dist: np.ndarray) -> np.
     return keep[first_indices(rows_b[keep])]
 
 
-def shift_vectors(
-    up: np.ndarray, distances_m: tuple[float, ...] = (6.0, 10.0, 14.0), directions: int = 8
-) -> np.ndarray:
-    """(S, 3) horizontal shifts (perpendicular to ``up``): ``directions`` headings times ``distances_m``
-    (read-only; cached, every match of a run uses the same)."""
+def shift_headings(radius_m: float, distances_m: tuple[float, ...]) -> int:
+    """Headings the shifts need so that a shift along a street of *any* heading is among them.
+
+    A row of objects repeats along its street, whatever way the street runs. With ``n`` headings
+    ``pi / n`` apart at most ``pi / n`` (half the spacing ``2 pi / n``) lies between the street and the
+    nearest heading; at distance ``d`` that heading's shift lands ``d sin(pi / n)`` beside the along-street
+    shift, and it measures the row's chance only when that is within ``radius_m``. So
+    ``n >= pi / arcsin(radius_m / d)`` at the farthest distance, rounded up to an even count (a shift and
+    its opposite): 16 for 3 m and 14 m. Fixed 8 headings (45 degrees apart) missed streets running
+    between them by up to 5.4 m at 14 m, and repeated streets at such headings were accepted as aliases.
+
+    Args:
+        radius_m: the verification radius (a partner is within this), metres; > 0.
+        distances_m: shift distances, metres; > 0.
+    """
+    d = max(distances_m)
+    if radius_m >= d:
+        return 4
+    n = math.ceil(math.pi / math.asin(radius_m / d) - 1e-9)
+    return max(4, n + n % 2)
+
+
+def shift_vectors(up: np.ndarray, radius_m: float, distances_m: tuple[float, ...] = (6.0, 10.0, 14.0)) -> np.ndarray:
+    """(S, 3) horizontal shifts (perpendicular to ``up``): ``shift_headings(radius_m, distances_m)``
+    headings, 0 first, times ``distances_m``, metres (read-only; cached, every match of a run uses the
+    same)."""
+    directions = shift_headings(radius_m, tuple(distances_m))
     return _shift_vectors(tuple(np.asarray(up, dtype=np.float64).tolist()), tuple(distances_m), directions)
 
 
@@ -191,8 +221,8 @@ def label_chance(hits: np.ndarray, label_ids: np.ndarray, inside: np.ndarray, pr
     label's chance rate: rows of trees or lamps and repeated templates align again under a shift by
     their spacing, irregular objects do not. A periodic row aligns under both s and -s, so the
     second-best shift counts (the best alone is biased upwards by luck over many shifts). Shrunk
-    towards ``prior`` (the density model, (N,)) by one pseudo-observation, so a label seen once is
-    not judged on one shift.
+    towards ``prior`` (the density model, (N,)) by ``CHANCE_PRIOR_OBSERVATIONS`` pseudo-observations,
+    so a label of few nodes is not judged on its luckiest shifts.
     """
     out = prior.copy()
     rows = np.flatnonzero(inside)
@@ -205,7 +235,8 @@ def label_chance(hits: np.ndarray, label_ids: np.ndarray, inside: np.ndarray, pr
     best = np.sort(per_shift.reshape(num_shifts, num_labels), axis=0)[-2]  # hits of each label under each shift
     size = np.bincount(group, minlength=labels.size)
     p = prior[rows]
-    out[rows] = np.maximum(p, (best[group] + p) / (size[group] + 1.0))
+    m = CHANCE_PRIOR_OBSERVATIONS
+    out[rows] = np.maximum(p, (best[group] + m * p) / (size[group] + m))
     return out
 
 

@@ -11,6 +11,7 @@ from shgm_slam.geometry.se3 import inverse, make_pose, pose_error, rot_z
 from shgm_slam.labels import Label
 from shgm_slam.matching import match_graphs
 from shgm_slam.matching.verification import (
+    CHANCE_PRIOR_OBSERVATIONS,
     LabelledTree,
     _one_to_one,
     label_chance,
@@ -18,6 +19,7 @@ from shgm_slam.matching.verification import (
     nearest_same_label,
     partner_pairs,
     partner_pairs_stack,
+    shift_headings,
     shift_vectors,
     verify_alignment,
     verify_alignments,
@@ -81,6 +83,46 @@ def test_repeated_street_alias_is_rejected(seed):
     assert dt < 5.0 and dr < 2.0
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_repeated_street_alias_between_the_shift_headings_is_rejected(seed):
+    """The same two streets, running 22.5 degrees off the x axis in A's frame (halfway between two of
+    8 headings 45 degrees apart, the worst case of a fixed 8): the rows' chance must still be measured
+    along the street, and the alias rejected; the street seen twice is still accepted."""
+    rng = np.random.default_rng(seed)
+    T_world_street = make_pose(rot_z(np.pi / 8), [0.0, 0.0, 0.0])
+    street_1, street_2 = _street(rng), _street(rng)
+    street_1 = (street_1[0] @ T_world_street[:3, :3].T, street_1[1])
+    street_2 = (street_2[0] @ T_world_street[:3, :3].T, street_2[1])
+    a, _ = _robot(*street_1, rng, 0.3, 0.5, np.eye(4))
+    T_b_world = _random_pose_z(rng)
+    b_alias, _ = _robot(*street_2, rng, 0.3, 0.5, T_b_world, 100_000)
+    r = match_graphs(a, b_alias, DescriptorConfig(), _cfg())
+    assert not r.success, f"alias accepted: {r.num_inliers} partners, llr {r.llr:.1f} > {r.llr_threshold:.1f}"
+    b_true, _ = _robot(*street_1, rng, 0.3, 0.5, T_b_world, 100_000)
+    r = match_graphs(a, b_true, DescriptorConfig(), _cfg())
+    assert r.success, r.reason
+    dt, dr = pose_error(r.T_a_b, inverse(T_b_world))
+    assert dt < 5.0 and dr < 2.0
+
+
+@pytest.mark.parametrize("radius_m", [1.0, 2.0, 3.0, 5.0])
+def test_some_shift_runs_along_a_street_of_any_heading(radius_m):
+    """Whatever the street's heading, at every shift distance one shift lands within the radius of the
+    along-street shift (so a row repeating along the street is measured by chance)."""
+    distances = (6.0, 10.0, 14.0)
+    shifts = shift_vectors(np.array(UP_Z), radius_m, distances)
+    n = shift_headings(radius_m, distances)
+    assert shifts.shape == (n * len(distances), 3) and n % 2 == 0
+    assert not shifts.flags.writeable and np.allclose(shifts[:, 2], 0.0)
+    theta = np.linspace(0.0, 2.0 * np.pi, 721)
+    for d in distances:
+        along = d * np.column_stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)])
+        gap = np.linalg.norm(along[:, None] - shifts[None], axis=2).min(axis=1)
+        assert gap.max() <= radius_m + 1e-9
+    assert shift_headings(3.0, distances) == 16  # 8 (45 degrees apart) missed by up to 5.4 m at 14 m
+    assert shift_headings(2.0 * 14.0, distances) == 4
+
+
 def _sparse_area(rng: np.random.Generator, num: int = 55):
     """Irregular map-class objects in a 150 x 50 m band (z up)."""
     pos = np.column_stack([rng.uniform(0, 150, num), rng.uniform(-25, 25, num), rng.uniform(1.0, 8.0, num)])
@@ -140,7 +182,8 @@ def _label_chance_per_label(hits, label_ids, inside, prior):
     for label in np.unique(label_ids[inside]):
         rows = np.flatnonzero(inside & (label_ids == label))
         best = np.sort(hits[:, rows].sum(axis=1))[-2]
-        out[rows] = np.maximum(prior[rows], (best + prior[rows]) / (rows.size + 1.0))
+        m = CHANCE_PRIOR_OBSERVATIONS
+        out[rows] = np.maximum(prior[rows], (best + m * prior[rows]) / (rows.size + m))
     return out
 
 
@@ -179,7 +222,7 @@ def test_verifying_a_stack_equals_verifying_one_hypothesis_at_a_time():
     tree_a, tree_b = LabelledTree(pos_a, lab_a), LabelledTree(pos_b, lab_b)
     Ts = np.stack([make_pose(rot_z(0.1 * k), [2.0 * k, -k, 0.0]) for k in range(4)])
     args = dict(radius_m=3.0, coverage_m=10.0, density_radius_m=15.0, partner_probability=0.4,
-                shifts_m=shift_vectors(np.array([0.0, 0.0, 1.0])))  # fmt: skip
+                shifts_m=shift_vectors(np.array([0.0, 0.0, 1.0]), 3.0))  # fmt: skip
     for v, T in zip(verify_alignments(tree_a, tree_b, Ts, **args), Ts, strict=True):
         one = verify_alignment(tree_a, tree_b, T, **args)
         assert (v.support, v.overlap_a, v.overlap_b, v.contradictions) == (
