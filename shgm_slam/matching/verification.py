@@ -49,6 +49,9 @@ many shifts (48 with a 3 m radius) is lucky on a label of few nodes, so few node
 their density, while a row of many repeats outweighs it (chosen on the tuning seeds: 1, 2, 4, 8 compared
 in the README)."""
 
+MAX_SHIFT_HEADINGS = 64
+"""Most shift headings ``shift_headings`` gives (a 3 m radius needs 16)."""
+
 _LABEL_GAP_M = 1e6
 """Distance between label layers in the (x, y, z, label) embedding: same-label queries never cross."""
 
@@ -162,14 +165,16 @@ def shift_headings(radius_m: float, distances_m: tuple[float, ...]) -> int:
     between them by up to 5.4 m at 14 m, and repeated streets at such headings were accepted as aliases.
 
     Args:
-        radius_m: the verification radius (a partner is within this), metres; > 0.
+        radius_m: the verification radius (a partner is within this), metres; > 0 (below ~0.7 m the count
+            is capped at ``MAX_SHIFT_HEADINGS``: the cost grows with it, and such a radius is finer than
+            any object's centroid).
         distances_m: shift distances, metres; > 0.
     """
     d = max(distances_m)
     if radius_m >= d:
         return 4
     n = math.ceil(math.pi / math.asin(radius_m / d) - 1e-9)
-    return max(4, n + n % 2)
+    return min(MAX_SHIFT_HEADINGS, max(4, n + n % 2))
 
 
 def shift_vectors(up: np.ndarray, radius_m: float, distances_m: tuple[float, ...] = (6.0, 10.0, 14.0)) -> np.ndarray:

@@ -12,6 +12,7 @@ from shgm_slam.labels import Label
 from shgm_slam.matching import match_graphs
 from shgm_slam.matching.verification import (
     CHANCE_PRIOR_OBSERVATIONS,
+    MAX_SHIFT_HEADINGS,
     LabelledTree,
     _one_to_one,
     label_chance,
@@ -121,6 +122,7 @@ def test_some_shift_runs_along_a_street_of_any_heading(radius_m):
         assert gap.max() <= radius_m + 1e-9
     assert shift_headings(3.0, distances) == 16  # 8 (45 degrees apart) missed by up to 5.4 m at 14 m
     assert shift_headings(2.0 * 14.0, distances) == 4
+    assert shift_headings(1e-3, distances) == MAX_SHIFT_HEADINGS  # a needle radius does not explode the cost
 
 
 def _sparse_area(rng: np.random.Generator, num: int = 55):
