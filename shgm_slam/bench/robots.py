@@ -23,7 +23,6 @@ alias) come from the run's journal. Nothing here prints; the CLI renders the dic
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +30,7 @@ from scipy.spatial import cKDTree
 
 from shgm_slam.bench import heldout
 from shgm_slam.bench.match_truth import judge_matches
+from shgm_slam.bench.scale import StepCost
 from shgm_slam.bench.system import _world, peak_rss_runs, write_report
 from shgm_slam.config import ShgmConfig
 from shgm_slam.errors import ConfigError
@@ -56,34 +56,11 @@ FLEETS = (1, 2, 4, 8)
 """Fleet sizes run by default (1: the cost of one robot without any partner to match)."""
 
 
-@dataclass
-class FleetCost:
-    """Sums over every step of one fleet's run (all robots)."""
-
-    frames: int = 0
-    keyframes: int = 0
-    front_end_ms: float = 0.0
-    load_ms: float = 0.0
-    match_ms: float = 0.0
-    backend_ms: float = 0.0
-    server_ms: float = 0.0
-    step_ms: float = 0.0
-    cpu_ms: float = 0.0
-    matches: int = 0
-    match_nodes: list[int] = field(default_factory=list)
+class FleetCost(StepCost):
+    """Sums over every step of one fleet's run (all robots); a ``run_slam`` ``on_frame`` callback."""
 
     def __call__(self, s: FrameStats) -> None:
-        self.frames += 1
-        self.keyframes += s.keyframe
-        self.front_end_ms += s.front_end_ms
-        self.load_ms += s.load_ms
-        self.match_ms += s.match_ms
-        self.backend_ms += s.backend_ms
-        self.server_ms += s.server_ms
-        self.step_ms += s.step_ms
-        self.cpu_ms += s.step_cpu_ms
-        self.matches += len(s.matches)
-        self.match_nodes += [m.nodes_a + m.nodes_b for m in s.matches]
+        self.add(s)
 
     def row(self, robots: int, driven_s: float) -> dict:
         """Per-keyframe costs (ms) of the fleet; ``driven_s`` the seconds the fleet drove (its longest robot)."""

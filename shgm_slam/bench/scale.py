@@ -36,8 +36,9 @@ KM_M = 1000.0
 
 
 @dataclass
-class _Bin:
-    """Sums over the steps of the long robot within one kilometre."""
+class StepCost:
+    """Sums of ``FrameStats`` over a set of steps (a kilometre of one robot here, a whole fleet in
+    ``bench robots``)."""
 
     keyframes: int = 0
     frames: int = 0
@@ -52,6 +53,28 @@ class _Bin:
     correction_ms: float = 0.0
     matches: int = 0
     match_nodes: list[int] = field(default_factory=list)
+
+    def add(self, s: FrameStats) -> None:
+        """Count one step."""
+        self.frames += 1
+        self.keyframes += s.keyframe
+        self.front_end_ms += s.front_end_ms
+        self.load_ms += s.load_ms
+        self.match_ms += s.match_ms
+        self.backend_ms += s.backend_ms
+        self.server_ms += s.server_ms
+        self.step_ms += s.step_ms
+        self.cpu_ms += s.step_cpu_ms
+        self.write_ms += s.write_ms
+        self.correction_ms += s.correction_ms
+        self.matches += len(s.matches)
+        self.match_nodes += [m.nodes_a + m.nodes_b for m in s.matches]
+
+
+@dataclass
+class _Bin(StepCost):
+    """Sums over the steps of the long robot within one kilometre."""
+
     rss_end_mb: float = 0.0
 
 
@@ -82,19 +105,7 @@ class _Recorder:
         else:
             b = self.bins[min(int(self.path_m[s.frame_index] // KM_M), len(self.bins) - 1)]
             b.rss_end_mb = _rss_mb()
-        b.frames += 1
-        b.keyframes += s.keyframe
-        b.front_end_ms += s.front_end_ms
-        b.load_ms += s.load_ms
-        b.match_ms += s.match_ms
-        b.backend_ms += s.backend_ms
-        b.server_ms += s.server_ms
-        b.step_ms += s.step_ms
-        b.cpu_ms += s.step_cpu_ms
-        b.write_ms += s.write_ms
-        b.correction_ms += s.correction_ms
-        b.matches += len(s.matches)
-        b.match_nodes += [m.nodes_a + m.nodes_b for m in s.matches]
+        b.add(s)
 
 
 def _bin_row(b: _Bin, km_from: float, km_to: float) -> dict:

@@ -157,12 +157,12 @@ def shift_headings(radius_m: float, distances_m: tuple[float, ...]) -> int:
     """Headings the shifts need so that a shift along a street of *any* heading is among them.
 
     A row of objects repeats along its street, whatever way the street runs. With ``n`` headings
-    ``pi / n`` apart at most ``pi / n`` (half the spacing ``2 pi / n``) lies between the street and the
-    nearest heading; at distance ``d`` that heading's shift lands ``d sin(pi / n)`` beside the along-street
-    shift, and it measures the row's chance only when that is within ``radius_m``. So
-    ``n >= pi / arcsin(radius_m / d)`` at the farthest distance, rounded up to an even count (a shift and
-    its opposite): 16 for 3 m and 14 m. Fixed 8 headings (45 degrees apart) missed streets running
-    between them by up to 5.4 m at 14 m, and repeated streets at such headings were accepted as aliases.
+    ``2 pi / n`` apart, at most ``pi / n`` lies between the street and the nearest heading; at distance
+    ``d`` that heading's shift lands ``d sin(pi / n)`` beside the along-street shift, and it measures the
+    row's chance only when that is within ``radius_m``. So ``n >= pi / arcsin(radius_m / d)`` at the
+    farthest distance, rounded up to an even count (a shift and its opposite): 16 for 3 m and 14 m.
+    Fixed 8 headings (45 degrees apart) missed streets running between them by up to 5.4 m at 14 m, and
+    repeated streets at such headings were accepted as aliases.
 
     Args:
         radius_m: the verification radius (a partner is within this), metres; > 0 (below ~0.7 m the count
