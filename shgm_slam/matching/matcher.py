@@ -27,6 +27,7 @@ from shgm_slam.matching.verification import (
     LabelledTree,
     Verification,
     partner_pairs_stack,
+    row_steps,
     shift_vectors,
     support_counts,
     verify_alignments,
@@ -185,9 +186,9 @@ def match_graphs(
         return MatchResult.failure(reason, len(cands), timings)
 
     tree_a, tree_b = LabelledTree(a.positions_xyz, a.label_ids), LabelledTree(b.positions_xyz, b.label_ids)
-    shifts = shift_vectors(np.asarray(cfg.up_axis), cfg.verification_radius_m)
+    shifts, shift_labels = _shifts(a, cfg)
     refined = _refined(np.stack(hypotheses), a, b, tree_a, cfg)
-    scored = list(zip(refined, _verify(tree_a, tree_b, np.stack(refined), cfg, shifts), strict=True))
+    scored = list(zip(refined, _verify(tree_a, tree_b, np.stack(refined), cfg, shifts, shift_labels), strict=True))
     best, rival = _best_and_rival(scored, b, cfg.verification_radius_m)
     T, v = best
     rows_a, rows_b = v.pairs[:, 0], v.pairs[:, 1]
@@ -224,12 +225,24 @@ def match_graphs(
     )
 
 
+def _shifts(a: GraphArrays, cfg: MatchingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(S, 3) shifts of the chance model in A's frame and (S,) the label each measures (-1: every label):
+    ``shift_vectors`` along every heading, then the repeats of A's own rows beyond their reach (``row_steps``)."""
+    up, radius = np.asarray(cfg.up_axis, dtype=np.float64), cfg.verification_radius_m
+    shifts = shift_vectors(up, radius)
+    reach = float(np.linalg.norm(shifts, axis=1).max()) + radius
+    steps, owners = row_steps(a.positions_xyz, a.label_ids, up, radius_m=radius, longer_than_m=reach)
+    return np.vstack([shifts, steps]), np.concatenate([np.full(len(shifts), -1, dtype=np.int64), owners])
+
+
 def _verify(
-    tree_a: LabelledTree, tree_b: LabelledTree, T_stack: np.ndarray, cfg: MatchingConfig, shifts_m: np.ndarray
+    tree_a: LabelledTree, tree_b: LabelledTree, T_stack: np.ndarray, cfg: MatchingConfig, shifts_m: np.ndarray,
+    shift_labels: np.ndarray,
 ) -> list[Verification]:
     return verify_alignments(
         tree_a, tree_b, T_stack, radius_m=cfg.verification_radius_m, coverage_m=cfg.coverage_radius_m,
         density_radius_m=cfg.density_radius_m, partner_probability=cfg.partner_probability, shifts_m=shifts_m,
+        shift_labels=shift_labels,
     )  # fmt: skip
 
 

@@ -12,7 +12,9 @@ from shgm_slam.labels import Label
 from shgm_slam.matching import match_graphs
 from shgm_slam.matching.verification import (
     CHANCE_PRIOR_OBSERVATIONS,
+    MAX_ROW_STEP_M,
     MAX_SHIFT_HEADINGS,
+    MIN_ROW_NODES,
     LabelledTree,
     _one_to_one,
     label_chance,
@@ -20,6 +22,7 @@ from shgm_slam.matching.verification import (
     nearest_same_label,
     partner_pairs,
     partner_pairs_stack,
+    row_steps,
     shift_headings,
     shift_vectors,
     verify_alignment,
@@ -125,6 +128,65 @@ def test_some_shift_runs_along_a_street_of_any_heading(radius_m):
     assert shift_headings(1e-3, distances) == MAX_SHIFT_HEADINGS  # a needle radius does not explode the cost
 
 
+def _lamp_street(rng: np.random.Generator, length_m: float = 240.0, surroundings: int = 12, lamp_m: float = 25.0):
+    """A straight street along x, z up: trees every 10 m on both sides and lamps every ``lamp_m`` on one side
+    (perfectly regular, the same on every street; 25 m is beyond the fixed shifts' 14 + 3 m), plus
+    ``surroundings`` irregular objects, different on every street."""
+    xs = np.arange(5.0, length_m, 10.0)
+    trees = [np.column_stack([xs, np.full(xs.size, side), np.full(xs.size, 4.0)]) for side in (-7.5, 7.5)]
+    xl = np.arange(12.5, length_m, lamp_m)
+    lamps = np.column_stack([xl, np.full(xl.size, -6.0), np.full(xl.size, 4.0)])
+    x = rng.uniform(0, length_m, surroundings)
+    y = rng.choice([-1.0, 1.0], surroundings) * rng.uniform(9.0, 30.0, surroundings)
+    other = np.column_stack([x, y, rng.uniform(2.0, 10.0, surroundings)])
+    labels = np.concatenate([np.full(2 * xs.size, Label.VEGETATION), np.full(xl.size, Label.POLE),
+                             rng.choice(SURROUNDINGS, surroundings)])  # fmt: skip
+    return np.vstack([*trees, lamps, other]), labels.astype(np.int64)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_alias_of_a_row_repeating_beyond_the_shifts_is_rejected(seed):
+    """Two streets with the same tree rows and the same lamp row, lamps 25 m apart, few other objects: the
+    trees are at chance under the 10 m shifts, but the lamp row matched on the other street looked like a
+    dozen nats of evidence until its own 25 m repeat measured its chance (accepted for all three seeds
+    before). The street seen twice is still accepted."""
+    rng = np.random.default_rng(seed)
+    street_1, street_2 = _lamp_street(rng), _lamp_street(rng)
+    a, _ = _robot(*street_1, rng, 0.3, 0.5, np.eye(4))
+    T_b_world = _random_pose_z(rng)
+    b_alias, _ = _robot(*street_2, rng, 0.3, 0.5, T_b_world, 100_000)
+    r = match_graphs(a, b_alias, DescriptorConfig(), _cfg())
+    assert not r.success, f"alias accepted: {r.num_inliers} partners, llr {r.llr:.1f} > {r.llr_threshold:.1f}"
+    b_true, _ = _robot(*street_1, rng, 0.3, 0.5, T_b_world, 100_000)
+    r = match_graphs(a, b_true, DescriptorConfig(), _cfg())
+    assert r.success, r.reason
+    dt, dr = pose_error(r.T_a_b, inverse(T_b_world))
+    assert dt < 5.0 and dr < 2.0
+
+
+def test_row_steps_are_the_repeats_many_nodes_share():
+    """A lamp row every 25 m gives its +-25 m step along the row (horizontal, its label); trees every 10 m are
+    within the fixed shifts' reach and give none; scattered signs give none (no step shared by
+    ``MIN_ROW_NODES``); a row of three is not a row; the frame's vertical is dropped from every step."""
+    rng = np.random.default_rng(0)
+    heading = np.array([np.cos(0.3), np.sin(0.3), 0.0])
+    lamps = np.arange(8)[:, None] * 25.0 * heading + [0.0, -6.0, 0.0] + np.c_[np.zeros((8, 2)), rng.uniform(3, 5, 8)]
+    trees = np.arange(20)[:, None] * 10.0 * heading + [0.0, 7.0, 4.0]
+    signs = np.column_stack([rng.uniform(0, 200, 6), rng.uniform(-60, 60, 6), np.full(6, 2.0)])
+    three = np.arange(3)[:, None] * 30.0 * heading + [0.0, 40.0, 1.0]
+    pos = np.vstack([lamps, trees, signs, three])
+    labels = np.concatenate([np.full(8, Label.POLE), np.full(20, Label.VEGETATION), np.full(6, Label.TRAFFIC_SIGN),
+                             np.full(3, Label.TRAFFIC_LIGHT)])  # fmt: skip
+    steps, owners = row_steps(pos, labels, np.array(UP_Z), radius_m=3.0, longer_than_m=17.0)
+    assert len(steps) >= 2 and set(owners.tolist()) == {int(Label.POLE)}
+    assert np.allclose(steps[:, 2], 0.0)
+    assert np.allclose(np.linalg.norm(steps, axis=1), 25.0, atol=1.0)
+    assert np.allclose(np.abs(steps @ heading), 25.0, atol=1.0)
+    none, _ = row_steps(pos, labels, np.array(UP_Z), radius_m=3.0, longer_than_m=17.0, max_m=20.0)
+    assert none.shape == (0, 3)
+    assert MIN_ROW_NODES > 3 and MAX_ROW_STEP_M >= 25.0
+
+
 def _sparse_area(rng: np.random.Generator, num: int = 55):
     """Irregular map-class objects in a 150 x 50 m band (z up)."""
     pos = np.column_stack([rng.uniform(0, 150, num), rng.uniform(-25, 25, num), rng.uniform(1.0, 8.0, num)])
@@ -223,8 +285,10 @@ def test_verifying_a_stack_equals_verifying_one_hypothesis_at_a_time():
     pos_b, lab_b = pos_a[20:] + rng.normal(0, 0.8, (50, 3)), lab_a[20:]
     tree_a, tree_b = LabelledTree(pos_a, lab_a), LabelledTree(pos_b, lab_b)
     Ts = np.stack([make_pose(rot_z(0.1 * k), [2.0 * k, -k, 0.0]) for k in range(4)])
+    shifts = shift_vectors(np.array([0.0, 0.0, 1.0]), 3.0)
+    row = np.array([[25.0, 0.0, 0.0], [-25.0, 0.0, 0.0], [0.0, 20.0, 0.0]])  # repeats of labels 1, 1 and 2
     args = dict(radius_m=3.0, coverage_m=10.0, density_radius_m=15.0, partner_probability=0.4,
-                shifts_m=shift_vectors(np.array([0.0, 0.0, 1.0]), 3.0))  # fmt: skip
+                shifts_m=np.vstack([shifts, row]), shift_labels=np.r_[np.full(len(shifts), -1), 1, 1, 2])  # fmt: skip
     for v, T in zip(verify_alignments(tree_a, tree_b, Ts, **args), Ts, strict=True):
         one = verify_alignment(tree_a, tree_b, T, **args)
         assert (v.support, v.overlap_a, v.overlap_b, v.contradictions) == (
