@@ -18,9 +18,10 @@ inside the area B observed should find one of B. Each such node is one Bernoulli
   within the radius of any street's own direction, 16 for a 3 m radius), each label's chance is also measured
   under the hypothesis shifted by each vector (``label_chance``), and the larger p0 counts. Rows that repeat
   farther apart than those shifts reach (street lamps every 25-40 m) are measured under their own repeat:
-  ``row_steps`` finds the steps many nodes of one label share in A's graph, and each such step shifts only
-  its own label (``shift_labels``). Without it, one lamp row matched on another street carried a whole alias
-  (6 of 8 poles partnered against a density chance of 3 %: +14 nats, every other label at chance).
+  ``row_steps`` finds the steps many nodes of one label share in either graph (B's turned into A's frame
+  by the hypothesis), and each such step shifts only its own label (``shift_labels``). Without it, one
+  lamp row matched on another street carried a whole alias (6 of 8 poles partnered against a density
+  chance of 3 %: +14 nats, every other label at chance).
 
 The log likelihood ratio sums ``log(p1 / p0)`` over supported nodes and ``log((1 - p1) / (1 - p0))``
 over contradicting ones (inside the other's area, no partner). An alias explains the repeated street
@@ -421,7 +422,8 @@ def verify_alignments(
     shift_labels: np.ndarray | None = None,
 ) -> list[Verification]:
     """``verify_alignment`` of each of (H, 4, 4) hypotheses; the overlap queries of all hypotheses are
-    stacked into one query per tree (a point's nearest neighbour does not depend on the other points)."""
+    stacked into one query per tree (a point's nearest neighbour does not depend on the other points).
+    ``shifts_m`` may also be (H, S, 3), a shift set per hypothesis (B's own rows turn with it)."""
     h, n_a, n_b = len(T_stack), len(tree_a), len(tree_b)
     pb = [transform(T, tree_b.positions_xyz) for T in T_stack]
     pa_in_b = [(tree_a.positions_xyz - T[:3, 3]) @ T[:3, :3] for T in T_stack]  # B's trees are reused
@@ -450,7 +452,13 @@ def verify_alignments(
     hits_b = hits_a = None
     if shifts_m is not None:
         offsets = tree_a.positions_xyz[j_a - hyp * n_a] - np.concatenate(pb)[i_b]  # (P, 3) in A's frame
-        hits_b, hits_a = _shifted_hits_both(offsets, i_b, j_a, h * n_b, h * n_a, shifts_m, radius_m)
+        per_hypothesis = np.broadcast_to(shifts_m, (h, *np.shape(shifts_m)[-2:]))
+        hits_b = np.zeros((per_hypothesis.shape[1], h * n_b), dtype=bool)
+        hits_a = np.zeros((per_hypothesis.shape[1], h * n_a), dtype=bool)
+        for k, (i, j) in enumerate(pairwise(np.concatenate([[0], np.cumsum([x.size for x in near])]).tolist())):
+            hb, ha = _shifted_hits_both(offsets[i:j], i_b[i:j], j_a[i:j], h * n_b, h * n_a, per_hypothesis[k], radius_m)
+            hits_b |= hb
+            hits_a |= ha
         if shift_labels is not None:  # a row's repeat measures its own label only
             hits_b &= np.tile(_measures(shift_labels, tree_b.label_ids), (1, h))
             hits_a &= np.tile(_measures(shift_labels, tree_a.label_ids), (1, h))

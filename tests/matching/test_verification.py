@@ -297,6 +297,24 @@ def test_verifying_a_stack_equals_verifying_one_hypothesis_at_a_time():
         np.testing.assert_array_equal(v.pairs, one.pairs)
 
 
+def test_a_shift_set_per_hypothesis_equals_verifying_each_with_its_own():
+    """(H, S, 3) shifts (B's rows turned by each hypothesis) give each hypothesis what verifying it alone with
+    its own shift set gives."""
+    rng = np.random.default_rng(8)
+    pos_a, lab_a = rng.uniform(0, 80, (70, 3)) * [1.0, 1.0, 0.1], rng.integers(0, 4, 70)
+    pos_b, lab_b = pos_a[20:] + rng.normal(0, 0.8, (50, 3)), lab_a[20:]
+    tree_a, tree_b = LabelledTree(pos_a, lab_a), LabelledTree(pos_b, lab_b)
+    Ts = np.stack([make_pose(rot_z(0.2 * k), [1.5 * k, k, 0.0]) for k in range(3)])
+    base = shift_vectors(np.array([0.0, 0.0, 1.0]), 3.0)
+    row_b = np.array([[22.0, 0.0, 0.0], [-22.0, 0.0, 0.0]])
+    stack = np.stack([np.vstack([base, row_b @ T[:3, :3].T]) for T in Ts])
+    labels = np.r_[np.full(len(base), -1), 2, 2]
+    args = dict(radius_m=3.0, coverage_m=10.0, density_radius_m=15.0, partner_probability=0.4)
+    for k, v in enumerate(verify_alignments(tree_a, tree_b, Ts, shifts_m=stack, shift_labels=labels, **args)):
+        one = verify_alignment(tree_a, tree_b, Ts[k], shifts_m=stack[k], shift_labels=labels, **args)
+        assert v.llr == one.llr and v.expected_chance == one.expected_chance and v.support == one.support
+
+
 def test_map_stack_has_the_bits_of_the_einsum_on_the_strided_view():
     rng = np.random.default_rng(6)
     for _ in range(200):
