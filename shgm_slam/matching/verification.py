@@ -237,24 +237,25 @@ def row_steps(
     u = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     positions_xyz = np.asarray(positions_xyz, dtype=np.float64)
     label_ids = np.asarray(label_ids, dtype=np.int64)
-    steps, owners = [np.zeros((0, 3))], [np.zeros(0, dtype=np.int64)]
-    for label in np.unique(label_ids):
-        p = positions_xyz[label_ids == label]
-        if len(p) < MIN_ROW_NODES:
-            continue
-        step = p[cKDTree(p).query(p, k=2)[1][:, 1]] - p
-        step -= np.outer(step @ u, u)
-        length = np.linalg.norm(step, axis=1)
-        step = step[(length > longer_than_m) & (length <= max_m)]
-        if not len(step):
-            continue
-        both = np.vstack([step, -step])  # a node stepping by -v shares the row of one stepping by v
-        shared = cKDTree(both).query_ball_point(both, radius_m, return_length=True) >= MIN_ROW_NODES
-        _, first = np.unique(np.round(both[shared] / (radius_m / 3.0)), axis=0, return_index=True)
-        kept = both[shared][np.sort(first)]
-        steps.append(kept)
-        owners.append(np.full(len(kept), label, dtype=np.int64))
-    return np.concatenate(steps), np.concatenate(owners)
+    empty = (np.zeros((0, 3)), np.zeros(0, dtype=np.int64))
+    if len(label_ids) < MIN_ROW_NODES:
+        return empty
+    # every node's nearest same-label node in one query (labels far apart in the embedding; a lone node's
+    # nearest is another label's, a step beyond any cap)
+    nearest = cKDTree(embed(positions_xyz, label_ids)).query(embed(positions_xyz, label_ids), k=2)[1][:, 1]
+    step = positions_xyz[nearest] - positions_xyz
+    step -= np.outer(step @ u, u)
+    length = np.linalg.norm(step, axis=1)
+    keep = (length > longer_than_m) & (length <= max_m) & (label_ids[nearest] == label_ids)
+    if not keep.any():
+        return empty
+    both = np.vstack([step[keep], -step[keep]])  # a node stepping by -v shares the row of one stepping by v
+    labels = np.concatenate([label_ids[keep], label_ids[keep]])
+    shared = cKDTree(embed(both, labels)).query_ball_point(embed(both, labels), radius_m, return_length=True)
+    both, labels = both[shared >= MIN_ROW_NODES], labels[shared >= MIN_ROW_NODES]
+    cells = np.column_stack([labels, np.round(both / (radius_m / 3.0))])
+    first = np.sort(np.unique(cells, axis=0, return_index=True)[1])
+    return both[first], labels[first]
 
 
 def shifted_hits(
