@@ -431,8 +431,8 @@ def verify_alignments(
     inside_b = _within(tree_a.any, pb, coverage_m).reshape(h, n_b)
     inside_a = _within(tree_b.any, pa_in_b, coverage_m).reshape(h, n_a)
     reach = density_radius_m
-    if shifts_m is not None and len(shifts_m):
-        reach = max(reach, float(np.linalg.norm(shifts_m, axis=1).max()) + radius_m)
+    if shifts_m is not None and np.size(shifts_m):
+        reach = max(reach, float(np.linalg.norm(shifts_m, axis=-1).max()) + radius_m)
     near = [
         cKDTree(embed(p, tree_b.label_ids)).sparse_distance_matrix(tree_a.same, reach, output_type="ndarray")
         for p in pb
