@@ -187,7 +187,7 @@ def match_graphs(
 
     tree_a, tree_b = LabelledTree(a.positions_xyz, a.label_ids), LabelledTree(b.positions_xyz, b.label_ids)
     refined = np.stack(_refined(np.stack(hypotheses), a, b, tree_a, cfg))
-    shifts, shift_labels = _shifts(a, b, refined, cfg)
+    shifts, shift_labels = _shifts(tree_a, tree_b, refined, cfg)
     scored = list(zip(refined, _verify(tree_a, tree_b, refined, cfg, shifts, shift_labels), strict=True))
     best, rival = _best_and_rival(scored, b, cfg.verification_radius_m)
     T, v = best
@@ -225,15 +225,17 @@ def match_graphs(
     )
 
 
-def _shifts(a: GraphArrays, b: GraphArrays, T_stack: np.ndarray, cfg: MatchingConfig) -> tuple[np.ndarray, np.ndarray]:
+def _shifts(
+    tree_a: LabelledTree, tree_b: LabelledTree, T_stack: np.ndarray, cfg: MatchingConfig
+) -> tuple[np.ndarray, np.ndarray]:
     """(H, S, 3) shifts of the chance model in A's frame for each of (H, 4, 4) hypotheses, and (S,) the label
     each measures (-1: every label): ``shift_vectors`` along every heading, then the repeats of both graphs'
     own rows beyond their reach (``row_steps``; B's turned into A's frame by each hypothesis)."""
     up, radius = np.asarray(cfg.up_axis, dtype=np.float64), cfg.verification_radius_m
     shifts = shift_vectors(up, radius)
     reach = float(np.linalg.norm(shifts, axis=1).max()) + radius
-    steps_a, owners_a = row_steps(a.positions_xyz, a.label_ids, up, radius_m=radius, longer_than_m=reach)
-    steps_b, owners_b = row_steps(b.positions_xyz, b.label_ids, up, radius_m=radius, longer_than_m=reach)
+    steps_a, owners_a = row_steps(tree_a, up, radius_m=radius, longer_than_m=reach)
+    steps_b, owners_b = row_steps(tree_b, up, radius_m=radius, longer_than_m=reach)
     fixed = np.vstack([shifts, steps_a])
     turned = np.einsum("hij,sj->hsi", T_stack[:, :3, :3], steps_b)  # B's rows in A's frame, per hypothesis
     stack = np.concatenate([np.broadcast_to(fixed, (len(T_stack), *fixed.shape)), turned], axis=1)

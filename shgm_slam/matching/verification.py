@@ -214,8 +214,7 @@ def _shift_vectors(up: tuple[float, float, float], distances_m: tuple[float, ...
 
 
 def row_steps(
-    positions_xyz: np.ndarray, label_ids: np.ndarray, up: np.ndarray, *, radius_m: float, longer_than_m: float,
-    max_m: float = MAX_ROW_STEP_M,
+    tree: LabelledTree, up: np.ndarray, *, radius_m: float, longer_than_m: float, max_m: float = MAX_ROW_STEP_M
 ) -> tuple[np.ndarray, np.ndarray]:
     """The repeats of a graph's own rows that the fixed shifts do not reach: (K, 3) horizontal step vectors
     (metres, in the graph's frame) and (K,) int64 the label each belongs to.
@@ -227,22 +226,20 @@ def row_steps(
     most ``max_m`` are kept; steps within a third of the radius of each other count once.
 
     Args:
-        positions_xyz: (N, 3) node positions, metres.
-        label_ids: (N,) train ids.
+        tree: the graph's nodes (its cached same-label tree finds each node's nearest).
         up: (3,) vertical axis of the frame (any length > 0).
         radius_m: the verification radius, metres.
         longer_than_m: keep steps longer than this, metres.
         max_m: keep steps of at most this, metres.
     """
     u = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    positions_xyz = np.asarray(positions_xyz, dtype=np.float64)
-    label_ids = np.asarray(label_ids, dtype=np.int64)
+    positions_xyz, label_ids = tree.positions_xyz, tree.label_ids
     empty = (np.zeros((0, 3)), np.zeros(0, dtype=np.int64))
-    if len(label_ids) < MIN_ROW_NODES:
+    if len(tree) < MIN_ROW_NODES:
         return empty
     # every node's nearest same-label node in one query (labels far apart in the embedding; a lone node's
     # nearest is another label's, a step beyond any cap)
-    nearest = cKDTree(embed(positions_xyz, label_ids)).query(embed(positions_xyz, label_ids), k=2)[1][:, 1]
+    nearest = tree.same.query(tree.same.data, k=2)[1][:, 1]
     step = positions_xyz[nearest] - positions_xyz
     step -= np.outer(step @ u, u)
     length = np.linalg.norm(step, axis=1)
@@ -439,7 +436,8 @@ def verify_alignments(
     ]
     # the hypotheses' graphs side by side: B's node i of hypothesis k is k * N_b + i (A's likewise), so
     # every step below works on all hypotheses at once and, per hypothesis, as on one
-    hyp = np.repeat(np.arange(h), [x.size for x in near])
+    pair_counts = [x.size for x in near]
+    hyp = np.repeat(np.arange(h), pair_counts)
     i_b = np.concatenate([x["i"] for x in near]).astype(np.int64) + hyp * n_b
     j_a = np.concatenate([x["j"] for x in near]).astype(np.int64) + hyp * n_a
     d = np.concatenate([x["v"] for x in near])
@@ -456,7 +454,7 @@ def verify_alignments(
         per_hypothesis = np.broadcast_to(shifts_m, (h, *np.shape(shifts_m)[-2:]))
         hits_b = np.zeros((per_hypothesis.shape[1], h * n_b), dtype=bool)
         hits_a = np.zeros((per_hypothesis.shape[1], h * n_a), dtype=bool)
-        for k, (i, j) in enumerate(pairwise(np.concatenate([[0], np.cumsum([x.size for x in near])]).tolist())):
+        for k, (i, j) in enumerate(pairwise(np.concatenate([[0], np.cumsum(pair_counts)]).tolist())):
             hb, ha = _shifted_hits_both(offsets[i:j], i_b[i:j], j_a[i:j], h * n_b, h * n_a, per_hypothesis[k], radius_m)
             hits_b |= hb
             hits_a |= ha
