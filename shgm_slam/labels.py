@@ -61,6 +61,14 @@ DEFAULT_GRAPH_LABELS: tuple[int, ...] = tuple(
 )
 """Train ids that become graph nodes by default: everything except sky, person and rider."""
 
+FLAT_GROUND_LABELS: tuple[int, ...] = (Label.ROAD, Label.SIDEWALK, Label.TERRAIN)
+"""Classes of flat ground: the height of their visible centroid is the ground's from any viewpoint
+(matched pairs seen by a car and by a UAV 50 m up differ by 0.04 m RMS in height on the airsim-like
+tuning worlds, where compact objects differ by 0.3 m (cars) to 2.1 m (trees): a car sees a tree's side,
+a UAV its crown), while their horizontal centroid depends on which part of a large patch was seen: a
+car sees the strip of sidewalk beside it, a UAV the whole block's. Closure refits take their height
+(``server/closures.py``); the match verification takes no evidence from them (``MatchingConfig``)."""
+
 THIN_OBJECT_DEPTH_PERCENTILES: dict[int, float] = {
     Label.POLE: 25.0, Label.TRAFFIC_LIGHT: 25.0, Label.TRAFFIC_SIGN: 25.0,
 }  # fmt: skip

@@ -129,6 +129,7 @@ def match_graphs(
     *,
     descriptors_a: NodeDescriptors | None = None,
     descriptors_b: NodeDescriptors | None = None,
+    evidence_free_labels: tuple[int, ...] = (),
 ) -> MatchResult:
     """Find ``T_a_b`` (B's frame -> A's frame) from the semantic graphs of two robots.
 
@@ -145,6 +146,9 @@ def match_graphs(
         descriptor_cfg: descriptor kind and parameters (ignored for graphs whose descriptors are given).
         matching_cfg: candidate selection, hypotheses and the verification's parameters.
         descriptors_a, descriptors_b: precomputed ``compute_descriptors`` results (same kind) or None.
+        evidence_free_labels: train ids whose nodes neither support nor contradict in the verification (they
+            still pair up): the map server passes ``viewpoint_dependent_labels`` between robots that look from
+            very different heights (``server/viewpoints.py``).
 
     Raises:
         GraphError: malformed graph arrays or descriptors that do not fit their graph.
@@ -188,7 +192,8 @@ def match_graphs(
     tree_a, tree_b = LabelledTree(a.positions_xyz, a.label_ids), LabelledTree(b.positions_xyz, b.label_ids)
     refined = np.stack(_refined(np.stack(hypotheses), a, b, tree_a, cfg))
     shifts, shift_labels = _shifts(tree_a, tree_b, refined, cfg)
-    scored = list(zip(refined, _verify(tree_a, tree_b, refined, cfg, shifts, shift_labels), strict=True))
+    verified = _verify(tree_a, tree_b, refined, cfg, shifts, shift_labels, evidence_free_labels)
+    scored = list(zip(refined, verified, strict=True))
     best, rival = _best_and_rival(scored, b, cfg.verification_radius_m)
     T, v = best
     rows_a, rows_b = v.pairs[:, 0], v.pairs[:, 1]
@@ -245,12 +250,12 @@ def _shifts(
 
 def _verify(
     tree_a: LabelledTree, tree_b: LabelledTree, T_stack: np.ndarray, cfg: MatchingConfig, shifts_m: np.ndarray,
-    shift_labels: np.ndarray,
+    shift_labels: np.ndarray, evidence_free_labels: tuple[int, ...] = (),
 ) -> list[Verification]:
     return verify_alignments(
         tree_a, tree_b, T_stack, radius_m=cfg.verification_radius_m, coverage_m=cfg.coverage_radius_m,
         density_radius_m=cfg.density_radius_m, partner_probability=cfg.partner_probability, shifts_m=shifts_m,
-        shift_labels=shift_labels,
+        shift_labels=shift_labels, evidence_free_labels=evidence_free_labels,
     )  # fmt: skip
 
 
@@ -331,8 +336,9 @@ def _rejection_reason(v: Verification, threshold: float, rmse: float, spread: fl
     """'' when the alignment is accepted, else why not (the success criteria of ``match_graphs``)."""
     if v.llr < threshold:
         return (
-            f"not beyond chance: {v.support} partner(s) among {v.overlap_a}/{v.overlap_b} overlapping nodes "
-            f"(A/B; {v.contradictions} without partner, {v.expected_chance:.1f} expected by chance), "
+            f"not beyond chance: {v.support} partner(s); of the {v.overlap_a}/{v.overlap_b} overlapping nodes that "
+            f"give evidence (A/B) {v.contradictions} without partner, {v.expected_chance:.1f} of B's expected to "
+            "find one by chance; "
             f"log likelihood ratio {v.llr:.1f} below {threshold:.1f}"
         )
     if v.support < cfg.min_inliers:

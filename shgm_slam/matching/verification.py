@@ -23,6 +23,13 @@ inside the area B observed should find one of B. Each such node is one Bernoulli
   lamp row matched on another street carried a whole alias (6 of 8 poles partnered against a density
   chance of 3 %: +14 nats, every other label at chance).
 
+Classes whose horizontal centroid depends on the part of the object seen give no evidence either way
+(``evidence_free_labels``; the matcher passes flat ground, ``labels.FLAT_GROUND_LABELS``): a car sees
+the strip of sidewalk or grass beside it, a UAV 50 m up the whole block's, so their centroids lie metres
+apart under the true alignment. Counted, they contradicted every true car-UAV alignment (terrain alone
+-10 to -21 nats on the airsim-like tuning worlds) while the partners of compact objects supported it. They
+still pair up (``pairs``: closure refits take their height).
+
 The log likelihood ratio sums ``log(p1 / p0)`` over supported nodes and ``log((1 - p1) / (1 - p0))``
 over contradicting ones (inside the other's area, no partner). An alias explains the repeated street
 but contradicts everything around it: buildings, intersections and objects where the other robot
@@ -76,8 +83,9 @@ class Verification:
     """Evidence for one alignment.
 
     Attributes:
-        support: one-to-one same-label node pairs within the radius.
-        overlap_a, overlap_b: nodes of A (B) inside the area the other robot observed.
+        support: one-to-one same-label node pairs within the radius (evidence-free labels included).
+        overlap_a, overlap_b: nodes of A (B) inside the area the other robot observed whose labels give
+            evidence.
         contradictions: overlap nodes (both sides) without a same-label partner.
         expected_chance: nodes of B expected to find a partner by chance (sum of p0 over B's overlap).
         llr: log likelihood ratio H1 / H0 (the smaller of the two directions), nats.
@@ -381,6 +389,7 @@ def verify_alignment(
     partner_probability: float,
     shifts_m: np.ndarray | None = None,
     shift_labels: np.ndarray | None = None,
+    evidence_free_labels: tuple[int, ...] = (),
 ) -> Verification:
     """Support, overlap, contradictions, chance expectation and the likelihood ratio of ``T_a_b``.
 
@@ -399,11 +408,14 @@ def verify_alignment(
             is also measured under the hypothesis shifted by each (``label_chance``), and the larger counts.
         shift_labels: (S,) int64, the label each shift measures (a ``row_steps`` repeat), -1 for every label;
             None: every shift measures every label.
+        evidence_free_labels: train ids whose nodes neither support nor contradict (module docstring): they
+            are left out of the overlap counts, the contradictions and the LLR, and still pair up (``support``,
+            ``pairs``).
     """
     return verify_alignments(
         tree_a, tree_b, np.asarray(T_a_b)[None], radius_m=radius_m, coverage_m=coverage_m,
         density_radius_m=density_radius_m, partner_probability=partner_probability, shifts_m=shifts_m,
-        shift_labels=shift_labels,
+        shift_labels=shift_labels, evidence_free_labels=evidence_free_labels,
     )[0]  # fmt: skip
 
 
@@ -418,6 +430,7 @@ def verify_alignments(
     partner_probability: float,
     shifts_m: np.ndarray | None = None,
     shift_labels: np.ndarray | None = None,
+    evidence_free_labels: tuple[int, ...] = (),
 ) -> list[Verification]:
     """``verify_alignment`` of each of (H, 4, 4) hypotheses; the overlap queries of all hypotheses are
     stacked into one query per tree (a point's nearest neighbour does not depend on the other points).
@@ -425,8 +438,9 @@ def verify_alignments(
     h, n_a, n_b = len(T_stack), len(tree_a), len(tree_b)
     pb = [transform(T, tree_b.positions_xyz) for T in T_stack]
     pa_in_b = [(tree_a.positions_xyz - T[:3, 3]) @ T[:3, :3] for T in T_stack]  # B's trees are reused
-    inside_b = _within(tree_a.any, pb, coverage_m).reshape(h, n_b)
-    inside_a = _within(tree_b.any, pa_in_b, coverage_m).reshape(h, n_a)
+    free = evidence_free_labels
+    inside_b = _within(tree_a.any, pb, coverage_m).reshape(h, n_b) & _counts(tree_b.label_ids, free)
+    inside_a = _within(tree_b.any, pa_in_b, coverage_m).reshape(h, n_a) & _counts(tree_a.label_ids, free)
     reach = density_radius_m
     if shifts_m is not None and np.size(shifts_m):
         reach = max(reach, float(np.linalg.norm(shifts_m, axis=-1).max()) + radius_m)
@@ -477,6 +491,11 @@ def verify_alignments(
         )
         for k, (i, j) in enumerate(pairwise(bounds))
     ]  # fmt: skip
+
+
+def _counts(label_ids: np.ndarray, evidence_free_labels: tuple[int, ...]) -> np.ndarray:
+    """(1, N) bool: the node's label gives evidence (is not one of ``evidence_free_labels``)."""
+    return ~np.isin(np.asarray(label_ids), np.asarray(evidence_free_labels, dtype=np.int64))[None, :]
 
 
 def _measures(shift_labels: np.ndarray, label_ids: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ import numpy as np
 
 from shgm_slam.geometry import se3
 from shgm_slam.geometry.ground import rotation_to_z
-from shgm_slam.labels import Label
+from shgm_slam.labels import FLAT_GROUND_LABELS, Label
 from shgm_slam.matching.pose import spread_m
 
 COMPACT_LABELS = (
@@ -34,11 +34,6 @@ The others (trees, vehicles) are solid: the pixels seen are the near side, so th
 worlds against the true object centres); two robots seeing them from opposite directions disagree by
 twice that."""
 
-FLAT_LABELS = (Label.ROAD, Label.SIDEWALK, Label.TERRAIN)
-"""Classes of flat ground: the height of their visible centroid is the ground's from any viewpoint
-(matched pairs seen by a car and by a UAV 50 m up differ by 0.04 m RMS in height on the airsim-like
-tuning worlds, where compact objects differ by 0.3 m (cars) to 2.1 m (trees): a car sees a tree's side,
-a UAV its crown), while their horizontal centroid depends on which part of a large patch was seen."""
 
 MIN_THIN = 3
 """Fewest thin inliers that carry a local refit on their own (a 4-DoF fit needs 2)."""
@@ -209,11 +204,11 @@ def _level_on_ground(
     T_a_b: np.ndarray, pos_a: np.ndarray, pos_b: np.ndarray, labels: np.ndarray,
     up_a: np.ndarray | None, up_b: np.ndarray | None,
 ) -> np.ndarray:  # fmt: skip
-    """``T_a_b`` (4, 4) moved along a's "up" so that the matched flat-ground nodes (``FLAT_LABELS``) lie at
+    """``T_a_b`` (4, 4) moved along a's "up" so that the matched flat-ground nodes (``FLAT_GROUND_LABELS``) lie at
     their heights in a: the median of their height residuals. A 4-DoF fit's height is decoupled from its
     yaw and horizontal shift, and the compact objects that fix those disagree in height between a car and
     a UAV (a side versus a top). Unchanged without both "up"s (a 6-DoF fit) or without flat nodes."""
-    flat = np.isin(labels, FLAT_LABELS)
+    flat = np.isin(labels, FLAT_GROUND_LABELS)
     if up_a is None or up_b is None or not flat.any():
         return T_a_b
     up = up_a / np.linalg.norm(up_a)
@@ -268,3 +263,4 @@ def _refit_with_offset(
         delta = float(np.clip(np.linalg.solve(N, rhs)[3], 0.0, MAX_SURFACE_OFFSET_M))
         T = _fit(pos_a + delta * s * rays_a, pos_b + delta * s * rays_b, up_a, up_b)
     return T, data_delta, info
+

@@ -17,14 +17,20 @@ from shgm_slam.errors import BackendError, ConfigError
 from shgm_slam.geometry import se3
 from shgm_slam.geometry.ground import rotation_to_z
 from shgm_slam.graph.semantic_graph import GraphState, SemanticGraph
+from shgm_slam.labels import FLAT_GROUND_LABELS
 from shgm_slam.matching import MatchResult, match_graphs
 from shgm_slam.messages import KeyframeMessage
 from shgm_slam.server.closures import SurfaceOffset, local_closures
 from shgm_slam.server.places import free_path_m, near_keyframes, near_keyframes_sparse, tolerance_m
 from shgm_slam.server.records import MatchEvidence, MatchRecord
+from shgm_slam.server.viewpoints import camera_height_m, closure_information, elevation_gap_rad, views_differ
 from shgm_slam.types import GraphArrays
 
 log = logging.getLogger(__name__)
+
+HEIGHT_NODES = 512
+"""Newest flat-ground nodes a robot's camera height is measured over (``camera_height_m``): enough for a
+stable median, and a cost that does not grow with the graph."""
 
 CONFIRMING_MATCHES = 2
 """Independent graph matches (on mutually disjoint objects, ``MultiRobotPoseGraph.evidence_between``) behind a
@@ -238,6 +244,26 @@ class MapServer:
         origins = np.stack(self._T_odom_kf[agent])[graph.anchors(), :3, 3]
         return float(np.percentile(np.linalg.norm(graph.arrays().positions_xyz - origins, axis=1), 95))
 
+    def camera_height_m(self, agent: str) -> float | None:
+        """How high above the ground ``agent``'s camera looks from (``viewpoints.camera_height_m``: over its
+        newest ``HEIGHT_NODES`` flat-ground nodes, from the keyframes that first saw them), metres; None while
+        unknown. Bounded cost whatever the graph's size."""
+        graph = self._graphs[agent]
+        if len(graph) == 0:
+            return None
+        arrays = graph.arrays()
+        flat = np.flatnonzero(np.isin(arrays.label_ids, FLAT_GROUND_LABELS))[-HEIGHT_NODES:]
+        poses = self._T_odom_kf[agent]
+        cameras = np.array([poses[k][:3, 3] for k in graph.anchors()[flat]]).reshape(-1, 3)
+        return camera_height_m(cameras, arrays.positions_xyz[flat], arrays.label_ids[flat], self.up_odom(agent))
+
+    def evidence_free_labels(self, a: str, b: str) -> tuple[int, ...]:
+        """Labels that give no evidence when matching ``a`` against ``b``: the viewpoint-dependent ones when
+        the two look from very different heights (a car and a UAV), none otherwise."""
+        m = self.cfg.matching
+        differ = views_differ(self.camera_height_m(a), self.camera_height_m(b), m.view_height_ratio)
+        return tuple(m.viewpoint_dependent_labels) if differ else ()
+
     def loop_exclusion_m(self, robot: str) -> float:
         """Metres of path before its submap whose keyframes ``robot``'s loop query leaves out of its older graph:
         twice the robot's object range (``object_range_m``; the fleet's extraction depth until the graph has
@@ -315,6 +341,7 @@ class MapServer:
     ) -> MatchRecord:
         t0 = time.perf_counter()
         up_a, up_b = self.up_odom(robot_a), self.up_odom(robot_b)
+        free = self.evidence_free_labels(robot_a, robot_b)
         if up_a is not None and up_b is not None:
             # both robots know where "up" is (their ground plane): a 4-DoF match in gravity-aligned frames
             R_a, R_b = rotation_to_z(up_a), rotation_to_z(up_b)
@@ -322,7 +349,7 @@ class MapServer:
             result = match_graphs(
                 graph_a.transformed(se3.make_pose(R_a, np.zeros(3))),
                 graph_b.transformed(se3.make_pose(R_b, np.zeros(3))),
-                self.cfg.descriptor, cfg4, descriptors_a=desc_a, descriptors_b=desc_b,
+                self.cfg.descriptor, cfg4, descriptors_a=desc_a, descriptors_b=desc_b, evidence_free_labels=free,
             )  # fmt: skip
             to_a, from_b = se3.make_pose(R_a.T, np.zeros(3)), se3.make_pose(R_b, np.zeros(3))
             if result.T_a_b is not None:
@@ -331,7 +358,7 @@ class MapServer:
                 result.T_a_b_hypothesis = to_a @ result.T_a_b_hypothesis @ from_b
         else:
             result = match_graphs(graph_a, graph_b, self.cfg.descriptor, self.cfg.matching, descriptors_a=desc_a,
-                                  descriptors_b=desc_b)  # fmt: skip
+                                  descriptors_b=desc_b, evidence_free_labels=free)  # fmt: skip
         self.timings_ms["match"].append((time.perf_counter() - t0) * 1e3)
         rec = MatchRecord(
             self._step, robot_a, robot_b, query, result.success, False, result.reason, None, None,
@@ -346,6 +373,8 @@ class MapServer:
         rec.inlier_positions_b = graph_b.positions_xyz[rows_b]
         anchors_a = self._graphs[robot_a].anchor_keyframes(result.inliers[:, 0])
         anchors_b = self._graphs[robot_b].anchor_keyframes(result.inliers[:, 1])
+        rays_a = self._viewing_rays(robot_a, anchors_a, rec.inlier_positions_a)
+        rays_b = self._viewing_rays(robot_b, anchors_b, rec.inlier_positions_b)
         closures = [
             (kf_a, kf_b, se3.inverse(self._T_odom_kf[robot_a][kf_a]) @ T @ self._T_odom_kf[robot_b][kf_b], n, rows)
             for kf_a, kf_b, T, n, rows in local_closures(
@@ -360,8 +389,8 @@ class MapServer:
                 max_rmse_m=self.cfg.matching.max_rmse_m,
                 up_a=up_a,
                 up_b=up_b,
-                rays_a=self._viewing_rays(robot_a, anchors_a, rec.inlier_positions_a),
-                rays_b=self._viewing_rays(robot_b, anchors_b, rec.inlier_positions_b),
+                rays_a=rays_a,
+                rays_b=rays_b,
                 offset=self._surface_offset,
             )
         ]
@@ -386,9 +415,14 @@ class MapServer:
             # the objects behind it: what makes two matches independent evidence
             support = {robot_a: frozenset(result.inliers[rows, 0].tolist()),
                        robot_b: frozenset(result.inliers[rows, 1].tolist())}  # fmt: skip
+            b_cfg = self.cfg.backend
+            information = closure_information(
+                b_cfg.closure_sigma_rot_rad, b_cfg.closure_sigma_trans_m,
+                elevation_gap_rad(rays_a[rows], rays_b[rows], up_a, up_b), b_cfg.closure_sigma_per_elevation,
+            )  # fmt: skip
             t1 = time.perf_counter()
             decision = self._pose_graph.add_inter_robot_closure(
-                robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n,
+                robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n, information=information,
                 match_id=self._num_matches, support=_objects(support) if robot_a != robot_b else (), update=False,
             )  # fmt: skip
             self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from shgm_slam.config import DescriptorConfig, MatchingConfig
-from shgm_slam.geometry.se3 import inverse, make_pose, pose_error, rot_z
-from shgm_slam.labels import Label
+from shgm_slam.geometry.se3 import inverse, make_pose, pose_error, rot_z, transform_points
+from shgm_slam.labels import FLAT_GROUND_LABELS, Label
 from shgm_slam.matching import match_graphs
 from shgm_slam.matching.verification import (
     CHANCE_PRIOR_OBSERVATIONS,
@@ -207,6 +207,74 @@ def test_sparse_graphs_of_different_places_are_rejected():
         b, _ = _robot(*_sparse_area(rng), rng, 0.4, 1.0, _random_pose_z(rng), 100_000)
         r = match_graphs(a, b, DescriptorConfig(), _cfg())
         assert not r.success and "chance" in r.reason
+
+
+def _car_and_uav_block(rng: np.random.Generator, T_b_world: np.ndarray):
+    """One 200 m street seen by a car (A) and by a UAV (B, its frame ``T_b_world`` away): the same compact
+    objects (each robot misses 30 %, 0.5 m noise), and flat ground as each sees it: the car the strips of
+    sidewalk beside it every 15 m, the UAV the block's sidewalks and lawns every 10 m, 13-18 m out."""
+    n = 26
+    pos = np.column_stack([rng.uniform(0, 200, n), rng.choice([-1.0, 1.0], n) * rng.uniform(4.0, 14.0, n),
+                           rng.uniform(0.5, 6.0, n)])  # fmt: skip
+    labels = rng.choice([Label.CAR, Label.VEGETATION, Label.POLE, Label.TRAFFIC_SIGN, Label.BUILDING], n)
+    xs, xu = np.arange(7.5, 200.0, 15.0), np.arange(0.0, 200.0, 10.0)
+    strips = np.vstack([np.column_stack([xs, np.full(xs.size, y), np.zeros(xs.size)]) for y in (-6.0, 6.0)])
+    block = np.vstack([np.column_stack([xu + dx, np.full(xu.size, y), np.zeros(xu.size)])
+                       for dx, y in ((0.0, -13.0), (0.0, 13.0), (5.0, -18.0), (5.0, 18.0))])  # fmt: skip
+    block_labels = np.repeat([Label.SIDEWALK, Label.SIDEWALK, Label.TERRAIN, Label.TERRAIN], xu.size)
+
+    def robot(flat, flat_labels, T, id_offset):
+        keep = rng.random(n) >= 0.3
+        p = np.vstack([pos[keep] + rng.normal(0, 0.5, (keep.sum(), 3)) * [1.0, 1.0, 0.3], flat])
+        p = p @ T[:3, :3].T + T[:3, 3]
+        lab = np.r_[labels[keep], flat_labels].astype(np.int64)
+        return graph_of(p, lab, np.ones(len(p)), np.arange(len(p)) + id_offset)
+
+    car = robot(strips, np.full(len(strips), Label.SIDEWALK), np.eye(4), 0)
+    return car, robot(block, block_labels, T_b_world, 10_000)
+
+
+@pytest.mark.parametrize("seed", [1, 7, 8])
+def test_a_car_and_a_uav_are_matched_though_they_see_flat_ground_differently(seed):
+    """Flat ground's horizontal centroid depends on the part seen (a car's strip, a UAV's block): as evidence
+    it contradicts the true alignment (these seeds are rejected when it counts); evidence-free (what the map
+    server passes between a car and a UAV), the compact objects place B right."""
+    rng = np.random.default_rng(seed)
+    T_b_world = make_pose(rot_z(rng.uniform(-np.pi, np.pi)), np.r_[rng.uniform(-100, 100, 2), 40.0])
+    a, b = _car_and_uav_block(rng, T_b_world)
+    r = match_graphs(a, b, DescriptorConfig(), _cfg(), evidence_free_labels=FLAT_GROUND_LABELS)
+    assert r.success, r.reason
+    err = transform_points(r.T_a_b, b.positions_xyz) - transform_points(inverse(T_b_world), b.positions_xyz)
+    assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 1.5  # where B's objects are, not at its far origin
+    counted = match_graphs(a, b, DescriptorConfig(), _cfg())
+    assert not counted.success and counted.llr < r.llr
+
+
+def test_evidence_free_nodes_pair_up_but_neither_support_nor_contradict():
+    """Adding flat nodes to both graphs, some partnered and some not, leaves the overlap counts and the LLR
+    as without them (evidence-free), while their partners join the support and the pairs."""
+    rng = np.random.default_rng(3)
+    pos = rng.uniform(0, 60, (40, 3)) * [1.0, 1.0, 0.1]
+    lab = rng.choice([Label.POLE, Label.CAR, Label.VEGETATION], 40).astype(np.int64)
+    gx, gy = np.meshgrid([5.0, 25.0, 45.0], [0.0, 20.0, 40.0, 60.0])
+    flat_a = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(12)])  # 20 m apart: a 9 m step finds none
+    flat_b = flat_a + np.repeat([[0.5, 0.0, 0.0], [9.0, 0.0, 0.0]], 6, axis=0)  # 6 partnered, 6 (x 2 sides) not
+    road = np.full(12, Label.ROAD)
+    args = dict(radius_m=3.0, coverage_m=10.0, density_radius_m=15.0, partner_probability=0.4,
+                evidence_free_labels=(Label.ROAD,))  # fmt: skip
+    T = make_pose(rot_z(0.3), [2.0, -1.0, 0.0])
+    to_b = inverse(T)
+    plain = verify_alignment(LabelledTree(pos, lab), LabelledTree(pos @ to_b[:3, :3].T + to_b[:3, 3], lab), T, **args)
+    pos_b = np.r_[pos, flat_b] @ to_b[:3, :3].T + to_b[:3, 3]
+    with_flat = verify_alignment(LabelledTree(np.r_[pos, flat_a], np.r_[lab, road]),
+                                 LabelledTree(pos_b, np.r_[lab, road]), T, **args)  # fmt: skip
+    assert with_flat.llr == pytest.approx(plain.llr)
+    assert (with_flat.overlap_a, with_flat.overlap_b, with_flat.contradictions) == (
+        plain.overlap_a, plain.overlap_b, plain.contradictions)  # fmt: skip
+    assert with_flat.support == plain.support + 6 and len(with_flat.pairs) == with_flat.support
+    counted = verify_alignment(LabelledTree(np.r_[pos, flat_a], np.r_[lab, road]),
+                               LabelledTree(pos_b, np.r_[lab, road]), T, **{**args, "evidence_free_labels": ()})
+    assert counted.contradictions == plain.contradictions + 12 and counted.llr != pytest.approx(plain.llr)
 
 
 def test_chance_expectation_grows_with_density():

@@ -125,3 +125,4 @@ def test_a_uav_and_a_car_agree_on_the_height_of_flat_ground_not_on_that_of_objec
     no_ground = refit(pos_a[:8], se3.transform_points(T_b_world, pos_b[:8]), labels[:8], UP, T_b_world[:3, :3] @ UP)
     drop = se3.transform_points(no_ground @ T_b_world, centres) - centres
     np.testing.assert_allclose(drop, np.tile([0.0, 0.0, -1.5], (8, 1)), atol=1e-6)  # the poles' tops put it 1.5 m low
+
