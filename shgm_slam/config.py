@@ -375,7 +375,7 @@ class BackendConfig(_Stage):
         2.6, ge=0, description="a closure's translation sigma grows by this fraction per radian between the two "
         "robots' elevation angles onto its objects (a car and a UAV 50 m up: ~0.7 rad, x2.8): the visible part of "
         "an object moves with the viewpoint. Measured on nine airsim-like tuning worlds (seeds "
-        "10-23): car-UAV closures 1.12 m median error, car-car 0.40 m (server/closures.py closure_information)",
+        "10-23): car-UAV closures 1.12 m median error, car-car 0.40 m (server/viewpoints.py closure_information)",
     )
     robust_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="huber | cauchy | tukey | none")
     min_closures_to_anchor: int = Field(

@@ -67,7 +67,8 @@ FLAT_GROUND_LABELS: tuple[int, ...] = (Label.ROAD, Label.SIDEWALK, Label.TERRAIN
 tuning worlds, where compact objects differ by 0.3 m (cars) to 2.1 m (trees): a car sees a tree's side,
 a UAV its crown), while their horizontal centroid depends on which part of a large patch was seen: a
 car sees the strip of sidewalk beside it, a UAV the whole block's. Closure refits take their height
-(``server/closures.py``); the match verification takes no evidence from them (``MatchingConfig``)."""
+(``server/closures.py``); between robots that look from very different heights the match verification
+takes no evidence from them (``MatchingConfig.viewpoint_dependent_labels``, ``server/viewpoints.py``)."""
 
 THIN_OBJECT_DEPTH_PERCENTILES: dict[int, float] = {
     Label.POLE: 25.0, Label.TRAFFIC_LIGHT: 25.0, Label.TRAFFIC_SIGN: 25.0,
