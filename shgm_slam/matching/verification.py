@@ -23,10 +23,11 @@ inside the area B observed should find one of B. Each such node is one Bernoulli
   lamp row matched on another street carried a whole alias (6 of 8 poles partnered against a density
   chance of 3 %: +14 nats, every other label at chance).
 
-Classes whose horizontal centroid depends on the part of the object seen give no evidence either way
-(``evidence_free_labels``; the matcher passes flat ground, ``labels.FLAT_GROUND_LABELS``): a car sees
-the strip of sidewalk or grass beside it, a UAV 50 m up the whole block's, so their centroids lie metres
-apart under the true alignment. Counted, they contradicted every true car-UAV alignment (terrain alone
+Classes whose horizontal centroid depends on the part of the object seen can be left without evidence
+either way (``evidence_free_labels``; the map server passes flat ground, ``labels.FLAT_GROUND_LABELS``,
+between robots that look from very different heights, ``server/viewpoints.py``): a car sees the strip
+of sidewalk or grass beside it, a UAV 50 m up the whole block's, so their centroids lie metres apart
+under the true alignment. Counted, they contradicted every true car-UAV alignment (terrain alone
 -10 to -21 nats on the airsim-like tuning worlds) while the partners of compact objects supported it. They
 still pair up (``pairs``: closure refits take their height).
 

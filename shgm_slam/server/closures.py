@@ -34,7 +34,6 @@ The others (trees, vehicles) are solid: the pixels seen are the near side, so th
 worlds against the true object centres); two robots seeing them from opposite directions disagree by
 twice that."""
 
-
 MIN_THIN = 3
 """Fewest thin inliers that carry a local refit on their own (a 4-DoF fit needs 2)."""
 
@@ -263,4 +262,3 @@ def _refit_with_offset(
         delta = float(np.clip(np.linalg.solve(N, rhs)[3], 0.0, MAX_SURFACE_OFFSET_M))
         T = _fit(pos_a + delta * s * rays_a, pos_b + delta * s * rays_b, up_a, up_b)
     return T, data_delta, info
-
