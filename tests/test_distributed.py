@@ -29,8 +29,10 @@ def _free_port() -> int:
 
 
 MATCH_OFTEN = "backend:\n  match_every_keyframes: 3\n"
-"""The tiny world's cars meet once, briefly: matched every 3 keyframes they get the two independent
-matches a robot needs to enter the shared frame (every 10, the default, all find the same objects)."""
+"""The tiny world's cars meet once, briefly: matched every 3 keyframes they usually get the two independent
+matches a robot needs to enter the shared frame during the run (every 10, the default, all find the same
+objects and only the server's last look at the end places car2); which ones depends on the order in which
+keyframes arrive, and the last look makes the end result independent of it."""
 
 
 def _server(out: Path, port: int, *extra: str, expect: int = 2) -> subprocess.Popen:

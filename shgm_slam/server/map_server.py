@@ -87,8 +87,9 @@ class MapServer:
     anchored near it (``places``: within the two robots' object ranges plus the drift tolerance of the
     fused estimate), and, while r is there, the whole graphs only where they overlap (each graph's nodes
     anchored near a keyframe of the other); while r is nowhere near the other's map neither is matched.
-    ``finalize`` matches whole graphs once more. Descriptors come from a per-agent cache updated around
-    each change (``IncrementalDescriptors``).
+    ``finalize`` matches whole graphs once more, and an agent whose accepted matches with a placed partner
+    all found the same objects once more without them (``_independent_match``). Descriptors come from a
+    per-agent cache updated around each change (``IncrementalDescriptors``).
 
     Loop closure (``backend.loop_closure``): r's recent submap is also matched against r's *own* older
     graph (query ``"loop"``), with the same matching, verification and closure cutting; accepted
@@ -173,12 +174,15 @@ class MapServer:
         poses.append(T_odom_kf)
 
     def finalize(self) -> list[MatchRecord]:
-        """Match every robot once more at the end of the run (whole graphs), then solve the pose graph to
+        """Match every robot once more at the end of the run (whole graphs; an agent still resting on one piece
+        of evidence also without the objects behind it, ``_independent_match``), then solve the pose graph to
         convergence (``MultiRobotPoseGraph.converge``: the final estimate does not depend on the order
         in which robots' messages arrived, only on what was accepted)."""
         records: list[MatchRecord] = []
         for r in list(self._agents):
             records += self.match_robot(r, submap=False)
+        for r in list(self._agents):
+            records += self._independent_match(r)  # one piece of evidence so far: look for a second
         t0 = time.perf_counter()
         iterations = self._pose_graph.converge()
         self.timings_ms["backend"].append((time.perf_counter() - t0) * 1e3)
@@ -225,6 +229,50 @@ class MapServer:
                                                 desc_a.subset(rows_a), desc_b))  # fmt: skip
         self._matches += records
         if any(r.accepted for r in records):  # only an accepted closure can confirm an agent
+            self._note_confirmed_anchors()
+        return records
+
+    def _independent_match(self, agent: str) -> list[MatchRecord]:
+        """The last look for a second, independent match of an agent whose accepted closures with a placed
+        partner all rest on one piece of evidence (not placed: waiting; or placed provisionally, with
+        ``backend.min_closures_to_anchor: 1``): the two whole graphs matched again without the objects
+        behind the smallest of its accepted matches with that partner (query ``"independent"``), once per
+        partner. What it finds rests on other objects, so it counts as independent evidence when it agrees
+        and is outvoted or rejected when it does not. Which matches a run tried depends on when keyframes
+        arrived (in a distributed run, also on the order of messages): the last look makes the end result
+        depend on what the two graphs hold. Returns its match records (none when nothing is waiting).
+        """
+        if agent not in self._graphs or self.placement(agent).placement in (Placement.REFERENCE,
+                                                                            Placement.CONFIRMED):  # fmt: skip
+            return []
+        pg = self._pose_graph
+        objects: dict[tuple[str, int], dict[str, set[int]]] = {}  # (partner, match id) -> agent -> node ids
+        for c in pg.closures():
+            if c.status is not ClosureStatus.ACCEPTED or c.robot_a == c.robot_b or agent not in (c.robot_a, c.robot_b):
+                continue
+            partner = c.robot_b if c.robot_a == agent else c.robot_a
+            if not self.is_placed(partner) or pg.evidence_between(agent, partner) >= CONFIRMING_MATCHES:
+                continue
+            ids = objects.setdefault((partner, c.evidence[1]), {agent: set(), partner: set()})
+            for a, nodes in self._support.get(c.closure_id, {}).items():
+                ids[a] |= set(nodes)
+        tried: set[str] = set()
+        records = []
+        for (partner, _), ids in sorted(objects.items(), key=lambda kv: (sum(map(len, kv[1].values())), kv[0])):
+            if partner in tried or self.placement(agent).placement is Placement.CONFIRMED:
+                continue
+            tried.add(partner)
+            graph_a, graph_b = self._graphs[partner].arrays(), self._graphs[agent].arrays()
+            rows_a = np.flatnonzero(~np.isin(graph_a.node_ids, list(ids[partner])))
+            rows_b = np.flatnonzero(~np.isin(graph_b.node_ids, list(ids[agent])))
+            if min(rows_a.size, rows_b.size) < self.cfg.matching.min_inliers:
+                continue
+            desc_a = self._descriptors[partner].update(graph_a).subset(rows_a)
+            desc_b = self._descriptors[agent].update(graph_b).subset(rows_b)
+            records.append(self._match_pair(partner, agent, "independent", graph_a.subset(rows_a),
+                                            graph_b.subset(rows_b), desc_a, desc_b))  # fmt: skip
+        self._matches += records
+        if any(r.accepted for r in records):
             self._note_confirmed_anchors()
         return records
 

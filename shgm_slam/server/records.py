@@ -59,7 +59,8 @@ class MatchRecord:
     robot_a: str
     robot_b: str
     query: str  # "submap" | "whole": which part of robot_b's graph was matched against robot_a's graph;
-    # "loop": robot_b == robot_a, its recent submap against its own older graph (intra-robot loop closure)
+    # "loop": robot_b == robot_a, its recent submap against its own older graph (intra-robot loop closure);
+    # "independent": at the end, whole graphs without the objects behind robot_b's one piece of evidence
     success: bool
     accepted: bool
     reason: str

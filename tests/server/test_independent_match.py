@@ -1,0 +1,90 @@
+"""The map server's last look for a second, independent match (``MapServer.finalize``): a robot whose accepted
+matches all found the same objects is matched once more on the other objects, and placed right when they agree."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shgm_slam.backend.confirmation import Placement
+from shgm_slam.config import OdometryKind, ShgmConfig
+from shgm_slam.runner import make_frontend
+from shgm_slam.server.map_server import MapServer
+
+
+@pytest.fixture(scope="module")
+def messages(robots) -> dict[str, list]:
+    """Every keyframe message of the tiny world's two cars (ground-truth odometry, default matching)."""
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    out = {}
+    for name, seq in robots.items():
+        front = make_frontend(name, seq, cfg)
+        out[name] = [r.message for i in range(len(seq)) if (r := front.process(i)).message is not None]
+    return out
+
+
+def _by_time(messages: dict[str, list]) -> list:
+    return sorted((m for ms in messages.values() for m in ms), key=lambda m: (m.timestamp_s, m.robot))
+
+
+def _server(messages: dict[str, list], *, independent: bool) -> MapServer:
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    server = MapServer(["car1", "car2"], cfg)
+    if not independent:
+        server._independent_match = lambda agent: []  # what the server did before
+    for m in _by_time(messages):
+        server.receive(m)
+    server.finalize()
+    return server
+
+
+def test_a_robot_whose_matches_found_the_same_objects_is_confirmed_on_the_others(messages, robots) -> None:
+    """The tiny world's cars meet once, briefly: matched every 10 keyframes (the default) every accepted
+    match finds the same objects, one piece of evidence, and car2 stays out without the last look."""
+    before = _server(messages, independent=False)
+    assert not before.is_placed("car2")
+    assert before.waiting_note("car2") is not None
+
+    server = _server(messages, independent=True)
+    assert server.is_placed("car2")
+    last = [m for m in server.matches if m.query == "independent"]
+    assert len(last) == 1 and last[0].accepted and (last[0].robot_a, last[0].robot_b) == ("car1", "car2")
+    assert server._pose_graph.evidence_between("car1", "car2") >= 2
+    # the objects behind the last look are none of those behind an earlier accepted match
+    objects: dict[int, set] = {}
+    for c in server._pose_graph.closures():
+        if c.status.value == "accepted":
+            objects.setdefault(c.match_id, set()).update((a, n) for a, ns in server._support[c.closure_id].items()
+                                                         for n in ns)  # fmt: skip
+    newest = max(objects)
+    assert any(not (objects[newest] & objects[k]) for k in objects if k != newest)
+    # placed right: car2's fused keyframes in car1's odometry frame against the truth
+    gt1, gt2 = robots["car1"].gt_poses, robots["car2"].gt_poses
+    frames = np.array([m.frame_index for m in messages["car2"]])
+    T_true = np.linalg.inv(gt1[0])[None] @ gt2[frames]
+    err_m = np.linalg.norm(server.T_shared_kf("car2")[:, :3, 3] - T_true[:, :3, 3], axis=1)
+    assert np.sqrt(np.mean(err_m**2)) < 2.0, err_m
+
+
+def test_the_last_look_leaves_placed_robots_alone(messages) -> None:
+    """Robots already in the shared frame get no extra match: nothing is waiting."""
+    server = _server(messages, independent=True)
+    assert server._independent_match("car2") == [] and server._independent_match("car1") == []
+
+
+def test_a_provisional_robot_is_confirmed_by_the_last_look(messages) -> None:
+    """Trusting single matches (``min_closures_to_anchor: 1``) car2 joins on its first match, provisional
+    (every later match found the same objects); the last look on the other objects agrees and confirms it."""
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    cfg.backend.min_closures_to_anchor = 1
+    server = MapServer(["car1", "car2"], cfg)
+    for m in _by_time(messages):
+        server.receive(m)
+    assert server.placement("car2").placement is Placement.PROVISIONAL
+    records = server._independent_match("car2")
+    assert [r.accepted for r in records] == [True]
+    assert server.placement("car2").placement is Placement.CONFIRMED
+    assert server._independent_match("car2") == []  # nothing waits any more
