@@ -343,6 +343,8 @@ def _render_summary(summary) -> None:
     )
     for line in filter(None, (p.never_met() for p in summary.pairs)):
         console.print(f"[yellow]{lit(line)}[/]")
+    for line in summary.last_looks:  # robots that rested on one piece of evidence at the end
+        console.print(lit(line))
     tt = Table(title="per-stage time (mean ms per call)")
     tt.add_column("stage")
     tt.add_column("ms", justify="right")

@@ -234,6 +234,7 @@ class RunSummary:
     interrupted: bool = False
     skipped_reasons: list[str] = field(default_factory=list)
     pairs: list[PairMatches] = field(default_factory=list)  # how the matches between each two robots went
+    last_looks: list[str] = field(default_factory=list)  # ``MapServer.last_looks``: what each last look found
 
     def to_json_dict(self) -> dict:
         return {
@@ -247,6 +248,7 @@ class RunSummary:
             "wall_s": self.wall_s,
             "interrupted": self.interrupted,
             "skipped": self.skipped_reasons[:50],
+            "last_looks": self.last_looks,
         }
 
 
@@ -459,6 +461,7 @@ def run_slam(
         wall_s=time.perf_counter() - t_start,
         interrupted=interrupted,
         skipped_reasons=skipped,
+        last_looks=server.last_looks(),
     )
     for line in filter(None, (p.never_met() for p in summary.pairs)):
         viz.log_text(line, "WARN")  # the viewer's log panel says why two robots never met

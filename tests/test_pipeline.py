@@ -329,6 +329,10 @@ def test_early_stop_with_the_default_leaves_the_robot_out_and_says_why(early_sto
     assert json.loads((out / "metrics.json").read_text())["robots"][1]["warnings"] == car2.warnings
     server = json.loads((out / "server.json").read_text())
     assert server["robots"]["car2"]["placed"] == [] and server["robots"]["car2"]["waiting"] == why
+    # the last look on the objects its matches did not use found no second match, and says why
+    (look,) = summary.last_looks
+    assert look.startswith("car2: a last look with car1") and "did not confirm it: " in look
+    assert json.loads((out / "metrics.json").read_text())["last_looks"] == [look] == server["last_looks"]
     assert server["robots"]["car1"]["waiting"] == []
     assert not (out / "car2_fused_tum.txt").exists()
 

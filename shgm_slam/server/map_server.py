@@ -32,6 +32,9 @@ HEIGHT_NODES = 512
 """Newest flat-ground nodes a robot's camera height is measured over (``camera_height_m``): enough for a
 stable median, and a cost that does not grow with the graph."""
 
+LAST_LOOK_QUERY = "independent"
+"""``MatchRecord.query`` of the last look for a second, independent match (``MapServer._independent_match``)."""
+
 CONFIRMING_MATCHES = 2
 """Independent graph matches (on mutually disjoint objects, ``MultiRobotPoseGraph.evidence_between``) behind a
 placed robot pair's accepted closures before its submaps are matched only near where the fused estimate puts
@@ -269,12 +272,31 @@ class MapServer:
                 continue
             desc_a = self._descriptors[partner].update(graph_a).subset(rows_a)
             desc_b = self._descriptors[agent].update(graph_b).subset(rows_b)
-            records.append(self._match_pair(partner, agent, "independent", graph_a.subset(rows_a),
+            records.append(self._match_pair(partner, agent, LAST_LOOK_QUERY, graph_a.subset(rows_a),
                                             graph_b.subset(rows_b), desc_a, desc_b))  # fmt: skip
         self._matches += records
         if any(r.accepted for r in records):
             self._note_confirmed_anchors()
         return records
+
+    def last_looks(self) -> list[str]:
+        """One line per last look (``_independent_match``) so far, for the run's summary, ``metrics.json`` and
+        ``server.json``: whose, with whom, and what came of it (confirmed, provisional, outvoted, or why
+        the match was rejected)."""
+        lines = []
+        for m in self._matches:
+            if m.query != LAST_LOOK_QUERY:
+                continue
+            if m.accepted:
+                what = {
+                    Placement.CONFIRMED: "agreed: it is confirmed in the shared frame",
+                    Placement.PROVISIONAL: "was accepted; it is still provisional",
+                }.get(self.placement(m.robot_b).placement, "was accepted, but outvoted")
+            else:
+                what = f"did not confirm it: {m.reason}"
+            lines.append(f"{m.robot_b}: a last look with {m.robot_a}, without the objects behind its accepted "
+                         f"match, {what}")  # fmt: skip
+        return lines
 
     def _confirmed(self, a: str, b: str) -> bool:
         """Both placed and their accepted closures rest on ``CONFIRMING_MATCHES`` independent matches."""

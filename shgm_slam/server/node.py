@@ -658,5 +658,6 @@ class ServerNode:
             "closures_accepted": sum(m.accepted for m in server.matches) if server else 0,
             "mean_match_ms": server.mean_match_ms() if server else 0.0,
             "anchorings": server.anchorings() if server else [],
+            "last_looks": server.last_looks() if server else [],
             "traffic": self.traffic.to_json_dict(),
         }

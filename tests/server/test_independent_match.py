@@ -9,7 +9,7 @@ import pytest
 from shgm_slam.backend.confirmation import Placement
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.runner import make_frontend
-from shgm_slam.server.map_server import MapServer
+from shgm_slam.server.map_server import LAST_LOOK_QUERY, MapServer
 
 
 @pytest.fixture(scope="module")
@@ -49,9 +49,14 @@ def test_a_robot_whose_matches_found_the_same_objects_is_confirmed_on_the_others
 
     server = _server(messages, independent=True)
     assert server.is_placed("car2")
-    last = [m for m in server.matches if m.query == "independent"]
+    last = [m for m in server.matches if m.query == LAST_LOOK_QUERY]
     assert len(last) == 1 and last[0].accepted and (last[0].robot_a, last[0].robot_b) == ("car1", "car2")
     assert server._pose_graph.evidence_between("car1", "car2") >= 2
+    assert server.last_looks() == [
+        "car2: a last look with car1, without the objects behind its accepted match, agreed: it is confirmed in "
+        "the shared frame"
+    ]
+    assert before.last_looks() == []
     # the objects behind the last look are none of those behind an earlier accepted match
     objects: dict[int, set] = {}
     for c in server._pose_graph.closures():
