@@ -475,12 +475,19 @@ _OWN_PROCESS = False
 """True when this module's ``main`` runs the process (the ``shgm-slam`` command), not a test calling it."""
 
 
+LATE_STOP_NOTE = "interrupted after the results were written (they are complete)"
+"""What a stop signal that arrives after a command's results are written prints before exit code 130."""
+
+
 def _late_stop(_signum, _frame) -> None:
-    """A stop signal after the results are written (the summary printed, the process exiting): end now
-    with the interrupted exit code instead of dying by the signal mid-shutdown."""
+    """A stop signal after the results are written (the summary being printed, the process exiting): end
+    now with the interrupted exit code, saying the results are complete, instead of dying by the signal
+    mid-shutdown."""
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()
+    with contextlib.suppress(OSError):
+        os.write(2, f"\n{LATE_STOP_NOTE}\n".encode())
     os._exit(130)
 
 

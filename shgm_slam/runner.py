@@ -24,6 +24,7 @@ from shgm_slam.data.validate import check_sequence_start
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.fusion import fuse_segments
 from shgm_slam.geometry import se3
+from shgm_slam.interrupts import stops_deferred
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.metrics import ate
 from shgm_slam.odometry.sources import choose_odometry, make_odometry
@@ -382,47 +383,50 @@ def run_slam(
     watch = PlacementWatch()
     try:
         for robot, index in interleave(robots):
-            done += 1
-            t_step, cpu_step = time.perf_counter(), time.process_time()
-            try:
-                res = nodes[robot].step(index)
-            except DataError as exc:
-                skipped.append(f"{robot} frame {index}: {exc}")
-                viz.log_text(f"{robot}: skipped frame {index}: {exc}", "WARN")
+            with stops_deferred():  # a stop lands between frames, never inside the server's or a robot's step
+                done += 1
+                t_step, cpu_step = time.perf_counter(), time.process_time()
+                try:
+                    res = nodes[robot].step(index)
+                except DataError as exc:
+                    skipped.append(f"{robot} frame {index}: {exc}")
+                    viz.log_text(f"{robot}: skipped frame {index}: {exc}", "WARN")
+                    if progress:
+                        progress(done, total)
+                    continue
+                processed[robot] += 1
+                image_change[robot].add(res.frame.image_rgb)
+                if res.failure is not None:
+                    viz.log_odometry_failure(
+                        robot,
+                        f"{robot}: odometry diverged, {res.failure.describe()}; new trajectory segment {res.agent}",
+                        _last_healthy_position(fronts[robot], server),
+                    )  # fmt: skip
+                t0 = time.perf_counter()
+                n_match, n_backend = len(server.timings_ms["match"]), len(server.timings_ms["backend"])
+                n_write, n_corr = len(server_node.timings_ms["write"]), len(server_node.timings_ms["correction"])
+                records = server_node.poll()
+                res.timings_ms["server"] = (time.perf_counter() - t0) * 1e3
+                nodes[robot].poll()
+                timings.add(res.timings_ms)
+                step_compute = sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
+                compute_ms += step_compute
+                _log_frame(viz, view, server, fronts[robot], res, records)
+                if records:
+                    _log_placements(viz, watch, server)
+                kf_total += res.message is not None
+                if on_frame is not None:
+                    match_ms = sum(server.timings_ms["match"][n_match:])
+                    backend_ms = sum(server.timings_ms["backend"][n_backend:])
+                    on_frame(FrameStats(
+                        robot, index, res.message is not None, step_compute - res.timings_ms["server"],
+                        sum(res.timings_ms.values()) - step_compute, match_ms, backend_ms, res.timings_ms["server"],
+                        (time.perf_counter() - t_step) * 1e3, tuple(records), (time.process_time() - cpu_step) * 1e3,
+                        sum(server_node.timings_ms["write"][n_write:]),
+                        sum(server_node.timings_ms["correction"][n_corr:]),
+                    ))  # fmt: skip
                 if progress:
                     progress(done, total)
-                continue
-            processed[robot] += 1
-            image_change[robot].add(res.frame.image_rgb)
-            if res.failure is not None:
-                viz.log_odometry_failure(
-                    robot, f"{robot}: odometry diverged, {res.failure.describe()}; new trajectory segment {res.agent}",
-                    _last_healthy_position(fronts[robot], server),
-                )  # fmt: skip
-            t0 = time.perf_counter()
-            n_match, n_backend = len(server.timings_ms["match"]), len(server.timings_ms["backend"])
-            n_write, n_corr = len(server_node.timings_ms["write"]), len(server_node.timings_ms["correction"])
-            records = server_node.poll()
-            res.timings_ms["server"] = (time.perf_counter() - t0) * 1e3
-            nodes[robot].poll()
-            timings.add(res.timings_ms)
-            step_compute = sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
-            compute_ms += step_compute
-            _log_frame(viz, view, server, fronts[robot], res, records)
-            if records:
-                _log_placements(viz, watch, server)
-            kf_total += res.message is not None
-            if on_frame is not None:
-                match_ms = sum(server.timings_ms["match"][n_match:])
-                backend_ms = sum(server.timings_ms["backend"][n_backend:])
-                on_frame(FrameStats(
-                    robot, index, res.message is not None, step_compute - res.timings_ms["server"],
-                    sum(res.timings_ms.values()) - step_compute, match_ms, backend_ms, res.timings_ms["server"],
-                    (time.perf_counter() - t_step) * 1e3, tuple(records), (time.process_time() - cpu_step) * 1e3,
-                    sum(server_node.timings_ms["write"][n_write:]), sum(server_node.timings_ms["correction"][n_corr:]),
-                ))  # fmt: skip
-            if progress:
-                progress(done, total)
     except KeyboardInterrupt:
         interrupted = True
     if interrupted:  # no final matching: write what there is
@@ -431,8 +435,9 @@ def run_slam(
         node.done()
     records = []
     try:
-        records = server_node.poll()  # every robot done: the server matches whole graphs and writes the results
-    except KeyboardInterrupt:  # stopped during the final matching: write what there is
+        with stops_deferred():  # every robot done: the server matches whole graphs and writes the results
+            records = server_node.poll()
+    except KeyboardInterrupt:  # stopped during the final matching: it ended, and the run says it was stopped
         interrupted = True
     if not server_node.finished:
         server_node.finish(match=not interrupted)

@@ -15,7 +15,8 @@ one wrong match over a long stretch of an aliased street outvotes an earlier, in
 different objects (``independent_sources``): the matches of consecutive steps that find the same aliased
 trees, lamps and cars again agree with each other by construction too (synthia-like RGB tuning seed 10:
 four submap matches 31 m off, each sharing 23-52 objects with the others), so a set counts the largest
-group of its matches whose objects are mutually disjoint (greedy), not its distinct matches.
+group of its matches whose objects are mutually disjoint (greedy, and exact for two), not its distinct
+matches.
 
 The set is maintained incrementally per robot pair (``PairConsistency``): a new closure is tested
 against the pair's other closures only (O(n)); it joins the current set when it agrees with all of it,
@@ -199,7 +200,10 @@ def independent_sources(sources: np.ndarray, source_masks: list[int] | None = No
     """How many of the distinct ``sources`` rest on mutually disjoint objects.
 
     Greedy, fewest objects first (ties: the lower source id): a source counts when it shares no object
-    with the sources counted before it. A source without recorded objects (mask 0) always counts.
+    with the sources counted before it. A source without recorded objects (mask 0) always counts. Two is
+    the count that decides (two independent matches agree: a robot enters the shared frame) and greedy
+    can miss it (a small source overlapping two disjoint larger ones is taken first), so when greedy
+    counts fewer than two, every pair is checked: adding a source never lowers the count below two.
 
     Args:
         sources: (k,) int64 source ids (repeats allowed).
@@ -208,11 +212,16 @@ def independent_sources(sources: np.ndarray, source_masks: list[int] | None = No
     ids = np.unique(np.asarray(sources, dtype=np.int64))
     if source_masks is None:
         return int(ids.size)
+    masks = sorted((source_masks[s] for s in ids.tolist()), key=int.bit_count)  # stable: ties by id
     taken, count = 0, 0
-    for mask in sorted((source_masks[s] for s in ids.tolist()), key=int.bit_count):  # stable: ties by id
+    for mask in masks:
         if not mask & taken:
             taken |= mask
             count += 1
+    if count < 2:
+        for i, mask in enumerate(masks):
+            if any(not mask & other for other in masks[i + 1:]):
+                return 2
     return count
 
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from shgm_slam.config import ShgmConfig
 from shgm_slam.errors import DataError
+from shgm_slam.interrupts import stops_deferred
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.robot.node import RobotNode
 from shgm_slam.runner import make_frontend
@@ -92,13 +93,14 @@ def drive_robot(
                 while realtime and (wait := due - time.monotonic()) > 0:  # poll returns on any message
                     node.heartbeat()
                     node.poll(timeout_s=min(wait, 0.1))
-                try:
-                    node.step(i)
-                    processed += 1
-                except DataError as exc:
-                    skipped.append(f"frame {i}: {exc}")
-                    log.warning("%s: skipped frame %d: %s", name, i, exc)
-                node.poll()
+                with stops_deferred():  # a stop lands between frames, never inside the robot's step
+                    try:
+                        node.step(i)
+                        processed += 1
+                    except DataError as exc:
+                        skipped.append(f"frame {i}: {exc}")
+                        log.warning("%s: skipped frame %d: %s", name, i, exc)
+                    node.poll()
                 if progress:
                     progress(i + 1, len(sequence))
         except KeyboardInterrupt:

@@ -18,6 +18,7 @@ import numpy as np
 from shgm_slam.agents import agent_robot
 from shgm_slam.config import ShgmConfig
 from shgm_slam.geometry import se3
+from shgm_slam.interrupts import stops_deferred
 from shgm_slam.server.node import ServerNode
 from shgm_slam.server.placement import PlacementWatch
 from shgm_slam.server.records import MatchRecord
@@ -129,7 +130,8 @@ def serve(
         view = ServerView(viz)
         try:
             while not node.finished:
-                records = node.poll(timeout_s=0.1)
+                with stops_deferred():  # a stop lands between messages, never inside one
+                    records = node.poll(timeout_s=0.1)
                 view.update(node, records)
         except KeyboardInterrupt:
             interrupted = True

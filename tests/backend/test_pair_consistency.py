@@ -99,6 +99,22 @@ def test_independent_sources_counts_object_disjoint_sources_greedily():
     assert independent_sources(np.array([0, 1, 2])) == 3  # no objects recorded: every distinct source
 
 
+def test_two_disjoint_sources_count_two_even_when_a_smaller_one_overlaps_both():
+    """Greedy takes the narrow match on objects 2 and 3 first and then neither broad one (each shares an
+    object with it), yet the broad ones are disjoint: two independent matches agree. Adding a source never
+    lowers the count below two."""
+    narrow, left, right = 0b1100, 0b10_0000_0110, 0b1_0001_1000
+    assert independent_sources(np.array([1, 2]), [narrow, left, right]) == 2
+    assert independent_sources(np.array([0, 1, 2]), [narrow, left, right]) == 2
+    assert independent_sources(np.array([0, 1]), [narrow, left, right]) == 1  # they share object 2
+    rng = np.random.default_rng(0)
+    for _ in range(200):  # monotone at two: a superset of sources never counts fewer than two once two did
+        masks = [int(m) for m in rng.integers(1, 1 << 12, size=6)]
+        for k in range(1, 6):
+            if independent_sources(np.arange(k), masks) >= 2:
+                assert independent_sources(np.arange(k + 1), masks) >= 2
+
+
 def test_a_larger_consistent_set_outvotes_the_earlier_one_and_ties_do_not():
     pc = PairConsistency()
     # closures 0, 1 agree; 2, 3 agree with each other only: a tie keeps {0, 1}

@@ -1,0 +1,58 @@
+"""Stop signals are held inside a step and delivered after it (``stops_deferred``)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+
+import pytest
+
+from shgm_slam.interrupts import STOP_SIGNALS, stops_deferred
+
+
+def test_a_ctrl_c_inside_the_block_lets_it_finish_and_then_interrupts() -> None:
+    steps = []
+    with pytest.raises(KeyboardInterrupt):
+        with stops_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            steps.append("after the signal")  # a half-done step would stop here without the guard
+            steps.append("end of the step")
+    assert steps == ["after the signal", "end of the step"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_handlers_are_restored_and_nothing_is_raised_without_a_signal() -> None:
+    before = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+    with stops_deferred():
+        assert all(signal.getsignal(s) is not before[s] for s in STOP_SIGNALS)
+    assert {s: signal.getsignal(s) for s in STOP_SIGNALS} == before
+
+
+def test_a_held_sigterm_goes_to_the_handler_that_was_there_before() -> None:
+    seen = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, _frame: seen.append(signum))
+    try:
+        with stops_deferred():
+            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert seen == []
+        assert seen == [signal.SIGTERM]  # delivered once, after the block
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def test_outside_the_main_thread_the_block_runs_unguarded() -> None:
+    errors = []
+
+    def work() -> None:
+        try:
+            with stops_deferred():  # signal.signal would raise ValueError here
+                pass
+        except Exception as exc:
+            errors.append(exc)
+
+    t = threading.Thread(target=work)
+    t.start()
+    t.join()
+    assert errors == []
