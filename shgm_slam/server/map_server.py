@@ -230,10 +230,7 @@ class MapServer:
                 desc_b = self._descriptors[robot].update(whole).subset(rows_b)
                 records.append(self._match_pair(other, robot, "whole", graph_a.subset(rows_a), whole.subset(rows_b),
                                                 desc_a.subset(rows_a), desc_b))  # fmt: skip
-        self._matches += records
-        if any(r.accepted for r in records):  # only an accepted closure can confirm an agent
-            self._note_confirmed_anchors()
-        return records
+        return self._keep(records)
 
     def _independent_match(self, agent: str) -> list[MatchRecord]:
         """The last look for a second, independent match of an agent whose accepted closures with a placed
@@ -254,17 +251,17 @@ class MapServer:
             if c.status is not ClosureStatus.ACCEPTED or c.robot_a == c.robot_b or agent not in (c.robot_a, c.robot_b):
                 continue
             partner = c.robot_b if c.robot_a == agent else c.robot_a
-            if not self.is_placed(partner) or pg.evidence_between(agent, partner) >= CONFIRMING_MATCHES:
-                continue
             ids = objects.setdefault((partner, c.evidence[1]), {agent: set(), partner: set()})
             for a, nodes in self._support.get(c.closure_id, {}).items():
                 ids[a] |= set(nodes)
-        tried: set[str] = set()
-        records = []
+        smallest: dict[str, dict[str, set[int]]] = {}  # partner -> the objects of its smallest match with agent
         for (partner, _), ids in sorted(objects.items(), key=lambda kv: (sum(map(len, kv[1].values())), kv[0])):
-            if partner in tried or self.placement(agent).placement is Placement.CONFIRMED:
+            smallest.setdefault(partner, ids)
+        records = []
+        for partner, ids in smallest.items():
+            if (self.placement(agent).placement is Placement.CONFIRMED or not self.is_placed(partner)
+                    or pg.evidence_between(agent, partner) >= CONFIRMING_MATCHES):  # fmt: skip
                 continue
-            tried.add(partner)
             graph_a, graph_b = self._graphs[partner].arrays(), self._graphs[agent].arrays()
             rows_a = np.flatnonzero(~np.isin(graph_a.node_ids, list(ids[partner])))
             rows_b = np.flatnonzero(~np.isin(graph_b.node_ids, list(ids[agent])))
@@ -274,8 +271,12 @@ class MapServer:
             desc_b = self._descriptors[agent].update(graph_b).subset(rows_b)
             records.append(self._match_pair(partner, agent, LAST_LOOK_QUERY, graph_a.subset(rows_a),
                                             graph_b.subset(rows_b), desc_a, desc_b))  # fmt: skip
+        return self._keep(records)
+
+    def _keep(self, records: list[MatchRecord]) -> list[MatchRecord]:
+        """Record match attempts (``matches``) and, when one was accepted, which agents are confirmed now."""
         self._matches += records
-        if any(r.accepted for r in records):
+        if any(r.accepted for r in records):  # only an accepted closure can confirm an agent
             self._note_confirmed_anchors()
         return records
 
