@@ -320,6 +320,9 @@ def _render_summary(summary) -> None:
     shares = [f"{r.name} {100 * r.planar_turn_share:.0f} %" for r in summary.robots if r.planar_turn_share is not None]
     if shares:
         console.print("turns from planar (car-like) motion, share of measured frames: " + lit(", ".join(shares)))
+    roads = [f"{r.name} {100 * r.road_step_share:.0f} %" for r in summary.robots if r.road_step_share is not None]
+    if roads:
+        console.print("steps from the road's image motion, share of measured frames: " + lit(", ".join(roads)))
     scaled = [
         f"{r.name} x{r.depth_scale:.3f} ({100 * r.depth_scale_share:.0f} % of frames)" if r.depth_scale is not None
         else f"{r.name} not scaled (no level road at that height: a UAV or a tilted camera)"

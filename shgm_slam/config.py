@@ -257,6 +257,11 @@ class OdometryConfig(_Stage):
         True, description="visual odometry: each frame's turn from the tracks under a ground vehicle's planar "
         "circular motion wherever they agree with it (odometry/planar_motion.py; a UAV's frames fall back to PnP)"
     )
+    visual_road_steps: bool = Field(
+        True, description="visual odometry: each frame's step from the road's image motion where a level road "
+        "plane is in view (odometry/ground_speed.py: the plane-induced homography; tracks sliding along edges "
+        "that run with the street shortened steps by 30-70 %); a UAV's frames keep the tracks' steps"
+    )
     hybrid_edge_rel_jump: float = Field(
         0.1, gt=0, description="hybrid: pixels where inverse depth bends by more than this share of itself "
         "(occlusion edges, which networks blur) and their neighbours are kept out of ICP's cloud"

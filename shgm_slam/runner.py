@@ -212,6 +212,7 @@ class RobotReport:
     # visual odometry: share of its measured frames whose turn came from a ground vehicle's planar motion
     # (``odometry/planar_motion.py``; a UAV's frames keep PnP's); None for other odometries
     planar_turn_share: float | None = None
+    road_step_share: float | None = None
     # predicted depth scaled to the camera's height above the road (``perception/ground_scale.py``): the
     # median factor (None: no frame scaled) and the share of processed frames scaled (None: not on for this
     # robot - measured depth, or perception.camera_height_m null; 0.0: on, but no level road at a plausible
@@ -602,6 +603,7 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
             rep.odometry, rep.odometry_reason = front.odometry_choice.kind.value, front.odometry_choice.reason
         if rep.odometry == OdometryKind.VISUAL.value and front.measured_frames:
             rep.planar_turn_share = front.planar_turns / front.measured_frames
+            rep.road_step_share = front.road_steps / front.measured_frames
         if front.ground_scale_on:
             rep.depth_scale_share = len(front.depth_scales) / max(processed[r], 1)
             rep.depth_scale = float(np.median(front.depth_scales)) if front.depth_scales else None

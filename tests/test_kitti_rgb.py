@@ -27,6 +27,9 @@ def test_kitti_sequence_split_into_two_robots_runs_rgb_only(shared_data: Path, t
     reports = {r.name: r for r in summary.robots}
     assert reports["a"].frames_processed == 25 and reports["b"].frames_processed == 25
     assert reports["a"].keyframes >= 2
+    # a car on a real road: the visual odometry takes most steps from the road's image motion
+    assert reports["a"].road_step_share is not None and reports["a"].road_step_share > 0.5
+    assert reports["a"].planar_turn_share is not None
     assert any(k.startswith("perception") for k in summary.timings_ms)  # model inference was timed
     # ground truth of KITTI is found, so the odometry is evaluated
     assert reports["a"].path_length_m > 2.0

@@ -34,7 +34,8 @@ class OdometryEstimate:
     The optional diagnostics feed ``health.OdometryHealthMonitor``: ``threshold_m`` is the source's
     registration threshold after this frame (KISS-ICP's adaptive σ, metres), ``rotation_disagreement_deg``
     how far the source's rotation of this step is from the rotation measured from image motion;
-    ``planar_turn`` whether the step's turn came from a ground vehicle's planar motion (visual odometry).
+    ``planar_turn`` whether the step's turn came from a ground vehicle's planar motion (visual odometry),
+    ``road_step`` whether its length and direction came from the road's image motion (visual odometry).
     """
 
     T_odom_cam: np.ndarray
@@ -43,6 +44,7 @@ class OdometryEstimate:
     threshold_m: float | None = None
     rotation_disagreement_deg: float | None = None
     planar_turn: bool = False
+    road_step: bool = False
 
 
 @runtime_checkable
@@ -269,7 +271,8 @@ class VisualOdometrySource:
         first = reg.status is VisualStatus.FIRST_FRAME
         disagreement = None if yaw_img is None or first else yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
         return OdometryEstimate(
-            reg.T_odom_cam, reg.ok, note, rotation_disagreement_deg=disagreement, planar_turn=reg.planar_turn
+            reg.T_odom_cam, reg.ok, note, rotation_disagreement_deg=disagreement, planar_turn=reg.planar_turn,
+            road_step=reg.road_step,
         )
 
 
@@ -314,6 +317,7 @@ def _visual_factory(cfg: OdometryConfig) -> Callable[[], DepthVisualOdometry]:
             reprojection_px=cfg.visual_reprojection_px,
             depth_window_px=cfg.visual_depth_window_px,
             planar_motion=cfg.visual_planar_motion,
+            road_steps=cfg.visual_road_steps,
         )
 
     return factory

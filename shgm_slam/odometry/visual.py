@@ -22,6 +22,15 @@ The method (per frame):
 3. When fewer than ``min_track_fraction`` of the reference's corners survive (or fewer than
    ``min_tracks``), this frame becomes the new reference: fresh corners, 3-D from its own depth.
 
+4. With ``road_steps`` (a car: a level road plane in view), each frame's step length and direction come
+   from the road instead (``ground_speed.ground_step``): the step runs along the chord of the turn in the
+   road plane, and its length is the one whose plane-induced homography moves the previous image's
+   textured road onto this image best. Tracks on edges that run along the street (a bus's stripes, a
+   kerb) slide along themselves under forward motion, and PnP then read steps 30-70 % short and up to
+   40 deg sideways for seconds (with true depth as with a network's). The output chain composes these
+   steps on the tracking chain's turns; the tracking chain itself (PnP against the reference) is kept
+   as it is, so its turns still do not compound.
+
 Frames where PnP fails keep the constant-velocity prediction and are reported (``ok`` False).
 Poses are ``T_odom_cam``: the camera in the odometry frame, which is the first frame's camera.
 """
@@ -36,8 +45,11 @@ import numpy as np
 
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry.se3 import inverse, project_to_so3
+from shgm_slam.labels import Label
+from shgm_slam.odometry.ground_speed import MAX_ROAD_CONTRAST, MIN_ROAD_GRADIENT, ground_step, textured_road_pixels
 from shgm_slam.odometry.image_rotation import rot_y
 from shgm_slam.odometry.planar_motion import PlanarTurn, planar_turn
+from shgm_slam.perception.ground_scale import RoadPlane, road_plane
 from shgm_slam.types import Intrinsics
 
 MIN_PLANAR_SUPPORT = 0.8
@@ -67,6 +79,7 @@ class VisualRegistration:
         num_inliers: PnP inliers (0 when PnP did not run or failed).
         new_reference: whether this frame became the tracking reference.
         planar_turn: whether this frame's turn came from planar circular motion (``planar_motion``).
+        road_step: whether this frame's step (length and direction) came from the road (``road_steps``).
     """
 
     T_odom_cam: np.ndarray
@@ -75,6 +88,7 @@ class VisualRegistration:
     num_inliers: int
     new_reference: bool
     planar_turn: bool = False
+    road_step: bool = False
 
     @property
     def ok(self) -> bool:
@@ -170,6 +184,12 @@ def depth_window_on_image(window_model_px: int, image_width: int, model_width: i
     return max(int(window_model_px), 2 * round((scaled - 1) / 2) + 1)
 
 
+def half_rotation(R: np.ndarray) -> np.ndarray:
+    """(3, 3) the rotation about the same axis as (3, 3) ``R`` by half its angle."""
+    rvec = cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0]
+    return cv2.Rodrigues(0.5 * rvec)[0]
+
+
 def _pose_from_rt(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = cv2.Rodrigues(rvec)[0]
@@ -205,6 +225,8 @@ class DepthVisualOdometry:
             depth 5 overshoots by 2 %, so sensor depth wants 1).
         planar_motion: take each frame's turn from the tracks under planar circular motion (a ground
             vehicle), where at least ``MIN_PLANAR_SUPPORT`` of them agree with it (module docstring).
+        road_steps: take each frame's step from the road where a level road plane is in view and the road's
+            image motion gives a distinct answer (module docstring, step 4; needs ``label_ids``).
     """
 
     def __init__(
@@ -226,6 +248,7 @@ class DepthVisualOdometry:
         triangulated_scale: bool = True,
         depth_window_px: int = 5,
         planar_motion: bool = False,
+        road_steps: bool = False,
     ) -> None:
         if not 0.0 <= min_depth_m < max_depth_m:
             raise ConfigError(f"visual odometry needs 0 <= min_depth_m < max_depth_m, got {min_depth_m}, {max_depth_m}")
@@ -250,6 +273,10 @@ class DepthVisualOdometry:
         self.triangulated_scale = triangulated_scale
         self.depth_window_px = depth_window_px
         self.planar_motion = planar_motion
+        self.road_steps = road_steps
+        self._road: tuple[np.ndarray, np.ndarray, RoadPlane] | None = None  # previous image, its road pixels, plane
+        self._road_sign = 1.0  # the last road step's sign along the chord (a camera looking backwards: -1)
+        self.num_road_steps = 0
         self._turn: PlanarTurn | None = None  # this frame's planar turn (accepted ones only)
         self._turn_used = False  # this frame's pose took it
         self._lk = {
@@ -257,8 +284,9 @@ class DepthVisualOdometry:
             "maxLevel": lk_levels,
             "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
         }
-        self.T_odom_cam = np.eye(4)
-        self._T_prev_cam = np.eye(4)  # last frame-to-frame motion (constant-velocity model)
+        self.T_odom_cam = np.eye(4)  # the output chain (road steps composed on the tracking chain's turns)
+        self._track_T = np.eye(4)  # the tracking chain: PnP against the reference
+        self._T_prev_cam = np.eye(4)  # last frame-to-frame motion of the tracking chain (constant velocity)
         self._prev_gray: np.ndarray | None = None
         self._ref_T_odom_cam = np.eye(4)
         self._ref_points = np.zeros((0, 3))  # (M, 3) reference corners in the reference camera frame
@@ -303,13 +331,16 @@ class DepthVisualOdometry:
         if self._prev_gray is None:
             self._new_reference(gray, depth, intrinsics, label_ids)
             self._prev_gray = gray
+            if self.road_steps:
+                self._road = self._road_view(gray, depth, intrinsics, label_ids)
             return VisualRegistration(self.T_odom_cam.copy(), VisualStatus.FIRST_FRAME, 0, 0, True)
         if gray.shape != self._prev_gray.shape:
             raise DataError(
                 f"image size changed from {self._prev_gray.shape[::-1]} to {gray.shape[::-1]} inside one sequence"
             )
 
-        T_pred = self.T_odom_cam @ (self._T_prev_cam if motion_prior is None else motion_prior)
+        motion = self._T_prev_cam if motion_prior is None else motion_prior
+        T_pred = self._track_T @ motion
         self._turn_used = False
         num_tracks = self._track(gray, intrinsics)
         status, num_inliers, T_new = VisualStatus.FEW_TRACKS, 0, T_pred
@@ -319,17 +350,73 @@ class DepthVisualOdometry:
             if T_new is None:
                 T_new = T_pred
         if status is VisualStatus.OK:  # coasting keeps the last motion as it is
-            self._T_prev_cam = inverse(self.T_odom_cam) @ T_new
+            self._T_prev_cam = inverse(self._track_T) @ T_new
         T_new[:3, :3] = project_to_so3(T_new[:3, :3])  # products of many poses drift off SO(3)
-        self.T_odom_cam = T_new
+        step = inverse(T_new) @ self._track_T  # X_cur = step X_prev
+        self._track_T = T_new
+        road = None
+        if self.road_steps:
+            road = self._road_step(step, gray, intrinsics, float(np.linalg.norm(motion[:3, 3])) + self.max_step_m)
+            self.T_odom_cam = self.T_odom_cam @ inverse(step if road is None else road)
+            self.T_odom_cam[:3, :3] = project_to_so3(self.T_odom_cam[:3, :3])
+            self._road = self._road_view(gray, depth, intrinsics, label_ids)
+        else:
+            self.T_odom_cam = T_new.copy()
         self._prev_gray = gray
         renew = len(self._ref_points) < max(self.min_tracks, self.min_track_fraction * self._ref_count)
         if renew:
             self._new_reference(gray, depth, intrinsics, label_ids)
         planar = self._turn_used and status is VisualStatus.OK
-        return VisualRegistration(self.T_odom_cam.copy(), status, num_tracks, num_inliers, renew, planar)
+        return VisualRegistration(
+            self.T_odom_cam.copy(), status, num_tracks, num_inliers, renew, planar, road is not None
+        )
 
     # ----------------------------------------------------------------------------------------------
+
+    def _road_view(
+        self, gray: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, label_ids: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, RoadPlane] | None:
+        """This frame's image, textured road pixels and level road plane, for the next frame's road step
+        (None without labels or a level road plane: a UAV's oblique view, a road out of sight)."""
+        if label_ids is None:
+            return None
+        plane = road_plane(depth, label_ids, intrinsics)
+        if plane is None:
+            return None
+        pixels = textured_road_pixels(gray, depth, np.asarray(label_ids) == Label.ROAD, MIN_ROAD_GRADIENT)
+        return gray, pixels, plane
+
+    def _road_step(
+        self, step: np.ndarray, gray: np.ndarray, intrinsics: Intrinsics, max_length_m: float
+    ) -> np.ndarray | None:
+        """(4, 4) this frame's step (``X_cur = step X_prev``) with the tracking chain's turn and the road's
+        translation, or None where the road gives no distinct answer.
+
+        The car moves along the chord of its turn in the road plane: the previous camera's forward axis laid
+        into the plane and turned by half the step's rotation (planar circular motion, with the camera's own
+        pitch and roll to the road taken out); forward or backward as the tracking chain's step says (a camera
+        looking backwards)."""
+        if self._road is None:
+            return None
+        prev_gray, pixels, plane = self._road
+        R_cam_prev = step[:3, :3]
+        n = plane.normal_cam
+        forward = np.array([0.0, 0.0, 1.0]) - n[2] * n
+        forward /= np.linalg.norm(forward)
+        chord_prev = half_rotation(R_cam_prev.T) @ forward  # the step's direction in the previous frame
+        along = float(-(R_cam_prev.T @ step[:3, 3]) @ chord_prev)  # the tracking chain's step along it
+        if abs(along) > 1e-6:
+            self._road_sign = 1.0 if along > 0 else -1.0
+        chord_prev *= self._road_sign
+        direction_cam = -R_cam_prev @ chord_prev
+        found = ground_step(prev_gray, gray, pixels, intrinsics.K, R_cam_prev, direction_cam, plane, max_length_m)
+        if found is None or found.contrast > MAX_ROAD_CONTRAST:
+            return None
+        out = np.eye(4)
+        out[:3, :3] = R_cam_prev
+        out[:3, 3] = found.length_m * direction_cam
+        self.num_road_steps += 1
+        return out
 
     def _check_inputs(
         self, image_gray: np.ndarray, depth_m: np.ndarray, label_ids: np.ndarray | None
@@ -365,7 +452,7 @@ class DepthVisualOdometry:
             # corners sit on edges; a background corner given foreground depth shortens the motion
             depth = cv2.dilate(depth, np.ones((self.depth_window_px, self.depth_window_px), np.uint8))
         self._ref_points = backproject_pixels(self._ref_uv, depth, intrinsics)
-        self._ref_T_odom_cam = self.T_odom_cam.copy()
+        self._ref_T_odom_cam = self._track_T.copy()
         self._ref_count = len(corners)
         self.num_references += 1
 
@@ -432,7 +519,7 @@ class DepthVisualOdometry:
         """``T_cam_ref`` with its rotation set to the previous frame's turned by the planar ``turn`` (no pitch
         or roll of its own: planar motion) and its translation solved again on the PnP ``inliers`` with that
         rotation held."""
-        R_ref_prev = (inverse(self._ref_T_odom_cam) @ self.T_odom_cam)[:3, :3]
+        R_ref_prev = (inverse(self._ref_T_odom_cam) @ self._track_T)[:3, :3]
         R_ref_cam = R_ref_prev @ rot_y(turn.yaw_rad)
         out = np.eye(4)
         out[:3, :3] = R_ref_cam.T

@@ -84,6 +84,7 @@ class RobotFrontend:
         self.odometry_choice = odometry_choice  # which odometry and why (reported in the summary)
         self.measured_frames = 0  # frames the odometry measured (not predicted)
         self.planar_turns = 0  # of them, frames whose turn came from planar motion (visual odometry)
+        self.road_steps = 0  # of them, frames whose step came from the road's image motion (visual odometry)
         # predicted depth scaled to the camera's height above the road (``perception.ground_scale``): whether
         # it is on for this robot, and the factor of each processed frame it scaled
         self.ground_scale_on = getattr(perception, "ground_scale", None) is not None
@@ -186,6 +187,7 @@ class RobotFrontend:
                 self.health.reset()
         self.measured_frames += bool(est.ok)
         self.planar_turns += bool(est.planar_turn)
+        self.road_steps += bool(est.road_step)
         T_odom_cam = est.T_odom_cam if seg.first_frame >= 0 else np.full((4, 4), np.nan)
         t_odo = time.perf_counter()
         message = None
