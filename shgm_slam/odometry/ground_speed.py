@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from shgm_slam.geometry.se3 import rot_x
 from shgm_slam.perception.ground_scale import ROAD_RANGE_M, RoadPlane
 
 COARSE_STEPS = 48
@@ -130,7 +131,7 @@ def ground_step(
 
     def costs(lengths: np.ndarray, pitches: np.ndarray) -> np.ndarray:
         """(P, S) mean absolute photometric differences (NaN: too few pixels stay in the image)."""
-        tilt = K @ _rot_x(pitches) @ np.linalg.inv(K)  # (P, 3, 3)
+        tilt = K @ np.stack([rot_x(p) for p in pitches]) @ np.linalg.inv(K)  # (P, 3, 3) pitch corrections
         ta, tb = (tilt @ a).astype(np.float32), (tilt @ b).astype(np.float32)  # (P, 3, N)
         ls = lengths.astype(np.float32)[None, :, None]
         x, y, z = (ta[:, None, c] - ls * tb[:, None, c] for c in range(3))  # (P, S, N) each
@@ -169,12 +170,3 @@ def ground_step(
                 best = (float(f[j, m]), float(fine_l[m]))
     contrast = best[0] / median if median > 0 else 1.0
     return GroundStep(best[1], float(contrast), len(pixels_uv))
-
-
-def _rot_x(angles_rad: np.ndarray) -> np.ndarray:
-    """(P, 3, 3) rotations about the camera's x axis (pitch) by (P,) angles."""
-    c, s = np.cos(angles_rad), np.sin(angles_rad)
-    out = np.zeros((len(c), 3, 3))
-    out[:, 0, 0] = 1.0
-    out[:, 1, 1], out[:, 1, 2], out[:, 2, 1], out[:, 2, 2] = c, -s, s, c
-    return out
