@@ -16,7 +16,6 @@ drift).
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from shgm_slam.backend.consistency import ConsistencyThresholds
 
@@ -60,30 +59,3 @@ def near_keyframes(
         return np.zeros(c.shape[0], dtype=bool)
     d = np.linalg.norm(q[:, None, :] - c[None, :, :], axis=2)
     return (d <= reach_m + np.broadcast_to(tol_m, d.shape)).any(axis=0)
-
-
-def near_keyframes_sparse(
-    query_xyz: np.ndarray, query_slack_m: np.ndarray, cand_xyz: np.ndarray, cand_slack_m: np.ndarray, reach_m: float
-) -> np.ndarray:
-    """``near_keyframes`` for many query keyframes, with a tolerance that is a sum of one slack per keyframe
-    (``tol_qc = query_slack_m[q] + cand_slack_m[c]``), through KD-trees instead of all Q x K distances.
-
-    Args:
-        query_xyz: (Q, 3) and cand_xyz: (K, 3) keyframe positions, one frame, metres.
-        query_slack_m: (Q,) and cand_slack_m: (K,) finite slacks, metres.
-        reach_m: see ``near_keyframes``.
-
-    Returns:
-        (K,) bool.
-    """
-    q = np.asarray(query_xyz, dtype=np.float64).reshape(-1, 3)
-    c = np.asarray(cand_xyz, dtype=np.float64).reshape(-1, 3)
-    near = np.zeros(c.shape[0], dtype=bool)
-    if q.shape[0] == 0 or c.shape[0] == 0:
-        return near
-    qs, cs = np.asarray(query_slack_m, dtype=np.float64), np.asarray(cand_slack_m, dtype=np.float64)
-    limit = reach_m + float(qs.max()) + float(cs.max())
-    pairs = cKDTree(c).sparse_distance_matrix(cKDTree(q), limit, output_type="ndarray")
-    ok = pairs["v"] <= reach_m + cs[pairs["i"]] + qs[pairs["j"]]
-    near[pairs["i"][ok]] = True
-    return near

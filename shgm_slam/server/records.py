@@ -58,7 +58,9 @@ class MatchRecord:
     step: int
     robot_a: str
     robot_b: str
-    query: str  # "submap" | "whole": which part of robot_b's graph was matched against robot_a's graph;
+    query: str  # "submap" | "whole" | "window": which part of robot_b's graph was matched against robot_a's
+    # (its recent submap, its whole graph, or a placed pair's recent window: map_server.RECENT_WINDOW_SUBMAPS);
+    # "backfill": a placed pair's older window of robot_b that no closure ties yet (map_server.BACKFILL_QUERY);
     # "loop": robot_b == robot_a, its recent submap against its own older graph (intra-robot loop closure);
     # "independent": at the end, whole graphs without the objects behind robot_b's one piece of evidence
     success: bool

@@ -13,7 +13,7 @@ from shgm_slam.graph.extraction import ObjectObservations
 from shgm_slam.graph.semantic_graph import SemanticGraph
 from shgm_slam.messages import KeyframeMessage
 from shgm_slam.server.map_server import MapServer
-from shgm_slam.server.places import free_path_m, near_keyframes, near_keyframes_sparse, tolerance_m
+from shgm_slam.server.places import free_path_m, near_keyframes, tolerance_m
 
 
 def test_free_path_is_the_distance_to_the_nearest_tied_keyframe():
@@ -92,12 +92,3 @@ def test_loop_queries_match_only_the_older_graph_near_the_submap():
     # the older graph holds the whole outbound lane; only its stretch near the submap is matched
     assert max(rec.nodes_a for rec, _ in late) < 0.25 * min(size for _, size in late)
     assert any(rec.accepted for rec, _ in loops_back), [rec.reason for rec, _ in loops_back]
-
-
-def test_sparse_near_keyframes_agrees_with_all_distances():
-    rng = np.random.default_rng(3)
-    query, cand = rng.uniform(0, 500, (300, 3)), rng.uniform(0, 500, (400, 3))
-    qs, cs = rng.uniform(0, 20, 300), rng.uniform(0, 20, 400)
-    dense = near_keyframes(query, cand, qs[:, None] + cs[None, :], reach_m=15.0)
-    np.testing.assert_array_equal(near_keyframes_sparse(query, qs, cand, cs, 15.0), dense)
-    assert 0 < dense.sum() < len(cand)
