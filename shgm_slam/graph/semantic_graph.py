@@ -336,16 +336,21 @@ class SemanticGraph:
             c.node_ids.copy(), c.label_ids.copy(), c.positions_xyz.copy(), c.sizes.copy(), c.edges.copy()
         )
 
+    def observed_rows(self, kf_ids: Iterable[int]) -> np.ndarray:
+        """Sorted (M,) int64 rows (in ``arrays`` order) of the nodes *observed* from any of ``kf_ids``
+        (anchored there or merged there)."""
+        slots = np.array([self._slot(k) for k in kf_ids], dtype=np.int64)
+        if not self._obs_rows or slots.size == 0:
+            return np.zeros(0, np.int64)
+        rows = np.concatenate(self._obs_rows)[np.isin(np.concatenate(self._obs_slots), slots)]
+        return np.unique(rows).astype(np.int64)
+
     def submap(self, kf_ids: Iterable[int]) -> GraphArrays:
-        """Induced subgraph of the nodes *observed* from any of ``kf_ids`` (anchored there or merged there).
+        """Induced subgraph of the nodes *observed* from any of ``kf_ids`` (``observed_rows``).
 
         Rows keep the graph's row order; edges are those of the whole graph between kept nodes.
         """
-        slots = np.array([self._slot(k) for k in kf_ids], dtype=np.int64)
-        if not self._obs_rows or slots.size == 0:
-            return self.arrays().subset(np.zeros(0, np.int64))
-        rows = np.concatenate(self._obs_rows)[np.isin(np.concatenate(self._obs_slots), slots)]
-        return self.arrays().subset(np.unique(rows))
+        return self.arrays().subset(self.observed_rows(kf_ids))
 
     def state(self) -> GraphState:
         """The whole graph as arrays (``GraphState``; copies)."""

@@ -246,10 +246,11 @@ class MapServer:
             if rows.size >= self.cfg.matching.min_inliers:  # else robot is not near other's map now
                 near = graph_a.subset(rows)
                 records.append(self._match_pair(other, robot, "submap", near, recent[1], desc_a.subset(rows)))
-                records += self._match_window(other, robot, self._recent_window(robot), WINDOW_QUERY, graph_a, desc_a)
+                records += self._match_window(other, robot, self._recent_window(robot), WINDOW_QUERY, graph_a, desc_a,
+                                              whole)  # fmt: skip
             older = self._unclosed_window(robot)
             if older is not None:
-                records += self._match_window(other, robot, older, BACKFILL_QUERY, graph_a, desc_a)
+                records += self._match_window(other, robot, older, BACKFILL_QUERY, graph_a, desc_a, whole)
         return self._keep(records)
 
     def _recent_window(self, robot: str) -> np.ndarray:
@@ -274,13 +275,14 @@ class MapServer:
         return np.arange(start, start + w)
 
     def _match_window(
-        self, other: str, robot: str, kfs: np.ndarray, query: str, graph_a: GraphArrays, desc_a: NodeDescriptors
-    ) -> list[MatchRecord]:
+        self, other: str, robot: str, kfs: np.ndarray, query: str, graph_a: GraphArrays, desc_a: NodeDescriptors,
+        whole: GraphArrays,
+    ) -> list[MatchRecord]:  # fmt: skip
         """Placed ``robot``'s nodes observed from keyframes ``kfs`` against placed ``other``'s nodes near them in
-        the fused estimate (``_rows_near``): one match record, or none when either side has too few nodes."""
+        the fused estimate (``_rows_near``): one match record, or none when either side has too few nodes.
+        ``graph_a``, ``desc_a``: ``other``'s graph and descriptors; ``whole``: ``robot``'s graph."""
         rows_a = self._rows_near(other, robot, kfs)
-        whole = self._graphs[robot].arrays()
-        rows_b = np.flatnonzero(np.isin(whole.node_ids, self._graphs[robot].submap(kfs).node_ids))
+        rows_b = self._graphs[robot].observed_rows(kfs)
         if min(rows_a.size, rows_b.size) < self.cfg.matching.min_inliers:
             return []
         desc_b = self._descriptors[robot].update(whole).subset(rows_b)
