@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import threading
 
@@ -15,7 +14,7 @@ def test_a_ctrl_c_inside_the_block_lets_it_finish_and_then_interrupts() -> None:
     steps = []
     with pytest.raises(KeyboardInterrupt):
         with stops_deferred():
-            os.kill(os.getpid(), signal.SIGINT)
+            signal.raise_signal(signal.SIGINT)
             steps.append("after the signal")  # a half-done step would stop here without the guard
             steps.append("end of the step")
     assert steps == ["after the signal", "end of the step"]
@@ -34,8 +33,8 @@ def test_a_held_sigterm_goes_to_the_handler_that_was_there_before() -> None:
     previous = signal.signal(signal.SIGTERM, lambda signum, _frame: seen.append(signum))
     try:
         with stops_deferred():
-            os.kill(os.getpid(), signal.SIGTERM)
-            os.kill(os.getpid(), signal.SIGTERM)
+            signal.raise_signal(signal.SIGTERM)
+            signal.raise_signal(signal.SIGTERM)
             assert seen == []
         assert seen == [signal.SIGTERM]  # delivered once, after the block
     finally:

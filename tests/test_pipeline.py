@@ -379,7 +379,9 @@ def test_a_later_independent_match_confirms_the_robot(early_stop) -> None:
     assert anchoring and anchoring[-1]["confirmed"] and not anchoring[-1]["withdrawn"]
     assert {anchoring[-1]["robot_a"], anchoring[-1]["robot_b"]} == {"car1", "car2"}
     said = [(t.split(" is ")[1].split()[0], level) for t, level in viz.texts if t.startswith("car2 is ")]
-    assert said == [("placed", "WARN"), ("confirmed", "INFO")]  # first provisional, then confirmed, once each
+    # confirmed, said once; provisional first (once) when the round that placed it had a single match, not
+    # when two independent matches came in the same round
+    assert said in ([("placed", "WARN"), ("confirmed", "INFO")], [("confirmed", "INFO")]), said
     assert read_comments(out / "car2_fused_tum.txt") == []
 
 

@@ -31,11 +31,11 @@ its odometry frame) gets a unary ``AttitudeFactorPose3`` once its robot is ancho
 camera frame, rotated by the keyframe's estimated orientation, should point along the shared frame's up,
 with a Huber kernel and the robot's own measured sigma (``attitude.normal_sigma_rad``, from its first
 ``attitude_warmup`` measured keyframes; none before). The shared frame's up comes from the first anchored
-robot's first ``attitude_warmup`` measurements, rotated into the shared frame and extrapolated to its
-first keyframe (``attitude.up_at_start``), and is then fixed: unary factors keep the cost of an update
-flat, where a shared "gravity" variable tied to every keyframe made each update cost O(keyframes). This
-stops roll and pitch from drifting with the odometry, and the height error that pitch drift integrates;
-it assumes level ground (see ``attitude.py``).
+robot's first ``attitude_warmup`` measurements, rotated into the shared frame and weighed against the
+odometry's drift since its first keyframe (``attitude.up_at_start``), and is then fixed: unary factors
+keep the cost of an update flat, where a shared "gravity" variable tied to every keyframe made each
+update cost O(keyframes). This stops roll and pitch from drifting with the odometry, and the height
+error that pitch drift integrates; it assumes level ground (see ``attitude.py``).
 
 Numerics: iSAM2 factorizes with QR by default. With CHOLESKY, a long straight chain with the default
 sigmas raised ``IndeterminateSystem`` after ~1100 keyframes: the root clique's information couples
@@ -63,7 +63,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from shgm_slam.backend.attitude import normal_sigma_rad, up_at_start
+from shgm_slam.backend.attitude import MIN_SIGMA_RAD, normal_sigma_rad, up_at_start
 from shgm_slam.backend.consistency import (
     MAX_CLOSURES_PER_PAIR,
     ConsistencyThresholds,
@@ -1047,8 +1047,9 @@ class MultiRobotPoseGraph:
 
     def _measure_up_shared(self, anchored: list[tuple[str, _Robot]]) -> np.ndarray | None:
         """The shared frame's up, from the first anchored robot (in index order) with ``attitude_warmup``
-        measured keyframes: those normals rotated by their current estimates, extrapolated to its first
-        keyframe (``attitude.up_at_start``: free of the odometry's drift over them)."""
+        measured keyframes: those normals rotated by their current estimates, weighed against the odometry's
+        rotation drift since its first keyframe (``attitude.up_at_start``; the drift as the odometry factors
+        model it, the normals' noise as measured)."""
         for name, r in sorted(anchored, key=lambda item: item[1].index):
             ks = r.measured[: self.attitude_warmup]
             if len(ks) < self.attitude_warmup:
@@ -1056,7 +1057,13 @@ class MultiRobotPoseGraph:
             ups = [
                 self._current_pose(name, k)[:3, :3] @ (r.T_odom_kf[k][:3, :3].T @ r.up_odom[k]) for k in ks
             ]
-            return up_at_start(np.stack(ups), np.asarray(ks))
+            step_var = [
+                self._odometry_sigmas(inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k])[0] ** 2
+                for k in range(1, ks[-1] + 1)
+            ]
+            walk = np.concatenate([[0.0], np.cumsum(step_var)])[np.asarray(ks)]
+            sigma = normal_sigma_rad(np.stack([r.up_odom[k] for k in ks]))
+            return up_at_start(np.stack(ups), walk, sigma if sigma is not None else MIN_SIGMA_RAD)
         return None
 
     def _rebuild(self) -> None:

@@ -13,6 +13,20 @@ log = logging.getLogger(__name__)
 
 
 GROUND_LABELS = (Label.ROAD, Label.SIDEWALK, Label.TERRAIN)
+"""Classes on the ground: the plane is fitted to them when too few road points are seen."""
+
+MIN_GROUND_POINTS = 200
+"""Fewest points a plane fit needs (fewer: no normal)."""
+
+MAX_PLANE_RMS_M = 0.3
+"""A fit whose inliers lie farther from their plane than this (RMS) is not a plane: no normal."""
+
+TRIM_SIGMAS = 3.0
+"""Points farther from the first plane than this many robust sigmas (1.4826 MAD of the distances) are
+left out of the refit: curbs, mislabelled pixels, a parked car's underside labelled road."""
+
+MAX_FIT_POINTS = 5000
+"""A plane fit subsamples to about this many points (its normal is no better with more)."""
 
 
 def ground_normal(
@@ -20,21 +34,55 @@ def ground_normal(
 ) -> np.ndarray | None:
     """Unit normal of the ground plane, pointing up (towards the camera), in the camera frame.
 
-    Fitted to the road, sidewalk and terrain points of one pseudo-LiDAR cloud (least squares plane);
-    None when there are too few ground points or they are not planar (RMS distance > 0.3 m).
+    Fitted to the road points of one pseudo-LiDAR cloud when there are ``MIN_GROUND_POINTS`` of them, else
+    to the road, sidewalk and terrain points: the road is the level surface a robot drives on, while the
+    sidewalks beside it stand a curb higher and grass strips lie at their own heights, so a plane through
+    all of them tilts towards the side they are seen on (on the airsim-like tuning worlds' rendered depth:
+    0.1-0.3 degrees of roll on every keyframe, always the same way, since cars keep to one side of the
+    street; the shared frame's up, taken from a robot's first keyframes, inherited it, and once the robot
+    turned that roll became a pitch: a reference car sank 4 m over 400 m). A least-squares plane, then a
+    second fit without the points farther than ``TRIM_SIGMAS`` robust sigmas from it.
+
+    Args:
+        points_cam: (N, 3) points in the camera frame (x right, y down, z forward), metres.
+        label_ids: (N,) train ids of the points, or None (then no normal).
+        max_range_m: points farther than this are left out, metres.
+
+    Returns:
+        (3,) unit normal in the camera frame, or None: no labels, fewer than ``MIN_GROUND_POINTS`` ground
+        points, or no plane (the kept points lie farther than ``MAX_PLANE_RMS_M`` RMS from it).
     """
     if label_ids is None:
         return None
-    ground = np.isin(label_ids, GROUND_LABELS) & (np.linalg.norm(points_cam, axis=1) < max_range_m)
-    pts = points_cam[ground]
-    if len(pts) < 200:
+    near = np.linalg.norm(points_cam, axis=1) < max_range_m
+    road = near & (label_ids == Label.ROAD)
+    pts = points_cam[road] if road.sum() >= MIN_GROUND_POINTS else points_cam[near & np.isin(label_ids, GROUND_LABELS)]
+    if len(pts) < MIN_GROUND_POINTS:
         return None
-    centre = pts.mean(axis=0)
-    _, sv, vt = np.linalg.svd(pts[:: max(1, len(pts) // 5000)] - centre, full_matrices=False)
-    normal = vt[2]
-    if sv[2] / np.sqrt(len(pts[:: max(1, len(pts) // 5000)])) > 0.3 or sv[1] < 1e-6:
+    pts = pts[:: max(1, len(pts) // MAX_FIT_POINTS)]
+    fit = _plane(pts)
+    if fit is None:
         return None
+    normal, centre = fit
+    dist = (pts - centre) @ normal
+    sigma = 1.4826 * float(np.median(np.abs(dist)))
+    keep = np.abs(dist) <= TRIM_SIGMAS * sigma
+    if MIN_GROUND_POINTS <= keep.sum() < len(pts):
+        fit = _plane(pts[keep])
+        if fit is None:
+            return None
+        normal, centre = fit
     return normal if normal @ (-centre) > 0 else -normal
+
+
+def _plane(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Least-squares plane of (N, 3) points: (unit normal, centroid), or None when they are not planar (RMS
+    distance above ``MAX_PLANE_RMS_M``) or lie on a line."""
+    centre = pts.mean(axis=0)
+    _, sv, vt = np.linalg.svd(pts - centre, full_matrices=False)
+    if sv[2] / np.sqrt(len(pts)) > MAX_PLANE_RMS_M or sv[1] < 1e-6:
+        return None
+    return vt[2], centre
 
 
 def rotation_to_z(up: np.ndarray) -> np.ndarray:

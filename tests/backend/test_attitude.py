@@ -59,13 +59,51 @@ def test_measured_sigma_ignores_a_slow_drift_and_skips_missing_normals():
 def test_up_at_start_removes_a_linear_drift_that_the_mean_keeps():
     k = np.arange(20)
     drifted = np.stack([se3.rot_x(2e-3 * i) @ UP_CAM for i in k])  # the odometry pitches 2 mrad per keyframe
-    up = up_at_start(drifted, k)
+    walk = (k * 2e-3) ** 2 / 4.0  # a drift model of that order (its variance grows along the chain)
+    up = up_at_start(drifted, walk, sigma_rad=1e-5)
     assert np.linalg.norm(up) == pytest.approx(1.0)
     assert np.degrees(np.arccos(up @ UP_CAM)) < 0.01
     mean = drifted.mean(axis=0) / np.linalg.norm(drifted.mean(axis=0))
     assert np.degrees(np.arccos(mean @ UP_CAM)) > 1.0
     with pytest.raises(ValueError):
-        up_at_start(drifted[:1], k[:1])
+        up_at_start(drifted[:0], walk[:0], 1e-3)
+    with pytest.raises(ValueError):
+        up_at_start(drifted, walk[:5], 1e-3)
+    with pytest.raises(ValueError):
+        up_at_start(drifted, -walk - 1.0, 1e-3)
+    with pytest.raises(ValueError):
+        up_at_start(drifted, walk, 0.0)
+
+
+def test_up_at_start_beats_a_line_through_the_normals_on_a_random_walk():
+    """Exact normals on a drift that is not linear in the keyframe index (a random walk): the estimate
+    follows the first keyframes, where a line's intercept is pulled by the walk's later wanderings."""
+    rng = np.random.default_rng(5)
+    k = np.arange(20)
+    step_sigma = 2e-3
+    err_gls, err_line = [], []
+    for _ in range(50):
+        tilt = np.cumsum(rng.normal(0.0, step_sigma, size=(20, 3)), axis=0)
+        tilt[0] = 0.0
+        ups = np.stack([se3.so3_exp(t) @ UP_CAM for t in tilt])
+        up = up_at_start(ups, k * step_sigma**2, sigma_rad=1e-5)
+        err_gls.append(np.arccos(np.clip(up @ UP_CAM, -1, 1)))
+        coef = np.linalg.lstsq(np.column_stack([np.ones(20), k]), ups, rcond=None)[0][0]
+        err_line.append(np.arccos(np.clip(coef @ UP_CAM / np.linalg.norm(coef), -1, 1)))
+    assert np.median(err_gls) < 1e-4
+    assert np.median(err_line) > 10 * np.median(err_gls)
+
+
+def test_up_at_start_averages_noisy_normals_without_drift():
+    rng = np.random.default_rng(6)
+    sigma = 5e-3
+    errs = []
+    for _ in range(50):
+        ups = _tilted(np.tile(UP_CAM, (40, 1)), sigma, rng)
+        up = up_at_start(ups, np.full(40, 1e-10), sigma_rad=sigma)
+        errs.append(np.arccos(np.clip(up @ UP_CAM, -1, 1)))
+    # the mean of 40 normals: about sigma * sqrt(2) / sqrt(40) off (a Rayleigh median ~1.18 of its scale)
+    assert np.median(errs) < 2.0 * sigma / np.sqrt(40.0)
 
 
 def _fused_height_error(attitude: bool, n: int = 600, sigma_rad: float = 1e-3) -> tuple[float, MultiRobotPoseGraph]:
@@ -87,6 +125,26 @@ def test_attitude_factors_remove_the_height_drift_of_pitching_odometry():
     assert pg_off.stats().attitude_factors == 0 and pg_off.up_shared is None
     assert pg_on.stats().attitude_factors == 600
     np.testing.assert_allclose(pg_on.up_shared, UP_CAM, atol=2e-3)  # the first camera is level here
+
+
+def test_shared_up_follows_the_first_keyframe_when_the_odometry_wanders():
+    """Exact normals, odometry whose roll and pitch wander (a random walk of 1 mrad per keyframe, 4 mrad
+    over the warm-up): the shared up is keyframe 0's, not a fit through the wandering ones."""
+    rng = np.random.default_rng(7)
+    n = 40
+    gt = np.tile(np.eye(4), (n, 1, 1))
+    gt[:, 2, 3] = 2.0 * np.arange(n)
+    odo = [np.eye(4)]
+    for _ in range(n - 1):
+        tilt = se3.so3_exp(np.array([rng.normal(0.0, 1e-3), 0.0, rng.normal(0.0, 1e-3)]))
+        odo.append(odo[-1] @ se3.make_pose(tilt, [0.0, 0.0, 2.0]))
+    odo = np.stack(odo)
+    ups = _normals_odom(gt, odo, 1e-6)
+    pg = MultiRobotPoseGraph(["car"], attitude_warmup=20)
+    for k in range(n):
+        pg.add_keyframe("car", k, odo[k], ups[k])
+    assert pg.up_shared is not None
+    assert np.arccos(np.clip(pg.up_shared @ UP_CAM, -1.0, 1.0)) < 2e-4
 
 
 def test_attitude_waits_for_warmup_and_for_anchoring():

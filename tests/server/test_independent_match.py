@@ -80,15 +80,26 @@ def test_the_last_look_leaves_placed_robots_alone(messages) -> None:
 
 
 def test_a_provisional_robot_is_confirmed_by_the_last_look(messages) -> None:
-    """Trusting single matches (``min_closures_to_anchor: 1``) car2 joins on its first match, provisional
-    (every later match found the same objects); the last look on the other objects agrees and confirms it."""
+    """Trusting single matches (``min_closures_to_anchor: 1``) car2 joins on its first match, provisional;
+    matching then stops (every later query finds nothing), so that match is its only evidence; the last
+    look on the other objects agrees and confirms it."""
     cfg = ShgmConfig()
     cfg.odometry.kind = OdometryKind.GT
     cfg.backend.min_closures_to_anchor = 1
     server = MapServer(["car1", "car2"], cfg)
+    match_pair = server._match_pair
+
+    def first_match_only(robot_a, robot_b, query, graph_a, graph_b, desc_a, desc_b=None):
+        if server.is_placed("car2"):  # an empty query: declined, nothing added
+            return match_pair(robot_a, robot_b, query, graph_a, graph_b.subset(np.zeros(0, dtype=np.int64)), desc_a)
+        return match_pair(robot_a, robot_b, query, graph_a, graph_b, desc_a, desc_b)
+
+    server._match_pair = first_match_only
     for m in _by_time(messages):
         server.receive(m)
+    assert sum(r.accepted for r in server.matches) == 1
     assert server.placement("car2").placement is Placement.PROVISIONAL
+    server._match_pair = match_pair
     records = server._independent_match("car2")
     assert [r.accepted for r in records] == [True]
     assert server.placement("car2").placement is Placement.CONFIRMED
