@@ -63,7 +63,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from shgm_slam.backend.attitude import MIN_SIGMA_RAD, normal_sigma_rad, up_at_start
+from shgm_slam.backend.attitude import normal_sigma_rad, up_at_start
 from shgm_slam.backend.consistency import (
     MAX_CLOSURES_PER_PAIR,
     ConsistencyThresholds,
@@ -1027,11 +1027,8 @@ class MultiRobotPoseGraph:
                 return
         nav_up = gtsam.Unit3(self._up_shared)
         for name, r in anchored:
-            if r.attitude_sigma_rad is None:
-                if len(r.measured) < self.attitude_warmup:
-                    continue
-                first = np.stack([r.up_odom[k] for k in r.measured[: self.attitude_warmup]])
-                r.attitude_sigma_rad = normal_sigma_rad(first)
+            if self._attitude_sigma(r) is None:
+                continue
             if r.attitude_next == len(r.T_odom_kf):
                 continue
             noise = gtsam.noiseModel.Robust.Create(
@@ -1062,9 +1059,16 @@ class MultiRobotPoseGraph:
                 for k in range(1, ks[-1] + 1)
             ]
             walk = np.concatenate([[0.0], np.cumsum(step_var)])[np.asarray(ks)]
-            sigma = normal_sigma_rad(np.stack([r.up_odom[k] for k in ks]))
-            return up_at_start(np.stack(ups), walk, sigma if sigma is not None else MIN_SIGMA_RAD)
+            return up_at_start(np.stack(ups), walk, self._attitude_sigma(r))
         return None
+
+    def _attitude_sigma(self, r: _Robot) -> float | None:
+        """The robot's attitude sigma, measured once from its first ``attitude_warmup`` measured normals
+        (``attitude.normal_sigma_rad``); None while it has fewer."""
+        if r.attitude_sigma_rad is None and len(r.measured) >= self.attitude_warmup:
+            first = np.stack([r.up_odom[k] for k in r.measured[: self.attitude_warmup]])
+            r.attitude_sigma_rad = normal_sigma_rad(first)
+        return r.attitude_sigma_rad
 
     def _rebuild(self) -> None:
         """Start iSAM2 afresh from the recorded odometry and the accepted closures (anchor changed)."""
