@@ -323,6 +323,11 @@ def _render_summary(summary) -> None:
     roads = [f"{r.name} {100 * r.road_step_share:.0f} %" for r in summary.robots if r.road_step_share is not None]
     if roads:
         console.print("steps from the road's image motion, share of measured frames: " + lit(", ".join(roads)))
+    drifts = [f"{r.name} {r.measured_drift_deg_per_100m:.1f}" for r in summary.robots
+              if r.measured_drift_deg_per_100m is not None]  # fmt: skip
+    if drifts:
+        console.print("odometry heading drift measured by the robot's own loop closures, beyond the pose graph's "
+                      "prior (deg per 100 m; its odometry weighs that much less): " + lit(", ".join(drifts)))
     scaled = [
         f"{r.name} x{r.depth_scale:.3f} ({100 * r.depth_scale_share:.0f} % of frames)" if r.depth_scale is not None
         else f"{r.name} not scaled (no level road at that height: a UAV or a tilted camera)"

@@ -212,6 +212,9 @@ class RobotReport:
     # visual odometry: share of its measured frames whose turn came from a ground vehicle's planar motion
     # (``odometry/planar_motion.py``; a UAV's frames keep PnP's); None for other odometries
     planar_turn_share: float | None = None
+    # its odometry's heading drift as its own loop closures measured it, degrees per 100 m, where more than the
+    # pose graph's prior (``backend/drift.py``: its odometry factors then weigh that much less); None otherwise
+    measured_drift_deg_per_100m: float | None = None
     road_step_share: float | None = None
     # predicted depth scaled to the camera's height above the road (``perception/ground_scale.py``): the
     # median factor (None: no frame scaled) and the share of processed frames scaled (None: not on for this
@@ -607,6 +610,8 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
         if front.ground_scale_on:
             rep.depth_scale_share = len(front.depth_scales) / max(processed[r], 1)
             rep.depth_scale = float(np.median(front.depth_scales)) if front.depth_scales else None
+        drifts = [d for s in with_kf if (d := server.measured_drift(s.agent)) is not None]
+        rep.measured_drift_deg_per_100m = float(np.degrees(max(drifts)) * 100.0) if drifts else None
         rep.segment_start_frames = [int(s.first_frame) for s in front.segments if s.first_frame >= 0]
         rep.segments = len(rep.segment_start_frames)
         rep.segments_placed = len(placed)

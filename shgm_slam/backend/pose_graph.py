@@ -72,6 +72,7 @@ from shgm_slam.backend.consistency import (
     consistent_with,
     consistent_with_odometry,
 )
+from shgm_slam.backend.drift import closure_rate, drift_level, loop_rotation_error_rad, measured_rate
 from shgm_slam.backend.keys import ROBOT_LETTERS, RobotKeys
 from shgm_slam.config import BackendConfig, RobustKernel
 from shgm_slam.errors import BackendError
@@ -198,6 +199,7 @@ class _Robot:
     measured: list[int] = field(default_factory=list)  # keyframes with a ground normal
     attitude_sigma_rad: float | None = None  # measured once it has ``attitude_warmup`` normals
     attitude_next: int = 0  # keyframes before this one have had their attitude factor (if measured)
+    drift_rot_rad_per_m: float | None = None  # rotation drift rate its odometry factors use (None: the prior)
     _odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_odom_kf as a growing array
     _path: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
@@ -456,7 +458,10 @@ class MultiRobotPoseGraph:
         if rec.robot_a == rec.robot_b and not self._agrees_with_odometry(rec):
             return ClosureDecision(False, rec.reason, rec.closure_id)
         self._update_pair(rec)
-        self._sync()
+        if rec.robot_a == rec.robot_b and self._refresh_drift(rec.robot_a) and self._robots[rec.robot_a].anchored:
+            self._rebuild()  # every odometry factor of the robot with its new sigmas (unanchored: when anchored)
+        else:
+            self._sync()
         if update:
             self.update()
         reason = rec.reason
@@ -616,6 +621,11 @@ class MultiRobotPoseGraph:
         k = len(r.T_odom_kf) - 1 if kf_index is None else kf_index
         return self.T_shared_kf(robot, k) @ inverse(r.T_odom_kf[k])
 
+    def measured_drift(self, robot: str) -> float | None:
+        """The odometry rotation drift rate (rad per metre driven) ``robot``'s loop closures measured and its
+        odometry factors now use, where more than the prior (``drift.py``); None while the prior holds."""
+        return self._robot(robot).drift_rot_rad_per_m
+
     def anchor(self, robot: str) -> Anchor:
         """The closure that anchored ``robot`` and the alignment its keyframes were initialised with."""
         r = self._require_anchored(robot)
@@ -690,7 +700,7 @@ class MultiRobotPoseGraph:
                 continue
             for k in range(1, len(r.T_odom_kf)):
                 T = inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k]
-                odo_info = np.diag(1.0 / self._odometry_sigmas(T) ** 2)
+                odo_info = np.diag(1.0 / self._odometry_sigmas(T, r) ** 2)
                 lines.append(_g2o_edge(self.keys.key(name, k - 1), self.keys.key(name, k), T, odo_info))
         for c in self._closures:
             if c.in_graph:
@@ -773,6 +783,8 @@ class MultiRobotPoseGraph:
             for pair, v in state.pairs.items()
         }
         self._rebuilds, self._recoveries = int(state.rebuilds), int(state.recoveries)
+        for name in names:
+            self._robots[name].drift_rot_rad_per_m = self._drift_level(name)
         self.factorization = Factorization(state.factorization)
         self._reset_isam()
         first = self.keys.names[0]
@@ -789,7 +801,7 @@ class MultiRobotPoseGraph:
                 if k:
                     delta = inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k]
                     prev = self.keys.key(name, k - 1)
-                    noise = gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(delta))
+                    noise = gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(delta, r))
                     self._add_factor(gtsam.BetweenFactorPose3(prev, key, _pose3(delta), noise))
         for c in self._closures:
             if c.in_graph:
@@ -922,10 +934,44 @@ class MultiRobotPoseGraph:
         for k in range(1, len(r.T_odom_kf)):
             self._push_keyframe(name, k)
 
-    def _odometry_sigmas(self, delta: np.ndarray) -> np.ndarray:
-        """(6,) [rot rad x3, trans m x3] sigmas of an odometry step ``delta`` (4, 4): the floor plus the
-        drift rates times the step's length."""
-        return self._odometry_floor + self._odometry_drift * float(np.linalg.norm(delta[:3, 3]))
+    def _odometry_sigmas(self, delta: np.ndarray, r: _Robot) -> np.ndarray:
+        """(6,) [rot rad x3, trans m x3] sigmas of an odometry step ``delta`` (4, 4) of robot ``r``: the floor
+        plus the drift rates times the step's length (the rotation rate the robot's loop closures measured,
+        when they measured more than the prior: ``drift.py``)."""
+        drift = self._odometry_drift
+        if r.drift_rot_rad_per_m is not None:
+            drift = np.r_[[r.drift_rot_rad_per_m] * 3, drift[3:]]
+        return self._odometry_floor + drift * float(np.linalg.norm(delta[:3, 3]))
+
+    def _drift_level(self, robot: str) -> float | None:
+        """The rotation drift rate ``robot``'s accepted loop closures call for (``drift.drift_level`` of
+        their median maximum-likelihood rate), None where that is the prior."""
+        r = self._robots[robot]
+        prior = float(self._odometry_drift[0])
+        odom, path = r.odometry()
+        rates = []
+        for c in self._closures:
+            if c.robot_a != robot or c.robot_b != robot or c.status is not ClosureStatus.ACCEPTED:
+                continue
+            error = loop_rotation_error_rad(odom[c.kf_a], odom[c.kf_b], c.T_a_b)
+            rates.append(closure_rate(error, np.diff(path[c.kf_a : c.kf_b + 1]), float(self._odometry_floor[0])))
+        level = drift_level(measured_rate(rates), prior)
+        return None if level == prior else level
+
+    def _refresh_drift(self, robot: str) -> bool:
+        """Take up the drift level ``robot``'s loop closures call for; True when it changed (the odometry
+        factors in iSAM2 then need rebuilding)."""
+        r = self._robots[robot]
+        level = self._drift_level(robot)
+        if level == r.drift_rot_rad_per_m:
+            return False
+        _log.info(
+            "%s: its loop closures measure an odometry rotation drift of %.2g rad/m (prior %.2g): odometry "
+            "sigmas follow it", robot, level if level is not None else self._odometry_drift[0],
+            self._odometry_drift[0],
+        )
+        r.drift_rot_rad_per_m = level
+        return True
 
     def _push_keyframe(self, robot: str, k: int) -> None:
         """Odometry factor (k-1 -> k) and initial value of keyframe k of an anchored robot."""
@@ -936,7 +982,7 @@ class MultiRobotPoseGraph:
             prev = self._new_values.atPose3(k_prev).matrix()
         else:
             prev = self._isam.calculateEstimatePose3(k_prev).matrix()
-        noise = gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(delta))
+        noise = gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(delta, r))
         self._add_factor(gtsam.BetweenFactorPose3(k_prev, k_new, _pose3(delta), noise))
         self._new_values.insert(k_new, _pose3(prev @ delta))
 
@@ -1055,7 +1101,7 @@ class MultiRobotPoseGraph:
                 self._current_pose(name, k)[:3, :3] @ (r.T_odom_kf[k][:3, :3].T @ r.up_odom[k]) for k in ks
             ]
             step_var = [
-                self._odometry_sigmas(inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k])[0] ** 2
+                self._odometry_sigmas(inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k], r)[0] ** 2
                 for k in range(1, ks[-1] + 1)
             ]
             walk = np.concatenate([[0.0], np.cumsum(step_var)])[np.asarray(ks)]

@@ -698,6 +698,11 @@ class MapServer:
         return describe_waiting(agent, partner, max(1, pg.evidence_between(agent, partner)),
                                 pg.min_closures_to_anchor, len(matches[partner]))  # fmt: skip
 
+    def measured_drift(self, agent: str) -> float | None:
+        """Odometry rotation drift (rad per metre) ``agent``'s own loop closures measured beyond the prior
+        (``MultiRobotPoseGraph.measured_drift``); None while the prior holds or the agent is unknown."""
+        return self._pose_graph.measured_drift(agent) if agent in self._graphs else None
+
     def T_shared_kf(self, agent: str) -> np.ndarray | None:
         """(K, 4, 4) fused keyframe poses of ``agent`` in the shared frame, or None if not placed (or not
         known to the server yet)."""

@@ -117,6 +117,11 @@ def test_a_drifting_loop_is_closed(loop_drive: Path, tmp_path: Path) -> None:
     assert any(t.startswith("car<->car (loop)") for t in viz.texts)
     # the loop pulls the drifted return back: the fused trajectory is clearly better than the odometry
     assert car.ate_fused_m < 0.6 * car.ate_odometry_m, car
+    # its closures measured the odometry's heading drift (5 deg per 100 m, a random walk's rate above the prior)
+    # and the results say so
+    assert car.measured_drift_deg_per_100m is not None and car.measured_drift_deg_per_100m > 10.0, car
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["robots"][0]["measured_drift_deg_per_100m"] == pytest.approx(car.measured_drift_deg_per_100m)
 
 
 def test_no_loop_closure_without_a_revisit(open_drive: Path, tmp_path: Path) -> None:
@@ -124,6 +129,7 @@ def test_no_loop_closure_without_a_revisit(open_drive: Path, tmp_path: Path) -> 
     assert not [m for m in _loops(matches) if m["accepted"]]
     (car,) = summary.robots
     assert car.ate_fused_m <= car.ate_odometry_m + 0.05, car
+    assert car.measured_drift_deg_per_100m is None  # no loop, nothing measured: the prior holds
 
 
 def test_loop_closure_can_be_switched_off(loop_drive: Path, tmp_path: Path) -> None:
