@@ -338,6 +338,7 @@ class MultiRobotPoseGraph:
         self._robots = {name: _Robot(i) for i, name in enumerate(self.keys.names)}
         self._closures: list[ClosureRecord] = []
         self._support: dict[int, frozenset] = {}  # closure id -> the objects it rests on (when given)
+        self._loop_rates: dict[int, float] = {}  # loop closure id -> its drift rate (``_loop_rate``)
         self._closure_noise: list[gtsam.noiseModel.Base] = []
         self._information: list[np.ndarray] = []  # 6x6 [rot, trans] information, for g2o export
         self._pairs: dict[tuple[str, str], PairConsistency] = {}
@@ -946,17 +947,23 @@ class MultiRobotPoseGraph:
     def _drift_level(self, robot: str) -> float | None:
         """The rotation drift rate ``robot``'s accepted loop closures call for (``drift.drift_level`` of
         their median maximum-likelihood rate), None where that is the prior."""
-        r = self._robots[robot]
         prior = float(self._odometry_drift[0])
-        odom, path = r.odometry()
-        rates = []
-        for c in self._closures:
-            if c.robot_a != robot or c.robot_b != robot or c.status is not ClosureStatus.ACCEPTED:
-                continue
-            error = loop_rotation_error_rad(odom[c.kf_a], odom[c.kf_b], c.T_a_b)
-            rates.append(closure_rate(error, np.diff(path[c.kf_a : c.kf_b + 1]), float(self._odometry_floor[0])))
+        rates = [
+            self._loop_rate(c) for c in self._closures
+            if c.robot_a == c.robot_b == robot and c.status is ClosureStatus.ACCEPTED
+        ]  # fmt: skip
         level = drift_level(measured_rate(rates), prior)
         return None if level == prior else level
+
+    def _loop_rate(self, c: ClosureRecord) -> float:
+        """Loop closure ``c``'s maximum-likelihood drift rate (``drift.closure_rate``), computed once: a
+        closure and the odometry between its keyframes never change."""
+        if c.closure_id not in self._loop_rates:
+            odom, path = self._robots[c.robot_a].odometry()
+            error = loop_rotation_error_rad(odom[c.kf_a], odom[c.kf_b], c.T_a_b)
+            steps = np.diff(path[c.kf_a : c.kf_b + 1])
+            self._loop_rates[c.closure_id] = closure_rate(error, steps, float(self._odometry_floor[0]))
+        return self._loop_rates[c.closure_id]
 
     def _refresh_drift(self, robot: str) -> bool:
         """Take up the drift level ``robot``'s loop closures call for; True when it changed (the odometry
