@@ -15,8 +15,9 @@ maximum-likelihood rate solves ``|δ|² / 3 = Σ_k (floor + rate · L_k)²`` (a 
 alone explains ``δ``). The closure's own rotation error is left out: the pose graph's closure sigma
 (0.1 rad) is set for robustness, not measured, and subtracting it would leave a loop ~10 deg off
 unmeasured; closures of the files tuning worlds err by 0.5-1.3 deg (std per robot pair, synthia-like's
-opposite-facing views 1.3-7), so a closure error alone raises a robot's rate above the prior only on
-short loops or poor closures, and then towards the rate the prior had before it was measured (0.002).
+opposite-facing views 1.3-7). A poor closure on a short loop can raise a rate on its own (7 deg over 50 m
+measures 0.0066 rad/m); the median over the robot's loop closures bounds that, and a loop closure has
+passed the odometry check and the loops' consistency vote (``consistency.py``) before it counts.
 A robot's measured rate is the median over its accepted loop closures (closures of one revisit share
 most of their loop and would outvote a lone one in a mean).
 

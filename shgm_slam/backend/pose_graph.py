@@ -967,16 +967,11 @@ class MultiRobotPoseGraph:
 
     def _refresh_drift(self, robot: str) -> bool:
         """Take up the drift level ``robot``'s loop closures call for; True when it changed (the odometry
-        factors in iSAM2 then need rebuilding)."""
+        factors in iSAM2 then need rebuilding). ``measured_drift`` tells; the caller reports it."""
         r = self._robots[robot]
         level = self._drift_level(robot)
         if level == r.drift_rot_rad_per_m:
             return False
-        _log.info(
-            "%s: its loop closures measure an odometry rotation drift of %.2g rad/m (prior %.2g): odometry "
-            "sigmas follow it", robot, level if level is not None else self._odometry_drift[0],
-            self._odometry_drift[0],
-        )
         r.drift_rot_rad_per_m = level
         return True
 

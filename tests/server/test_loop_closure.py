@@ -120,6 +120,7 @@ def test_a_drifting_loop_is_closed(loop_drive: Path, tmp_path: Path) -> None:
     # its closures measured the odometry's heading drift (5 deg per 100 m, a random walk's rate above the prior)
     # and the results say so
     assert car.measured_drift_deg_per_100m is not None and car.measured_drift_deg_per_100m > 10.0, car
+    assert any(t.startswith("car: its loop closures measure an odometry heading drift") for t in viz.texts)
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["robots"][0]["measured_drift_deg_per_100m"] == pytest.approx(car.measured_drift_deg_per_100m)
 
