@@ -640,6 +640,12 @@ class ServerNode:
                 "placed": [a for a in mine if server.is_placed(a)],
                 "provisional": [a for a in mine if server.placement(a).provisional],
                 "waiting": [note for a in mine if (note := server.waiting_note(a)) is not None],
+                # odometry heading drift its loop closures measured beyond the prior, deg per 100 m, per agent
+                "measured_drift_deg_per_100m": {
+                    a: round(float(np.degrees(d)) * 100.0, 2)
+                    for a in mine
+                    if (d := server.measured_drift(a)) is not None
+                },
                 "keyframes": sum(server.received(a) for a in mine) if server else 0,
                 "done": rs.done is not None,
                 "went_stale": rs.went_stale,

@@ -210,6 +210,7 @@ def test_a_robot_waiting_for_independent_matches_hears_so_in_the_status(robots, 
     assert not server.map.is_placed("car2") and server.map.waiting_note("car2") is not None
     s = server.summary()
     assert s["robots"]["car2"]["placed"] == [] and s["robots"]["car2"]["waiting"] == [server.map.waiting_note("car2")]
+    assert s["robots"]["car1"]["measured_drift_deg_per_100m"] == {}  # no loop closed: the prior holds
     assert nodes["car2"].waiting_agents == ("car2",) and nodes["car1"].waiting_agents == ()
 
 
