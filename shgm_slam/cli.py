@@ -321,6 +321,10 @@ def _render_summary(summary) -> None:
     if shares:
         console.print("turns from planar (car-like) motion, share of measured frames: " + lit(", ".join(shares)))
     roads = [f"{r.name} {100 * r.road_step_share:.0f} %" for r in summary.robots if r.road_step_share is not None]
+    slips = [f"{r.name} {r.image_steps}" for r in summary.robots if r.image_steps]
+    if slips:
+        console.print("KISS-ICP steps that slipped against the image motion, replaced by the step from image "
+                      "tracks (frames): " + lit(", ".join(slips)))  # fmt: skip
     if roads:
         console.print("steps from the road's image motion, share of measured frames: " + lit(", ".join(roads)))
     drifts = [f"{r.name} {r.measured_drift_deg_per_100m:.1f}" for r in summary.robots

@@ -270,6 +270,11 @@ class OdometryConfig(_Stage):
         True, description="measure each step's turn from image motion: it seeds KISS-ICP's rotation (sharp turns) "
         "and the health check compares every odometry's turn with it"
     )
+    image_flow_check: bool = Field(
+        True, description="KISS-ICP: check each step against the image motion (the previous frame's depth pixels "
+        "tracked into this image); where ICP slipped (a plane-like cloud, e.g. a UAV over flat ground), keep the step "
+        "solved from the tracks (odometry/flow_check.py)"
+    )
     health_check: bool = Field(
         True, description="detect odometry divergence and restart as a new trajectory segment (odometry/health.py)"
     )

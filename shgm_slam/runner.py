@@ -216,6 +216,9 @@ class RobotReport:
     # pose graph's prior (``backend/drift.py``: its odometry factors then weigh that much less); None otherwise
     measured_drift_deg_per_100m: float | None = None
     road_step_share: float | None = None
+    # KISS-ICP: frames where its step slipped against the image motion and the step solved from image tracks was
+    # kept (``odometry/flow_check.py``); None for other odometries
+    image_steps: int | None = None
     # predicted depth scaled to the camera's height above the road (``perception/ground_scale.py``): the
     # median factor (None: no frame scaled) and the share of processed frames scaled (None: not on for this
     # robot - measured depth, or perception.camera_height_m null; 0.0: on, but no level road at a plausible
@@ -607,6 +610,8 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
         if rep.odometry == OdometryKind.VISUAL.value and front.measured_frames:
             rep.planar_turn_share = front.planar_turns / front.measured_frames
             rep.road_step_share = front.road_steps / front.measured_frames
+        if rep.odometry == OdometryKind.KISS_ICP.value:
+            rep.image_steps = front.image_steps
         if front.ground_scale_on:
             rep.depth_scale_share = len(front.depth_scales) / max(processed[r], 1)
             rep.depth_scale = float(np.median(front.depth_scales)) if front.depth_scales else None

@@ -185,7 +185,8 @@ class KissOdometry:
                 measured from the images).
             fuse_step: maps ICP's step (4, 4), the motion of this frame in the previous camera frame,
                 to the step to keep (e.g. fused with another odometry's); the adaptive threshold, the
-                local map and the pose are then updated with the kept step, as KISS-ICP does with its own.
+                local map and the pose are then updated with the kept step, as KISS-ICP does with its own
+                (returning the very array it was given keeps exactly KISS-ICP's own update).
 
         Returns:
             ``Registration`` with a copy of ``T_odom_cam`` (4, 4). Clouds with fewer than
@@ -226,8 +227,11 @@ class KissOdometry:
             points=source, voxel_map=icp.local_map, initial_guess=initial_guess,
             max_correspondance_distance=3 * sigma, kernel=sigma,
         )  # fmt: skip
-        step = np.asarray(fuse_step(np.linalg.inv(icp.last_pose) @ new_pose), dtype=np.float64)
-        new_pose = icp.last_pose @ step
+        icp_step = np.linalg.inv(icp.last_pose) @ new_pose
+        step = fuse_step(icp_step)
+        if step is not icp_step:  # a step of its own: the pose follows it (ICP's own: exactly KISS-ICP's update)
+            step = np.asarray(step, dtype=np.float64)
+            new_pose = icp.last_pose @ step
         icp.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
         icp.local_map.update(frame_downsample, new_pose)
         icp.last_delta = step

@@ -18,6 +18,7 @@ from shgm_slam.config import OdometryConfig, OdometryKind
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry.se3 import inverse
 from shgm_slam.odometry.clouds import sampling_spacing_m
+from shgm_slam.odometry.flow_check import FlowTracks, choose_step
 from shgm_slam.odometry.image_rotation import ImageYawEstimator, rot_y, yaw_of
 from shgm_slam.odometry.kiss import KissOdometry
 from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus
@@ -35,7 +36,9 @@ class OdometryEstimate:
     registration threshold after this frame (KISS-ICP's adaptive σ, metres), ``rotation_disagreement_deg``
     how far the source's rotation of this step is from the rotation measured from image motion;
     ``planar_turn`` whether the step's turn came from a ground vehicle's planar motion (visual odometry),
-    ``road_step`` whether its length and direction came from the road's image motion (visual odometry).
+    ``road_step`` whether its length and direction came from the road's image motion (visual odometry),
+    ``image_step`` whether ICP slipped against the image motion and the step solved from image tracks was
+    kept (KISS-ICP, ``flow_check``).
     """
 
     T_odom_cam: np.ndarray
@@ -45,6 +48,7 @@ class OdometryEstimate:
     rotation_disagreement_deg: float | None = None
     planar_turn: bool = False
     road_step: bool = False
+    image_step: bool = False
 
 
 @runtime_checkable
@@ -126,6 +130,7 @@ class KissIcpSource:
         seed: int = 0,
         image_yaw: ImageYawEstimator | None = None,
         prior_min_deg: float = YAW_PRIOR_MIN_DEG,
+        flow: FlowTracks | None = None,
     ) -> None:
         if max_spacing_m is not None and max_spacing_m <= 0:
             raise ConfigError(f"odometry max_spacing_m must be > 0 or None, got {max_spacing_m}")
@@ -136,6 +141,7 @@ class KissIcpSource:
         self._rng = np.random.default_rng(seed) if shuffle_points else None
         self.image_yaw = image_yaw
         self.prior_min_rad = float(np.radians(prior_min_deg))
+        self.flow = flow
 
     def reset(self) -> None:
         self.odometry.reset()
@@ -143,6 +149,8 @@ class KissIcpSource:
             self._rng = np.random.default_rng(self._seed)
         if self.image_yaw is not None:
             self.image_yaw.reset()
+        if self.flow is not None:
+            self.flow.reset()
 
     def update(
         self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
@@ -159,10 +167,26 @@ class KissIcpSource:
             self.image_yaw.update(frame.image_rgb, frame.intrinsics.fx)  # the first frame: reference only
         T_prev = self.odometry.T_odom_cam
         prior = None if yaw_img is None else yaw_prior(self.odometry.predicted_delta, yaw_img, self.prior_min_rad)
-        reg = self.odometry.register(points_cam, prior)
+        tracks = None
+        if self.flow is not None and frame.image_rgb is not None and depth_m is not None:
+            tracks = self.flow.update(frame.image_rgb, depth_m, frame.intrinsics)
+        slipped: list[bool] = []
+
+        def keep_step(icp_step: np.ndarray) -> np.ndarray:
+            step, replaced = choose_step(icp_step, tracks)
+            slipped.append(replaced)
+            return step
+
+        checked = tracks is not None and self.odometry.num_frames > 0
+        reg = self.odometry.register(points_cam, prior, keep_step if checked else None)
         note = "" if reg.ok else f"frame {frame.index}: {reg.status.value} ({reg.num_points} points in range)"
+        image_step = any(slipped)
+        if image_step:
+            note = f"frame {frame.index}: ICP slipped against the image motion; the step from the image tracks kept"
         disagreement = None if yaw_img is None else yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
-        return OdometryEstimate(reg.T_odom_cam, reg.ok, note, self.odometry.threshold_m, disagreement)
+        return OdometryEstimate(
+            reg.T_odom_cam, reg.ok, note, self.odometry.threshold_m, disagreement, image_step=image_step
+        )
 
 
 class GroundTruthSource:
@@ -341,6 +365,7 @@ def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
         max_spacing_m=cfg.max_spacing_m,
         shuffle_points=cfg.shuffle_points,
         image_yaw=ImageYawEstimator() if cfg.image_rotation else None,
+        flow=FlowTracks() if cfg.image_flow_check else None,
     )
 
 

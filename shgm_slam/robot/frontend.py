@@ -85,6 +85,7 @@ class RobotFrontend:
         self.measured_frames = 0  # frames the odometry measured (not predicted)
         self.planar_turns = 0  # of them, frames whose turn came from planar motion (visual odometry)
         self.road_steps = 0  # of them, frames whose step came from the road's image motion (visual odometry)
+        self.image_steps = 0  # of them, frames where KISS-ICP slipped and the image tracks' step was kept
         # predicted depth scaled to the camera's height above the road (``perception.ground_scale``): whether
         # it is on for this robot, and the factor of each processed frame it scaled
         self.ground_scale_on = getattr(perception, "ground_scale", None) is not None
@@ -188,6 +189,7 @@ class RobotFrontend:
         self.measured_frames += bool(est.ok)
         self.planar_turns += bool(est.planar_turn)
         self.road_steps += bool(est.road_step)
+        self.image_steps += bool(est.image_step)
         T_odom_cam = est.T_odom_cam if seg.first_frame >= 0 else np.full((4, 4), np.nan)
         t_odo = time.perf_counter()
         message = None

@@ -20,14 +20,15 @@ from tests.odometry.corridor import INTRINSICS, path, render
 STRIDE = 2
 
 
-def config(kind: OdometryKind) -> OdometryConfig:
+def config(kind: OdometryKind, **overrides) -> OdometryConfig:
     """The corridor's camera slides sideways as it weaves (not a car's planar circular motion)."""
     return OdometryConfig(kind=kind, voxel_size_m=0.5, max_range_m=60.0, cloud_stride=STRIDE, shuffle_points=False,
-                          visual_max_depth_m=60.0, visual_depth_window_px=1, visual_planar_motion=False)  # fmt: skip
+                          visual_max_depth_m=60.0, visual_depth_window_px=1, visual_planar_motion=False,
+                          **overrides)  # fmt: skip
 
 
-def run(kind: OdometryKind, poses: np.ndarray, depth_fn=lambda d, i: d):
-    src = make_odometry(config(kind), len(poses))
+def run(kind: OdometryKind, poses: np.ndarray, depth_fn=lambda d, i: d, **overrides):
+    src = make_odometry(config(kind, **overrides), len(poses))
     est, weights = [], []
     for i, T in enumerate(poses):
         gray, depth = render(T)
@@ -51,9 +52,12 @@ def test_true_depth_follows_the_corridor_where_icp_alone_cannot(corridor):
     assert np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]) < 0.6  # over 31 m
     # four flat walls: nothing along the corridor for ICP to hold on to; its turns are noisy too, so the
     # visual odometry carries the steps
-    kiss, _, _ = run(OdometryKind.KISS_ICP, corridor)
-    assert ate(gt, kiss, align=AlignMode.NONE).rmse > 5.0
+    icp_alone, _, _ = run(OdometryKind.KISS_ICP, corridor, image_flow_check=False)
+    assert ate(gt, icp_alone, align=AlignMode.NONE).rmse > 5.0
     assert np.nanmean(weights[20:]) < 0.5
+    # KISS-ICP checked against the image motion (the default) keeps the steps the image tracks give where it slips
+    kiss, _, _ = run(OdometryKind.KISS_ICP, corridor)
+    assert ate(gt, kiss, align=AlignMode.NONE).rmse < 0.3
 
 
 def flicker(depth: np.ndarray, i: int) -> np.ndarray:
@@ -66,14 +70,16 @@ def flicker(depth: np.ndarray, i: int) -> np.ndarray:
 
 
 def test_flickering_depth_hands_the_step_to_the_visual_odometry(corridor):
-    kiss, gt, _ = run(OdometryKind.KISS_ICP, corridor, flicker)
+    kiss, gt, _ = run(OdometryKind.KISS_ICP, corridor, flicker, image_flow_check=False)
     visual, _, _ = run(OdometryKind.VISUAL, corridor, flicker)
     hybrid, _, weights = run(OdometryKind.HYBRID, corridor, flicker)
+    checked, _, _ = run(OdometryKind.KISS_ICP, corridor, flicker)  # KISS-ICP's slips replaced by image steps
     err = {name: ate(gt, e, align=AlignMode.NONE).rmse for name, e in
-           (("kiss", kiss), ("visual", visual), ("hybrid", hybrid))}  # fmt: skip
+           (("kiss", kiss), ("visual", visual), ("hybrid", hybrid), ("checked", checked))}  # fmt: skip
     assert np.nanmean(weights[20:]) < 0.5  # ICP's turns are the noisier ones
     assert err["hybrid"] < 0.2 * err["kiss"]
     assert err["hybrid"] < 1.5 * err["visual"] + 0.1
+    assert err["checked"] < 0.2 * err["kiss"]
 
 
 def test_kiss_keeps_the_fused_step_it_is_given():

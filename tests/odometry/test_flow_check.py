@@ -1,0 +1,110 @@
+"""KISS-ICP's step against the image's own motion: the residual of right and wrong steps, PnP from the tracks,
+the choice between them, and KISS-ICP over flat ground (where ICP alone stalls) kept on track."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from shgm_slam.geometry.camera import backproject
+from shgm_slam.geometry.se3 import make_pose
+from shgm_slam.odometry.flow_check import (
+    SLIP_FLOOR_RAD,
+    FlowTracks,
+    choose_step,
+    flow_residual_rad,
+    pnp_step,
+)
+from shgm_slam.odometry.kiss import KissOdometry
+from shgm_slam.odometry.sources import KissIcpSource
+from shgm_slam.types import Frame, Intrinsics
+
+K = Intrinsics(fx=160.0, fy=160.0, cx=159.5, cy=47.5, width=320, height=96)
+HEIGHT_M = 20.0  # camera straight above flat ground, looking down (its z axis)
+STEP_M = 0.5  # along the camera's x axis per frame: the ground moves 4 px per frame in the image
+
+
+@pytest.fixture(scope="module")
+def ground_texture() -> np.ndarray:
+    """(H, long, 3) uint8 smooth random texture of the ground strip the camera flies along."""
+    rng = np.random.default_rng(0)
+    noise = rng.uniform(0, 255, (K.height, 2000)).astype(np.float32)
+    grey = cv2.GaussianBlur(noise, (0, 0), 2.0)
+    grey = cv2.normalize(grey, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    return np.repeat(grey[:, :, None], 3, axis=2)
+
+
+def _view(texture: np.ndarray, k: int) -> np.ndarray:
+    """Image of frame k: the strip seen 4 px further along per frame (integer shifts, no resampling)."""
+    shift = round(k * STEP_M * K.fx / HEIGHT_M)
+    return np.ascontiguousarray(texture[:, shift : shift + K.width])
+
+
+def _depth() -> np.ndarray:
+    return np.full((K.height, K.width), HEIGHT_M, dtype=np.float32)
+
+
+def _true_step() -> np.ndarray:
+    return make_pose(np.eye(3), np.array([STEP_M, 0.0, 0.0]))
+
+
+def test_the_true_step_explains_the_tracks_and_no_motion_does_not(ground_texture) -> None:
+    flow = FlowTracks()
+    assert flow.update(_view(ground_texture, 0), _depth(), K) is None  # the first frame: nothing to track
+    tracks = flow.update(_view(ground_texture, 1), _depth(), K)
+    assert tracks is not None and len(tracks.uv_cur) > 200
+    assert flow_residual_rad(tracks, _true_step()) < 0.1 / K.fx  # a tenth of a pixel
+    assert flow_residual_rad(tracks, np.eye(4)) == pytest.approx(4.0 / K.fx, rel=0.05)  # 4 px unexplained
+    pnp = pnp_step(tracks)
+    assert pnp is not None
+    np.testing.assert_allclose(pnp[:3, 3], [STEP_M, 0.0, 0.0], atol=0.02)
+
+
+def test_a_slipped_step_is_replaced_and_a_right_one_kept(ground_texture) -> None:
+    flow = FlowTracks()
+    flow.update(_view(ground_texture, 0), _depth(), K)
+    tracks = flow.update(_view(ground_texture, 1), _depth(), K)
+    stalled = np.eye(4)
+    step, replaced = choose_step(stalled, tracks)
+    assert replaced
+    np.testing.assert_allclose(step, pnp_step(tracks))
+    near = make_pose(np.eye(3), np.array([STEP_M * 0.97, 0.0, 0.0]))  # 0.12 px off: within the floor
+    assert flow_residual_rad(tracks, near) < SLIP_FLOOR_RAD
+    step, replaced = choose_step(near, tracks)
+    assert not replaced and step is near
+    assert choose_step(stalled, None) == (stalled, False)  # nothing to check against: ICP's
+
+
+def test_images_that_do_not_move_together_give_no_tracks(ground_texture) -> None:
+    flow = FlowTracks()
+    flow.update(_view(ground_texture, 0), _depth(), K)
+    rng = np.random.default_rng(1)
+    noise = rng.integers(0, 255, (K.height, K.width, 3), dtype=np.uint8)  # an unrelated image
+    assert flow.update(noise, _depth(), K) is None
+    flow.reset()
+    assert flow.update(_view(ground_texture, 1), _depth(), K) is None  # after a reset: a first frame again
+
+
+def _fly(texture: np.ndarray, flow: FlowTracks | None, frames: int = 30) -> tuple[np.ndarray, int]:
+    """(frames, 3) positions KISS-ICP (with or without the flow check) gives the camera flying over flat ground."""
+    source = KissIcpSource(KissOdometry(voxel_size_m=1.0, max_range_m=100.0), flow=flow)
+    out, replaced = [], 0
+    for k in range(frames):
+        points, _ = backproject(_depth(), K, stride=2)
+        est = source.update(Frame(k, 0.1 * k, K, image_rgb=_view(texture, k)), points, _depth())
+        out.append(est.T_odom_cam[:3, 3])
+        replaced += est.image_step
+    return np.array(out), replaced
+
+
+def test_kiss_icp_over_flat_ground_stalls_and_the_flow_check_keeps_it_moving(ground_texture) -> None:
+    """The cloud is one plane: nothing pulls ICP along it, so from its zero-velocity start it stays put.
+    The image tracks show the ground moving 4 px per frame; PnP's steps are kept and the camera moves
+    as it should (and once KISS-ICP's velocity is right, its own steps are kept again)."""
+    truth = np.arange(30)[:, None] * np.array([STEP_M, 0.0, 0.0])
+    alone, _ = _fly(ground_texture, None)
+    assert np.linalg.norm(alone[-1] - truth[-1]) > 10.0  # stalled: most of the 14.5 m missing
+    checked, replaced = _fly(ground_texture, FlowTracks())
+    assert np.linalg.norm(checked - truth, axis=1).max() < 0.5
+    assert 1 <= replaced < 29
