@@ -45,6 +45,10 @@ SLIP_FLOOR_RAD = 3e-3
 """ICP's step is suspect only when its median residual exceeds this angle (0.5 px at a 160 px focal
 length): ten times a healthy KISS-ICP step's on rendered depth."""
 
+PNP_SEED = 0
+"""OpenCV's RANSAC draws from a per-thread generator: it is seeded before each PnP so a step depends only on
+its tracks (robots sharing a process in ``run`` and a robot process restarted mid-run solve the same steps)."""
+
 SLIP_RATIO = 3.0
 """... and this many times the residual of the step PnP solves from the same tracks."""
 
@@ -124,6 +128,7 @@ def pnp_step(tracks: Tracks) -> np.ndarray | None:
     RANSAC, 1 px), or None when it fails or keeps fewer than ``MIN_TRACKS`` inliers."""
     K = np.array([[tracks.intrinsics.fx, 0.0, tracks.intrinsics.cx], [0.0, tracks.intrinsics.fy, tracks.intrinsics.cy],
                   [0.0, 0.0, 1.0]])  # fmt: skip
+    cv2.setRNGSeed(PNP_SEED)
     ok, rvec, tvec, inliers = cv2.solvePnPRansac(
         tracks.points_prev_cam.astype(np.float64), tracks.uv_cur.astype(np.float64), K, None,
         reprojectionError=1.0, iterationsCount=100, flags=cv2.SOLVEPNP_ITERATIVE,
