@@ -126,11 +126,9 @@ def flow_residual_rad(tracks: Tracks, step: np.ndarray) -> float:
 def pnp_step(tracks: Tracks) -> np.ndarray | None:
     """(4, 4) the current camera's pose in the previous camera's frame solved from the tracks (PnP +
     RANSAC, 1 px), or None when it fails or keeps fewer than ``MIN_TRACKS`` inliers."""
-    K = np.array([[tracks.intrinsics.fx, 0.0, tracks.intrinsics.cx], [0.0, tracks.intrinsics.fy, tracks.intrinsics.cy],
-                  [0.0, 0.0, 1.0]])  # fmt: skip
     cv2.setRNGSeed(PNP_SEED)
     ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-        tracks.points_prev_cam.astype(np.float64), tracks.uv_cur.astype(np.float64), K, None,
+        tracks.points_prev_cam.astype(np.float64), tracks.uv_cur.astype(np.float64), tracks.intrinsics.K, None,
         reprojectionError=1.0, iterationsCount=100, flags=cv2.SOLVEPNP_ITERATIVE,
     )  # fmt: skip
     if not ok or inliers is None or len(inliers) < MIN_TRACKS:

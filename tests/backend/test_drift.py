@@ -16,26 +16,14 @@ from shgm_slam.backend.drift import (
 )
 from shgm_slam.backend.pose_graph import MultiRobotPoseGraph
 from shgm_slam.geometry import se3
+from tests.backend.test_loop_closure import _circle, _drift
 
 CLOSURE_SIGMA_RAD = 0.1  # the configured closure rotation sigma
 
 
-def _circle(n: int, radius_m: float = 40.0, laps: float = 1.15) -> np.ndarray:
-    """(n, 4, 4) camera poses (y down, z forward) driving a circle in the x-z plane."""
-    ang = np.linspace(0.0, 2 * np.pi * laps, n)
-    T = np.tile(np.eye(4), (n, 1, 1))
-    T[:, 0, 3], T[:, 2, 3] = radius_m * np.sin(ang), radius_m * (1 - np.cos(ang))
-    T[:, :3, :3] = np.stack([se3.rot_y(a) for a in ang])
-    return T
-
-
 def _yaw_drift(gt: np.ndarray, yaw_deg_per_step: float) -> np.ndarray:
     """Odometry whose every step turns ``yaw_deg_per_step`` more than the truth (a systematic heading drift)."""
-    deltas = se3.make_pose(se3.rot_y(np.radians(yaw_deg_per_step)), np.zeros(3)) @ (se3.inverse(gt[:-1]) @ gt[1:])
-    out = [gt[0]]
-    for d in deltas:
-        out.append(out[-1] @ d)
-    return np.stack(out)
+    return _drift(gt, yaw_deg_per_step, scale=1.0)
 
 
 def test_loop_rotation_error_is_the_rotation_the_odometry_missed() -> None:
