@@ -239,6 +239,11 @@ class OdometryConfig(_Stage):
         "start-up); None: on when the horizon is out of view (the camera sees only the ground)"
     )
     max_icp_iterations: int = Field(100, ge=1, le=10_000)
+    icp_threads: int = Field(
+        1, ge=0, le=1024, description="KISS-ICP's threads; 1: the same trajectory on every run (its parallel sums "
+        "add in an order that depends on thread scheduling, and the image-motion check's choices turn those "
+        "1e-14 m differences into different steps); 0: every core"
+    )
     visual_max_features: int = Field(1000, ge=8, le=100_000, description="visual odometry: corners per reference frame")
     visual_max_depth_m: float | None = Field(
         None, gt=0, description="visual odometry: corners only where depth is below this (far monocular depth "

@@ -13,7 +13,10 @@ depth and moved by a candidate step, must land where they are seen in this frame
 as an angle (pixels / focal length: independent of the image size). ``pnp_step`` solves the step from
 the same tracks (PnP + RANSAC). ``choose_step`` keeps ICP's step unless its residual is above
 ``SLIP_FLOOR_RAD`` and ``SLIP_RATIO`` times PnP's: then ICP slipped and PnP's step is kept (KISS-ICP's
-map, velocity and pose follow it, so the next frame starts from the right velocity). PnP runs only for
+map, velocity and pose follow it, so the next frame starts from the right velocity). PnP's step, not ICP
+run again from it: against the truth at the replaced steps of a KITTI 00 car and two UAVs (tuning data),
+PnP's translation was 0.03 / 0.01 / 0.02 m off (median), ICP's own 0.09 / 0.14 / 0.38 m and ICP run again
+from PnP's step 0.06 / 0.11 / 0.25 m: it slides back toward its own. PnP runs only for
 steps above the floor; the tracks cost ~2-3 ms per frame at 320x96 and 640x192 (two pyramidal
 Lucas-Kanade passes over ~400 pixels).
 
