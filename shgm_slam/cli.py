@@ -135,6 +135,8 @@ def simulate_command(
         "repeatable. Frame ranges are half-open: frames START..END-1; SEQ alone = the whole sequence. Drives of "
         "one sequence share its frame (robots kitti08a, kitti08b, ...); other sequences are aligned onto the "
         "first. Default: 00:2600-2901 and 07:0-351")] = None,
+    supersample: Annotated[int, typer.Option(min=1, max=8, help="colour from SxS rays per pixel, averaged as a "
+                                             "camera's pixel integrates light (1: one ray, aliased)")] = 1,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing scenario")] = False,
 ) -> None:
     """Render a synthetic multi-robot scenario (RGB, depth, labels, GT poses) into sequence folders."""
@@ -149,7 +151,7 @@ def simulate_command(
         scenario, out, seed, resolution=size, fps=fps, max_frames=max_frames, corruption=corruption,
         world_size_m=world_size, max_depth_m=max_depth, compact=compact, kitti_root=kitti_root,
         kitti_robots=tuple(kitti_drive) if kitti_drive else None,
-        overwrite=overwrite,
+        overwrite=overwrite, supersample=supersample,
     )
     table = Table(title=f"{lit(scenario)} (seed {seed}, {size[0]}x{size[1]} @ {fps:g} Hz) -> {lit(out)}")
     for col in ("robot", "kind", "frames", "path m", "shares view with (m)", "folder"):

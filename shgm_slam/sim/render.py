@@ -1,6 +1,11 @@
 """Ray-cast renderer: RGB, metric z-depth, semantic labels and object ids of a ``World`` from a pose.
 
 One embree ray per pixel; each thread casts (embree releases the GIL) and shades a band of image rows.
+With ``supersample`` s > 1 the colour is the mean of an s x s grid of rays inside each pixel, as a camera's
+pixel integrates the light that falls on it (depth, labels and object ids stay those of the ray through the
+pixel's centre): one ray per pixel samples the 0.25 m ground texture at a point, and that aliasing moves
+with the pixel grid, not with the world (measured: a car's step from the road's image motion read 1.5 %
+short on such images, 0.25 % on 4 x 4 supersampled ones).
 Rays are built in the camera frame with z = 1, so the hit distance embree returns *is* the z-depth.
 Colour: per-triangle albedo (realistic class colours with per-object jitter, precomputed), Lambertian
 sun + sky light from triangle normals, world-anchored texture noise, procedural facade windows, a sky
@@ -93,11 +98,14 @@ class Renderer:
         max_depth_m: float = 200.0,
         threads: int = 2,
         lighting: Lighting | None = None,
+        supersample: int = 1,
     ) -> None:
         if world.num_triangles == 0:
             raise SimulationError("the world has no triangles to render")
         if max_depth_m <= 0:
             raise SimulationError(f"max_depth_m must be positive, got {max_depth_m}")
+        if not 1 <= supersample <= 8:
+            raise SimulationError(f"supersample must be 1..8 rays per pixel side, got {supersample}")
         self.world, self.intrinsics, self.max_depth_m = world, intrinsics, float(max_depth_m)
         self.lighting = lighting or Lighting()
         b = world.bounds_xyz
@@ -133,13 +141,13 @@ class Renderer:
         self.obj_windows = np.stack(  # per building: column width, floor height, window fraction (m, m, -)
             [2.4 + 1.6 * hash01(ids, 1), 3.0 + 0.7 * hash01(ids, 2), 0.35 + 0.3 * hash01(ids, 3)], 1
         ).astype(np.float32)
-        rays = pixel_rays(intrinsics).astype(np.float32)  # (H, W, 3) camera frame, z = 1
-        self._ray_x, self._ray_y = rays[0, :, 0], rays[:, 0, 1]  # (W,), (H,): rays are separable
-        self.ray_norm = np.linalg.norm(rays, axis=2).reshape(-1)
         self.threads = max(1, int(threads))
-        rows = np.linspace(0, intrinsics.height, self.threads + 1).astype(int)
-        W = intrinsics.width
-        self._bands = [slice(int(a) * W, int(c) * W) for a, c in itertools.pairwise(rows) if c > a]
+        self.supersample = int(supersample)
+        self._grid = _RayGrid(intrinsics, self.threads)
+        s = self.supersample  # sub-pixel centres: pixel u spans u - 0.5 .. u + 0.5
+        fine = Intrinsics(intrinsics.fx * s, intrinsics.fy * s, (intrinsics.cx + 0.5) * s - 0.5,
+                          (intrinsics.cy + 0.5) * s - 0.5, intrinsics.width * s, intrinsics.height * s)  # fmt: skip
+        self._fine = _RayGrid(fine, self.threads) if s > 1 else None
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
 
     def close(self) -> None:
@@ -156,12 +164,7 @@ class Renderer:
 
     def ray_directions(self, T_world_cam: np.ndarray) -> np.ndarray:
         """(H*W, 3) float32 world-frame directions of the pixel rays (camera z component = 1)."""
-        R = np.asarray(T_world_cam, dtype=np.float64)[:3, :3].astype(np.float32)
-        # d_world = R (x, y, 1) = x R[:, 0] + y R[:, 1] + R[:, 2]: one broadcast sum (and no BLAS call,
-        # whose spinning worker threads would steal the cores from embree)
-        cols = self._ray_x[:, None] * R[:, 0]
-        rows = self._ray_y[:, None] * R[:, 1] + R[:, 2]
-        return (rows[:, None, :] + cols[None, :, :]).reshape(-1, 3)
+        return self._grid.directions(T_world_cam)
 
     def render(self, T_world_cam: np.ndarray) -> RenderedFrame:
         """Render the view of a camera at ``T_world_cam`` ((4, 4), camera KITTI frame -> world, z up).
@@ -172,38 +175,43 @@ class Renderer:
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise SimulationError(f"camera pose must be a finite 4x4 matrix, got shape {T.shape}")
         H, W = self.intrinsics.height, self.intrinsics.width
-        dirs = self.ray_directions(T)
-        out = (
-            np.empty((H * W, 3), np.uint8),
-            np.empty(H * W, np.float32),
-            np.empty(H * W, np.uint8),
-            np.empty(H * W, np.int32),
+        rgb, depth, labels, objects = self._cast(T, self._grid)
+        if self._fine is not None:  # the colour: the mean of the s x s sub-pixel rays
+            s = self.supersample
+            fine = self._cast(T, self._fine)[0].reshape(H, s, W, s, 3).astype(np.float32)
+            rgb = np.rint(fine.mean(axis=(1, 3))).astype(np.uint8)
+        return RenderedFrame(
+            rgb.reshape(H, W, 3), depth.reshape(H, W), labels.reshape(H, W), objects.reshape(H, W)
         )
 
+    def _cast(self, T: np.ndarray, grid: _RayGrid) -> tuple[np.ndarray, ...]:
+        """The (N, 3) uint8 colours, (N,) z-depths, labels and object ids of ``grid``'s rays from pose T."""
+        n = grid.width * grid.height
+        dirs = grid.directions(T)
+        out = (np.empty((n, 3), np.uint8), np.empty(n, np.float32), np.empty(n, np.uint8), np.empty(n, np.int32))
+
         def band(sl: slice) -> None:
-            self._render_rays(T, dirs[sl], self.ray_norm[sl], *(o[sl] for o in out))
+            self._render_rays(T, dirs[sl], grid.ray_norm[sl], grid.width, *(o[sl] for o in out))
 
         if self._pool is None:
             band(slice(None))
         else:
-            list(self._pool.map(band, self._bands))
-        rgb, depth, labels, objects = out
-        return RenderedFrame(
-            rgb.reshape(H, W, 3), depth.reshape(H, W), labels.reshape(H, W), objects.reshape(H, W)
-        )
+            list(self._pool.map(band, grid.bands))
+        return out
 
     def _render_rays(
         self,
         T: np.ndarray,
         dirs: np.ndarray,
         norms: np.ndarray,
+        W: int,
         rgb_out: np.ndarray,
         depth_out: np.ndarray,
         label_out: np.ndarray,
         object_out: np.ndarray,
     ) -> None:
-        """Cast N rays from camera pose T and fill the (N, 3) uint8, (N,) float32 z-depth, (N,) uint8
-        label and (N,) int32 object outputs."""
+        """Cast N rays (whole rows of an image W rays wide) from camera pose T and fill the (N, 3) uint8,
+        (N,) float32 z-depth, (N,) uint8 label and (N,) int32 object outputs."""
         n = len(dirs)
         origins = np.empty((n, 3), np.float32)
         origins[:] = (T[:3, 3] - self.origin).astype(np.float32)
@@ -221,7 +229,6 @@ class Renderer:
         rgb = np.empty((n, 3), np.float32)
         rgb[miss] = self._sky(dirs[miss], norms[miss])
         # shadow rays are shared in 2x2 pixel blocks that hit the same triangle (band-local rows)
-        W = self.intrinsics.width
         rep = np.arange(n) // W // 2 * 2 * W + np.arange(n) % W // 2 * 2
         pos = np.full(n, -1)
         pos[hit] = np.arange(hit.size)
@@ -288,3 +295,24 @@ class Renderer:
         factor = np.ones(len(tri), np.float32)
         factor[blocked] = self.tri_shadow[tri[blocked]]
         return factor
+
+
+class _RayGrid:
+    """The camera-frame rays of one pixel grid (z = 1, separable into columns and rows) and its row bands."""
+
+    def __init__(self, intrinsics: Intrinsics, threads: int) -> None:
+        rays = pixel_rays(intrinsics).astype(np.float32)  # (H, W, 3) camera frame, z = 1
+        self.width, self.height = intrinsics.width, intrinsics.height
+        self._ray_x, self._ray_y = rays[0, :, 0], rays[:, 0, 1]  # (W,), (H,)
+        self.ray_norm = np.linalg.norm(rays, axis=2).reshape(-1)
+        rows = np.linspace(0, self.height, threads + 1).astype(int)
+        self.bands = [slice(int(a) * self.width, int(c) * self.width) for a, c in itertools.pairwise(rows) if c > a]
+
+    def directions(self, T_world_cam: np.ndarray) -> np.ndarray:
+        """(H*W, 3) float32 world-frame directions of the rays."""
+        R = np.asarray(T_world_cam, dtype=np.float64)[:3, :3].astype(np.float32)
+        # d_world = R (x, y, 1) = x R[:, 0] + y R[:, 1] + R[:, 2]: one broadcast sum (and no BLAS call,
+        # whose spinning worker threads would steal the cores from embree)
+        cols = self._ray_x[:, None] * R[:, 0]
+        rows = self._ray_y[:, None] * R[:, 1] + R[:, 2]
+        return (rows[:, None, :] + cols[None, :, :]).reshape(-1, 3)

@@ -145,6 +145,7 @@ def simulate(
     kitti_robots: tuple[str, ...] | None = None,
     overwrite: bool = False,
     threads: int = 2,
+    supersample: int = 1,
     progress: ProgressFn | None = None,
 ) -> ScenarioResult:
     """Build scenario ``scenario`` (see ``sim.scenarios.SCENARIOS``) and write it to ``out_dir``.
@@ -160,6 +161,7 @@ def simulate(
             the first drive's sequence is the reference; drives of one sequence share its frame).
         overwrite: replace an existing output folder's sequences.
         threads: ray-casting threads.
+        supersample: each pixel's colour from supersample x supersample rays (``render.Renderer``).
         progress: called after every frame.
     """
     out = Path(out_dir)
@@ -203,7 +205,8 @@ def simulate(
             }
         ),
     )
-    with Renderer(plan.world, intrinsics, max_depth_m=max_depth_m, threads=threads) as renderer:
+    renderer = Renderer(plan.world, intrinsics, max_depth_m=max_depth_m, threads=threads, supersample=supersample)
+    with renderer:
         t2 = time.perf_counter()
         for i, traj in enumerate(robots):
             rng = np.random.default_rng([seed, i, 77])
@@ -237,7 +240,7 @@ def simulate(
             "render_write": round(t3 - t2, 3),
         },
     )
-    results.write_json("scenario.json", scenario_json(result, plan, corruption, max_depth_m, hfov_deg))
+    results.write_json("scenario.json", scenario_json(result, plan, corruption, max_depth_m, hfov_deg, supersample))
     return result
 
 
@@ -247,6 +250,7 @@ def scenario_json(
     corruption: CorruptionLevels,
     max_depth_m: float,
     hfov_deg: float,
+    supersample: int = 1,
 ) -> dict:
     """``scenario.json`` content (format ``shgm-scenario/1``)."""
     K = result.intrinsics
@@ -258,6 +262,7 @@ def scenario_json(
         "fps": result.fps,
         "intrinsics": {"fx": K.fx, "fy": K.fy, "cx": K.cx, "cy": K.cy, "hfov_deg": hfov_deg},
         "max_depth_m": max_depth_m,
+        "supersample": supersample,
         "corruption": corruption.__dict__,
         "robots": [
             {

@@ -138,3 +138,27 @@ def test_bad_inputs_are_clear_errors():
         r.render(np.eye(3))
     with pytest.raises(SimulationError, match="no triangles"):
         Renderer(assemble_world([]), make_intrinsics(16, 16))
+    with pytest.raises(SimulationError, match="supersample"):
+        Renderer(one_box_world(), make_intrinsics(16, 16), supersample=0)
+
+
+def test_supersampled_colour_averages_the_pixel_and_keeps_its_centre_geometry():
+    """With 4 x 4 rays per pixel the colour is the pixel's area mean: the pixel the wall's edge crosses gets a
+    colour between the sky's and the wall's, the image's mean colour stays; depth, labels and object ids are
+    those of the ray through each pixel's centre, as without supersampling."""
+    K = make_intrinsics(161, 61, hfov_deg=60.0)
+    with Renderer(one_box_world(), K, threads=1) as plain_r, Renderer(one_box_world(), K, supersample=4) as ss_r:
+        plain, ss = plain_r.render(look_along_x()), ss_r.render(look_along_x())
+    np.testing.assert_array_equal(ss.depth_m, plain.depth_m)
+    np.testing.assert_array_equal(ss.label_ids, plain.label_ids)
+    np.testing.assert_array_equal(ss.object_ids, plain.object_ids)
+    cv = int(K.cy)
+    edge = K.cx - K.fx * 2 / 9  # the wall's left edge, 49.0 here: pixel 49 is about half sky, half wall
+    col = round(edge)
+    assert plain.label_ids[cv, col - 1] == Label.SKY and plain.label_ids[cv, col + 1] == Label.WALL
+    sky, wall = plain.image_rgb[cv, col - 1].astype(int), plain.image_rgb[cv, col + 1].astype(int)
+    mixed = ss.image_rgb[cv, col].astype(int)
+    channel = int(np.argmax(np.abs(sky - wall)))
+    lo, hi = sorted((sky[channel], wall[channel]))
+    assert lo + 0.2 * (hi - lo) < mixed[channel] < hi - 0.2 * (hi - lo)
+    assert abs(ss.image_rgb.mean() - plain.image_rgb.mean()) < 2.0

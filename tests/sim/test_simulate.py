@@ -106,6 +106,16 @@ def test_cli_simulate(tmp_path):
         and "uav" in result.output
         and (tmp_path / "s" / "uav" / "poses.txt").is_file()
     )
+    assert json.loads((tmp_path / "s" / "scenario.json").read_text())["supersample"] == 1
+    smooth = ["simulate", "--scenario", "airsim-like", "--out", str(tmp_path / "ss"), "--compact", "--resolution",
+              "48x16", "--max-frames", "1", "--supersample", "2"]  # fmt: skip
+    result = runner.invoke(app, smooth)
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "ss" / "scenario.json").read_text())["supersample"] == 2
+    one, two = (cv2.imread(str(tmp_path / k / "car1" / "image_2" / "000000.png")) for k in ("s", "ss"))
+    assert one.shape == two.shape and not np.array_equal(one, two)  # the same view, its colour averaged
+    bad = runner.invoke(app, [*smooth[:-1], "0"])
+    assert bad.exit_code == 2
     bad = runner.invoke(app, ["simulate", "--scenario", "nope", "--out", str(tmp_path / "x")])
     assert bad.exit_code == 2 and "known scenarios" in bad.output
     bad = runner.invoke(
