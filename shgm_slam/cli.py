@@ -1087,6 +1087,8 @@ def bench_heldout(
     ] = None,
     cache: Annotated[Path, typer.Option(help="rendered worlds are cached here")] = Path("cache/heldout"),
     jobs: Annotated[int, typer.Option(min=1, max=64, help="worlds run in this many processes at once")] = 1,
+    supersample: Annotated[int, typer.Option(min=1, max=8, help="render the worlds' colour with SxS rays per pixel "
+                                             "(antialiased; cached apart)")] = 1,
     replay_from: Annotated[
         Path | None,
         typer.Option(help="an earlier benchmark folder: run only the map server again on its recorded keyframes "
@@ -1108,7 +1110,8 @@ def bench_heldout(
     except ValueError:
         raise ConfigError(f"--mode {mode}: choose files or rgb") from None
     options = heldout.HeldoutOptions(scenarios=tuple(scenario or heldout.SCENARIOS), seeds=seed_list, modes=modes,
-                                     max_frames=max_frames, cache=cache, replay_from=replay_from)
+                                     max_frames=max_frames, cache=cache, replay_from=replay_from,
+                                     supersample=supersample)
     if replay_from is not None and not (replay_from / "runs").is_dir():
         raise ConfigError(f"--replay-from {replay_from}: no runs/ folder there (a `bench heldout` results folder)")
     with console.status("starting") as status:

@@ -110,6 +110,9 @@ class HeldoutOptions:
     resolution: tuple[int, int] = RESOLUTION
     max_frames: int | None = None
     cache: Path = Path("cache/heldout")
+    supersample: int = 1
+    """Rays per pixel side of the rendered colour (``sim.render.Renderer``; worlds of another value are cached
+    apart)."""
     replay_from: Path | None = None
     """An earlier benchmark folder: run only the map server again on each run's recorded keyframes
     (``runner.replay_backend``), for matching and back-end changes; worlds are not rendered or run."""
@@ -140,18 +143,23 @@ class RobotVerdict:
     waiting: bool = False  # not placed although matches were accepted: too few independent ones (server.json)
 
 
-def world_folder(cache: Path, scenario: str, seed: int, resolution: tuple[int, int]) -> Path:
-    """Where the world ``scenario``/``seed`` is cached: ``cache/<scenario>-s<seed>-<W>x<H>``."""
-    return Path(cache) / f"{scenario}-s{seed}-{resolution[0]}x{resolution[1]}"
+def world_folder(cache: Path, scenario: str, seed: int, resolution: tuple[int, int], supersample: int = 1) -> Path:
+    """Where the world ``scenario``/``seed`` is cached: ``cache/<scenario>-s<seed>-<W>x<H>`` (``-ss<S>`` added
+    for S x S rays per pixel)."""
+    tail = f"-ss{supersample}" if supersample > 1 else ""
+    return Path(cache) / f"{scenario}-s{seed}-{resolution[0]}x{resolution[1]}{tail}"
 
 
-def ensure_world(cache: Path, scenario: str, seed: int, resolution: tuple[int, int], progress: Progress) -> Path:
+def ensure_world(
+    cache: Path, scenario: str, seed: int, resolution: tuple[int, int], progress: Progress, supersample: int = 1
+) -> Path:
     """Render the world once (cached); returns its folder."""
-    folder = world_folder(cache, scenario, seed, resolution)
+    folder = world_folder(cache, scenario, seed, resolution, supersample)
     if not (folder / "scenario.json").is_file():
         progress(f"rendering {scenario} seed {seed} into {folder}")
         pair = KITTI_DRIVE_PAIRS[seed % len(KITTI_DRIVE_PAIRS)] if scenario == "kitti-paths" else None
-        simulate(scenario, folder, seed=seed, resolution=resolution, overwrite=True, kitti_robots=pair)
+        simulate(scenario, folder, seed=seed, resolution=resolution, overwrite=True, kitti_robots=pair,
+                 supersample=supersample)  # fmt: skip
     return folder
 
 
@@ -356,7 +364,7 @@ def _match_truth(run_dir: Path, world: Path, mode: InputMode) -> dict:
 
 def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, progress: Progress) -> list[dict]:
     """Render one world (cached) and run every mode on it; returns one dict per run (cached as JSON)."""
-    world = ensure_world(options.cache, scenario, seed, options.resolution, progress)
+    world = ensure_world(options.cache, scenario, seed, options.resolution, progress, options.supersample)
     done_runs = []
     for mode in options.modes:
         run_dir = out / "runs" / f"{scenario}-s{seed}-{mode.value}"
@@ -424,7 +432,7 @@ def run_heldout_benchmark(
         "options": {
             "scenarios": list(options.scenarios), "seeds": list(options.seeds),
             "modes": [m.value for m in options.modes], "resolution": list(options.resolution),
-            "max_frames": options.max_frames, "tuning_seeds": list(TUNING_SEEDS),
+            "max_frames": options.max_frames, "supersample": options.supersample, "tuning_seeds": list(TUNING_SEEDS),
             "report_seeds": list(REPORT_SEEDS), "placed_right_m": {m.value: v for m, v in PLACED_RIGHT_M.items()},
         },
         "summary": summarize(rows, runs),
@@ -520,7 +528,9 @@ def heldout_markdown(results: dict) -> str:
     o = results["options"]
     lines = [
         f"Seeds {o['seeds'][0]}-{o['seeds'][-1]} ({len(o['seeds'])} worlds per scenario), "
-        f"{o['resolution'][0]}x{o['resolution'][1]}, default configuration; tuning seeds "
+        f"{o['resolution'][0]}x{o['resolution'][1]}"
+        + (f" ({o['supersample']}x{o['supersample']} rays per pixel)" if o.get("supersample", 1) > 1 else "")
+        + ", default configuration; tuning seeds "
         f"{o['tuning_seeds'][0]}-{o['tuning_seeds'][-1]}. Placed right: placed within "
         + ", ".join(f"{v:g} m ({k})" for k, v in o["placed_right_m"].items())
         + ": the rigid transform that best lays its fused trajectory onto the truth moves it less than that "

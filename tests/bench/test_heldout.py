@@ -17,6 +17,7 @@ from shgm_slam.bench.heldout import (
     judge_run,
     odometry_breaks,
     summarize,
+    world_folder,
 )
 from shgm_slam.data import open_sequence
 from shgm_slam.geometry import se3
@@ -37,6 +38,13 @@ def _drive(n: int = 100, speed_mps: float = 10.0, fps: float = 10.0) -> tuple[np
 def test_tuning_and_report_seeds_are_disjoint():
     assert not set(TUNING_SEEDS) & set(REPORT_SEEDS)
     assert len(REPORT_SEEDS) >= 10
+
+
+def test_worlds_rendered_with_more_rays_per_pixel_are_cached_apart(tmp_path):
+    plain = world_folder(tmp_path, "airsim-like", 10, (320, 96))
+    assert plain.name == "airsim-like-s10-320x96"  # the caches rendered before the option stay valid
+    assert world_folder(tmp_path, "airsim-like", 10, (320, 96), supersample=1) == plain
+    assert world_folder(tmp_path, "airsim-like", 10, (320, 96), supersample=3).name == "airsim-like-s10-320x96-ss3"
 
 
 def test_perfect_odometry_has_no_breaks():
