@@ -23,6 +23,8 @@ Usage (needs the ``train`` extra: ``.venv/bin/pip install -e '.[train]'``)::
     .venv/bin/python tools/train_demo_models.py                 # everything, ~26 min on 2 cores
     .venv/bin/python tools/train_demo_models.py --eval-only     # re-measure the models in models/
     .venv/bin/python tools/train_demo_models.py --render-only   # only render + cache the data
+    .venv/bin/python tools/train_demo_models.py --supersample 2 --kitti-paths-worlds --out-dir DIR
+                                          # the recipe measured for antialiased worlds (README), not committed
 
 The rendered data is cached under ``--cache-dir`` (default /tmp/shgm_demo_models/cache), never in the
 repo; delete that folder after changing the simulator, or the models train on its old renders.
@@ -93,26 +95,51 @@ SOURCE = "tools/train_demo_models.py (trained from scratch on shgm_slam.sim rend
 
 @dataclass(frozen=True)
 class Split:
-    """One simulated city: scenario name, seed, frame rate (frames per second of driving) and size."""
+    """One simulated city: scenario name, seed, frame rate (frames per second of driving), size, colour rays
+    per pixel (``supersample`` x ``supersample``, averaged: what a camera pixel integrates) and, for
+    kitti-paths, the KITTI drives."""
 
     scenario: str
     seed: int
     fps: float = 1.0
     compact: bool = False
+    supersample: int = 1
+    kitti_robots: tuple[str, ...] | None = None
+    frame_stride: int = 1  # kitti-paths follows KITTI's 10 Hz poses whatever ``fps`` says: keep every n-th frame
 
     @property
     def key(self) -> str:
-        return f"{self.scenario}-s{self.seed}-f{self.fps:g}{'-compact' if self.compact else ''}"
+        ss = f"-ss{self.supersample}" if self.supersample > 1 else ""
+        return f"{self.scenario}-s{self.seed}-f{self.fps:g}{'-compact' if self.compact else ''}{ss}"
 
 
-TRAIN_SPLITS = (
-    *(Split("airsim-like", s) for s in range(1, 7)),
-    *(Split("synthia-like", s) for s in range(1, 7)),
-    Split("airsim-like", 21, fps=2.0, compact=True),
-    Split("airsim-like", 22, fps=2.0, compact=True),
-    Split("synthia-like", 23, fps=2.0, compact=True),
-)
-HELDOUT_SPLITS = (Split("airsim-like", 100), Split("synthia-like", 101))
+SUPERSAMPLE = 1
+"""Colour rays per pixel side of the training and held-out renders (``--supersample``), as the benchmark worlds
+are rendered (one ray per pixel; 640x192 shrunk 2x to the model input averages 2 x 2 of them). One ray per
+pixel aliases the road's fine texture (README, held-out notes); models trained with ``--supersample 2`` were
+measured for antialiased worlds and are not the committed ones (README, held-out notes)."""
+KITTI_TRAIN_DRIVES = (("02:0-301", "05:0-301"), ("03:0-301", "06:0-301"), ("04:0-271", "05:1200-1501"))
+"""``--kitti-paths-worlds``: kitti-paths training worlds driving KITTI sequences the held-out pairs never use
+(02-06; their poses from ``../shared/data``). Not in the committed models: measured, not better (README)."""
+
+
+def train_splits(supersample: int = SUPERSAMPLE, kitti_paths: bool = False) -> tuple[Split, ...]:
+    """The training cities (seeds the held-out benchmark never uses)."""
+    kitti = tuple(Split("kitti-paths", s, supersample=supersample, kitti_robots=d, frame_stride=5)
+                  for s, d in zip(range(1, 4), KITTI_TRAIN_DRIVES, strict=True)) if kitti_paths else ()
+    return (
+        *(Split("airsim-like", s, supersample=supersample) for s in range(1, 7)),
+        *(Split("synthia-like", s, supersample=supersample) for s in range(1, 7)),
+        *kitti,
+        Split("airsim-like", 21, fps=2.0, compact=True, supersample=supersample),
+        Split("airsim-like", 22, fps=2.0, compact=True, supersample=supersample),
+        Split("synthia-like", 23, fps=2.0, compact=True, supersample=supersample),
+    )
+
+
+def heldout_splits(supersample: int = SUPERSAMPLE) -> tuple[Split, ...]:
+    """The cities the models are measured on after training (never trained on)."""
+    return (Split("airsim-like", 100, supersample=supersample), Split("synthia-like", 101, supersample=supersample))
 
 
 # --- data: simulator renders ------------------------------------------------------------------------
@@ -125,7 +152,8 @@ def render_split(split: Split, cache_dir: Path) -> Path:
         return out
     t0 = time.perf_counter()
     res = simulate(split.scenario, out, seed=split.seed, resolution=RENDER_WH, fps=split.fps,
-                   compact=split.compact, overwrite=True)
+                   compact=split.compact, overwrite=True, supersample=split.supersample,
+                   kitti_robots=split.kitti_robots)
     took = time.perf_counter() - t0
     print(f"  rendered {split.key}: {res.total_frames} frames in {took:.0f} s", flush=True)
     return out
@@ -163,7 +191,7 @@ def load_split(split: Split, cache_dir: Path) -> dict[str, np.ndarray]:
     path = _split_cache(split, cache_dir)
     if path.is_file():
         with np.load(path) as data:
-            return dict(data)
+            return _strided(dict(data), split.frame_stride)
     t0 = time.perf_counter()
     raw = render_split(split, cache_dir)
     images, depths, labels = [], [], []
@@ -177,20 +205,29 @@ def load_split(split: Split, cache_dir: Path) -> dict[str, np.ndarray]:
     data["prepare_s"] = np.array(time.perf_counter() - t0)
     np.savez(path, **data)
     shutil.rmtree(raw)
-    return data
+    return _strided(data, split.frame_stride)
 
 
-def load_training_set(cache_dir: Path) -> dict[str, np.ndarray]:
+def _strided(data: dict[str, np.ndarray], stride: int) -> dict[str, np.ndarray]:
+    """Every ``stride``-th frame of a split's arrays (scalars such as ``prepare_s`` kept)."""
+    return {k: v[::stride] if v.ndim else v for k, v in data.items()}
+
+
+def load_training_set(
+    cache_dir: Path, supersample: int = SUPERSAMPLE, kitti_paths: bool = False
+) -> dict[str, np.ndarray]:
     """All training splits concatenated: images (N, 96, 320, 3) uint8, depth_m (N, 96, 320) float16,
     labels (N, 96, 320) uint8."""
-    parts = [load_split(s, cache_dir) for s in TRAIN_SPLITS]
+    parts = [load_split(s, cache_dir) for s in train_splits(supersample, kitti_paths)]
     return {k: np.concatenate([p[k] for p in parts]) for k in ("images", "depth_m", "labels")}
 
 
-def uncached_prepare_minutes(cache_dir: Path) -> float | None:
+def uncached_prepare_minutes(
+    cache_dir: Path, supersample: int = SUPERSAMPLE, kitti_paths: bool = False
+) -> float | None:
     """Minutes it took to render + convert all training splits when the cache was built (None if unknown)."""
     total = 0.0
-    for split in TRAIN_SPLITS:
+    for split in train_splits(supersample, kitti_paths):
         path = _split_cache(split, cache_dir)
         if not path.is_file():
             return None
@@ -461,7 +498,7 @@ def export_models(net: Any, out_dir: Path) -> dict[str, Any]:
 # --- evaluation through the adapters -------------------------------------------------------------------
 
 
-def evaluate(models_dir: Path, cache_dir: Path, threads: int = 2) -> dict[str, Any]:
+def evaluate(models_dir: Path, cache_dir: Path, threads: int = 2, supersample: int = SUPERSAMPLE) -> dict[str, Any]:
     """Held-out metrics of the exported models through ``DepthModel`` / ``SegmentationModel`` at 640x192.
 
     Depth: over pixels whose ground truth is valid (not sky, 0 < d <= 80 m); a pixel the model marks
@@ -474,7 +511,7 @@ def evaluate(models_dir: Path, cache_dir: Path, threads: int = 2) -> dict[str, A
     result: dict[str, Any] = {"heldout": {}, "inference_ms_640x192": {}}
     total_conf = np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64)
     total_depth: list[np.ndarray] = []
-    for split in HELDOUT_SPLITS:
+    for split in heldout_splits(supersample):
         raw = render_split(split, cache_dir)
         conf = np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64)
         ratios: list[np.ndarray] = []
@@ -500,7 +537,7 @@ def evaluate(models_dir: Path, cache_dir: Path, threads: int = 2) -> dict[str, A
         "frames": sum(v["frames"] for v in result["heldout"].values()),
         **depth_metrics(np.concatenate(total_depth, axis=1)), **seg_metrics(total_conf),
     }
-    image = open_sequence(robot_folders(render_split(HELDOUT_SPLITS[0], cache_dir))[0])[10].image_rgb
+    image = open_sequence(robot_folders(render_split(heldout_splits(supersample)[0], cache_dir))[0])[10].image_rgb
     for name, model in (("depth", depth_model), ("seg", seg_model)):
         result["inference_ms_640x192"][name] = {k: round(v, 2) for k, v in
                                                 measure_overhead(model, image, repeats=30).items()}
@@ -573,6 +610,10 @@ def readme_text(m: dict[str, Any]) -> str:
                     for c in CITYSCAPES_CLASSES if any(c in h[k]["seg_iou"] for k in h))
     inf = m["inference_ms_640x192"]
     tr = m.get("training", {})
+    ss = int(tr.get("supersample", 1))
+    ss_line = (f"{ss}x{ss} colour rays averaged per pixel" if ss > 1 else "one colour ray per pixel (aliased)")
+    kitti_line = (",\n`kitti-paths` seeds 1-3 (KITTI drives of sequences 02-06, which no held-out pair uses)"
+                  if any(k.startswith("kitti-paths") for k in tr.get("splits", ())) else "")
     sizes = m.get("export", {})
     train_line = (
         f"Training: {tr['frames']} frames, {tr['steps']} steps of batch {tr['batch']} "
@@ -611,17 +652,18 @@ graph nodes) + 0.5 scale-invariant + 0.5 gradient matching at three scales (sky 
 beyond the render range clamped to 80 m); class-weighted cross entropy for the labels.
 Augmentation: horizontal flips, x crops, brightness/contrast/tint jitter and pixel noise.
 
-Training data (rendered by `shgm_slam.sim.simulate` at 640x192, 82 deg hfov, 1 frame per second of
-motion, shrunk to 320x96 as the adapter does): `airsim-like` seeds 1-6 (two cars + the UAV's 50 deg
-oblique view from 44-54 m), `synthia-like` seeds 1-6 (forward and backward car cameras) and three
-compact worlds (seeds 21-23, 2 frames/s). Different seeds are different cities.
+Training data (rendered by `shgm_slam.sim.simulate` at 640x192, 82 deg hfov, {ss_line}, 1 frame per
+second of motion, shrunk to 320x96 as the adapter does): `airsim-like` seeds 1-6 (two cars + the UAV's
+50 deg oblique view from 44-54 m), `synthia-like` seeds 1-6 (forward and backward car cameras){kitti_line}
+and three compact worlds (seeds 21-23, 2 frames/s). Different seeds are different cities.
 
 {train_line}
 
 ## Held-out accuracy (measured through the adapters at 640x192)
 Cities never seen in training: `airsim-like` seed 100 and `synthia-like` seed 101 (every robot,
-1 frame/s). Depth over pixels with valid ground truth (not sky, <= 80 m; a pixel the model calls sky
-counts as 80 m); "<= 30 m" is the range the pipeline uses (`extraction.max_depth_m`, `odometry.max_range_m`).
+1 frame/s, rendered as the training cities). Depth over pixels with valid ground truth (not sky,
+<= 80 m; a pixel the model calls sky counts as 80 m); "<= 30 m" is the range the pipeline uses
+(`extraction.max_depth_m`, `odometry.max_range_m`).
 mIoU is over the classes present in the ground truth (the simulator renders no person, rider,
 train, motorcycle or bicycle).
 
@@ -673,6 +715,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, default=3e-3, help="peak learning rate (one-cycle)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2, help="torch and onnxruntime threads")
+    p.add_argument("--supersample", type=int, default=SUPERSAMPLE, choices=range(1, 9), metavar="S",
+                   help="render every training and held-out city with S x S colour rays per pixel")
+    p.add_argument("--kitti-paths-worlds", action="store_true",
+                   help="also train on three kitti-paths cities (KITTI drives 02-06; needs ../shared/data)")
     p.add_argument("--eval-only", action="store_true", help="only evaluate the models in --out-dir")
     p.add_argument("--render-only", action="store_true", help="only render + cache the training/held-out data")
     return p
@@ -694,15 +740,16 @@ def main(argv: list[str] | None = None) -> int:
             kept = json.loads(previous.read_text())
             metrics = {k: v for k, v in kept.items() if k in ("training", "export")}
     elif args.render_only:
-        load_training_set(args.cache_dir)
-        for split in HELDOUT_SPLITS:
+        load_training_set(args.cache_dir, args.supersample, args.kitti_paths_worlds)
+        for split in heldout_splits(args.supersample):
             render_split(split, args.cache_dir)
-        print(f"training data: {uncached_prepare_minutes(args.cache_dir)} min to render + convert; "
+        prep = uncached_prepare_minutes(args.cache_dir, args.supersample, args.kitti_paths_worlds)
+        print(f"training data: {prep} min to render + convert; "
               f"this run {(time.perf_counter() - t_start) / 60:.1f} min", flush=True)
         return 0
     else:
         print("rendering training cities ...", flush=True)
-        data = load_training_set(args.cache_dir)
+        data = load_training_set(args.cache_dir, args.supersample, args.kitti_paths_worlds)
         t_render = time.perf_counter()
         n = data["images"].shape[0]
         print(f"training on {n} frames for {args.train_minutes:g} min (at most {args.max_steps} steps, "
@@ -713,17 +760,18 @@ def main(argv: list[str] | None = None) -> int:
         metrics["training"] = {
             "frames": n, "steps": log["steps_done"], "train_minutes_budget": args.train_minutes,
             "max_steps": args.max_steps, "batch": args.batch, "lr": args.lr, "seed": args.seed,
-            "threads": args.threads, "splits": [s.key for s in TRAIN_SPLITS], "torch": torch.__version__,
+            "threads": args.threads, "splits": [s.key for s in train_splits(args.supersample, args.kitti_paths_worlds)],
+            "supersample": args.supersample, "torch": torch.__version__,
             "render_minutes": round((t_render - t_start) / 60, 2),
             "train_minutes": round((t_train - t_render) / 60, 2),
             "machine": f"{platform.machine()} {platform.processor() or ''}".strip(), "loss_log": log,
         }
     print("evaluating on held-out cities through the adapters ...", flush=True)
-    metrics.update(evaluate(args.out_dir, args.cache_dir, args.threads))
+    metrics.update(evaluate(args.out_dir, args.cache_dir, args.threads, args.supersample))
     if "training" in metrics:
         if not args.eval_only:
             metrics["training"]["total_minutes"] = round((time.perf_counter() - t_start) / 60, 2)
-        prep = uncached_prepare_minutes(args.cache_dir)
+        prep = uncached_prepare_minutes(args.cache_dir, args.supersample, args.kitti_paths_worlds)
         metrics["training"]["render_minutes_uncached"] = prep if prep is not None else metrics["training"].get(
             "render_minutes_uncached")
     write_report(metrics, args.out_dir)
