@@ -374,7 +374,7 @@ def _render_summary(summary) -> None:
     console.print(f"results in [bold]{lit(summary.out_dir)}[/]")
 
 
-def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool, fronts=None):
+def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool, fronts=None, jobs: int | None = None):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
     from shgm_slam.runner import run_slam
@@ -383,7 +383,21 @@ def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool, fronts=
                   TimeRemainingColumn(), console=console, transient=True) as bar:
         task = bar.add_task("frames", total=sum(len(s) for s in robots.values()))
         return run_slam(robots, cfg, out_dir, viz=viz, gt_shared_frame=gt_shared_frame, fronts=fronts,
-                        progress=lambda done, total: bar.update(task, completed=done))
+                        progress=lambda done, total: bar.update(task, completed=done),
+                        jobs=_front_end_jobs(jobs, len(robots)))
+
+
+JobsOption = Annotated[
+    int | None,
+    typer.Option("--jobs", "-j", min=1, max=256, show_default="one per robot, at most one per core",
+                 help="worker processes for the robots' front ends (the same results, sooner); 1: everything in "
+                 "this one process"),
+]
+
+
+def _front_end_jobs(jobs: int | None, robots: int) -> int:
+    """``--jobs`` as given, else one worker per robot up to the cores (1 when either is 1)."""
+    return jobs if jobs is not None else max(1, min(robots, os.cpu_count() or 1))
 
 
 @app.command("run")
@@ -413,12 +427,13 @@ def run(
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="reuse an --out holding an earlier run's results: remove them first")
     ] = False,
+    jobs: JobsOption = None,
 ) -> None:
     """Run the multi-robot system: odometry, semantic graphs, cross-robot matching, fused trajectories."""
     from shgm_slam.config import load_config
 
     cfg = _apply_run_options(load_config(config), odometry, depth_model, seg_model)
-    summary = _run_command(robot, cfg, out, rerun, rerun_url, gt_shared_frame, overwrite)
+    summary = _run_command(robot, cfg, out, rerun, rerun_url, gt_shared_frame, overwrite, jobs)
     _render_summary(summary)
     if summary.interrupted:
         raise typer.Exit(130)
@@ -446,7 +461,8 @@ def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_
     return cfg
 
 
-def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_frame: bool, overwrite: bool = False):
+def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_frame: bool, overwrite: bool = False,
+                 jobs: int | None = None):  # fmt: skip
     from shgm_slam.errors import ConfigError
     from shgm_slam.io.export import make_results_dir
     from shgm_slam.runner import open_robots, prepare_frontends
@@ -466,7 +482,7 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
     viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=rerun_url,
                    max_cloud_points=8000)
     with _stop_signals_as_interrupt():
-        return _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame, fronts)
+        return _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame, fronts, jobs)
 
 
 @contextlib.contextmanager
@@ -631,6 +647,7 @@ def demo(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="reuse an --out holding an earlier run's "
                                             "results: remove them first (the default folder is always "
                                             "replaced)")] = False,
+    jobs: JobsOption = None,
 ) -> None:
     """Simulate the airsim-like world (car, car, UAV) once, then run the whole system on it."""
     from shgm_slam.demo import demo_config, demo_results_dir, prepare_world
@@ -645,7 +662,7 @@ def demo(
     world, kinds = prepare_world(cache, seed, simulate_world)
     console.print(f"world: [bold]{lit(world)}[/] robots: {lit(', '.join(f'{r} ({k})' for r, k in kinds.items()))}")
     cfg = demo_config(rgb_only=rgb_only)
-    summary = _run_command([f"{r}={world / r}" for r in kinds], cfg, out, rerun, None, True, overwrite)
+    summary = _run_command([f"{r}={world / r}" for r in kinds], cfg, out, rerun, None, True, overwrite, jobs)
     _render_summary(summary)
     if (out / "run.rrd").is_file():
         console.print(f"open the recording with: [bold].venv/bin/rerun {lit(out / 'run.rrd')}[/]")
@@ -998,6 +1015,8 @@ def bench_robots(
     memory: Annotated[bool, typer.Option(help="also each fleet's peak RSS alone in a fresh process")] = True,
     kitti_root: Annotated[Path | None, typer.Option(help="KITTI folder with poses/")] = None,
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
+    jobs: Annotated[int | None, typer.Option(min=1, max=256, show_default="the cores",
+                                             help="worker processes of the fleets' second run (run --jobs)")] = None,
 ) -> None:
     """Cost with the number of robots: a KITTI sequence cut into 8 stretches, the first N driving at once; per
     keyframe, the front end, matching and the pose graph, matches per keyframe, CPU per second driven, memory;
@@ -1008,7 +1027,7 @@ def bench_robots(
     sizes = _int_list(fleets, "--fleets")
     with console.status("starting") as status:
         results = run_robots_benchmark(out, fleets=sizes, sequence=sequence, cache=cache, seed=seed, memory=memory,
-                                       kitti_root=kitti_root, config=load_config(config),
+                                       kitti_root=kitti_root, config=load_config(config), jobs=jobs,
                                        progress=lambda msg: status.update(msg))  # fmt: skip
     print_report(robots_markdown(results))
     console.print(f"wrote {lit(out / 'robots.json')} and {lit(out / 'robots.md')}")

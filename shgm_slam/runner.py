@@ -7,6 +7,7 @@ when the sequences have it.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import re
 import time
@@ -20,22 +21,19 @@ from shgm_slam.backend.confirmation import describe
 from shgm_slam.config import OdometryKind, RobotOverrides, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.data.interleave import interleave
-from shgm_slam.data.validate import check_sequence_start
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.fusion import fuse_segments
 from shgm_slam.geometry import se3
 from shgm_slam.interrupts import stops_deferred
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.metrics import ate
-from shgm_slam.odometry.sources import choose_odometry, make_odometry
 from shgm_slam.odometry.stillness import ImageChange, odometry_motion, stillness_warning
-from shgm_slam.odometry.visual import depth_window_on_image
-from shgm_slam.perception import make_perception
-from shgm_slam.perception.perceive import depth_model_of
+from shgm_slam.robot.build import make_frontend
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
 from shgm_slam.robot.node import RobotNode
+from shgm_slam.robot.remote import ParallelFrontends
 from shgm_slam.run_view import RunView
-from shgm_slam.scene_scale import effective_fields, resolve_robot_config, sample_scene_scale
+from shgm_slam.scene_scale import effective_fields
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.node import ServerNode
 from shgm_slam.server.placement import PlacementWatch
@@ -78,74 +76,6 @@ def open_robots(robot_args: list[str]) -> dict[str, Sequence]:
             raise DataError(f"robot {name!r}: sequence {spec} has zero frames (check the frame range)")
         robots[name] = seq
     return robots
-
-
-def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFrontend:
-    """Build one robot's front end from the fleet config (with the robot's overrides merged in).
-
-    A poses-file odometry path may contain ``{robot}``, replaced by the robot name, so every robot
-    reads its own file (e.g. ``orbslam_{robot}.txt``). Fields left None (extraction range, blob size,
-    odometry voxel, ...) are derived from the robot's first frames through its perception source
-    (``scene_scale``); the fleet values when none has usable depth (logged). The front end's ``cfg``
-    holds the resolved values.
-    """
-    rcfg = cfg.for_robot(name)
-    if rcfg.odometry.kind is OdometryKind.FILE and rcfg.odometry.poses_file is not None:
-        path = Path(str(rcfg.odometry.poses_file).replace("{robot}", name))
-        rcfg = rcfg.model_copy(update={"odometry": rcfg.odometry.model_copy(update={"poses_file": path})})
-    if rcfg.odometry.kind is OdometryKind.GT and sequence.gt_poses is None:
-        raise ConfigError(
-            f"robot {name!r}: --odometry gt needs ground-truth poses (poses.txt, or <root>/poses/<seq>.txt for "
-            "KITTI), and its sequence has none; use --odometry auto"
-        )
-    written_by = depth_model_of(sequence) if rcfg.perception.depth_model is None else None
-    if written_by is not None:
-        log.info("%s: its depth files were predicted by %s (perceive.json): treated as predicted depth", name,
-                 written_by.get("path", "a depth model"))  # fmt: skip
-    predicted = rcfg.perception.depth_model is not None or written_by is not None
-    perception = make_perception(rcfg.perception, sequence, files_depth_predicted=written_by is not None)
-
-    def perceive(frame):
-        out = perception.process(frame)
-        return out.depth_m, out.label_ids
-
-    # whole-sequence problems (every frame unreadable, no valid depth, a broken model) end here, not as skips
-    check_sequence_start(name, sequence, perceive, depth_model=rcfg.perception.depth_model,
-                         seg_model=rcfg.perception.seg_model)  # fmt: skip
-    scale = sample_scene_scale(sequence, perceive)
-    if scale is None:
-        log.warning("%s: no usable depth in the first frames; extraction and odometry use the fleet defaults", name)
-    else:
-        log.info("%s: camera %.1f m above the ground, nearest ground at %.1f m", name,
-                 scale.camera_height_m or float("nan"), scale.nearest_ground_depth_m)  # fmt: skip
-    rcfg = resolve_robot_config(rcfg, scale)
-    rcfg = _window_on_image(name, rcfg, sequence, perception, written_by)
-    choice = choose_odometry(rcfg.odometry.kind, depth_from_model=predicted)
-    log.info("%s: odometry %s (%s)", name, choice.kind.value, choice.reason)
-    odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence))
-    return RobotFrontend(name, sequence, rcfg, perception, odometry, choice, depth_predicted=predicted)
-
-
-def _window_on_image(
-    name: str, rcfg: ShgmConfig, sequence: Sequence, perception: object, written_by: dict | None
-) -> ShgmConfig:
-    """``rcfg`` with the visual odometry's corner-depth window grown to the image when the depth model ran
-    on a smaller input (``visual.depth_window_on_image``); unchanged for measured depth or an unknown input."""
-    model = getattr(perception, "depth_model", None)
-    image_wh = (sequence.intrinsics.width, sequence.intrinsics.height)
-    if model is not None:
-        model_w = int(model.target_size(image_wh)[0])
-    elif written_by is not None and isinstance(written_by.get("input_wh"), list) and written_by["input_wh"]:
-        model_w = int(written_by["input_wh"][0])
-    else:
-        return rcfg
-    window = rcfg.odometry.visual_depth_window_px
-    on_image = depth_window_on_image(window, image_wh[0], model_w)
-    if on_image == window:
-        return rcfg
-    log.info("%s: visual odometry corner-depth window %d px on the %d px wide images (%d px on the depth "
-             "model's %d px input)", name, on_image, image_wh[0], window, model_w)  # fmt: skip
-    return rcfg.model_copy(update={"odometry": rcfg.odometry.model_copy(update={"visual_depth_window_px": on_image})})
 
 
 def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConfig:
@@ -337,6 +267,7 @@ def run_slam(
     on_frame: FrameFn | None = None,
     journal: bool = False,
     fronts: dict[str, RobotFrontend] | None = None,
+    jobs: int = 1,
 ) -> RunSummary:
     """Run the whole multi-robot system and write the results folder.
 
@@ -354,11 +285,24 @@ def run_slam(
         journal: keep the map server's message journal (``journal.bin``) in ``out_dir``: every keyframe
             the robots sent, in order, so the back end can be run again on it (``replay_backend``).
         fronts: the robots' front ends from ``prepare_frontends`` (None: opened here, before anything is written).
+        jobs: run the robots' front ends in this many worker processes (``robot.remote``; 1: all in this
+            process; at most one per robot): the same results, sooner on several cores. ``fronts`` then
+            only validate the run and give each robot's resolved configuration; the workers build their own.
     """
     viz = viz or NullLogger()
-    names = list(robots)
     if fronts is None:
         fronts = prepare_frontends(robots, cfg)
+    schedule = list(interleave(robots))
+    with contextlib.ExitStack() as workers:
+        if jobs > 1 and len(robots) > 1:
+            fronts = workers.enter_context(ParallelFrontends(fronts, cfg, schedule, jobs, slim=not viz.enabled))
+        return _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame, write_every_keyframes,
+                    on_frame, journal)  # fmt: skip
+
+
+def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame, write_every_keyframes, on_frame,
+         journal) -> RunSummary:  # fmt: skip
+    names = list(robots)
     writer = ResultsWriter(out_dir)
     writer.write_ground_truth(robots, gt_shared_frame)  # <robot>_gt_tum.txt, for evo and `shgm-slam eval`
     cfg = fleet_backend(cfg, fronts)
@@ -389,7 +333,7 @@ def run_slam(
     kf_total = 0
     watch = PlacementWatch()
     try:
-        for robot, index in interleave(robots):
+        for robot, index in schedule:
             with stops_deferred():  # a stop lands between frames, never inside the server's or a robot's step
                 done += 1
                 t_step, cpu_step = time.perf_counter(), time.process_time()
@@ -397,7 +341,8 @@ def run_slam(
                     res = nodes[robot].step(index)
                 except DataError as exc:
                     skipped.append(f"{robot} frame {index}: {exc}")
-                    viz.log_text(f"{robot}: skipped frame {index}: {exc}", "WARN")
+                    if not getattr(exc, "repeat", False):  # a lost worker costs every later frame: said once
+                        viz.log_text(f"{robot}: skipped frame {index}: {exc}", "WARN")
                     if progress:
                         progress(done, total)
                     continue
@@ -603,7 +548,7 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
         in_seg = front.frame_segment >= 0
         rep = RobotReport(
             r, len(seq), processed[r], len(seq) - processed[r], front.num_keyframes,
-            sum(len(s.graph) for s in front.segments), bool(with_kf) and all(s.index in placed for s in with_kf),
+            sum(s.num_nodes for s in front.segments), bool(with_kf) and all(s.index in placed for s in with_kf),
         )  # fmt: skip
         if front.odometry_choice is not None:
             rep.odometry, rep.odometry_reason = front.odometry_choice.kind.value, front.odometry_choice.reason

@@ -22,6 +22,8 @@ alias) come from the run's journal. Nothing here prints; the CLI renders the dic
 
 from __future__ import annotations
 
+import json
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -157,6 +159,7 @@ def run_robots_benchmark(
     resolution: tuple[int, int] = (320, 96),
     kitti_root: Path | None = None,
     memory: bool = True,
+    jobs: int | None = None,
     config: ShgmConfig | None = None,
     progress: Progress | None = None,
 ) -> dict:
@@ -164,7 +167,10 @@ def run_robots_benchmark(
 
     The world (simulated once into ``cache`` and reused; for 00 ``bench scale``'s) holds the whole KITTI
     ``sequence``; fleet N's results folder is ``out/fleet_N`` (with its journal, for judging the matches),
-    its memory run's ``out/memory_N``.
+    its memory run's ``out/memory_N``. Every fleet of two or more also runs again right after with its front
+    ends in ``min(N, jobs)`` worker processes (``run --jobs``; None: the cores), into ``out/fleet_N_jobs``:
+    its wall time beside the one-process run's and whether every results file came out the same; with
+    ``memory``, the largest fleet's memory run is repeated that way (``out/memory_N_jobs``).
 
     Raises:
         ConfigError: a fleet size outside 1..``STRETCHES``, or a sequence that is not KITTI 00-10.
@@ -197,9 +203,16 @@ def run_robots_benchmark(
         summary = run_slam(robots, cfg, out / f"fleet_{n}", on_frame=cost, journal=True)
         truth = judge_matches(out / f"fleet_{n}", {k: v.gt_poses for k, v in robots.items()}, PLACED_RIGHT_M,
                               GROSS_ERROR_M)  # fmt: skip
-        rows.append({**cost.row(n, driven_s), **placement(summary.to_json_dict(), can),
-                     "accepted_judged": truth.accepted, "accepted_gross": truth.gross,
-                     "anchorings": truth.anchorings, "anchorings_gross": truth.anchorings_gross})  # fmt: skip
+        row = {**cost.row(n, driven_s), **placement(summary.to_json_dict(), can),
+               "accepted_judged": truth.accepted, "accepted_gross": truth.gross,
+               "anchorings": truth.anchorings, "anchorings_gross": truth.anchorings_gross}  # fmt: skip
+        workers = min(n, jobs or os.cpu_count() or 1)
+        if workers > 1:
+            progress(f"running {n} robot(s) at once again, front ends in {workers} worker processes")
+            again = run_slam(robots, cfg, out / f"fleet_{n}_jobs", on_frame=FleetCost(), journal=True, jobs=workers)
+            row |= {"jobs": workers, "jobs_wall_s": again.wall_s, "jobs_speedup": summary.wall_s / again.wall_s,
+                    "jobs_same_results": same_results(out / f"fleet_{n}", out / f"fleet_{n}_jobs")}  # fmt: skip
+        rows.append(row)
     base = rows[0]
     for r in rows:
         r["total_per_kf_over_smallest"] = r["total_ms_per_kf"] / base["total_ms_per_kf"]
@@ -209,9 +222,29 @@ def run_robots_benchmark(
     if memory:
         runs: list[tuple[str, str | list[str], str]] = [(str(r["robots"]), specs[: r["robots"]],
                                                           f"memory_{r['robots']}") for r in rows]  # fmt: skip
-        results["memory"] = peak_rss_runs(out, runs, progress)
+        results["memory"] = peak_rss_runs(out, runs, progress, extra_args=("--jobs", "1"))
+        last = rows[-1]
+        if last.get("jobs"):
+            results["memory_jobs"] = peak_rss_runs(
+                out, [(str(last["robots"]), specs[: last["robots"]], f"memory_{last['robots']}_jobs")], progress,
+                extra_args=("--jobs", str(last["jobs"])))  # fmt: skip
     write_report(out, "robots", results, robots_markdown)
     return results
+
+
+def same_results(a: Path, b: Path) -> bool:
+    """Two results folders hold the same trajectories (every ``*.txt``), pose graph and ``metrics.json``
+    (timings aside), byte for byte."""
+    files = sorted(p.name for p in Path(a).iterdir() if p.suffix in (".txt", ".g2o"))
+    if files != sorted(p.name for p in Path(b).iterdir() if p.suffix in (".txt", ".g2o")):
+        return False
+    if any((Path(a) / f).read_bytes() != (Path(b) / f).read_bytes() for f in files):
+        return False
+    ma, mb = (json.loads((Path(d) / "metrics.json").read_text()) for d in (a, b))
+    for m in (ma, mb):
+        for k in ("timings_ms", "wall_s", "per_keyframe_ms"):
+            m.pop(k, None)
+    return ma == mb
 
 
 def robots_markdown(results: dict) -> str:
@@ -234,6 +267,19 @@ def robots_markdown(results: dict) -> str:
             f"{r['ms_per_match']:.1f} | {r['nodes_per_match']:.0f} | {r['cpu_s_per_driven_s']:.2f} | "
             f"{'-' if rss is None else f'{rss:.0f}'} |"
         )
+    timed = [r for r in results["fleets"] if r.get("jobs")]
+    if timed:
+        lines += ["", "The same fleets again with the front ends in worker processes (`run --jobs`), right after: "
+                  "wall time of the whole run.", "",
+                  "| robots | one process s | worker processes | s | faster | the same results |",
+                  "|---|---|---|---|---|---|"]  # fmt: skip
+        lines += [f"| {r['robots']} | {r['wall_s']:.1f} | {r['jobs']} | {r['jobs_wall_s']:.1f} | "
+                  f"{r['jobs_speedup']:.2f}x | {'yes' if r['jobs_same_results'] else '**no**'} |" for r in timed]
+        for label, m in results.get("memory_jobs", {}).items():
+            one = memory.get(label, {}).get("peak_rss_mb")
+            lines += ["", f"Peak memory of the {label}-robot fleet with its front ends in {timed[-1]['jobs']} worker "
+                      f"processes: {m['peak_rss_mb']:.0f} MB, all processes together "
+                      f"({'-' if one is None else f'{one:.0f}'} MB in one process)."]  # fmt: skip
     lines += [
         "",
         f"Placement (could be placed: shares >= {OVERLAP_MIN_M:.0f} m of street with a robot linked to r1; right: "

@@ -14,6 +14,7 @@ Worlds are simulated once into ``cache`` and reused. Nothing here prints; the CL
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
@@ -22,6 +23,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import psutil
+
 from shgm_slam.config import ShgmConfig
 from shgm_slam.demo import demo_config, prepare_world
 from shgm_slam.io.json_text import to_json_text
@@ -29,6 +32,9 @@ from shgm_slam.runner import RunSummary, open_robots, run_slam
 from shgm_slam.sim.simulate import simulate
 
 Progress = Callable[[str], None]
+
+RSS_SAMPLE_S = 0.2
+"""How often a memory run's process tree is sampled."""
 
 
 def _world(cache: Path, name: str, seed: int, progress: Progress, **options) -> Path:
@@ -59,28 +65,43 @@ def _summary_dict(summary: RunSummary) -> dict:
 
 
 def _peak_rss_mb(args: list[str]) -> tuple[float, float]:
-    """Run ``shgm-slam`` with ``args`` in a fresh process; returns (its peak RSS in MB, wall seconds)."""
+    """Run ``shgm-slam`` with ``args`` in a fresh process; returns (peak RSS in MB, wall seconds): of the
+    process, or, when it starts worker processes (``run --jobs``), of the whole process tree (the sum,
+    sampled every ``RSS_SAMPLE_S``) where that is more."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(
         [sys.executable, "-m", "shgm_slam.cli", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
     )
-    _, status, usage = os.wait4(proc.pid, 0)
+    tree_peak = 0
+    top = psutil.Process(proc.pid)
+    while True:
+        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)  # reaped here only: its rusage is wanted
+        if pid:
+            break
+        total = 0
+        with contextlib.suppress(psutil.Error):  # it or a worker ended between two looks
+            for p in [top, *top.children(recursive=True)]:
+                with contextlib.suppress(psutil.Error):
+                    total += p.memory_info().rss
+        tree_peak = max(tree_peak, total)
+        time.sleep(RSS_SAMPLE_S)
     wall = time.perf_counter() - t0
     if os.waitstatus_to_exitcode(status) != 0:
         err = proc.stderr.read().decode(errors="replace")[-500:] if proc.stderr else ""
         raise RuntimeError(f"shgm-slam {' '.join(args)} failed: {err}")
-    return usage.ru_maxrss / 1024.0, wall  # ru_maxrss is in KiB on Linux
+    return max(usage.ru_maxrss / 1024.0, tree_peak / 2**20), wall  # ru_maxrss is in KiB on Linux
 
 
-def peak_rss_runs(out: Path, runs: list[tuple[str, str | list[str], str]], progress: Progress) -> dict:
-    """Each ``(label, robot spec NAME=PATH[:a-b] or a list of them, results subfolder)`` run alone (no viewer)
-    in a fresh process: label -> ``{"peak_rss_mb", "wall_s"}``."""
+def peak_rss_runs(out: Path, runs: list[tuple[str, str | list[str], str]], progress: Progress,
+                  extra_args: tuple[str, ...] = ()) -> dict:  # fmt: skip
+    """Each ``(label, robot spec NAME=PATH[:a-b] or a list of them, results subfolder)`` run alone (no viewer;
+    ``extra_args`` added to ``run``'s) in a fresh process: label -> ``{"peak_rss_mb", "wall_s"}``."""
     mem = {}
     for label, robot, folder in runs:
         progress(f"memory run: {label}")
         specs = [robot] if isinstance(robot, str) else list(robot)
         robot_args = [a for spec in specs for a in ("--robot", spec)]
-        args = ["run", *robot_args, "--rerun", "off", "--out", str(Path(out) / folder), "--overwrite"]
+        args = ["run", *robot_args, "--rerun", "off", "--out", str(Path(out) / folder), "--overwrite", *extra_args]
         rss, wall = _peak_rss_mb(args)
         mem[label] = {"peak_rss_mb": round(rss, 1), "wall_s": round(wall, 1)}
     return mem

@@ -20,8 +20,8 @@ from shgm_slam.config import ShgmConfig
 from shgm_slam.errors import DataError
 from shgm_slam.interrupts import stops_deferred
 from shgm_slam.io.export import ResultsWriter
+from shgm_slam.robot.build import make_frontend
 from shgm_slam.robot.node import RobotNode
-from shgm_slam.runner import make_frontend
 from shgm_slam.transport.factory import NodeRole, make_transport
 from shgm_slam.types import Sequence
 

@@ -32,3 +32,8 @@ class TrajectorySegment:
     @property
     def num_keyframes(self) -> int:
         return len(self.kf_frames)
+
+    @property
+    def num_nodes(self) -> int:
+        """Nodes of its semantic graph."""
+        return len(self.graph)

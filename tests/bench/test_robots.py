@@ -142,3 +142,41 @@ def test_markdown_has_a_row_per_fleet_with_its_memory():
     ratio = f"| {rows[1]['total_per_kf_over_smallest']:.2f} |"
     assert lines[2].startswith("| 2 | 4 |") and ratio in lines[2] and lines[2].endswith("| 321 |")
     assert lines[4].startswith("| 1 | 1 | 1 | 0 | 0 |") and lines[4].endswith("| 3 | 1 | 0/? |")
+
+
+def test_markdown_puts_the_worker_processes_run_beside_the_one_process_run():
+    row = {"robots": 2, "keyframes": 4, "front_end_ms_per_kf": 1.0, "match_ms_per_kf": 1.0, "backend_ms_per_kf": 1.0,
+           "server_other_ms_per_kf": 1.0, "total_ms_per_kf": 4.0, "cpu_ms_per_kf": 4.0,
+           "total_per_kf_over_smallest": 1.0, "matches_per_kf": 0.0, "ms_per_match": 0.0, "nodes_per_match": 0.0,
+           "cpu_s_per_driven_s": 1.0, "can_place": 2, "placed": 2, "placed_right": 2, "placed_wrong": 0,
+           "not_placed_could": 0, "fused_ate_median_m": 1.0, "fused_ate_max_m": 1.0, "matches_tried": 1,
+           "closures_accepted": 1, "wall_s": 30.0, "accepted_judged": 1, "accepted_gross": 0, "anchorings": 1,
+           "anchorings_gross": 0, "jobs": 2, "jobs_wall_s": 20.0, "jobs_speedup": 1.5, "jobs_same_results": True}
+    text = robots_markdown({"stretches": ["a", "b"], "stretch_frames": 5, "fleets": [row],
+                            "memory": {"2": {"peak_rss_mb": 300.0, "wall_s": 3.0}},
+                            "memory_jobs": {"2": {"peak_rss_mb": 700.0, "wall_s": 2.0}}})  # fmt: skip
+    assert "| 2 | 30.0 | 2 | 20.0 | 1.50x | yes |" in text
+    assert "2 worker processes: 700 MB, all processes together (300 MB in one process)" in text
+    assert "**no**" in robots_markdown({"stretches": ["a"], "stretch_frames": 5,
+                                        "fleets": [row | {"jobs_same_results": False}]})  # fmt: skip
+
+
+def test_same_results_compares_every_results_file_but_not_the_timings(tmp_path: Path):
+    import json
+
+    from shgm_slam.bench.robots import same_results
+
+    for d in ("a", "b"):
+        (tmp_path / d).mkdir()
+        (tmp_path / d / "car_fused_tum.txt").write_text("0 1 2 3 0 0 0 1\n")
+        (tmp_path / d / "pose_graph.g2o").write_text("VERTEX_SE3:QUAT 0\n")
+        (tmp_path / d / "metrics.json").write_text(json.dumps({"robots": [1], "wall_s": len(d) + ord(d)}))
+    assert same_results(tmp_path / "a", tmp_path / "b")
+    (tmp_path / "b" / "car_fused_tum.txt").write_text("0 1 2 3.000001 0 0 0 1\n")
+    assert not same_results(tmp_path / "a", tmp_path / "b")
+    (tmp_path / "b" / "car_fused_tum.txt").write_text("0 1 2 3 0 0 0 1\n")
+    (tmp_path / "b" / "metrics.json").write_text(json.dumps({"robots": [2], "wall_s": 1}))
+    assert not same_results(tmp_path / "a", tmp_path / "b")
+    (tmp_path / "b" / "metrics.json").write_text(json.dumps({"robots": [1], "wall_s": 1}))
+    (tmp_path / "b" / "extra_odometry_tum.txt").write_text("")
+    assert not same_results(tmp_path / "a", tmp_path / "b")

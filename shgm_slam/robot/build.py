@@ -1,0 +1,91 @@
+"""Building one robot's front end from the fleet configuration: its perception, scene scale, odometry.
+
+Apart from ``runner`` so that a worker process (``robot.remote``) builds its robots' front ends without
+importing the map server, the pose graph and the viewer (~100 MB less per worker).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from shgm_slam.config import OdometryKind, ShgmConfig
+from shgm_slam.data.validate import check_sequence_start
+from shgm_slam.errors import ConfigError
+from shgm_slam.odometry.sources import choose_odometry, make_odometry
+from shgm_slam.odometry.visual import depth_window_on_image
+from shgm_slam.perception import make_perception
+from shgm_slam.perception.perceive import depth_model_of
+from shgm_slam.robot.frontend import RobotFrontend
+from shgm_slam.scene_scale import resolve_robot_config, sample_scene_scale
+from shgm_slam.types import Sequence
+
+log = logging.getLogger(__name__)
+
+
+def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFrontend:
+    """Build one robot's front end from the fleet config (with the robot's overrides merged in).
+
+    A poses-file odometry path may contain ``{robot}``, replaced by the robot name, so every robot
+    reads its own file (e.g. ``orbslam_{robot}.txt``). Fields left None (extraction range, blob size,
+    odometry voxel, ...) are derived from the robot's first frames through its perception source
+    (``scene_scale``); the fleet values when none has usable depth (logged). The front end's ``cfg``
+    holds the resolved values.
+    """
+    rcfg = cfg.for_robot(name)
+    if rcfg.odometry.kind is OdometryKind.FILE and rcfg.odometry.poses_file is not None:
+        path = Path(str(rcfg.odometry.poses_file).replace("{robot}", name))
+        rcfg = rcfg.model_copy(update={"odometry": rcfg.odometry.model_copy(update={"poses_file": path})})
+    if rcfg.odometry.kind is OdometryKind.GT and sequence.gt_poses is None:
+        raise ConfigError(
+            f"robot {name!r}: --odometry gt needs ground-truth poses (poses.txt, or <root>/poses/<seq>.txt for "
+            "KITTI), and its sequence has none; use --odometry auto"
+        )
+    written_by = depth_model_of(sequence) if rcfg.perception.depth_model is None else None
+    if written_by is not None:
+        log.info("%s: its depth files were predicted by %s (perceive.json): treated as predicted depth", name,
+                 written_by.get("path", "a depth model"))  # fmt: skip
+    predicted = rcfg.perception.depth_model is not None or written_by is not None
+    perception = make_perception(rcfg.perception, sequence, files_depth_predicted=written_by is not None)
+
+    def perceive(frame):
+        out = perception.process(frame)
+        return out.depth_m, out.label_ids
+
+    # whole-sequence problems (every frame unreadable, no valid depth, a broken model) end here, not as skips
+    check_sequence_start(name, sequence, perceive, depth_model=rcfg.perception.depth_model,
+                         seg_model=rcfg.perception.seg_model)  # fmt: skip
+    scale = sample_scene_scale(sequence, perceive)
+    if scale is None:
+        log.warning("%s: no usable depth in the first frames; extraction and odometry use the fleet defaults", name)
+    else:
+        log.info("%s: camera %.1f m above the ground, nearest ground at %.1f m", name,
+                 scale.camera_height_m or float("nan"), scale.nearest_ground_depth_m)  # fmt: skip
+    rcfg = resolve_robot_config(rcfg, scale)
+    rcfg = _window_on_image(name, rcfg, sequence, perception, written_by)
+    choice = choose_odometry(rcfg.odometry.kind, depth_from_model=predicted)
+    log.info("%s: odometry %s (%s)", name, choice.kind.value, choice.reason)
+    odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence))
+    return RobotFrontend(name, sequence, rcfg, perception, odometry, choice, depth_predicted=predicted)
+
+
+def _window_on_image(
+    name: str, rcfg: ShgmConfig, sequence: Sequence, perception: object, written_by: dict | None
+) -> ShgmConfig:
+    """``rcfg`` with the visual odometry's corner-depth window grown to the image when the depth model ran
+    on a smaller input (``visual.depth_window_on_image``); unchanged for measured depth or an unknown input."""
+    model = getattr(perception, "depth_model", None)
+    image_wh = (sequence.intrinsics.width, sequence.intrinsics.height)
+    if model is not None:
+        model_w = int(model.target_size(image_wh)[0])
+    elif written_by is not None and isinstance(written_by.get("input_wh"), list) and written_by["input_wh"]:
+        model_w = int(written_by["input_wh"][0])
+    else:
+        return rcfg
+    window = rcfg.odometry.visual_depth_window_px
+    on_image = depth_window_on_image(window, image_wh[0], model_w)
+    if on_image == window:
+        return rcfg
+    log.info("%s: visual odometry corner-depth window %d px on the %d px wide images (%d px on the depth "
+             "model's %d px input)", name, on_image, image_wh[0], window, model_w)  # fmt: skip
+    return rcfg.model_copy(update={"odometry": rcfg.odometry.model_copy(update={"visual_depth_window_px": on_image})})
