@@ -1105,7 +1105,8 @@ def bench_heldout(
         int | None, typer.Option(min=10, max=MAX_FRAMES, help="cut every robot's sequence (quick looks)")
     ] = None,
     cache: Annotated[Path, typer.Option(help="rendered worlds are cached here")] = Path("cache/heldout"),
-    jobs: Annotated[int, typer.Option(min=1, max=64, help="worlds run in this many processes at once")] = 1,
+    jobs: Annotated[int, typer.Option(min=1, max=64, help="worlds run in this many processes at once (1: one world "
+                                      "at a time, its robots' front ends in worker processes, up to the cores)")] = 1,
     supersample: Annotated[int, typer.Option(min=1, max=8, help="render the worlds' colour with SxS rays per pixel "
                                              "(antialiased; cached apart)")] = 1,
     replay_from: Annotated[
@@ -1130,7 +1131,8 @@ def bench_heldout(
         raise ConfigError(f"--mode {mode}: choose files or rgb") from None
     options = heldout.HeldoutOptions(scenarios=tuple(scenario or heldout.SCENARIOS), seeds=seed_list, modes=modes,
                                      max_frames=max_frames, cache=cache, replay_from=replay_from,
-                                     supersample=supersample)
+                                     supersample=supersample,
+                                     front_end_jobs=os.cpu_count() or 1 if jobs == 1 else 1)  # fmt: skip
     if replay_from is not None and not (replay_from / "runs").is_dir():
         raise ConfigError(f"--replay-from {replay_from}: no runs/ folder there (a `bench heldout` results folder)")
     with console.status("starting") as status:

@@ -116,6 +116,9 @@ class HeldoutOptions:
     replay_from: Path | None = None
     """An earlier benchmark folder: run only the map server again on each run's recorded keyframes
     (``runner.replay_backend``), for matching and back-end changes; worlds are not rendered or run."""
+    front_end_jobs: int = 1
+    """Worker processes for each run's robot front ends (``run_slam(jobs=...)``): the same results, sooner
+    when the worlds run one at a time."""
 
 
 @dataclass
@@ -328,12 +331,13 @@ def _robots_of(world: Path) -> list[str]:
     return [r["name"] for r in json.loads((world / "scenario.json").read_text())["robots"]]
 
 
-def run_one(world: Path, mode: InputMode, run_dir: Path, max_frames: int | None) -> dict:
-    """Run the system once on ``world`` with the default configuration; returns ``metrics.json``'s dict."""
+def run_one(world: Path, mode: InputMode, run_dir: Path, max_frames: int | None, jobs: int = 1) -> dict:
+    """Run the system once on ``world`` with the default configuration (front ends in ``jobs`` worker
+    processes); returns ``metrics.json``'s dict."""
     names = _robots_of(world)
     cut = f":0-{max_frames}" if max_frames else ""
     robots = open_robots([f"{r}={world / r}{cut}" for r in names])
-    summary = run_slam(robots, heldout_config(mode), run_dir, journal=True)
+    summary = run_slam(robots, heldout_config(mode), run_dir, journal=True, jobs=jobs)
     return json.loads(json.dumps(summary.to_json_dict(), default=float))
 
 
@@ -383,7 +387,7 @@ def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, pr
             metrics = replay_one(recorded, mode, run_dir, _robots_of(world))
         else:
             progress(f"running {scenario} seed {seed} ({mode.value})")
-            metrics = run_one(world, mode, run_dir, options.max_frames)
+            metrics = run_one(world, mode, run_dir, options.max_frames, options.front_end_jobs)
         verdicts = judge_run(run_dir, world, _robots_of(world), mode, scenario, seed, metrics)
         done = {
             "scenario": scenario, "seed": seed, "mode": mode.value,
