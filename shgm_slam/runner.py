@@ -287,7 +287,8 @@ def run_slam(
         fronts: the robots' front ends from ``prepare_frontends`` (None: opened here, before anything is written).
         jobs: run the robots' front ends in this many worker processes (``robot.remote``; 1: all in this
             process; at most one per robot): the same results, sooner on several cores. ``fronts`` then
-            only validate the run and give each robot's resolved configuration; the workers build their own.
+            only validate the run and give each robot's resolved configuration (their models are freed); the
+            workers build their own.
     """
     viz = viz or NullLogger()
     if fronts is None:

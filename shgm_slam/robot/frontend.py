@@ -101,6 +101,12 @@ class RobotFrontend:
         self.failures: list[OdometryFailure] = []
         self._new_segment(0)
 
+    def release(self) -> None:
+        """Free the models and the odometry once another process runs this robot (``robot.remote``): the
+        state stays readable, but ``process`` can no longer be called."""
+        self.perception = None  # type: ignore[assignment]
+        self.odometry = None  # type: ignore[assignment]
+
     # --- segments ------------------------------------------------------------------------------
 
     @property

@@ -426,7 +426,8 @@ class ParallelFrontends:
     every worker on exit.
 
     Args:
-        fronts: the orchestrator's validated front ends (robot name -> front end; not stepped).
+        fronts: the orchestrator's validated front ends (robot name -> front end; not stepped; released:
+            their models are freed, and they cannot process frames any more).
         fleet_cfg: the fleet configuration they were built from.
         schedule: (robot, frame index) in the order the orchestrator will take them (``data.interleave``).
         jobs: worker processes (at most one per robot).
@@ -448,6 +449,8 @@ class ParallelFrontends:
             self.__exit__()
             raise
         self.fronts = {r: self.fronts[r] for r in fronts}  # the run's robot order
+        for f in fronts.values():  # the workers built their own: this process's models are not used again
+            f.release()
 
     def __enter__(self) -> dict[str, RemoteFrontend]:
         return self.fronts
