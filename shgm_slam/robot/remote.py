@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import pickle
 import queue
 import signal
 import threading
@@ -37,7 +38,7 @@ from multiprocessing.connection import Connection
 import numpy as np
 
 from shgm_slam.config import ShgmConfig
-from shgm_slam.errors import DataError
+from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.odometry.health import OdometryFailure
 from shgm_slam.odometry.sources import OdometryChoice
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
@@ -325,7 +326,13 @@ class _Worker:
         members = [(f.name, f.sequence, f.cfg) for f in fronts]
         self._proc = ctx.Process(target=_work, name=f"shgm-frontend-{'+'.join(self.names)}",
                                  args=(members, fleet_cfg, schedule, child, slim), daemon=True)  # fmt: skip
-        self._proc.start()
+        try:
+            self._proc.start()  # spawn: the sequences and the configuration are pickled here
+        except (pickle.PicklingError, TypeError, AttributeError) as exc:
+            self._conn.close()
+            child.close()
+            raise ConfigError(f"robot(s) {', '.join(self.names)}: cannot be handed to a worker process ({exc}); "
+                              "run them in one process (--jobs 1)") from exc  # fmt: skip
         child.close()  # the worker holds the only sending end: a worker that dies mid-message ends in EOF here
 
     def take(self, name: str, index: int) -> tuple:

@@ -12,9 +12,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
+from shgm_slam.errors import ConfigError
 from shgm_slam.geometry import se3
 from shgm_slam.io.trajectories import read_tum, write_kitti_poses
 from shgm_slam.robot.remote import FrontendMirror, _Marks, assign_workers, frame_delta
@@ -159,3 +161,13 @@ def test_a_dead_worker_costs_its_robots_remaining_frames_only(tiny_scenario: Pat
         t, _ = read_tum(out / "car2_odometry_tum.txt")
         assert len(t) == done  # what it did before it died is kept
         assert json.loads((out / "metrics.json").read_text())["robots"][1]["frames_processed"] == done
+
+
+def test_a_sequence_that_cannot_go_to_a_worker_is_a_clear_error(tiny_scenario: Path, tmp_path: Path) -> None:
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
+    robots["car2"] = DiesAt(robots["car2"], -1, "never")
+    robots["car2"].hook = lambda: None  # a lambda cannot be pickled
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    with pytest.raises(ConfigError, match=r"car2.*cannot be handed to a worker process.*--jobs 1"):
+        run_slam(robots, cfg, tmp_path / "out", jobs=2)
