@@ -86,9 +86,9 @@ class FrameDelta:
     """One processed frame and what it changed in its front end's state.
 
     ``rows_from``..``index`` (inclusive) are the rows of the per-frame arrays it may have changed (a
-    divergence cuts its segment back to the failure's onset); ``segments`` the headers of the segments from
-    the one current before the frame on, with the keyframes each gained (``new_kf_frames``/``new_kf_poses``,
-    (K, 4, 4) odometry frame); counters are totals, lists only what was appended.
+    divergence cuts its segment back to the failure's onset); ``segments`` the segments from the one current
+    before the frame on, whose ``kf_frames`` / ``kf_poses`` hold only the keyframes this frame added (poses
+    (4, 4), T_odom_kf in the segment's odometry frame); counters are totals, lists only what was appended.
     """
 
     index: int
