@@ -377,6 +377,7 @@ def _render_summary(summary) -> None:
 def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool, fronts=None, jobs: int | None = None):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
+    from shgm_slam.robot.remote import default_jobs
     from shgm_slam.runner import run_slam
 
     with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
@@ -384,7 +385,7 @@ def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool, fronts=
         task = bar.add_task("frames", total=sum(len(s) for s in robots.values()))
         return run_slam(robots, cfg, out_dir, viz=viz, gt_shared_frame=gt_shared_frame, fronts=fronts,
                         progress=lambda done, total: bar.update(task, completed=done),
-                        jobs=_front_end_jobs(jobs, len(robots)))
+                        jobs=default_jobs(len(robots), jobs))
 
 
 JobsOption = Annotated[
@@ -393,11 +394,6 @@ JobsOption = Annotated[
                  help="worker processes for the robots' front ends (the same results, sooner); 1: everything in "
                  "this one process"),
 ]
-
-
-def _front_end_jobs(jobs: int | None, robots: int) -> int:
-    """``--jobs`` as given, else one worker per robot up to the cores (1 when either is 1)."""
-    return jobs if jobs is not None else max(1, min(robots, os.cpu_count() or 1))
 
 
 @app.command("run")
@@ -1132,7 +1128,7 @@ def bench_heldout(
     options = heldout.HeldoutOptions(scenarios=tuple(scenario or heldout.SCENARIOS), seeds=seed_list, modes=modes,
                                      max_frames=max_frames, cache=cache, replay_from=replay_from,
                                      supersample=supersample,
-                                     front_end_jobs=os.cpu_count() or 1 if jobs == 1 else 1)  # fmt: skip
+                                     front_end_jobs=None if jobs == 1 else 1)  # fmt: skip
     if replay_from is not None and not (replay_from / "runs").is_dir():
         raise ConfigError(f"--replay-from {replay_from}: no runs/ folder there (a `bench heldout` results folder)")
     with console.status("starting") as status:

@@ -48,6 +48,7 @@ from shgm_slam.errors import DataError
 from shgm_slam.geometry import se3
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import read_tum
+from shgm_slam.robot.remote import default_jobs
 from shgm_slam.runner import open_robots, replay_backend, run_slam
 from shgm_slam.sim.simulate import simulate
 
@@ -116,9 +117,9 @@ class HeldoutOptions:
     replay_from: Path | None = None
     """An earlier benchmark folder: run only the map server again on each run's recorded keyframes
     (``runner.replay_backend``), for matching and back-end changes; worlds are not rendered or run."""
-    front_end_jobs: int = 1
-    """Worker processes for each run's robot front ends (``run_slam(jobs=...)``): the same results, sooner
-    when the worlds run one at a time."""
+    front_end_jobs: int | None = 1
+    """Worker processes for each run's robot front ends (``run_slam(jobs=...)``; None: one per robot up to the
+    cores, ``remote.default_jobs``): the same results, sooner when the worlds run one at a time."""
 
 
 @dataclass
@@ -331,13 +332,13 @@ def _robots_of(world: Path) -> list[str]:
     return [r["name"] for r in json.loads((world / "scenario.json").read_text())["robots"]]
 
 
-def run_one(world: Path, mode: InputMode, run_dir: Path, max_frames: int | None, jobs: int = 1) -> dict:
+def run_one(world: Path, mode: InputMode, run_dir: Path, max_frames: int | None, jobs: int | None = 1) -> dict:
     """Run the system once on ``world`` with the default configuration (front ends in ``jobs`` worker
-    processes); returns ``metrics.json``'s dict."""
+    processes, ``remote.default_jobs``); returns ``metrics.json``'s dict."""
     names = _robots_of(world)
     cut = f":0-{max_frames}" if max_frames else ""
     robots = open_robots([f"{r}={world / r}{cut}" for r in names])
-    summary = run_slam(robots, heldout_config(mode), run_dir, journal=True, jobs=jobs)
+    summary = run_slam(robots, heldout_config(mode), run_dir, journal=True, jobs=default_jobs(len(robots), jobs))
     return json.loads(json.dumps(summary.to_json_dict(), default=float))
 
 

@@ -23,7 +23,6 @@ alias) come from the run's journal. Nothing here prints; the CLI renders the dic
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -36,6 +35,7 @@ from shgm_slam.bench.scale import StepCost
 from shgm_slam.bench.system import _world, peak_rss_runs, write_report
 from shgm_slam.config import ShgmConfig
 from shgm_slam.errors import ConfigError
+from shgm_slam.robot.remote import default_jobs
 from shgm_slam.runner import FrameStats, open_robots, run_slam
 
 Progress = Callable[[str], None]
@@ -206,7 +206,7 @@ def run_robots_benchmark(
         row = {**cost.row(n, driven_s), **placement(summary.to_json_dict(), can),
                "accepted_judged": truth.accepted, "accepted_gross": truth.gross,
                "anchorings": truth.anchorings, "anchorings_gross": truth.anchorings_gross}  # fmt: skip
-        workers = min(n, jobs or os.cpu_count() or 1)
+        workers = min(n, default_jobs(n, jobs))
         if workers > 1:
             progress(f"running {n} robot(s) at once again, front ends in {workers} worker processes")
             again = run_slam(robots, cfg, out / f"fleet_{n}_jobs", on_frame=FleetCost(), journal=True, jobs=workers)

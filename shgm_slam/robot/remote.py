@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import pickle
 import queue
 import signal
@@ -236,6 +237,12 @@ class _LogToPipe(logging.Handler):
             self._sender.put(("log", record))
         except Exception:  # a record that cannot be formatted: logging's own report, never the worker's end
             self.handleError(record)
+
+
+def default_jobs(robots: int, jobs: int | None = None) -> int:
+    """Worker processes for ``robots`` front ends: ``jobs`` where given, else one per robot up to the cores
+    (1: everything in the orchestrator's process)."""
+    return max(1, jobs if jobs is not None else min(robots, os.cpu_count() or 1))
 
 
 def assign_workers(frames: dict[str, int], jobs: int) -> list[list[str]]:

@@ -19,7 +19,7 @@ from shgm_slam.data import open_sequence
 from shgm_slam.errors import ConfigError
 from shgm_slam.geometry import se3
 from shgm_slam.io.trajectories import read_tum, write_kitti_poses
-from shgm_slam.robot.remote import FrontendMirror, _Marks, assign_workers, frame_delta
+from shgm_slam.robot.remote import FrontendMirror, _Marks, assign_workers, default_jobs, frame_delta
 from shgm_slam.runner import make_frontend, open_robots, run_slam
 
 
@@ -123,6 +123,14 @@ class DiesAt:
                 os._exit(9)
             raise ZeroDivisionError("a bug in the front end")
         return self.inner[i]
+
+
+def test_default_jobs_is_one_worker_per_robot_up_to_the_cores(monkeypatch) -> None:
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    assert [default_jobs(n) for n in (1, 2, 3, 8)] == [1, 2, 2, 2]
+    assert default_jobs(3, 1) == 1 and default_jobs(3, 5) == 5  # as given (never more workers than robots: below)
+    monkeypatch.setattr(os, "cpu_count", lambda: None)
+    assert default_jobs(4) == 1
 
 
 def test_robots_are_spread_over_the_workers_longest_first() -> None:
