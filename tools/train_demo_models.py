@@ -729,8 +729,8 @@ def readme_text(m: dict[str, Any]) -> str:
                           for k in ss) + (" (given to the cities in turn)" if len(ss) > 1 else "")
     kitti_line = (",\n`kitti-paths` seeds 1-3 (KITTI drives of sequences 02-06, which no held-out pair uses)"
                   if any(k.startswith("kitti-paths") for k in tr.get("splits", ())) else "")
-    extra = sorted({int(k.split("-s")[1].split("-")[0]) for k in tr.get("splits", ())} - {1, 2, 3, 4, 5, 6, 21, 22, 23})
-    seeds = f"1-6 and {extra[0]}-{extra[-1]}" if extra else "1-6"
+    extra = int(tr.get("extra_seeds", 0))
+    seeds = f"1-6 and {EXTRA_SEED0}-{EXTRA_SEED0 + extra - 1}" if extra else "1-6"
     spec = NETS[NetSize(tr.get("net", NetSize.SMALL.value))]
     device = tr.get("device", "cpu")
     where = (f"on one {device} GPU (bfloat16 autocast)" if device != "cpu"
@@ -940,7 +940,8 @@ def main(argv: list[str] | None = None) -> int:
             "max_steps": args.max_steps, "batch": args.batch, "lr": args.lr, "seed": args.seed,
             "threads": args.threads, "net": args.net.value, "device": _device_name(args.device),
             "splits": [s.key for s in train_splits(args.supersample, args.kitti_paths_worlds, args.extra_seeds)],
-            "supersample": list(args.supersample), "render_jobs": args.render_jobs, "torch": torch.__version__,
+            "supersample": list(args.supersample), "render_jobs": args.render_jobs, "extra_seeds": args.extra_seeds,
+            "torch": torch.__version__,
             "render_minutes": round((t_render - t_start) / 60, 2),
             "train_minutes": round((t_train - t_render) / 60, 2),
             "machine": f"{platform.machine()} {platform.processor() or ''}".strip(), "loss_log": log,
