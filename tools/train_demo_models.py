@@ -30,6 +30,10 @@ Usage (needs the ``train`` extra: ``.venv/bin/pip install -e '.[train]'``)::
         --no-kitti-paths-worlds --batch 12 --lr 3e-3 --max-steps 9000 --train-minutes 38
                                           # the first demo models' recipe (CPU, 38 min)
 
+Variants measured and not (yet) taken: ``--scale-weight W`` adds W x each image's absolute mean log-depth
+error to the loss (a UAV's per-frame scale), ``--crop-width`` trains on wider crops (320: whole images),
+``--airsim-fps`` renders the airsim-like cities (and so the UAV's views) more often (README, held-out notes).
+
 The rendered data is cached under ``--cache-dir`` (default /tmp/shgm_demo_models/cache), never in the
 repo; delete that folder after changing the simulator, or the models train on its old renders.
 """
@@ -78,7 +82,14 @@ from export_onnx import export_module, write_full_card  # sibling tool script
 REPO = Path(__file__).resolve().parents[1]
 RENDER_WH = (640, 192)  # the demo resolution (what `shgm-slam simulate` writes by default)
 INPUT_WH = (320, 96)  # model input; the adapter shrinks 640x192 by 2 with INTER_AREA
-CROP_W = 192  # training crops along x (the y-coordinate channel keeps the vertical position)
+CROP_W = 192  # training crops along x (the y-coordinate channel keeps the vertical position); --crop-width
+SCALE_WEIGHT = 0.0
+"""``--scale-weight``: weight of the per-image scale term of the depth loss (the mean log-depth error of each
+image, absolute): a UAV's objects 45-90 m away came out 0.91-1.13 of the truth frame by frame (the
+scale-invariant term forgives a whole image's offset by design)."""
+AIRSIM_FPS = 1.0
+"""``--airsim-fps``: frames per second of motion rendered from the airsim-like training cities (cars and the
+UAV; the UAV flies 90 s, the cars ~40 s, so more frames are mostly more UAV views)."""
 MIN_DEPTH_M, MAX_DEPTH_M = 0.5, 80.0
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -143,20 +154,21 @@ EXTRA_SEED0 = 40
 
 def train_splits(
     supersample: int | tuple[int, ...] = SUPERSAMPLE, kitti_paths: bool = KITTI_PATHS_WORLDS,
-    extra_seeds: int = EXTRA_SEEDS,
+    extra_seeds: int = EXTRA_SEEDS, airsim_fps: float = AIRSIM_FPS,
 ) -> tuple[Split, ...]:
     """The training cities (seeds the held-out benchmark never uses).
 
     ``supersample``: one S for every city, or several given to the cities in turn (a mix of aliased and
     antialiased looks). ``extra_seeds``: that many more airsim-like and synthia-like cities each, seeds
     from ``EXTRA_SEED0`` on (outside the benchmarks' tuning 10-39 and report 200-219 / 300-309 seeds and
-    the models' held-out 100-101)."""
+    the models' held-out 100-101). ``airsim_fps``: frames per second of the airsim-like cities (not the compact
+    ones)."""
     cycle = _ss_cycle(supersample)
     kitti = tuple(Split("kitti-paths", s, kitti_robots=d, frame_stride=5)
                   for s, d in zip(range(1, 4), KITTI_TRAIN_DRIVES, strict=True)) if kitti_paths else ()
     extra = range(EXTRA_SEED0, EXTRA_SEED0 + extra_seeds)
     splits = (
-        *(Split("airsim-like", s) for s in (*range(1, 7), *extra)),
+        *(Split("airsim-like", s, fps=airsim_fps) for s in (*range(1, 7), *extra)),
         *(Split("synthia-like", s) for s in (*range(1, 7), *extra)),
         *kitti,
         Split("airsim-like", 21, fps=2.0, compact=True),
@@ -245,11 +257,11 @@ def _strided(data: dict[str, np.ndarray], stride: int) -> dict[str, np.ndarray]:
 
 def load_training_set(
     cache_dir: Path, supersample: int | tuple[int, ...] = SUPERSAMPLE, kitti_paths: bool = KITTI_PATHS_WORLDS,
-    extra_seeds: int = EXTRA_SEEDS, jobs: int = 1,
+    extra_seeds: int = EXTRA_SEEDS, jobs: int = 1, airsim_fps: float = AIRSIM_FPS,
 ) -> dict[str, np.ndarray]:
     """All training splits concatenated: images (N, 96, 320, 3) uint8, depth_m (N, 96, 320) float16,
     labels (N, 96, 320) uint8. ``jobs`` > 1 renders the uncached cities in that many processes first."""
-    splits = train_splits(supersample, kitti_paths, extra_seeds)
+    splits = train_splits(supersample, kitti_paths, extra_seeds, airsim_fps)
     cache_all(splits, cache_dir, jobs)
     parts = [load_split(s, cache_dir) for s in splits]
     return {k: np.concatenate([p[k] for p in parts]) for k in ("images", "depth_m", "labels")}
@@ -275,11 +287,11 @@ def _cache_one(split: Split, cache_dir: Path) -> None:
 
 def uncached_prepare_minutes(
     cache_dir: Path, supersample: int | tuple[int, ...] = SUPERSAMPLE, kitti_paths: bool = KITTI_PATHS_WORLDS,
-    extra_seeds: int = EXTRA_SEEDS,
+    extra_seeds: int = EXTRA_SEEDS, airsim_fps: float = AIRSIM_FPS,
 ) -> float | None:
     """Minutes it took to render + convert all training splits when the cache was built (None if unknown)."""
     total = 0.0
-    for split in train_splits(supersample, kitti_paths, extra_seeds):
+    for split in train_splits(supersample, kitti_paths, extra_seeds, airsim_fps):
         path = _split_cache(split, cache_dir)
         if not path.is_file():
             return None
@@ -429,11 +441,13 @@ def class_weights(labels: np.ndarray) -> np.ndarray:
     return w.astype(np.float32)
 
 
-def log_depth_loss(log_depth: Any, depth_m: Any, labels: Any, class_weight: Any) -> Any:
+def log_depth_loss(log_depth: Any, depth_m: Any, labels: Any, class_weight: Any, scale_weight: float = 0.0) -> Any:
     """Depth loss of (N, H, W) predicted log depth against (N, H, W) true depth in metres (0 = beyond the
     render range, read as 80 m) over non-sky pixels: class-weighted L1 on log depth (``class_weight``
     (256,) per label: objects that anchor odometry and graph nodes count more) + 0.5 x scale-invariant
-    log error + gradient matching at 1/1, 1/2 and 1/4 scale (sharp depth edges at object borders)."""
+    log error + gradient matching at 1/1, 1/2 and 1/4 scale (sharp depth edges at object borders) +
+    ``scale_weight`` x the mean over images of each image's absolute mean log error (its scale,
+    ``SCALE_WEIGHT``)."""
     import torch
 
     valid = (labels != Label.SKY) & (labels != IGNORE_ID)
@@ -451,7 +465,11 @@ def log_depth_loss(log_depth: Any, depth_m: Any, labels: Any, class_weight: Any)
         gx = (rk[:, :, 1:] - rk[:, :, :-1]).abs() * mx
         gy = (rk[:, 1:] - rk[:, :-1]).abs() * my
         grad = grad + (gx.sum() + gy.sum()) / (mx.sum() + my.sum()).clamp(min=1.0)
-    return l1 + 0.5 * si + 0.5 * grad
+    loss = l1 + 0.5 * si + 0.5 * grad
+    if scale_weight:
+        per_image = (r * valid).sum((1, 2)) / valid.sum((1, 2)).clamp(min=1)
+        loss = loss + scale_weight * per_image.abs().mean()
+    return loss
 
 
 def learning_rate(peak: float, progress: float, warmup: float = 0.04) -> float:
@@ -464,7 +482,8 @@ def learning_rate(peak: float, progress: float, warmup: float = 0.04) -> float:
 
 def train(
     data: dict[str, np.ndarray], minutes: float | None, max_steps: int, batch: int, lr: float, seed: int,
-    spec: NetSpec = NETS[NetSize.SMALL], device: str = "cpu",
+    spec: NetSpec = NETS[NetSize.SMALL], device: str = "cpu", scale_weight: float = SCALE_WEIGHT,
+    crop_width: int = CROP_W,
 ) -> tuple[Any, dict]:
     """Train the joint network for ``minutes`` of wall time or ``max_steps`` steps, whichever ends first
     (the learning-rate schedule follows that progress, so a busy machine gets a complete, shorter run;
@@ -508,10 +527,10 @@ def train(
         for group in opt.param_groups:
             group["lr"] = learning_rate(lr, progress)
         idx = torch.from_numpy(rng.integers(0, n, batch)).to(dev)
-        x0 = 2 * int(rng.integers(0, (W - CROP_W) // 2 + 1))
-        x = images[idx, :, :, x0 : x0 + CROP_W].float() / 255.0
-        d = depth[idx, :, x0 : x0 + CROP_W]
-        lab = labels[idx, :, x0 : x0 + CROP_W].long()
+        x0 = 2 * int(rng.integers(0, (W - crop_width) // 2 + 1))
+        x = images[idx, :, :, x0 : x0 + crop_width].float() / 255.0
+        d = depth[idx, :, x0 : x0 + crop_width]
+        lab = labels[idx, :, x0 : x0 + crop_width].long()
         if rng.random() < 0.5:
             x, d, lab = x.flip(3), d.flip(2), lab.flip(2)
         # photometric jitter per image: contrast, gain, per-channel tint, pixel noise
@@ -524,7 +543,7 @@ def train(
 
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=gpu):
             log_depth, logits = net(x)
-        depth_loss = log_depth_loss(log_depth[:, 0].float(), d, lab, thing_weight)
+        depth_loss = log_depth_loss(log_depth[:, 0].float(), d, lab, thing_weight, scale_weight)
         seg_loss = F.cross_entropy(logits.float(), lab, weight=weights, ignore_index=IGNORE_ID)
         opt.zero_grad(set_to_none=True)
         (depth_loss + seg_loss).backward()
@@ -737,7 +756,7 @@ def readme_text(m: dict[str, Any]) -> str:
              else f"on {tr.get('threads', 2)} CPU threads ({tr.get('machine', '')}, a machine shared with other jobs)")
     train_line = (
         f"Training: {tr['frames']} frames, {tr['steps']} steps of batch {tr['batch']} "
-        f"({CROP_W}x{INPUT_WH[1]} crops): {tr['train_minutes']:.1f} min of training {where}. "
+        f"({tr.get('crop_width', CROP_W)}x{INPUT_WH[1]} crops): {tr['train_minutes']:.1f} min of training {where}. "
         f"Rendering + caching the training cities took {tr.get('render_minutes', float('nan')):.1f} min "
         f"({tr.get('render_jobs', 1)} processes)."
         if tr else "Training facts: see demo_models_metrics.json."
@@ -868,6 +887,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--time-cpu-steps", type=int, default=0, metavar="N",
                    help="time N training steps of --net/--batch on CPU (--threads) and record, in --out-dir's "
                         "metrics, how long the recorded training would take on CPU")
+    p.add_argument("--scale-weight", type=float, default=SCALE_WEIGHT,
+                   help="weight of the per-image scale term of the depth loss (each image's absolute mean log error)")
+    p.add_argument("--crop-width", type=int, default=CROP_W,
+                   help=f"training crop width in pixels, a multiple of 16 up to {INPUT_WH[0]} (the whole image)")
+    p.add_argument("--airsim-fps", type=float, default=AIRSIM_FPS,
+                   help="frames per second of motion rendered from the airsim-like training cities")
     p.add_argument("--skip-eval", action="store_true",
                    help="train and export only (evaluate later here with --eval-only --out-dir DIR)")
     return p
@@ -888,6 +913,10 @@ def _device_name(device: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if not (16 <= args.crop_width <= INPUT_WH[0] and args.crop_width % 16 == 0):
+        raise SystemExit(f"--crop-width {args.crop_width}: a multiple of 16 from 16 to {INPUT_WH[0]}")
+    if not args.airsim_fps > 0:
+        raise SystemExit(f"--airsim-fps {args.airsim_fps}: must be > 0")
     import torch
 
     torch.set_num_threads(args.threads)
@@ -913,24 +942,25 @@ def main(argv: list[str] | None = None) -> int:
             metrics = {k: v for k, v in kept.items() if k in ("training", "export")}
     elif args.render_only:
         load_training_set(args.cache_dir, args.supersample, args.kitti_paths_worlds, args.extra_seeds,
-                          args.render_jobs)
+                          args.render_jobs, args.airsim_fps)
         for split in heldout_splits(args.supersample):
             render_split(split, args.cache_dir)
-        prep = uncached_prepare_minutes(args.cache_dir, args.supersample, args.kitti_paths_worlds, args.extra_seeds)
+        prep = uncached_prepare_minutes(args.cache_dir, args.supersample, args.kitti_paths_worlds, args.extra_seeds,
+                                        args.airsim_fps)
         print(f"training data: {prep} min to render + convert; "
               f"this run {(time.perf_counter() - t_start) / 60:.1f} min", flush=True)
         return 0
     else:
         print("rendering training cities ...", flush=True)
         data = load_training_set(args.cache_dir, args.supersample, args.kitti_paths_worlds, args.extra_seeds,
-                                 args.render_jobs)
+                                 args.render_jobs, args.airsim_fps)
         t_render = time.perf_counter()
         n = data["images"].shape[0]
         budget = "no time limit" if args.train_minutes is None else f"{args.train_minutes:g} min"
         print(f"training on {n} frames, {budget} (at most {args.max_steps} steps, "
               f"batch {args.batch}) ...", flush=True)
         net, log = train(data, args.train_minutes, args.max_steps, args.batch, args.lr, args.seed,
-                         NETS[args.net], args.device)
+                         NETS[args.net], args.device, args.scale_weight, args.crop_width)
         t_train = time.perf_counter()
         if args.save_weights is not None:
             torch.save(net.state_dict(), args.save_weights)
@@ -939,7 +969,9 @@ def main(argv: list[str] | None = None) -> int:
             "frames": n, "steps": log["steps_done"], "train_minutes_budget": args.train_minutes,
             "max_steps": args.max_steps, "batch": args.batch, "lr": args.lr, "seed": args.seed,
             "threads": args.threads, "net": args.net.value, "device": _device_name(args.device),
-            "splits": [s.key for s in train_splits(args.supersample, args.kitti_paths_worlds, args.extra_seeds)],
+            "splits": [s.key for s in train_splits(args.supersample, args.kitti_paths_worlds, args.extra_seeds,
+                                                   args.airsim_fps)],
+            "scale_weight": args.scale_weight, "crop_width": args.crop_width, "airsim_fps": args.airsim_fps,
             "supersample": list(args.supersample), "render_jobs": args.render_jobs, "extra_seeds": args.extra_seeds,
             "torch": torch.__version__,
             "render_minutes": round((t_render - t_start) / 60, 2),
@@ -955,7 +987,8 @@ def main(argv: list[str] | None = None) -> int:
     if "training" in metrics:
         if not args.eval_only:
             metrics["training"]["total_minutes"] = round((time.perf_counter() - t_start) / 60, 2)
-        prep = uncached_prepare_minutes(args.cache_dir, args.supersample, args.kitti_paths_worlds, args.extra_seeds)
+        prep = uncached_prepare_minutes(args.cache_dir, args.supersample, args.kitti_paths_worlds, args.extra_seeds,
+                                        args.airsim_fps)
         metrics["training"]["render_minutes_uncached"] = prep if prep is not None else metrics["training"].get(
             "render_minutes_uncached")
     write_report(metrics, args.out_dir)

@@ -98,3 +98,29 @@ def test_both_network_sizes_map_an_image_to_depth_and_labels(tool) -> None:
         assert log_depth.shape == (2, 1, 96, 320) and logits.shape == (2, 19, 96, 320)
     small, base = (sum(p.numel() for p in tool.build_network(tool.NETS[s]).parameters()) for s in tool.NetSize)
     assert small == 83620 and base > 4 * small  # the small one is the first demo models' network, unchanged
+
+
+def test_the_scale_term_is_each_images_mean_log_error(tool) -> None:
+    """``--scale-weight``: a prediction 10 % long everywhere costs log(1.1) per unit weight on top of the
+    other terms (which the scale-invariant part barely notices); a right prediction costs nothing more."""
+    torch = pytest.importorskip("torch")
+    gen = torch.Generator().manual_seed(0)
+    depth = torch.rand(2, 16, 16, generator=gen) * 50.0 + 1.0
+    labels = torch.zeros(2, 16, 16, dtype=torch.long)
+    weight = torch.ones(256)
+    long_log = torch.log(depth * 1.1)
+    with_scale = tool.log_depth_loss(long_log, depth, labels, weight, 1.0)
+    extra = with_scale - tool.log_depth_loss(long_log, depth, labels, weight)
+    assert float(extra) == pytest.approx(np.log(1.1), rel=1e-5)
+    right = torch.log(depth)
+    assert float(tool.log_depth_loss(right, depth, labels, weight, 1.0)) == pytest.approx(0.0, abs=1e-4)
+
+
+def test_airsim_fps_renders_only_the_airsim_like_cities_more_often(tool) -> None:
+    base, more = tool.train_splits(), tool.train_splits(airsim_fps=2.0)
+    assert len(base) == len(more)
+    for a, b in zip(base, more, strict=True):
+        if a.scenario == "airsim-like" and not a.compact:
+            assert b.fps == 2.0 and a.key != b.key  # cached apart
+        else:
+            assert a == b
