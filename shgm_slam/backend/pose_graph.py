@@ -622,6 +622,11 @@ class MultiRobotPoseGraph:
         k = len(r.T_odom_kf) - 1 if kf_index is None else kf_index
         return self.T_shared_kf(robot, k) @ inverse(r.T_odom_kf[k])
 
+    def ground_normal_count(self, robot: str) -> int:
+        """How many of ``robot``'s keyframes measured a ground normal (0 for an unknown robot)."""
+        r = self._robots.get(robot)
+        return 0 if r is None else len(r.measured)
+
     def measured_drift(self, robot: str) -> float | None:
         """The odometry rotation drift rate (rad per metre driven) ``robot``'s loop closures measured and its
         odometry factors now use, where more than the prior (``drift.py``); None while the prior holds."""

@@ -23,7 +23,14 @@ from shgm_slam.messages import KeyframeMessage
 from shgm_slam.server.closures import SurfaceOffset, local_closures
 from shgm_slam.server.places import free_path_m, near_keyframes, tolerance_m
 from shgm_slam.server.records import MatchEvidence, MatchRecord
-from shgm_slam.server.viewpoints import camera_height_m, closure_information, elevation_gap_rad, views_differ
+from shgm_slam.server.viewpoints import (
+    camera_height_m,
+    closure_information,
+    elevation_gap_rad,
+    up_is_level,
+    up_spread_rad,
+    views_differ,
+)
 from shgm_slam.types import GraphArrays
 
 log = logging.getLogger(__name__)
@@ -458,7 +465,7 @@ class MapServer:
         t0 = time.perf_counter()
         up_a, up_b = self.up_odom(robot_a), self.up_odom(robot_b)
         free = self.evidence_free_labels(robot_a, robot_b)
-        if up_a is not None and up_b is not None:
+        if self.gravity_aligned(robot_a) and self.gravity_aligned(robot_b):
             # both robots know where "up" is (their ground plane): a 4-DoF match in gravity-aligned frames
             R_a, R_b = rotation_to_z(up_a), rotation_to_z(up_b)
             cfg4 = self.cfg.matching.model_copy(update={"gravity_aligned": True, "up_axis": (0.0, 0.0, 1.0)})
@@ -654,6 +661,19 @@ class MapServer:
     def matches(self) -> list[MatchRecord]:
         """Every match attempt so far, in order (the rows of ``matches.json``)."""
         return list(self._matches)
+
+    def up_spread_rad(self, agent: str) -> float | None:
+        """Angular spread (radians) of ``agent``'s keyframe ground normals in its odometry frame
+        (``viewpoints.up_spread_rad``), or None while it has none."""
+        return up_spread_rad(self._up_sum[agent], self._pose_graph.ground_normal_count(agent))
+
+    def gravity_aligned(self, agent: str) -> bool:
+        """Whether ``agent``'s mean "up" is good enough to match it in a gravity-aligned frame
+        (``viewpoints.up_is_level``): known, and its spread over the keyframes, at the distance of its
+        objects (``object_range_m``), within the verification radius."""
+        return self.up_odom(agent) is not None and up_is_level(
+            self.up_spread_rad(agent), self.object_range_m(agent), self.cfg.matching.verification_radius_m
+        )
 
     def up_odom(self, agent: str) -> np.ndarray | None:
         """(3,) ``agent``'s mean ground normal (unit, up) over its keyframes in its odometry frame, or None

@@ -40,6 +40,37 @@ def camera_height_m(
     return float(np.median((cameras_xyz[flat] - nodes_xyz[flat]) @ up))
 
 
+def up_spread_rad(normals_sum: np.ndarray, count: int) -> float | None:
+    """Angular spread (radians) of a robot's unit ground normals, all in its odometry frame, from their sum:
+    ``sqrt(-2 ln R)`` with ``R`` the length of their mean (the circular standard deviation; 0 when all
+    agree). It holds the plane fits' own noise and the odometry's tilt drift between the keyframes: a car's
+    normals agree to 0.5-0.7 degrees over a drive, a UAV's from a network's depth scatter by 10-21 degrees
+    (the airsim-like tuning worlds 10 and 13, whose UAV odometry's orientation drifted 11 and 46 degrees).
+
+    Args:
+        normals_sum: (3,) the sum of the unit normals.
+        count: how many were summed.
+
+    Returns:
+        Radians, or None without normals.
+    """
+    if count <= 0:
+        return None
+    length = float(np.linalg.norm(normals_sum)) / count
+    return float(np.sqrt(max(0.0, -2.0 * np.log(max(length, 1e-12)))))
+
+
+def up_is_level(spread_rad: float | None, object_range_m: float | None, radius_m: float) -> bool:
+    """Whether a robot's mean "up" may stand for all of its graph in a gravity-aligned (4-DoF) match: the
+    tilt its normals spread by moves its objects, at their distance from the camera, by no more than the
+    verification radius (``spread_rad * object_range_m <= radius_m``). A robot whose up is that uncertain
+    is matched in 6-DoF, which absorbs a submap's own tilt; a 4-DoF match under a tilted up cannot. False
+    while either value is unknown."""
+    if spread_rad is None or object_range_m is None:
+        return False
+    return spread_rad * object_range_m <= radius_m
+
+
 def views_differ(height_a_m: float | None, height_b_m: float | None, ratio: float) -> bool:
     """Whether two robots look from very different heights: the higher camera more than ``ratio`` times
     as high as the lower one (a floor of 0.1 m keeps a camera at ground level finite). False while either

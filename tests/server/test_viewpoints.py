@@ -14,7 +14,14 @@ from shgm_slam.graph.semantic_graph import SemanticGraph
 from shgm_slam.labels import FLAT_GROUND_LABELS, Label
 from shgm_slam.messages import KeyframeMessage
 from shgm_slam.server.map_server import MapServer
-from shgm_slam.server.viewpoints import camera_height_m, closure_information, elevation_gap_rad, views_differ
+from shgm_slam.server.viewpoints import (
+    camera_height_m,
+    closure_information,
+    elevation_gap_rad,
+    up_is_level,
+    up_spread_rad,
+    views_differ,
+)
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -90,3 +97,41 @@ def test_the_map_server_drops_flat_ground_evidence_between_a_car_and_a_uav_only(
     assert server.evidence_free_labels("car1", "uav") == tuple(FLAT_GROUND_LABELS)
     assert server.evidence_free_labels("uav", "car2") == tuple(FLAT_GROUND_LABELS)
     assert server.evidence_free_labels("car1", "car2") == ()
+
+
+def test_the_spread_of_the_normals_is_their_circular_standard_deviation():
+    rng = np.random.default_rng(9)
+    assert up_spread_rad(20 * UP, 20) == pytest.approx(0.0, abs=1e-6)
+    assert up_spread_rad(np.zeros(3), 0) is None
+    sigma = np.radians(5.0)  # small tilts: the spread is about the 2-D standard deviation of the tilt
+    tilt = rng.normal(0.0, sigma, (4000, 2))
+    normals = np.column_stack([np.sin(tilt[:, 0]), np.sin(tilt[:, 1]), np.ones(4000)])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    assert up_spread_rad(normals.sum(axis=0), len(normals)) == pytest.approx(np.sqrt(2.0) * sigma, rel=0.05)
+
+
+def test_an_up_is_level_when_its_spread_moves_the_objects_less_than_the_radius():
+    assert up_is_level(np.radians(0.6), 32.0, 3.0)  # a car: 0.3 m at its objects
+    assert not up_is_level(np.radians(10.0), 97.0, 3.0)  # a UAV on a network's depth: 17 m
+    assert up_is_level(np.radians(1.0), 97.0, 3.0)  # the same UAV on rendered depth: 1.7 m
+    assert not up_is_level(None, 30.0, 3.0) and not up_is_level(0.01, None, 3.0)
+
+
+def test_a_robot_whose_normals_drift_is_not_matched_gravity_aligned():
+    """The UAV's odometry tilts 20 degrees over its flight (its normals in the odometry frame turn with it):
+    its mean "up" cannot stand for its whole graph, so it is matched in 6-DoF; the cars' stay level."""
+    rng = np.random.default_rng(8)
+    n = 60
+    pos = np.column_stack([rng.uniform(0, 120, n), rng.choice([-1.0, 1.0], n) * rng.uniform(4, 25, n),
+                           rng.uniform(0.0, 4.0, n)])  # fmt: skip
+    labels = rng.choice([Label.SIDEWALK, Label.POLE, Label.CAR], n).astype(np.int64)
+    server = MapServer(["car1", "uav"], ShgmConfig())
+    for msg in _drive("car1", 1.6, pos, labels):
+        server.receive(msg)
+    msgs = list(_drive("uav", 45.0, pos, labels))
+    for k, msg in enumerate(msgs):
+        tilt = se3.rot_x(np.radians(20.0) * k / (len(msgs) - 1))
+        server.receive(KeyframeMessage(msg.robot, msg.kf_index, msg.frame_index, msg.timestamp_s, msg.T_odom_kf,
+                                       msg.graph_update, tilt @ UP))  # fmt: skip
+    assert server.up_spread_rad("car1") == pytest.approx(0.0, abs=1e-6) and server.gravity_aligned("car1")
+    assert np.degrees(server.up_spread_rad("uav")) > 5.0 and not server.gravity_aligned("uav")
