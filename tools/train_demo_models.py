@@ -441,7 +441,9 @@ def class_weights(labels: np.ndarray) -> np.ndarray:
     return w.astype(np.float32)
 
 
-def log_depth_loss(log_depth: Any, depth_m: Any, labels: Any, class_weight: Any, scale_weight: float = 0.0) -> Any:
+def log_depth_loss(
+    log_depth: Any, depth_m: Any, labels: Any, class_weight: Any, scale_weight: float = SCALE_WEIGHT
+) -> Any:
     """Depth loss of (N, H, W) predicted log depth against (N, H, W) true depth in metres (0 = beyond the
     render range, read as 80 m) over non-sky pixels: class-weighted L1 on log depth (``class_weight``
     (256,) per label: objects that anchor odometry and graph nodes count more) + 0.5 x scale-invariant
