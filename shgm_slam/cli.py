@@ -137,21 +137,24 @@ def simulate_command(
         "first. Default: 00:2600-2901 and 07:0-351")] = None,
     supersample: Annotated[int, typer.Option(min=1, max=8, help="colour from SxS rays per pixel, averaged as a "
                                              "camera's pixel integrates light (1: one ray, aliased)")] = 1,
+    uav_altitude: Annotated[str | None, typer.Option(help="airsim-like: the UAV's altitude above the ground, "
+                                                     "LOW-HIGH metres it varies between (default 44-54)")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="replace an existing scenario")] = False,
 ) -> None:
     """Render a synthetic multi-robot scenario (RGB, depth, labels, GT poses) into sequence folders."""
     from rich.table import Table
 
     from shgm_slam.sim.corruption import CorruptionLevels
-    from shgm_slam.sim.simulate import parse_resolution
+    from shgm_slam.sim.simulate import parse_altitude, parse_resolution
 
     size = parse_resolution(resolution)
+    altitude = parse_altitude(uav_altitude) if uav_altitude is not None else None
     corruption = CorruptionLevels.from_levels(depth_noise=depth_noise, label_noise=label_noise)
     result = _simulate_with_progress(
         scenario, out, seed, resolution=size, fps=fps, max_frames=max_frames, corruption=corruption,
         world_size_m=world_size, max_depth_m=max_depth, compact=compact, kitti_root=kitti_root,
         kitti_robots=tuple(kitti_drive) if kitti_drive else None,
-        overwrite=overwrite, supersample=supersample,
+        overwrite=overwrite, supersample=supersample, uav_altitude_m=altitude,
     )
     table = Table(title=f"{lit(scenario)} (seed {seed}, {size[0]}x{size[1]} @ {fps:g} Hz) -> {lit(out)}")
     for col in ("robot", "kind", "frames", "path m", "shares view with (m)", "folder"):
@@ -1105,6 +1108,8 @@ def bench_heldout(
                                       "at a time, its robots' front ends in worker processes, up to the cores)")] = 1,
     supersample: Annotated[int, typer.Option(min=1, max=8, help="render the worlds' colour with SxS rays per pixel "
                                              "(antialiased; cached apart)")] = 1,
+    uav_altitude: Annotated[str | None, typer.Option(help="airsim-like worlds: the UAV's altitude, LOW-HIGH metres "
+                                                     "(default 44-54; cached apart)")] = None,
     replay_from: Annotated[
         Path | None,
         typer.Option(help="an earlier benchmark folder: run only the map server again on its recorded keyframes "
@@ -1116,8 +1121,12 @@ def bench_heldout(
     at their own place (false ones withdrawn later included), per scenario and input."""
     from shgm_slam.bench import heldout
     from shgm_slam.errors import ConfigError
+    from shgm_slam.sim.simulate import check_uav_altitude, parse_altitude
 
     seed_list = _world_seeds(seeds)
+    altitude = parse_altitude(uav_altitude) if uav_altitude is not None else None
+    if altitude is not None:
+        check_uav_altitude("airsim-like", altitude, heldout.MAX_DEPTH_M)
     for s in scenario or ():
         if s not in heldout.SCENARIOS:
             raise ConfigError(f"--scenario {s!r}: choose from {', '.join(heldout.SCENARIOS)}")
@@ -1127,7 +1136,7 @@ def bench_heldout(
         raise ConfigError(f"--mode {mode}: choose files or rgb") from None
     options = heldout.HeldoutOptions(scenarios=tuple(scenario or heldout.SCENARIOS), seeds=seed_list, modes=modes,
                                      max_frames=max_frames, cache=cache, replay_from=replay_from,
-                                     supersample=supersample,
+                                     supersample=supersample, uav_altitude_m=altitude,
                                      front_end_jobs=None if jobs == 1 else 1)  # fmt: skip
     if replay_from is not None and not (replay_from / "runs").is_dir():
         raise ConfigError(f"--replay-from {replay_from}: no runs/ folder there (a `bench heldout` results folder)")

@@ -60,6 +60,8 @@ REPORT_SEEDS = tuple(range(210, 220))
 """World seeds the README reports; never looked at while tuning."""
 RESOLUTION = (320, 96)
 """Render size: the demo models' input size, and fast enough for ~80 runs in an hour on 2 cores."""
+MAX_DEPTH_M = 200.0
+"""Depth range the worlds are rendered with (metres; a UAV's altitude must keep its ground within it)."""
 MIN_SHARED_VIEW_M = 30.0
 """A robot 'overlaps' when it shares at least this much view with another robot (scenario.json)."""
 KITTI_DRIVE_PAIRS = (
@@ -114,6 +116,9 @@ class HeldoutOptions:
     supersample: int = 1
     """Rays per pixel side of the rendered colour (``sim.render.Renderer``; worlds of another value are cached
     apart)."""
+    uav_altitude_m: tuple[float, float] | None = None
+    """airsim-like worlds: the UAV's altitude range, metres (None: the simulator's 44-54 m; other ranges are
+    cached apart). Every default was tuned on UAVs at 44-54 m: this asks how they hold higher up."""
     replay_from: Path | None = None
     """An earlier benchmark folder: run only the map server again on each run's recorded keyframes
     (``runner.replay_backend``), for matching and back-end changes; worlds are not rendered or run."""
@@ -147,23 +152,36 @@ class RobotVerdict:
     waiting: bool = False  # not placed although matches were accepted: too few independent ones (server.json)
 
 
-def world_folder(cache: Path, scenario: str, seed: int, resolution: tuple[int, int], supersample: int = 1) -> Path:
+def world_folder(
+    cache: Path, scenario: str, seed: int, resolution: tuple[int, int], supersample: int = 1,
+    uav_altitude_m: tuple[float, float] | None = None,
+) -> Path:  # fmt: skip
     """Where the world ``scenario``/``seed`` is cached: ``cache/<scenario>-s<seed>-<W>x<H>`` (``-ss<S>`` added
-    for S x S rays per pixel)."""
+    for S x S rays per pixel, ``-uav<LO>-<HI>`` for an airsim-like UAV at another altitude)."""
     tail = f"-ss{supersample}" if supersample > 1 else ""
+    altitude = _uav_altitude(scenario, uav_altitude_m)
+    if altitude is not None:
+        tail += f"-uav{altitude[0]:g}-{altitude[1]:g}"
     return Path(cache) / f"{scenario}-s{seed}-{resolution[0]}x{resolution[1]}{tail}"
 
 
+def _uav_altitude(scenario: str, uav_altitude_m: tuple[float, float] | None) -> tuple[float, float] | None:
+    """The UAV altitude a world of ``scenario`` is rendered with (only airsim-like has a UAV)."""
+    return uav_altitude_m if scenario == "airsim-like" else None
+
+
 def ensure_world(
-    cache: Path, scenario: str, seed: int, resolution: tuple[int, int], progress: Progress, supersample: int = 1
-) -> Path:
+    cache: Path, scenario: str, seed: int, resolution: tuple[int, int], progress: Progress, supersample: int = 1,
+    uav_altitude_m: tuple[float, float] | None = None,
+) -> Path:  # fmt: skip
     """Render the world once (cached); returns its folder."""
-    folder = world_folder(cache, scenario, seed, resolution, supersample)
+    folder = world_folder(cache, scenario, seed, resolution, supersample, uav_altitude_m)
     if not (folder / "scenario.json").is_file():
         progress(f"rendering {scenario} seed {seed} into {folder}")
         pair = KITTI_DRIVE_PAIRS[seed % len(KITTI_DRIVE_PAIRS)] if scenario == "kitti-paths" else None
         simulate(scenario, folder, seed=seed, resolution=resolution, overwrite=True, kitti_robots=pair,
-                 supersample=supersample)  # fmt: skip
+                 supersample=supersample, uav_altitude_m=_uav_altitude(scenario, uav_altitude_m),
+                 max_depth_m=MAX_DEPTH_M)  # fmt: skip
     return folder
 
 
@@ -369,7 +387,8 @@ def _match_truth(run_dir: Path, world: Path, mode: InputMode) -> dict:
 
 def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, progress: Progress) -> list[dict]:
     """Render one world (cached) and run every mode on it; returns one dict per run (cached as JSON)."""
-    world = ensure_world(options.cache, scenario, seed, options.resolution, progress, options.supersample)
+    world = ensure_world(options.cache, scenario, seed, options.resolution, progress, options.supersample,
+                         options.uav_altitude_m)
     done_runs = []
     for mode in options.modes:
         run_dir = out / "runs" / f"{scenario}-s{seed}-{mode.value}"
@@ -437,7 +456,9 @@ def run_heldout_benchmark(
         "options": {
             "scenarios": list(options.scenarios), "seeds": list(options.seeds),
             "modes": [m.value for m in options.modes], "resolution": list(options.resolution),
-            "max_frames": options.max_frames, "supersample": options.supersample, "tuning_seeds": list(TUNING_SEEDS),
+            "max_frames": options.max_frames, "supersample": options.supersample,
+            "uav_altitude_m": list(options.uav_altitude_m) if options.uav_altitude_m else None,
+            "tuning_seeds": list(TUNING_SEEDS),
             "report_seeds": list(REPORT_SEEDS), "placed_right_m": {m.value: v for m, v in PLACED_RIGHT_M.items()},
         },
         "summary": summarize(rows, runs),
@@ -535,6 +556,8 @@ def heldout_markdown(results: dict) -> str:
         f"Seeds {o['seeds'][0]}-{o['seeds'][-1]} ({len(o['seeds'])} worlds per scenario), "
         f"{o['resolution'][0]}x{o['resolution'][1]}"
         + (f" ({o['supersample']}x{o['supersample']} rays per pixel)" if o.get("supersample", 1) > 1 else "")
+        + (f", airsim-like UAVs at {o['uav_altitude_m'][0]:g}-{o['uav_altitude_m'][1]:g} m" if o.get("uav_altitude_m")
+           else "")
         + ", default configuration; tuning seeds "
         f"{o['tuning_seeds'][0]}-{o['tuning_seeds'][-1]}. Placed right: placed within "
         + ", ".join(f"{v:g} m ({k})" for k, v in o["placed_right_m"].items())

@@ -21,12 +21,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from shgm_slam.errors import SimulationError
 from shgm_slam.sim.city import CityParams, build_city
 from shgm_slam.sim.corridor import build_corridor_city
 from shgm_slam.sim.kitti_paths import DEFAULT_KITTI_ROBOTS, kitti_trajectories
+from shgm_slam.sim.shapes import ObjectKind
 from shgm_slam.sim.trajectories import (
+    UAV_ALTITUDE_M,
     Trajectory,
     arc_length,
     car_trajectories,
@@ -56,6 +59,7 @@ class ScenarioOptions:
         kitti_robots: KITTI drives as ``SEQ[:START-END]`` (half-open frame ranges); the first drive's
             sequence is the reference frame.
         compact: a small world and short paths (airsim-like: cars 120 m, UAV 150 m) for tests and quick looks.
+        uav_altitude_m: (low, high) metres above the ground between which the UAV's altitude varies (airsim-like).
     """
 
     seed: int = 0
@@ -67,6 +71,7 @@ class ScenarioOptions:
     kitti_root: Path | None = None
     kitti_robots: tuple[str, ...] = DEFAULT_KITTI_ROBOTS
     compact: bool = False
+    uav_altitude_m: tuple[float, float] = UAV_ALTITUDE_M
 
 
 @dataclass
@@ -135,9 +140,44 @@ def airsim_like(opt: ScenarioOptions) -> ScenarioPlan:
     t = along[1] - along[0]
     side = 1.0 if rng.random() < 0.5 else -1.0
     start = along[0] + side * own * np.array([-t[1], t[0]]) / np.linalg.norm(t)
-    uav = uav_trajectory("uav", np.vstack([start, along]), opt.uav_speed_mps, opt.fps, rng)
+    uav = uav_trajectory("uav", np.vstack([start, along]), opt.uav_speed_mps, opt.fps, rng,
+                         altitude_m=opt.uav_altitude_m)
+    _check_clearance(world, uav)
     targets = {"car1": car_len, "car2": car_len, "uav": uav_len}
-    return ScenarioPlan("airsim-like", world, [car1, car2, uav], targets)
+    notes = {"uav_altitude_m": list(opt.uav_altitude_m)}
+    return ScenarioPlan("airsim-like", world, [car1, car2, uav], targets, notes)
+
+
+def under_rooftops(world: World, positions_xyz: np.ndarray) -> np.ndarray:
+    """(N,) bool: each (N, 3) world position (metres, z up) lies inside a building's box (footprint and height)."""
+    boxes = [o for o in world.objects if o.kind is ObjectKind.BUILDING]
+    if not boxes:
+        return np.zeros(len(positions_xyz), dtype=bool)
+    centre = np.array([o.centre_xyz for o in boxes])
+    half = np.array([o.size_xyz for o in boxes]) / 2.0
+    cos, sin = np.cos([o.yaw_rad for o in boxes]), np.sin([o.yaw_rad for o in boxes])
+    reach = float(np.linalg.norm(half[:, :2], axis=1).max())
+    inside = np.zeros(len(positions_xyz), dtype=bool)
+    for i, rows in enumerate(cKDTree(centre[:, :2]).query_ball_point(positions_xyz[:, :2], reach)):
+        if not rows:
+            continue
+        d = positions_xyz[i] - centre[rows]
+        x, y = cos[rows] * d[:, 0] + sin[rows] * d[:, 1], -sin[rows] * d[:, 0] + cos[rows] * d[:, 1]
+        inside[i] = bool(np.any((np.abs(x) <= half[rows, 0]) & (np.abs(y) <= half[rows, 1])
+                                & (np.abs(d[:, 2]) <= half[rows, 2])))  # fmt: skip
+    return inside
+
+
+def _check_clearance(world: World, uav: Trajectory) -> None:
+    """SimulationError when the UAV's path runs through buildings (its altitude below their roofs)."""
+    inside = under_rooftops(world, uav.positions_xyz)
+    if inside.any():
+        tops = max(o.centre_xyz[2] + o.size_xyz[2] / 2.0 for o in world.objects if o.kind is ObjectKind.BUILDING)
+        z = uav.positions_xyz[:, 2]
+        raise SimulationError(
+            f"the UAV at {z.min():.0f}-{z.max():.0f} m flies through buildings in {int(inside.sum())} of its "
+            f"{len(inside)} frames (this city's roofs reach {tops:.0f} m): fly it higher (--uav-altitude)"
+        )
 
 
 def disjoint(opt: ScenarioOptions) -> ScenarioPlan:

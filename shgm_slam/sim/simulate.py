@@ -32,6 +32,11 @@ from shgm_slam.types import Frame, Intrinsics
 
 SCENARIO_FORMAT = "shgm-scenario/1"
 OVERLAP_RADIUS_M = 20.0
+MIN_UAV_ALTITUDE_M = 5.0
+"""Lowest UAV altitude a scenario flies (above rooftops' clutter is the flyer's business, not the simulator's)."""
+UAV_VIEW_REACH = 1.4
+"""The UAV camera's optical axis (50 deg below the horizon) meets the ground 1.31x its altitude away: its
+highest altitude times this must stay within the depth range."""
 ProgressFn = Callable[[str, int, int], None]
 """``progress(robot, frames_done, robot_frames)`` after every written frame."""
 
@@ -90,6 +95,17 @@ def parse_resolution(text: str) -> tuple[int, int]:
     return w, h
 
 
+def parse_altitude(text: str) -> tuple[float, float]:
+    """``"80-90"`` (or one altitude, ``"80"``) -> (80.0, 90.0) metres; raises ``ConfigError`` on anything else."""
+    try:
+        values = tuple(float(v) for v in text.split("-"))
+    except ValueError:
+        values = ()
+    if len(values) not in (1, 2) or not all(np.isfinite(values)):
+        raise ConfigError(f"bad UAV altitude {text!r}; write LOW-HIGH metres (e.g. 80-90) or one altitude (e.g. 80)")
+    return (values[0], values[-1])
+
+
 def overlap_stats(robots: list[Trajectory]) -> tuple[dict, dict]:
     """Pairwise shared-view lengths (``shared_view_length_m``, metres of the row robot) and minimum
     camera distances (metres) between every ordered pair of robots."""
@@ -141,6 +157,7 @@ def simulate(
     max_depth_m: float = 200.0,
     compact: bool = False,
     uav_speed_mps: float = 7.0,
+    uav_altitude_m: tuple[float, float] | None = None,
     kitti_root: Path | None = None,
     kitti_robots: tuple[str, ...] | None = None,
     overwrite: bool = False,
@@ -156,6 +173,8 @@ def simulate(
         corruption: depth/label corruption levels (default none: perfect ground truth).
         max_depth_m: depth beyond is written as 0 (invalid).
         compact: small world and short paths (tests, previews).
+        uav_altitude_m: airsim-like only: (low, high) metres above the ground between which the UAV's altitude
+            varies (default ``trajectories.UAV_ALTITUDE_M``, 44-54 m).
         kitti_root, kitti_robots: kitti-paths only: the folder with ``poses/NN.txt`` and the drives as
             ``SEQ[:START-END]``, half-open frame ranges (default ``sim.kitti_paths.DEFAULT_KITTI_ROBOTS``;
             the first drive's sequence is the reference; drives of one sequence share its frame).
@@ -175,6 +194,8 @@ def simulate(
         )
     if kitti_robots and scenario != "kitti-paths":
         raise ConfigError(f"KITTI drives (--kitti-drive) only apply to the kitti-paths scenario, not {scenario!r}")
+    if uav_altitude_m is not None:
+        check_uav_altitude(scenario, uav_altitude_m, max_depth_m)
     corruption = corruption or CorruptionLevels()
     intrinsics = make_intrinsics(*resolution, hfov_deg=hfov_deg)
     t0 = time.perf_counter()
@@ -187,6 +208,7 @@ def simulate(
         **({"kitti_robots": tuple(kitti_robots)} if kitti_robots else {}),
         compact=compact,
         uav_speed_mps=uav_speed_mps,
+        **({"uav_altitude_m": tuple(uav_altitude_m)} if uav_altitude_m is not None else {}),
     )
     plan: ScenarioPlan = build_scenario(scenario, opts)
     robots = [r.truncated(max_frames) for r in plan.robots]
@@ -242,6 +264,21 @@ def simulate(
     )
     results.write_json("scenario.json", scenario_json(result, plan, corruption, max_depth_m, hfov_deg, supersample))
     return result
+
+
+def check_uav_altitude(scenario: str, altitude_m: tuple[float, float], max_depth_m: float) -> None:
+    """ConfigError unless ``altitude_m`` is a (low, high) UAV altitude range, metres, that ``scenario`` has a UAV
+    for and its camera sees the ground within ``max_depth_m`` of (``UAV_VIEW_REACH``)."""
+    if scenario != "airsim-like":
+        raise ConfigError(
+            f"a UAV altitude (--uav-altitude) applies to the airsim-like scenario (its UAV), not {scenario!r}"
+        )
+    low, high = (float(v) for v in altitude_m)
+    if not (MIN_UAV_ALTITUDE_M <= low <= high) or high * UAV_VIEW_REACH > max_depth_m:
+        raise ConfigError(
+            f"UAV altitude {low:g}-{high:g} m: needs {MIN_UAV_ALTITUDE_M:g} m <= low <= high and the ground in view, "
+            f"high <= max depth / {UAV_VIEW_REACH:g} = {max_depth_m / UAV_VIEW_REACH:.0f} m (raise --max-depth)"
+        )
 
 
 def scenario_json(

@@ -20,6 +20,8 @@ from shgm_slam.errors import SimulationError
 from shgm_slam.sim.world import StreetNetwork
 
 CAR_CAMERA_HEIGHT_M = 1.65
+UAV_ALTITUDE_M = (44.0, 54.0)
+"""Range a UAV's altitude above the ground varies in, metres (the paper's AirSim set flies at about 50 m)."""
 
 
 class RobotKind(str, Enum):
@@ -225,7 +227,7 @@ def uav_trajectory(
     fps: float,
     rng: np.random.Generator,
     *,
-    altitude_m: tuple[float, float] = (44.0, 54.0),
+    altitude_m: tuple[float, float] = UAV_ALTITUDE_M,
     pitch_down_deg: float = 50.0,
     smooth_m: float = 12.0,
 ) -> Trajectory:

@@ -47,6 +47,25 @@ def test_worlds_rendered_with_more_rays_per_pixel_are_cached_apart(tmp_path):
     assert world_folder(tmp_path, "airsim-like", 10, (320, 96), supersample=3).name == "airsim-like-s10-320x96-ss3"
 
 
+def test_uavs_at_another_altitude_are_cached_apart_and_only_airsim_like_has_one(tmp_path):
+    high = world_folder(tmp_path, "airsim-like", 15, (320, 96), uav_altitude_m=(85.0, 95.0))
+    assert high.name == "airsim-like-s15-320x96-uav85-95"
+    same = world_folder(tmp_path, "synthia-like", 15, (320, 96), uav_altitude_m=(85.0, 95.0))
+    assert same == world_folder(tmp_path, "synthia-like", 15, (320, 96))  # no UAV there: the same world
+
+
+def test_bench_heldout_refuses_a_uav_altitude_whose_ground_is_out_of_range(tmp_path):
+    from typer.testing import CliRunner
+
+    from shgm_slam.cli import app
+
+    for alt, words in (("160", "raise --max-depth"), ("x", "LOW-HIGH")):
+        bad = CliRunner().invoke(app, ["bench", "heldout", "--uav-altitude", alt, "-o", str(tmp_path / "o"),
+                                       "--cache", str(tmp_path / "c")])  # fmt: skip
+        assert bad.exit_code == 2 and words in bad.output, bad.output
+    assert not (tmp_path / "c").exists()
+
+
 def test_perfect_odometry_has_no_breaks():
     t, gt = _drive()
     # the odometry frame differs from the world frame by a rigid transform: relative motion is what counts

@@ -126,3 +126,20 @@ def test_kitti_paths_without_data_is_a_clear_error(tmp_path):
         build_scenario("kitti-paths", ScenarioOptions(kitti_root=tmp_path))
     with pytest.raises(ConfigError, match="SEQ:START-END"):
         build_scenario("kitti-paths", ScenarioOptions(kitti_root=tmp_path, kitti_robots=("07:abc",)))
+
+
+def test_a_uav_below_the_roofs_is_refused_and_one_above_them_flies_its_altitude():
+    from shgm_slam.sim.scenarios import under_rooftops
+
+    low = ScenarioOptions(seed=16, uav_altitude_m=(20.0, 26.0))  # its approach crosses blocks with 36 m roofs
+    with pytest.raises(SimulationError, match="flies through buildings"):
+        build_scenario("airsim-like", low)
+    plan = build_scenario("airsim-like", ScenarioOptions(seed=16, uav_altitude_m=(85.0, 95.0)))
+    uav = next(r for r in plan.robots if r.kind is RobotKind.UAV)
+    z = uav.positions_xyz[:, 2]
+    assert 85.0 <= z.min() and z.max() <= 95.0 and z.max() - z.min() > 5.0
+    assert not under_rooftops(plan.world, uav.positions_xyz).any()
+    building = next(o for o in plan.world.objects if o.kind is ObjectKind.BUILDING)
+    centre = np.array(building.centre_xyz)
+    top = centre + np.array([0.0, 0.0, building.size_xyz[2] / 2.0 + 1.0])
+    assert under_rooftops(plan.world, np.stack([centre, top])).tolist() == [True, False]

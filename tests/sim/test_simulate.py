@@ -141,3 +141,25 @@ def test_bench_simulate_reports_speed_and_memory(tmp_path):
 
 def test_tiny_scenario_options_are_documented():
     assert TINY_SCENARIO["scenario"] == "airsim-like" and TINY_SCENARIO["compact"]
+
+
+def test_cli_simulate_flies_the_uav_at_the_altitude_asked_for(tmp_path):
+    runner = CliRunner()
+    base = ["simulate", "--scenario", "airsim-like", "--compact", "--resolution", "32x16", "--max-frames", "3"]
+    result = runner.invoke(app, [*base, "--out", str(tmp_path / "high"), "--uav-altitude", "80-90"])
+    assert result.exit_code == 0, result.output
+    poses = np.loadtxt(tmp_path / "high" / "uav" / "poses.txt").reshape(-1, 3, 4)
+    assert np.all((poses[:, 2, 3] >= 80.0) & (poses[:, 2, 3] <= 90.0))
+    scen = json.loads((tmp_path / "high" / "scenario.json").read_text())
+    assert scen["notes"]["uav_altitude_m"] == [80.0, 90.0]
+    result = runner.invoke(app, [*base, "--out", str(tmp_path / "default")])
+    assert json.loads((tmp_path / "default" / "scenario.json").read_text())["notes"]["uav_altitude_m"] == [44.0, 54.0]
+    cars = [np.loadtxt(tmp_path / k / "car1" / "poses.txt") for k in ("high", "default")]
+    assert np.array_equal(*cars)  # only the UAV's altitude differs
+    for alt, words in (("8o", "LOW-HIGH"), ("90-80", "low <= high"), ("150", "raise --max-depth"), ("2", "5 m")):
+        bad = runner.invoke(app, [*base, "--out", str(tmp_path / "bad"), "--uav-altitude", alt])
+        assert bad.exit_code == 2 and words in bad.output, (alt, bad.output)
+    bad = runner.invoke(app, ["simulate", "--scenario", "disjoint", "--out", str(tmp_path / "x"), "--uav-altitude",
+                              "60"])  # fmt: skip
+    assert bad.exit_code == 2 and "airsim-like" in bad.output
+    assert not (tmp_path / "bad").exists() and not (tmp_path / "x").exists()
