@@ -50,7 +50,7 @@ from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import read_tum
 from shgm_slam.robot.remote import default_jobs
 from shgm_slam.runner import open_robots, replay_backend, run_slam
-from shgm_slam.sim.simulate import simulate
+from shgm_slam.sim.simulate import DEFAULT_MAX_DEPTH_M, simulate
 
 SCENARIOS = ("airsim-like", "disjoint", "synthia-like", "kitti-paths")
 TUNING_SEEDS = tuple(range(10, 30))
@@ -60,8 +60,8 @@ REPORT_SEEDS = tuple(range(210, 220))
 """World seeds the README reports; never looked at while tuning."""
 RESOLUTION = (320, 96)
 """Render size: the demo models' input size, and fast enough for ~80 runs in an hour on 2 cores."""
-MAX_DEPTH_M = 200.0
-"""Depth range the worlds are rendered with (metres; a UAV's altitude must keep its ground within it)."""
+MAX_DEPTH_M = DEFAULT_MAX_DEPTH_M
+"""Depth range the worlds are rendered with (the simulator's; a UAV's altitude must keep its ground within it)."""
 MIN_SHARED_VIEW_M = 30.0
 """A robot 'overlaps' when it shares at least this much view with another robot (scenario.json)."""
 KITTI_DRIVE_PAIRS = (

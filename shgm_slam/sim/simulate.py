@@ -32,8 +32,11 @@ from shgm_slam.types import Frame, Intrinsics
 
 SCENARIO_FORMAT = "shgm-scenario/1"
 OVERLAP_RADIUS_M = 20.0
+DEFAULT_MAX_DEPTH_M = 200.0
+"""Depth range of the rendered cameras unless asked otherwise (metres; farther is written as 0)."""
 MIN_UAV_ALTITUDE_M = 5.0
-"""Lowest UAV altitude a scenario flies (above rooftops' clutter is the flyer's business, not the simulator's)."""
+"""Lowest UAV altitude asked for; whether the path clears the roofs it crosses is checked on the built scenario
+(``scenarios.under_rooftops``)."""
 UAV_VIEW_REACH = 1.4
 """The UAV camera's optical axis (50 deg below the horizon) meets the ground 1.31x its altitude away: its
 highest altitude times this must stay within the depth range."""
@@ -154,7 +157,7 @@ def simulate(
     corruption: CorruptionLevels | None = None,
     world_size_m: float | None = None,
     hfov_deg: float = 82.0,
-    max_depth_m: float = 200.0,
+    max_depth_m: float = DEFAULT_MAX_DEPTH_M,
     compact: bool = False,
     uav_speed_mps: float = 7.0,
     uav_altitude_m: tuple[float, float] | None = None,
