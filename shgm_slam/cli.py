@@ -330,6 +330,10 @@ def _render_summary(summary) -> None:
     if slips:
         console.print("KISS-ICP steps that slipped against the image motion, replaced by the step from image "
                       "tracks (frames): " + lit(", ".join(slips)))  # fmt: skip
+    slides = [f"{r.name} {r.image_windows}" for r in summary.robots if r.image_windows]
+    if slides:
+        console.print("KISS-ICP seconds that slid against the image motion, corrected by the motion from image "
+                      "tracks (frames): " + lit(", ".join(slides)))  # fmt: skip
     if roads:
         console.print("steps from the road's image motion, share of measured frames: " + lit(", ".join(roads)))
     drifts = [f"{r.name} {r.measured_drift_deg_per_100m:.1f}" for r in summary.robots

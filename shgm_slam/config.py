@@ -280,6 +280,11 @@ class OdometryConfig(_Stage):
         "tracked into this image); where ICP slipped (a plane-like cloud, e.g. a UAV over flat ground), keep the step "
         "solved from the tracks (odometry/flow_check.py)"
     )
+    image_window_check: bool = Field(
+        True, description="KISS-ICP: check its motion over every second against pixels tracked through it, where "
+        "one frame's image motion is too small to show a slide (far ground, a high UAV); where ICP slid, keep the "
+        "second's motion solved from the tracks and restart KISS-ICP's map from it (odometry/window_check.py)"
+    )
     health_check: bool = Field(
         True, description="detect odometry divergence and restart as a new trajectory segment (odometry/health.py)"
     )

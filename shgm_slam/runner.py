@@ -149,6 +149,9 @@ class RobotReport:
     # KISS-ICP: frames where its step slipped against the image motion and the step solved from image tracks was
     # kept (``odometry/flow_check.py``); None for other odometries
     image_steps: int | None = None
+    # KISS-ICP: frames where its motion over the last second slid against the image motion and the motion solved
+    # from image tracks was kept (``odometry/window_check.py``); None for other odometries
+    image_windows: int | None = None
     # predicted depth scaled to the camera's height above the road (``perception/ground_scale.py``): the
     # median factor (None: no frame scaled) and the share of processed frames scaled (None: not on for this
     # robot - measured depth, or perception.camera_height_m null; 0.0: on, but no level road at a plausible
@@ -558,6 +561,7 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
             rep.road_step_share = front.road_steps / front.measured_frames
         if rep.odometry == OdometryKind.KISS_ICP.value:
             rep.image_steps = front.image_steps
+            rep.image_windows = front.image_windows
         if front.ground_scale_on:
             rep.depth_scale_share = len(front.depth_scales) / max(processed[r], 1)
             rep.depth_scale = float(np.median(front.depth_scales)) if front.depth_scales else None

@@ -21,7 +21,8 @@ steps above the floor; the tracks cost ~2-3 ms per frame at 320x96 and 640x192 (
 Lucas-Kanade passes over ~400 pixels).
 
 On rendered depth a right step's residual is ~1e-4 rad (0.02 px at 320x96); a healthy KISS-ICP step's
-~1e-3; the slips above 6-10e-3 per frame.
+~1e-3; the slips above 6-10e-3 per frame. Slips too small to show in one frame (far ground, a high UAV) are
+checked over a second by ``window_check``.
 """
 
 from __future__ import annotations

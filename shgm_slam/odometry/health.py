@@ -18,6 +18,10 @@ source's own diagnostics (``OdometryEstimate``):
 - **registration threshold**: KISS-ICP's adaptive threshold (its running estimate of the motion
   model's error, metres) above ``max_threshold_m``; a safety net only: on healthy starts it reaches
   8 m (the first frames accelerate from a zero-velocity prior),
+- **re-measured poses**: a step that also corrects the pose by the motion of the last second measured
+  from image tracks (``OdometryEstimate.image_window``, ``window_check``) is a correction, not one
+  frame's motion: no motion limit or image-rotation test applies to it, and the velocity history
+  restarts from the next step,
 - **image rotation**: the source's rotation disagrees with the rotation measured from image motion
   (``OdometryEstimate.rotation_disagreement_deg``) by more than ``max_image_rotation_deg``:
   catches ICP that under-turns through a sharp turn, or a constant-velocity prediction (PnP failed)
@@ -121,6 +125,7 @@ class OdometryHealthMonitor:
         measured: bool = True,
         registration_threshold_m: float | None = None,
         rotation_disagreement_deg: float | None = None,
+        rebased: bool = False,
     ) -> OdometryFailure | None:
         """Check the pose of one frame; returns the failure it reveals, or None while healthy.
 
@@ -131,6 +136,8 @@ class OdometryHealthMonitor:
             measured: False when the source only predicted the pose (coasting).
             registration_threshold_m: the source's registration threshold after this frame, if any.
             rotation_disagreement_deg: |source rotation - image rotation| of this step, if measured.
+            rebased: the step also corrects the pose by a window's motion measured from the images (module
+                docstring): only the non-finite, coasting and threshold checks apply.
         """
         lim = self.limits
         T = np.asarray(T_odom_cam, dtype=np.float64)
@@ -154,7 +161,12 @@ class OdometryHealthMonitor:
                 )  # fmt: skip
             return None
         self._coast_start = None
-        failure = self._check_motion(frame_index, timestamp_s, T)
+        if rebased:
+            self._last, self._velocity = (frame_index, timestamp_s, T), None
+            rotation_disagreement_deg = None
+            failure = None
+        else:
+            failure = self._check_motion(frame_index, timestamp_s, T)
         if failure is None and registration_threshold_m is not None and registration_threshold_m > lim.max_threshold_m:
             failure = OdometryFailure(
                 FailureReason.REGISTRATION_THRESHOLD, frame_index, frame_index,

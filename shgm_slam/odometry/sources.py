@@ -20,8 +20,9 @@ from shgm_slam.geometry.se3 import inverse
 from shgm_slam.odometry.clouds import sampling_spacing_m
 from shgm_slam.odometry.flow_check import FlowTracks, choose_step
 from shgm_slam.odometry.image_rotation import ImageYawEstimator, rot_y, yaw_of
-from shgm_slam.odometry.kiss import KissOdometry
+from shgm_slam.odometry.kiss import KissOdometry, Relocation
 from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus
+from shgm_slam.odometry.window_check import WindowTracks, mean_step, window_correction
 from shgm_slam.types import Frame, Intrinsics
 
 YAW_PRIOR_MIN_DEG = 1.0
@@ -38,7 +39,9 @@ class OdometryEstimate:
     ``planar_turn`` whether the step's turn came from a ground vehicle's planar motion (visual odometry),
     ``road_step`` whether its length and direction came from the road's image motion (visual odometry),
     ``image_step`` whether ICP slipped against the image motion and the step solved from image tracks was
-    kept (KISS-ICP, ``flow_check``).
+    kept (KISS-ICP, ``flow_check``), ``image_window`` whether the step also corrects the pose by the motion
+    of the last second solved from image tracks (KISS-ICP, ``window_check``: the step then holds that
+    correction, not one frame's motion).
     """
 
     T_odom_cam: np.ndarray
@@ -49,6 +52,7 @@ class OdometryEstimate:
     planar_turn: bool = False
     road_step: bool = False
     image_step: bool = False
+    image_window: bool = False
 
 
 @runtime_checkable
@@ -118,6 +122,10 @@ class KissIcpSource:
     initial guess when they differ by more than ``prior_min_deg``: at a sharp turn the prediction
     lags by up to 10°/frame, beyond ICP's basin with a narrow field of view. The remaining
     disagreement after ICP is reported for the health check.
+    With ``flow`` each step is checked against the image motion between consecutive frames
+    (``flow_check``), with ``window`` the motion of every second against the image motion over it
+    (``window_check``): where ICP slid, the motion solved from the image tracks is kept and the
+    constant-velocity model restarts from it.
     """
 
     def __init__(
@@ -131,6 +139,7 @@ class KissIcpSource:
         image_yaw: ImageYawEstimator | None = None,
         prior_min_deg: float = YAW_PRIOR_MIN_DEG,
         flow: FlowTracks | None = None,
+        window: WindowTracks | None = None,
     ) -> None:
         if max_spacing_m is not None and max_spacing_m <= 0:
             raise ConfigError(f"odometry max_spacing_m must be > 0 or None, got {max_spacing_m}")
@@ -142,9 +151,14 @@ class KissIcpSource:
         self.image_yaw = image_yaw
         self.prior_min_rad = float(np.radians(prior_min_deg))
         self.flow = flow
+        self.window = window
+        self._T_odom_anchor: np.ndarray | None = None  # pose of the window's anchor frame
 
     def reset(self) -> None:
         self.odometry.reset()
+        self._T_odom_anchor = None
+        if self.window is not None:
+            self.window.reset()
         if self._rng is not None:
             self._rng = np.random.default_rng(self._seed)
         if self.image_yaw is not None:
@@ -170,23 +184,41 @@ class KissIcpSource:
         tracks = None
         if self.flow is not None and frame.image_rgb is not None and depth_m is not None:
             tracks = self.flow.update(frame.image_rgb, depth_m, frame.intrinsics)
+        window = None
+        if self.window is not None and frame.image_rgb is not None and depth_m is not None:
+            window = self.window.update(frame.image_rgb, depth_m, frame.intrinsics, frame.timestamp_s)
+        T_anchor = self._T_odom_anchor if window is not None else None
         slipped: list[bool] = []
+        relocated: list[bool] = []
 
-        def keep_step(icp_step: np.ndarray) -> np.ndarray:
+        def keep_step(icp_step: np.ndarray) -> np.ndarray | Relocation:
             step, replaced = choose_step(icp_step, tracks)
             slipped.append(replaced)
-            return step
+            motion = None if T_anchor is None else window_correction(window, inverse(T_anchor) @ T_prev @ step)
+            relocated.append(motion is not None)
+            if motion is None:
+                return step
+            return Relocation(inverse(T_prev) @ T_anchor @ motion, mean_step(motion, window.frames, step))
 
-        checked = tracks is not None and self.odometry.num_frames > 0
+        checked = (tracks is not None or T_anchor is not None) and self.odometry.num_frames > 0
         reg = self.odometry.register(points_cam, prior, keep_step if checked else None)
+        if self.window is not None and self.window.anchored_now:
+            self._T_odom_anchor = reg.T_odom_cam
         note = "" if reg.ok else f"frame {frame.index}: {reg.status.value} ({reg.num_points} points in range)"
         image_step = any(slipped)
         if image_step:
             note = f"frame {frame.index}: ICP slipped against the image motion; the step from the image tracks kept"
+        image_window = any(relocated)
+        if image_window:
+            note = (
+                f"frame {frame.index}: ICP slid against the image motion over the last {window.frames} frames; "
+                "the pose solved from the image tracks kept"
+            )
         disagreement = None if yaw_img is None else yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
         return OdometryEstimate(
-            reg.T_odom_cam, reg.ok, note, self.odometry.threshold_m, disagreement, image_step=image_step
-        )
+            reg.T_odom_cam, reg.ok, note, self.odometry.threshold_m, disagreement, image_step=image_step,
+            image_window=image_window,
+        )  # fmt: skip
 
 
 class GroundTruthSource:
@@ -367,6 +399,7 @@ def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
         shuffle_points=cfg.shuffle_points,
         image_yaw=ImageYawEstimator() if cfg.image_rotation else None,
         flow=FlowTracks() if cfg.image_flow_check else None,
+        window=WindowTracks(cfg.max_range_m) if cfg.image_window_check else None,
     )
 
 

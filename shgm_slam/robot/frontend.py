@@ -86,6 +86,7 @@ class RobotFrontend:
         self.planar_turns = 0  # of them, frames whose turn came from planar motion (visual odometry)
         self.road_steps = 0  # of them, frames whose step came from the road's image motion (visual odometry)
         self.image_steps = 0  # of them, frames where KISS-ICP slipped and the image tracks' step was kept
+        self.image_windows = 0  # of them, frames where KISS-ICP slid over the last second, corrected from image tracks
         # predicted depth scaled to the camera's height above the road (``perception.ground_scale``): whether
         # it is on for this robot, and the factor of each processed frame it scaled
         self.ground_scale_on = getattr(perception, "ground_scale", None) is not None
@@ -196,6 +197,7 @@ class RobotFrontend:
         self.planar_turns += bool(est.planar_turn)
         self.road_steps += bool(est.road_step)
         self.image_steps += bool(est.image_step)
+        self.image_windows += bool(est.image_window)
         T_odom_cam = est.T_odom_cam if seg.first_frame >= 0 else np.full((4, 4), np.nan)
         t_odo = time.perf_counter()
         message = None
@@ -230,6 +232,7 @@ class RobotFrontend:
         return self.health.check(
             index, timestamp_s, est.T_odom_cam, measured=est.ok,
             registration_threshold_m=est.threshold_m, rotation_disagreement_deg=disagreement,
+            rebased=est.image_window,
         )  # fmt: skip
 
     def _keyframe(self, seg, index, frame, perceived, T_odom_cam, points_cam, point_labels, timings) -> KeyframeMessage:

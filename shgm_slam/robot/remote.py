@@ -101,7 +101,7 @@ class FrameDelta:
     segments: list[SegmentState]  # kf_frames / kf_poses: only the keyframes added by this frame
     new_failures: list[OdometryFailure]
     new_depth_scales: list[float]
-    counters: tuple[int, int, int, int]  # measured_frames, planar_turns, road_steps, image_steps
+    counters: tuple[int, int, int, int, int]  # measured_frames, planar_turns, road_steps, image_steps, image_windows
 
 
 @dataclass
@@ -139,7 +139,7 @@ def frame_delta(front: RobotFrontend, before: _Marks, res: FrameResult, index: i
     return FrameDelta(
         index, res, lo, front.T_odom_cam[rows].copy(), front.frame_kf[rows].copy(), front.frame_segment[rows].copy(),
         segs, list(front.failures[before.failures:]), list(front.depth_scales[before.depth_scales:]),
-        (front.measured_frames, front.planar_turns, front.road_steps, front.image_steps),
+        (front.measured_frames, front.planar_turns, front.road_steps, front.image_steps, front.image_windows),
     )  # fmt: skip
 
 
@@ -168,7 +168,7 @@ class FrontendMirror:
         ]
         self.failures: list[OdometryFailure] = []
         self.depth_scales: list[float] = []
-        self.measured_frames = self.planar_turns = self.road_steps = self.image_steps = 0
+        self.measured_frames = self.planar_turns = self.road_steps = self.image_steps = self.image_windows = 0
 
     @property
     def segment(self) -> SegmentState:
@@ -193,7 +193,7 @@ class FrontendMirror:
             mine.kf_poses.extend(s.kf_poses)
         self.failures.extend(d.new_failures)
         self.depth_scales.extend(d.new_depth_scales)
-        self.measured_frames, self.planar_turns, self.road_steps, self.image_steps = d.counters
+        self.measured_frames, self.planar_turns, self.road_steps, self.image_steps, self.image_windows = d.counters
         return d.result
 
 

@@ -155,6 +155,25 @@ def test_reset_starts_a_new_history() -> None:
     assert monitor.check(2, 0.2, make_pose(np.eye(3), [100.0, 0.0, 1.0])) is None
 
 
+def test_a_pose_re_measured_from_the_images_is_not_a_jump() -> None:
+    """A window's correction (3.5 m in one step) breaks no motion limit when flagged as such; the next steps
+    are checked from a fresh velocity history, and the same jump unflagged is a failure."""
+    v, w = city_drive()
+    poses = drive(v, w, 0.1)
+    poses[100:, 0, 3] += 3.5
+    rebased = np.zeros(len(poses), bool)
+    rebased[100] = True
+    assert run(OdometryHealthMonitor(LIMITS), poses, 0.1, rebased=rebased) is None
+    assert run(OdometryHealthMonitor(LIMITS), poses, 0.1) is not None
+    poses[101:, 0, 3] += 45.0  # a real divergence right after: still caught
+    failure = run(OdometryHealthMonitor(LIMITS), poses, 0.1, rebased=rebased)
+    assert failure is not None and failure.onset_frame == 101 and failure.reason is FailureReason.SPEED
+    nan = poses.copy()
+    nan[100] = np.nan
+    failure = run(OdometryHealthMonitor(LIMITS), nan, 0.1, rebased=rebased)
+    assert failure is not None and failure.reason is FailureReason.NON_FINITE
+
+
 def test_image_yaw_of_a_horizontal_shift() -> None:
     rng = np.random.default_rng(0)
     big = cv2.GaussianBlur((rng.random((96, 400)) * 255).astype(np.uint8), (5, 5), 1.5)

@@ -8,7 +8,7 @@ import pytest
 from shgm_slam.errors import ConfigError
 from shgm_slam.geometry.se3 import inverse, make_pose, pose_error, rot_y
 from shgm_slam.odometry.clouds import depth_to_cloud
-from shgm_slam.odometry.kiss import KissOdometry, OdometryStatus
+from shgm_slam.odometry.kiss import KissOdometry, OdometryStatus, Relocation
 from shgm_slam.types import Intrinsics
 
 INTR = Intrinsics(370.0, 370.0, 319.5, 95.5, 640, 192)  # KITTI-like 640x192
@@ -146,3 +146,26 @@ def test_the_same_clouds_give_the_same_trajectory_every_run():
         runs.append(np.stack([odo.register(c).T_odom_cam for c in clouds]))
     assert np.array_equal(runs[0], runs[1])
 
+
+
+def test_a_relocation_moves_the_pose_restarts_the_map_and_sets_the_velocity():
+    """A step corrected from outside ICP: the pose follows it, the local map holds only this frame (placed at
+    the corrected pose), the next prediction continues with the given velocity, and the adaptive threshold
+    does not count the correction as a motion-model error."""
+    _, clouds = _street_clouds(8, 6)
+    odo = KissOdometry()
+    for c in clouds[:6]:
+        odo.register(c)
+    threshold = odo.threshold_m
+    T_prev = odo.T_odom_cam
+    jump = make_pose(np.eye(3), [0.0, 0.0, 3.0])
+    velocity = make_pose(np.eye(3), [0.0, 0.0, 0.5])
+    reg = odo.register(clouds[6], fuse_step=lambda icp_step: Relocation(jump, velocity))
+    np.testing.assert_allclose(reg.T_odom_cam, T_prev @ jump, atol=1e-12)
+    np.testing.assert_allclose(odo.predicted_delta, velocity)
+    assert odo.threshold_m == pytest.approx(threshold)
+    local = odo.local_map_points()
+    frame_at_jump = clouds[6] @ reg.T_odom_cam[:3, :3].T + reg.T_odom_cam[:3, 3]
+    assert 0 < len(local) <= len(clouds[6])  # only this frame (voxelized)
+    d = np.linalg.norm(local[:, None, :] - frame_at_jump[None, ::7, :], axis=2).min(axis=1)
+    assert np.median(d) < 0.5  # where the corrected pose put it
