@@ -97,9 +97,7 @@ class FlowTracks:
         if prev is None or prev[0].shape != grey.shape or len(prev[2]) < MIN_TRACKS:
             return None
         grey_prev, points, uv = prev
-        fwd, st_f, _ = cv2.calcOpticalFlowPyrLK(grey_prev, grey, uv, None, **_LK)
-        back, st_b, _ = cv2.calcOpticalFlowPyrLK(grey, grey_prev, fwd, None, **_LK)
-        ok = (st_f[:, 0] == 1) & (st_b[:, 0] == 1) & (np.linalg.norm(back - uv, axis=1) < FB_MAX_PX)
+        fwd, ok = track(grey_prev, grey, uv)
         if ok.sum() < MIN_TRACKS:
             return None
         return Tracks(points[ok], fwd[ok].astype(np.float64), intrinsics)
@@ -115,6 +113,16 @@ class FlowTracks:
         points, pix = backproject(depth, intrinsics, stride=stride, max_depth_m=self.max_depth_m)
         uv = np.stack([pix % w, pix // w], axis=1).astype(np.float32)
         return grey, points, uv
+
+
+def track(grey_prev: np.ndarray, grey: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels ``uv`` (N, 2) float32 of ``grey_prev`` tracked into ``grey`` (both (H, W) uint8; pyramidal
+    Lucas-Kanade): ((N, 2) float32 where they were found, (N,) bool kept: found both ways and the backward
+    track lands within ``FB_MAX_PX`` of the start)."""
+    fwd, st_f, _ = cv2.calcOpticalFlowPyrLK(grey_prev, grey, uv, None, **_LK)
+    back, st_b, _ = cv2.calcOpticalFlowPyrLK(grey, grey_prev, fwd, None, **_LK)
+    ok = (st_f[:, 0] == 1) & (st_b[:, 0] == 1) & (np.linalg.norm(back - uv, axis=1) < FB_MAX_PX)
+    return fwd, ok
 
 
 def flow_residual_rad(tracks: Tracks, step: np.ndarray) -> float:

@@ -33,13 +33,12 @@ import numpy as np
 from shgm_slam.geometry.camera import backproject
 from shgm_slam.geometry.se3 import make_pose
 from shgm_slam.odometry.flow_check import (
-    _LK,
-    FB_MAX_PX,
     SLIP_FLOOR_RAD,
     TARGET_TRACKS,
     Tracks,
     flow_residual_rad,
     pnp_step,
+    track,
 )
 from shgm_slam.types import Intrinsics
 
@@ -134,10 +133,7 @@ class WindowTracks:
         live = np.flatnonzero(self._live)
         if len(live) == 0:
             return
-        uv = self._uv[live]
-        fwd, st_f, _ = cv2.calcOpticalFlowPyrLK(self._grey, grey, uv, None, **_LK)
-        back, st_b, _ = cv2.calcOpticalFlowPyrLK(grey, self._grey, fwd, None, **_LK)
-        ok = (st_f[:, 0] == 1) & (st_b[:, 0] == 1) & (np.linalg.norm(back - uv, axis=1) < FB_MAX_PX)
+        fwd, ok = track(self._grey, grey, self._uv[live])
         self._uv[live[ok]] = fwd[ok]
         self._live[live[~ok]] = False
 
