@@ -16,9 +16,11 @@ tuning seeds 17 and 18.
 anchor. ``window_correction`` solves the window's motion from them (PnP + RANSAC, ``flow_check.pnp_step``)
 and returns it where ICP's window motion is off the image on three counts: its residual above
 ``WINDOW_FLOOR_RAD``, above ``WINDOW_SLIP_RATIO`` times PnP's, and its translation more than
-``WINDOW_SLIP_FRACTION`` of the window's length away from PnP's. The first two are the per-frame check's
-tests (a lower ratio: ``WINDOW_SLIP_RATIO``); the third keeps ICP wherever it is close in metres
-(near scenes, where a few centimetres of healthy drift are many pixels). The odometry then keeps the
+``WINDOW_SLIP_FRACTION`` of the window's length away from PnP's; and where one frame could not have shown
+such a slip (``WINDOW_SLIP_FRACTION`` of a step, seen from the tracks' median depth, under
+``flow_check.SLIP_FLOOR_RAD``). The first two are the per-frame check's tests (a lower ratio); the third
+keeps ICP wherever it is close in metres, the fourth leaves near scenes (where a few centimetres of healthy
+drift are many pixels, and ICP holds) to the per-frame check. The odometry then keeps the
 window's motion from the tracks, restarts its local map and its motion model from it
 (``kiss.Relocation``).
 """
