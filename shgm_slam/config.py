@@ -362,10 +362,20 @@ placement and lost one right placement. From measured depth (files) one match us
 on the files tuning worlds 10-29 five of 81 placements went through an alias (withdrawn later, each a
 false merge while it lasted, and kept by a run stopped then); with two: none of 72, and 72 of 80
 overlapping robots placed right instead of 74, 0 wrong instead of 1 (``bench heldout --replay-from``).
-Independent means on mutually disjoint objects (``consistency.independent_sources``): matches at
+Independent means on mutually disjoint objects (``consistency.independent_sources``) and, for one robot's
+queries, on other straight stretches of the two trajectories (``STRETCH_TURN_DEG``): matches at
 consecutive steps that find the same aliased objects again count once; on the RGB tuning worlds
 (seeds 10-14) that removed a 30.9 m and a 7.1 m wrong placement and lost one right one (kitti-paths
 seed 12, where every match re-found the same short overlap)."""
+
+STRETCH_TURN_DEG = 30.0
+"""Heading change that ends a straight stretch of a robot's trajectory (``backend/stretches.py``): two
+matches on the same straight stretches of both robots count as one piece of evidence, as matches on
+shared objects do, because an aliased street keeps aliasing along its length with new objects. Set
+a priori (a corner turns 90 deg; the direction of travel is measured over 10 m of path), not tuned; replayed
+on the files tuning journals (airsim-like 10-19 at both UAV altitudes, synthia-like and kitti-paths 10-11,
+disjoint 10-13) it changed no placement, and with solid objects at their centres (a tried change) it kept
+car2 of airsim-like 14 out of a 413 m alias that two of car1's matches along one straight street confirmed."""
 
 
 class BackendConfig(_Stage):
@@ -409,8 +419,14 @@ class BackendConfig(_Stage):
     robust_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="huber | cauchy | tukey | none")
     min_closures_to_anchor: int = Field(
         MATCHES_TO_ANCHOR, ge=1, description="a robot enters the shared frame only when a robot pair's consistent "
-        "set has closures from this many independent matches (closures of one match, and matches on shared "
-        "objects, count once; 1 = trust the first accepted match)"
+        "set has closures from this many independent matches (closures of one match, matches on shared "
+        "objects, and matches on the same straight stretches of both robots count once; 1 = trust the first "
+        "accepted match)"
+    )
+    stretch_turn_deg: float | None = Field(
+        STRETCH_TURN_DEG, gt=0, le=180, description="matches on the same straight stretches of both robots count "
+        "as one piece of evidence; a stretch ends where the direction of travel turns more than this (degrees). "
+        "None: only shared objects make matches dependent"
     )
     consistency_trans_m: float = Field(5.0, gt=0, description="pairwise closure consistency, translation")
     consistency_rot_deg: float = Field(10.0, gt=0, description="pairwise closure consistency, rotation")

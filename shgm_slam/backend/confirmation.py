@@ -15,7 +15,9 @@ so a placed agent stays **provisional** until its place rests on two independent
 Accepted closures of one robot pair form its maximum consistent set, so the confirming closure agrees
 with the first match through both odometries; resting on other objects means the second match saw
 other things (another keyframe stretch), not the same objects found again by a later match of the
-growing graph (and closures cut from two such re-matches never confirm each other crosswise). The
+growing graph (and closures cut from two such re-matches never confirm each other crosswise). Where the
+pose graph tracks straight stretches (``backend/stretches.py``) the confirming closure must also lie on
+another pair of straight stretches of the two agents: an aliased street keeps aliasing along its length. The
 reference agent (whose frame is the shared frame) is confirmed by definition, and confirmation spreads
 like anchoring: an agent is confirmed only through agents that are confirmed themselves. Loop closures
 (two keyframes of one agent) never confirm a place. Nothing here is a tuned constant: the only
@@ -24,7 +26,7 @@ threshold is "two", the smallest number of pieces of evidence that can check eac
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from enum import Enum
 
@@ -60,15 +62,25 @@ class AgentPlacement:
         return self.placement is Placement.PROVISIONAL
 
 
-def confirms(closure: ClosureRecord, match: Sequence[ClosureRecord], support: Mapping[int, Support]) -> bool:
+def confirms(
+    closure: ClosureRecord,
+    match: Sequence[ClosureRecord],
+    support: Mapping[int, Support],
+    stretches: Mapping[int, Hashable] | None = None,
+) -> bool:
     """True when ``closure`` is evidence independent of another graph match's closures ``match``: it comes
-    from a different match and rests on none of the objects (either agent's nodes) behind any of them.
+    from a different match, rests on none of the objects (either agent's nodes) behind any of them and,
+    when ``stretches`` (closure id -> the pair of straight stretches its keyframes lie on,
+    ``backend/stretches.py``) is given, lies on another pair of stretches than each of them.
 
     Closures without recorded support count by their match alone. Closures that share a match with
     ``closure`` never confirm it, and neither do closures of a later match that found the same objects
     again (a re-match of the growing graph), however the two matches cut them into keyframe stretches.
     """
     if any(closure.evidence == c.evidence for c in match):
+        return False
+    mine_stretch = (stretches or {}).get(closure.closure_id)
+    if mine_stretch is not None and any((stretches or {}).get(c.closure_id) == mine_stretch for c in match):
         return False
     mine = support.get(closure.closure_id, {})
     for c in match:
@@ -78,7 +90,9 @@ def confirms(closure: ClosureRecord, match: Sequence[ClosureRecord], support: Ma
     return True
 
 
-def _confirmed_pair(closures: list[ClosureRecord], support: Mapping[int, Support]) -> bool:
+def _confirmed_pair(
+    closures: list[ClosureRecord], support: Mapping[int, Support], stretches: Mapping[int, Hashable]
+) -> bool:
     """Whether one of a robot pair's accepted ``closures`` confirms another graph match's (``confirms``).
 
     Through an index from each object to the matches whose closures rest on it (a bit mask over the
@@ -91,18 +105,22 @@ def _confirmed_pair(closures: list[ClosureRecord], support: Mapping[int, Support
     if len(bit) < 2:
         return False
     every = (1 << len(bit)) - 1
-    index: dict[tuple[str, int], int] = {}
+    index: dict[Hashable, int] = {}
+
+    def objects(c: ClosureRecord) -> Iterable[Hashable]:
+        yield from ((agent, node) for agent, nodes in support.get(c.closure_id, {}).items() for node in nodes)
+        if c.closure_id in stretches:
+            yield stretches[c.closure_id]
+
     for c in closures:
-        for agent, nodes in support.get(c.closure_id, {}).items():
-            for node in nodes:
-                index[(agent, node)] = index.get((agent, node), 0) | bit[c.evidence]
+        for obj in objects(c):
+            index[obj] = index.get(obj, 0) | bit[c.evidence]
     for c in closures:
         touching = bit[c.evidence]
-        for agent, nodes in support.get(c.closure_id, {}).items():
-            for node in nodes:
-                touching |= index[(agent, node)]
-                if touching == every:
-                    break
+        for obj in objects(c):
+            touching |= index[obj]
+            if touching == every:
+                break
         if touching != every:
             return True
     return False
@@ -114,6 +132,7 @@ def placements(
     anchored: Iterable[str],
     closures: Sequence[ClosureRecord],
     support: Mapping[int, Support],
+    stretches: Mapping[int, Hashable] | None = None,
 ) -> dict[str, AgentPlacement]:
     """Each agent's placement (see the module docstring).
 
@@ -124,6 +143,8 @@ def placements(
         closures: the pose graph's closures with their current status (``MultiRobotPoseGraph.closures``).
         support: closure id -> the matched objects behind it (closures without an entry count by their
             match alone).
+        stretches: closure id -> the pair of straight stretches it lies on (``MultiRobotPoseGraph.stretches``);
+            closures on the same pair do not confirm each other. None: objects alone decide.
 
     Returns:
         agent -> ``AgentPlacement`` for every agent in ``agents``.
@@ -139,7 +160,7 @@ def placements(
         grown = False
         for agent in placed - confirmed:
             for other in sorted(confirmed):
-                if _confirmed_pair(by_pair.get(frozenset((agent, other)), []), support):
+                if _confirmed_pair(by_pair.get(frozenset((agent, other)), []), support, stretches or {}):
                     confirmed.add(agent)
                     grown = True
                     break
@@ -212,6 +233,7 @@ def describe_waiting(agent: str, partner: str, evidence: int, needed: int, match
     verb = "are" if matches != 1 else "is"
     return (
         f"{agent} is not placed in the shared frame: its {these} {verb} {pieces} (matches that found the same "
-        f"objects count once), and a robot enters it once {needed} independent matches agree "
-        "(backend.min_closures_to_anchor; 1 trusts single matches and reports them provisional)"
+        "objects, or one robot's matches along the same straight stretches of both, count once), and a robot "
+        f"enters it once {needed} independent matches agree (backend.min_closures_to_anchor; 1 trusts single "
+        "matches and reports them provisional)"
     )

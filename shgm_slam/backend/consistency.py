@@ -16,7 +16,8 @@ different objects (``independent_sources``): the matches of consecutive steps th
 trees, lamps and cars again agree with each other by construction too (synthia-like RGB tuning seed 10:
 four submap matches 31 m off, each sharing 23-52 objects with the others), so a set counts the largest
 group of its matches whose objects are mutually disjoint (greedy, and exact for two), not its distinct
-matches.
+matches. The objects may include pseudo-objects: the pose graph adds the pair of straight stretches a
+closure lies on (``backend/stretches.py``), so one robot's matches along one street pair count once.
 
 The set is maintained incrementally per robot pair (``PairConsistency``): a new closure is tested
 against the pair's other closures only (O(n)); it joins the current set when it agrees with all of it,

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import bisect
 import logging
+import math
 import time
 from collections.abc import Hashable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
@@ -74,6 +75,7 @@ from shgm_slam.backend.consistency import (
 )
 from shgm_slam.backend.drift import closure_rate, drift_level, loop_rotation_error_rad, measured_rate
 from shgm_slam.backend.keys import ROBOT_LETTERS, RobotKeys
+from shgm_slam.backend.stretches import StretchTracker, stretch_token
 from shgm_slam.config import BackendConfig, RobustKernel
 from shgm_slam.errors import BackendError
 from shgm_slam.geometry.se3 import inverse
@@ -123,6 +125,7 @@ class ClosureRecord:
     reason: str = ""
     in_graph: bool = False
     match_id: int | None = None  # the graph match it came from (closures of one match share it)
+    querier: str | None = None  # the robot whose query found it (``robot_b`` as given; None: unknown)
 
     @property
     def evidence(self) -> tuple[str, int]:
@@ -200,6 +203,7 @@ class _Robot:
     attitude_sigma_rad: float | None = None  # measured once it has ``attitude_warmup`` normals
     attitude_next: int = 0  # keyframes before this one have had their attitude factor (if measured)
     drift_rot_rad_per_m: float | None = None  # rotation drift rate its odometry factors use (None: the prior)
+    stretches: StretchTracker | None = None  # each keyframe's straight stretch (None: not tracked)
     _odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_odom_kf as a growing array
     _path: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
@@ -219,6 +223,8 @@ class _Robot:
             self._path = np.concatenate([self._path, np.zeros(size - k)])
         self._odom[k] = T_odom_kf
         self._path[k] = self.path_m[-1]
+        if self.stretches is not None:
+            self.stretches.append(self._odom[: k + 1, :3, 3], self._path[: k + 1])
 
     def odometry(self) -> tuple[np.ndarray, np.ndarray]:
         """(K, 4, 4) keyframe poses in the odometry frame and (K,) path length at each, metres (views)."""
@@ -271,6 +277,10 @@ class MultiRobotPoseGraph:
             consistent set holds closures from at least this many independent sources (matches that rest
             on mutually disjoint objects, ``consistency.independent_sources``; 1 = trust a single first
             match).
+        stretch_turn_deg: when set, matches on the same straight stretches of both robots count as one
+            source too: each inter-robot closure with a ``support`` also rests on the pair of stretches its
+            keyframes lie on (``stretches``; a stretch ends where the direction of travel turns more than
+            this many degrees). None: objects alone decide.
         factorization: iSAM2 linear solver.
         relinearize_threshold: iSAM2 relinearizes a variable whose update exceeds this (rad and m; gtsam's
             default). On a 1.5 km drive of repeated loops (a loop closure every 10 keyframes) the CPU of a
@@ -298,6 +308,7 @@ class MultiRobotPoseGraph:
         consistency_trans_per_m: float = 0.05,
         consistency_rot_deg_per_m: float = 0.05,
         min_closures_to_anchor: int = 1,
+        stretch_turn_deg: float | None = None,
         factorization: Factorization | str = Factorization.QR,
         relinearize_threshold: float = 0.1,
         extra_updates: int = 3,
@@ -324,6 +335,9 @@ class MultiRobotPoseGraph:
         if min_closures_to_anchor < 1:
             raise BackendError(f"min_closures_to_anchor must be >= 1, got {min_closures_to_anchor}")
         self.min_closures_to_anchor = min_closures_to_anchor
+        if stretch_turn_deg is not None and not 0 < stretch_turn_deg <= 180:
+            raise BackendError(f"stretch_turn_deg must be in (0, 180] degrees, got {stretch_turn_deg}")
+        self._stretch_turn_rad = None if stretch_turn_deg is None else math.radians(stretch_turn_deg)
         if max_closures_per_pair < 1:
             raise BackendError(f"max_closures_per_pair must be >= 1, got {max_closures_per_pair}")
         self.max_closures_per_pair = max_closures_per_pair
@@ -335,7 +349,7 @@ class MultiRobotPoseGraph:
         self.attitude_warmup = attitude_warmup
         self._up_shared: np.ndarray | None = None  # the shared frame's up, fixed once measured
         self._attitude_factors = 0
-        self._robots = {name: _Robot(i) for i, name in enumerate(self.keys.names)}
+        self._robots = {name: self._new_robot(i) for i, name in enumerate(self.keys.names)}
         self._closures: list[ClosureRecord] = []
         self._support: dict[int, frozenset] = {}  # closure id -> the objects it rests on (when given)
         self._loop_rates: dict[int, float] = {}  # loop closure id -> its drift rate (``_loop_rate``)
@@ -444,15 +458,18 @@ class MultiRobotPoseGraph:
                     f"closure refers to keyframe {kf} of {name}, which has only "
                     f"{len(self._robots[name].T_odom_kf)} keyframes; add keyframes before closures"
                 )
+        querier = robot_b
         if ia > ib or (ia == ib and kf_a > kf_b):  # canonical order: lower robot index, older keyframe first
             robot_a, kf_a, robot_b, kf_b, T = robot_b, kf_b, robot_a, kf_a, inverse(T)
             if information is not None:
                 information = self._inverse_information(information, T)
         noise, info = self._closure_noise_model(information)
-        rec = ClosureRecord(len(self._closures), robot_a, kf_a, robot_b, kf_b, T, int(num_inliers), match_id=match_id)
+        rec = ClosureRecord(
+            len(self._closures), robot_a, kf_a, robot_b, kf_b, T, int(num_inliers), match_id=match_id, querier=querier
+        )
         self._closures.append(rec)
         if support:
-            self._support[rec.closure_id] = frozenset(support)
+            self._support[rec.closure_id] = self._with_stretches(rec, support)
         self._version += 1
         self._closure_noise.append(noise)
         self._information.append(info)
@@ -553,8 +570,37 @@ class MultiRobotPoseGraph:
         Raises:
             BackendError: the name is taken or the 52 key letters are used up.
         """
-        self._robots[robot] = _Robot(self.keys.add(robot))
+        self._robots[robot] = self._new_robot(self.keys.add(robot))
         self._version += 1
+
+    def _new_robot(self, index: int) -> _Robot:
+        turn = self._stretch_turn_rad
+        return _Robot(index, stretches=None if turn is None else StretchTracker(turn))
+
+    def stretches(self) -> dict[int, tuple]:
+        """Closure id -> the pair of straight stretches (``backend/stretches.py``) of each inter-robot closure's
+        keyframes; empty when stretches are not tracked (``stretch_turn_deg`` None)."""
+        if self._stretch_turn_rad is None:
+            return {}
+        return {
+            c.closure_id: self._stretch_token(c) for c in self._closures if c.robot_a != c.robot_b
+        }
+
+    def _stretch_token(self, rec: ClosureRecord) -> tuple:
+        """The querying robot's stretch, then the other's (``stretches.stretch_token``)."""
+        ends = [(rec.robot_b, rec.kf_b), (rec.robot_a, rec.kf_a)]
+        if rec.querier == rec.robot_a:
+            ends.reverse()
+        (q, kf_q), (o, kf_o) = ends
+        return stretch_token(q, self._robots[q].stretches.ids[kf_q], o, self._robots[o].stretches.ids[kf_o])
+
+    def _with_stretches(self, rec: ClosureRecord, support: Iterable[Hashable]) -> frozenset:
+        """A closure's objects, plus the pair of straight stretches its keyframes lie on when stretches are
+        tracked and it joins two robots (``stretches``)."""
+        objects = frozenset(support)
+        if self._stretch_turn_rad is None or rec.robot_a == rec.robot_b:
+            return objects
+        return objects | {self._stretch_token(rec)}
 
     @property
     def up_shared(self) -> np.ndarray | None:
@@ -781,7 +827,10 @@ class MultiRobotPoseGraph:
             self._information.append(info)
         cap = self.max_closures_per_pair
         evidence = {c.closure_id: c.evidence for c in self._closures}
-        self._support = {int(cid): frozenset(objects) for cid, objects in (support or {}).items() if objects}
+        self._support = {
+            int(cid): self._with_stretches(self._closures[int(cid)], objects)
+            for cid, objects in (support or {}).items() if objects
+        }  # fmt: skip
         self._pairs = {
             pair: PairConsistency.from_vote(
                 v, cap, [evidence[int(i)] for i in v.ids], [self._support.get(int(i), ()) for i in v.ids]
@@ -1299,6 +1348,7 @@ def make_pose_graph(robot_names: list[str], cfg: BackendConfig) -> MultiRobotPos
         consistency_trans_per_m=cfg.consistency_trans_per_m,
         consistency_rot_deg_per_m=cfg.consistency_rot_deg_per_m,
         min_closures_to_anchor=cfg.min_closures_to_anchor,
+        stretch_turn_deg=cfg.stretch_turn_deg,
         attitude=cfg.attitude_factors,
         attitude_warmup=cfg.attitude_warmup_keyframes,
     )

@@ -697,7 +697,7 @@ class MapServer:
         if self._placements[0] != pg.version:
             anchored = [a for a in self._agents if pg.is_anchored(a)]
             self._placements = (pg.version, placements(self._agents, self.reference, anchored, pg.closures(),
-                                                       self._support))  # fmt: skip
+                                                       self._support, pg.stretches()))  # fmt: skip
         return self._placements[1].get(agent, AgentPlacement(Placement.UNPLACED))
 
     def waiting_note(self, agent: str) -> str | None:

@@ -1,0 +1,83 @@
+"""Straight stretches of a trajectory: which keyframes were driven along one street.
+
+Two graph matches between the same robots count as independent evidence only when they rest on
+different objects (``consistency.independent_sources``). On a street lined with regularly spaced trees,
+lamps and parked cars that is not enough: a street that aliases onto another one keeps aliasing as both
+robots drive on, so the next submap match finds *new* objects under the *same* wrong transform and
+"confirms" it (airsim-like tuning seed 14 with objects placed at their centres: car1's straight street
+merged 413 m off onto car2's, then confirmed 97 m further along the same street, both found by car1's
+submap queries). So matches one robot's queries find on the same straight stretch of its own trajectory
+and of its partner's count once: each closure also rests on a pseudo-object, (querying robot, its
+stretch, partner, its stretch) (``stretch_token``), and matches that share it are not independent.
+Evidence from around a corner (either robot turned between the two matches) still is, and so is a match
+the partner's own query found (its recent submap: other observations). Making the pair symmetric (the
+partner's queries on the same two stretches count once too) lost four of the 19 right placements on the
+airsim-like files tuning worlds 10-19 (replayed; car2s and a UAV whose only overlap with car1 is one
+straight street), so it is not.
+
+A stretch ends where the direction of travel, measured over ``HEADING_BASE_M`` of path, has turned more
+than ``turn_rad`` from the direction the stretch started with (a 90° corner starts two or three new
+stretches, a slow curve one every ``turn_rad`` of heading). Directions are 3-D (no up axis needed), so a
+stretch id is a pure function of the keyframe poses up to it: a restored pose graph recomputes the same ids.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+HEADING_BASE_M = 10.0
+"""Path length over which the direction of travel is measured (metres; several keyframes, so the
+odometry's step-to-step jitter does not start stretches)."""
+
+STANDING_FRACTION = 0.5
+"""A keyframe whose straight-line displacement over the base is below this fraction of the path driven
+(turning on the spot, hovering, reversing) keeps the current stretch."""
+
+
+@dataclass
+class StretchTracker:
+    """Stretch id of each keyframe of one robot, assigned as keyframes arrive (never changed later).
+
+    Attributes:
+        turn_rad: heading change that ends a stretch, radians (``BackendConfig.stretch_turn_deg``).
+        ids: (K,) stretch id per keyframe so far (0, 1, 2, ... non-decreasing).
+    """
+
+    turn_rad: float
+    ids: list[int] = field(default_factory=list)
+    _current: int = 0
+    _ref: np.ndarray | None = None  # (3,) unit direction the current stretch started with
+
+    def append(self, positions_xyz: np.ndarray, path_m: np.ndarray) -> int:
+        """Assign the newest keyframe its stretch id and return it.
+
+        Args:
+            positions_xyz: (K, 3) keyframe positions in the robot's odometry frame, metres; the last row is
+                the new keyframe and the first K-1 rows are the keyframes assigned so far.
+            path_m: (K,) odometry path length at each keyframe, metres (non-decreasing).
+        """
+        k = len(self.ids)
+        if positions_xyz.shape[0] != k + 1 or path_m.shape[0] != k + 1:
+            raise ValueError(f"stretch tracker holds {k} keyframes, got {positions_xyz.shape[0]} positions")
+        j = int(np.searchsorted(path_m, path_m[k] - HEADING_BASE_M, side="right")) - 1
+        if j >= 0 and path_m[k] - path_m[j] >= HEADING_BASE_M:
+            d = positions_xyz[k] - positions_xyz[j]
+            norm = float(np.linalg.norm(d))
+            if norm >= STANDING_FRACTION * (path_m[k] - path_m[j]):
+                u = d / norm
+                if self._ref is None:
+                    self._ref = u
+                elif float(np.arccos(np.clip(u @ self._ref, -1.0, 1.0))) > self.turn_rad:
+                    self._current += 1
+                    self._ref = u
+        self.ids.append(self._current)
+        return self._current
+
+
+def stretch_token(querier: str, stretch_q: int, partner: str, stretch_p: int) -> tuple[str, str, int, str, int]:
+    """The pseudo-object a closure rests on (with its matched objects) when ``querier``'s query found it between
+    its keyframe on stretch ``stretch_q`` and ``partner``'s on ``stretch_p``: closures that share it come from
+    one robot's queries along one street of each robot and are not independent evidence."""
+    return ("stretch", querier, int(stretch_q), partner, int(stretch_p))
