@@ -586,6 +586,15 @@ class MultiRobotPoseGraph:
             c.closure_id: self._stretch_token(c) for c in self._closures if c.robot_a != c.robot_b
         }
 
+    def stretch_pair(self, closure_id: int) -> tuple[int, int] | None:
+        """(the querying robot's stretch, the partner's) of an inter-robot closure (``backend/stretches.py``), or
+        None (a loop closure, or stretches not tracked)."""
+        rec = self._closures[closure_id]
+        if self._stretch_turn_rad is None or rec.robot_a == rec.robot_b:
+            return None
+        _, _, q, _, p = self._stretch_token(rec)
+        return q, p
+
     def _stretch_token(self, rec: ClosureRecord) -> tuple:
         """The querying robot's stretch, then the other's (``stretches.stretch_token``)."""
         ends = [(rec.robot_b, rec.kf_b), (rec.robot_a, rec.kf_a)]

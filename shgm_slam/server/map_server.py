@@ -558,6 +558,7 @@ class MapServer:
                     "inliers": n,
                     "accepted": decision.accepted,
                     "reason": decision.reason,
+                    "stretches": _listed(self._pose_graph.stretch_pair(decision.closure_id)),
                 }
             )
             if decision.accepted:
@@ -800,6 +801,11 @@ def _evidence(result: MatchResult, keyframe_b: int) -> MatchEvidence | None:
         float(result.llr_threshold), int(result.support), float(result.expected_chance), int(result.overlap_a),
         int(result.overlap_b),
     )  # fmt: skip
+
+
+def _listed(pair: tuple[int, int] | None) -> list[int] | None:
+    """A closure's stretch pair as ``matches.json`` writes it (a list, or null)."""
+    return None if pair is None else list(pair)
 
 
 def _objects(support: Support) -> frozenset[tuple[str, int]]:

@@ -33,6 +33,7 @@ _GRAPH_FIELDS = (
     ("T_world_kf", "f8"), ("obs_rows", "i8"), ("obs_slots", "i8"), ("edges", "i8"),
 )  # fmt: skip
 _CLOSURE_KEYS = ("keyframe_a", "keyframe_b", "inliers", "accepted", "reason")
+_OPTIONAL_CLOSURE_KEYS = ("stretches",)  # absent in snapshots written before it existed
 
 
 class SnapshotError(DataError):
@@ -79,7 +80,8 @@ def _match(m: MatchRecord) -> dict:
         "inl": _arr(np.asarray(m.inliers).reshape(-1, 2), "i8"), "cand": m.candidates, "na": m.nodes_a,
         "nb": m.nodes_b, "ms": {k: float(v) for k, v in m.timings_ms.items()},
         "pa": _arr(m.inlier_positions_a, "f8"), "pb": _arr(m.inlier_positions_b, "f8"),
-        "cl": [{k: c[k] for k in _CLOSURE_KEYS} for c in m.closures], "dup": m.duplicate,
+        "cl": [{k: c[k] for k in (*_CLOSURE_KEYS, *_OPTIONAL_CLOSURE_KEYS) if k in c} for c in m.closures],
+        "dup": m.duplicate,
         "ev": None if m.evidence is None else _evidence(m.evidence),
     }  # fmt: skip
 
@@ -175,10 +177,14 @@ def _ungraph(d: dict, what: str) -> GraphState:
 
 
 def _unmatch(d: dict) -> MatchRecord:
-    cl = [{k: c[k] for k in _CLOSURE_KEYS} for c in _typed(d["cl"], list, "match closures")]
+    stored = _typed(d["cl"], list, "match closures")
+    cl = [{k: c[k] for k in (*_CLOSURE_KEYS, *_OPTIONAL_CLOSURE_KEYS) if k in c} for c in stored]
     for c in cl:
         _typed(c["reason"], str, "closure reason")
         _typed(c["accepted"], bool, "closure accepted")
+        pair = _typed(c.get("stretches"), (list, type(None)), "closure stretches")
+        if pair is not None and (len(pair) != 2 or not all(type(i) is int for i in pair)):
+            raise SnapshotError(f"closure stretches must be two integers, got {pair!r}")
     opt_int = (int, type(None))
     return MatchRecord(
         _typed(d["step"], int, "match step"), _typed(d["a"], str, "match robot_a"),

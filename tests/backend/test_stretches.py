@@ -131,3 +131,16 @@ def test_the_stretch_pair_is_per_querying_robot():
     assert tokens[0] == ("stretch", "b", 0, "a", 0) and tokens[1] == ("stretch", "a", 0, "b", 0)
     assert pg.closures()[1].robot_a == "a" and pg.closures()[1].querier == "a"
     assert pg.is_anchored("b")
+
+
+def test_stretch_pair_is_the_queriers_stretch_then_the_partners():
+    pg = _pose_graph_on_corner(30.0)
+    pg.add_inter_robot_closure("a", 80, "b", 10, np.eye(4), match_id=1, support={("a", 1), ("b", 1)})
+    pg.add_inter_robot_closure("b", 80, "a", 10, np.eye(4), match_id=2, support={("a", 2), ("b", 2)})
+    stretch_80 = pg.stretches()[0][4]
+    assert stretch_80 > 0
+    assert pg.stretch_pair(0) == (0, stretch_80)  # b's query: b's keyframe 10 on stretch 0, a's 80 later
+    assert pg.stretch_pair(1) == (0, stretch_80)  # a's query: the same, seen from a
+    pg.add_loop_closure("a", 2, 90, np.eye(4), match_id=3)
+    assert pg.stretch_pair(2) is None
+    assert _pose_graph_on_corner(None).stretches() == {}
