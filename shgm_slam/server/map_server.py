@@ -62,6 +62,10 @@ placed, which whole-graph re-matches used to reach."""
 LAST_LOOK_QUERY = "independent"
 """``MatchRecord.query`` of the last look for a second, independent match (``MapServer._independent_match``)."""
 
+PARTNER_LOOK_QUERY = "independent-partner"
+"""``MatchRecord.query`` of the same last look from the partner's side (the partner's graph as the query, robot_a
+the waiting agent), taken when the agent's own look lies on the straight stretches of its earlier queries."""
+
 CONFIRMING_MATCHES = 2
 """Independent graph matches (on mutually disjoint objects, ``MultiRobotPoseGraph.evidence_between``) behind a
 placed robot pair's accepted closures before its submaps are matched only near where the fused estimate puts
@@ -342,7 +346,7 @@ class MapServer:
             if pg.evidence_between(agent, partner) < CONFIRMING_MATCHES and pg.stretches():
                 # agent's look lies on the stretches of its earlier queries (backend/stretches.py): the
                 # partner's look at the same objects is the partner's own evidence
-                records.append(self._match_pair(agent, partner, LAST_LOOK_QUERY, graph_b.subset(rows_b),
+                records.append(self._match_pair(agent, partner, PARTNER_LOOK_QUERY, graph_b.subset(rows_b),
                                                 graph_a.subset(rows_a), desc_b, desc_a))  # fmt: skip
         return self._keep(records)
 
@@ -359,17 +363,18 @@ class MapServer:
         the match was rejected)."""
         lines = []
         for m in self._matches:
-            if m.query != LAST_LOOK_QUERY:
+            if m.query not in (LAST_LOOK_QUERY, PARTNER_LOOK_QUERY):
                 continue
+            agent, partner = (m.robot_b, m.robot_a) if m.query == LAST_LOOK_QUERY else (m.robot_a, m.robot_b)
             if m.accepted:
                 what = {
                     Placement.CONFIRMED: "agreed: it is confirmed in the shared frame",
                     Placement.PROVISIONAL: "was accepted; it is still provisional",
-                }.get(self.placement(m.robot_b).placement, "was accepted, but outvoted")
+                }.get(self.placement(agent).placement, "was accepted, but outvoted")
             else:
                 what = f"did not confirm it: {m.reason}"
-            lines.append(f"{m.robot_b}: a last look with {m.robot_a}, without the objects behind its accepted "
-                         f"match, {what}")  # fmt: skip
+            look = f"a last look with {partner}" if m.query == LAST_LOOK_QUERY else f"{partner}'s last look at it"
+            lines.append(f"{agent}: {look}, without the objects behind its accepted match, {what}")
         return lines
 
     def _confirmed(self, a: str, b: str) -> bool:
