@@ -79,8 +79,9 @@ def confirms(
     """
     if any(closure.evidence == c.evidence for c in match):
         return False
-    mine_stretch = (stretches or {}).get(closure.closure_id)
-    if mine_stretch is not None and any((stretches or {}).get(c.closure_id) == mine_stretch for c in match):
+    stretches = stretches or {}
+    mine_stretch = stretches.get(closure.closure_id)
+    if mine_stretch is not None and any(stretches.get(c.closure_id) == mine_stretch for c in match):
         return False
     mine = support.get(closure.closure_id, {})
     for c in match:

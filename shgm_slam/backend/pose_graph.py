@@ -577,10 +577,15 @@ class MultiRobotPoseGraph:
         turn = self._stretch_turn_rad
         return _Robot(index, stretches=None if turn is None else StretchTracker(turn))
 
+    @property
+    def tracks_stretches(self) -> bool:
+        """Whether closures also rest on the straight stretches of their keyframes (``stretch_turn_deg`` set)."""
+        return self._stretch_turn_rad is not None
+
     def stretches(self) -> dict[int, tuple]:
         """Closure id -> the pair of straight stretches (``backend/stretches.py``) of each inter-robot closure's
         keyframes; empty when stretches are not tracked (``stretch_turn_deg`` None)."""
-        if self._stretch_turn_rad is None:
+        if not self.tracks_stretches:
             return {}
         return {
             c.closure_id: self._stretch_token(c) for c in self._closures if c.robot_a != c.robot_b
@@ -590,7 +595,7 @@ class MultiRobotPoseGraph:
         """(the querying robot's stretch, the partner's) of an inter-robot closure (``backend/stretches.py``), or
         None (a loop closure, or stretches not tracked)."""
         rec = self._closures[closure_id]
-        if self._stretch_turn_rad is None or rec.robot_a == rec.robot_b:
+        if not self.tracks_stretches or rec.robot_a == rec.robot_b:
             return None
         _, _, q, _, p = self._stretch_token(rec)
         return q, p
@@ -607,7 +612,7 @@ class MultiRobotPoseGraph:
         """A closure's objects, plus the pair of straight stretches its keyframes lie on when stretches are
         tracked and it joins two robots (``stretches``)."""
         objects = frozenset(support)
-        if self._stretch_turn_rad is None or rec.robot_a == rec.robot_b:
+        if not self.tracks_stretches or rec.robot_a == rec.robot_b:
             return objects
         return objects | {self._stretch_token(rec)}
 

@@ -343,7 +343,7 @@ class MapServer:
             desc_b = self._descriptors[agent].update(graph_b).subset(rows_b)
             records.append(self._match_pair(partner, agent, LAST_LOOK_QUERY, graph_a.subset(rows_a),
                                             graph_b.subset(rows_b), desc_a, desc_b))  # fmt: skip
-            if pg.evidence_between(agent, partner) < CONFIRMING_MATCHES and pg.stretches():
+            if pg.evidence_between(agent, partner) < CONFIRMING_MATCHES and pg.tracks_stretches:
                 # agent's look lies on the stretches of its earlier queries (backend/stretches.py): the
                 # partner's look at the same objects is the partner's own evidence
                 records.append(self._match_pair(agent, partner, PARTNER_LOOK_QUERY, graph_b.subset(rows_b),

@@ -80,7 +80,7 @@ def _match(m: MatchRecord) -> dict:
         "inl": _arr(np.asarray(m.inliers).reshape(-1, 2), "i8"), "cand": m.candidates, "na": m.nodes_a,
         "nb": m.nodes_b, "ms": {k: float(v) for k, v in m.timings_ms.items()},
         "pa": _arr(m.inlier_positions_a, "f8"), "pb": _arr(m.inlier_positions_b, "f8"),
-        "cl": [{k: c[k] for k in (*_CLOSURE_KEYS, *_OPTIONAL_CLOSURE_KEYS) if k in c} for c in m.closures],
+        "cl": [_closure_dict(c) for c in m.closures],
         "dup": m.duplicate,
         "ev": None if m.evidence is None else _evidence(m.evidence),
     }  # fmt: skip
@@ -176,9 +176,14 @@ def _ungraph(d: dict, what: str) -> GraphState:
                       **arrays)  # fmt: skip
 
 
+def _closure_dict(c: dict) -> dict:
+    """A match record's closure entry: every required key, and the optional ones it has."""
+    return {k: c[k] for k in _CLOSURE_KEYS} | {k: c[k] for k in _OPTIONAL_CLOSURE_KEYS if k in c}
+
+
 def _unmatch(d: dict) -> MatchRecord:
     stored = _typed(d["cl"], list, "match closures")
-    cl = [{k: c[k] for k in (*_CLOSURE_KEYS, *_OPTIONAL_CLOSURE_KEYS) if k in c} for c in stored]
+    cl = [_closure_dict(c) for c in stored]
     for c in cl:
         _typed(c["reason"], str, "closure reason")
         _typed(c["accepted"], bool, "closure accepted")
