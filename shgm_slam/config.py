@@ -340,7 +340,7 @@ well-measured trajectories (held-out tuning seeds 10-14). The rotation rate is t
 loop closures have not measured more (``backend/drift.py``): KISS-ICP on the tuning robots' rendered depth
 turns 0.6 deg per 100 m (median of 100 robots; p90 1.1, worst 3-4 on KITTI 00's drives), and 0.001 rad/m
 over 2 m keyframes with the 0.001 rad floor is 1.0 deg per 100 m at one sigma. Chosen on the files tuning
-seeds 10-29 and 00+07 against 0.002 (README); a robot that drifts more in heading (a systematic 0.05 deg/m)
+seeds 10-29 and 00+07 against 0.002 (docs/benchmarks.md); a robot that drifts more in heading (a systematic 0.05 deg/m)
 has its rate raised by its own loop closures."""
 
 PREDICTED_DEPTH_DRIFT = (0.002, 0.05)

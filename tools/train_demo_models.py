@@ -32,7 +32,8 @@ Usage (needs the ``train`` extra: ``.venv/bin/pip install -e '.[train]'``)::
 
 Variants measured and not (yet) taken: ``--scale-weight W`` adds W x each image's absolute mean log-depth
 error to the loss (a UAV's per-frame scale), ``--crop-width`` trains on wider crops (320: whole images),
-``--airsim-fps`` renders the airsim-like cities (and so the UAV's views) more often (README, held-out notes).
+``--airsim-fps`` renders the airsim-like cities (and so the UAV's views) more often (docs/benchmarks.md,
+held-out notes).
 
 The rendered data is cached under ``--cache-dir`` (default /tmp/shgm_demo_models/cache), never in the
 repo; delete that folder after changing the simulator, or the models train on its old renders.
@@ -133,7 +134,7 @@ SUPERSAMPLE = (1, 2)
 """Colour rays per pixel side of the training renders (``--supersample``), given to the cities in turn: one ray
 per pixel as the benchmark worlds are rendered (640x192 shrunk 2x to the model input averages 2 x 2 of them),
 and 2 x 2 rays, antialiased as a camera's pixel integrates light (one ray aliases the road's fine texture:
-README, held-out notes). The held-out cities are rendered with each."""
+docs/benchmarks.md, held-out notes). The held-out cities are rendered with each."""
 KITTI_PATHS_WORLDS = True
 KITTI_TRAIN_DRIVES = (("02:0-301", "05:0-301"), ("03:0-301", "06:0-301"), ("04:0-271", "05:1200-1501"))
 """``--kitti-paths-worlds`` (on by default): kitti-paths training worlds driving KITTI sequences the held-out

@@ -60,7 +60,7 @@ CHANCE_PRIOR_OBSERVATIONS = 4.0
 """Weight of the density model in a label's shifted chance rate, in pseudo-observations: the second-best of
 many shifts (48 with a 3 m radius) is lucky on a label of few nodes, so few nodes are judged mostly by
 their density, while a row of many repeats outweighs it (chosen on the tuning seeds: 1, 2, 4, 8 compared
-in the README)."""
+in docs/benchmarks.md)."""
 
 MAX_SHIFT_HEADINGS = 64
 """Most shift headings ``shift_headings`` gives (a 3 m radius needs 16)."""
