@@ -20,7 +20,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from shgm_slam import __version__
-from shgm_slam.config import DescriptorKind, OutlierMode
+from shgm_slam.config import DescriptorKind, Dof, OutlierMode
 from shgm_slam.errors import ShgmError
 from shgm_slam.io.json_text import to_json_text
 
@@ -225,6 +225,10 @@ def match(
     mode: Annotated[
         OutlierMode | None, typer.Option("--mode", help="outlier rejection (default: the config's, clique)")
     ] = None,
+    dof: Annotated[
+        Dof, typer.Option("--dof", help="rotation freedom: 4 (gravity-aligned yaw), 6 (any), or auto: 4 about the "
+                          "vertical both graphs lie flat along (maps, ground robots), else the config's")
+    ] = Dof.AUTO,
     json_output: Annotated[bool, typer.Option("--json", help="print the match result as JSON")] = False,
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
 ) -> None:
@@ -233,31 +237,39 @@ def match(
     from shgm_slam.config import load_config
     from shgm_slam.io.graph_json import read_graph
     from shgm_slam.matching import match_graphs
+    from shgm_slam.matching.gravity import choose_dof
 
     cfg = load_config(config)
     descriptor_cfg = cfg.descriptor.model_copy(update={"kind": descriptor}) if descriptor else cfg.descriptor
     matching_cfg = cfg.matching.model_copy(update={"outlier_mode": mode}) if mode else cfg.matching
     a = read_graph(graph_a, connectivity_m=cfg.graph.connectivity_m)
     b = read_graph(graph_b, connectivity_m=cfg.graph.connectivity_m)
+    matching_cfg, dof_note = choose_dof(dof, a.positions_xyz, b.positions_xyz, matching_cfg)
     result = match_graphs(a, b, descriptor_cfg, matching_cfg)
     if json_output:
-        typer.echo(to_json_text(result.to_json_dict(), indent=None))
+        dof_fields = {"dof": 4 if matching_cfg.gravity_aligned else 6, "dof_note": dof_note}
+        if matching_cfg.gravity_aligned:
+            dof_fields["up_axis"] = list(matching_cfg.up_axis)
+        typer.echo(to_json_text({**result.to_json_dict(), **dof_fields}, indent=None))
         return
-    _render_match(result, len(a), len(b), descriptor_cfg.kind, matching_cfg.outlier_mode)
+    _render_match(result, len(a), len(b), descriptor_cfg.kind, matching_cfg.outlier_mode, dof_note)
 
 
-def _render_match(result, nodes_a: int, nodes_b: int, kind: DescriptorKind, mode: OutlierMode) -> None:
+def _render_match(
+    result, nodes_a: int, nodes_b: int, kind: DescriptorKind, mode: OutlierMode, dof_note: str
+) -> None:
     """Print a match result as a short rich summary."""
     import numpy as np
     from rich.table import Table
 
     from shgm_slam.geometry.se3 import rotation_angle
 
-    verdict = "[bold green]match[/]" if result.success else f"[bold red]no match[/] ({result.reason})"
+    verdict = "[bold green]match[/]" if result.success else f"[bold red]no match[/] ({lit(result.reason)})"
     console.print(f"{verdict}: {nodes_a} and {nodes_b} nodes, {kind.value} descriptors, {mode.value}")
     t = Table(show_header=False, box=None)
     t.add_column(style="bold")
     t.add_column()
+    t.add_row("rotation", lit(dof_note))
     t.add_row("candidates", str(result.candidates))
     rmse = f"{result.rmse_m:.2f} m" if np.isfinite(result.rmse_m) else "-"
     t.add_row("inliers", f"{result.num_inliers} (rmse {rmse}, spread {result.spread_m:.1f} m, "

@@ -187,6 +187,14 @@ class MatchingConfig(_Stage):
         return value
 
 
+class Dof(str, Enum):
+    """Rotation freedom of a graph match (``shgm-slam match --dof``; ``matching/gravity.py``)."""
+
+    AUTO = "auto"  # 4-DoF about the vertical both graphs lie flat along, else as ``matching.gravity_aligned`` says
+    FOUR = "4"  # gravity-aligned: yaw + translation about the shared vertical (or ``matching.up_axis``)
+    SIX = "6"  # any rotation
+
+
 class OdometryKind(str, Enum):
     """Where each frame's pose comes from. AUTO: VISUAL when a depth model predicts the depth (ICP alone on
     predicted depth stalls, the hybrid was not clearly better; ``odometry.sources.choose_odometry``),
