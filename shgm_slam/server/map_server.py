@@ -479,14 +479,17 @@ class MapServer:
         t0 = time.perf_counter()
         up_a, up_b = self.up_odom(robot_a), self.up_odom(robot_b)
         free = self.evidence_free_labels(robot_a, robot_b)
-        if self.gravity_aligned(robot_a) and self.gravity_aligned(robot_b):
-            # both robots know where "up" is (their ground plane): a 4-DoF match in gravity-aligned frames
+        if up_a is not None and up_b is not None:
+            # both robots know where "up" is (their ground plane): match in frames whose z is up, so that the
+            # chance model shifts hypotheses along the ground (``verification.shift_vectors``); 4-DoF when
+            # both ups are level enough for it, else 6-DoF, which absorbs a submap's own tilt
             R_a, R_b = rotation_to_z(up_a), rotation_to_z(up_b)
-            cfg4 = self.cfg.matching.model_copy(update={"gravity_aligned": True, "up_axis": (0.0, 0.0, 1.0)})
+            level = self.gravity_aligned(robot_a) and self.gravity_aligned(robot_b)
+            cfg_z = self.cfg.matching.model_copy(update={"gravity_aligned": level, "up_axis": (0.0, 0.0, 1.0)})
             result = match_graphs(
                 graph_a.transformed(se3.make_pose(R_a, np.zeros(3))),
                 graph_b.transformed(se3.make_pose(R_b, np.zeros(3))),
-                self.cfg.descriptor, cfg4, descriptors_a=desc_a, descriptors_b=desc_b, evidence_free_labels=free,
+                self.cfg.descriptor, cfg_z, descriptors_a=desc_a, descriptors_b=desc_b, evidence_free_labels=free,
             )  # fmt: skip
             to_a, from_b = se3.make_pose(R_a.T, np.zeros(3)), se3.make_pose(R_b, np.zeros(3))
             if result.T_a_b is not None:

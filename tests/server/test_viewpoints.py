@@ -67,17 +67,20 @@ def test_the_elevation_gap_of_a_car_and_a_uav_widens_only_the_translation_sigma(
     np.testing.assert_allclose(closure_information(0.1, 3.0, 0.0, 2.6), np.diag([0.1**-2] * 3 + [3.0**-2] * 3))
 
 
-def _drive(name: str, height_m: float, pos: np.ndarray, labels: np.ndarray):
+def _drive(name: str, height_m: float, pos: np.ndarray, labels: np.ndarray, T_odom_world: np.ndarray | None = None):
     """Keyframe messages of a robot flying or driving along x at ``height_m`` (odometry = truth, z up, its
-    camera looking along x), seeing the objects within 60 m."""
+    camera looking along x), seeing the objects within 60 m; ``T_odom_world`` turns the world into the robot's
+    odometry frame (default: the world's, z up)."""
     graph = SemanticGraph(5.0, 10.0)
+    T_frame = np.eye(4) if T_odom_world is None else T_odom_world
     R_world_cam = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # x fwd, y down -> z up
     for k, x in enumerate(np.arange(0.0, 120.0, 4.0)):
-        T = se3.make_pose(R_world_cam, np.array([x, 0.0, height_m]))
-        seen = np.linalg.norm(pos[:, :2] - T[:2, 3], axis=1) < 60.0
-        cam = se3.transform_points(se3.inverse(T), pos[seen])
-        obs = ObjectObservations(labels[seen], cam, pos[seen], np.full(seen.sum(), 2000), np.ones((seen.sum(), 3)))
-        yield KeyframeMessage(name, k, k, 0.5 * k, T, graph.add_keyframe(k, T, obs), UP.copy())
+        T_world = se3.make_pose(R_world_cam, np.array([x, 0.0, height_m]))
+        seen = np.linalg.norm(pos[:, :2] - T_world[:2, 3], axis=1) < 60.0
+        cam = se3.transform_points(se3.inverse(T_world), pos[seen])
+        T, odom = T_frame @ T_world, se3.transform_points(T_frame, pos[seen])
+        obs = ObjectObservations(labels[seen], cam, odom, np.full(seen.sum(), 2000), np.ones((seen.sum(), 3)))
+        yield KeyframeMessage(name, k, k, 0.5 * k, T, graph.add_keyframe(k, T, obs), T_frame[:3, :3] @ UP)
 
 
 def test_the_map_server_drops_flat_ground_evidence_between_a_car_and_a_uav_only():
@@ -117,9 +120,9 @@ def test_an_up_is_level_when_its_spread_moves_the_objects_less_than_the_radius()
     assert not up_is_level(None, 30.0, 3.0) and not up_is_level(0.01, None, 3.0)
 
 
-def test_a_robot_whose_normals_drift_is_not_matched_gravity_aligned():
-    """The UAV's odometry tilts 20 degrees over its flight (its normals in the odometry frame turn with it):
-    its mean "up" cannot stand for its whole graph, so it is matched in 6-DoF; the cars' stay level."""
+def _car_and_drifting_uav(T_odom_world: np.ndarray | None = None) -> MapServer:
+    """A map server that took a car's keyframes and a UAV's whose normals tilt 20 degrees over its flight (its
+    odometry frame turned from the world's by ``T_odom_world``)."""
     rng = np.random.default_rng(8)
     n = 60
     pos = np.column_stack([rng.uniform(0, 120, n), rng.choice([-1.0, 1.0], n) * rng.uniform(4, 25, n),
@@ -128,10 +131,45 @@ def test_a_robot_whose_normals_drift_is_not_matched_gravity_aligned():
     server = MapServer(["car1", "uav"], ShgmConfig())
     for msg in _drive("car1", 1.6, pos, labels):
         server.receive(msg)
-    msgs = list(_drive("uav", 45.0, pos, labels))
+    R = np.eye(3) if T_odom_world is None else T_odom_world[:3, :3]
+    msgs = list(_drive("uav", 45.0, pos, labels, T_odom_world))
     for k, msg in enumerate(msgs):
         tilt = se3.rot_x(np.radians(20.0) * k / (len(msgs) - 1))
         server.receive(KeyframeMessage(msg.robot, msg.kf_index, msg.frame_index, msg.timestamp_s, msg.T_odom_kf,
-                                       msg.graph_update, tilt @ UP))  # fmt: skip
+                                       msg.graph_update, R @ tilt @ UP))  # fmt: skip
+    return server
+
+
+def test_a_robot_whose_normals_drift_is_not_matched_gravity_aligned():
+    """The UAV's odometry tilts 20 degrees over its flight (its normals in the odometry frame turn with it):
+    its mean "up" cannot stand for its whole graph, so it is matched in 6-DoF; the cars' stay level."""
+    server = _car_and_drifting_uav()
     assert server.up_spread_rad("car1") == pytest.approx(0.0, abs=1e-6) and server.gravity_aligned("car1")
     assert np.degrees(server.up_spread_rad("uav")) > 5.0 and not server.gravity_aligned("uav")
+
+
+def test_a_tilted_robot_is_matched_in_6dof_in_frames_whose_z_is_up(monkeypatch):
+    """A UAV whose odometry frame is its first camera's (y down, as a KITTI camera) and whose normals drift is
+    matched in 6-DoF, but in frames turned so that z is its mean up: the chance model then shifts hypotheses
+    along the ground, not across the street and up into the air (the configured -y of a camera frame is
+    neither robot's vertical here)."""
+    import shgm_slam.server.map_server as ms
+
+    seen = []
+    real = ms.match_graphs
+
+    def spy(a, b, descriptor_cfg, matching_cfg, **kw):
+        seen.append((a.positions_xyz.copy(), b.positions_xyz.copy(), matching_cfg))
+        return real(a, b, descriptor_cfg, matching_cfg, **kw)
+
+    monkeypatch.setattr(ms, "match_graphs", spy)
+    server = _car_and_drifting_uav(se3.make_pose(se3.rot_x(np.radians(-90.0)), np.zeros(3)))  # z up -> y down
+    assert not server.gravity_aligned("uav")
+    pairs = [(a, b, cfg) for a, b, cfg in seen if not cfg.gravity_aligned]
+    assert pairs, "the car and the tilted UAV were never matched"
+    for a, b, cfg in pairs:
+        assert cfg.up_axis == (0.0, 0.0, 1.0)
+        for points in (a, b):
+            centred = points - points.mean(axis=0)
+            thinnest = np.linalg.eigh(centred.T @ centred)[1][:, 0]
+            assert abs(thinnest[2]) > np.cos(np.radians(15.0))  # each graph's own vertical is near z
