@@ -44,7 +44,7 @@ from shgm_slam.bench.system import write_report
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.demo import MODELS_DIR
-from shgm_slam.errors import DataError
+from shgm_slam.errors import DataError, SimulationError
 from shgm_slam.geometry import se3
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import read_tum
@@ -386,9 +386,15 @@ def _match_truth(run_dir: Path, world: Path, mode: InputMode) -> dict:
 
 
 def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, progress: Progress) -> list[dict]:
-    """Render one world (cached) and run every mode on it; returns one dict per run (cached as JSON)."""
-    world = ensure_world(options.cache, scenario, seed, options.resolution, progress, options.supersample,
-                         options.uav_altitude_m)
+    """Render one world (cached) and run every mode on it; returns one dict per run (cached as JSON), or one
+    ``{"scenario", "seed", "skipped"}`` dict when the world cannot be built as asked (a UAV altitude below this
+    city's roofs): the other worlds' runs and the summary are kept, and the report lists the world skipped."""
+    try:
+        world = ensure_world(options.cache, scenario, seed, options.resolution, progress, options.supersample,
+                             options.uav_altitude_m)
+    except SimulationError as exc:
+        progress(f"skipping {scenario} seed {seed}: {exc}")
+        return [{"scenario": scenario, "seed": seed, "skipped": str(exc)}]
     done_runs = []
     for mode in options.modes:
         run_dir = out / "runs" / f"{scenario}-s{seed}-{mode.value}"
@@ -449,7 +455,8 @@ def run_heldout_benchmark(
                 runs_by_world.append(f.result())
     else:
         runs_by_world = [_world_runs(sc, seed, options, out, progress) for sc, seed in worlds]
-    done_runs = [r for world_runs in runs_by_world for r in world_runs]
+    skipped = [r for world_runs in runs_by_world for r in world_runs if "skipped" in r]
+    done_runs = [r for world_runs in runs_by_world for r in world_runs if "skipped" not in r]
     runs = [{k: v for k, v in d.items() if k != "verdicts"} for d in done_runs]
     rows = [v for d in done_runs for v in d["verdicts"]]
     results = {
@@ -463,6 +470,7 @@ def run_heldout_benchmark(
         },
         "summary": summarize(rows, runs),
         "runs": runs,
+        "skipped_worlds": skipped,
         "robots": rows,
         "wall_s": round(time.perf_counter() - t0, 1),
     }  # fmt: skip
@@ -612,6 +620,9 @@ def heldout_markdown(results: dict) -> str:
                 + ("?" if s.get("rejected_unrecorded") else f"{s.get('rejected_right', 0)}/{s.get('rejected', 0)}")
                 + " |"
             )
+    if results.get("skipped_worlds"):
+        lines += ["", "Worlds skipped (not built as asked; not in the tables):", ""]
+        lines += [f"- {w['scenario']} seed {w['seed']}: {w['skipped']}" for w in results["skipped_worlds"]]
     for mode, per in results["summary"].items():
         if per["worst"]:
             lines += ["", f"Worst cases ({mode}):", ""]

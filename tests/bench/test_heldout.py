@@ -236,3 +236,22 @@ def test_summary_adds_up_the_runs_judged_matches_per_scenario(tiny_scenario, tmp
     runs[1]["matches"]["anchorings"] = None  # a run from before anchorings were recorded
     md = heldout_markdown({"options": options, "summary": summarize(rows, runs)})
     assert "| 2/12 (1) | ? |" in md
+
+
+def test_a_world_that_cannot_be_built_is_skipped_and_reported_not_fatal(tmp_path, monkeypatch):
+    """A UAV altitude below one city's roofs refuses that world only: the benchmark still writes its report,
+    and the report says which world was skipped and why."""
+    import shgm_slam.bench.heldout as heldout
+    from shgm_slam.errors import SimulationError
+
+    def refuse(cache, scenario, seed, *args, **kwargs):
+        raise SimulationError(f"the UAV flies through buildings (seed {seed})")
+
+    monkeypatch.setattr(heldout, "ensure_world", refuse)
+    options = heldout.HeldoutOptions(scenarios=("airsim-like",), seeds=(15, 19), modes=(InputMode.FILES,),
+                                     cache=tmp_path / "cache", uav_altitude_m=(30.0, 40.0))  # fmt: skip
+    results = heldout.run_heldout_benchmark(tmp_path / "out", options)
+    assert [w["seed"] for w in results["skipped_worlds"]] == [15, 19] and results["robots"] == []
+    report = (tmp_path / "out" / "heldout.md").read_text()
+    assert "Worlds skipped" in report and "airsim-like seed 19: the UAV flies through buildings (seed 19)" in report
+    assert json.loads((tmp_path / "out" / "heldout.json").read_text())["skipped_worlds"][0]["seed"] == 15
