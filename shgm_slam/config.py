@@ -7,6 +7,7 @@ Defaults follow the paper and the authors' release (ARCHITECTURE.md, "The algori
 
 from __future__ import annotations
 
+import math
 from enum import Enum
 from pathlib import Path
 from typing import Any, ClassVar
@@ -178,6 +179,13 @@ class MatchingConfig(_Stage):
     up_axis: tuple[float, float, float] = Field(
         (0.0, -1.0, 0.0), description="vertical axis of the world frames (KITTI camera frame: -y is up)"
     )
+
+    @field_validator("up_axis")
+    @classmethod
+    def _nonzero_up(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not all(math.isfinite(v) for v in value) or not math.hypot(*value) > 0:
+            raise ValueError(f"up_axis must be a finite non-zero vector (KITTI camera frame: [0, -1, 0]), got {value}")
+        return value
 
     @field_validator("viewpoint_dependent_labels")
     @classmethod

@@ -79,3 +79,10 @@ def test_odometry_drift_follows_where_the_depth_comes_from() -> None:
     # written resolved into config.yaml and read back unchanged
     again = ShgmConfig.model_validate(yaml.safe_load(fleet_backend(cfg, fronts).to_yaml()))
     assert again.backend.odometry_drift_rot_rad_per_m == PREDICTED_DEPTH_DRIFT[0]
+
+
+def test_a_zero_up_axis_is_refused(tmp_path):
+    path = tmp_path / "up.yaml"
+    path.write_text("matching:\n  up_axis: [0, 0, 0]\n")
+    with pytest.raises(ConfigError, match="up_axis must be a finite non-zero vector"):
+        load_config(path)

@@ -95,6 +95,10 @@ def read_projection(calib_path: Path, key: str) -> np.ndarray:
     )
 
 
+MIN_FOCAL_PX, MAX_FOCAL_PX = 1e-2, 1e7
+"""Focal lengths outside this range (pixels) are a wrong calibration, not a camera."""
+
+
 def check_projection(P: np.ndarray, width: int, height: int, calib_path: Path, key: str) -> None:
     """Sanity of a (3, 4) projection for a ``width`` x ``height`` image.
 
@@ -107,10 +111,13 @@ def check_projection(P: np.ndarray, width: int, height: int, calib_path: Path, k
     if not (fx > 0 and fy > 0):
         raise DataError(f"{where}: focal lengths must be positive (a negative one mirrors the map), got fx={fx:g}, "
                         f"fy={fy:g}")
-    if abs(P[1, 0]) > 1e-6 * fx or abs(P[2, 0]) > 1e-9 or abs(P[2, 1]) > 1e-9 or abs(P[2, 2] - 1.0) > 1e-6:
-        raise DataError(
-            f"{where}: expected a pinhole projection 'fx 0 cx tx 0 fy cy ty 0 0 1 tz', got {P[:, :3].ravel()}"
-        )
+    if not (MIN_FOCAL_PX <= fx <= MAX_FOCAL_PX and MIN_FOCAL_PX <= fy <= MAX_FOCAL_PX):
+        raise DataError(f"{where}: focal lengths fx={fx:g}, fy={fy:g} px are outside [{MIN_FOCAL_PX:g}, "
+                        f"{MAX_FOCAL_PX:g}] (a field of view between ~0 and ~180 degrees): wrong units or calib?")
+    skewed = abs(P[0, 1]) > 1e-6 * fx or abs(P[1, 0]) > 1e-6 * fx
+    if skewed or abs(P[2, 0]) > 1e-9 or abs(P[2, 1]) > 1e-9 or abs(P[2, 2] - 1.0) > 1e-6:
+        rows = "; ".join(" ".join(f"{v:g}" for v in row) for row in P[:, :3])
+        raise DataError(f"{where}: expected a pinhole projection 'fx 0 cx tx 0 fy cy ty 0 0 1 tz', got [{rows}]")
     if not (0 <= cx < width and 0 <= cy < height):
         raise DataError(
             f"{where}: principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image; "

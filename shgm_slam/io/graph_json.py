@@ -28,6 +28,12 @@ from shgm_slam.types import GraphArrays
 FORMAT_TAG = "shgm-graph/1"
 MAX_COORDINATE_M = 1e9
 """Node coordinates beyond this (metres) are refused: distances and fits would overflow to inf."""
+MAX_NODES = 10_000
+"""Most nodes a graph file may hold: the whole-overlap verification of a match holds arrays of (shifts x nodes)
+booleans (a 20 000-node graph against a 100-node one peaked at 3.1 GB, a 50 000-node one asked 5.3 GB for one
+array). KITTI 00's 3.7 km make ~2500 nodes."""
+MAX_FILE_BYTES = 400 * MAX_NODES * 100
+"""A graph file larger than this cannot be a graph of ``MAX_NODES`` nodes (a node is ~100-200 characters)."""
 MAX_SIZE = 1e15
 """Node sizes (weights of Eq. 2) must be below this; their sums would otherwise overflow."""
 
@@ -108,6 +114,9 @@ def graph_from_dict(
         raise fail('needs "nodes": a list of {"id", "label", "position", "size"} objects')
 
     n = len(nodes)
+    if n > MAX_NODES:
+        raise fail(f"{n} nodes, more than the {MAX_NODES} a match can hold in memory; split the map into "
+                   "areas (KITTI 00's 3.7 km make ~2500)")
     node_ids = np.zeros(n, np.int64)
     label_idx = np.zeros(n, np.int64)
     positions = np.zeros((n, 3))
@@ -216,6 +225,11 @@ def read_graph(path: Path | str, *, connectivity_m: float = 10.0) -> GraphArrays
     """
     path = Path(path)
     try:
+        if path.exists() and not path.is_file():
+            raise GraphError(f"graph file {path} is not a regular file")
+        if path.is_file() and path.stat().st_size > MAX_FILE_BYTES:
+            raise GraphError(f"graph file {path} holds {path.stat().st_size / 1e6:.0f} MB, more than the "
+                             f"{MAX_FILE_BYTES / 1e6:.0f} MB a graph of {MAX_NODES} nodes needs")
         text = path.read_text()
     except FileNotFoundError:
         raise GraphError(f"graph file {path} does not exist (write one with `shgm-slam graph`)") from None

@@ -136,6 +136,10 @@ def _to_array(path: Path, line_nos: list[int], rows: list[list[str]], ncols: int
     return values
 
 
+MAX_TRANSLATION_M = 1e9
+"""Positions farther than this (metres) are refused, as in graph files: distances would overflow."""
+
+
 def _all_float(row: list[str]) -> bool:
     try:
         [float(v) for v in row]
@@ -168,7 +172,17 @@ def read_kitti_poses(path: Path | str) -> np.ndarray:
     poses = np.tile(np.eye(4), (values.shape[0], 1, 1))
     poses[:, :3, :4] = values.reshape(-1, 3, 4)
     poses[:, :3, :3] = _validated_rotations(poses[:, :3, :3], path, line_numbers)
+    _check_translations(poses[:, :3, 3], path, line_numbers)
     return poses
+
+
+def _check_translations(t_xyz: np.ndarray, path: Path, line_numbers: list[int]) -> None:
+    """DataError when a (N, 3) translation lies farther than ``MAX_TRANSLATION_M`` (overflows downstream)."""
+    far = np.abs(t_xyz).max(axis=1) > MAX_TRANSLATION_M if len(t_xyz) else np.zeros(0, dtype=bool)
+    if far.any():
+        i = int(np.argmax(far))
+        raise DataError(f"{path} line {line_numbers[i]}: a position farther than {MAX_TRANSLATION_M:g} m from the "
+                        "origin; positions are metres (the file's units or columns are wrong)")
 
 
 def read_tum(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
@@ -188,6 +202,14 @@ def read_tum(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
     if len(values):
         poses[:, :3, :3] = Rotation.from_quat(q_xyzw / norm[:, None]).as_matrix()
     poses[:, :3, 3] = values[:, 1:4]
+    _check_translations(poses[:, :3, 3], path, line_numbers)
+    steps = np.diff(values[:, 0])
+    if (steps <= 0).any():
+        k = int(np.flatnonzero(steps <= 0)[0])
+        raise DataError(
+            f"{path} line {line_numbers[k + 1]}: timestamp {values[k + 1, 0]:g} s is not after the previous row's "
+            f"{values[k, 0]:g} s; TUM rows must be in time order, one per time"
+        )
     return values[:, 0].copy(), poses
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import shutil
 import time
@@ -105,7 +106,7 @@ def depth_model_of(sequence: object) -> dict | None:
 
     ``sequence`` is any reader with a ``root`` folder, or a view with a ``base`` one; a folder without
     ``perceive.json``, or one whose manifest names no depth model (labels only), gives None. A manifest
-    that cannot be read gives None too: the depth is then treated as measured, as before.
+    that cannot be read gives None too, with a warning: the depth is then treated as measured.
 
     Returns:
         The manifest's model identity: ``path``, ``sha256``, ``card_sha256`` and (manifests written since
@@ -118,9 +119,16 @@ def depth_model_of(sequence: object) -> dict | None:
         return None
     try:
         manifest = json.loads((Path(root) / MANIFEST).read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError) as exc:
+        logging.getLogger(__name__).warning(
+            "%s cannot be read (%s): its depth is treated as measured, not predicted; write it again with "
+            "`shgm-slam perceive` (or delete it if no model wrote the depth)", Path(root) / MANIFEST, exc)
         return None
-    model = manifest.get("depth_model") if isinstance(manifest, dict) else None
+    if not isinstance(manifest, dict):
+        logging.getLogger(__name__).warning("%s is not a perceive manifest: its depth is treated as measured",
+                                            Path(root) / MANIFEST)
+        return None
+    model = manifest.get("depth_model")
     return model if isinstance(model, dict) else None
 
 

@@ -133,3 +133,19 @@ def test_bad_kitti_folder_names_the_problem(tmp_path: Path, damage, culprit: str
     damage(tmp_path / "s")
     with pytest.raises(DataError, match=re.escape(culprit)):
         KittiSequence(tmp_path / "s")
+
+
+@pytest.mark.parametrize(
+    ("P_row", "words"),
+    [
+        ([700.0, 5000.0, 150.0, 0.0, 0.0, 700.0, 45.0, 0.0, 0.0, 0.0, 1.0, 0.0], "pinhole"),  # skew
+        ([1e300, 0.0, 150.0, 0.0, 0.0, 1e300, 45.0, 0.0, 0.0, 0.0, 1.0, 0.0], "focal lengths"),
+        ([1e-300, 0.0, 150.0, 0.0, 0.0, 1e-300, 45.0, 0.0, 0.0, 0.0, 1.0, 0.0], "focal lengths"),
+    ],
+)
+def test_a_skewed_or_absurd_focal_projection_is_refused(P_row, words):
+    from shgm_slam.data.kitti import check_projection
+
+    P = np.asarray(P_row).reshape(3, 4)
+    with pytest.raises(DataError, match=words):
+        check_projection(P, 320, 96, Path("calib.txt"), "P2")

@@ -124,3 +124,19 @@ def test_unreadable_files(tmp_path):
     (tmp_path / "junk.json").write_text("{not json")
     with pytest.raises(GraphError, match="not JSON"):
         read_graph(tmp_path / "junk.json")
+
+
+def test_graph_files_too_large_to_match_or_not_files_are_refused(tmp_path, monkeypatch):
+    import shgm_slam.io.graph_json as gj
+
+    monkeypatch.setattr(gj, "MAX_NODES", 5)
+    nodes = [{"id": i, "label": 0, "position": [float(i), 0.0, 0.0]} for i in range(6)]
+    path = tmp_path / "big.json"
+    path.write_text(json.dumps({"format": "shgm-graph/1", "classes": ["road"], "nodes": nodes}))
+    with pytest.raises(GraphError, match="6 nodes, more than the 5"):
+        read_graph(path)
+    with pytest.raises(GraphError, match="not a regular file"):
+        read_graph(tmp_path)
+    monkeypatch.setattr(gj, "MAX_FILE_BYTES", 10)
+    with pytest.raises(GraphError, match="MB, more than"):
+        read_graph(path)

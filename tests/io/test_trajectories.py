@@ -159,3 +159,20 @@ def test_a_comment_line_is_skipped_by_every_reader(tmp_path: Path, poses: np.nda
     assert len(file_interface.read_kitti_poses_file(str(tmp_path / "a.txt")).poses_se3) == len(poses)
     write_tum(tmp_path / "plain.tum", stamps, poses)
     assert read_comments(tmp_path / "plain.tum") == []
+
+
+def test_pose_files_far_beyond_any_world_or_out_of_time_order_are_refused(tmp_path):
+    from shgm_slam.io.trajectories import read_poses_file
+
+    far = tmp_path / "far.txt"
+    far.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 1e200 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(DataError, match="line 2: a position farther than"):
+        read_poses_file(far)
+    backwards = tmp_path / "back.txt"
+    backwards.write_text("1.0 0 0 0 0 0 0 1\n0.5 0 0 1 0 0 0 1\n")
+    with pytest.raises(DataError, match=r"line 2: timestamp 0\.5 s is not after"):
+        read_poses_file(backwards)
+    repeated = tmp_path / "same.txt"
+    repeated.write_text("0 0 0 0 0 0 0 1\n0 0 0 1 0 0 0 1\n")
+    with pytest.raises(DataError, match="time order"):
+        read_poses_file(repeated)
