@@ -126,7 +126,7 @@ def simulate_command(
     depth_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="relative depth error std (0.05 = 5 %)")] = 0.0,
     label_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="segment confusion probability "
                                                "(boundaries also jitter by 10x this many px)")] = 0.0,
-    world_size: Annotated[float | None, typer.Option(min=50.0, max=20000.0, help="city side length, metres")] = None,
+    world_size: Annotated[float | None, typer.Option(min=150.0, max=20000.0, help="city side length, metres")] = None,
     max_depth: Annotated[float, typer.Option(min=1.0, max=10000.0, help="depth range, metres (farther = 0)")] = 200.0,
     compact: Annotated[bool, typer.Option("--compact", help="small world, short paths")] = False,
     kitti_root: Annotated[Path | None, typer.Option(help="KITTI folder with poses/ (kitti-paths)")] = None,
@@ -197,6 +197,7 @@ def graph(
             cfg.graph = GraphConfig.model_validate({**cfg.graph.model_dump(), **overrides})
         except ValidationError as exc:
             raise ConfigError(f"--connectivity/--merge-radius: {exc.errors()[0]['msg']}") from None
+    from shgm_slam.errors import GraphError
     from shgm_slam.perception.perceive import depth_model_of
 
     seq = open_sequence(sequence)
@@ -207,6 +208,11 @@ def graph(
             seq, cfg, keyframe_every_m=keyframe_every, depth_predicted=depth_model_of(seq) is not None,
             progress=lambda done, total: bar.update(task, completed=done, total=total),
         )  # fmt: skip
+    if len(sg) == 0:
+        raise GraphError(
+            f"{seq.name}: {len(sg.keyframe_ids)} keyframes gave no object (no valid depth with an object label in "
+            f"range, extraction.max_depth_m); nothing written to {out}"
+        )
     path = write_graph(out, sg.arrays())
     console.print(
         f"{seq.name}: {len(sg.keyframe_ids)} keyframes -> {len(sg)} nodes, {sg.num_edges} edges "

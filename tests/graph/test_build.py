@@ -141,3 +141,14 @@ def test_depth_a_model_wrote_places_thin_objects_as_configured(plate_sequence, t
     # fronto-parallel plates have one depth per plate: any percentile is the mean, the same graph
     ours = build_graph_from_sequence(open_sequence(perceived), cfg, depth_predicted=True).arrays()
     np.testing.assert_allclose(ours.positions_xyz, plain.arrays().positions_xyz, atol=1e-5)
+
+
+def test_graph_command_refuses_to_write_a_graph_without_objects(plate_sequence, tmp_path):
+    cfg = plate_config()
+    cfg.extraction.max_depth_m = 0.6  # every plate lies farther: no object in range
+    cfg_path = tmp_path / "cfg.yaml"
+    cfg_path.write_text(cfg.to_yaml())
+    out = tmp_path / "graph.json"
+    result = CliRunner().invoke(app, ["graph", f"{plate_sequence}:0-5", "--out", str(out), "--config", str(cfg_path)])
+    assert result.exit_code == 2 and "gave no object" in " ".join(result.output.split()), result.output
+    assert not out.exists()
