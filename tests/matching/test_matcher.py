@@ -133,8 +133,11 @@ def test_gravity_aligned_matching(overlapping):
     up = np.array([0.0, -1.0, 0.0])
     np.testing.assert_allclose(r.T_a_b[:3, :3] @ up, up, atol=1e-12)  # a yaw about the shared up axis
     assert _displacement_m(r.T_a_b, T_a_b, b) < 1.0
-    with pytest.raises(ConfigError, match="up_axis"):
-        match_graphs(a, b, DescriptorConfig(), MatchingConfig(gravity_aligned=True, up_axis=(0.0, 0.0, 0.0)))
+    with pytest.raises(ValueError, match="up_axis"):  # refused by the config itself
+        MatchingConfig(gravity_aligned=True, up_axis=(0.0, 0.0, 0.0))
+    unchecked = MatchingConfig(gravity_aligned=True).model_copy(update={"up_axis": (0.0, 0.0, 0.0)})
+    with pytest.raises(ConfigError, match="up_axis"):  # and by the matcher, for configs built without checks
+        match_graphs(a, b, DescriptorConfig(), unchecked)
 
 
 def test_transform_points_each_has_the_bits_of_one_transform_at_a_time():
