@@ -225,11 +225,12 @@ def read_graph(path: Path | str, *, connectivity_m: float = 10.0) -> GraphArrays
     """
     path = Path(path)
     try:
-        if path.exists() and not path.is_file():
-            raise GraphError(f"graph file {path} is not a regular file")
-        if path.is_file() and path.stat().st_size > MAX_FILE_BYTES:
-            raise GraphError(f"graph file {path} holds {path.stat().st_size / 1e6:.0f} MB, more than the "
-                             f"{MAX_FILE_BYTES / 1e6:.0f} MB a graph of {MAX_NODES} nodes needs")
+        if path.exists():
+            if not path.is_file():
+                raise GraphError(f"graph file {path} is not a regular file")
+            if (size := path.stat().st_size) > MAX_FILE_BYTES:
+                raise GraphError(f"graph file {path} holds {size / 1e6:.0f} MB, more than the "
+                                 f"{MAX_FILE_BYTES / 1e6:.0f} MB a graph of {MAX_NODES} nodes needs")
         text = path.read_text()
     except FileNotFoundError:
         raise GraphError(f"graph file {path} does not exist (write one with `shgm-slam graph`)") from None

@@ -97,12 +97,11 @@ def choose_dof(
         positions_a_xyz, positions_b_xyz: (N, 3) and (M, 3) node positions of the two graphs, metres.
         cfg: the configured matching stage (its ``up_axis`` and ``gravity_aligned``).
     """
-    shared = shared_up_axis(positions_a_xyz, positions_b_xyz, np.asarray(cfg.up_axis))
-    if shared is not None:
-        axis = int(np.argmax(np.abs(shared)))
-        name = f"{'+' if shared[axis] > 0 else '-'}{'xyz'[axis]}"
+    axis_a, axis_b = flat_axis(positions_a_xyz), flat_axis(positions_b_xyz)
+    if axis_a is not None and axis_a == axis_b:
+        up, name = _vertical(axis_a, cfg)
         aligned = dof is not Dof.SIX
-        chosen = cfg.model_copy(update={"gravity_aligned": aligned, "up_axis": tuple(float(v) for v in shared)})
+        chosen = cfg.model_copy(update={"gravity_aligned": aligned, "up_axis": up})
         if aligned:
             return chosen, f"4-DoF about {name}: both graphs lie flat along it (--dof {dof.value}; 6: any rotation)"
         return chosen, f"6-DoF (--dof 6), vertical {name} for the chance model: both graphs lie flat along it"
@@ -112,14 +111,18 @@ def choose_dof(
     if dof is Dof.AUTO and cfg.gravity_aligned:
         return cfg, f"{configured} (the configuration)"
     free = cfg.model_copy(update={"gravity_aligned": False})
-    axis_a = flat_axis(positions_a_xyz)
     if axis_a is not None:  # the chance model's shifts are taken in A's frame: A's own vertical
-        up_a = _signed_axis(axis_a, np.asarray(cfg.up_axis))
-        name = f"{'+' if up_a[axis_a] > 0 else '-'}{'xyz'[axis_a]}"
-        chosen = free.model_copy(update={"up_axis": tuple(float(v) for v in up_a)})
+        up, name = _vertical(axis_a, cfg)
+        chosen = free.model_copy(update={"up_axis": up})
         return chosen, f"6-DoF: B lies flat along no axis that A does (vertical {name} of A for the chance model)"
     how = "(--dof 6)" if dof is Dof.SIX else "(the graphs share no flat vertical axis; --dof 4 for gravity-aligned)"
     return free, f"6-DoF {how}"
+
+
+def _vertical(axis: int, cfg: MatchingConfig) -> tuple[tuple[float, float, float], str]:
+    """Coordinate axis ``axis`` as an ``up_axis`` (signed as ``cfg.up_axis`` where parallel) and its name."""
+    up = _signed_axis(axis, np.asarray(cfg.up_axis))
+    return (float(up[0]), float(up[1]), float(up[2])), f"{'+' if up[axis] > 0 else '-'}{'xyz'[axis]}"
 
 
 def _signed_axis(axis: int, preferred_up: np.ndarray | None) -> np.ndarray:
