@@ -5,7 +5,8 @@ pixels; forward motion expands the image about the centre and does not move it a
 phase correlation of consecutive grey images measures the turn. On the simulated airsim-like cars
 (320x96, 82° hfov) it matches the true per-frame yaw to 0.1-0.2° RMS and 0.4° RMS in sharp turns
 of up to 10.7°/frame (worst 1.4°), where KISS-ICP with its constant-velocity prior under-turns.
-Used by ``sources.KissIcpSource`` as a rotation prior for ICP and as an independent check.
+Used by ``sources.KissIcpSource`` as a rotation prior for ICP and as an independent check; in turns too
+sharp for a sure peak its guess still starts the image tracks of ``flow_check``, which verify it.
 """
 
 from __future__ import annotations
@@ -26,9 +27,14 @@ class ImageYawEstimator:
         self.min_response = min_response
         self._prev: np.ndarray | None = None
         self._window: np.ndarray | None = None
+        self.candidate_rad: float | None = None
+        """The last pair's yaw from the correlation peak whatever its strength (None: first frame). A sharp
+        turn shifts the images so far that the peak is weak (25 deg/frame at 82 deg hfov: 0.14-0.24): not
+        sure enough to steer ICP, but a guess that image tracks can verify (``flow_check``)."""
 
     def reset(self) -> None:
         self._prev = None
+        self.candidate_rad = None
 
     def update(self, image_rgb: np.ndarray, fx_px: float) -> float | None:
         """Yaw of this image's camera in the previous image's camera, radians (None: first or unsure).
@@ -42,14 +48,16 @@ class ImageYawEstimator:
         """
         gray = cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2GRAY).astype(np.float32)
         prev, self._prev = self._prev, gray
+        self.candidate_rad = None
         if prev is None or prev.shape != gray.shape:
             return None
         if self._window is None or self._window.shape != gray.shape:
             self._window = cv2.createHanningWindow(gray.shape[::-1], cv2.CV_32F)
         (dx, _), response = cv2.phaseCorrelate(prev, gray, self._window)
+        self.candidate_rad = float(np.arctan2(-dx, fx_px))
         if response < self.min_response:
             return None
-        return float(np.arctan2(-dx, fx_px))
+        return self.candidate_rad
 
 
 def yaw_of(R: np.ndarray) -> float:

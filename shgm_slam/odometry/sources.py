@@ -183,7 +183,7 @@ class KissIcpSource:
         prior = None if yaw_img is None else yaw_prior(self.odometry.predicted_delta, yaw_img, self.prior_min_rad)
         tracks = None
         if self.flow is not None and frame.image_rgb is not None and depth_m is not None:
-            tracks = self.flow.update(frame.image_rgb, depth_m, frame.intrinsics)
+            tracks = self.flow.update(frame.image_rgb, depth_m, frame.intrinsics, self._guess_step())
         window = None
         if self.window is not None and frame.image_rgb is not None and depth_m is not None:
             window = self.window.update(frame.image_rgb, depth_m, frame.intrinsics, frame.timestamp_s)
@@ -219,6 +219,15 @@ class KissIcpSource:
             reg.T_odom_cam, reg.ok, note, self.odometry.threshold_m, disagreement, image_step=image_step,
             image_window=image_window,
         )  # fmt: skip
+
+
+    def _guess_step(self) -> np.ndarray:
+        """(4, 4) this frame's step as far as it is known before ICP: the constant-velocity prediction, turned
+        to the images' yaw guess (``ImageYawEstimator.candidate_rad``, however weak its peak) where there is one."""
+        delta = self.odometry.predicted_delta
+        candidate = None if self.image_yaw is None else self.image_yaw.candidate_rad
+        turned = None if candidate is None else yaw_prior(delta, candidate, 0.0)
+        return delta if turned is None else turned
 
 
 class GroundTruthSource:
