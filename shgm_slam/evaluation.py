@@ -129,6 +129,33 @@ def run_robot_order(results_dir: Path) -> list[str]:
     return names
 
 
+def run_frame_counts(results_dir: Path) -> dict[str, int]:
+    """Robot -> frames of its sequence (range) in the run, from ``metrics.json``; empty when not recorded."""
+    try:
+        robots = json.loads((results_dir / "metrics.json").read_text())["robots"]
+        return {r["name"]: r["frames"] for r in robots if isinstance(r.get("frames"), int)}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
+        return {}  # no metrics.json (``run_robot_order`` says what is wrong with an unreadable one)
+
+
+def check_frame_counts(results_dir: Path, sequences: dict[str, Sequence]) -> None:
+    """Refuse ground-truth sequences whose frame count differs from the one the run recorded.
+
+    A shorter, longer or shifted sequence (another range, another drive) still associates some poses by
+    time and gives a plausible but wrong ATE.
+
+    Raises:
+        DataError: a sequence's frame count differs from ``metrics.json``'s for that robot.
+    """
+    counts = run_frame_counts(results_dir)
+    for name, seq in sequences.items():
+        if name in counts and len(seq) != counts[name]:
+            raise DataError(
+                f"--gt {name}: its sequence has {len(seq)} frames but the run had {counts[name]} for {name} "
+                f"({results_dir / 'metrics.json'}); pass the same NAME=PATH[:start-end] as the run's --robot"
+            )
+
+
 def associate(t_est: np.ndarray, t_gt: np.ndarray, tol_s: float = TIME_TOLERANCE_S) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs (est rows, gt rows) of the same instants: nearest gt time within ``tol_s``."""
     if t_gt.size == 0 or t_est.size == 0:
@@ -185,7 +212,8 @@ def evaluate_results(
         write_gt: with ``sequences``, also write ``<robot>_gt_tum.txt`` / ``_kitti.txt`` into the folder.
 
     Raises:
-        DataError: not a results folder, unknown robot names, or no ground truth anywhere.
+        DataError: not a results folder, unknown robot names, a sequence with another frame count than
+            the run's, or no ground truth anywhere.
     """
     from shgm_slam.io.export import ResultsWriter
 
@@ -204,6 +232,7 @@ def evaluate_results(
             raise DataError(
                 f"--gt must include {order[0]}: the first robot of the run defines the shared frame"
             )
+        check_frame_counts(root, sequences)
         ordered = {r: sequences[r] for r in order if r in sequences}
         poses = shared_frame_ground_truth(ordered, gt_shared_frame)
         if not poses:
