@@ -28,12 +28,9 @@ import numpy as np
 from shgm_slam.data.base import open_sequence
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry import se3
-from shgm_slam.io.trajectories import read_comments, read_tum
+from shgm_slam.io.trajectories import associate, read_comments, read_tum
 from shgm_slam.metrics import AlignMode, ate
 from shgm_slam.types import Sequence
-
-TIME_TOLERANCE_S = 1e-4
-"""Fused and ground-truth poses are the same frame when their timestamps differ by less than this."""
 
 
 def shared_frame_ground_truth(robots: dict[str, Sequence], gt_shared_frame: bool = True) -> dict[str, np.ndarray]:
@@ -154,19 +151,6 @@ def check_frame_counts(results_dir: Path, sequences: dict[str, Sequence]) -> Non
                 f"--gt {name}: its sequence has {len(seq)} frames but the run had {counts[name]} for {name} "
                 f"({results_dir / 'metrics.json'}); pass the same NAME=PATH[:start-end] as the run's --robot"
             )
-
-
-def associate(t_est: np.ndarray, t_gt: np.ndarray, tol_s: float = TIME_TOLERANCE_S) -> tuple[np.ndarray, np.ndarray]:
-    """Index pairs (est rows, gt rows) of the same instants: nearest gt time within ``tol_s``."""
-    if t_gt.size == 0 or t_est.size == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    order = np.argsort(t_gt)
-    ts = t_gt[order]
-    after = np.searchsorted(ts, t_est).clip(0, len(ts) - 1)
-    before = (after - 1).clip(0)
-    pick = np.where(np.abs(ts[before] - t_est) < np.abs(ts[after] - t_est), before, after)
-    ok = np.abs(ts[pick] - t_est) < tol_s
-    return np.flatnonzero(ok), order[pick[ok]]
 
 
 def _evaluate_robot(name: str, fused_file: Path, t_gt: np.ndarray, gt: np.ndarray) -> RobotEvaluation:

@@ -65,7 +65,8 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
     rcfg = _window_on_image(name, rcfg, sequence, perception, written_by)
     choice = choose_odometry(rcfg.odometry.kind, depth_from_model=predicted)
     log.info("%s: odometry %s (%s)", name, choice.kind.value, choice.reason)
-    odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence))
+    odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence),
+                             timestamps_s=sequence.timestamps_s)  # fmt: skip
     return RobotFrontend(name, sequence, rcfg, perception, odometry, choice, depth_predicted=predicted)
 
 
