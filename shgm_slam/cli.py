@@ -788,9 +788,10 @@ def check_model_command(
         from shgm_slam.errors import ModelError
 
         what = f"{report.value_min:.3g} m" if not report.label_fractions else f"train id {report.value_min:.0f}"
-        raise ModelError(f"{model}: constant output ({what} wherever valid) on {report.image_source}; `run` "
-                         "refuses such a model: check the card (output kind, scale, clamp range, classes) and "
-                         "the model")
+        why = " (a graph of one class cannot be matched)" if report.label_fractions else ""
+        raise ModelError(f"{model}: constant output ({what} wherever valid) on {report.image_source}; `run` and "
+                         f"`perceive` refuse such a model{why}: check the card (output kind, scale, clamp range, "
+                         "classes) and the model")
 
 
 @app.command("perceive")
