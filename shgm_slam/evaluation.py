@@ -196,14 +196,19 @@ def evaluate_results(
         write_gt: with ``sequences``, also write ``<robot>_gt_tum.txt`` / ``_kitti.txt`` into the folder.
 
     Raises:
-        DataError: not a results folder, unknown robot names, a sequence with another frame count than
-            the run's, or no ground truth anywhere.
+        DataError: not a results folder (or one of a run that failed), unknown robot names, a sequence with
+            another frame count than the run's, or no ground truth anywhere.
     """
-    from shgm_slam.io.export import ResultsWriter
+    from shgm_slam.io.export import INCOMPLETE_FILE, ResultsWriter
 
     root = Path(results_dir)
     if not root.is_dir():
         raise DataError(f"results folder {root} does not exist; pass the --out folder of `run` or `demo`")
+    if (root / INCOMPLETE_FILE).is_file():
+        raise DataError(
+            f"{root} holds no results: its run ended with an error ({root / INCOMPLETE_FILE} says why); run it "
+            "again with --overwrite"
+        )
     order = run_robot_order(root)
     result = EvaluationResult(root, order[0], "")
     truth: dict[str, tuple[np.ndarray, np.ndarray]] = {}
