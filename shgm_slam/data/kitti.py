@@ -66,7 +66,12 @@ def read_png(path: Path, flags: int) -> np.ndarray:
     """``cv2.imread`` that raises a DataError naming the file when it is missing or corrupt."""
     image = cv2.imread(str(path), flags)
     if image is None:
-        raise DataError(f"cannot read image {path} (missing or corrupt PNG); re-export or remove that frame")
+        # removing the file would leave a gap in the numbering, which no sequence accepts: a range leaves it out
+        leave_out = "use a frame range that leaves it out"
+        if path.stem.isdigit():
+            i = int(path.stem)
+            leave_out += f" (SEQ:0-{i} or SEQ:{i + 1}-)" if i > 0 else " (SEQ:1-)"
+        raise DataError(f"cannot read image {path} (missing or corrupt PNG); re-export that file, or {leave_out}")
     return image
 
 
