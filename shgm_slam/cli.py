@@ -486,10 +486,12 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
                  jobs: int | None = None):  # fmt: skip
     from shgm_slam.errors import ConfigError
     from shgm_slam.io.export import make_results_dir
-    from shgm_slam.runner import open_robots, prepare_frontends
+    from shgm_slam.runner import check_out_outside_sequences, open_robots, prepare_frontends
     from shgm_slam.viz.rerun_logger import DEFAULT_CONNECT_URL, RerunMode, make_viz, viewer_address
 
     robots = open_robots(robot_args)
+    if out is not None:
+        check_out_outside_sequences(out, robot_args)
     try:
         mode = RerunMode(rerun_mode)
     except ValueError:

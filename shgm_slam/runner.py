@@ -21,6 +21,7 @@ from shgm_slam.backend.confirmation import describe
 from shgm_slam.backend.keys import MAX_AGENTS, segments_per_robot
 from shgm_slam.config import OdometryKind, RobotOverrides, ShgmConfig
 from shgm_slam.data import open_sequence
+from shgm_slam.data.base import parse_sequence_spec
 from shgm_slam.data.interleave import interleave
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.fusion import fuse_segments
@@ -77,6 +78,24 @@ def open_robots(robot_args: list[str]) -> dict[str, Sequence]:
             raise DataError(f"robot {name!r}: sequence {spec} has zero frames (check the frame range)")
         robots[name] = seq
     return robots
+
+
+def check_out_outside_sequences(out: Path, robot_args: list[str]) -> None:
+    """Refuse a results folder that is a robot's sequence folder or lies inside one.
+
+    Raises:
+        ConfigError: ``out`` is (inside) the folder of a robot's ``NAME=PATH[:start-end]``: the results would
+            be written among the sequence's files (a ``graph_*.json`` or ``run.rrd`` in a sequence others read).
+    """
+    target = Path(out).resolve()
+    for arg in robot_args:
+        name, spec = parse_robot_arg(arg)
+        root = parse_sequence_spec(spec)[0].resolve()
+        if target == root or root in target.parents:
+            raise ConfigError(
+                f"--out {out} is in the sequence folder of robot {name!r} ({root}): writing results there would "
+                "change the sequence; choose a folder outside it"
+            )
 
 
 def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConfig:

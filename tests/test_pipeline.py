@@ -270,6 +270,24 @@ def test_a_robot_whose_odometry_fails_on_every_frame_stops_and_the_run_goes_on(t
     assert (tmp_path / "out" / "car1_fused_tum.txt").is_file()
 
 
+def test_results_inside_a_robots_sequence_folder_are_refused(tiny_scenario: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from shgm_slam.cli import app
+    from shgm_slam.runner import check_out_outside_sequences
+
+    seq = tmp_path / "car1"
+    shutil.copytree(tiny_scenario / "car1", seq)
+    before = sorted(p.relative_to(seq) for p in seq.rglob("*"))
+    for out in (seq, seq / "image_2", seq / "new" / "deeper"):
+        res = CliRunner().invoke(app, ["run", "--robot", f"car1={seq}:0-5", "--rerun", "off", "--out", str(out)])
+        assert res.exit_code == 2, res.output
+        assert "is in the sequence folder of robot 'car1'" in res.output.replace("\n", " ")
+    assert sorted(p.relative_to(seq) for p in seq.rglob("*")) == before  # nothing written into it
+    check_out_outside_sequences(tmp_path / "out", [f"car1={seq}:0-5"])  # beside it is fine
+    check_out_outside_sequences(tmp_path / "car10", [f"car1={seq}"])  # a name that only starts the same too
+
+
 def test_bad_robot_arguments_give_clear_errors(tiny_scenario: Path, tmp_path: Path) -> None:
     assert parse_robot_arg("car1=/data/seq:0-10") == ("car1", "/data/seq:0-10")
     with pytest.raises(ConfigError, match="NAME=PATH"):
