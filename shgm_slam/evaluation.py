@@ -155,6 +155,8 @@ def check_frame_counts(results_dir: Path, sequences: dict[str, Sequence]) -> Non
 
 def _evaluate_robot(name: str, fused_file: Path, t_gt: np.ndarray, gt: np.ndarray) -> RobotEvaluation:
     if not fused_file.is_file():
+        if fused_file.exists():  # a folder (or another non-file) of that name: not "not placed"
+            raise DataError(f"{fused_file} is not a file; it must be the TUM trajectory `run` wrote for {name}")
         return RobotEvaluation(name, 0, 0, note="not placed (no fused trajectory)")
     t_est, est = read_tum(fused_file)
     rows_est, rows_gt = associate(t_est, t_gt)
@@ -255,7 +257,7 @@ def evaluate_results(
             result.robots.append(rep)
         else:
             fused = root / f"{r}_fused_tum.txt"
-            count = len(read_tum(fused)[0]) if fused.is_file() else 0
+            count = len(read_tum(fused)[0]) if fused.exists() else 0  # read_tum refuses a folder of that name
             provisional = count > 0 and is_provisional(fused)
             result.robots.append(RobotEvaluation(r, count, 0, note="no ground truth given", provisional=provisional))
     return result

@@ -106,6 +106,14 @@ def test_ground_truth_with_another_frame_count_than_the_run_is_refused(world, tm
     assert res.exit_code == 2 and "has 10 frames but the run had 9 for car2" in res.output.replace("\n", " ")
 
 
+def test_a_fused_trajectory_that_is_a_directory_is_not_taken_for_an_unplaced_robot(world, tmp_path):
+    robots = _results(world, tmp_path)
+    (tmp_path / "car2_fused_tum.txt").unlink()
+    (tmp_path / "car2_fused_tum.txt").mkdir()
+    with pytest.raises(DataError, match=r"car2_fused_tum\.txt is not a file"):
+        evaluate_results(tmp_path, robots)
+
+
 def test_associate_by_nearest_time():
     est, gt = associate(np.array([0.1, 0.2, 0.35, 0.5]), np.array([0.5, 0.2, 0.1]))
     assert est.tolist() == [0, 1, 3] and gt.tolist() == [2, 1, 0]

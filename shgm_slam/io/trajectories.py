@@ -101,7 +101,8 @@ def read_comments(path: Path | str) -> list[str]:
 def _read_text(path: Path | str) -> tuple[Path, str]:
     path = Path(path)
     if not path.is_file():
-        raise DataError(f"pose file {path} does not exist; check the path")
+        what = "is a directory, not a file" if path.is_dir() else "does not exist"
+        raise DataError(f"pose file {path} {what}; check the path")
     try:
         return path, path.read_text()
     except (OSError, UnicodeDecodeError) as e:

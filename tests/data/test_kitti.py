@@ -165,3 +165,11 @@ def test_a_corrupt_frame_advises_a_frame_range_that_leaves_it_out(seq_dir: Path)
     (seq_dir / "image_2" / "000000.png").write_bytes(b"")
     with pytest.raises(DataError, match=re.escape("(SEQ:1-)")):
         read_png(seq_dir / "image_2" / "000000.png", cv2.IMREAD_COLOR)
+
+
+@pytest.mark.parametrize("name", ["calib.txt", "times.txt"])
+def test_a_sequence_file_that_is_a_directory_says_so(seq_dir: Path, name: str) -> None:
+    (seq_dir / name).unlink()
+    (seq_dir / name).mkdir()
+    with pytest.raises(DataError, match=re.escape(f"{name} is a directory, not a file")):
+        open_sequence(seq_dir)
