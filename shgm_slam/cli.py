@@ -486,10 +486,12 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
                  jobs: int | None = None):  # fmt: skip
     from shgm_slam.errors import ConfigError
     from shgm_slam.io.export import make_results_dir
-    from shgm_slam.runner import open_robots, prepare_frontends
+    from shgm_slam.runner import check_out_outside_sequences, open_robots, prepare_frontends
     from shgm_slam.viz.rerun_logger import DEFAULT_CONNECT_URL, RerunMode, make_viz, viewer_address
 
     robots = open_robots(robot_args)
+    if out is not None:
+        check_out_outside_sequences(out, robot_args)
     try:
         mode = RerunMode(rerun_mode)
     except ValueError:
@@ -788,9 +790,10 @@ def check_model_command(
         from shgm_slam.errors import ModelError
 
         what = f"{report.value_min:.3g} m" if not report.label_fractions else f"train id {report.value_min:.0f}"
-        raise ModelError(f"{model}: constant output ({what} wherever valid) on {report.image_source}; `run` "
-                         "refuses such a model: check the card (output kind, scale, clamp range, classes) and "
-                         "the model")
+        why = " (a graph of one class cannot be matched)" if report.label_fractions else ""
+        raise ModelError(f"{model}: constant output ({what} wherever valid) on {report.image_source}; `run` and "
+                         f"`perceive` refuse such a model{why}: check the card (output kind, scale, clamp range, "
+                         "classes) and the model")
 
 
 @app.command("perceive")

@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from shgm_slam.errors import ConfigError
+from shgm_slam.errors import ConfigError, parse_failure
 from shgm_slam.labels import DEFAULT_GRAPH_LABELS, FLAT_GROUND_LABELS, THIN_OBJECT_DEPTH_PERCENTILES
 
 
@@ -584,7 +584,7 @@ def load_config(path: Path | str | None) -> ShgmConfig:
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
     except (ValueError, RecursionError) as exc:  # an integer of thousands of digits, nesting too deep
-        raise ConfigError(f"config file {path} cannot be read: {exc}") from None
+        raise ConfigError(f"config file {path} cannot be read: {parse_failure(exc)}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"config file {path} must hold a mapping of stages, got {type(data).__name__}")
     try:

@@ -6,6 +6,8 @@ only ``cli.py`` catches them, prints one line and exits non-zero.
 
 from __future__ import annotations
 
+import re
+
 
 class ShgmError(Exception):
     """Base class of every error shgm_slam raises on purpose."""
@@ -41,3 +43,16 @@ class ProtocolError(ShgmError):
 
 class TransportError(ShgmError):
     """The network transport between robots and the map server cannot be opened or used."""
+
+
+def parse_failure(exc: BaseException) -> str:
+    """Why a YAML or JSON file could not be parsed, said in our words where Python's would mislead: an integer
+    of thousands of digits (Python's text advises ``sys.set_int_max_str_digits()``) or nesting too deep."""
+    if isinstance(exc, RecursionError):
+        return "its nesting is too deep"
+    text = str(exc)
+    if "integer string conversion" in text:
+        digits = re.search(r"value has (\d+) digits", text)
+        size = f"{digits[1]} digits" if digits else "thousands of digits"
+        return f"it holds an integer of {size}, far beyond any value it can mean; fix that number"
+    return text

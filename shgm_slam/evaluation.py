@@ -28,12 +28,9 @@ import numpy as np
 from shgm_slam.data.base import open_sequence
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry import se3
-from shgm_slam.io.trajectories import read_comments, read_tum
+from shgm_slam.io.trajectories import associate, read_comments, read_tum
 from shgm_slam.metrics import AlignMode, ate
 from shgm_slam.types import Sequence
-
-TIME_TOLERANCE_S = 1e-4
-"""Fused and ground-truth poses are the same frame when their timestamps differ by less than this."""
 
 
 def shared_frame_ground_truth(robots: dict[str, Sequence], gt_shared_frame: bool = True) -> dict[str, np.ndarray]:
@@ -129,21 +126,37 @@ def run_robot_order(results_dir: Path) -> list[str]:
     return names
 
 
-def associate(t_est: np.ndarray, t_gt: np.ndarray, tol_s: float = TIME_TOLERANCE_S) -> tuple[np.ndarray, np.ndarray]:
-    """Index pairs (est rows, gt rows) of the same instants: nearest gt time within ``tol_s``."""
-    if t_gt.size == 0 or t_est.size == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    order = np.argsort(t_gt)
-    ts = t_gt[order]
-    after = np.searchsorted(ts, t_est).clip(0, len(ts) - 1)
-    before = (after - 1).clip(0)
-    pick = np.where(np.abs(ts[before] - t_est) < np.abs(ts[after] - t_est), before, after)
-    ok = np.abs(ts[pick] - t_est) < tol_s
-    return np.flatnonzero(ok), order[pick[ok]]
+def run_frame_counts(results_dir: Path) -> dict[str, int]:
+    """Robot -> frames of its sequence (range) in the run, from ``metrics.json``; empty when not recorded."""
+    try:
+        robots = json.loads((results_dir / "metrics.json").read_text())["robots"]
+        return {r["name"]: r["frames"] for r in robots if isinstance(r.get("frames"), int)}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
+        return {}  # no metrics.json (``run_robot_order`` says what is wrong with an unreadable one)
+
+
+def check_frame_counts(results_dir: Path, sequences: dict[str, Sequence]) -> None:
+    """Refuse ground-truth sequences whose frame count differs from the one the run recorded.
+
+    A shorter, longer or shifted sequence (another range, another drive) still associates some poses by
+    time and gives a plausible but wrong ATE.
+
+    Raises:
+        DataError: a sequence's frame count differs from ``metrics.json``'s for that robot.
+    """
+    counts = run_frame_counts(results_dir)
+    for name, seq in sequences.items():
+        if name in counts and len(seq) != counts[name]:
+            raise DataError(
+                f"--gt {name}: its sequence has {len(seq)} frames but the run had {counts[name]} for {name} "
+                f"({results_dir / 'metrics.json'}); pass the same NAME=PATH[:start-end] as the run's --robot"
+            )
 
 
 def _evaluate_robot(name: str, fused_file: Path, t_gt: np.ndarray, gt: np.ndarray) -> RobotEvaluation:
     if not fused_file.is_file():
+        if fused_file.exists():  # a folder (or another non-file) of that name: not "not placed"
+            raise DataError(f"{fused_file} is not a file; it must be the TUM trajectory `run` wrote for {name}")
         return RobotEvaluation(name, 0, 0, note="not placed (no fused trajectory)")
     t_est, est = read_tum(fused_file)
     rows_est, rows_gt = associate(t_est, t_gt)
@@ -185,13 +198,19 @@ def evaluate_results(
         write_gt: with ``sequences``, also write ``<robot>_gt_tum.txt`` / ``_kitti.txt`` into the folder.
 
     Raises:
-        DataError: not a results folder, unknown robot names, or no ground truth anywhere.
+        DataError: not a results folder (or one of a run that failed), unknown robot names, a sequence with
+            another frame count than the run's, or no ground truth anywhere.
     """
-    from shgm_slam.io.export import ResultsWriter
+    from shgm_slam.io.export import INCOMPLETE_FILE, ResultsWriter
 
     root = Path(results_dir)
     if not root.is_dir():
         raise DataError(f"results folder {root} does not exist; pass the --out folder of `run` or `demo`")
+    if (root / INCOMPLETE_FILE).is_file():
+        raise DataError(
+            f"{root} holds no results: its run ended with an error ({root / INCOMPLETE_FILE} says why); run it "
+            "again with --overwrite"
+        )
     order = run_robot_order(root)
     result = EvaluationResult(root, order[0], "")
     truth: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -204,6 +223,7 @@ def evaluate_results(
             raise DataError(
                 f"--gt must include {order[0]}: the first robot of the run defines the shared frame"
             )
+        check_frame_counts(root, sequences)
         ordered = {r: sequences[r] for r in order if r in sequences}
         poses = shared_frame_ground_truth(ordered, gt_shared_frame)
         if not poses:
@@ -237,7 +257,7 @@ def evaluate_results(
             result.robots.append(rep)
         else:
             fused = root / f"{r}_fused_tum.txt"
-            count = len(read_tum(fused)[0]) if fused.is_file() else 0
+            count = len(read_tum(fused)[0]) if fused.exists() else 0  # read_tum refuses a folder of that name
             provisional = count > 0 and is_provisional(fused)
             result.robots.append(RobotEvaluation(r, count, 0, note="no ground truth given", provisional=provisional))
     return result

@@ -18,8 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from shgm_slam.backend.confirmation import describe
+from shgm_slam.backend.keys import MAX_AGENTS, segments_per_robot
 from shgm_slam.config import OdometryKind, RobotOverrides, ShgmConfig
 from shgm_slam.data import open_sequence
+from shgm_slam.data.base import parse_sequence_spec
 from shgm_slam.data.interleave import interleave
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.fusion import fuse_segments
@@ -76,6 +78,24 @@ def open_robots(robot_args: list[str]) -> dict[str, Sequence]:
             raise DataError(f"robot {name!r}: sequence {spec} has zero frames (check the frame range)")
         robots[name] = seq
     return robots
+
+
+def check_out_outside_sequences(out: Path, robot_args: list[str]) -> None:
+    """Refuse a results folder that is a robot's sequence folder or lies inside one.
+
+    Raises:
+        ConfigError: ``out`` is (inside) the folder of a robot's ``NAME=PATH[:start-end]``: the results would
+            be written among the sequence's files (a ``graph_*.json`` or ``run.rrd`` in a sequence others read).
+    """
+    target = Path(out).resolve()
+    for arg in robot_args:
+        name, spec = parse_robot_arg(arg)
+        root = parse_sequence_spec(spec)[0].resolve()
+        if target == root or root in target.parents:
+            raise ConfigError(
+                f"--out {out} is in the sequence folder of robot {name!r} ({root}): writing results there would "
+                "change the sequence; choose a folder outside it"
+            )
 
 
 def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConfig:
@@ -244,18 +264,28 @@ def prepare_frontends(robots: dict[str, Sequence], cfg: ShgmConfig) -> dict[str,
 
     This is everything that can refuse a run (config, models, the first frames); the CLI calls it before it
     creates the results folder, so a refused run leaves nothing behind that the next one would have to clear.
+    Each robot may start ``segments_per_robot`` trajectory segments: together they fit the pose graph.
 
     Raises:
-        ConfigError, DataError, ModelError: what ``make_frontend`` raises; overrides for unknown robots.
+        ConfigError, DataError, ModelError: what ``make_frontend`` raises; overrides for unknown robots; more
+            robots than the pose graph holds (``MAX_AGENTS``).
     """
     names = list(robots)
+    if len(names) > MAX_AGENTS:
+        raise ConfigError(
+            f"{len(names)} robots: the pose graph holds at most {MAX_AGENTS} agents (robots and their trajectory "
+            f"segments after odometry failures); run at most {MAX_AGENTS} robots"
+        )
     unknown = sorted(set(cfg.robots) - set(names))
     if unknown:
         raise ConfigError(
             f"the config has settings for robot(s) {', '.join(unknown)} that are not in this run "
             f"({', '.join(names)}); fix the names under 'robots:'"
         )
-    return {r: make_frontend(r, seq, cfg) for r, seq in robots.items()}
+    # each robot's share of the pose graph's agents: a robot whose odometry keeps failing stops at its share
+    # (a logged skip of its later frames) instead of ending the whole run when the agents run out
+    share = segments_per_robot(len(names))
+    return {r: make_frontend(r, seq, cfg, max_segments=share) for r, seq in robots.items()}
 
 
 def run_slam(
@@ -273,6 +303,9 @@ def run_slam(
     jobs: int = 1,
 ) -> RunSummary:
     """Run the whole multi-robot system and write the results folder.
+
+    A run that ends with an error after writing into ``out_dir`` leaves ``incomplete.txt`` there (why; the other
+    files are its last checkpoint), so that folder is not taken for results (``eval`` refuses it).
 
     Args:
         robots: robot name -> sequence (order matters: the first robot defines the shared frame).
@@ -300,8 +333,12 @@ def run_slam(
     with contextlib.ExitStack() as workers:
         if jobs > 1 and len(robots) > 1:
             fronts = workers.enter_context(ParallelFrontends(fronts, cfg, schedule, jobs, slim=not viz.enabled))
-        return _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame, write_every_keyframes,
-                    on_frame, journal)  # fmt: skip
+        try:
+            return _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame, write_every_keyframes,
+                        on_frame, journal)  # fmt: skip
+        except Exception as exc:  # re-raised: what was written so far must not pass for the run's results
+            _mark_incomplete(Path(out_dir), exc)
+            raise
 
 
 def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame, write_every_keyframes, on_frame,
@@ -351,11 +388,13 @@ def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame,
                         progress(done, total)
                     continue
                 processed[robot] += 1
-                image_change[robot].add(res.frame.image_rgb)
+                if not fronts[robot].stopped:  # a stopped robot's dropped frames say nothing about its odometry
+                    image_change[robot].add(res.frame.image_rgb)
                 if res.failure is not None:
+                    then = "its later frames are dropped" if fronts[robot].stopped else (
+                        f"new trajectory segment {res.agent}")  # fmt: skip
                     viz.log_odometry_failure(
-                        robot,
-                        f"{robot}: odometry diverged, {res.failure.describe()}; new trajectory segment {res.agent}",
+                        robot, f"{robot}: odometry diverged, {res.failure.describe()}; {then}",
                         _last_healthy_position(fronts[robot], server),
                     )  # fmt: skip
                 t0 = time.perf_counter()
@@ -431,6 +470,19 @@ def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame,
     return summary
 
 
+def _mark_incomplete(out_dir: Path, exc: Exception) -> None:
+    """Write ``incomplete.txt`` into a results folder whose run failed with ``exc`` (when the folder exists)."""
+    if not out_dir.is_dir():
+        return
+    try:
+        path = ResultsWriter(out_dir).mark_incomplete(f"{type(exc).__name__}: {exc}")
+    except DataError as marker_exc:  # the folder cannot be written: the original error is the one to report
+        log.warning("%s: cannot mark the unfinished results: %s", out_dir, marker_exc)
+        return
+    log.warning("the run ended with an error; the files in %s are its last checkpoint, marked by %s", out_dir,
+                path.name)  # fmt: skip
+
+
 def replay_backend(recorded: Path, cfg: ShgmConfig, out_dir: Path, robots: list[str]) -> ServerNode:
     """Run the map server again on the keyframes a run recorded, with ``cfg``'s matching and back end.
 
@@ -474,6 +526,13 @@ def _report_degenerate(
         front = fronts[rep.name]
         if rep.frames_skipped:
             rep.warnings.append(f"{rep.frames_skipped} of {rep.frames} frames skipped (reasons in 'skipped')")
+        if front.stopped:
+            rep.warnings.append(
+                f"stopped at frame {front.failures[-1].onset_frame}: its odometry diverged {len(front.failures)} "
+                f"times, and {front.max_segments} trajectory segments is each robot's share of the pose graph's "
+                f"{MAX_AGENTS} agents in a run of {len(reports)} robots; its later frames are dropped (reasons in "
+                "'failure_reasons'; check its depth, timestamps and odometry)"
+            )
         if rep.frames_processed and rep.nodes == 0:
             rep.warnings.append(
                 "no graph nodes: no object passed extraction, so it cannot be matched (check the labels, "
@@ -511,7 +570,7 @@ def _log_placements(viz: Viz, watch: PlacementWatch, server: MapServer) -> None:
 
 def _last_healthy_position(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
     """(3,) shared-frame position of the last frame of the segment that just failed, if that is placed."""
-    seg = front.segments[-2]
+    seg = front.segments[-1] if front.stopped else front.segments[-2]
     frames = np.flatnonzero(front.frame_segment == seg.index)
     if not len(frames) or server.T_shared_kf(seg.agent) is None:
         return None

@@ -86,3 +86,15 @@ def test_a_zero_up_axis_is_refused(tmp_path):
     path.write_text("matching:\n  up_axis: [0, 0, 0]\n")
     with pytest.raises(ConfigError, match="up_axis must be a finite non-zero vector"):
         load_config(path)
+
+
+def test_an_integer_of_thousands_of_digits_or_deep_nesting_is_said_in_our_words(tmp_path):
+    huge = tmp_path / "huge.yaml"
+    huge.write_text("graph:\n  connectivity_m: " + "9" * 5000 + "\n")
+    with pytest.raises(ConfigError, match="holds an integer of 5000 digits") as info:
+        load_config(huge)
+    assert "set_int_max_str_digits" not in str(info.value)  # Python's advice is not ours to give
+    deep = tmp_path / "deep.yaml"
+    deep.write_text("a: " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(ConfigError, match="its nesting is too deep"):
+        load_config(deep)

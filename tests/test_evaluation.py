@@ -45,7 +45,7 @@ def _results(world: Path, out: Path, *, place_car2: bool = True) -> dict:
             fused[:, :3, 3] += OFFSET_M
         odo = se3.inverse(fused[0]) @ fused
         writer.write_trajectories(r, seq.timestamps_s, odo, fused if (r == "car1" or place_car2) else None)
-    writer.write_json("metrics.json", {"robots": [{"name": r} for r in robots]})
+    writer.write_json("metrics.json", {"robots": [{"name": r, "frames": len(seq)} for r, seq in robots.items()]})
     return robots
 
 
@@ -93,6 +93,25 @@ def test_unplaced_robot_and_errors(world, tmp_path):
         evaluate_results(tmp_path / "nope")
     with pytest.raises(ConfigError, match="NAME=PATH"):
         open_ground_truth(["just/a/path"])
+
+
+def test_ground_truth_with_another_frame_count_than_the_run_is_refused(world, tmp_path):
+    robots = _results(world, tmp_path)
+    short = {**robots, "car1": open_sequence(f"{world / 'car1'}:0-5")}  # a wrong range still associates 5 poses
+    with pytest.raises(DataError, match=r"--gt car1: its sequence has 5 frames but the run had 12 for car1"):
+        evaluate_results(tmp_path, short)
+    assert not (tmp_path / "car1_gt_tum.txt").exists()  # nothing written from the wrong sequence
+    res = CliRunner().invoke(app, ["eval", str(tmp_path), "--gt", f"car1={world / 'car1'}", "--gt",
+                                   f"car2={world / 'car2'}:2-"])  # fmt: skip
+    assert res.exit_code == 2 and "has 10 frames but the run had 9 for car2" in res.output.replace("\n", " ")
+
+
+def test_a_fused_trajectory_that_is_a_directory_is_not_taken_for_an_unplaced_robot(world, tmp_path):
+    robots = _results(world, tmp_path)
+    (tmp_path / "car2_fused_tum.txt").unlink()
+    (tmp_path / "car2_fused_tum.txt").mkdir()
+    with pytest.raises(DataError, match=r"car2_fused_tum\.txt is not a file"):
+        evaluate_results(tmp_path, robots)
 
 
 def test_associate_by_nearest_time():

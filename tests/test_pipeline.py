@@ -200,6 +200,94 @@ def test_a_full_disk_mid_run_keeps_the_last_complete_checkpoint(tiny_scenario: P
     assert len(t) == server["robots"]["car1"]["keyframes"]
 
 
+def test_a_run_that_fails_mid_way_marks_its_folder_incomplete(tiny_scenario: Path, tmp_path: Path, monkeypatch):
+    """An error after the first checkpoint: the folder says so (incomplete.txt), eval refuses it, and the next
+    run into it needs --overwrite, which clears the marker too."""
+    from shgm_slam.errors import BackendError
+    from shgm_slam.evaluation import evaluate_results
+    from shgm_slam.io.export import make_results_dir
+    from shgm_slam.server.node import ServerNode
+
+    out = tmp_path / "out"
+    real_write = ServerNode.write_results
+    calls = []
+
+    def write_results(self):
+        calls.append(1)
+        if len(calls) == 2:
+            raise BackendError("the pose graph failed")
+        return real_write(self)
+
+    monkeypatch.setattr(ServerNode, "write_results", write_results)
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
+    with pytest.raises(BackendError, match="the pose graph failed"):
+        run_slam(robots, cfg, out, write_every_keyframes=10)
+    assert (out / "car1_odometry_tum.txt").is_file() and not (out / "metrics.json").exists()
+    assert "BackendError: the pose graph failed" in (out / "incomplete.txt").read_text()
+    with pytest.raises(DataError, match="holds no results: its run ended with an error"):
+        evaluate_results(out)
+    with pytest.raises(DataError, match="earlier run's results"):
+        make_results_dir(out)
+    make_results_dir(out, overwrite=True)
+    assert not (out / "incomplete.txt").exists()
+
+
+def test_more_robots_than_the_pose_graph_holds_are_refused_before_anything_is_written(tiny_scenario, tmp_path):
+    from typer.testing import CliRunner
+
+    from shgm_slam.cli import app
+
+    args = [a for i in range(53) for a in ("--robot", f"r{i}={tiny_scenario / 'car1'}:0-3")]
+    res = CliRunner().invoke(app, ["run", *args, "--rerun", "off", "--out", str(tmp_path / "out")])
+    assert res.exit_code == 2, res.output
+    assert "53 robots: the pose graph holds at most 52 agents" in res.output.replace("\n", " ")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_robot_whose_odometry_fails_on_every_frame_stops_and_the_run_goes_on(tiny_scenario, tmp_path) -> None:
+    """car2's odometry jumps 30 m every frame: it stops after its share of the pose graph's agents (26 of 52
+    for two robots) instead of ending the run when they run out; car1's results are written as usual."""
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
+    odo = np.tile(np.eye(4), (len(robots["car2"]), 1, 1))
+    odo[:, 0, 3] = 30.0 * np.arange(len(odo))
+    write_kitti_poses(tmp_path / "odo_car2.txt", odo)
+    cfg = ShgmConfig.model_validate({"robots": {"car2": {"odometry": {
+        "kind": "file", "poses_file": str(tmp_path / "odo_car2.txt")}}}})  # fmt: skip
+    cfg.odometry.kind = OdometryKind.GT
+    summary = run_slam(robots, cfg, tmp_path / "out")
+    car1, car2 = summary.robots
+    assert car1.localized and car1.odometry_failures == 0
+    assert car2.segments == 26 and car2.odometry_failures == 26 and not car2.localized
+    assert car2.frames_dropped == len(robots["car2"]) - 26
+    stop = [w for w in car2.warnings if w.startswith("stopped at frame 26")]
+    assert stop and "share of the pose graph's 52 agents in a run of 2 robots" in stop[0]
+    still = [w for w in car2.warnings if "did not move" in w]  # true of its one-frame segments, not of the rest
+    assert still and "in 25 of 25 consecutive frames" in still[0]
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["robots"][1]["warnings"] == car2.warnings
+    assert (tmp_path / "out" / "car1_fused_tum.txt").is_file()
+
+
+def test_results_inside_a_robots_sequence_folder_are_refused(tiny_scenario: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from shgm_slam.cli import app
+    from shgm_slam.runner import check_out_outside_sequences
+
+    seq = tmp_path / "car1"
+    shutil.copytree(tiny_scenario / "car1", seq)
+    before = sorted(p.relative_to(seq) for p in seq.rglob("*"))
+    for out in (seq, seq / "image_2", seq / "new" / "deeper"):
+        res = CliRunner().invoke(app, ["run", "--robot", f"car1={seq}:0-5", "--rerun", "off", "--out", str(out)])
+        assert res.exit_code == 2, res.output
+        assert "is in the sequence folder of robot 'car1'" in res.output.replace("\n", " ")
+    assert sorted(p.relative_to(seq) for p in seq.rglob("*")) == before  # nothing written into it
+    check_out_outside_sequences(tmp_path / "out", [f"car1={seq}:0-5"])  # beside it is fine
+    check_out_outside_sequences(tmp_path / "car10", [f"car1={seq}"])  # a name that only starts the same too
+
+
 def test_bad_robot_arguments_give_clear_errors(tiny_scenario: Path, tmp_path: Path) -> None:
     assert parse_robot_arg("car1=/data/seq:0-10") == ("car1", "/data/seq:0-10")
     with pytest.raises(ConfigError, match="NAME=PATH"):

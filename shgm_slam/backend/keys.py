@@ -14,8 +14,16 @@ import gtsam
 from shgm_slam.errors import BackendError
 
 ROBOT_LETTERS = string.ascii_lowercase + string.ascii_uppercase
+MAX_AGENTS = len(ROBOT_LETTERS)
+"""Agents the pose graph holds: robots and their later trajectory segments (after odometry failures)."""
 MAX_KEYFRAMES = 1 << 56
 """gtsam symbols keep 56 bits for the index."""
+
+
+def segments_per_robot(num_robots: int) -> int:
+    """Trajectory segments each of ``num_robots`` robots may have so that all fit the pose graph's
+    ``MAX_AGENTS`` together (at least 1 for ``num_robots <= MAX_AGENTS``)."""
+    return MAX_AGENTS // max(num_robots, 1)
 
 
 def robot_letter(robot_index: int) -> str:
@@ -65,9 +73,9 @@ class RobotKeys:
         """
         if robot in self._index:
             raise BackendError(f"robot {robot!r} is already in the pose graph")
-        if len(self.names) >= len(ROBOT_LETTERS):
+        if len(self.names) >= MAX_AGENTS:
             raise BackendError(
-                f"cannot add {robot!r}: the pose graph holds at most {len(ROBOT_LETTERS)} agents (robots and "
+                f"cannot add {robot!r}: the pose graph holds at most {MAX_AGENTS} agents (robots and "
                 "their trajectory segments after odometry failures); use fewer robots or fix the odometry"
             )
         self._index[robot] = len(self.names)

@@ -62,18 +62,28 @@ def count_frame_files(folder: Path) -> int:
     return len(names)
 
 
+def _not_there(path: Path) -> str:
+    """Why a file that must be there cannot be read: missing, or a folder of that name."""
+    return "is a directory, not a file" if path.is_dir() else "is missing"
+
+
 def read_png(path: Path, flags: int) -> np.ndarray:
     """``cv2.imread`` that raises a DataError naming the file when it is missing or corrupt."""
     image = cv2.imread(str(path), flags)
     if image is None:
-        raise DataError(f"cannot read image {path} (missing or corrupt PNG); re-export or remove that frame")
+        # removing the file would leave a gap in the numbering, which no sequence accepts: a range leaves it out
+        leave_out = "use a frame range that leaves it out"
+        if path.stem.isdigit():
+            i = int(path.stem)
+            leave_out += f" (SEQ:0-{i} or SEQ:{i + 1}-)" if i > 0 else " (SEQ:1-)"
+        raise DataError(f"cannot read image {path} (missing or corrupt PNG); re-export that file, or {leave_out}")
     return image
 
 
 def read_projection(calib_path: Path, key: str) -> np.ndarray:
     """(3, 4) projection matrix of the ``key:`` line (``P0`` … ``P3``) of a KITTI calib.txt."""
     if not calib_path.is_file():
-        raise DataError(f"{calib_path} is missing; a sequence needs a KITTI calib.txt with a {key} line")
+        raise DataError(f"{calib_path} {_not_there(calib_path)}; a sequence needs a KITTI calib.txt with a {key} line")
     try:
         text = calib_path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
@@ -128,7 +138,7 @@ def check_projection(P: np.ndarray, width: int, height: int, calib_path: Path, k
 def read_times(path: Path) -> np.ndarray:
     """(N,) float64 seconds from a times.txt (one number a line)."""
     if not path.is_file():
-        raise DataError(f"{path} is missing; write one timestamp (seconds) per frame")
+        raise DataError(f"{path} {_not_there(path)}; write one timestamp (seconds) per frame")
     try:
         with warnings.catch_warnings():  # an empty file is reported below as a count mismatch
             warnings.simplefilter("ignore", UserWarning)

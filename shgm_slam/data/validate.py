@@ -9,7 +9,8 @@ sequence through the robot's perception and raises one clear error when none of 
 - depth is (H, W) on the image grid but no probed pixel is valid (finite and > 0): DataError for depth
   files, ModelError naming the depth model;
 - no probed label is a Cityscapes train id (0-18; all 255 = ignore, or garbage): DataError / ModelError;
-- a model's output is constant over every probed frame (one depth value, one class): ModelError.
+- a model's output is constant over every probed frame (one depth value; one class, ignore (255) aside):
+  ModelError, as ``shgm-slam check-model`` says.
 
 A single bad frame is not an error here (the run skips it with a reason); only a sequence none of whose
 probed frames is usable is. Pure apart from reading frames through the ``Sequence`` protocol.
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from shgm_slam.errors import DataError, ModelError
+from shgm_slam.labels import label_name
 from shgm_slam.types import Frame, Sequence
 
 FIRST_FRAMES = 3
@@ -111,11 +113,12 @@ def check_sequence_start(
                 f"{where}: no label is a Cityscapes train id 0-18 (all 255 = ignore, or other values); "
                 "semantic/ needs uint8 PNGs of train ids"
             )
-        flat = np.concatenate([lab.ravel() for lab in labels])
+        flat = np.concatenate(known)  # ignore (255) is no class: one class and ignore is still one class
         if seg_model is not None and flat.size > 1 and flat.min() == flat.max():
             raise ModelError(
-                f"segmentation model {seg_model}: constant output (train id {flat[0]} everywhere) on {where}; "
-                "check the model and its card with shgm-slam check-model"
+                f"segmentation model {seg_model}: constant output (train id {flat[0]}, {label_name(int(flat[0]))}, "
+                f"wherever not ignore) on {where}; a graph of one class cannot be matched: check the model and "
+                "its card (classes: one per class the model outputs) with shgm-slam check-model"
             )
 
 

@@ -7,6 +7,8 @@ Layout of ``--out DIR`` (default ``results/<time>/`` plus a ``latest`` symlink):
     graph_<robot>.json                                shgm-graph/1, robot's odometry frame
     matches.json  pose_graph.g2o  config.yaml  metrics.json  run.rrd (when saving)
     server.json  journal.bin  snapshot-<records>.bin                 a map server's metrics and crash recovery
+    incomplete.txt                                    only when the run ended with an error: why (the rest is
+                                                      its last checkpoint, not results; ``eval`` refuses it)
 
 Every file is written atomically (temp file + rename) so an interrupted run never leaves half files.
 """
@@ -31,10 +33,14 @@ from shgm_slam.types import GraphArrays, Sequence
 RUN_OUTPUT_PATTERNS = (
     "*_fused_tum.txt", "*_fused_kitti.txt", "*_odometry_tum.txt", "*_gt_tum.txt", "*_gt_kitti.txt",
     "graph_*.json", "matches.json", "pose_graph.g2o", "config.yaml", "metrics.json", "server.json",
-    "run.rrd", "server.rrd", "journal.bin", "snapshot-*.bin",
+    "run.rrd", "server.rrd", "journal.bin", "snapshot-*.bin", "incomplete.txt",
 )
 """Files a run, demo or map server writes into its results folder (``--overwrite`` removes these, and
 their leftover ``.<name>.*`` temporary files, nothing else)."""
+
+
+INCOMPLETE_FILE = "incomplete.txt"
+"""Written into a results folder whose run ended with an error (``ResultsWriter.mark_incomplete``)."""
 
 
 PROVISIONAL_COMMENT = "provisional:"
@@ -315,6 +321,15 @@ class ResultsWriter:
 
     def write_text(self, name: str, text: str) -> None:
         self._put(self.path(name), lambda p: p.write_text(text))
+
+    def mark_incomplete(self, reason: str) -> Path:
+        """Say in ``INCOMPLETE_FILE`` that the run ended with an error (``reason``, one line): the files beside
+        it are its last checkpoint, not its results. Returns the file's path."""
+        path = self.path(INCOMPLETE_FILE)
+        text = (f"this run ended with an error before its results were complete: {' '.join(reason.split())}\n"
+                "the other files here are its last checkpoint (no metrics.json); run it again with --overwrite\n")
+        _atomic(path, lambda p: p.write_text(text))
+        return path
 
     def write_bytes(self, name: str, data: bytes) -> None:
         """Write ``data`` atomically and durably (fsync'd before the rename: it survives a power loss too)."""

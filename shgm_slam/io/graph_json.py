@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from shgm_slam.errors import GraphError
+from shgm_slam.errors import GraphError, parse_failure
 from shgm_slam.graph.semantic_graph import edges_within_radius
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.labels import CITYSCAPES_CLASSES
@@ -243,5 +243,5 @@ def read_graph(path: Path | str, *, connectivity_m: float = 10.0) -> GraphArrays
             f"graph file {path} is not JSON ({exc.msg}, line {exc.lineno}); expected a {FORMAT_TAG} document"
         ) from None
     except (ValueError, RecursionError) as exc:  # an integer of thousands of digits, nesting too deep
-        raise GraphError(f"graph file {path} cannot be read as a {FORMAT_TAG} document: {exc}") from None
+        raise GraphError(f"graph file {path} cannot be read as a {FORMAT_TAG} document: {parse_failure(exc)}") from None
     return graph_from_dict(data, connectivity_m=connectivity_m, source=f"graph file {path}")

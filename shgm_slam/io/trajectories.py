@@ -21,6 +21,9 @@ from shgm_slam.geometry.se3 import project_to_so3
 ROTATION_TOLERANCE = 1e-2
 """Largest max |RᵀR - I| (or | |q| - 1 | for TUM quaternions) repaired instead of rejected."""
 _REPAIR_ABOVE = 1e-6  # rows this close to orthonormal are kept exactly as written
+TIME_TOLERANCE_S = 1e-4
+"""Two poses (a TUM row and a frame, a fused and a ground-truth pose) are of the same instant when their
+timestamps differ by less than this."""
 
 
 class PoseFormat(str, Enum):
@@ -98,7 +101,8 @@ def read_comments(path: Path | str) -> list[str]:
 def _read_text(path: Path | str) -> tuple[Path, str]:
     path = Path(path)
     if not path.is_file():
-        raise DataError(f"pose file {path} does not exist; check the path")
+        what = "is a directory, not a file" if path.is_dir() else "does not exist"
+        raise DataError(f"pose file {path} {what}; check the path")
     try:
         return path, path.read_text()
     except (OSError, UnicodeDecodeError) as e:
@@ -211,6 +215,19 @@ def read_tum(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
             f"{values[k, 0]:g} s; TUM rows must be in time order, one per time"
         )
     return values[:, 0].copy(), poses
+
+
+def associate(t_est: np.ndarray, t_gt: np.ndarray, tol_s: float = TIME_TOLERANCE_S) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (est rows, gt rows) of the same instants: nearest gt time within ``tol_s`` (seconds)."""
+    if t_gt.size == 0 or t_est.size == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    order = np.argsort(t_gt)
+    ts = t_gt[order]
+    after = np.searchsorted(ts, t_est).clip(0, len(ts) - 1)
+    before = (after - 1).clip(0)
+    pick = np.where(np.abs(ts[before] - t_est) < np.abs(ts[after] - t_est), before, after)
+    ok = np.abs(ts[pick] - t_est) < tol_s
+    return np.flatnonzero(ok), order[pick[ok]]
 
 
 def read_poses_file(path: Path | str) -> PoseFile:

@@ -255,13 +255,21 @@ class GroundTruthSource:
 
 
 class PoseFileSource:
-    """Poses from a KITTI or TUM file, one per frame, re-expressed relative to the first pose."""
+    """Poses from a KITTI or TUM file, one per frame, re-expressed relative to the first pose.
 
-    def __init__(self, path: Path | str, num_frames: int) -> None:
+    A KITTI file has one row per frame, in order. A TUM file's rows are matched to the frames by
+    timestamp when the sequence's are given (``timestamps_s``, times.txt): every frame needs a row
+    within ``TIME_TOLERANCE_S`` (rows for other frames, e.g. outside a frame range, are not used).
+    """
+
+    def __init__(self, path: Path | str, num_frames: int, timestamps_s: np.ndarray | None = None) -> None:
         from shgm_slam.io.trajectories import read_poses_file
 
         self.path = Path(path)
-        poses = read_poses_file(self.path).poses
+        pose_file = read_poses_file(self.path)
+        poses = pose_file.poses
+        if pose_file.timestamps_s is not None and timestamps_s is not None:
+            poses = poses[self._rows_of_frames(pose_file.timestamps_s, np.asarray(timestamps_s, dtype=np.float64))]
         if poses.shape[0] != num_frames:
             raise DataError(
                 f"poses file {self.path} has {poses.shape[0]} poses but the sequence has {num_frames} "
@@ -269,6 +277,21 @@ class PoseFileSource:
             )
         self.T_odom_cam = inverse(poses[0]) @ poses  # (N, 4, 4)
         self._T_cam0_file: np.ndarray | None = None  # after ``reset``: the file pose of the new first frame
+
+    def _rows_of_frames(self, t_file: np.ndarray, t_frames: np.ndarray) -> np.ndarray:
+        """(N,) row of the file for each frame: the row at the frame's time (``associate``)."""
+        from shgm_slam.io.trajectories import TIME_TOLERANCE_S, associate
+
+        frames, rows = associate(t_frames, t_file)
+        if len(frames) < len(t_frames):
+            i = int(np.setdiff1d(np.arange(len(t_frames)), frames)[0])
+            nearest = t_file[np.argmin(np.abs(t_file - t_frames[i]))]
+            raise DataError(
+                f"poses file {self.path}: no row at the time of frame {i} ({t_frames[i]:.6f} s; nearest row "
+                f"{nearest:.6f} s), {len(t_frames) - len(frames)} of {len(t_frames)} frames without one; TUM "
+                f"timestamps must be the sequence's times.txt times (within {TIME_TOLERANCE_S:g} s)"
+            )
+        return rows
 
     def reset(self) -> None:
         self._T_cam0_file = np.full((4, 4), np.nan)
@@ -427,10 +450,10 @@ def _hybrid(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
     )
 
 
-def _file(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
+def _file(cfg: OdometryConfig, num_frames: int, timestamps_s: np.ndarray | None = None) -> OdometrySource:
     if cfg.poses_file is None:
         raise ConfigError("odometry kind 'file' needs odometry.poses_file (a KITTI or TUM poses file)")
-    return PoseFileSource(cfg.poses_file, num_frames)
+    return PoseFileSource(cfg.poses_file, num_frames, timestamps_s)
 
 
 ODOMETRY_SOURCES: dict[OdometryKind, Callable[[OdometryConfig, int], OdometrySource]] = {
@@ -482,10 +505,17 @@ def resolve_kind(kind: OdometryKind | str, depth_from_model: bool) -> OdometryKi
     return choose_odometry(kind, depth_from_model).kind
 
 
-def make_odometry(cfg: OdometryConfig, num_frames: int, *, depth_from_model: bool = False) -> OdometrySource:
+def make_odometry(
+    cfg: OdometryConfig, num_frames: int, *, depth_from_model: bool = False, timestamps_s: np.ndarray | None = None
+) -> OdometrySource:
     """Build the odometry source ``cfg.kind`` for a sequence of ``num_frames`` frames.
 
     ``depth_from_model`` tells AUTO whether the depth is predicted or read from files
     (``choose_odometry``). Data-derived fields still None (``scene_scale``) take the fleet values.
+    ``timestamps_s`` (N,) the frames' times, seconds: a TUM poses file's rows are matched to them
+    (``PoseFileSource``).
     """
-    return ODOMETRY_SOURCES[resolve_kind(cfg.kind, depth_from_model)](cfg.filled(), num_frames)
+    kind = resolve_kind(cfg.kind, depth_from_model)
+    if kind is OdometryKind.FILE:  # the one source whose input carries times of its own
+        return _file(cfg.filled(), num_frames, timestamps_s)
+    return ODOMETRY_SOURCES[kind](cfg.filled(), num_frames)

@@ -41,7 +41,7 @@ from pydantic import (
     model_validator,
 )
 
-from shgm_slam.errors import ModelError
+from shgm_slam.errors import ModelError, parse_failure
 
 
 class _CaseInsensitiveEnum(str, Enum):
@@ -325,7 +325,7 @@ def load_card(model_path: Path | str, card_path: Path | str | None = None) -> De
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise ModelError(f"model card {path} is not valid YAML: {exc}") from None
     except (ValueError, RecursionError) as exc:  # an integer of thousands of digits, nesting too deep
-        raise ModelError(f"model card {path} cannot be read: {exc}") from None
+        raise ModelError(f"model card {path} cannot be read: {parse_failure(exc)}") from None
     return parse_card(data, where=f"model card {path}")
 
 

@@ -23,14 +23,14 @@ from shgm_slam.types import Sequence
 log = logging.getLogger(__name__)
 
 
-def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFrontend:
+def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig, *, max_segments: int | None = None) -> RobotFrontend:
     """Build one robot's front end from the fleet config (with the robot's overrides merged in).
 
     A poses-file odometry path may contain ``{robot}``, replaced by the robot name, so every robot
     reads its own file (e.g. ``orbslam_{robot}.txt``). Fields left None (extraction range, blob size,
     odometry voxel, ...) are derived from the robot's first frames through its perception source
     (``scene_scale``); the fleet values when none has usable depth (logged). The front end's ``cfg``
-    holds the resolved values.
+    holds the resolved values. ``max_segments``: the trajectory segments it may start (``RobotFrontend``).
     """
     rcfg = cfg.for_robot(name)
     if rcfg.odometry.kind is OdometryKind.FILE and rcfg.odometry.poses_file is not None:
@@ -65,8 +65,10 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotFronte
     rcfg = _window_on_image(name, rcfg, sequence, perception, written_by)
     choice = choose_odometry(rcfg.odometry.kind, depth_from_model=predicted)
     log.info("%s: odometry %s (%s)", name, choice.kind.value, choice.reason)
-    odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence))
-    return RobotFrontend(name, sequence, rcfg, perception, odometry, choice, depth_predicted=predicted)
+    odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence),
+                             timestamps_s=sequence.timestamps_s)  # fmt: skip
+    return RobotFrontend(name, sequence, rcfg, perception, odometry, choice, depth_predicted=predicted,
+                         max_segments=max_segments)  # fmt: skip
 
 
 def _window_on_image(

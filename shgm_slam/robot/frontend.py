@@ -60,7 +60,9 @@ class RobotFrontend:
     With ``cfg.odometry.health_check`` every pose is checked (``odometry.health``); on a divergence the
     segment is cut at its onset (frames from the onset on get NaN poses and segment -1), the odometry
     is re-initialised, and the next measured frame starts a new segment with a fresh graph, sent to
-    the map server as a new agent (``segment_agent``).
+    the map server as a new agent (``segment_agent``). A robot allowed ``max_segments`` segments (its share
+    of the pose graph's agents) whose last one diverges too stops there: its later frames are dropped
+    (``stopped``), and the run goes on without it.
     """
 
     def __init__(
@@ -73,8 +75,10 @@ class RobotFrontend:
         odometry_choice: OdometryChoice | None = None,
         *,
         depth_predicted: bool | None = None,
+        max_segments: int | None = None,
     ) -> None:
         self.name = name
+        self.max_segments = max_segments  # trajectory segments it may start (None: no limit)
         # depth from a network (a configured model, or files a model wrote), not measured
         self.depth_predicted = cfg.perception.depth_model is not None if depth_predicted is None else depth_predicted
         self.sequence = sequence
@@ -135,9 +139,18 @@ class RobotFrontend:
             )
         )  # fmt: skip
 
+    @property
+    def stopped(self) -> bool:
+        """Its last allowed segment diverged (``max_segments``): it processes no more frames."""
+        return self.segment.end_failure is not None
+
     def _fail(self, failure: OdometryFailure) -> None:
-        """Cut the current segment at the failure's onset and re-initialise the odometry."""
-        log.warning("%s: odometry diverged (%s); restarting as a new trajectory segment", self.name, failure.describe())
+        """Cut the current segment at the failure's onset and re-initialise the odometry (or, when it has had
+        its ``max_segments``, stop)."""
+        last = self.max_segments is not None and len(self.segments) >= self.max_segments
+        then = "its later frames are dropped (last allowed trajectory segment)" if last else (
+            "restarting as a new trajectory segment")  # fmt: skip
+        log.warning("%s: odometry diverged (%s); %s", self.name, failure.describe(), then)
         self.failures.append(failure)
         seg = self.segment
         seg.end_failure = failure
@@ -146,6 +159,8 @@ class RobotFrontend:
         self.T_odom_cam[cut] = np.nan
         self.frame_segment[cut] = -1
         self.frame_kf[cut] = -1
+        if last:
+            return
         self.odometry.reset()
         self.health.reset()
         # a new segment starts at the next measured frame (the one after a re-initialisation)
@@ -162,6 +177,8 @@ class RobotFrontend:
         t0 = time.perf_counter()
         frame = self.sequence[index]
         t_load = time.perf_counter()
+        if self.stopped:
+            return self._dropped(frame, {"load": (t_load - t0) * 1e3})
         perceived = self.perception.process(frame)
         if perceived.depth_scale is not None:
             self.depth_scales.append(perceived.depth_scale)
@@ -182,6 +199,8 @@ class RobotFrontend:
             failure = self._check(index, frame.timestamp_s, est)
             if failure is not None:
                 self._fail(failure)
+                if self.stopped:
+                    return self._dropped(frame, {"load": (t_load - t0) * 1e3}, failure)
                 est = self.odometry.update(frame, points_cam, perceived.depth_m, perceived.label_ids)
                 self.health.check(index, frame.timestamp_s, est.T_odom_cam, measured=est.ok)
         seg = self.segment
@@ -218,6 +237,11 @@ class RobotFrontend:
             self.name, frame, T_odom_cam, perceived.depth_m, perceived.label_ids, points_cam, point_labels,
             est.ok, message, timings, seg.agent, failure,
         )  # fmt: skip
+
+    def _dropped(self, frame: Frame, timings: dict[str, float], failure: OdometryFailure | None = None) -> FrameResult:
+        """The result of a frame after the robot ``stopped``: in no segment, nothing sent."""
+        return FrameResult(self.name, frame, np.full((4, 4), np.nan), None, None, np.zeros((0, 3), np.float32), None,
+                           False, None, timings, self.segment.agent, failure)  # fmt: skip
 
     def _check(self, index: int, timestamp_s: float, est: OdometryEstimate) -> OdometryFailure | None:
         seg = self.segment

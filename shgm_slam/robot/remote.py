@@ -159,6 +159,7 @@ class FrontendMirror:
         self.depth_predicted: bool = front.depth_predicted
         self.odometry_choice: OdometryChoice | None = front.odometry_choice
         self.ground_scale_on: bool = front.ground_scale_on
+        self.max_segments: int | None = front.max_segments
         n = len(front.sequence)
         self.T_odom_cam = np.full((n, 4, 4), np.nan)
         self.frame_kf = np.full(n, -1, dtype=np.int64)
@@ -179,6 +180,11 @@ class FrontendMirror:
     def num_keyframes(self) -> int:
         """Keyframes over all segments."""
         return sum(s.num_keyframes for s in self.segments)
+
+    @property
+    def stopped(self) -> bool:
+        """Its last allowed segment diverged (``RobotFrontend.stopped``)."""
+        return self.segment.end_failure is not None
 
     def apply(self, d: FrameDelta) -> FrameResult:
         """Bring the mirror to the state after frame ``d.index``; returns that frame's result."""
@@ -268,7 +274,8 @@ def _work(members: list[tuple[str, Sequence, ShgmConfig]], cfg: ShgmConfig, sche
     frame's delta.
 
     Args:
-        members: (robot name, sequence, the configuration the orchestrator resolved for it) of its robots.
+        members: (robot name, sequence, the configuration the orchestrator resolved for it, its
+            ``max_segments``) of its robots.
         cfg: the fleet configuration (each front end is built from it, as the orchestrator did).
         schedule: (robot, frame index) in the order the orchestrator will take them.
 
@@ -289,9 +296,9 @@ def _work(members: list[tuple[str, Sequence, ShgmConfig]], cfg: ShgmConfig, sche
         from shgm_slam.robot.build import make_frontend
 
         fronts: dict[str, RobotFrontend] = {}
-        for name, sequence, expect in members:  # unlogged: the orchestrator logged building them already
+        for name, sequence, expect, max_segments in members:  # unlogged: the orchestrator logged building them
             try:
-                fronts[name] = make_frontend(name, sequence, cfg)
+                fronts[name] = make_frontend(name, sequence, cfg, max_segments=max_segments)
             except Exception as exc:  # the orchestrator built it: reported, never expected
                 sender.put(("error", name, failed(exc)))
                 continue
@@ -330,7 +337,7 @@ class _Worker:
         self.dead: str | None = None  # why the whole worker is gone
         ctx = multiprocessing.get_context("spawn")  # never fork a process that holds ONNX or TBB threads
         self._conn, child = ctx.Pipe(duplex=False)
-        members = [(f.name, f.sequence, f.cfg) for f in fronts]
+        members = [(f.name, f.sequence, f.cfg, f.max_segments) for f in fronts]
         self._proc = ctx.Process(target=_work, name=f"shgm-frontend-{'+'.join(self.names)}",
                                  args=(members, fleet_cfg, schedule, child, slim), daemon=True)  # fmt: skip
         try:

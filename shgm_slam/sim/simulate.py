@@ -27,13 +27,22 @@ from shgm_slam.io.export import ResultsWriter
 from shgm_slam.sim.corruption import CorruptionLevels, apply_corruption
 from shgm_slam.sim.render import Renderer, make_intrinsics
 from shgm_slam.sim.scenarios import ScenarioOptions, ScenarioPlan, build_scenario
-from shgm_slam.sim.trajectories import Trajectory, min_distance_m, shared_view_length_m
+from shgm_slam.sim.trajectories import (
+    CAR_CAMERA_HEIGHT_M,
+    UAV_ALTITUDE_M,
+    Trajectory,
+    min_distance_m,
+    shared_view_length_m,
+)
 from shgm_slam.types import Frame, Intrinsics
 
 SCENARIO_FORMAT = "shgm-scenario/1"
 OVERLAP_RADIUS_M = 20.0
 DEFAULT_MAX_DEPTH_M = 200.0
 """Depth range of the rendered cameras unless asked otherwise (metres; farther is written as 0)."""
+MIN_MAX_DEPTH_M = 10.0
+"""Shortest depth range rendered: a car's camera 1.65 m up sees the road from about 6 m on (82 deg, 640x192),
+so a shorter range writes (almost) no valid depth."""
 MIN_UAV_ALTITUDE_M = 5.0
 """Lowest UAV altitude asked for; whether the path clears the roofs it crosses is checked on the built scenario
 (``scenarios.under_rooftops``)."""
@@ -197,8 +206,19 @@ def simulate(
         )
     if kitti_robots and scenario != "kitti-paths":
         raise ConfigError(f"KITTI drives (--kitti-drive) only apply to the kitti-paths scenario, not {scenario!r}")
+    if not max_depth_m >= MIN_MAX_DEPTH_M:  # NaN too
+        raise ConfigError(
+            f"max depth {max_depth_m:g} m: a car's camera {CAR_CAMERA_HEIGHT_M:g} m up sees the road from about "
+            f"6 m on, so nearly every pixel would be invalid; render at least {MIN_MAX_DEPTH_M:g} m (--max-depth)"
+        )
     if uav_altitude_m is not None:
         check_uav_altitude(scenario, uav_altitude_m, max_depth_m)
+    elif scenario == "airsim-like" and UAV_ALTITUDE_M[1] * UAV_VIEW_REACH > max_depth_m:  # the default UAV's ground
+        low, high = UAV_ALTITUDE_M
+        raise ConfigError(
+            f"max depth {max_depth_m:g} m: the airsim-like UAV flies at {low:g}-{high:g} m by default and sees the "
+            f"ground up to {high * UAV_VIEW_REACH:.0f} m away; raise --max-depth to that, or lower --uav-altitude"
+        )
     corruption = corruption or CorruptionLevels()
     intrinsics = make_intrinsics(*resolution, hfov_deg=hfov_deg)
     t0 = time.perf_counter()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import gtsam
 import pytest
 
-from shgm_slam.backend.keys import ROBOT_LETTERS, RobotKeys, decode, key, robot_letter
+from shgm_slam.backend.keys import MAX_AGENTS, ROBOT_LETTERS, RobotKeys, decode, key, robot_letter, segments_per_robot
 from shgm_slam.errors import BackendError
 
 
@@ -47,3 +47,11 @@ def test_agents_are_added_at_run_time_up_to_52():
     assert len(keys) == 52
     with pytest.raises(BackendError, match="at most 52 agents"):
         keys.add("car1#51")
+
+
+def test_each_robots_share_of_segments_fits_the_pose_graph():
+    assert MAX_AGENTS == 52
+    for robots in (1, 2, 3, 17, 26, 27, 52):
+        share = segments_per_robot(robots)
+        assert share >= 1 and robots * share <= MAX_AGENTS
+    assert segments_per_robot(2) == 26 and segments_per_robot(52) == 1

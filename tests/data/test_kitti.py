@@ -149,3 +149,27 @@ def test_a_skewed_or_absurd_focal_projection_is_refused(P_row, words):
     P = np.asarray(P_row).reshape(3, 4)
     with pytest.raises(DataError, match=words):
         check_projection(P, 320, 96, Path("calib.txt"), "P2")
+
+
+def test_a_corrupt_frame_advises_a_frame_range_that_leaves_it_out(seq_dir: Path) -> None:
+    """Deleting the corrupt file would leave a gap in the numbering, which is refused: the advice is a range."""
+    from shgm_slam.data.kitti import read_png
+
+    path = seq_dir / "image_2" / "000003.png"
+    path.write_bytes(b"not a png")
+    with pytest.raises(DataError, match=re.escape("re-export that file, or use a frame range that leaves it out "
+                                                  "(SEQ:0-3 or SEQ:4-)")):  # fmt: skip
+        read_png(path, cv2.IMREAD_COLOR)
+    after = open_sequence(f"{seq_dir}:4-")  # the advice works
+    assert after[0].image_rgb is not None
+    (seq_dir / "image_2" / "000000.png").write_bytes(b"")
+    with pytest.raises(DataError, match=re.escape("(SEQ:1-)")):
+        read_png(seq_dir / "image_2" / "000000.png", cv2.IMREAD_COLOR)
+
+
+@pytest.mark.parametrize("name", ["calib.txt", "times.txt"])
+def test_a_sequence_file_that_is_a_directory_says_so(seq_dir: Path, name: str) -> None:
+    (seq_dir / name).unlink()
+    (seq_dir / name).mkdir()
+    with pytest.raises(DataError, match=re.escape(f"{name} is a directory, not a file")):
+        open_sequence(seq_dir)

@@ -87,6 +87,14 @@ def test_model_outputs_nan_or_constant_are_model_errors(seq_dir: Path):
     with pytest.raises(ModelError, match=r"segmentation model s.onnx: constant output"):
         check_sequence_start("car", seq, one_class, seg_model="s.onnx")
 
+    def one_class_and_ignore(frame):  # a card listing fewer classes than the model outputs: the rest is ignore
+        labels = np.full(frame.label_ids.shape, 255, np.uint8)
+        labels[-4:] = 0
+        return frame.depth_m, labels
+
+    with pytest.raises(ModelError, match=r"constant output \(train id 0, road, wherever not ignore\).*one class"):
+        check_sequence_start("car", seq, one_class_and_ignore, seg_model="s.onnx")  # as check-model refuses it
+
 
 def test_run_on_all_zero_depth_exits_2_before_any_frame(tmp_path: Path):
     frames = make_frames(6)

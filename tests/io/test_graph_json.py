@@ -140,3 +140,11 @@ def test_graph_files_too_large_to_match_or_not_files_are_refused(tmp_path, monke
     monkeypatch.setattr(gj, "MAX_FILE_BYTES", 10)
     with pytest.raises(GraphError, match="MB, more than"):
         read_graph(path)
+
+
+def test_an_integer_of_thousands_of_digits_is_said_in_our_words(tmp_path):
+    path = tmp_path / "g.json"
+    path.write_text('{"format": "shgm-graph/1", "classes": ["road"], "nodes": [{"id": ' + "1" * 50000 + "}]}")
+    with pytest.raises(GraphError, match="holds an integer of 50000 digits") as info:
+        read_graph(path)
+    assert "set_int_max_str_digits" not in str(info.value)

@@ -176,3 +176,9 @@ def test_pose_files_far_beyond_any_world_or_out_of_time_order_are_refused(tmp_pa
     repeated.write_text("0 0 0 0 0 0 0 1\n0 0 0 1 0 0 0 1\n")
     with pytest.raises(DataError, match="time order"):
         read_poses_file(repeated)
+
+
+def test_a_pose_file_that_is_a_directory_says_so(tmp_path):
+    (tmp_path / "poses.txt").mkdir()
+    with pytest.raises(DataError, match=r"poses\.txt is a directory, not a file"):
+        read_poses_file(tmp_path / "poses.txt")

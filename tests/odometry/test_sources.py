@@ -67,6 +67,18 @@ def test_pose_file_count_mismatch_names_counts_and_file(tmp_path):
         PoseFileSource(path, 7)
 
 
+def test_tum_rows_are_matched_to_the_frames_by_timestamp(tmp_path):
+    poses = _poses(8, seed=2)
+    path = tmp_path / "tum.txt"
+    write_tum(path, np.arange(8) * 0.1, poses)
+    src = make_odometry(OdometryConfig(kind=OdometryKind.FILE, poses_file=path), 3, timestamps_s=[0.3, 0.4, 0.5])
+    est = np.stack([src.update(Frame(i, 0.3 + 0.1 * i, INTR), np.zeros((0, 3))).T_odom_cam for i in range(3)])
+    np.testing.assert_allclose(est, inverse(poses[3]) @ poses[3:6], atol=1e-6)  # a frame range of the file
+    write_tum(path, 1000.0 + np.arange(8) * 0.1, poses)  # the same count, another clock: refused
+    with pytest.raises(DataError, match=r"no row at the time of frame 0 \(0\.000000 s; nearest row 1000\.000000 s\)"):
+        PoseFileSource(path, 8, np.arange(8) * 0.1)
+
+
 def test_pose_file_frame_out_of_range(tmp_path):
     path = tmp_path / "p.txt"
     write_kitti_poses(path, _poses(3))

@@ -163,3 +163,17 @@ def test_cli_simulate_flies_the_uav_at_the_altitude_asked_for(tmp_path):
                               "60"])  # fmt: skip
     assert bad.exit_code == 2 and "airsim-like" in bad.output
     assert not (tmp_path / "bad").exists() and not (tmp_path / "x").exists()
+
+
+def test_max_depth_is_checked_without_uav_altitude_too(tmp_path):
+    """--max-depth 1 used to render all-zero depth, and 50 m left the default UAV (44-54 m) without ground."""
+    runner = CliRunner()
+    base = ["simulate", "--compact", "--max-frames", "2", "--resolution", "64x32"]
+    for scenario, depth, words in (("disjoint", "5", "render at least 10 m"),
+                                   ("airsim-like", "1", "render at least 10 m"),
+                                   ("airsim-like", "50", "flies at 44-54 m by default")):  # fmt: skip
+        res = runner.invoke(app, [*base, "-s", scenario, "-o", str(tmp_path / "bad"), "--max-depth", depth])
+        assert res.exit_code == 2 and words in res.output.replace("\n", " "), (scenario, depth, res.output)
+    assert not (tmp_path / "bad").exists()
+    ok = runner.invoke(app, [*base, "-s", "airsim-like", "-o", str(tmp_path / "ok"), "--max-depth", "80"])
+    assert ok.exit_code == 0, ok.output
