@@ -70,6 +70,9 @@ airsim-like car2s 6.8 / 4.2 / 6.7 -> 0.7 / 0.5 / 0.4 m, the worst UAV 2.2 -> 1.1
 worse; at 10 Hz the same to 0.02 m. From 3 px the UAVs' small image motion was seeded too and three UAVs
 ended 0.1-0.3 m worse at 10 Hz; 10 px leaves them as they were."""
 
+ORB_FEATURES = 1000
+"""Features detected per image for ``feature_step``."""
+
 _LK = {"winSize": (11, 11), "maxLevel": 2, "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)}
 
 
@@ -98,12 +101,20 @@ class FlowTracks:
     def __init__(self, max_depth_m: float = 80.0) -> None:
         self.max_depth_m = max_depth_m
         self._prev: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # grey, points, uv
+        self._prev_depth: np.ndarray | None = None
 
     def reset(self) -> None:
         self._prev = None
+        self._prev_depth = None
 
     def update(
-        self, image_rgb: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics, guess_step: np.ndarray | None = None
+        self,
+        image_rgb: np.ndarray,
+        depth_m: np.ndarray,
+        intrinsics: Intrinsics,
+        guess_step: np.ndarray | None = None,
+        *,
+        motion_unknown: bool = False,
     ) -> Tracks | None:
         """Track the previous frame's grid into this (H, W, 3) uint8 image; remember this frame's grid
         (``depth_m`` (H, W) metres, 0 invalid) for the next. None for the first frame, a changed image
@@ -114,22 +125,35 @@ class FlowTracks:
         tracking whose tracks agree with more of one rigid motion (PnP's inliers) is used: pixels that
         Lucas-Kanade could not follow tend to stay where they were, pass the forward-backward check and
         agree with each other on no motion.
+
+        ``motion_unknown``: nothing predicts this step (the first one after a start or a reset, where the
+        odometry assumes rest): matched features (``matched_tracks``) are a further option, and the step
+        they give is the guess.
         """
         grey = cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2GRAY)
         prev, self._prev = self._prev, self._grid(grey, depth_m, intrinsics)
+        depth_prev, self._prev_depth = self._prev_depth, np.asarray(depth_m)
         if prev is None or prev[0].shape != grey.shape or len(prev[2]) < MIN_TRACKS:
             return None
         grey_prev, points, uv = prev
+        options: list[Tracks] = []  # the tracks to choose from (by PnP inliers)
+        seed_min_px = SEED_MIN_PX
+        if motion_unknown and depth_prev is not None and depth_prev.shape == grey.shape:
+            matched = matched_tracks(grey_prev, depth_prev, grey, intrinsics, self.max_depth_m)
+            if matched is not None:  # a measured guess: always worth a try
+                options.append(matched)
+                guess_step, seed_min_px = pnp_step(matched), 0.0
         fwd, ok = track(grey_prev, grey, uv)
-        tracks = Tracks(points[ok], fwd[ok].astype(np.float64), intrinsics) if ok.sum() >= MIN_TRACKS else None
+        if ok.sum() >= MIN_TRACKS:
+            options.append(Tracks(points[ok], fwd[ok].astype(np.float64), intrinsics))
         guess = None if guess_step is None else moved_pixels(points, uv, guess_step, intrinsics)
-        if guess is not None and np.median(np.linalg.norm(guess - uv, axis=1)) >= SEED_MIN_PX:
+        if guess is not None and np.median(np.linalg.norm(guess - uv, axis=1)) >= seed_min_px:
             fwd, ok = track(grey_prev, grey, uv, guess)
             if ok.sum() >= MIN_TRACKS:
-                seeded = Tracks(points[ok], fwd[ok].astype(np.float64), intrinsics)
-                if tracks is None or solve_pnp(seeded)[1] > solve_pnp(tracks)[1]:
-                    tracks = seeded
-        return tracks
+                options.append(Tracks(points[ok], fwd[ok].astype(np.float64), intrinsics))
+        if len(options) <= 1:
+            return options[0] if options else None
+        return max(reversed(options), key=lambda t: len(solve_pnp(t)[1]))  # ties: the later (LK) option
 
     def _grid(
         self, grey: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics
@@ -181,25 +205,62 @@ def flow_residual_rad(tracks: Tracks, step: np.ndarray) -> float:
     return float(np.median(np.linalg.norm(uv[front] - tracks.uv_cur[front], axis=1)) / tracks.intrinsics.fx)
 
 
+def matched_tracks(
+    grey_prev: np.ndarray, depth_prev_m: np.ndarray, grey: np.ndarray, intrinsics: Intrinsics, max_depth_m: float
+) -> Tracks | None:
+    """Tracks from matched ORB features, for where Lucas-Kanade has no starting point: the previous frame's
+    features lifted with its depth (``depth_prev_m`` (H, W) metres, up to ``max_depth_m``) and where their
+    cross-checked matches are seen now, kept where they agree with one rigid motion (PnP + RANSAC, 1 px); None
+    with fewer than ``MIN_TRACKS`` of those. A robot that starts moving fast (4 frames/s: 2.7 m per frame) is
+    registered by KISS-ICP as at rest, and Lucas-Kanade from rest follows few pixels and keeps many that did
+    not move, which agree on no motion. ~30 ms at 320x96, so only for the first step of a trajectory
+    (airsim-like tuning seeds 10 and 25: the step solved from them 0.05-0.41 m from the true 1.1-3.2 m)."""
+    orb = cv2.ORB_create(nfeatures=ORB_FEATURES, nlevels=4, edgeThreshold=8, patchSize=15, fastThreshold=10)
+    kp_prev, desc_prev = orb.detectAndCompute(grey_prev, None)
+    kp, desc = orb.detectAndCompute(grey, None)
+    if desc_prev is None or desc is None:
+        return None
+    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(desc_prev, desc)
+    if len(matches) < MIN_TRACKS:
+        return None
+    uv_prev = np.array([kp_prev[m.queryIdx].pt for m in matches])
+    uv_cur = np.array([kp[m.trainIdx].pt for m in matches])
+    h, w = depth_prev_m.shape
+    col = np.clip(np.round(uv_prev[:, 0]).astype(np.int64), 0, w - 1)
+    row = np.clip(np.round(uv_prev[:, 1]).astype(np.int64), 0, h - 1)
+    z = depth_prev_m[row, col].astype(np.float64)
+    ok = np.isfinite(z) & (z > 0) & (z <= max_depth_m)
+    if ok.sum() < MIN_TRACKS:
+        return None
+    rays = np.stack([(uv_prev[:, 0] - intrinsics.cx) / intrinsics.fx, (uv_prev[:, 1] - intrinsics.cy) / intrinsics.fy,
+                     np.ones(len(z))], axis=1)  # fmt: skip
+    candidates = Tracks(rays[ok] * z[ok, None], uv_cur[ok], intrinsics)
+    step, inliers = solve_pnp(candidates)
+    if step is None:
+        return None
+    return Tracks(candidates.points_prev_cam[inliers], candidates.uv_cur[inliers], intrinsics)
+
+
 def pnp_step(tracks: Tracks) -> np.ndarray | None:
     """(4, 4) the current camera's pose in the previous camera's frame solved from the tracks (PnP +
     RANSAC, 1 px), or None when it fails or keeps fewer than ``MIN_TRACKS`` inliers."""
     return solve_pnp(tracks)[0]
 
 
-def solve_pnp(tracks: Tracks) -> tuple[np.ndarray | None, int]:
-    """(``pnp_step``'s pose or None, its RANSAC inliers: 0 when PnP failed)."""
+def solve_pnp(tracks: Tracks) -> tuple[np.ndarray | None, np.ndarray]:
+    """(``pnp_step``'s pose or None, (K,) indices of its RANSAC inliers: empty when PnP failed)."""
     cv2.setRNGSeed(PNP_SEED)
     ok, rvec, tvec, inliers = cv2.solvePnPRansac(
         tracks.points_prev_cam.astype(np.float64), tracks.uv_cur.astype(np.float64), tracks.intrinsics.K, None,
         reprojectionError=1.0, iterationsCount=100, flags=cv2.SOLVEPNP_ITERATIVE,
     )  # fmt: skip
     if not ok or inliers is None:
-        return None, 0
+        return None, np.zeros(0, np.int64)
+    inliers = inliers.reshape(-1)
     T_cur_prev = make_pose(cv2.Rodrigues(rvec)[0], tvec.reshape(3))
     if len(inliers) < MIN_TRACKS or not np.isfinite(T_cur_prev).all():
-        return None, len(inliers)
-    return inverse(T_cur_prev), len(inliers)
+        return None, inliers
+    return inverse(T_cur_prev), inliers
 
 
 def choose_step(icp_step: np.ndarray, tracks: Tracks | None) -> tuple[np.ndarray, bool]:

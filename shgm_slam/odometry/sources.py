@@ -183,7 +183,9 @@ class KissIcpSource:
         prior = None if yaw_img is None else yaw_prior(self.odometry.predicted_delta, yaw_img, self.prior_min_rad)
         tracks = None
         if self.flow is not None and frame.image_rgb is not None and depth_m is not None:
-            tracks = self.flow.update(frame.image_rgb, depth_m, frame.intrinsics, self._guess_step())
+            unknown = self.odometry.num_frames == 1  # the first step: the odometry assumes rest
+            guess = self._guess_step()
+            tracks = self.flow.update(frame.image_rgb, depth_m, frame.intrinsics, guess, motion_unknown=unknown)
         window = None
         if self.window is not None and frame.image_rgb is not None and depth_m is not None:
             window = self.window.update(frame.image_rgb, depth_m, frame.intrinsics, frame.timestamp_s)

@@ -114,13 +114,19 @@ def test_kiss_icp_over_flat_ground_stalls_and_the_flow_check_keeps_it_moving(gro
 CYLINDER_M = 15.0  # the turning camera stands on the axis of a textured cylinder of this radius
 
 
-def _cylinder_view(panorama: np.ndarray, yaw_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """(image (H, W, 3) uint8, z-depth (H, W) metres) of a camera turned by ``yaw_rad`` about its y axis
-    inside a cylinder whose inside is ``panorama`` (columns: heading -pi..pi; rows: height -6..6 m)."""
+def _cylinder_view(panorama: np.ndarray, yaw_rad: float, forward_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(image (H, W, 3) uint8, z-depth (H, W) metres) of a camera inside a vertical cylinder whose inside is
+    ``panorama`` (columns: heading -pi..pi; rows: height -6..6 m), turned by ``yaw_rad`` about its y axis from
+    looking along +z and then moved ``forward_m`` along its own z axis from the cylinder's axis."""
     u, v = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
     dx, dy = (u - K.cx) / K.fx, (v - K.cy) / K.fy
-    t = CYLINDER_M / np.sqrt(dx**2 + 1.0)  # the ray (dx, dy, 1) meets the cylinder at t times itself
-    heading = np.arctan2(dx, 1.0) + yaw_rad
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    ray_x, ray_z = c * dx + s, c - s * dx  # the ray (dx, dy, 1) turned into the cylinder's frame
+    origin_x, origin_z = s * forward_m, c * forward_m
+    a = ray_x**2 + ray_z**2
+    b = 2 * (origin_x * ray_x + origin_z * ray_z)
+    t = (-b + np.sqrt(b**2 - 4 * a * (origin_x**2 + origin_z**2 - CYLINDER_M**2))) / (2 * a)  # z-depth
+    heading = np.arctan2(origin_x + t * ray_x, origin_z + t * ray_z)
     ph, pw = panorama.shape[:2]
     map_x = ((heading + np.pi) / (2 * np.pi) * pw).astype(np.float32)
     map_y = ((t * dy + 6.0) / 12.0 * ph).astype(np.float32)
@@ -128,13 +134,17 @@ def _cylinder_view(panorama: np.ndarray, yaw_rad: float) -> tuple[np.ndarray, np
     return image, t.astype(np.float32)
 
 
+def _panorama(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    grey = cv2.GaussianBlur(rng.uniform(0, 255, (400, 2400)).astype(np.float32), (0, 0), 2.5)
+    return np.repeat(cv2.normalize(grey, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)[:, :, None], 3, 2)
+
+
 def test_a_sharp_turn_is_tracked_from_the_turn_guess_and_solved_by_pnp() -> None:
     # 22 deg in one frame moves the image 65 px: Lucas-Kanade from zero motion keeps too few tracks to
     # check ICP's step (a car at an intersection with 4 frames/s); started where the guessed turn puts the
     # pixels it follows them, and PnP solves the turn.
-    rng = np.random.default_rng(1)
-    grey = cv2.GaussianBlur(rng.uniform(0, 255, (400, 2400)).astype(np.float32), (0, 0), 2.5)
-    panorama = np.repeat(cv2.normalize(grey, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)[:, :, None], 3, 2)
+    panorama = _panorama(1)
     turn = np.radians(22.0)
     frames = [_cylinder_view(panorama, yaw) for yaw in (0.0, turn)]
 
@@ -158,12 +168,29 @@ def test_a_sharp_turn_is_tracked_from_the_turn_guess_and_solved_by_pnp() -> None
 
 
 def test_the_yaw_estimator_keeps_a_weak_peak_as_a_candidate_only() -> None:
-    rng = np.random.default_rng(2)
-    grey = cv2.GaussianBlur(rng.uniform(0, 255, (400, 2400)).astype(np.float32), (0, 0), 2.5)
-    panorama = np.repeat(cv2.normalize(grey, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)[:, :, None], 3, 2)
+    panorama = _panorama(2)
     estimator = ImageYawEstimator(min_response=0.99)  # no real peak is this strong
     assert estimator.update(_cylinder_view(panorama, 0.0)[0], K.fx) is None and estimator.candidate_rad is None
     assert estimator.update(_cylinder_view(panorama, np.radians(10.0))[0], K.fx) is None
     assert np.degrees(estimator.candidate_rad) == pytest.approx(10.0, abs=1.0)
     estimator.reset()
     assert estimator.candidate_rad is None
+
+
+def test_a_fast_first_step_is_found_by_matched_features() -> None:
+    # The odometry's first step assumes rest: 5 m toward a wall 15 m away (the image grows by half) leaves
+    # Lucas-Kanade from rest no tracks; matched features give them, and the step they solve.
+    panorama = _panorama(1)
+    start, moved = _cylinder_view(panorama, 0.0), _cylinder_view(panorama, 0.0, forward_m=5.0)
+
+    def tracks_with(motion_unknown: bool):
+        flow = FlowTracks()
+        flow.update(*start, K)
+        return flow.update(*moved, K, np.eye(4), motion_unknown=motion_unknown)
+
+    assert tracks_with(False) is None
+    tracks = tracks_with(True)
+    assert tracks is not None
+    step, replaced = choose_step(np.eye(4), tracks)  # ICP that stayed at rest
+    assert replaced
+    np.testing.assert_allclose(step[:3, 3], [0.0, 0.0, 5.0], atol=0.2)
