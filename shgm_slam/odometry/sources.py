@@ -222,7 +222,6 @@ class KissIcpSource:
             image_window=image_window,
         )  # fmt: skip
 
-
     def _guess_step(self) -> np.ndarray:
         """(4, 4) this frame's step as far as it is known before ICP: the constant-velocity prediction, turned
         to the images' yaw guess (``ImageYawEstimator.candidate_rad``, however weak its peak) where there is one."""
