@@ -208,8 +208,8 @@ def evaluate_results(
         raise DataError(f"results folder {root} does not exist; pass the --out folder of `run` or `demo`")
     if (root / INCOMPLETE_FILE).is_file():
         raise DataError(
-            f"{root} holds no results: its run ended with an error ({root / INCOMPLETE_FILE} says why); run it "
-            "again with --overwrite"
+            f"{root} holds no results: its run ended with an error ({root / INCOMPLETE_FILE} says why and what to "
+            "do)"
         )
     order = run_robot_order(root)
     result = EvaluationResult(root, order[0], "")

@@ -139,6 +139,7 @@ class RobotStatus:
     agents: tuple[str, ...]
     provisional_agents: tuple[str, ...] = ()  # placed, not confirmed by an independent graph match yet
     waiting_agents: tuple[str, ...] = ()  # not placed: accepted matches, too few independent ones to enter
+    segments_allowed: int = 0  # trajectory segments the robot may start (its share of the pose graph; 0: not said)
 
 
 @dataclass(frozen=True)

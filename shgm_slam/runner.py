@@ -474,13 +474,10 @@ def _mark_incomplete(out_dir: Path, exc: Exception) -> None:
     """Write ``incomplete.txt`` into a results folder whose run failed with ``exc`` (when the folder exists)."""
     if not out_dir.is_dir():
         return
-    try:
-        path = ResultsWriter(out_dir).mark_incomplete(f"{type(exc).__name__}: {exc}")
-    except DataError as marker_exc:  # the folder cannot be written: the original error is the one to report
-        log.warning("%s: cannot mark the unfinished results: %s", out_dir, marker_exc)
-        return
-    log.warning("the run ended with an error; the files in %s are its last checkpoint, marked by %s", out_dir,
-                path.name)  # fmt: skip
+    path = ResultsWriter(out_dir).mark_failed(exc)
+    if path is not None:
+        log.warning("the run ended with an error; the files in %s are its last checkpoint, marked by %s", out_dir,
+                    path.name)  # fmt: skip
 
 
 def replay_backend(recorded: Path, cfg: ShgmConfig, out_dir: Path, robots: list[str]) -> ServerNode:

@@ -446,7 +446,8 @@ def _encode_fields(msg: Message) -> dict[str, Any]:
             for x in lists:
                 for a in x:
                     _agent(a, f"status agent of {r!r}")
-            robots[r] = [_STATE_CODES[st.state], _int(st.keyframes, f"status keyframes of {r!r}"), *lists]
+            allowed = _int(st.segments_allowed, f"status segments allowed of {r!r}", 0, MAX_AGENTS)
+            robots[r] = [_STATE_CODES[st.state], _int(st.keyframes, f"status keyframes of {r!r}"), *lists, allowed]
         refused = {_robot(r, "refused robot"): _text(why, f"refusal of {r!r}") for r, why in msg.refused.items()}
         reference = msg.reference if msg.reference == "" else _robot(msg.reference, "status reference")
         if not isinstance(msg.finished, bool):
@@ -517,18 +518,20 @@ def _decode_fields(kind: MessageKind, f: _Fields) -> Message:
     # STATUS
     robots = {}
     for r, v in f.map("b", _robot).items():
-        # the provisional (fifth) and waiting (sixth) agents came later: shorter statuses of older servers are read
-        if not (isinstance(v, list) and len(v) in (4, 5, 6) and all(isinstance(x, list) for x in v[2:])):
+        # the provisional (fifth) and waiting (sixth) agents and the segments allowed (seventh) came later: shorter
+        # statuses of older servers are read
+        if not (isinstance(v, list) and len(v) in (4, 5, 6, 7) and all(isinstance(x, list) for x in v[2:6])):
             raise WireError(
                 f"status of robot {r!r} must be [state, keyframes, placed agents, agents, provisional agents, "
-                "waiting agents]"
+                "waiting agents, segments allowed]"
             )
         code = _int(v[0], f"status state of {r!r}", 0, len(_CODE_STATES) - 1)
+        allowed = _int(v[6], f"status segments allowed of {r!r}", 0, MAX_AGENTS) if len(v) == 7 else 0
         placed, agents, provisional, waiting = (
-            tuple(_agent(a, f"status agent of {r!r}") for a in x) for x in (*v[2:], [], [])[:4]
+            tuple(_agent(a, f"status agent of {r!r}") for a in x) for x in (*v[2:6], [], [])[:4]
         )
         robots[r] = RobotStatus(
-            _CODE_STATES[code], _int(v[1], f"status keyframes of {r!r}"), placed, agents, provisional, waiting
+            _CODE_STATES[code], _int(v[1], f"status keyframes of {r!r}"), placed, agents, provisional, waiting, allowed
         )
     refused = {r: _text(why, f"refusal of {r!r}") for r, why in f.map("y", _robot).items()}
     reference = d["e"] if d["e"] == "" else _robot(d["e"], "status reference")

@@ -147,25 +147,32 @@ def test_every_message_round_trips(msg):
     assert encode(out) == payload  # decoded values are fixed points: both runs see identical values
 
 
-def test_a_status_without_provisional_or_waiting_agents_is_still_read():
-    """Older servers' statuses have four items per robot (no provisional agents) or five (no waiting
-    agents): read as none."""
+def test_a_status_without_provisional_or_waiting_agents_or_a_share_is_still_read():
+    """Older servers' statuses have four items per robot (no provisional agents), five (no waiting agents) or
+    six (no segments allowed): read as none (0: not said)."""
     import msgpack
 
     payload = encode(StatusMessage("srv", "car1", {"car1": RobotStatus(RobotState.ACTIVE, 3, ("car1",), ("car1",),
-                                                                       ("car1",), ("car1#1",))}))  # fmt: skip
+                                                                       ("car1",), ("car1#1",), 17)}))  # fmt: skip
     fields = msgpack.unpackb(payload, raw=False)
-    assert len(fields["b"]["car1"]) == 6
+    assert len(fields["b"]["car1"]) == 7
     assert decode(payload).robots["car1"].waiting_agents == ("car1#1",)
+    assert decode(payload).robots["car1"].segments_allowed == 17
     full = list(fields["b"]["car1"])
+    fields["b"]["car1"] = full[:6]
+    status = decode(msgpack.packb(fields, use_bin_type=True)).robots["car1"]
+    assert status.waiting_agents == ("car1#1",) and status.segments_allowed == 0
     fields["b"]["car1"] = full[:5]
     status = decode(msgpack.packb(fields, use_bin_type=True)).robots["car1"]
     assert status.provisional_agents == ("car1",) and status.waiting_agents == ()
     fields["b"]["car1"] = full[:4]
     status = decode(msgpack.packb(fields, use_bin_type=True)).robots["car1"]
     assert status.placed_agents == ("car1",) and status.provisional_agents == () and status.waiting_agents == ()
-    fields["b"]["car1"] = [*full, ["car1"]]  # seven items: refused
-    with pytest.raises(WireError, match="waiting agents"):
+    fields["b"]["car1"] = [*full, ["car1"]]  # eight items: refused
+    with pytest.raises(WireError, match="segments allowed"):
+        decode(msgpack.packb(fields, use_bin_type=True))
+    fields["b"]["car1"] = [*full[:6], "many"]  # a share that is no integer: refused
+    with pytest.raises(WireError, match="segments allowed of 'car1' must be an integer"):
         decode(msgpack.packb(fields, use_bin_type=True))
 
 

@@ -16,6 +16,7 @@ Every file is written atomically (temp file + rename) so an interrupted run neve
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import tempfile
 from collections.abc import Callable, Iterable, Iterator
@@ -30,6 +31,8 @@ from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import write_kitti_poses, write_tum
 from shgm_slam.types import GraphArrays, Sequence
 
+log = logging.getLogger(__name__)
+
 RUN_OUTPUT_PATTERNS = (
     "*_fused_tum.txt", "*_fused_kitti.txt", "*_odometry_tum.txt", "*_gt_tum.txt", "*_gt_kitti.txt",
     "graph_*.json", "matches.json", "pose_graph.g2o", "config.yaml", "metrics.json", "server.json",
@@ -41,6 +44,8 @@ their leftover ``.<name>.*`` temporary files, nothing else)."""
 
 INCOMPLETE_FILE = "incomplete.txt"
 """Written into a results folder whose run ended with an error (``ResultsWriter.mark_incomplete``)."""
+RERUN_ADVICE = "run it again with --overwrite"
+"""What ``INCOMPLETE_FILE`` tells the user to do (a map server's folder: start the server on it again)."""
 
 
 PROVISIONAL_COMMENT = "provisional:"
@@ -322,14 +327,27 @@ class ResultsWriter:
     def write_text(self, name: str, text: str) -> None:
         self._put(self.path(name), lambda p: p.write_text(text))
 
-    def mark_incomplete(self, reason: str) -> Path:
-        """Say in ``INCOMPLETE_FILE`` that the run ended with an error (``reason``, one line): the files beside
-        it are its last checkpoint, not its results. Returns the file's path."""
+    def mark_incomplete(self, reason: str, advice: str = RERUN_ADVICE) -> Path:
+        """Say in ``INCOMPLETE_FILE`` that the run ended with an error (``reason``, one line) and what to do
+        (``advice``): the files beside it are its last checkpoint, not its results. Returns the file's path."""
         path = self.path(INCOMPLETE_FILE)
         text = (f"this run ended with an error before its results were complete: {' '.join(reason.split())}\n"
-                "the other files here are its last checkpoint (no metrics.json); run it again with --overwrite\n")
+                f"the other files here are its last checkpoint (no metrics.json); {advice}\n")
         _atomic(path, lambda p: p.write_text(text))
         return path
+
+    def mark_failed(self, exc: Exception, advice: str = RERUN_ADVICE) -> Path | None:
+        """``mark_incomplete`` with the error ``exc`` that ended the run; None (logged) when the folder cannot be
+        written (``exc`` stays the error to report). Returns the file's path."""
+        try:
+            return self.mark_incomplete(f"{type(exc).__name__}: {exc}", advice)
+        except DataError as marker_exc:
+            log.warning("%s: cannot mark the unfinished results: %s", self.root, marker_exc)
+            return None
+
+    def clear_incomplete(self) -> None:
+        """Remove ``INCOMPLETE_FILE`` (a restarted map server that finished on the folder of one that failed)."""
+        self.path(INCOMPLETE_FILE).unlink(missing_ok=True)
 
     def write_bytes(self, name: str, data: bytes) -> None:
         """Write ``data`` atomically and durably (fsync'd before the rename: it survives a power loss too)."""

@@ -250,12 +250,17 @@ class RobotNode:
         self._done_held = mine is not None and mine.state is RobotState.DONE
         self.provisional_agents = mine.provisional_agents if mine is not None else ()
         self.waiting_agents = mine.waiting_agents if mine is not None else ()
+        if mine is not None and mine.segments_allowed and mine.segments_allowed != self.front.max_segments:
+            log.info("%s: the map server allows it %d trajectory segments", self.name, mine.segments_allowed)
+            self.front.max_segments = mine.segments_allowed  # its share of the pose graph: stop at the last one
 
     def _resend_stalled(self) -> None:
         now = self.clock()
         for agent, sent in self._payloads.items():
             n = self._acked.get(agent, 0)
-            if n >= len(sent) or now - self._last_progress_s.get(agent, -np.inf) < self.resend_after_s:
+            if n >= len(sent) or not self._allowed(agent):
+                continue
+            if now - self._last_progress_s.get(agent, -np.inf) < self.resend_after_s:
                 continue
             missing = sent[n:]
             log.info("%s: re-sending %d keyframes of %s from %d", self.name, len(missing), agent, n)
@@ -273,7 +278,13 @@ class RobotNode:
 
     def all_acknowledged(self) -> bool:
         """True when the server holds every keyframe this robot made."""
-        return all(self._acked.get(a, 0) >= len(sent) for a, sent in self._payloads.items())
+        return all(self._acked.get(a, 0) >= len(sent) for a, sent in self._payloads.items() if self._allowed(a))
+
+    def _allowed(self, agent: str) -> bool:
+        """Whether the server takes ``agent``'s keyframes: a segment beyond the robot's share (a race: made before
+        the server's status said the share) is dropped there, so it is neither re-sent nor waited for."""
+        limit = self.front.max_segments
+        return limit is None or agent_robot(agent)[1] < limit
 
     def wait_acknowledged(self, timeout_s: float, *, until_finished: bool = False) -> bool:
         """Poll until the server holds every keyframe (and, with ``until_finished``, has finished and sent

@@ -32,6 +32,7 @@ import numpy as np
 
 from shgm_slam.agents import agent_robot
 from shgm_slam.backend.confirmation import describe
+from shgm_slam.backend.keys import MAX_AGENTS, segments_per_robot
 from shgm_slam.config import ShgmConfig
 from shgm_slam.corrections import FusedView
 from shgm_slam.errors import DataError, ShgmError
@@ -179,6 +180,8 @@ class ServerNode:
         self.finished = False
         self._refused: dict[str, str] = {}
         self._pending: dict[str, tuple[str, float]] = {}  # robot -> (newcomer session, first heard)
+        self._admitted_agents: set[str] = set()  # agents whose keyframes go into the map (``_admitted``)
+        self._dropped: dict[str, str] = {}  # agent -> why its keyframes are dropped
         self._pose_version = 0  # bumped whenever matching may have moved fused poses
         self._last_status_s = -np.inf
         self._last_correction_s: dict[str, float] = {}
@@ -242,6 +245,7 @@ class ServerNode:
             self._pose_version += 1
         self.finished = True
         self.write_results()
+        self.writer.clear_incomplete()  # (left by an earlier server on this folder that failed)
         for robot in self.robots:
             self._send_correction(robot, self.clock(), force=True)
         self._broadcast_status()
@@ -284,6 +288,8 @@ class ServerNode:
                 log.debug("%s from %s session %s ignored (not its current session)", kind, robot, msg.session)
             return (robot if rs is not None else None), []
         self._heard(rs, now)
+        if isinstance(msg, KeyframeMessage) and not self._admitted(rs, msg.robot):
+            return robot, []
         if live and self.order_keyframes and isinstance(msg, KeyframeMessage) and rs.start_s is not None:
             self._offer(rs, msg, payload)
             return robot, []
@@ -346,6 +352,47 @@ class ServerNode:
             self._refuse(f"hello of {rs.name} (session {pending[0]}): {reason}")
             self._broadcast_status()
 
+    def segments_allowed(self) -> int:
+        """Trajectory segments each robot may start (the robot and its segments after odometry failures): its
+        share of the pose graph's ``MAX_AGENTS`` among the fleet, the ``expect`` robots (or more, once more have
+        connected) or, when the fleet size is not given, the robots connected so far and room for one more."""
+        fleet = max(self.expect or 0, len(self.robots)) if self.expect else len(self.robots) + 1
+        return segments_per_robot(fleet)
+
+    def _admitted(self, rs: RobotSession, agent: str) -> bool:
+        """Whether ``agent``'s keyframes go into the map: an agent the map (or the time order) already holds, or
+        a new one while its robot holds fewer than ``segments_allowed`` and the pose graph has room. A refused
+        segment is logged once and its keyframes dropped (``dropped_segments``); a robot whose *first* agent
+        finds the pose graph full is refused (its process stops with the reason)."""
+        if agent in self._dropped:
+            return False
+        server = self._map()
+        if agent in self._admitted_agents or agent in server.agents:
+            return True
+        known = self._admitted_agents | set(server.agents)
+        held = sum(agent_robot(a)[0] == rs.name for a in known)
+        allowed = self.segments_allowed()
+        if len(known) >= MAX_AGENTS:
+            reason = (f"the pose graph holds at most {MAX_AGENTS} agents (robots and their trajectory segments after "
+                      "odometry failures) and all are in use; run fewer robots or fix the odometry")  # fmt: skip
+        elif held >= allowed:
+            reason = (f"{rs.name} has had its share of {allowed} trajectory segments (the pose graph's {MAX_AGENTS} "
+                      "agents shared by the fleet); its later keyframes are dropped")  # fmt: skip
+        else:
+            self._admitted_agents.add(agent)
+            return True
+        self._dropped[agent] = reason
+        self._refuse(f"keyframes of {agent}: {reason}")
+        if held == 0:
+            self._refused[rs.name] = f"{rs.session}: {reason}"
+            self._broadcast_status()
+        return False
+
+    @property
+    def dropped_segments(self) -> dict[str, str]:
+        """Agents whose keyframes were dropped (no room in the pose graph) -> why."""
+        return dict(self._dropped)
+
     def _offer(self, rs: RobotSession, msg: KeyframeMessage, payload: bytes) -> None:
         """Queue a live keyframe for its turn in the time order (``ordering``); re-sent ones are ignored."""
         if msg.kf_index != self._map().received(msg.robot) + self._order.held(msg.robot):
@@ -366,7 +413,7 @@ class ServerNode:
                     waited = rs.state is RobotState.ACTIVE
                 else:  # done, but keyframes are missing (e.g. lost with a killed server): it re-sends them
                     waited = now - rs.last_heard_s <= self.stale_after_s and not rs.complete(
-                        self._map(), self._order.held
+                        self._map(), self._order.held, self._dropped
                     )
                 progress[rs.name] = rs.progress_s if waited else float("inf")
             missing = (self.expect or 0) - len(self.robots)
@@ -453,6 +500,7 @@ class ServerNode:
                 agents,
                 tuple(a for a in agents if self._map().placement(a).provisional),
                 tuple(a for a in agents if self._map().waiting_note(a) is not None),
+                self.segments_allowed(),
             )
         payload = encode(StatusMessage(self.session, self.reference or "", robots, self.finished, dict(self._refused)))
         self.traffic.sent("status", len(payload))
@@ -470,7 +518,7 @@ class ServerNode:
         return (
             self.map is not None
             and len(self.robots) >= (self.expect or 0)
-            and all(rs.complete(self.map) for rs in self.robots.values())
+            and all(rs.complete(self.map, dropped=self._dropped) for rs in self.robots.values())
         )
 
     # --- recovery ------------------------------------------------------------------------------
@@ -649,6 +697,7 @@ class ServerNode:
                 "keyframes": sum(server.received(a) for a in mine) if server else 0,
                 "done": rs.done is not None,
                 "went_stale": rs.went_stale,
+                "dropped_segments": {a: why for a, why in self._dropped.items() if agent_robot(a)[0] == name},
             }
         return {
             "session": self.session,
@@ -659,6 +708,7 @@ class ServerNode:
             "snapshots_written": self.snapshots.written if self.snapshots is not None else 0,
             "snapshot_bytes": self.snapshots.last_bytes if self.snapshots is not None else 0,
             "snapshot_write_ms": round(float(np.mean(self._snapshot_ms)), 1) if self._snapshot_ms else None,
+            "segments_allowed": self.segments_allowed(),
             "robots": robots,
             "matches_tried": len(server.matches) if server else 0,
             "closures_accepted": sum(m.accepted for m in server.matches) if server else 0,

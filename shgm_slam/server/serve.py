@@ -92,6 +92,10 @@ class ServerView:
                 self.viz.log_matches(m.robot_a, m.robot_b, pa, pb, m.accepted, len(m.inliers))
 
 
+RESUME_ADVICE = "start the server on this folder again: it resumes from its journal (journal.bin)"
+"""What ``incomplete.txt`` in a failed map server's folder tells the user to do."""
+
+
 def serve(
     cfg: ShgmConfig,
     out_dir: Path,
@@ -138,8 +142,20 @@ def serve(
             log.warning("stopping: matching whole graphs once more and writing the results")
             records = node.finish()
             view.update(node, records)
+        except Exception as exc:  # re-raised: the folder's files are a checkpoint, not the results
+            _mark_incomplete(node, exc)
+            raise
         linger_until = time.monotonic() + LINGER_S
         while time.monotonic() < linger_until:
             node.poll(timeout_s=0.1)
     viz.close()
     return ServeSummary(Path(out_dir), node.summary(), interrupted, time.perf_counter() - t0)
+
+
+def _mark_incomplete(node: ServerNode, exc: Exception) -> None:
+    """Leave ``incomplete.txt`` in the server's results folder (``eval`` refuses it; the journal there lets a
+    restarted server resume, and one that finishes removes the file)."""
+    path = node.writer.mark_failed(exc, RESUME_ADVICE)
+    if path is not None:
+        log.warning("the map server stopped with an error; the files in %s are its last checkpoint, marked by %s "
+                    "(%s)", path.parent, path.name, RESUME_ADVICE)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Container
 from dataclasses import dataclass, field
 
 from shgm_slam.corrections import FusedView
@@ -27,9 +27,12 @@ class RobotSession:
     start_s: float | None = None  # its sequence's first timestamp (from its hellos; not kept in snapshots)
     progress_s: float | None = None  # how far it has got, seconds since start_s (hellos and keyframes)
 
-    def complete(self, server: MapServer, queued: Callable[[str], int] = lambda _agent: 0) -> bool:
+    def complete(
+        self, server: MapServer, queued: Callable[[str], int] = lambda _agent: 0, dropped: Container[str] = ()
+    ) -> bool:
         """True when the robot said it is done and every keyframe it sent has arrived (in the map, or
-        ``queued(agent)`` more waiting for their turn)."""
+        ``queued(agent)`` more waiting for their turn), but those of ``dropped`` agents (segments the map had no
+        room for)."""
         return self.done is not None and all(
-            server.received(a) + queued(a) >= n for a, n in self.done.keyframes.items()
+            server.received(a) + queued(a) >= n for a, n in self.done.keyframes.items() if a not in dropped
         )

@@ -5,11 +5,13 @@ uninterrupted run."""
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from shgm_slam.agents import segment_agent
 from shgm_slam.errors import ProtocolError
 from shgm_slam.messages import RobotState
 from shgm_slam.robot.node import RobotNode
@@ -17,7 +19,7 @@ from shgm_slam.runner import make_frontend
 from shgm_slam.server.node import CHECKPOINT_SHARE, CLASH_WINDOW_S, ServerNode
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 from shgm_slam.transport.keys import hello_key, keyframe_key
-from shgm_slam.wire import encode
+from shgm_slam.wire import decode, encode
 from tests.server.conftest import FakeClock, drive, finish, fresh, fused
 
 
@@ -227,3 +229,62 @@ def test_a_provisional_placement_reaches_status_server_json_and_the_robot(robots
     assert nodes["car2"].provisional_agents == ("car2",) and nodes["car1"].provisional_agents == ()
     assert read_comments(tmp_path / "car2_fused_tum.txt")[0].startswith("provisional: car2 is placed provisionally")
     assert server.provisional_note("car1") is None
+
+
+def _segment_keyframes(robots, cfg, clock, bus, name: str, agents: int) -> tuple[RobotNode, list[bytes]]:
+    """A node of robot ``name`` on ``bus`` that has said hello and sent its first keyframe, and keyframe 0 of
+    ``agents`` trajectory segments of it (that real keyframe relabelled per segment)."""
+    node = RobotNode(make_frontend(name, robots["car1"], cfg), InProcessTransport(bus), clock=clock)
+    node.hello()
+    i = 0
+    while not node._payloads:
+        node.step(i)
+        i += 1
+    first = decode(node._payloads[name][0])
+    return node, [encode(replace(first, robot=segment_agent(name, k))) for k in range(agents)]
+
+
+def test_segments_beyond_a_robots_share_are_dropped_and_the_robot_told(robots, cfg, tmp_path: Path) -> None:
+    """A robot whose odometry keeps failing starts segment after segment; each robot may hold only its share of
+    the pose graph's agents (26 robots expected: 2 each). The third segment's keyframes are dropped (logged once,
+    in server.json), not an exception that stops the server; the status tells the robot its share, so its front
+    end stops at its last allowed segment and it neither re-sends nor waits for the dropped one."""
+    clock, bus = FakeClock(), InProcessBus()
+    server = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=26, clock=clock, order_keyframes=False)
+    node, payloads = _segment_keyframes(robots, cfg, clock, bus, "car1", 4)
+    sender = InProcessTransport(bus)
+    for p in payloads[1:]:
+        sender.publish(keyframe_key("car1"), p)
+    server.poll()
+    assert server.map.agents == ["car1", "car1#1"]
+    assert set(server.dropped_segments) == {"car1#2", "car1#3"}
+    assert "share of 2 trajectory segments" in server.dropped_segments["car1#2"]
+    refused = server.traffic.refused
+    sender.publish(keyframe_key("car1"), payloads[2])  # sent again: dropped again, not refused again
+    server.poll()
+    assert server.traffic.refused == refused
+    server._broadcast_status()
+    node._payloads["car1#2"] = [payloads[2]]  # as if its front end had made that segment before the status came
+    node.poll()
+    assert node.front.max_segments == 2
+    assert not node._allowed("car1#2") and node._allowed("car1#1")
+    summary = server.summary()
+    assert summary["segments_allowed"] == 2
+    assert set(summary["robots"]["car1"]["dropped_segments"]) == {"car1#2", "car1#3"}
+
+
+def test_a_robot_that_finds_the_pose_graph_full_is_refused(robots, cfg, tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setattr("shgm_slam.server.node.MAX_AGENTS", 3)  # the pose graph's 52 agents, reached sooner
+    clock, bus = FakeClock(), InProcessBus()
+    server = ServerNode(cfg, InProcessTransport(bus), tmp_path, clock=clock, order_keyframes=False)
+    _, first = _segment_keyframes(robots, cfg, clock, bus, "car1", 3)
+    sender = InProcessTransport(bus)
+    for p in first[1:]:
+        sender.publish(keyframe_key("car1"), p)
+    server.poll()
+    assert len(server.map.agents) == 3
+    late, _ = _segment_keyframes(robots, cfg, clock, bus, "car2", 1)
+    server.poll()
+    with pytest.raises(ProtocolError, match="at most 3 agents"):
+        late.poll()
+    assert "car2" in server.dropped_segments and len(server.map.agents) == 3

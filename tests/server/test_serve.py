@@ -2,8 +2,16 @@
 
 from __future__ import annotations
 
+import pytest
+
 from shgm_slam.backend.confirmation import describe
+from shgm_slam.errors import DataError
+from shgm_slam.evaluation import evaluate_results
+from shgm_slam.io.export import INCOMPLETE_FILE
+from shgm_slam.server import serve as serve_module
+from shgm_slam.server.node import ServerNode
 from shgm_slam.server.serve import ServerView
+from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 
 
 class RecordingViz:
@@ -29,3 +37,24 @@ def test_view_streams_graphs_trajectories_and_states(uninterrupted) -> None:
     view.update(uninterrupted, uninterrupted.map.matches)
     view.update(uninterrupted, [])
     assert [c[0] for c in viz.calls].count("log_text") == len(texts)  # states are logged once, not every update
+
+
+def test_a_server_that_stops_with_an_error_marks_its_folder_and_a_resumed_one_clears_it(cfg, tmp_path, monkeypatch):
+    """An unexpected error in the server loop leaves ``incomplete.txt`` (``eval`` refuses the folder); a server
+    restarted on the folder (it resumes from the journal) removes the mark once it finishes."""
+    monkeypatch.setattr(serve_module, "make_transport", lambda role, listen: InProcessTransport(InProcessBus()))
+
+    def broken_poll(self, timeout_s: float = 0.0):
+        raise RuntimeError("disk controller on fire")
+
+    with monkeypatch.context() as m:
+        m.setattr(ServerNode, "poll", broken_poll)
+        with pytest.raises(RuntimeError):
+            serve_module.serve(cfg, tmp_path)
+    marker = tmp_path / INCOMPLETE_FILE
+    assert "disk controller on fire" in marker.read_text() and "resumes from its journal" in marker.read_text()
+    with pytest.raises(DataError, match="ended with an error"):
+        evaluate_results(tmp_path)
+    resumed = ServerNode(cfg, InProcessTransport(InProcessBus()), tmp_path, reference="car1")
+    resumed.finish()
+    assert not marker.exists()
