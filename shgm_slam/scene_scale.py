@@ -210,7 +210,8 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
     * ``min_blob_fraction = fleet x (30 / max_depth_m)^1.5`` (``BLOB_RANGE_EXPONENT``): far objects may
       cover fewer pixels, not quite as few as their range alone would say;
     * ``visual_max_depth_m = 40 x max_depth_m / 30``;
-    * ``voxel_size_m = max(1, median depth / 40)``;
+    * ``voxel_size_m = max(1, median depth / 40)`` (and ``max_spacing_m``, ``config.SPACING_PER_VOXEL`` times
+      it, in ``resolve_robot_config``);
     * ``shuffle_points``: the horizon is out of view;
     * ``max_range_m = max(100, 1.1 x farthest ground range)`` (100 when the horizon is in view);
     * ``cloud_stride = round(sqrt(W x H / CLOUD_TARGET_POINTS))``, at least 1: the pseudo-LiDAR cloud keeps
@@ -259,6 +260,7 @@ def resolve_robot_config(cfg: ShgmConfig, scale: SceneScale | None) -> ShgmConfi
     for stage, values in derived.items():
         current = getattr(cfg, stage)
         stages[stage] = current.model_copy(update={k: v for k, v in values.items() if getattr(current, k) is None})
+    stages["odometry"] = stages["odometry"].with_spacing()  # from the voxel it got (derived or set)
     return cfg.model_copy(update=stages)
 
 
@@ -266,7 +268,7 @@ def effective_fields(cfg: ShgmConfig) -> dict[str, dict[str, float | bool]]:
     """The data-derived fields' values in a resolved robot config (for ``config.yaml``'s ``robots``)."""
     return {
         "extraction": {k: getattr(cfg.extraction, k) for k in ExtractionConfig.FLEET},
-        "odometry": {k: getattr(cfg.odometry, k) for k in OdometryConfig.FLEET},
+        "odometry": {k: getattr(cfg.odometry, k) for k in (*OdometryConfig.FLEET, "max_spacing_m")},
     }
 
 

@@ -8,7 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shgm_slam.config import ExtractionConfig, OdometryConfig, OdometryKind, ShgmConfig, load_config
+from shgm_slam.config import (
+    SPACING_PER_VOXEL,
+    ExtractionConfig,
+    OdometryConfig,
+    OdometryKind,
+    ShgmConfig,
+    load_config,
+)
 from shgm_slam.geometry import se3
 from shgm_slam.geometry.camera import pixel_rays
 from shgm_slam.labels import Label
@@ -131,6 +138,22 @@ def test_config_values_win_over_derived_ones():
     assert resolved.extraction.min_blob_fraction < ExtractionConfig.FLEET["min_blob_fraction"]
 
 
+def test_spacing_filter_follows_the_voxel_a_robot_gets():
+    """Points are kept where their image-grid neighbours lie within ``SPACING_PER_VOXEL`` of a voxel: a car keeps
+    the fleet's 0.6 m, a high UAV (far ground, coarse voxels) a wider spacing, a voxel from the config moves it
+    too, and a spacing from the config wins."""
+    car = resolve_robot_config(ShgmConfig(), scale_of(1.6, 0.0)).odometry
+    assert car.max_spacing_m == pytest.approx(0.6)
+    high = resolve_robot_config(ShgmConfig(), scale_of(90.0, 45.0)).odometry
+    assert high.voxel_size_m > 2.0
+    assert high.max_spacing_m == pytest.approx(SPACING_PER_VOXEL * high.voxel_size_m, rel=0.01)
+    cfg = ShgmConfig.model_validate({"robots": {"uav": {"odometry": {"voxel_size_m": 3.0}}}}).for_robot("uav")
+    assert resolve_robot_config(cfg, scale_of(1.6, 0.0)).odometry.max_spacing_m == pytest.approx(1.8)
+    cfg = ShgmConfig.model_validate({"odometry": {"max_spacing_m": 0.4}})
+    assert resolve_robot_config(cfg, scale_of(90.0, 45.0)).odometry.max_spacing_m == 0.4
+    assert OdometryConfig().filled().max_spacing_m == pytest.approx(0.6)  # nothing measured: the fleet's
+
+
 @dataclass
 class GroundSequence:
     """An in-memory sequence over a flat road at a fixed height, driving along the camera's x axis."""
@@ -188,6 +211,8 @@ def test_results_config_holds_each_robots_resolved_values(tmp_path: Path):
     assert car.odometry.shuffle_points is False
     assert uav.extraction.max_depth_m == pytest.approx(2 * nearest_ground_depth(50.0, 50.0), rel=0.02)
     assert uav.odometry.shuffle_points is True
+    assert car.odometry.max_spacing_m == pytest.approx(0.6)
+    assert uav.odometry.max_spacing_m == pytest.approx(SPACING_PER_VOXEL * uav.odometry.voxel_size_m, rel=0.01)
     # re-running with the saved file reproduces the values: nothing is left to derive
     for robot in (car, uav):
         assert resolve_robot_config(robot, None) == robot
