@@ -103,7 +103,7 @@ def test_ground_truth_with_another_frame_count_than_the_run_is_refused(world, tm
     assert not (tmp_path / "car1_gt_tum.txt").exists()  # nothing written from the wrong sequence
     res = CliRunner().invoke(app, ["eval", str(tmp_path), "--gt", f"car1={world / 'car1'}", "--gt",
                                    f"car2={world / 'car2'}:2-"])  # fmt: skip
-    assert res.exit_code == 2 and "has 10 frames but the run had 9 for car2" in res.output.replace("\n", " ")
+    assert res.exit_code == 2 and "has 10 frames but the run had 9 for car2" in " ".join(res.output.split())
 
 
 def test_a_fused_trajectory_that_is_a_directory_is_not_taken_for_an_unplaced_robot(world, tmp_path):

@@ -104,7 +104,7 @@ def test_cli_check_model_smoke(tmp_path: Path, depth_model: Path) -> None:
     orphan = channel_model(tmp_path / "orphan.onnx")
     result = runner.invoke(app, ["check-model", str(orphan)])
     assert result.exit_code == 2
-    assert "orphan.yaml not found" in result.output.replace("\n", " ")
+    assert "orphan.yaml not found" in " ".join(result.output.split())
 
 
 @pytest.mark.parametrize(

@@ -173,7 +173,7 @@ def test_max_depth_is_checked_without_uav_altitude_too(tmp_path):
                                    ("airsim-like", "1", "render at least 10 m"),
                                    ("airsim-like", "50", "flies at 44-54 m by default")):  # fmt: skip
         res = runner.invoke(app, [*base, "-s", scenario, "-o", str(tmp_path / "bad"), "--max-depth", depth])
-        assert res.exit_code == 2 and words in res.output.replace("\n", " "), (scenario, depth, res.output)
+        assert res.exit_code == 2 and words in " ".join(res.output.split()), (scenario, depth, res.output)
     assert not (tmp_path / "bad").exists()
     ok = runner.invoke(app, [*base, "-s", "airsim-like", "-o", str(tmp_path / "ok"), "--max-depth", "80"])
     assert ok.exit_code == 0, ok.output
