@@ -337,7 +337,8 @@ def run_slam(
             return _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame, write_every_keyframes,
                         on_frame, journal)  # fmt: skip
         except Exception as exc:  # re-raised: what was written so far must not pass for the run's results
-            _mark_incomplete(Path(out_dir), exc)
+            if Path(out_dir).is_dir():
+                ResultsWriter(out_dir).mark_failed(exc)
             raise
 
 
@@ -468,16 +469,6 @@ def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame,
     writer.write_json("metrics.json", summary.to_json_dict())
     viz.close()
     return summary
-
-
-def _mark_incomplete(out_dir: Path, exc: Exception) -> None:
-    """Write ``incomplete.txt`` into a results folder whose run failed with ``exc`` (when the folder exists)."""
-    if not out_dir.is_dir():
-        return
-    path = ResultsWriter(out_dir).mark_failed(exc)
-    if path is not None:
-        log.warning("the run ended with an error; the files in %s are its last checkpoint, marked by %s", out_dir,
-                    path.name)  # fmt: skip
 
 
 def replay_backend(recorded: Path, cfg: ShgmConfig, out_dir: Path, robots: list[str]) -> ServerNode:

@@ -336,14 +336,16 @@ class ResultsWriter:
         _atomic(path, lambda p: p.write_text(text))
         return path
 
-    def mark_failed(self, exc: Exception, advice: str = RERUN_ADVICE) -> Path | None:
-        """``mark_incomplete`` with the error ``exc`` that ended the run; None (logged) when the folder cannot be
-        written (``exc`` stays the error to report). Returns the file's path."""
+    def mark_failed(self, exc: Exception, advice: str = RERUN_ADVICE) -> None:
+        """``mark_incomplete`` with the error ``exc`` that ended the run, and a log line saying so; only a log line
+        when the folder cannot be written (``exc`` stays the error to report)."""
         try:
-            return self.mark_incomplete(f"{type(exc).__name__}: {exc}", advice)
+            path = self.mark_incomplete(f"{type(exc).__name__}: {exc}", advice)
         except DataError as marker_exc:
             log.warning("%s: cannot mark the unfinished results: %s", self.root, marker_exc)
-            return None
+            return
+        log.warning("the run ended with an error; the files in %s are its last checkpoint, marked by %s (%s)",
+                    self.root, path.name, advice)  # fmt: skip
 
     def clear_incomplete(self) -> None:
         """Remove ``INCOMPLETE_FILE`` (a restarted map server that finished on the folder of one that failed)."""

@@ -356,7 +356,7 @@ class ServerNode:
         """Trajectory segments each robot may start (the robot and its segments after odometry failures): its
         share of the pose graph's ``MAX_AGENTS`` among the fleet, the ``expect`` robots (or more, once more have
         connected) or, when the fleet size is not given, the robots connected so far and room for one more."""
-        fleet = max(self.expect or 0, len(self.robots)) if self.expect else len(self.robots) + 1
+        fleet = max(self.expect, len(self.robots)) if self.expect else len(self.robots) + 1
         return segments_per_robot(fleet)
 
     def _admitted(self, rs: RobotSession, agent: str) -> bool:

@@ -143,7 +143,7 @@ def serve(
             records = node.finish()
             view.update(node, records)
         except Exception as exc:  # re-raised: the folder's files are a checkpoint, not the results
-            _mark_incomplete(node, exc)
+            node.writer.mark_failed(exc, RESUME_ADVICE)  # eval refuses the folder until a server finishes it
             raise
         linger_until = time.monotonic() + LINGER_S
         while time.monotonic() < linger_until:
@@ -151,11 +151,3 @@ def serve(
     viz.close()
     return ServeSummary(Path(out_dir), node.summary(), interrupted, time.perf_counter() - t0)
 
-
-def _mark_incomplete(node: ServerNode, exc: Exception) -> None:
-    """Leave ``incomplete.txt`` in the server's results folder (``eval`` refuses it; the journal there lets a
-    restarted server resume, and one that finishes removes the file)."""
-    path = node.writer.mark_failed(exc, RESUME_ADVICE)
-    if path is not None:
-        log.warning("the map server stopped with an error; the files in %s are its last checkpoint, marked by %s "
-                    "(%s)", path.parent, path.name, RESUME_ADVICE)
