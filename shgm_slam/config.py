@@ -16,7 +16,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from shgm_slam.errors import ConfigError, parse_failure
-from shgm_slam.labels import DEFAULT_GRAPH_LABELS, FLAT_GROUND_LABELS, THIN_OBJECT_DEPTH_PERCENTILES
+from shgm_slam.labels import DEFAULT_GRAPH_LABELS, THIN_OBJECT_DEPTH_PERCENTILES, VIEWPOINT_DEPENDENT_LABELS
 
 
 class _Stage(BaseModel):
@@ -162,10 +162,11 @@ class MatchingConfig(_Stage):
         "mapped by both robots (maps miss 30-60 % of objects)",
     )
     viewpoint_dependent_labels: tuple[int, ...] = Field(
-        FLAT_GROUND_LABELS, description="whole-overlap check between robots whose cameras look from very different "
-        "heights (view_height_ratio): train ids that then neither support nor contradict an alignment (they still "
-        "pair up, and closures take their height). Flat ground: its horizontal centroid depends on the part of "
-        "the patch seen (a car's strip of sidewalk, a UAV's whole block)",
+        VIEWPOINT_DEPENDENT_LABELS, description="whole-overlap check between robots whose cameras look from very "
+        "different heights (view_height_ratio): train ids that then neither support nor contradict an alignment (they "
+        "still pair up, and closures take the height of flat ground). Flat ground and buildings: their horizontal "
+        "centroid depends on the part seen (a car's strip of sidewalk or facade, a UAV's whole block or roof); poles, "
+        "traffic lights and signs: a few pixels from above, a UAV maps almost none (labels.VIEWPOINT_DEPENDENT_LABELS)",
     )
     view_height_ratio: float = Field(
         4.0, gt=1, description="two robots look from very different heights when one camera is more than this many "

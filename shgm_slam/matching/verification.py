@@ -23,13 +23,14 @@ inside the area B observed should find one of B. Each such node is one Bernoulli
   lamp row matched on another street carried a whole alias (6 of 8 poles partnered against a density
   chance of 3 %: +14 nats, every other label at chance).
 
-Classes whose horizontal centroid depends on the part of the object seen can be left without evidence
-either way (``evidence_free_labels``; the map server passes flat ground, ``labels.FLAT_GROUND_LABELS``,
-between robots that look from very different heights, ``server/viewpoints.py``): a car sees the strip
-of sidewalk or grass beside it, a UAV 50 m up the whole block's, so their centroids lie metres apart
-under the true alignment. Counted, they contradicted every true car-UAV alignment (terrain alone
--10 to -21 nats on the airsim-like tuning worlds) while the partners of compact objects supported it. They
-still pair up (``pairs``: closure refits take their height).
+Classes that two robots do not map alike can be left without evidence either way
+(``evidence_free_labels``; the map server passes ``labels.VIEWPOINT_DEPENDENT_LABELS`` between robots that
+look from very different heights, ``server/viewpoints.py``). Flat ground: a car sees the strip of sidewalk
+or grass beside it, a UAV 50 m up the whole block's, so their centroids lie metres apart under the true
+alignment (counted, terrain alone gave -10 to -21 nats against every true car-UAV alignment on the airsim-like
+tuning worlds, while the partners of compact objects supported it); buildings likewise (a facade against a
+roof); poles, traffic lights and signs are a few pixels seen from above, so the car's find no partner. They
+still pair up (``pairs``: closure refits take the height of flat ground).
 
 The log likelihood ratio sums ``log(p1 / p0)`` over supported nodes and ``log((1 - p1) / (1 - p0))``
 over contradicting ones (inside the other's area, no partner). An alias explains the repeated street

@@ -1,9 +1,11 @@
 """Where each robot looks from, and what that does to the evidence between two of them.
 
 A car's camera is 1.5-2 m above the street, a UAV's 30-60 m: the same objects look different from the two.
-Flat ground (road, sidewalk, lawn) has a horizontal centroid that depends on the part of the patch seen
-(a car sees the strip beside it, a UAV the whole block), so between robots whose cameras look from very
-different heights it gives no evidence in the match verification (``MatchingConfig.viewpoint_dependent_labels``);
+Flat ground (road, sidewalk, lawn) and buildings have a horizontal centroid that depends on the part seen
+(a car sees the strip beside it or a facade, a UAV the whole block or a roof), and poles, traffic lights and
+signs are a few pixels from above, so between robots whose cameras look from very different heights they give
+no evidence in the match verification (``MatchingConfig.viewpoint_dependent_labels``,
+``labels.VIEWPOINT_DEPENDENT_LABELS``);
 and the visible part of a solid object moves with the viewpoint, so a closure's translation is less
 precise the more the two robots' elevation angles onto its objects differ (``closure_information``).
 

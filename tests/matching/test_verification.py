@@ -8,7 +8,7 @@ import pytest
 
 from shgm_slam.config import DescriptorConfig, MatchingConfig
 from shgm_slam.geometry.se3 import inverse, make_pose, pose_error, rot_z, transform_points
-from shgm_slam.labels import FLAT_GROUND_LABELS, Label
+from shgm_slam.labels import FLAT_GROUND_LABELS, VIEWPOINT_DEPENDENT_LABELS, Label
 from shgm_slam.matching import match_graphs
 from shgm_slam.matching.verification import (
     CHANCE_PRIOR_OBSERVATIONS,
@@ -39,7 +39,9 @@ def _cfg(**kw) -> MatchingConfig:
     return MatchingConfig(gravity_aligned=True, up_axis=UP_Z, **kw)
 
 
-def _street(rng: np.random.Generator, length_m: float = 240.0, surroundings: int = 45):
+def _street(
+    rng: np.random.Generator, length_m: float = 240.0, surroundings: int = 45, kinds: np.ndarray = SURROUNDINGS
+):
     """A straight street along x, z up: trees every 10 m and lamps every 30 m on both sides (perfectly
     regular, the same on every street), plus ``surroundings`` irregular objects (buildings, poles, signs,
     lights, park trees) 9-30 m from the centreline, different on every street."""
@@ -52,7 +54,7 @@ def _street(rng: np.random.Generator, length_m: float = 240.0, surroundings: int
     other = np.column_stack([x, y, rng.uniform(2.0, 10.0, surroundings)])
     pos = np.vstack(trees + lamps + [other])
     labels = np.concatenate([np.full(2 * xs.size, Label.VEGETATION), np.full(2 * xl.size, Label.POLE),
-                             rng.choice(SURROUNDINGS, surroundings)])  # fmt: skip
+                             rng.choice(kinds, surroundings)])  # fmt: skip
     return pos, labels.astype(np.int64)
 
 
@@ -68,17 +70,19 @@ def _random_pose_z(rng: np.random.Generator) -> np.ndarray:
     return make_pose(rot_z(rng.uniform(-np.pi, np.pi)), np.r_[rng.uniform(-200, 200, 2), rng.uniform(-3, 3)])
 
 
-def _assert_alias_rejected_and_street_accepted(street_1, street_2, rng: np.random.Generator) -> None:
+def _assert_alias_rejected_and_street_accepted(
+    street_1, street_2, rng: np.random.Generator, evidence_free_labels: tuple[int, ...] = ()
+) -> None:
     """A maps street 1; B maps street 2 (an alias of it) and is rejected; B mapping street 1 is accepted
     with the right transform (B's frame a random yaw + translation away)."""
     a, _ = _robot(*street_1, rng, 0.3, 0.5, np.eye(4))
     T_b_world = _random_pose_z(rng)
     b_alias, _ = _robot(*street_2, rng, 0.3, 0.5, T_b_world, 100_000)
-    r = match_graphs(a, b_alias, DescriptorConfig(), _cfg())
+    r = match_graphs(a, b_alias, DescriptorConfig(), _cfg(), evidence_free_labels=evidence_free_labels)
     assert not r.success, f"alias accepted: {r.num_inliers} partners, llr {r.llr:.1f} > {r.llr_threshold:.1f}"
     assert r.reason and r.T_a_b is None
     b_true, _ = _robot(*street_1, rng, 0.3, 0.5, T_b_world, 100_000)
-    r = match_graphs(a, b_true, DescriptorConfig(), _cfg())
+    r = match_graphs(a, b_true, DescriptorConfig(), _cfg(), evidence_free_labels=evidence_free_labels)
     assert r.success, r.reason
     dt, dr = pose_error(r.T_a_b, inverse(T_b_world))
     assert dt < 5.0 and dr < 2.0
@@ -91,6 +95,17 @@ def test_repeated_street_alias_is_rejected(seed):
     rng = np.random.default_rng(seed)
     street_1, street_2 = _street(rng), _street(rng)
     _assert_alias_rejected_and_street_accepted(street_1, street_2, rng)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_repeated_street_alias_is_rejected_between_a_car_and_a_uav(seed):
+    """Between a car and a UAV the viewpoint-dependent classes give no evidence (the lamps of the rows, the
+    buildings, poles and signs around them): the rows of trees still align on another street, and what
+    is left around them (walls, fences, trucks, park trees) still contradicts the alias."""
+    rng = np.random.default_rng(seed)
+    kinds = np.array([Label.WALL, Label.FENCE, Label.TRUCK, Label.VEGETATION, Label.BUILDING, Label.POLE])
+    street_1, street_2 = _street(rng, kinds=kinds), _street(rng, kinds=kinds)
+    _assert_alias_rejected_and_street_accepted(street_1, street_2, rng, VIEWPOINT_DEPENDENT_LABELS)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -248,6 +263,58 @@ def test_a_car_and_a_uav_are_matched_though_they_see_flat_ground_differently(see
     assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 1.5  # where B's objects are, not at its far origin
     counted = match_graphs(a, b, DescriptorConfig(), _cfg())
     assert not counted.success and counted.llr < r.llr
+
+
+def _car_and_uav_buildings(rng: np.random.Generator, T_b_world: np.ndarray):
+    """``_car_and_uav_block``'s street with 20 more parked cars, trees and trucks (each robot misses 30 %),
+    and buildings and thin upright objects as the two see them: each building's node where the robot saw it
+    (the car: its facade's centre, 9-11 m out, 4 m up; the UAV: its roof's, 8 m farther out, 12 m up); the
+    car maps 70 % of the poles, lights and signs, the UAV 5 %."""
+    car, uav = _car_and_uav_block(rng, T_b_world)
+    c = 12
+    compact = np.column_stack([rng.uniform(0, 200, c), rng.choice([-1.0, 1.0], c) * rng.uniform(3.0, 8.0, c),
+                               rng.uniform(0.5, 4.0, c)])  # fmt: skip
+    compact_labels = rng.choice([Label.CAR, Label.VEGETATION, Label.TRUCK], c)
+    seen_a, seen_b = rng.random(c) >= 0.3, rng.random(c) >= 0.3
+    k = 24
+    x, side = rng.uniform(0, 200, k), rng.choice([-1.0, 1.0], k)
+    facades = np.column_stack([x, side * rng.uniform(9.0, 11.0, k), np.full(k, 4.0)])
+    roofs = facades + np.column_stack([np.zeros(k), side * 8.0, np.full(k, 8.0)])
+    m = 20
+    thin = np.column_stack([rng.uniform(0, 200, m), rng.choice([-1.0, 1.0], m) * 4.5, np.full(m, 3.0)])
+    thin_labels = rng.choice([Label.POLE, Label.TRAFFIC_LIGHT, Label.TRAFFIC_SIGN], m)
+
+    def add(g, points, labels, T, id_offset):
+        p = np.vstack([g.positions_xyz, points @ T[:3, :3].T + T[:3, 3]])
+        lab = np.r_[g.label_ids, labels].astype(np.int64)
+        return graph_of(p, lab, np.ones(len(p)), np.r_[g.node_ids, np.arange(len(points)) + id_offset])
+
+    seen_car, seen_uav = rng.random(m) < 0.7, rng.random(m) < 0.05
+    noise_a, noise_b = (rng.normal(0, 0.5, (c, 3)) * [1.0, 1.0, 0.3] for _ in range(2))
+    buildings = np.full(k, Label.BUILDING)
+    car = add(car, np.vstack([facades, thin[seen_car], (compact + noise_a)[seen_a]]),
+              np.r_[buildings, thin_labels[seen_car], compact_labels[seen_a]], np.eye(4), 5_000)  # fmt: skip
+    uav = add(uav, np.vstack([roofs, thin[seen_uav], (compact + noise_b)[seen_b]]),
+              np.r_[buildings, thin_labels[seen_uav], compact_labels[seen_b]], T_b_world, 50_000)  # fmt: skip
+    return car, uav
+
+
+@pytest.mark.parametrize("seed", [1, 5, 8])
+def test_a_car_and_a_uav_are_matched_though_they_see_buildings_and_poles_differently(seed):
+    """A facade's node against a roof's, 8 m apart, and poles a UAV hardly maps contradict the true
+    alignment when they count (flat ground alone left out: rejected); with the viewpoint-dependent classes
+    left out (what the map server passes between a car and a UAV), the compact objects place B right."""
+    rng = np.random.default_rng(seed)
+    T_b_world = make_pose(rot_z(rng.uniform(-np.pi, np.pi)), np.r_[rng.uniform(-100, 100, 2), 40.0])
+    a, b = _car_and_uav_buildings(rng, T_b_world)
+    r = match_graphs(a, b, DescriptorConfig(), _cfg(), evidence_free_labels=VIEWPOINT_DEPENDENT_LABELS)
+    assert r.success, r.reason
+    compact = ~np.isin(b.label_ids, VIEWPOINT_DEPENDENT_LABELS)
+    points = b.positions_xyz[compact]
+    err = transform_points(r.T_a_b, points) - transform_points(inverse(T_b_world), points)
+    assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 1.5
+    flat_only = match_graphs(a, b, DescriptorConfig(), _cfg(), evidence_free_labels=FLAT_GROUND_LABELS)
+    assert not flat_only.success and flat_only.llr < r.llr
 
 
 def test_evidence_free_nodes_pair_up_but_neither_support_nor_contradict():

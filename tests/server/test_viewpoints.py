@@ -11,7 +11,7 @@ from shgm_slam.config import ShgmConfig
 from shgm_slam.geometry import se3
 from shgm_slam.graph.extraction import ObjectObservations
 from shgm_slam.graph.semantic_graph import SemanticGraph
-from shgm_slam.labels import FLAT_GROUND_LABELS, Label
+from shgm_slam.labels import FLAT_GROUND_LABELS, VIEWPOINT_DEPENDENT_LABELS, Label
 from shgm_slam.messages import KeyframeMessage
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.viewpoints import (
@@ -83,7 +83,7 @@ def _drive(name: str, height_m: float, pos: np.ndarray, labels: np.ndarray, T_od
         yield KeyframeMessage(name, k, k, 0.5 * k, T, graph.add_keyframe(k, T, obs), T_frame[:3, :3] @ UP)
 
 
-def test_the_map_server_drops_flat_ground_evidence_between_a_car_and_a_uav_only():
+def test_the_map_server_drops_viewpoint_dependent_evidence_between_a_car_and_a_uav_only():
     rng = np.random.default_rng(7)
     n = 80
     pos = np.column_stack([rng.uniform(0, 120, n), rng.choice([-1.0, 1.0], n) * rng.uniform(4, 25, n), np.zeros(n)])
@@ -97,8 +97,9 @@ def test_the_map_server_drops_flat_ground_evidence_between_a_car_and_a_uav_only(
             server.receive(msg)
     assert server.camera_height_m("car1") == pytest.approx(1.6, abs=0.05)
     assert server.camera_height_m("uav") == pytest.approx(45.0, abs=0.05)
-    assert server.evidence_free_labels("car1", "uav") == tuple(FLAT_GROUND_LABELS)
-    assert server.evidence_free_labels("uav", "car2") == tuple(FLAT_GROUND_LABELS)
+    assert server.evidence_free_labels("car1", "uav") == tuple(VIEWPOINT_DEPENDENT_LABELS)
+    assert server.evidence_free_labels("uav", "car2") == tuple(VIEWPOINT_DEPENDENT_LABELS)
+    assert set(FLAT_GROUND_LABELS) <= set(VIEWPOINT_DEPENDENT_LABELS)
     assert server.evidence_free_labels("car1", "car2") == ()
 
 
