@@ -13,8 +13,9 @@ source's own diagnostics (``OdometryEstimate``):
   the simulated cars reach 2 g centripetal),
 - **turn rate**: ``angle(ΔR) ≤ max_turn_rate_dps·Δt + step_noise_deg`` (the simulated cars turn
   at up to 107°/s at intersections),
-- **coasting**: the source predicted instead of measured (no depth, too few points, ICP or PnP
-  failed) for more than ``max_coast_s`` since the last measured pose,
+- **coasting**: the source predicted instead of measured (no depth, too few points, a cloud in too few
+  of KISS-ICP's voxels such as one surface close up, ICP or PnP failed) for more than ``max_coast_s`` since
+  the last measured pose,
 - **registration threshold**: KISS-ICP's adaptive threshold (its running estimate of the motion
   model's error, metres) above ``max_threshold_m``; a safety net only: on healthy starts it reaches
   8 m (the first frames accelerate from a zero-velocity prior),

@@ -206,7 +206,7 @@ class KissIcpSource:
         reg = self.odometry.register(points_cam, prior, keep_step if checked else None)
         if self.window is not None and self.window.anchored_now:
             self._T_odom_anchor = reg.T_odom_cam
-        note = "" if reg.ok else f"frame {frame.index}: {reg.status.value} ({reg.num_points} points in range)"
+        note = "" if reg.ok else f"frame {frame.index}: {reg.describe()}"
         image_step = any(slipped)
         if image_step:
             note = f"frame {frame.index}: ICP slipped against the image motion; the step from the image tracks kept"

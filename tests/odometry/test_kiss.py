@@ -8,7 +8,15 @@ import pytest
 from shgm_slam.errors import ConfigError
 from shgm_slam.geometry.se3 import inverse, make_pose, pose_error, rot_y
 from shgm_slam.odometry.clouds import depth_to_cloud
-from shgm_slam.odometry.kiss import KissOdometry, OdometryStatus, Relocation
+from shgm_slam.odometry.kiss import (
+    MIN_POINTS,
+    MIN_SOURCE_VOXELS,
+    KissOdometry,
+    OdometryStatus,
+    Relocation,
+    source_voxel_count,
+    too_few_source_voxels,
+)
 from shgm_slam.types import Intrinsics
 
 INTR = Intrinsics(370.0, 370.0, 319.5, 95.5, 640, 192)  # KITTI-like 640x192
@@ -104,6 +112,31 @@ def test_degenerate_cloud_keeps_constant_velocity():
     # non-finite rows are dropped, not passed to ICP
     nan_cloud = np.full((1000, 3), np.nan)
     assert odo.register(nan_cloud).status is OdometryStatus.DEGENERATE_CLOUD
+
+
+def test_a_close_surface_filling_the_view_coasts_however_many_points_it_has():
+    """A camera 2 m from one flat surface (a UAV skimming a roof) sees tens of thousands of points in a
+    handful of KISS-ICP's source voxels: not registered (ICP could slide and tilt on it), the pose coasts;
+    the street's frames before and after fill hundreds and register."""
+    rng = np.random.default_rng(4)
+    boxes = street(rng)
+    gt = camera_path(5)
+    odo = KissOdometry(voxel_size_m=1.0)
+    poses = []
+    for T in gt:
+        pts, _ = depth_to_cloud(render_depth(T, boxes, 4), INTR, stride=4, min_range_m=0.5, max_range_m=30.0)
+        reg = odo.register(pts)
+        assert reg.ok and reg.source_voxels is None and source_voxel_count(pts, 1.0) >= MIN_SOURCE_VOXELS
+        poses.append(reg.T_odom_cam)
+    u, v = np.meshgrid(np.linspace(-2.0, 2.0, 200), np.linspace(-0.6, 0.6, 60))
+    wall = np.column_stack([u.ravel(), v.ravel(), np.full(u.size, 2.0)])  # 12k points, 2 m ahead
+    close = odo.register(wall)
+    assert close.num_points == len(wall) and close.num_points >= MIN_POINTS
+    assert close.status is OdometryStatus.DEGENERATE_CLOUD and close.source_voxels < MIN_SOURCE_VOXELS
+    assert source_voxel_count(wall, 1.0) == close.source_voxels and "source voxels" in close.describe()
+    assert too_few_source_voxels(wall, 1.0, close.source_voxels) is None  # "fewer than": a count at the limit passes
+    delta = inverse(poses[-2]) @ poses[-1]
+    np.testing.assert_allclose(close.T_odom_cam, poses[-1] @ delta, atol=1e-9)
 
 
 def test_returned_pose_is_a_copy():
