@@ -29,7 +29,7 @@ from shgm_slam.data.base import open_sequence
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry import se3
 from shgm_slam.io.trajectories import associate, read_comments, read_tum
-from shgm_slam.metrics import AlignMode, ate
+from shgm_slam.metrics import AlignMode, ate, joint_ate
 from shgm_slam.types import Sequence
 
 
@@ -66,6 +66,9 @@ class RobotEvaluation:
     note: str = ""
     # placed but not confirmed by an independent graph match (the fused file's "# provisional: ..." line says why)
     provisional: bool = False
+    # RMSE after ONE SE(3) fit of all placed robots together (``metrics.joint_ate``): the shared frame without
+    # the first robot's own drift; NaN when not in the shared frame
+    ate_fused_joint_m: float = float("nan")
 
     @property
     def localized(self) -> bool:
@@ -81,6 +84,8 @@ class EvaluationResult:
     gt_source: str
     robots: list[RobotEvaluation] = field(default_factory=list)
     gt_files_written: list[Path] = field(default_factory=list)
+    ate_joint_m: float = float("nan")  # all placed robots' poses under their one joint SE(3) fit, RMSE
+    joint_robots: int = 0  # robots in that fit (placed, with ground truth in the shared frame)
 
     def to_json_dict(self) -> dict:
         from shgm_slam.io.json_text import finite_or_none
@@ -89,6 +94,7 @@ class EvaluationResult:
             "results_dir": str(self.results_dir), "reference_robot": self.reference_robot,
             "gt_source": self.gt_source, "robots": [asdict(r) for r in self.robots],
             "gt_files_written": [str(p) for p in self.gt_files_written],
+            "ate_joint_m": self.ate_joint_m, "joint_robots": self.joint_robots,
         })  # type: ignore[return-value]  # fmt: skip
 
 
@@ -153,11 +159,14 @@ def check_frame_counts(results_dir: Path, sequences: dict[str, Sequence]) -> Non
             )
 
 
-def _evaluate_robot(name: str, fused_file: Path, t_gt: np.ndarray, gt: np.ndarray) -> RobotEvaluation:
+def _evaluate_robot(
+    name: str, fused_file: Path, t_gt: np.ndarray, gt: np.ndarray
+) -> tuple[RobotEvaluation, tuple[np.ndarray, np.ndarray] | None]:
+    """The robot's evaluation and its associated (M, 4, 4) ground-truth and fused poses (None: not placed)."""
     if not fused_file.is_file():
         if fused_file.exists():  # a folder (or another non-file) of that name: not "not placed"
             raise DataError(f"{fused_file} is not a file; it must be the TUM trajectory `run` wrote for {name}")
-        return RobotEvaluation(name, 0, 0, note="not placed (no fused trajectory)")
+        return RobotEvaluation(name, 0, 0, note="not placed (no fused trajectory)"), None
     t_est, est = read_tum(fused_file)
     rows_est, rows_gt = associate(t_est, t_gt)
     rep = RobotEvaluation(name, len(t_est), len(rows_est), provisional=is_provisional(fused_file))
@@ -170,7 +179,7 @@ def _evaluate_robot(name: str, fused_file: Path, t_gt: np.ndarray, gt: np.ndarra
     if not shared.valid:
         notes.append(shared.reason)
     rep.note = "; ".join(notes)
-    return rep
+    return rep, (gt[rows_gt], est[rows_est])
 
 
 def is_provisional(fused_file: Path) -> bool:
@@ -247,11 +256,15 @@ def evaluate_results(
                 f"--gt {order[0]}=PATH[:start-end] for every robot"
             )
         result.gt_source = "results folder"
+    joint: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # row in result.robots -> associated gt, fused
     for r in order:
         if r in truth:
-            result.robots.append(_evaluate_robot(r, root / f"{r}_fused_tum.txt", *truth[r]))
+            rep, poses = _evaluate_robot(r, root / f"{r}_fused_tum.txt", *truth[r])
+            if poses is not None and len(poses[0]):
+                joint[len(result.robots)] = poses
+            result.robots.append(rep)
         elif r in own_frame:
-            rep = _evaluate_robot(r, root / f"{r}_fused_tum.txt", *own_frame[r])
+            rep, _ = _evaluate_robot(r, root / f"{r}_fused_tum.txt", *own_frame[r])
             rep.ate_fused_m = rep.max_error_m = float("nan")
             rep.note = rep.note or "ground truth in another frame: aligned only"
             result.robots.append(rep)
@@ -260,4 +273,9 @@ def evaluate_results(
             count = len(read_tum(fused)[0]) if fused.exists() else 0  # read_tum refuses a folder of that name
             provisional = count > 0 and is_provisional(fused)
             result.robots.append(RobotEvaluation(r, count, 0, note="no ground truth given", provisional=provisional))
+    if joint:
+        per_robot, together = joint_ate([g for g, _ in joint.values()], [e for _, e in joint.values()])
+        for row, stats in zip(joint, per_robot, strict=True):
+            result.robots[row].ate_fused_joint_m = stats.rmse
+        result.ate_joint_m, result.joint_robots = together.rmse, len(joint)
     return result

@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 from dataclasses import asdict, dataclass
 from enum import Enum
+from itertools import pairwise
 
 import numpy as np
 
@@ -172,6 +173,48 @@ def ate(poses_gt: np.ndarray, poses_est: np.ndarray, *, align: AlignMode | str =
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, traj))
     return _stats(ape.error, n)
+
+
+def joint_ate(poses_gt: list[np.ndarray], poses_est: list[np.ndarray]) -> tuple[list[ErrorStats], ErrorStats]:
+    """ATE of several robots' trajectories under ONE rigid alignment fit to all of them together, metres.
+
+    The fused trajectories of a multi-robot run share one frame whose gauge is the first robot's first pose:
+    in that frame every robot also carries the first robot's own drift, and aligning each robot on its own
+    hides whether their maps agree. A single SE(3) fit (Umeyama, no scale) of all robots' positions at once
+    removes the gauge only: what is left is how consistently the robots were placed relative to each other
+    (the fleet's map), as collaborative SLAM evaluations report it.
+
+    Args:
+        poses_gt: per robot, (N_i, 4, 4) ground-truth ``T_world_cam`` in one world frame (all robots').
+        poses_est: per robot, (N_i, 4, 4) estimated poses of the same frames, all in one frame (the run's
+            shared frame).
+
+    Returns:
+        Per robot, the ``ErrorStats`` of its position errors after the joint fit, and those of all poses
+        together; NaN with a reason when fewer than ``MIN_POSES`` poses in all, non-finite poses or
+        positions that all coincide.
+    """
+    if len(poses_gt) != len(poses_est):
+        raise DataError(f"metrics: {len(poses_gt)} ground-truth trajectories but {len(poses_est)} estimated ones")
+    pairs = [_check_pair(g, e) for g, e in zip(poses_gt, poses_est, strict=True)]
+    sizes = [g.shape[0] for g, _, _ in pairs]
+    n = sum(sizes)
+    gt = np.concatenate([g for g, _, _ in pairs]) if pairs else np.zeros((0, 4, 4))
+    est = np.concatenate([e for _, e, _ in pairs]) if pairs else np.zeros((0, 4, 4))
+    reason = "" if np.isfinite(gt).all() and np.isfinite(est).all() else "poses contain NaN or inf"
+    if not reason and n < MIN_POSES:
+        reason = f"only {n} poses (need at least {MIN_POSES})"
+    if not reason and np.ptp(est[:, :3, 3], axis=0).max() == 0.0:
+        reason = "joint alignment impossible: all estimated positions coincide"
+    if reason:
+        return [ErrorStats.invalid(k, reason) for k in sizes], ErrorStats.invalid(n, reason)
+    T_gt_est = kabsch(est[:, :3, 3], gt[:, :3, 3])
+    errors = np.linalg.norm(est[:, :3, 3] @ T_gt_est[:3, :3].T + T_gt_est[:3, 3] - gt[:, :3, 3], axis=1)
+    bounds = np.cumsum([0, *sizes]).tolist()
+    per_robot = [
+        _stats(errors[i:j], j - i) if j > i else ErrorStats.invalid(0, "no poses") for i, j in pairwise(bounds)
+    ]
+    return per_robot, _stats(errors, n)
 
 
 def rpe(

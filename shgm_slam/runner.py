@@ -28,7 +28,7 @@ from shgm_slam.fusion import fuse_segments
 from shgm_slam.geometry import se3
 from shgm_slam.interrupts import stops_deferred
 from shgm_slam.io.export import ResultsWriter
-from shgm_slam.metrics import ate
+from shgm_slam.metrics import ate, joint_ate
 from shgm_slam.odometry.stillness import ImageChange, odometry_motion, stillness_warning
 from shgm_slam.robot.build import make_frontend
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
@@ -140,6 +140,9 @@ class RobotReport:
     ate_fused_m: float = float("nan")
     ate_odometry_aligned_m: float = float("nan")  # SE(3)-aligned (shape only)
     ate_fused_aligned_m: float = float("nan")
+    # after ONE SE(3) fit of every placed robot's fused poses together (``metrics.joint_ate``): the shared frame
+    # without the first robot's own drift, i.e. how well the robots agree (needs shared ground truth)
+    ate_fused_joint_m: float = float("nan")
     # odometry health: each detected divergence cuts the trajectory and starts a new segment whose pose
     # is unknown until graph matching places it; the odometry ATEs above treat each segment on its own
     # (placed at its true first pose / aligned on its own). ``localized``: every segment with keyframes
@@ -196,6 +199,7 @@ class RunSummary:
     skipped_reasons: list[str] = field(default_factory=list)
     pairs: list[PairMatches] = field(default_factory=list)  # how the matches between each two robots went
     last_looks: list[str] = field(default_factory=list)  # ``MapServer.last_looks``: what each last look found
+    ate_joint_m: float = float("nan")  # all placed robots' fused poses under one joint SE(3) fit, RMSE, metres
 
     def to_json_dict(self) -> dict:
         return {
@@ -210,6 +214,7 @@ class RunSummary:
             "interrupted": self.interrupted,
             "skipped": self.skipped_reasons[:50],
             "last_looks": self.last_looks,
+            "ate_joint_m": self.ate_joint_m,
         }
 
 
@@ -443,7 +448,7 @@ def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame,
         view.finish(server, fronts.values())  # the viewer ends on the final estimate, not the last keyframe's
     for node in nodes.values():
         node.poll()
-    reports = _evaluate(fronts, server, robots, processed, gt_shared_frame)
+    reports, ate_joint_m = _evaluate(fronts, server, robots, processed, gt_shared_frame)
     _report_placement(reports, fronts, server)
     _report_degenerate(reports, fronts, image_change, viz)
     accepted = sum(m.accepted for m in server.matches)
@@ -463,6 +468,7 @@ def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame,
         interrupted=interrupted,
         skipped_reasons=skipped,
         last_looks=server.last_looks(),
+        ate_joint_m=ate_joint_m,
     )
     for line in filter(None, (p.never_met() for p in summary.pairs)):
         viz.log_text(line, "WARN")  # the viewer's log panel says why two robots never met
@@ -587,10 +593,15 @@ def _fused(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
     )  # fmt: skip
 
 
-def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: bool) -> list[RobotReport]:
+def _evaluate(
+    fronts, server: MapServer, robots, processed, gt_shared_frame: bool
+) -> tuple[list[RobotReport], float]:
+    """Each robot's report, and the RMSE of all placed robots' fused poses under one joint SE(3) fit (NaN
+    without shared ground truth)."""
     names = list(robots)
     gt0 = robots[names[0]].gt_poses
     reports = []
+    joint: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # report row -> (M, 4, 4) ground truth, fused
     for r, front in fronts.items():
         seq = robots[r]
         fused = _fused(front, server)
@@ -645,8 +656,14 @@ def _evaluate(fronts, server: MapServer, robots, processed, gt_shared_frame: boo
                 rep.ate_fused_aligned_m = ate(gt[okf], fused[okf], align="se3")["rmse"]
                 if shared:
                     rep.ate_fused_m = ate(gt_ref[okf], fused[okf], align="none")["rmse"]
+                    joint[len(reports)] = (gt_ref[okf], fused[okf])
         reports.append(rep)
-    return reports
+    if not joint:
+        return reports, float("nan")
+    per_robot, together = joint_ate([g for g, _ in joint.values()], [f for _, f in joint.values()])
+    for row, stats in zip(joint, per_robot, strict=True):
+        reports[row].ate_fused_joint_m = stats.rmse
+    return reports, together.rmse
 
 
 def _log_frame(

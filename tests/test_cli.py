@@ -177,16 +177,19 @@ def test_eval_table_fits_80_columns_without_cutting(monkeypatch):
     name = "a_very_long_robot_name_of_32_chr"
     note = "provisional: no independent graph match confirms its place; 3 fused pose(s) have no ground truth"
     robots = [evaluation.RobotEvaluation(name, 4541, 4541, 1234.56, 12.345, 2345.6, note=note, provisional=True),
-              evaluation.RobotEvaluation("car1", 4541, 4540, 0.39, 0.13, 0.67),
+              evaluation.RobotEvaluation("car1", 4541, 4540, 0.39, 0.13, 0.67, ate_fused_joint_m=0.21),
               evaluation.RobotEvaluation("uav", 0, 0, note="not placed (no fused trajectory)")]  # fmt: skip
-    result = SimpleNamespace(robots=robots, reference_robot="car1", gt_source="results folder", gt_files_written=[])
+    robots[0].ate_fused_joint_m = 987.65
+    result = SimpleNamespace(robots=robots, reference_robot="car1", gt_source="results folder", gt_files_written=[],
+                             joint_robots=2, ate_joint_m=1.5)  # fmt: skip
     monkeypatch.setattr(evaluation, "evaluate_results", lambda *a, **k: result)
     res = runner.invoke(app, ["eval", "anywhere"], env={"COLUMNS": "80"})
     assert res.exit_code == 0, res.output
     lines = res.output.splitlines()
     assert "…" not in res.output and max(map(len, lines)) <= 80
     assert name in "".join(line.split()[0] for line in lines if line.strip() and line.split()[0] in name)
-    for value in ("4541/4541", "1235", "12.35", "2346", "4540/4541", "0.39", "0.13", "0.67", "aligned"):
+    for value in ("4541/4541", "1235", "12.35", "2346", "988", "4540/4541", "0.39", "0.13", "0.67", "0.21", "aligned",
+                  "joint", "1.50 m"):
         assert value in res.output
     assert "not placed (no fused trajectory)" in " ".join(res.output.split())
 

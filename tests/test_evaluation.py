@@ -66,6 +66,10 @@ def test_eval_from_sequences_writes_gt_files_that_evo_reads(world, tmp_path):
     assert rows["car1"].ate_fused_m < 1e-6 and rows["car1"].evaluated_poses == 12
     assert rows["car2"].ate_fused_m == pytest.approx(0.5, abs=1e-6) and rows["car2"].evaluated_poses == 9
     assert rows["car2"].ate_fused_aligned_m < 1e-6  # a pure shift: nothing left after alignment
+    # one fit of both: car2's shift relative to car1 is shared out between them, never hidden
+    assert result.joint_robots == 2 and 0.1 < rows["car2"].ate_fused_joint_m < 0.5
+    assert 0.0 < rows["car1"].ate_fused_joint_m < 0.5 and 0.0 < result.ate_joint_m < 0.5
+    assert result.to_json_dict()["ate_joint_m"] == pytest.approx(result.ate_joint_m)
     t_gt, gt = read_tum(tmp_path / "car2_gt_tum.txt")
     t_fused, fused = read_tum(tmp_path / "car2_fused_tum.txt")
     np.testing.assert_allclose(t_gt, t_fused)  # same instants: evo associates them one to one
@@ -154,3 +158,6 @@ def test_cli_run_writes_ground_truth_that_eval_and_evo_read(world, tmp_path):
     assert rows["car1"].ate_fused_m == pytest.approx(metrics["car1"]["ate_fused_m"], abs=1e-6)
     if metrics["car2"]["localized"]:
         assert rows["car2"].ate_fused_m == pytest.approx(metrics["car2"]["ate_fused_m"], abs=1e-6)
+        # the joint fit of the run's summary and of eval agree (the same poses, read back from the files)
+        for name in ("car1", "car2"):
+            assert rows[name].ate_fused_joint_m == pytest.approx(metrics[name]["ate_fused_joint_m"], abs=1e-5)

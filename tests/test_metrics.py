@@ -9,7 +9,7 @@ import pytest
 
 from shgm_slam.errors import DataError
 from shgm_slam.geometry.se3 import make_pose, rot_y, rot_z, so3_exp
-from shgm_slam.metrics import AlignMode, RelationKind, ate, drift_percent, rpe, trajectory_length
+from shgm_slam.metrics import AlignMode, RelationKind, ate, drift_percent, joint_ate, rpe, trajectory_length
 
 
 def _trajectory(n: int = 50, seed: int = 0) -> np.ndarray:
@@ -170,3 +170,50 @@ def test_drift_of_a_too_short_or_broken_trajectory_is_nan():
     assert np.isnan(drift_percent(_drive(), bad))
     with pytest.raises(DataError):
         drift_percent(_drive(), _drive(10))
+
+
+def test_joint_ate_removes_only_the_shared_gauge():
+    """One rigid motion of the whole fleet (the first robot's drift) is removed; one robot placed off
+    relative to the others is not, and the joint error is the same in any frame of the estimate."""
+    gt_a, gt_b = _trajectory(60, seed=0), _trajectory(40, seed=3)
+    gt_b[:, :3, 3] += [30.0, 0.0, -10.0]
+    gauge = make_pose(rot_z(0.2) @ rot_y(0.05), [4.0, -2.0, 1.0])
+    per_robot, together = joint_ate([gt_a, gt_b], [gauge @ gt_a, gauge @ gt_b])
+    assert together.valid and together.rmse < 1e-6 and max(s.rmse for s in per_robot) < 1e-6
+    assert ate(gt_b, gauge @ gt_b, align=AlignMode.NONE).rmse > 1.0  # the shared frame sees the gauge
+    # B placed 2 m off relative to A: each aligned alone is perfect, jointly the disagreement shows
+    off = gauge @ gt_b
+    off[:, :3, 3] += [2.0, 0.0, 0.0]
+    per_robot, together = joint_ate([gt_a, gt_b], [gauge @ gt_a, off])
+    assert ate(gt_b, off, align=AlignMode.SE3).rmse < 1e-6
+    assert 0.3 < per_robot[0].rmse < 2.0 and 0.3 < per_robot[1].rmse < 2.0
+    n_a, n_b = len(gt_a), len(gt_b)
+    pooled = np.sqrt((n_a * per_robot[0].rmse**2 + n_b * per_robot[1].rmse**2) / (n_a + n_b))
+    assert together.rmse == pytest.approx(pooled, rel=1e-9) and together.num_poses == n_a + n_b
+    moved, _ = joint_ate([gt_a, gt_b], [make_pose(rot_z(-1.1), [50.0, 5.0, 0.0]) @ e for e in (gauge @ gt_a, off)])
+    assert [s.rmse for s in moved] == pytest.approx([s.rmse for s in per_robot], rel=1e-6)
+
+
+def test_joint_ate_of_one_robot_is_its_se3_aligned_ate():
+    gt = _trajectory()
+    est = make_pose(rot_z(0.4), [3.0, 1.0, 0.0]) @ _noisy(gt, 0.4)
+    (one,), together = joint_ate([gt], [est])
+    assert one.rmse == pytest.approx(ate(gt, est, align=AlignMode.SE3).rmse, rel=1e-6)
+    assert together.rmse == pytest.approx(one.rmse)
+
+
+def test_joint_ate_degenerate_input_gives_nan_with_a_reason():
+    gt = _trajectory(10)
+    bad = gt.copy()
+    bad[3, 0, 3] = np.nan
+    per_robot, together = joint_ate([gt, gt[:2]], [bad, gt[:2]])
+    assert not together.valid and "NaN" in together.reason and all(not s.valid for s in per_robot)
+    per_robot, together = joint_ate([gt[:1], gt[:1]], [gt[:1], gt[:1]])
+    assert not together.valid and "only 2 poses" in together.reason
+    still = np.repeat(gt[:1], 5, axis=0)
+    assert "coincide" in joint_ate([gt[:5]], [still])[1].reason
+    # a robot with fewer than 3 poses still counts in a joint fit of enough poses
+    per_robot, together = joint_ate([gt, gt[:2]], [gt, gt[:2]])
+    assert together.valid and per_robot[1].valid and per_robot[1].rmse < 1e-6
+    with pytest.raises(DataError, match="trajectories"):
+        joint_ate([gt], [])

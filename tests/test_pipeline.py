@@ -58,6 +58,9 @@ def test_two_robots_are_fused_and_beat_odometry(drifting_run) -> None:
     assert car1.ate_fused_m <= car1.ate_odometry_m + 0.05, car1
     for r in (car1, car2):
         assert r.ate_fused_aligned_m <= 1.1 * r.ate_odometry_aligned_m, r
+    # one SE(3) fit of both together can only remove error from the shared frame's (the identity is one fit)
+    assert 0.0 < summary.ate_joint_m <= max(car1.ate_fused_m, car2.ate_fused_m) + 1e-9
+    assert np.isfinite(car1.ate_fused_joint_m) and np.isfinite(car2.ate_fused_joint_m)
 
 
 def test_results_folder_has_every_output(drifting_run) -> None:
