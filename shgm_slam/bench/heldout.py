@@ -239,7 +239,7 @@ def odometry_breaks(
     return int(starts.sum())
 
 
-def _poses_by_time(path: Path, times_s: np.ndarray) -> np.ndarray:
+def poses_by_time(path: Path, times_s: np.ndarray) -> np.ndarray:
     """(N, 4, 4) poses of a TUM file at the sequence's frame times (NaN where the file has none)."""
     out = np.full((len(times_s), 4, 4), np.nan)
     if not path.is_file() or path.stat().st_size == 0:
@@ -250,6 +250,67 @@ def _poses_by_time(path: Path, times_s: np.ndarray) -> np.ndarray:
     hit = np.abs(times_s[k] - t) < 1e-3
     out[k[hit]] = T[hit]
     return out
+
+
+@dataclass(frozen=True)
+class PlacementError:
+    """How far one robot's fused trajectory is from the truth (metres; NaN without placed poses).
+
+    Attributes:
+        placement_m: how far the best rigid fit (yaw + translation) moves its gauge-fixed trajectory onto the truth
+            (RMS over its placed poses; NaN with fewer than 3): where it was placed, not its own drift.
+        ate_m: fused ATE once the shared frame's gauge is fixed by the reference's trajectory.
+        ate_raw_m: fused ATE with no alignment at all (the shared frame as the system defines it).
+        max_m: the largest gauge-fixed position error.
+    """
+
+    placement_m: float
+    ate_m: float
+    ate_raw_m: float
+    max_m: float
+
+
+def placement_errors(
+    fused: list[np.ndarray], gt_world: list[np.ndarray], up_world: tuple[float, float, float] = (0.0, 0.0, 1.0)
+) -> list[PlacementError]:
+    """Judge each robot's placement in the shared frame, the first robot being the reference (``judge_run``).
+
+    The shared frame is the reference's first camera frame, so a small heading error of that one estimated pose
+    turns every robot's whole trajectory by the same amount: the gauge, not a placement error. One rigid
+    transform (yaw about the world's vertical + translation; a straight reference drive leaves the roll about
+    its own line undetermined in a 6-DoF fit) lays the reference's fused trajectory onto its truth and is
+    applied to every robot alike; each robot's placement error is then what its own best rigid fit still moves.
+
+    Args:
+        fused: per robot, (N_k, 4, 4) fused ``T_shared_cam`` at its frames, NaN where not placed.
+        gt_world: per robot, (N_k, 4, 4) ground truth ``T_world_cam`` in one world frame (all robots').
+        up_world: the world frame's vertical (the simulator's worlds: z up).
+    """
+    T_ref_world = se3.inverse(gt_world[0][0])
+    up_shared = T_ref_world[:3, :3] @ np.asarray(up_world, dtype=np.float64)
+    placed = [np.isfinite(f.reshape(len(f), -1)).all(axis=1) for f in fused]
+    T_gauge = np.eye(4)
+    if placed[0].sum() >= 3:
+        ref_gt = T_ref_world @ gt_world[0][placed[0]]
+        T_gauge = se3.kabsch_yaw(fused[0][placed[0], :3, 3], ref_gt[:, :3, 3], up=up_shared)
+    out = []
+    for f, gt, ok in zip(fused, gt_world, placed, strict=True):
+        truth = (T_ref_world @ gt[ok])[:, :3, 3]
+        xyz = f[ok, :3, 3]
+        xyz_g = se3.transform_points(T_gauge, xyz)
+        err = np.linalg.norm(xyz_g - truth, axis=1)
+        raw = np.linalg.norm(xyz - truth, axis=1)
+        placement = float("nan")
+        if ok.sum() >= 3:
+            T_fit = se3.kabsch_yaw(xyz_g, truth, up=up_shared)
+            placement = float(np.sqrt(np.mean(np.sum((se3.transform_points(T_fit, xyz_g) - xyz_g) ** 2, axis=1))))
+        out.append(PlacementError(placement, _rms(err), _rms(raw), float(err.max()) if err.size else float("nan")))
+    return out
+
+
+def _rms(values: np.ndarray) -> float:
+    """Root mean square of (N,) values; NaN when empty."""
+    return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
 
 
 def judge_run(
@@ -275,41 +336,22 @@ def judge_run(
         times = np.asarray(seq.timestamps_s, dtype=np.float64)
         if seq.gt_poses is None:
             raise DataError(f"{world / name} has no poses.txt: the held-out benchmark needs ground truth")
-        fused = _poses_by_time(run_dir / f"{name}_fused_tum.txt", times)
+        fused = poses_by_time(run_dir / f"{name}_fused_tum.txt", times)
         loaded.append((name, times, seq.gt_poses, fused))
-    T_ref_world = se3.inverse(loaded[0][2][0])
-    ref_fused, ref_gt = loaded[0][3], T_ref_world @ loaded[0][2]
-    ref_ok = np.isfinite(ref_fused.reshape(len(ref_fused), -1)).all(axis=1)
-    # yaw + translation about the world's vertical (z up in the simulator's world): a straight reference
-    # drive leaves the roll about its own line undetermined in a 6-DoF fit
-    up_shared = T_ref_world[:3, :3] @ np.array([0.0, 0.0, 1.0])
-    T_gauge = np.eye(4)
-    if ref_ok.sum() >= 3:
-        T_gauge = se3.kabsch_yaw(ref_fused[ref_ok, :3, 3], ref_gt[ref_ok, :3, 3], up=up_shared)
+    errors = placement_errors([fused for *_, fused in loaded], [gt for _, _, gt, _ in loaded])
     verdicts = []
-    for k, (name, times, gt, fused) in enumerate(loaded):
-        gt_shared = T_ref_world @ gt
+    for k, ((name, times, gt, fused), e) in enumerate(zip(loaded, errors, strict=True)):
         overlaps = max(shared.get(name, {}).values(), default=0.0) >= MIN_SHARED_VIEW_M
-        odo = _poses_by_time(run_dir / f"{name}_odometry_tum.txt", times)
+        odo = poses_by_time(run_dir / f"{name}_odometry_tum.txt", times)
         rep = reports.get(name, {})
         boundaries = set(rep.get("segment_start_frames", []) or [])
         placed = np.isfinite(fused.reshape(len(times), -1)).all(axis=1)
         frac = float(placed.mean()) if len(times) else 0.0
-        xyz = fused[placed, :3, 3]
-        err = np.linalg.norm(se3.transform_points(T_gauge, xyz) - gt_shared[placed, :3, 3], axis=1)
-        raw = np.linalg.norm(xyz - gt_shared[placed, :3, 3], axis=1)
-        ate = float(np.sqrt(np.mean(err**2))) if err.size else float("nan")
-        placement = float("nan")
         notes = []
         if placed.sum() >= 3:
-            # placement error: how far the best rigid (yaw + translation) fit moves this robot's trajectory onto
-            # its truth; what is left after that fit is the shape of its own odometry (drift), not placement
-            xyz_g = se3.transform_points(T_gauge, xyz)
-            T_fit = se3.kabsch_yaw(xyz_g, gt_shared[placed, :3, 3], up=up_shared)
-            placement = float(np.sqrt(np.mean(np.sum((se3.transform_points(T_fit, xyz_g) - xyz_g) ** 2, axis=1))))
-            outcome = Outcome.RIGHT if placement <= PLACED_RIGHT_M[mode] else Outcome.WRONG
+            outcome = Outcome.RIGHT if e.placement_m <= PLACED_RIGHT_M[mode] else Outcome.WRONG
             if k == 0:  # the reference defines the frame: judged on its own fused trajectory's error
-                outcome = Outcome.RIGHT if ate <= PLACED_RIGHT_M[mode] else Outcome.WRONG
+                outcome = Outcome.RIGHT if e.ate_m <= PLACED_RIGHT_M[mode] else Outcome.WRONG
             elif not overlaps:
                 outcome = Outcome.WRONG
                 notes.append("merged a robot that shares no view with any other")
@@ -326,9 +368,8 @@ def judge_run(
         verdicts.append(
             RobotVerdict(
                 scenario=scenario, seed=seed, mode=mode.value, robot=name, reference=k == 0, overlaps=overlaps,
-                outcome=outcome.value, placed_fraction=frac, placement_error_m=placement, ate_fused_m=ate,
-                ate_fused_raw_m=float(np.sqrt(np.mean(raw**2))) if raw.size else float("nan"),
-                max_error_m=float(err.max()) if err.size else float("nan"),
+                outcome=outcome.value, placed_fraction=frac, placement_error_m=e.placement_m, ate_fused_m=e.ate_m,
+                ate_fused_raw_m=e.ate_raw_m, max_error_m=e.max_m,
                 ate_odometry_aligned_m=_number(rep.get("ate_odometry_aligned_m")),
                 odometry_breaks=odometry_breaks(times, odo, gt, boundaries),
                 failures_detected=int(rep.get("odometry_failures", 0) or 0),
