@@ -7,7 +7,7 @@ measures its ATE::
 
     T_shared_cam_gt = inverse(T_world_cam_gt of the first robot's first frame) @ T_world_cam_gt
 
-``shared_frame_ground_truth`` does that; ``ResultsWriter.write_ground_truth`` writes the result as
+``shared_frame.shared_frame_ground_truth`` does that; ``ResultsWriter.write_ground_truth`` writes the result as
 ``<robot>_gt_tum.txt`` / ``<robot>_gt_kitti.txt`` so evo compares without alignment::
 
     evo_ape tum results/demo/car1_gt_tum.txt results/demo/car1_fused_tum.txt
@@ -27,30 +27,10 @@ import numpy as np
 
 from shgm_slam.data.base import open_sequence
 from shgm_slam.errors import ConfigError, DataError
-from shgm_slam.geometry import se3
 from shgm_slam.io.trajectories import associate, read_comments, read_tum
 from shgm_slam.metrics import AlignMode, ate, joint_ate
+from shgm_slam.shared_frame import shared_frame_ground_truth
 from shgm_slam.types import Sequence
-
-
-def shared_frame_ground_truth(robots: dict[str, Sequence], gt_shared_frame: bool = True) -> dict[str, np.ndarray]:
-    """Each robot's ground truth ``T_shared_cam`` (N, 4, 4) in the run's shared frame.
-
-    Args:
-        robots: robot name -> sequence, in run order (the first robot defines the shared frame).
-        gt_shared_frame: the sequences' ground truths share one world frame (our simulator; ranges of
-            one KITTI sequence). When False only the first robot's ground truth can be placed.
-
-    Returns:
-        robot -> poses, for the robots whose ground truth can be put in the shared frame (none when
-        the first robot has no ground truth).
-    """
-    names = list(robots)
-    if not names or robots[names[0]].gt_poses is None:
-        return {}
-    T_shared_world = se3.inverse(np.asarray(robots[names[0]].gt_poses)[0])
-    placed = names if gt_shared_frame else names[:1]
-    return {r: T_shared_world @ np.asarray(robots[r].gt_poses) for r in placed if robots[r].gt_poses is not None}
 
 
 @dataclass

@@ -16,11 +16,12 @@ from typer.testing import CliRunner
 from shgm_slam.cli import app
 from shgm_slam.data import open_sequence
 from shgm_slam.errors import ConfigError, DataError
-from shgm_slam.evaluation import associate, evaluate_results, open_ground_truth, shared_frame_ground_truth
+from shgm_slam.evaluation import associate, evaluate_results, open_ground_truth
 from shgm_slam.geometry import se3
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.io.trajectories import read_kitti_poses, read_tum
 from shgm_slam.metrics import ate
+from shgm_slam.shared_frame import shared_frame_ground_truth
 
 OFFSET_M = np.array([0.3, 0.0, 0.4])  # car2's fused error: a constant 0.5 m shift
 

@@ -29,6 +29,7 @@ from shgm_slam.errors import DataError
 from shgm_slam.io.graph_json import write_graph
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import write_kitti_poses, write_tum
+from shgm_slam.shared_frame import shared_frame_ground_truth
 from shgm_slam.types import GraphArrays, Sequence
 
 log = logging.getLogger(__name__)
@@ -369,8 +370,6 @@ class ResultsWriter:
         <robot>_gt_tum.txt <robot>_fused_tum.txt`` needs no alignment. Robots without ground truth (or,
         when ``gt_shared_frame`` is False, every robot but the first) get no file. Returns the files written.
         """
-        from shgm_slam.evaluation import shared_frame_ground_truth
-
         written = []
         for robot, T_shared_cam in shared_frame_ground_truth(robots, gt_shared_frame).items():
             t = np.asarray(robots[robot].timestamps_s)
