@@ -28,9 +28,9 @@ import numpy as np
 from shgm_slam.errors import ConfigError
 from shgm_slam.geometry.se3 import inverse
 from shgm_slam.odometry.clouds import depth_to_cloud, trusted_depth
+from shgm_slam.odometry.estimate import OdometryEstimate, image_gray, keep_well_sampled, yaw_disagreement_deg
 from shgm_slam.odometry.image_rotation import ImageYawEstimator
 from shgm_slam.odometry.kiss import KissOdometry
-from shgm_slam.odometry.sources import OdometryEstimate, image_gray, keep_well_sampled, yaw_disagreement_deg
 from shgm_slam.odometry.step_fusion import YawNoiseTracker, fuse_steps, step_yaw
 from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus
 from shgm_slam.types import Frame

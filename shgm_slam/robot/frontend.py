@@ -15,8 +15,9 @@ from shgm_slam.graph.extraction import extract_objects
 from shgm_slam.graph.semantic_graph import SemanticGraph
 from shgm_slam.messages import KeyframeMessage
 from shgm_slam.odometry.clouds import depth_to_cloud
+from shgm_slam.odometry.estimate import OdometryEstimate, OdometrySource
 from shgm_slam.odometry.health import HealthLimits, OdometryFailure, OdometryHealthMonitor
-from shgm_slam.odometry.sources import OdometryChoice, OdometryEstimate, OdometrySource
+from shgm_slam.odometry.sources import OdometryChoice
 from shgm_slam.perception import PerceptionSource
 from shgm_slam.robot.keyframes import KeyframeSelector
 from shgm_slam.robot.segments import TrajectorySegment
