@@ -208,8 +208,8 @@ def joint_ate(poses_gt: list[np.ndarray], poses_est: list[np.ndarray]) -> tuple[
         reason = "joint alignment impossible: all estimated positions coincide"
     if reason:
         return [ErrorStats.invalid(k, reason) for k in sizes], ErrorStats.invalid(n, reason)
-    T_gt_est = kabsch(est[:, :3, 3], gt[:, :3, 3])
-    errors = np.linalg.norm(est[:, :3, 3] @ T_gt_est[:3, :3].T + T_gt_est[:3, 3] - gt[:, :3, 3], axis=1)
+    aligned = _align_degenerate(gt, est, with_scale=False)  # one Umeyama fit of every robot's poses at once
+    errors = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)
     bounds = np.cumsum([0, *sizes]).tolist()
     per_robot = [
         _stats(errors[i:j], j - i) if j > i else ErrorStats.invalid(0, "no poses") for i, j in pairwise(bounds)
