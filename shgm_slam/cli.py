@@ -1146,6 +1146,10 @@ def bench_heldout(
                                              "(antialiased; cached apart)")] = 1,
     uav_altitude: Annotated[str | None, typer.Option(help="airsim-like worlds: the UAV's altitude, LOW-HIGH metres "
                                                      "(default 44-54; cached apart)")] = None,
+    depth_noise: Annotated[float, typer.Option(min=0.0, max=0.5, help="relative depth error std of the renders the "
+                                               "files mode reads (0.05 = 5 %; cached apart)")] = 0.0,
+    label_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="segment confusion probability of the "
+                                               "renders' labels (boundaries jitter by 10x this many px)")] = 0.0,
     replay_from: Annotated[
         Path | None,
         typer.Option(help="an earlier benchmark folder: run only the map server again on its recorded keyframes "
@@ -1157,6 +1161,7 @@ def bench_heldout(
     at their own place (false ones withdrawn later included), per scenario and input."""
     from shgm_slam.bench import heldout
     from shgm_slam.errors import ConfigError
+    from shgm_slam.sim.corruption import CorruptionLevels
     from shgm_slam.sim.simulate import check_uav_altitude, parse_altitude
 
     seed_list = _world_seeds(seeds)
@@ -1173,6 +1178,7 @@ def bench_heldout(
     options = heldout.HeldoutOptions(scenarios=tuple(scenario or heldout.SCENARIOS), seeds=seed_list, modes=modes,
                                      max_frames=max_frames, cache=cache, replay_from=replay_from,
                                      supersample=supersample, uav_altitude_m=altitude,
+                                     corruption=CorruptionLevels.from_levels(depth_noise, label_noise),
                                      front_end_jobs=None if jobs == 1 else 1)  # fmt: skip
     if replay_from is not None and not (replay_from / "runs").is_dir():
         raise ConfigError(f"--replay-from {replay_from}: no runs/ folder there (a `bench heldout` results folder)")

@@ -233,7 +233,8 @@ class OdometryConfig(_Stage):
     poses_file: Path | None = None
     voxel_size_m: float | None = Field(
         None, ge=0.01, description="KISS-ICP voxel (at least 1 cm); None: max(1, median depth of the first "
-        "frames / 40) (far, dense clouds register on a coarser map)"
+        "frames / 40, 3 x their measured relative depth noise x that median depth) (far, dense clouds register "
+        "on a coarser map; noisy depth too)"
     )
     max_points_per_voxel: int = Field(10, ge=1, le=1000)
     min_range_m: float = Field(0.5, ge=0)

@@ -26,6 +26,7 @@ from shgm_slam.scene_scale import (
     cloud_stride_for,
     derived_values,
     measure_scene_scale,
+    relative_depth_noise,
     resolve_robot_config,
     sample_scene_scale,
 )
@@ -124,6 +125,64 @@ def test_no_planar_ground_falls_back_to_the_depth_percentiles():
     assert s.camera_height_m is None and s.horizon_in_view
     assert s.nearest_ground_depth_m == pytest.approx(61.5, abs=1.0)  # 5th percentile of U(60, 90)
     assert derived_values(s)["extraction"]["max_depth_m"] > ExtractionConfig.FLEET["max_depth_m"]
+
+
+def _relative_noise(depth: np.ndarray, sigma: float, correlation_px: float, seed: int = 0) -> np.ndarray:
+    """``depth`` times (1 + sigma e), e unit Gaussian noise smoothed over ``correlation_px`` (a sensor's)."""
+    import cv2
+
+    e = np.random.default_rng(seed).standard_normal(depth.shape).astype(np.float32)
+    if correlation_px:
+        e = cv2.GaussianBlur(e, (0, 0), correlation_px)
+        e /= e.std()
+    return np.where(depth > 0, depth * (1.0 + sigma * e), 0.0).astype(np.float32)
+
+
+def _two_walls() -> tuple[np.ndarray, np.ndarray]:
+    """A wall 12 m ahead turned 30 deg, beside a parallel one 30 m ahead: planes of different labels, an edge."""
+    rays = pixel_rays(INTR)
+    n = np.array([np.sin(np.radians(30.0)), 0.0, np.cos(np.radians(30.0))])
+    depth = 12.0 / (rays @ n)
+    far = rays[..., 0] > 0.2
+    depth[far] = 30.0
+    labels = np.where(far, Label.BUILDING, Label.WALL).astype(np.uint8)
+    return depth.astype(np.float32), labels
+
+
+def test_depth_noise_is_zero_on_planes_seen_at_any_angle():
+    for depth, labels in (ground_view(1.6, 0.0), ground_view(50.0, 50.0), _two_walls()):
+        assert relative_depth_noise(depth, labels) < 1e-4
+
+
+@pytest.mark.parametrize("sigma", [0.01, 0.03, 0.05, 0.1])
+@pytest.mark.parametrize("correlation_px", [0.0, 2.0, 4.0])
+def test_depth_noise_measures_relative_sensor_noise(sigma, correlation_px):
+    depth, labels = _two_walls()
+    measured = relative_depth_noise(_relative_noise(depth, sigma, correlation_px), labels)
+    assert 0.7 * sigma < measured < 1.3 * sigma
+
+
+def test_depth_noise_leaves_out_object_edges():
+    """A row of poles 12 m ahead, 5 px wide every 11 px, before a wall 30 m ahead: most triples cross an edge."""
+    columns = np.arange(INTR.width) % 11 < 5
+    depth = np.where(columns, 12.0, 30.0) * np.ones((INTR.height, 1))
+    labels = np.where(columns, Label.POLE, Label.BUILDING).astype(np.uint8) * np.ones((INTR.height, 1), np.uint8)
+    assert relative_depth_noise(depth, None) > 0.1  # one surface assumed: the edges read as noise
+    assert relative_depth_noise(depth, labels) < 1e-4
+
+
+def test_noisy_depth_gets_a_coarser_odometry_voxel_and_noise_free_depth_keeps_it():
+    views = [ground_view(1.6, 0.0) for _ in range(3)]
+    clean = measure_scene_scale([d for d, _ in views], [lab for _, lab in views], INTR)
+    noisy = measure_scene_scale([_relative_noise(d, 0.05, 4.0, i) for i, (d, _) in enumerate(views)],
+                                [lab for _, lab in views], INTR)  # fmt: skip
+    assert clean.depth_noise_rel < 1e-4 and noisy.depth_noise_rel == pytest.approx(0.05, rel=0.3)
+    assert derived_values(clean)["odometry"]["voxel_size_m"] == OdometryConfig.FLEET["voxel_size_m"]
+    voxel = derived_values(noisy)["odometry"]["voxel_size_m"]
+    assert voxel == pytest.approx(3.0 * noisy.depth_noise_rel * noisy.depth_percentiles_m[1], rel=0.01)
+    assert voxel > OdometryConfig.FLEET["voxel_size_m"]
+    spacing = resolve_robot_config(ShgmConfig(), noisy).odometry.max_spacing_m
+    assert spacing == pytest.approx(SPACING_PER_VOXEL * voxel, rel=0.01)  # the spacing filter follows
 
 
 def test_config_values_win_over_derived_ones():

@@ -50,6 +50,7 @@ from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import read_tum
 from shgm_slam.robot.remote import default_jobs
 from shgm_slam.runner import open_robots, replay_backend, run_slam
+from shgm_slam.sim.corruption import CorruptionLevels
 from shgm_slam.sim.simulate import DEFAULT_MAX_DEPTH_M, simulate
 
 SCENARIOS = ("airsim-like", "disjoint", "synthia-like", "kitti-paths")
@@ -119,6 +120,11 @@ class HeldoutOptions:
     uav_altitude_m: tuple[float, float] | None = None
     """airsim-like worlds: the UAV's altitude range, metres (None: the simulator's 44-54 m; other ranges are
     cached apart). Every default was tuned on UAVs at 44-54 m: this asks how they hold higher up."""
+    corruption: CorruptionLevels = field(default_factory=CorruptionLevels)
+    """Depth and label corruption of the rendered frames (``sim.corruption``; none by default, other levels are
+    cached apart): the files mode then reads noisy depth and labels, as from a stereo camera or a LiDAR with a
+    segmentation network, between perfect renders and the RGB mode's predictions. Every default was chosen on
+    perfect renders and on the demo models: this asks how they hold in between."""
     replay_from: Path | None = None
     """An earlier benchmark folder: run only the map server again on each run's recorded keyframes
     (``runner.replay_backend``), for matching and back-end changes; worlds are not rendered or run."""
@@ -154,14 +160,17 @@ class RobotVerdict:
 
 def world_folder(
     cache: Path, scenario: str, seed: int, resolution: tuple[int, int], supersample: int = 1,
-    uav_altitude_m: tuple[float, float] | None = None,
+    uav_altitude_m: tuple[float, float] | None = None, corruption: CorruptionLevels | None = None,
 ) -> Path:  # fmt: skip
     """Where the world ``scenario``/``seed`` is cached: ``cache/<scenario>-s<seed>-<W>x<H>`` (``-ss<S>`` added
-    for S x S rays per pixel, ``-uav<LO>-<HI>`` for an airsim-like UAV at another altitude)."""
+    for S x S rays per pixel, ``-uav<LO>-<HI>`` for an airsim-like UAV at another altitude, ``-d<D>-l<L>`` for
+    frames corrupted by ``CorruptionLevels.from_levels(D, L)``)."""
     tail = f"-ss{supersample}" if supersample > 1 else ""
     altitude = _uav_altitude(scenario, uav_altitude_m)
     if altitude is not None:
         tail += f"-uav{altitude[0]:g}-{altitude[1]:g}"
+    if corruption is not None and corruption.active:
+        tail += f"-d{corruption.depth_noise:g}-l{corruption.label_confusion:g}"
     return Path(cache) / f"{scenario}-s{seed}-{resolution[0]}x{resolution[1]}{tail}"
 
 
@@ -172,16 +181,16 @@ def _uav_altitude(scenario: str, uav_altitude_m: tuple[float, float] | None) -> 
 
 def ensure_world(
     cache: Path, scenario: str, seed: int, resolution: tuple[int, int], progress: Progress, supersample: int = 1,
-    uav_altitude_m: tuple[float, float] | None = None,
+    uav_altitude_m: tuple[float, float] | None = None, corruption: CorruptionLevels | None = None,
 ) -> Path:  # fmt: skip
     """Render the world once (cached); returns its folder."""
-    folder = world_folder(cache, scenario, seed, resolution, supersample, uav_altitude_m)
+    folder = world_folder(cache, scenario, seed, resolution, supersample, uav_altitude_m, corruption)
     if not (folder / "scenario.json").is_file():
         progress(f"rendering {scenario} seed {seed} into {folder}")
         pair = KITTI_DRIVE_PAIRS[seed % len(KITTI_DRIVE_PAIRS)] if scenario == "kitti-paths" else None
         simulate(scenario, folder, seed=seed, resolution=resolution, overwrite=True, kitti_robots=pair,
                  supersample=supersample, uav_altitude_m=_uav_altitude(scenario, uav_altitude_m),
-                 max_depth_m=MAX_DEPTH_M)  # fmt: skip
+                 max_depth_m=MAX_DEPTH_M, corruption=corruption)  # fmt: skip
     return folder
 
 
@@ -432,7 +441,7 @@ def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, pr
     city's roofs): the other worlds' runs and the summary are kept, and the report lists the world skipped."""
     try:
         world = ensure_world(options.cache, scenario, seed, options.resolution, progress, options.supersample,
-                             options.uav_altitude_m)
+                             options.uav_altitude_m, options.corruption)
     except SimulationError as exc:
         progress(f"skipping {scenario} seed {seed}: {exc}")
         return [{"scenario": scenario, "seed": seed, "skipped": str(exc)}]
@@ -506,6 +515,7 @@ def run_heldout_benchmark(
             "modes": [m.value for m in options.modes], "resolution": list(options.resolution),
             "max_frames": options.max_frames, "supersample": options.supersample,
             "uav_altitude_m": list(options.uav_altitude_m) if options.uav_altitude_m else None,
+            "depth_noise": options.corruption.depth_noise, "label_noise": options.corruption.label_confusion,
             "tuning_seeds": list(TUNING_SEEDS),
             "report_seeds": list(REPORT_SEEDS), "placed_right_m": {m.value: v for m, v in PLACED_RIGHT_M.items()},
         },
@@ -607,6 +617,8 @@ def heldout_markdown(results: dict) -> str:
         + (f" ({o['supersample']}x{o['supersample']} rays per pixel)" if o.get("supersample", 1) > 1 else "")
         + (f", airsim-like UAVs at {o['uav_altitude_m'][0]:g}-{o['uav_altitude_m'][1]:g} m" if o.get("uav_altitude_m")
            else "")
+        + (f", rendered frames corrupted (depth noise {o['depth_noise']:g}, label noise {o['label_noise']:g})"
+           if o.get("depth_noise") or o.get("label_noise") else "")
         + ", default configuration; tuning seeds "
         f"{o['tuning_seeds'][0]}-{o['tuning_seeds'][-1]}. Placed right: placed within "
         + ", ".join(f"{v:g} m ({k})" for k, v in o["placed_right_m"].items())

@@ -54,6 +54,27 @@ def test_uavs_at_another_altitude_are_cached_apart_and_only_airsim_like_has_one(
     assert same == world_folder(tmp_path, "synthia-like", 15, (320, 96))  # no UAV there: the same world
 
 
+def test_corrupted_worlds_are_cached_apart_and_rendered_corrupted(tmp_path, monkeypatch):
+    from shgm_slam.bench import heldout
+    from shgm_slam.sim.corruption import CorruptionLevels
+
+    noisy = CorruptionLevels.from_levels(depth_noise=0.05, label_noise=0.1)
+    folder = world_folder(tmp_path, "synthia-like", 12, (320, 96), corruption=noisy)
+    assert folder.name == "synthia-like-s12-320x96-d0.05-l0.1"
+    assert world_folder(tmp_path, "synthia-like", 12, (320, 96), corruption=CorruptionLevels()) == world_folder(
+        tmp_path, "synthia-like", 12, (320, 96)
+    )  # no corruption: the perfect renders' cache
+    seen = {}
+
+    def fake_simulate(scenario, out, **kwargs):
+        seen.update(kwargs, out=out)
+        (out.mkdir(parents=True), (out / "scenario.json").write_text("{}"))
+
+    monkeypatch.setattr(heldout, "simulate", fake_simulate)
+    assert heldout.ensure_world(tmp_path, "synthia-like", 12, (320, 96), print, corruption=noisy) == folder
+    assert seen["out"] == folder and seen["corruption"] == noisy
+
+
 def test_bench_heldout_refuses_a_uav_altitude_whose_ground_is_out_of_range(tmp_path):
     from typer.testing import CliRunner
 
