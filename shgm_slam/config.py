@@ -226,7 +226,7 @@ class OdometryConfig(_Stage):
 
     FLEET: ClassVar[dict[str, float | bool]] = {
         "voxel_size_m": 1.0, "max_range_m": 100.0, "shuffle_points": False, "visual_max_depth_m": 40.0,
-        "cloud_stride": 2,
+        "cloud_stride": 2, "depth_noise_rel": 0.0,
     }
 
     kind: OdometryKind = OdometryKind.AUTO
@@ -252,6 +252,11 @@ class OdometryConfig(_Stage):
         description="drop points whose image-grid neighbours are farther apart (sparse far/grazing samples "
         "move with the camera and stall ICP at zero motion); None: SPACING_PER_VOXEL (0.6) x voxel_size_m, "
         "samples sparser than the map's voxels (a large value keeps every point)",
+    )
+    depth_noise_rel: float | None = Field(
+        None, ge=0, le=1, description="random depth error relative to the depth (0.05 = 5 %): the spacing filter "
+        "lets a point's neighbours lie 3 x this x its depth farther apart; None: measured on the first frames "
+        "(scene_scale: 0 on noise-free depth)"
     )
     shuffle_points: bool | None = Field(
         None, description="seeded random point order before KISS-ICP's voxel subsampling (helps aerial "

@@ -63,6 +63,10 @@ NOISE_STEPS_PX = (8, 16)
 correlated over a few pixels (a stereo matcher's window), so 1-px differences see little of it; farther steps
 cross more object edges (on perfect renders 24 px reads 1.5 % where 8 and 16 read < 0.03 %)."""
 
+NOISE_DECIMALS = 3
+"""The measured depth noise goes into the config to 0.1 %: what perfect renders read (< 0.03 %, curved
+surfaces) is 0 there, and their runs stay exactly as without the measurement."""
+
 FAR_GROUND_MARGIN = 1.1
 """Odometry range: this many times the range of the farthest ground in view (at least the fleet's)."""
 
@@ -271,6 +275,8 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
     * ``voxel_size_m = max(1, median depth / 40, 3 x depth noise x median depth)`` (``NOISE_VOXEL_SIGMAS``;
       the noise term is 0 on noise-free depth) (and ``max_spacing_m``, ``config.SPACING_PER_VOXEL`` times
       it, in ``resolve_robot_config``);
+    * ``depth_noise_rel``: the measured noise to 0.1 % (``relative_depth_noise``, ``NOISE_DECIMALS``; the spacing
+      filter's allowance);
     * ``shuffle_points``: the horizon is out of view;
     * ``max_range_m = max(100, 1.1 x farthest ground range)`` (100 when the horizon is in view);
     * ``cloud_stride = round(sqrt(W x H / CLOUD_TARGET_POINTS))``, at least 1: the pseudo-LiDAR cloud keeps
@@ -289,6 +295,7 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
         "max_range_m": max(od["max_range_m"], FAR_GROUND_MARGIN * far) if np.isfinite(far) else od["max_range_m"],
         "shuffle_points": not scale.horizon_in_view,
         "visual_max_depth_m": od["visual_max_depth_m"] * ratio,
+        "depth_noise_rel": round(scale.depth_noise_rel, NOISE_DECIMALS),
     }
     out = {k: _rounded(v) for k, v in out_od.items()}
     out["cloud_stride"] = cloud_stride_for(scale.image_px) if min(scale.image_px) > 0 else od["cloud_stride"]

@@ -75,15 +75,26 @@ ground is ~60 m away has only ~250 of its 7680 points under 0.6 m spacing, too f
 coasts and the health check ends the trajectory segment); KISS-ICP registers the 1000 best fine."""
 
 
+NOISE_SPACING_SIGMAS = 3.0
+"""The spacing filter's allowance for depth noise: a point's neighbours may lie this many times the depth noise
+at its depth (``depth_noise_rel`` x z) farther apart than ``max_spacing_m``. Noise moves neighbouring samples
+apart along their rays, so on a noisy sensor the filter otherwise drops the far points that hold the forward
+motion (2 % noise, tuning world airsim-like 76, a car's KISS-ICP alone: 1.98 m ATE with the filter, 0.92 m
+without it)."""
+
+
 def keep_well_sampled(
-    points_cam: np.ndarray, intrinsics: Intrinsics, cloud_stride: int, max_spacing_m: float
-) -> np.ndarray:
-    """The points of a pseudo-LiDAR cloud whose image-grid neighbours are at most ``max_spacing_m``
-    apart (``clouds.sampling_spacing_m``), or the ``MIN_SPACED_POINTS`` best-sampled ones when fewer.
+    points_cam: np.ndarray, intrinsics: Intrinsics, cloud_stride: int, max_spacing_m: float,
+    noise_rel: float = 0.0,
+) -> np.ndarray:  # fmt: skip
+    """The points of a pseudo-LiDAR cloud whose image-grid neighbours are at most ``max_spacing_m`` (plus
+    ``NOISE_SPACING_SIGMAS`` x ``noise_rel`` x the point's depth) apart (``clouds.sampling_spacing_m``), or the
+    ``MIN_SPACED_POINTS`` best-sampled ones when fewer.
 
     Args:
         points_cam: (N, 3) camera-frame points as back-projected with ``cloud_stride``, metres.
         intrinsics: intrinsics of the depth map they came from.
+        noise_rel: the depth's random error relative to the depth (0: noise-free; ``scene_scale``).
 
     Returns:
         (M, 3) the kept points, in their order.
@@ -91,7 +102,10 @@ def keep_well_sampled(
     if len(points_cam) == 0:
         return points_cam
     spacing_m = sampling_spacing_m(points_cam, intrinsics, stride=cloud_stride)
-    keep = spacing_m <= max_spacing_m
+    allowed_m = max_spacing_m + NOISE_SPACING_SIGMAS * noise_rel * np.abs(points_cam[:, 2]) if noise_rel > 0 else (
+        max_spacing_m
+    )
+    keep = spacing_m <= allowed_m
     if keep.sum() < MIN_SPACED_POINTS:  # all far (a UAV over distant ground): the best-sampled ones
         keep = np.zeros(len(points_cam), dtype=bool)
         keep[np.argsort(spacing_m, kind="stable")[:MIN_SPACED_POINTS]] = True

@@ -52,6 +52,7 @@ class HybridOdometrySource:
         max_depth_m: trusted depth range, metres (inf: KISS-ICP's own range only).
         edge_rel_jump: ``clouds.depth_edges`` threshold.
         max_spacing_m: sampling-density filter as in ``KissIcpSource`` (None: off).
+        depth_noise_rel: the depth's relative noise, the filter's allowance as in ``KissIcpSource``.
         image_yaw: turn from image motion (the third yaw of the weights, and the health check's).
         noise_window: frames of memory of the yaw noise estimates.
     """
@@ -65,6 +66,7 @@ class HybridOdometrySource:
         max_depth_m: float,
         edge_rel_jump: float,
         max_spacing_m: float | None = None,
+        depth_noise_rel: float = 0.0,
         image_yaw: ImageYawEstimator | None = None,
         noise_window: int = 30,
     ) -> None:
@@ -77,6 +79,7 @@ class HybridOdometrySource:
         self.max_depth_m = max_depth_m
         self.edge_rel_jump = edge_rel_jump
         self.max_spacing_m = max_spacing_m
+        self.depth_noise_rel = depth_noise_rel
         self.image_yaw = image_yaw
         self.noise = YawNoiseTracker(noise_window)
         self.icp_weight = 0.0  # ICP's weight in the last fused step (diagnostics)
@@ -95,7 +98,8 @@ class HybridOdometrySource:
         points, _ = depth_to_cloud(depth, frame.intrinsics, stride=self.cloud_stride,
                                    min_range_m=self.kiss.min_range_m, max_range_m=self.kiss.max_range_m)  # fmt: skip
         if self.max_spacing_m is not None:
-            points = keep_well_sampled(points, frame.intrinsics, self.cloud_stride, self.max_spacing_m)
+            points = keep_well_sampled(points, frame.intrinsics, self.cloud_stride, self.max_spacing_m,
+                                       self.depth_noise_rel)  # fmt: skip
         return points
 
     def update(

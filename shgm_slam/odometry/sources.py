@@ -38,7 +38,8 @@ class KissIcpSource:
 
     With ``max_spacing_m`` set, points whose image-grid neighbours are farther apart than that are
     dropped before ICP (``clouds.sampling_spacing_m``): such sparse samples of far or grazing surfaces
-    move with the camera and pull point-to-point ICP toward zero motion (the start-up stall).
+    move with the camera and pull point-to-point ICP toward zero motion (the start-up stall); on noisy depth
+    (``depth_noise_rel`` > 0) a point's neighbours may also lie as far apart as the noise moves them.
     ``cloud_stride`` must be the stride the clouds were back-projected with.
     With ``shuffle_points`` the points are put in a random (seeded, reproducible) order: KISS-ICP keeps
     the first point of every voxel, so image order ties the kept points to the pixel grid, which moves
@@ -60,6 +61,7 @@ class KissIcpSource:
         *,
         cloud_stride: int = 1,
         max_spacing_m: float | None = None,
+        depth_noise_rel: float = 0.0,
         shuffle_points: bool = False,
         seed: int = 0,
         image_yaw: ImageYawEstimator | None = None,
@@ -72,6 +74,7 @@ class KissIcpSource:
         self.odometry = odometry
         self.cloud_stride = cloud_stride
         self.max_spacing_m = max_spacing_m
+        self.depth_noise_rel = depth_noise_rel
         self._seed = seed
         self._rng = np.random.default_rng(seed) if shuffle_points else None
         self.image_yaw = image_yaw
@@ -97,7 +100,8 @@ class KissIcpSource:
         label_ids: np.ndarray | None = None,
     ) -> OdometryEstimate:
         if self.max_spacing_m is not None:
-            points_cam = keep_well_sampled(points_cam, frame.intrinsics, self.cloud_stride, self.max_spacing_m)
+            points_cam = keep_well_sampled(points_cam, frame.intrinsics, self.cloud_stride, self.max_spacing_m,
+                                           self.depth_noise_rel)  # fmt: skip
         if self._rng is not None:
             points_cam = points_cam[self._rng.permutation(len(points_cam))]
         yaw_img = None
@@ -335,6 +339,7 @@ def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
         ),
         cloud_stride=cfg.cloud_stride,
         max_spacing_m=cfg.max_spacing_m,
+        depth_noise_rel=cfg.depth_noise_rel,
         shuffle_points=cfg.shuffle_points,
         image_yaw=ImageYawEstimator() if cfg.image_rotation else None,
         flow=FlowTracks() if cfg.image_flow_check else None,
@@ -353,6 +358,7 @@ def _hybrid(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
         max_depth_m=cfg.visual_max_depth_m,
         edge_rel_jump=cfg.hybrid_edge_rel_jump,
         max_spacing_m=cfg.max_spacing_m,
+        depth_noise_rel=cfg.depth_noise_rel,
         image_yaw=ImageYawEstimator() if cfg.image_rotation else None,
     )
 

@@ -165,3 +165,29 @@ def test_spacing_filter_settings_are_validated():
         KissIcpSource(make_odometry(OdometryConfig(), 1).odometry, cloud_stride=2, max_spacing_m=0.0)
     with pytest.raises(ValueError):
         OdometryConfig(max_spacing_m=-1.0)
+
+
+def test_spacing_filter_keeps_the_far_points_of_a_noisy_sensor():
+    """3 % depth noise moves neighbouring samples apart along their rays: without the noise allowance the filter
+    drops far points a noise-free depth keeps (they hold the forward motion); with it, about as many stay."""
+    from shgm_slam.odometry.estimate import keep_well_sampled
+
+    at_origin = make_pose(np.eye(3), [0.0, 0.0, 0.0])[None]
+    (clean,), intr = _street_clouds(at_origin, seed=0)
+    (noisy,), _ = _street_clouds(at_origin, seed=0, noise=0.03)
+
+    def far(points: np.ndarray) -> int:
+        return int((points[:, 2] > 30.0).sum())
+
+    kept_clean = far(keep_well_sampled(clean, intr, 4, 0.6))
+    assert far(keep_well_sampled(noisy, intr, 4, 0.6)) < 0.5 * kept_clean
+    assert far(keep_well_sampled(noisy, intr, 4, 0.6, noise_rel=0.03)) >= 0.8 * kept_clean
+    np.testing.assert_array_equal(keep_well_sampled(clean, intr, 4, 0.6, noise_rel=0.0),
+                                  keep_well_sampled(clean, intr, 4, 0.6))  # fmt: skip
+
+
+def test_the_measured_noise_reaches_kiss_icp_and_the_hybrid():
+    cfg = OdometryConfig(cloud_stride=2, max_spacing_m=0.6, depth_noise_rel=0.04)
+    assert make_odometry(cfg.model_copy(update={"kind": OdometryKind.KISS_ICP}), 1).depth_noise_rel == 0.04
+    assert make_odometry(cfg.model_copy(update={"kind": OdometryKind.HYBRID}), 1).depth_noise_rel == 0.04
+    assert OdometryConfig().filled().depth_noise_rel == 0.0  # nothing measured: noise-free
