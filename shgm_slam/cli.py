@@ -21,7 +21,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from shgm_slam import __version__
-from shgm_slam.config import DescriptorKind, Dof, OutlierMode
+from shgm_slam.config import DescriptorKind, Dof, OdometryKind, OutlierMode
 from shgm_slam.errors import ShgmError
 from shgm_slam.io.json_text import to_json_text
 
@@ -373,6 +373,12 @@ def _render_summary(summary) -> None:
     if scaled:
         console.print("predicted depth scaled to the camera height above the road (perception.camera_height_m): "
                       + lit(", ".join(scaled)))  # fmt: skip
+    noisy = [f"{r.name} {100 * r.depth_noise_rel:.1f} % (voxel {r.voxel_size_m:g} m)" for r in summary.robots
+             if r.depth_noise_rel and r.voxel_size_m is not None
+             and r.odometry in (OdometryKind.KISS_ICP.value, OdometryKind.HYBRID.value)]
+    if noisy:
+        console.print("depth noise, relative to the depth (measured on the first frames; KISS-ICP's voxel and spacing "
+                      "filter follow it, odometry.depth_noise_rel): " + lit(", ".join(noisy)))  # fmt: skip
     for r in summary.robots:
         if r.odometry_failures:
             more = f" (+{r.odometry_failures - 3} more in metrics.json)" if r.odometry_failures > 3 else ""

@@ -181,6 +181,10 @@ class RobotReport:
     # height was found, e.g. a UAV)
     depth_scale: float | None = None
     depth_scale_share: float | None = None
+    # the depth's random error relative to the depth that the robot's KISS-ICP voxel and spacing filter were sized
+    # to (``odometry.depth_noise_rel``: measured on its first frames, ``scene_scale``, unless set in the config)
+    depth_noise_rel: float | None = None
+    voxel_size_m: float | None = None  # its KISS-ICP voxel (derived or set)
 
 
 @dataclass
@@ -620,6 +624,7 @@ def _evaluate(
         if rep.odometry == OdometryKind.KISS_ICP.value:
             rep.image_steps = front.image_steps
             rep.image_windows = front.image_windows
+        rep.depth_noise_rel, rep.voxel_size_m = front.cfg.odometry.depth_noise_rel, front.cfg.odometry.voxel_size_m
         if front.ground_scale_on:
             rep.depth_scale_share = len(front.depth_scales) / max(processed[r], 1)
             rep.depth_scale = float(np.median(front.depth_scales)) if front.depth_scales else None

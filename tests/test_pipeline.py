@@ -574,3 +574,26 @@ def test_every_step_reports_its_cost(tiny_scenario: Path, tmp_path: Path) -> Non
         assert s.match_ms + s.backend_ms + s.write_ms + s.correction_ms <= s.server_ms + 1e-6
         assert s.step_cpu_ms >= 0.0
         assert s.front_end_ms + s.load_ms + s.server_ms <= s.step_ms + 1e-6
+
+
+def test_a_noisy_depth_sensor_is_measured_and_kiss_icp_sized_to_it(tiny_scenario: Path, tmp_path: Path) -> None:
+    """5 % depth noise: the robot's report, metrics.json and config.yaml carry the noise its KISS-ICP voxel and
+    spacing filter were sized to; noise-free renders read 0 and keep the car's 1 m voxel."""
+    from shgm_slam.sim.corruption import CorruptionLevels
+    from shgm_slam.sim.simulate import simulate
+
+    noisy = tmp_path / "noisy"
+    simulate("airsim-like", noisy, resolution=(320, 96), fps=4.0, compact=True, max_frames=12,
+             corruption=CorruptionLevels.from_levels(depth_noise=0.05))  # fmt: skip
+    clean = open_robots([f"car1={tiny_scenario / 'car1'}:0-12"])
+    robots = open_robots([f"car1={noisy / 'car1'}"])
+    cfg = ShgmConfig()
+    summary = run_slam(robots, cfg, tmp_path / "out")
+    (report,) = summary.robots
+    assert 0.035 < report.depth_noise_rel < 0.075
+    assert report.voxel_size_m > 1.0
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["robots"][0]["depth_noise_rel"] == report.depth_noise_rel
+    assert f"depth_noise_rel: {report.depth_noise_rel}" in (tmp_path / "out" / "config.yaml").read_text()
+    (clean_report,) = run_slam(clean, cfg, tmp_path / "clean").robots
+    assert clean_report.depth_noise_rel == 0.0 and clean_report.voxel_size_m == 1.0
