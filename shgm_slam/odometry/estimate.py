@@ -102,9 +102,9 @@ def keep_well_sampled(
     if len(points_cam) == 0:
         return points_cam
     spacing_m = sampling_spacing_m(points_cam, intrinsics, stride=cloud_stride)
-    allowed_m = max_spacing_m + NOISE_SPACING_SIGMAS * noise_rel * np.abs(points_cam[:, 2]) if noise_rel > 0 else (
-        max_spacing_m
-    )
+    allowed_m = max_spacing_m
+    if noise_rel > 0:  # noisy depth: neighbours also lie as far apart as the noise at their depth moves them
+        allowed_m = max_spacing_m + NOISE_SPACING_SIGMAS * noise_rel * np.abs(points_cam[:, 2])
     keep = spacing_m <= allowed_m
     if keep.sum() < MIN_SPACED_POINTS:  # all far (a UAV over distant ground): the best-sampled ones
         keep = np.zeros(len(points_cam), dtype=bool)
