@@ -144,6 +144,10 @@ class MatchingConfig(_Stage):
         True, description="fill the max_candidates budget with further same-label pairs, round-robin over B's "
         "nodes by score (sparse maps, whose descriptors barely agree)",
     )
+    vote_hypotheses: int = Field(
+        4, ge=0, description="gravity-aligned: also this many alignments most voted for by agreeing same-label node "
+        "pairs (matching/pair_voting.py; no descriptors), added to the cliques' before screening (0: none)",
+    )
     verified_hypotheses: int = Field(
         4, ge=1, description="hypotheses (most supporting nodes first) refined and scored by the likelihood ratio"
     )

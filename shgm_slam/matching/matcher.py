@@ -20,6 +20,7 @@ from shgm_slam.errors import ConfigError, GraphError
 from shgm_slam.geometry.se3 import transform_points
 from shgm_slam.matching.candidates import Candidates, match_candidates
 from shgm_slam.matching.clique import clique_hypotheses
+from shgm_slam.matching.pair_voting import pair_vote_hypotheses
 from shgm_slam.matching.pose import correspondence_weights, fit_pose, padded_correspondence_weights, spread_m
 from shgm_slam.matching.ransac import ransac_alignment
 from shgm_slam.matching.result import MatchResult
@@ -184,6 +185,11 @@ def match_graphs(
     if cfg.weighted_pose:
         weights = correspondence_weights(a.sizes[cands.rows_a], b.sizes[cands.rows_b])
     hypotheses = HYPOTHESIS_GENERATORS[cfg.outlier_mode](points_b, points_a, cands, weights, cfg)
+    if cfg.gravity_aligned and cfg.vote_hypotheses:
+        hypotheses = list(hypotheses) + pair_vote_hypotheses(
+            b.positions_xyz, b.label_ids, a.positions_xyz, a.label_ids, np.asarray(cfg.up_axis),
+            tolerance_m=cfg.consistency_threshold_m, count=cfg.vote_hypotheses,
+        )  # fmt: skip
     t = lap("ransac", t)
     if not hypotheses:
         reason = f"no consistent hypothesis among {len(cands)} candidates"
