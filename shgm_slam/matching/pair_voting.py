@@ -37,9 +37,10 @@ POSITION_CELL_M = 6.0
 """Horizontal width of a vote cell (where B's centroid lands in A), metres."""
 
 MAX_VOTES = 10_000
-"""Most votes cast per match (segments of B thinned evenly beyond it): the sparse benchmark's pairs cast
-300-8000; a rendered city's graph windows of ~200 nodes ten times as many, and thinned they cost a few
-milliseconds (tuning pairs localized with a cap of 5000 / 10000 / 20000: 329 / 331 / 331 of 400)."""
+"""Most votes cast per match (segments of B thinned evenly beyond it): the sparse benchmark's tuning pairs
+cast 2500 (median; 20 of 800 more than 10 000); a rendered city's graph windows of ~200 nodes many times as
+many, and thinned they cost a few milliseconds (tuning pairs localized with a cap of 5000 / 10000 / 20000:
+329 / 331 / 331 of 400)."""
 
 MAX_SEGMENTS = 20_000
 """Most segments kept per graph (thinned evenly beyond it): bounds the sort of a kilometre-long graph's."""
