@@ -130,6 +130,13 @@ def kabsch(
     return T[0] if single else T
 
 
+def yaw_basis(up: np.ndarray) -> np.ndarray:
+    """(3, 3) read-only rows (e1, e2, up) of an orthonormal frame whose third axis is ``up`` (3,), any length
+    > 0: the horizontal plane is e1-e2 (cached per axis)."""
+    u = np.asarray(up, dtype=np.float64)
+    return _yaw_basis(tuple((u / np.linalg.norm(u)).tolist()))
+
+
 @lru_cache(maxsize=16)
 def _yaw_basis(up: tuple[float, float, float]) -> np.ndarray:
     """(3, 3) read-only rows (e1, e2, up) for a unit ``up``: yaw is a rotation in the e1-e2 plane (cached:

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from shgm_slam.arrays import unique_first
+from shgm_slam.geometry.se3 import yaw_basis
 
 MIN_SEGMENT_M = 10.0
 """Shortest segment (horizontal node-to-node distance) that votes, metres: with 2 m of centroid noise a
@@ -69,10 +70,7 @@ def pair_vote_hypotheses(
     Returns:
         (4, 4) ``T_a_b`` (a yaw about ``up`` and a translation), most votes first; ties by cell order.
     """
-    u = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    e1 = np.cross(u, [1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.cross(u, [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    frame = np.column_stack([e1, np.cross(u, e1), u])  # columns: two horizontal axes, up
+    frame = yaw_basis(up).T  # columns: two horizontal axes, up
     local_b = np.asarray(points_b, dtype=np.float64) @ frame
     local_a = np.asarray(points_a, dtype=np.float64) @ frame
     seg_b = _Segments.of(local_b, np.asarray(labels_b, dtype=np.int64), ordered=False)
