@@ -467,7 +467,9 @@ class BackendConfig(_Stage):
         MATCHES_TO_ANCHOR, ge=1, description="a robot enters the shared frame only when a robot pair's consistent "
         "set has closures from this many independent matches (closures of one match, matches on shared "
         "objects, and matches on the same straight stretches of both robots count once; 1 = trust the first "
-        "accepted match)"
+        "accepted match). A robot also enters through one match with each of this many placed robots when they "
+        "rest on other objects and straight stretches of its own drive and agree on its place "
+        "(backend/cross_evidence.py)"
     )
     stretch_turn_deg: float | None = Field(
         STRETCH_TURN_DEG, gt=0, le=180, description="matches on the same straight stretches of both robots count "

@@ -17,7 +17,10 @@ with the first match through both odometries; resting on other objects means the
 other things (another keyframe stretch), not the same objects found again by a later match of the
 growing graph (and closures cut from two such re-matches never confirm each other crosswise). Where the
 pose graph tracks straight stretches (``backend/stretches.py``) the confirming closure must also lie on
-another pair of straight stretches of the two agents: an aliased street keeps aliasing along its length. The
+another pair of straight stretches of the two agents: an aliased street keeps aliasing along its length. An agent
+without two such matches with any one confirmed agent is also confirmed by one match with each of two
+confirmed agents when they rest on different objects and straight stretches of its own trajectory and
+agree on its place (``cross_evidence.py``: a short overlap with each of two robots). The
 reference agent (whose frame is the shared frame) is confirmed by definition, and confirmation spreads
 like anchoring: an agent is confirmed only through agents that are confirmed themselves. Loop closures
 (two keyframes of one agent) never confirm a place. Nothing here is a tuned constant: the only
@@ -26,8 +29,8 @@ threshold is "two", the smallest number of pieces of evidence that can check eac
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, replace
 from enum import Enum
 
 from shgm_slam.backend.pose_graph import ClosureRecord, ClosureStatus
@@ -56,6 +59,7 @@ class AgentPlacement:
     matches: int = 0
     keyframes: tuple[int, ...] = ()  # the agent's keyframes in those closures
     partner_confirmed: bool = True
+    also: tuple[str, ...] = ()  # further partners whose independent matches agree (``cross_evidence``)
 
     @property
     def provisional(self) -> bool:
@@ -134,6 +138,7 @@ def placements(
     closures: Sequence[ClosureRecord],
     support: Mapping[int, Support],
     stretches: Mapping[int, Hashable] | None = None,
+    agreeing: Callable[[str, frozenset[str]], tuple[str, ...]] | None = None,
 ) -> dict[str, AgentPlacement]:
     """Each agent's placement (see the module docstring).
 
@@ -146,6 +151,10 @@ def placements(
             match alone).
         stretches: closure id -> the pair of straight stretches it lies on (``MultiRobotPoseGraph.stretches``);
             closures on the same pair do not confirm each other. None: objects alone decide.
+        agreeing: (agent, confirmed agents) -> two of those whose accepted closures with the agent are
+            independent pieces of evidence that agree on its place (``MultiRobotPoseGraph.agreeing_partners``),
+            () when none: an agent without two independent matches with any one confirmed agent is confirmed
+            through two. None: within robot pairs only.
 
     Returns:
         agent -> ``AgentPlacement`` for every agent in ``agents``.
@@ -156,15 +165,22 @@ def placements(
         if c.status is ClosureStatus.ACCEPTED and c.robot_a != c.robot_b:
             by_pair.setdefault(frozenset((c.robot_a, c.robot_b)), []).append(c)
     confirmed = {reference} if reference in placed else set()
+    across: dict[str, tuple[str, ...]] = {}  # agent -> the confirmed partners whose matches agree on it
     grown = True
     while grown:  # confirmation spreads through confirmed agents only
         grown = False
-        for agent in placed - confirmed:
+        for agent in sorted(placed - confirmed):
             for other in sorted(confirmed):
                 if _confirmed_pair(by_pair.get(frozenset((agent, other)), []), support, stretches or {}):
                     confirmed.add(agent)
                     grown = True
                     break
+            else:
+                partners = agreeing(agent, frozenset(confirmed)) if agreeing is not None and len(confirmed) > 1 else ()
+                if partners:
+                    confirmed.add(agent)
+                    across[agent] = partners
+                    grown = True
     out = {}
     for agent in agents:
         if agent == reference and agent in placed:
@@ -174,6 +190,8 @@ def placements(
         else:
             state = Placement.CONFIRMED if agent in confirmed else Placement.PROVISIONAL
             out[agent] = _with_evidence(agent, state, by_pair, placed, confirmed)
+            if agent in across:
+                out[agent] = replace(out[agent], partner=across[agent][0], also=across[agent][1:])
     return out
 
 
@@ -210,6 +228,11 @@ def describe(agent: str, p: AgentPlacement) -> str:
         first, last = p.keyframes[0], p.keyframes[-1]
         where += f" (its keyframe{'s' if last > first else ''} {first}{f'-{last}' if last > first else ''})"
     if p.placement is Placement.CONFIRMED:
+        if p.also:
+            return (
+                f"{agent} is confirmed in the shared frame: independent graph matches with "
+                f"{' and '.join((p.partner or '', *p.also))} agree on its place"
+            )
         return f"{agent} is confirmed in the shared frame: independent graph matches{where} agree"
     if not p.partner_confirmed:
         return (
@@ -225,10 +248,13 @@ def describe(agent: str, p: AgentPlacement) -> str:
     )
 
 
-def describe_waiting(agent: str, partner: str, evidence: int, needed: int, matches: int) -> str:
+def describe_waiting(
+    agent: str, partner: str, evidence: int, needed: int, matches: int, others: tuple[str, ...] = ()
+) -> str:
     """One line for users: why ``agent`` is not placed although ``matches`` graph matches with placed
     ``partner`` gave accepted closures: they are ``evidence`` independent pieces of evidence, fewer than the
-    ``needed`` (``backend.min_closures_to_anchor``)."""
+    ``needed`` (``backend.min_closures_to_anchor``); ``others``: further placed robots with accepted matches,
+    which did not make independent, agreeing pieces together with ``partner``'s (``cross_evidence``)."""
     pieces = "one piece of evidence" if evidence == 1 else f"{evidence} independent pieces of evidence"
     these = f"{matches} accepted graph match{'es' if matches != 1 else ''} with {partner}"
     verb = "are" if matches != 1 else "is"
@@ -237,4 +263,9 @@ def describe_waiting(agent: str, partner: str, evidence: int, needed: int, match
         "objects, or one robot's matches along the same straight stretches of both, count once), and a robot "
         f"enters it once {needed} independent matches agree (backend.min_closures_to_anchor; 1 trusts single "
         "matches and reports them provisional)"
+    ) + (
+        f"; its accepted matches with {', '.join(others)} do not count as another piece: they lie on the same "
+        "straight stretch of its drive, rest on the same objects or disagree on its place"
+        if others
+        else ""
     )

@@ -73,6 +73,7 @@ from shgm_slam.backend.consistency import (
     consistent_with,
     consistent_with_odometry,
 )
+from shgm_slam.backend.cross_evidence import Piece, agreeing_pieces, strongest
 from shgm_slam.backend.drift import closure_rate, drift_level, loop_rotation_error_rad, measured_rate
 from shgm_slam.backend.keys import ROBOT_LETTERS, RobotKeys
 from shgm_slam.backend.stretches import StretchTracker, stretch_token
@@ -1073,6 +1074,62 @@ class MultiRobotPoseGraph:
         for k in range(1, len(r.T_odom_kf)):
             self._push_keyframe(robot, k)
 
+    def _agreeing_anchor(self, accepted: list[ClosureRecord]) -> list[ClosureRecord]:
+        """The closures of the first unanchored robot (robot order) whose accepted closures with
+        ``min_closures_to_anchor`` different anchored robots are independent pieces of evidence that agree on
+        its place (``cross_evidence``); [] when no robot has them."""
+        partners: dict[str, set[str]] = {}
+        for c in accepted:
+            if c.robot_a != c.robot_b and self._robots[c.robot_a].anchored != self._robots[c.robot_b].anchored:
+                robot, other = (c.robot_b, c.robot_a) if self._robots[c.robot_a].anchored else (c.robot_a, c.robot_b)
+                partners.setdefault(robot, set()).add(other)
+        for robot in self.keys.names:
+            if len(partners.get(robot, ())) >= self.min_closures_to_anchor:
+                pieces = self._agreeing(robot, frozenset(partners[robot]), self.min_closures_to_anchor, accepted)
+                if pieces:
+                    return [self._closures[p.closure_id] for p in pieces]
+        return []
+
+    def agreeing_partners(self, robot: str, partners: Iterable[str], needed: int = 2) -> tuple[str, ...]:
+        """The ``needed`` partners among anchored ``partners`` whose accepted closures with ``robot`` are
+        independent pieces of evidence that agree on its place (``cross_evidence``), in piece order; () when
+        there are none (``confirmation.placements`` confirms a robot through them).
+
+        Raises:
+            BackendError: ``robot`` is unknown.
+        """
+        self._robot(robot)
+        accepted = [c for c in self._closures if c.status is ClosureStatus.ACCEPTED]
+        anchored = frozenset(p for p in partners if p != robot and p in self._robots and self._robots[p].anchored)
+        return tuple(p.partner for p in self._agreeing(robot, anchored, needed, accepted))
+
+    def _agreeing(
+        self, robot: str, partners: frozenset[str], needed: int, accepted: list[ClosureRecord]
+    ) -> list[Piece]:
+        """``cross_evidence.agreeing_pieces`` of ``robot``'s accepted closures with anchored ``partners``."""
+        r = self._robots[robot]
+        mine = [
+            c for c in accepted
+            if c.robot_a != c.robot_b and robot in (c.robot_a, c.robot_b)
+            and (c.robot_b if c.robot_a == robot else c.robot_a) in partners
+        ]  # fmt: skip
+        others = [c.robot_b if c.robot_a == robot else c.robot_a for c in mine]
+        kfs = [c.kf_b if c.robot_b == robot else c.kf_a for c in mine]
+        stretches = [None if r.stretches is None else r.stretches.ids[kf] for kf in kfs]
+        pieces = []
+        for i in strongest(others, stretches, [c.num_inliers for c in mine], needed):
+            c, other = mine[i], others[i]
+            if c.robot_b == robot:  # T_shared_bj = T_shared_ai · T_ai_bj
+                T = self._current_pose(other, c.kf_a) @ c.T_a_b
+            else:  # T_shared_ai = T_shared_bj · T_ai_bj⁻¹
+                T = self._current_pose(other, c.kf_b) @ inverse(c.T_a_b)
+            objects = frozenset(
+                x for x in self._support.get(c.closure_id, ()) if isinstance(x, tuple) and len(x) == 2 and x[0] == robot
+            )
+            pieces.append(Piece(c.closure_id, other, kfs[i], T, objects, stretches[i], c.num_inliers))
+        odom, path = r.odometry()
+        return agreeing_pieces(pieces, odom, path, self.thresholds, needed) if pieces else []
+
     def _current_pose(self, robot: str, k: int) -> np.ndarray:
         key = self.keys.key(robot, k)
         if self._new_values.exists(key):
@@ -1099,6 +1156,8 @@ class MultiRobotPoseGraph:
                 if self._robots[c.robot_a].anchored != self._robots[c.robot_b].anchored
                 and pair_size[(c.robot_a, c.robot_b)] >= self.min_closures_to_anchor
             ]  # fmt: skip
+            if not candidates and self.min_closures_to_anchor > 1:
+                candidates = self._agreeing_anchor(accepted)
             if candidates:
                 c = max(candidates, key=lambda c: (c.num_inliers, -c.closure_id))
                 self._anchor_robot(c.robot_b if self._robots[c.robot_a].anchored else c.robot_a, c)

@@ -714,8 +714,9 @@ class MapServer:
         pg = self._pose_graph
         if self._placements[0] != pg.version:
             anchored = [a for a in self._agents if pg.is_anchored(a)]
-            self._placements = (pg.version, placements(self._agents, self.reference, anchored, pg.closures(),
-                                                       self._support, pg.stretches()))  # fmt: skip
+            decided = placements(self._agents, self.reference, anchored, pg.closures(), self._support,
+                                 pg.stretches(), pg.agreeing_partners)  # fmt: skip
+            self._placements = (pg.version, decided)
         return self._placements[1].get(agent, AgentPlacement(Placement.UNPLACED))
 
     def waiting_note(self, agent: str) -> str | None:
@@ -733,8 +734,9 @@ class MapServer:
         if not matches:
             return None
         partner = max(matches, key=lambda o: (pg.evidence_between(agent, o), len(matches[o]), o))
+        others = tuple(sorted(set(matches) - {partner}))
         return describe_waiting(agent, partner, max(1, pg.evidence_between(agent, partner)),
-                                pg.min_closures_to_anchor, len(matches[partner]))  # fmt: skip
+                                pg.min_closures_to_anchor, len(matches[partner]), others)  # fmt: skip
 
     def measured_drift(self, agent: str) -> float | None:
         """Odometry rotation drift (rad per metre) ``agent``'s own loop closures measured beyond the prior

@@ -181,3 +181,7 @@ def test_waiting_line_counts_matches_and_evidence() -> None:
     assert one.startswith("car2 is not placed") and "1 accepted graph match with car1 is one piece of evidence" in one
     many = describe_waiting("car2", "car1", evidence=1, needed=3, matches=4)
     assert "4 accepted graph matches with car1 are one piece of evidence" in many and "once 3 independent" in many
+    assert "do not count" not in many
+    across = describe_waiting("car2", "car1", evidence=1, needed=2, matches=4, others=("uav",))
+    assert across.endswith("its accepted matches with uav do not count as another piece: they lie on the same "
+                           "straight stretch of its drive, rest on the same objects or disagree on its place")
