@@ -50,8 +50,9 @@ from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import read_tum
 from shgm_slam.robot.remote import default_jobs
 from shgm_slam.runner import open_robots, replay_backend, run_slam
+from shgm_slam.sim.cache import simulate_cached
 from shgm_slam.sim.corruption import CorruptionLevels
-from shgm_slam.sim.simulate import DEFAULT_MAX_DEPTH_M, simulate
+from shgm_slam.sim.simulate import DEFAULT_MAX_DEPTH_M
 
 SCENARIOS = ("airsim-like", "disjoint", "synthia-like", "kitti-paths")
 TUNING_SEEDS = tuple(range(10, 30))
@@ -188,9 +189,9 @@ def ensure_world(
     if not (folder / "scenario.json").is_file():
         progress(f"rendering {scenario} seed {seed} into {folder}")
         pair = KITTI_DRIVE_PAIRS[seed % len(KITTI_DRIVE_PAIRS)] if scenario == "kitti-paths" else None
-        simulate(scenario, folder, seed=seed, resolution=resolution, overwrite=True, kitti_robots=pair,
-                 supersample=supersample, uav_altitude_m=_uav_altitude(scenario, uav_altitude_m),
-                 max_depth_m=MAX_DEPTH_M, corruption=corruption)  # fmt: skip
+        simulate_cached(scenario, folder, seed=seed, resolution=resolution, kitti_robots=pair,
+                        supersample=supersample, uav_altitude_m=_uav_altitude(scenario, uav_altitude_m),
+                        max_depth_m=MAX_DEPTH_M, corruption=corruption)  # fmt: skip
     return folder
 
 

@@ -29,7 +29,7 @@ from shgm_slam.config import ShgmConfig
 from shgm_slam.demo import demo_config, prepare_world
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.runner import RunSummary, open_robots, run_slam
-from shgm_slam.sim.simulate import simulate
+from shgm_slam.sim.cache import simulate_cached
 
 Progress = Callable[[str], None]
 
@@ -41,7 +41,7 @@ def _world(cache: Path, name: str, seed: int, progress: Progress, **options) -> 
     out = cache / f"{name}-seed{seed}" if not options else cache / f"{name}-seed{seed}-{_tag(options)}"
     if not (out / "scenario.json").is_file():
         progress(f"simulating {name} into {out}")
-        simulate(name, out, seed=seed, overwrite=True, **options)
+        simulate_cached(name, out, seed=seed, **options)
     return out
 
 

@@ -46,8 +46,8 @@ from shgm_slam.geometry.se3 import inverse, transform_points
 from shgm_slam.graph.build import build_graph_from_sequence
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.matching import match_graphs
+from shgm_slam.sim.cache import simulate_cached
 from shgm_slam.sim.corruption import CorruptionLevels
-from shgm_slam.sim.simulate import simulate
 from shgm_slam.types import GraphArrays
 
 Progress = Callable[[str], None]
@@ -260,9 +260,9 @@ def ensure_world(options: Table3Options, world: str, seed: int, progress: Progre
     folder = world_folder(options, world, seed)
     if not (folder / "scenario.json").is_file():
         progress(f"rendering kitti-paths {world} seed {seed} into {folder}")
-        simulate("kitti-paths", folder, seed=seed, resolution=options.resolution, max_frames=options.max_frames,
-                 corruption=options.corruption, kitti_robots=TABLE3_WORLDS[world], kitti_root=kitti_root,
-                 overwrite=True)  # fmt: skip
+        simulate_cached("kitti-paths", folder, seed=seed, resolution=options.resolution,
+                        max_frames=options.max_frames, corruption=options.corruption,
+                        kitti_robots=TABLE3_WORLDS[world], kitti_root=kitti_root)  # fmt: skip
     return folder
 
 
