@@ -96,10 +96,13 @@ def dump_config(
 # --- simulate (sim/) -------------------------------------------------------------------------------
 
 
-def _simulate_with_progress(scenario: str, out: Path, seed: int = 0, **kwargs: Any) -> Any:
-    """``sim.simulate`` with one rich progress bar per robot; returns its ``ScenarioResult``."""
+def _simulate_with_progress(scenario: str, out: Path, seed: int = 0, *, cached: bool = False, **kwargs: Any) -> Any:
+    """``sim.simulate`` with one rich progress bar per robot; returns its ``ScenarioResult``. ``cached``: a world
+    of a cache folder (``sim.cache.simulate_cached``, returns the folder): rendered beside it and renamed when
+    finished, so an interrupted render is replaced by the next run instead of blocking it."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
+    from shgm_slam.sim.cache import simulate_cached
     from shgm_slam.sim.simulate import simulate
 
     with Progress("[bold]{task.description}", BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
@@ -111,7 +114,7 @@ def _simulate_with_progress(scenario: str, out: Path, seed: int = 0, **kwargs: A
                 tasks[robot] = bar.add_task(robot, total=total)
             bar.update(tasks[robot], completed=done)
 
-        return simulate(scenario, out, seed=seed, progress=progress, **kwargs)
+        return (simulate_cached if cached else simulate)(scenario, out, seed=seed, progress=progress, **kwargs)
 
 
 @app.command("simulate")
@@ -692,7 +695,7 @@ def demo(
 
     def simulate_world(folder: Path) -> None:
         console.print(f"simulating the airsim-like world into [bold]{lit(folder)}[/] (once; cached afterwards)")
-        _simulate_with_progress("airsim-like", folder, seed)
+        _simulate_with_progress("airsim-like", folder, seed, cached=True)
 
     world, kinds = prepare_world(cache, seed, simulate_world)
     console.print(f"world: [bold]{lit(world)}[/] robots: {lit(', '.join(f'{r} ({k})' for r, k in kinds.items()))}")
@@ -1095,7 +1098,8 @@ def bench_distributed(
         modes = [Fault(f.strip()) for f in faults.split(",") if f.strip()]
     except ValueError:
         raise ConfigError(f"--faults {faults!r}: comma-separated none, robot, server") from None
-    world, _ = prepare_world(cache, seed, lambda folder: _simulate_with_progress("airsim-like", folder, seed))
+    world, _ = prepare_world(cache, seed, lambda folder: _simulate_with_progress("airsim-like", folder, seed,
+                                                                                   cached=True))
     with console.status("starting") as status:
         result = run_distributed_benchmark(world, out, faults=modes, config=config,
                                            progress=lambda msg: status.update(msg))  # fmt: skip

@@ -68,3 +68,32 @@ def test_plain_and_rgb_only_demos_write_separate_results(monkeypatch, tmp_path):
         assert res.exit_code == 0, res.output
     assert outs == [demo.RESULTS_DIR, demo.RGB_ONLY_RESULTS_DIR, tmp_path / "mine"]
     assert demo.RESULTS_DIR != demo.RGB_ONLY_RESULTS_DIR
+
+
+def test_a_demo_whose_first_render_was_interrupted_renders_again(monkeypatch, tmp_path):
+    """Ctrl-C during the first ``make demo`` leaves a half-rendered world in the cache; the next ``demo`` must
+    render it again, not stop on "car1 is not empty"."""
+    from types import SimpleNamespace
+
+    from typer.testing import CliRunner
+
+    import shgm_slam.cli as cli
+
+    half = tmp_path / "cache" / "airsim-like-seed0" / "car1" / "image_2"
+    half.mkdir(parents=True)
+    (half / "000000.png").write_bytes(b"")
+    rendered = []
+
+    def fake_simulate(scenario, out, *, seed, progress, overwrite):
+        rendered.append(out)
+        (out / "car1").mkdir(parents=True)
+        (out / "scenario.json").write_text('{"robots": [{"name": "car1", "kind": "car"}]}')
+
+    monkeypatch.setattr("shgm_slam.sim.cache.simulate", fake_simulate)
+    monkeypatch.setattr(cli, "_run_command", lambda *a: SimpleNamespace())
+    monkeypatch.setattr(cli, "_render_summary", lambda summary: None)
+    res = CliRunner().invoke(cli.app, ["demo", "--rerun", "off", "--cache", str(tmp_path / "cache"),
+                                       "--out", str(tmp_path / "out")])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    world = tmp_path / "cache" / "airsim-like-seed0"
+    assert len(rendered) == 1 and (world / "scenario.json").is_file() and not (world / "car1" / "image_2").exists()
