@@ -235,6 +235,12 @@ def simulate(
     )
     plan: ScenarioPlan = build_scenario(scenario, opts)
     robots = [r.truncated(max_frames) for r in plan.robots]
+    started = [r.name for r in robots if (out / r.name).is_dir() and any((out / r.name).iterdir())]
+    if started and not overwrite:  # no scenario.json: a render that was stopped
+        raise SimulationError(
+            f"{out} holds an unfinished render ({', '.join(started)} but no scenario.json); pass --overwrite to "
+            "render it again, or choose a new folder"
+        )
     t1 = time.perf_counter()
     try:
         results = ResultsWriter(out)

@@ -85,6 +85,12 @@ def test_errors_are_clear(tmp_path):
     simulate("airsim-like", tmp_path / "d", resolution=(32, 16), max_frames=1, compact=True)
     with pytest.raises(SimulationError, match="--overwrite"):
         simulate("airsim-like", tmp_path / "d", resolution=(32, 16), max_frames=1, compact=True)
+    (tmp_path / "d" / "scenario.json").unlink()  # as if the render had been stopped before its end
+    unfinished = r"unfinished render \(car1, car2, uav but no scenario.json\); pass --overwrite"
+    with pytest.raises(SimulationError, match=unfinished):
+        simulate("airsim-like", tmp_path / "d", resolution=(32, 16), max_frames=1, compact=True)
+    simulate("airsim-like", tmp_path / "d", resolution=(32, 16), max_frames=1, compact=True, overwrite=True)
+    assert (tmp_path / "d" / "scenario.json").is_file()
 
 
 def test_cli_simulate(tmp_path):
