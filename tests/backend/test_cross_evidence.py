@@ -88,10 +88,10 @@ def test_needed_counts_distinct_partners():
 LEG = 50  # keyframes per leg of the L every robot drives (2 m apart)
 
 
-def l_graph() -> MultiRobotPoseGraph:
+def l_graph(min_closures_to_anchor: int = 2) -> MultiRobotPoseGraph:
     """a, b and c drive the same L from the same start (each odometry frame at its first keyframe); b is placed
     through two independent matches with a (before and after the corner)."""
-    pg = MultiRobotPoseGraph(["a", "b", "c"], min_closures_to_anchor=2, stretch_turn_deg=30.0)
+    pg = MultiRobotPoseGraph(["a", "b", "c"], min_closures_to_anchor=min_closures_to_anchor, stretch_turn_deg=30.0)
     for r in ("a", "b", "c"):
         for k, p in enumerate(corner(LEG)):
             pg.add_keyframe(r, k, make_pose(np.eye(3), p))
@@ -142,12 +142,7 @@ def test_two_partners_on_one_stretch_of_the_robot_do_not_place_it():
 def test_a_provisional_robot_is_confirmed_through_a_second_partner():
     """With single-match anchoring (min_closures_to_anchor 1) c enters on its first match, provisional; an
     agreeing match with another confirmed robot on another stretch confirms it."""
-    pg = MultiRobotPoseGraph(["a", "b", "c"], min_closures_to_anchor=1, stretch_turn_deg=30.0)
-    for r in ("a", "b", "c"):
-        for k, p in enumerate(corner(LEG)):
-            pg.add_keyframe(r, k, make_pose(np.eye(3), p))
-    pg.add_inter_robot_closure("a", 10, "b", 10, np.eye(4), match_id=1, support={("a", 1), ("b", 1)})
-    pg.add_inter_robot_closure("a", 80, "b", 80, np.eye(4), match_id=2, support={("a", 2), ("b", 2)})
+    pg = l_graph(min_closures_to_anchor=1)
     pg.add_inter_robot_closure("a", 12, "c", 12, np.eye(4), match_id=3, support={("a", 11), ("c", 1)})
     assert confirmed(pg)["c"].placement is Placement.PROVISIONAL
     pg.add_inter_robot_closure("b", 85, "c", 85, np.eye(4), match_id=4, support={("b", 12), ("c", 2)})
