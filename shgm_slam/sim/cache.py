@@ -37,14 +37,20 @@ def simulate_cached(scenario: str, folder: Path | str, **options: Any) -> Path:
     renders it when still missing, and returns it.
 
     Raises:
-        SimulationError: ``folder`` is a file; or what ``simulate`` raises (nothing is left behind then).
+        SimulationError: ``folder`` is a file or its cache folder cannot be created; or what ``simulate`` raises
+            (nothing is left behind then).
     """
     out = Path(folder)
     if (out / FINISHED).is_file():
         return out
     if out.exists() and not out.is_dir():
         raise SimulationError(f"cannot cache a rendered world at {out}: it is a file; remove it or use another cache")
-    out.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SimulationError(
+            f"cannot create the cache folder {out.parent}: {exc.strerror or exc}; choose a writable folder (--cache)"
+        ) from None
     with _exclusive(out.with_name(out.name + ".lock")):
         if (out / FINISHED).is_file():  # rendered by another process while this one waited
             return out

@@ -74,4 +74,6 @@ def test_a_file_where_the_world_goes_is_refused(tmp_path, renders):
     (tmp_path / "w").write_text("x")
     with pytest.raises(SimulationError, match="it is a file"):
         simulate_cached("airsim-like", tmp_path / "w")
+    with pytest.raises(SimulationError, match="cannot create the cache folder"):
+        simulate_cached("airsim-like", tmp_path / "w" / "airsim-like-s1")  # the cache itself is a file
     assert renders == []
