@@ -220,15 +220,6 @@ class SegOutputSpec(_CardPart):
     classes: tuple[str, ...] | LabelSpace = LabelSpace.CITYSCAPES
     mapping: dict[int | str, int | str] = Field(default_factory=dict)
 
-    @property
-    def class_names(self) -> tuple[str, ...]:
-        """The model's class names in output order."""
-        from shgm_slam.perception.labels import label_space_classes
-
-        if isinstance(self.classes, LabelSpace):
-            return label_space_classes(self.classes)
-        return self.classes
-
     @field_validator("mapping")
     @classmethod
     def _index_keys(cls, mapping: dict[int | str, int | str]) -> dict[int | str, int | str]:

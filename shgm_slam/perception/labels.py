@@ -13,7 +13,7 @@ import numpy as np
 
 from shgm_slam.errors import ModelError
 from shgm_slam.labels import CITYSCAPES_CLASSES, IGNORE_ID, NUM_CLASSES, Label
-from shgm_slam.perception.card import LabelSpace
+from shgm_slam.perception.card import LabelSpace, SegOutputSpec
 
 ADE20K_CLASSES: tuple[str, ...] = (
     "wall", "building", "sky", "floor", "tree", "ceiling", "road", "bed", "windowpane", "grass",
@@ -55,6 +55,11 @@ other ADE20K class (indoor objects, water, mountains, ...) maps to 255 (ignore).
 def label_space_classes(space: LabelSpace) -> tuple[str, ...]:
     """Class names of a named label space, in model output order."""
     return {LabelSpace.CITYSCAPES: CITYSCAPES_CLASSES, LabelSpace.ADE20K: ADE20K_CLASSES}[space]
+
+
+def output_class_names(spec: SegOutputSpec) -> tuple[str, ...]:
+    """A segmentation card's class names in model output order (its own list, or its label space's)."""
+    return label_space_classes(spec.classes) if isinstance(spec.classes, LabelSpace) else spec.classes
 
 
 def _default_table(space: LabelSpace | None) -> dict[str, int]:

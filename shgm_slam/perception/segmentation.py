@@ -16,7 +16,7 @@ import numpy as np
 from shgm_slam.errors import ModelError
 from shgm_slam.labels import IGNORE_ID
 from shgm_slam.perception.card import LabelSpace, Layout, SegmentationCard, SegOutputKind, TaskKind
-from shgm_slam.perception.labels import class_lut
+from shgm_slam.perception.labels import class_lut, output_class_names
 from shgm_slam.perception.onnx_model import (
     _FLOAT_TYPES,
     OnnxModel,
@@ -51,7 +51,7 @@ class SegmentationModel(OnnxModel):
 
     def _check_output(self, output: TensorSpec) -> None:
         spec = self.card.output
-        classes = spec.class_names
+        classes = output_class_names(spec)
         where = f"{self.where}: output '{output.name}' (shape {list(output.shape)})"
         self.class_to_train_id = class_lut(
             classes,

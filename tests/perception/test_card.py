@@ -23,6 +23,7 @@ from shgm_slam.perception.card import (
     parse_card,
     write_card,
 )
+from shgm_slam.perception.labels import output_class_names
 
 
 def test_depth_card_defaults_and_fraction_scale() -> None:
@@ -48,7 +49,7 @@ def test_enums_parse_case_insensitively() -> None:
     assert card.input.layout is Layout.NHWC and card.input.color_order is ColorOrder.BGR
     assert card.input.resize is ResizeMode.KEEP_ASPECT_PAD
     assert card.output.kind is SegOutputKind.LABEL_MAP and card.output.classes is LabelSpace.ADE20K
-    assert len(card.output.class_names) == 150
+    assert len(output_class_names(card.output)) == 150
 
 
 @pytest.mark.parametrize(

@@ -15,6 +15,7 @@ import pytest
 from shgm_slam.labels import NUM_CLASSES, Label
 from shgm_slam.perception import DepthModel, SegmentationModel
 from shgm_slam.perception.card import DepthCard, SegmentationCard, load_card
+from shgm_slam.perception.labels import output_class_names
 from shgm_slam.sim.render import RenderedFrame, Renderer, make_intrinsics
 from shgm_slam.sim.scenarios import ScenarioOptions, build_scenario
 
@@ -54,7 +55,8 @@ def test_cards_and_files() -> None:
     seg_card = load_card(_require(SEG_ONNX))
     assert isinstance(depth_card, DepthCard) and isinstance(seg_card, SegmentationCard)
     assert depth_card.input.size == seg_card.input.size == (320, 96)
-    assert seg_card.output.class_names[Label.CAR] == "car" and len(seg_card.output.class_names) == NUM_CLASSES
+    names = output_class_names(seg_card.output)
+    assert names[Label.CAR] == "car" and len(names) == NUM_CLASSES
     for card in (depth_card, seg_card):
         assert "synthetic" in (card.license or "")
     for path in (DEPTH_ONNX, SEG_ONNX):

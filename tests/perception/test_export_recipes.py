@@ -22,6 +22,7 @@ from shgm_slam.errors import ConfigError  # noqa: E402
 from shgm_slam.labels import CITYSCAPES_CLASSES, IGNORE_ID, NUM_CLASSES  # noqa: E402
 from shgm_slam.perception.card import DepthKind, SegOutputKind, TaskKind, load_card  # noqa: E402
 from shgm_slam.perception.depth import DepthModel  # noqa: E402
+from shgm_slam.perception.labels import output_class_names  # noqa: E402
 from shgm_slam.perception.segmentation import SegmentationModel  # noqa: E402
 
 TOOL = Path(__file__).resolve().parents[2] / "tools" / "export_onnx.py"
@@ -170,7 +171,7 @@ def test_seg_card_lists_cityscapes_identity(exported):
     card = load_card(result.onnx_path)
     assert card == result.card
     assert card.output.kind is SegOutputKind.LOGITS
-    assert tuple(card.output.class_names) == CITYSCAPES_CLASSES
+    assert output_class_names(card.output) == CITYSCAPES_CLASSES
     adapter = _adapter(result)
     np.testing.assert_array_equal(adapter.class_to_train_id, np.arange(NUM_CLASSES))
     W, H = result.size_wh
