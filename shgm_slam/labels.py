@@ -97,6 +97,21 @@ between the cars' RGB graphs in 4 of 5 worlds; the 10th, or the median for cars,
 do better)."""
 
 
+MAP_CLASS_NAMES: dict[str, int] = {
+    "tree": Label.VEGETATION, "trees": Label.VEGETATION, "bush": Label.VEGETATION, "hedge": Label.VEGETATION,
+    "street light": Label.POLE, "streetlight": Label.POLE, "street lamp": Label.POLE, "lamp": Label.POLE,
+    "lamp post": Label.POLE, "lamppost": Label.POLE, "light pole": Label.POLE, "utility pole": Label.POLE,
+    "sign": Label.TRAFFIC_SIGN, "road sign": Label.TRAFFIC_SIGN, "street sign": Label.TRAFFIC_SIGN,
+    "signboard": Label.TRAFFIC_SIGN, "traffic signal": Label.TRAFFIC_LIGHT, "traffic signals": Label.TRAFFIC_LIGHT,
+    "house": Label.BUILDING, "buildings": Label.BUILDING, "vehicle": Label.CAR, "parked car": Label.CAR,
+    "van": Label.CAR, "grass": Label.TERRAIN, "pedestrian": Label.PERSON, "bike": Label.BICYCLE,
+    "motorbike": Label.MOTORCYCLE,
+}  # fmt: skip
+"""Names map layers and object detectors use for Cityscapes classes (lower case, single spaces): a graph file
+may name its classes so (``io/graph_json.py``). Only names with one obvious class; anything else must be
+renamed by whoever made the file."""
+
+
 def label_name(label_id: int) -> str:
     """Human-readable class name of a train id (``"ignore"`` for 255, ``"class<id>"`` otherwise)."""
     if 0 <= label_id < NUM_CLASSES:

@@ -22,7 +22,7 @@ import numpy as np
 from shgm_slam.errors import GraphError, parse_failure
 from shgm_slam.graph.semantic_graph import edges_within_radius
 from shgm_slam.io.json_text import to_json_text
-from shgm_slam.labels import CITYSCAPES_CLASSES
+from shgm_slam.labels import CITYSCAPES_CLASSES, MAP_CLASS_NAMES
 from shgm_slam.types import GraphArrays
 
 FORMAT_TAG = "shgm-graph/1"
@@ -43,6 +43,9 @@ def _canonical(name: str) -> str:
 
 
 _TRAIN_ID_OF_NAME = {_canonical(n): i for i, n in enumerate(CITYSCAPES_CLASSES)}
+_TRAIN_ID_OF_ANY_NAME = {**{_canonical(n): i for n, i in MAP_CLASS_NAMES.items()}, **_TRAIN_ID_OF_NAME}
+"""Cityscapes names and the map names of ``labels.MAP_CLASS_NAMES`` (reading only: files are written with
+Cityscapes names)."""
 
 
 def graph_to_dict(graph: GraphArrays, classes: Sequence[str] = CITYSCAPES_CLASSES) -> dict[str, Any]:
@@ -141,13 +144,13 @@ def graph_from_dict(
     if (counts > 1).any():
         raise fail(f"duplicate node ids {uniq[counts > 1].tolist()[:10]}; node ids must be unique")
 
-    class_train_ids = np.array([_TRAIN_ID_OF_NAME.get(_canonical(c), -1) for c in classes], dtype=np.int64)
+    class_train_ids = np.array([_TRAIN_ID_OF_ANY_NAME.get(_canonical(c), -1) for c in classes], dtype=np.int64)
     label_ids = class_train_ids[label_idx] if n else np.zeros(0, np.int64)
     if (label_ids < 0).any():
         unknown = sorted({classes[i] for i in label_idx[label_ids < 0].tolist()})
         raise fail(
             f"class names {unknown} are not Cityscapes classes; rename them to Cityscapes names "
-            f"({', '.join(CITYSCAPES_CLASSES)})"
+            f"({', '.join(CITYSCAPES_CLASSES)}; map names such as 'tree', 'street light' or 'sign' are read too)"
         )
 
     if "edges" in data and data["edges"] is not None:

@@ -10,7 +10,7 @@ import pytest
 from shgm_slam.errors import GraphError
 from shgm_slam.graph.semantic_graph import edges_within_radius
 from shgm_slam.io.graph_json import graph_from_dict, graph_to_dict, read_graph, write_graph
-from shgm_slam.labels import CITYSCAPES_CLASSES, Label
+from shgm_slam.labels import CITYSCAPES_CLASSES, MAP_CLASS_NAMES, Label
 from shgm_slam.types import GraphArrays
 
 
@@ -44,6 +44,17 @@ def test_custom_class_list_is_remapped_by_name():
     np.testing.assert_array_equal(graph_from_dict(doc).label_ids, g.label_ids)
     with pytest.raises(GraphError, match="no class"):
         graph_to_dict(g, classes=["car"])
+
+
+def test_map_class_names_are_read_as_their_cityscapes_class():
+    g = random_graph(12)
+    doc = graph_to_dict(g, classes=["car", "vegetation", "pole", "building"])
+    doc["classes"] = ["Parked_Car", "tree", "street-light", "house"]  # what map layers call them
+    np.testing.assert_array_equal(graph_from_dict(doc).label_ids, g.label_ids)
+    for name, train_id in MAP_CLASS_NAMES.items():  # every map name is one Cityscapes class, none shadows one
+        assert 0 <= train_id < len(CITYSCAPES_CLASSES) and name not in CITYSCAPES_CLASSES
+    with pytest.raises(GraphError, match="'tree', 'street light'"):  # the error says map names are read
+        graph_from_dict(_doc(classes=["building", "spaceship"]))
 
 
 def test_optional_size_and_edges():
