@@ -466,7 +466,8 @@ class BackendConfig(_Stage):
     min_closures_to_anchor: int = Field(
         MATCHES_TO_ANCHOR, ge=1, description="a robot enters the shared frame only when a robot pair's consistent "
         "set has closures from this many independent matches (closures of one match, matches on shared "
-        "objects, and matches on the same straight stretches of both robots count once; 1 = trust the first "
+        "objects, matches on the same straight stretches of both robots, and matches too close to chance for the "
+        "number the pair has tried count once; 1 = trust the first "
         "accepted match). A robot also enters through one match with each of this many placed robots when they "
         "rest on other objects and straight stretches of its own drive and agree on its place "
         "(backend/cross_evidence.py)"

@@ -260,7 +260,8 @@ def describe_waiting(
     verb = "are" if matches != 1 else "is"
     return (
         f"{agent} is not placed in the shared frame: its {these} {verb} {pieces} (matches that found the same "
-        "objects, or one robot's matches along the same straight stretches of both, count once), and a robot "
+        "objects, one robot's matches along the same straight stretches of both, or matches too close to chance "
+        "for the number the pair has tried, count once), and a robot "
         f"enters it once {needed} independent matches agree (backend.min_closures_to_anchor; 1 trusts single "
         "matches and reports them provisional)"
     ) + (
