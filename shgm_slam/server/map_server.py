@@ -610,7 +610,7 @@ class MapServer:
         that looks like another one an alias gets that many chances. A match counts as a piece of its own only
         when its log likelihood ratio clears the threshold by the log of the matches tried between the pair so
         far (``alpha / n`` of the rate to the n-th); the marginal ones of a pair count as one piece together (they
-        share a pseudo-object). On the worlds measured it changed no placement. It is not enough for every alias:
+        share a pseudo-object). With rendered depth it changed no placement measured. It is not enough for every alias:
         with a frame-invariant matcher (not in this version) a parallel street in the fleet of 8 in KITTI 09
         aliased in 11 matches of one pair, 0.6-3.2 nats above their thresholds, and the 22nd match of the pair
         still counted, by 0.05 nats; a spending whose sum stays within the rate (``2 ln n + ln(pi^2 / 6)``)
