@@ -21,7 +21,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from shgm_slam.arrays import unique_first
 from shgm_slam.geometry.se3 import yaw_basis
 
 MIN_SEGMENT_M = 10.0
@@ -89,16 +88,19 @@ def pair_vote_hypotheses(
     cells = np.column_stack([
         np.floor(np.mod(yaw, 2.0 * np.pi) / YAW_CELL_RAD), np.floor(landing / POSITION_CELL_M),
     ]).astype(np.int64)  # fmt: skip
-    _, _, cell_of = unique_first(_cell_keys(cells))
-    votes = np.bincount(cell_of)
+    keys = _cell_keys(cells)
+    sorted_keys = np.sort(keys)
+    starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
+    votes = np.diff(np.r_[starts, sorted_keys.size])  # per cell, cells by ascending key
+    rise = (seg_a.heights[votes_a] - seg_b.heights[votes_b]).mean(axis=1)
     hypotheses = []
     for cell in np.argsort(-votes, kind="stable")[:count]:
-        member = np.flatnonzero(cell_of == cell)
+        member = np.flatnonzero(keys == sorted_keys[starts[cell]])
         heading = float(np.angle(np.exp(1j * yaw[member]).mean()))
         c, s = np.cos(heading), np.sin(heading)
         turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        rise = (seg_a.heights[votes_a[member]] - seg_b.heights[votes_b[member]]).mean(axis=1)
-        shift = np.append(np.median(landing[member], axis=0) - turn[:2, :2] @ centre_b, np.median(rise))
+        middle = np.median(np.column_stack([landing[member], rise[member]]), axis=0)  # (x, y, rise)
+        shift = np.append(middle[:2] - turn[:2, :2] @ centre_b, middle[2])
         T = np.eye(4)
         T[:3, :3] = frame @ turn @ frame.T
         T[:3, 3] = frame @ shift

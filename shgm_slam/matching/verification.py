@@ -260,8 +260,12 @@ def row_steps(
     labels = np.concatenate([label_ids[keep], label_ids[keep]])
     shared = cKDTree(embed(both, labels)).query_ball_point(embed(both, labels), radius_m, return_length=True)
     both, labels = both[shared >= MIN_ROW_NODES], labels[shared >= MIN_ROW_NODES]
-    cells = np.column_stack([labels, np.round(both / (radius_m / 3.0))])
-    first = np.sort(np.unique(cells, axis=0, return_index=True)[1])
+    cells = np.round(both / (radius_m / 3.0))
+    order = np.lexsort((cells[:, 2], cells[:, 1], cells[:, 0], labels))  # stable: first occurrences lead
+    ordered = np.column_stack([labels[order], cells[order]])
+    starts = np.ones(len(order), dtype=bool)
+    starts[1:] = (ordered[1:] != ordered[:-1]).any(axis=1)
+    first = np.sort(order[starts])  # ``np.unique(rows, axis=0, return_index=True)`` without its slow path
     return both[first], labels[first]
 
 
