@@ -11,15 +11,18 @@ from shgm_slam.bench.localization_sparse import (
     MIN_COMMON,
     MIN_NODES,
     NEGATIVE_GAP_M,
+    UP_WORLD,
     SparseOptions,
     make_pairs,
     parse_seeds,
     run_sparse_benchmark,
     sparse_markdown,
 )
+from shgm_slam.config import MatchingConfig
 from shgm_slam.errors import ConfigError
-from shgm_slam.geometry.se3 import transform_points
+from shgm_slam.geometry.se3 import make_pose, rot_z, transform_points
 from shgm_slam.labels import Label
+from shgm_slam.matching import judge_alignment
 from shgm_slam.sim.city import CityParams, build_city
 from shgm_slam.sim.shapes import KIND_LABEL
 
@@ -72,7 +75,11 @@ def test_benchmark_runs_scores_and_summarizes(world):
     for o in results.outcomes:
         assert not (o.success and not o.overlapping) or not o.correct  # a negative is never "correct"
         assert o.correct == (o.trans_err_m < 2.0 and o.rot_err_deg < 5.0)
-    assert "| 4dof |" in sparse_markdown(results, opt.seeds)
+    for s in summary.values():  # a perfect search localizes at least what this one did
+        assert s["localized"] <= s["search_ceiling"] <= s["overlapping_pairs"]
+    for o in results.outcomes:
+        assert np.isnan(o.truth_margin_nats) != o.overlapping  # measured for overlapping pairs only
+    assert "| 4dof |" in sparse_markdown(results, opt.seeds) and "search ceiling" in sparse_markdown(results, opt.seeds)
     doc = results.to_json()
     assert len(doc["outcomes"]) == 8
 
@@ -82,3 +89,15 @@ def test_seed_parsing():
     assert parse_seeds("200,205") == (200, 205)
     with pytest.raises(ConfigError):
         parse_seeds("ten")
+
+
+def test_the_truth_is_judged_as_a_hypothesis_would_be(world):
+    """``judge_alignment``: the true alignment of an overlapping pair is far beyond chance; the same pair with B
+    put 60 m along and turned 90 degrees is not (what the benchmark's search ceiling rests on)."""
+    cfg = MatchingConfig().model_copy(update={"up_axis": UP_WORLD, "gravity_aligned": True})
+    pair = make_pairs(world, SEED, SparseOptions(seeds=(SEED,), pairs_per_seed=1), 10.0)[0]
+    truth = judge_alignment(pair.graph_a, pair.graph_b, pair.T_a_b, cfg)
+    off = make_pose(rot_z(np.pi / 2), np.array([60.0, 0.0, 0.0])) @ pair.T_a_b
+    wrong = judge_alignment(pair.graph_a, pair.graph_b, off, cfg)
+    assert truth.llr > np.log(1 / cfg.false_alarm_rate) and truth.support >= 6
+    assert wrong.llr < truth.llr - 10.0

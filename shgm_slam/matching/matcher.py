@@ -236,6 +236,28 @@ def match_graphs(
     )
 
 
+def judge_alignment(
+    a: GraphArrays, b: GraphArrays, T_a_b: np.ndarray, cfg: MatchingConfig, evidence_free_labels: tuple[int, ...] = ()
+) -> Verification:
+    """What ``match_graphs`` would make of one given alignment had its search proposed it: (4, 4) ``T_a_b``
+    (B's frame -> A's) and its refinement on the whole-overlap partners are each judged by the likelihood
+    ratio against chance, and the better counts. Benchmarks score the *true* alignment this way: whether a
+    miss lacked the evidence (the truth itself stays below the threshold) or the search (it would clear it).
+
+    Args:
+        a, b: the two graphs (positions in each robot's frame, metres).
+        T_a_b: (4, 4) the alignment to judge.
+        cfg: the matching stage (refinement, verification radius, chance model).
+        evidence_free_labels: as ``match_graphs``.
+    """
+    tree_a, tree_b = LabelledTree(a.positions_xyz, a.label_ids), LabelledTree(b.positions_xyz, b.label_ids)
+    given = np.asarray(T_a_b, dtype=np.float64)[None]
+    stack = np.concatenate([given, np.stack(_refined(given, a, b, tree_a, cfg))])
+    shifts, shift_labels = _shifts(tree_a, tree_b, stack, cfg)
+    verified = _verify(tree_a, tree_b, stack, cfg, shifts, shift_labels, evidence_free_labels)
+    return max(verified, key=lambda v: v.llr)
+
+
 def _shifts(
     tree_a: LabelledTree, tree_b: LabelledTree, T_stack: np.ndarray, cfg: MatchingConfig
 ) -> tuple[np.ndarray, np.ndarray]:
