@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 
-def _starts(sorted_values: np.ndarray) -> np.ndarray:
+def run_starts(sorted_values: np.ndarray) -> np.ndarray:
     """(N,) bool: True where a run of equal values of a sorted 1-D array begins."""
     starts = np.empty(sorted_values.shape[0], dtype=bool)
     starts[:1] = True
@@ -20,7 +20,7 @@ def _starts(sorted_values: np.ndarray) -> np.ndarray:
 def unique_sorted(values: np.ndarray) -> np.ndarray:
     """``np.unique(values)`` of a 1-D array: its distinct values, ascending."""
     s = np.sort(values)
-    return s[_starts(s)]
+    return s[run_starts(s)]
 
 
 def unique_first(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -32,7 +32,7 @@ def unique_first(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     """
     order = np.argsort(values, kind="stable")
     s = values[order]
-    starts = _starts(s)
+    starts = run_starts(s)
     inverse = np.empty(s.shape[0], dtype=np.int64)
     inverse[order] = np.cumsum(starts) - 1
     return s[starts], order[starts], inverse
@@ -42,4 +42,4 @@ def first_indices(values: np.ndarray) -> np.ndarray:
     """``np.unique(values, return_index=True)[1]``: index of the first occurrence of each distinct value of
     a 1-D array, by ascending value."""
     order = np.argsort(values, kind="stable")
-    return order[_starts(values[order])]
+    return order[run_starts(values[order])]

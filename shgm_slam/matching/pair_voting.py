@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from shgm_slam.arrays import run_starts
 from shgm_slam.geometry.se3 import yaw_basis
 
 MIN_SEGMENT_M = 10.0
@@ -90,7 +91,7 @@ def pair_vote_hypotheses(
     ]).astype(np.int64)  # fmt: skip
     keys = _cell_keys(cells)
     sorted_keys = np.sort(keys)
-    starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
+    starts = np.flatnonzero(run_starts(sorted_keys))
     votes = np.diff(np.r_[starts, sorted_keys.size])  # per cell, cells by ascending key
     rise = (seg_a.heights[votes_a] - seg_b.heights[votes_b]).mean(axis=1)
     hypotheses = []

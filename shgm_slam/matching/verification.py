@@ -260,12 +260,11 @@ def row_steps(
     labels = np.concatenate([label_ids[keep], label_ids[keep]])
     shared = cKDTree(embed(both, labels)).query_ball_point(embed(both, labels), radius_m, return_length=True)
     both, labels = both[shared >= MIN_ROW_NODES], labels[shared >= MIN_ROW_NODES]
-    cells = np.round(both / (radius_m / 3.0))
-    order = np.lexsort((cells[:, 2], cells[:, 1], cells[:, 0], labels))  # stable: first occurrences lead
-    ordered = np.column_stack([labels[order], cells[order]])
-    starts = np.ones(len(order), dtype=bool)
-    starts[1:] = (ordered[1:] != ordered[:-1]).any(axis=1)
-    first = np.sort(order[starts])  # ``np.unique(rows, axis=0, return_index=True)`` without its slow path
+    # one integer key per (label, cell): cells lie within MAX_ROW_STEP_M / (radius / 3) of 0 on each axis
+    cells = np.round(both / (radius_m / 3.0)).astype(np.int64)
+    side = 2 * int(np.ceil(max_m / (radius_m / 3.0))) + 3
+    keys = ((labels * side + cells[:, 0] + side // 2) * side + cells[:, 1] + side // 2) * side + cells[:, 2] + side // 2
+    first = np.sort(first_indices(keys))
     return both[first], labels[first]
 
 
