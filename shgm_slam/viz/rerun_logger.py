@@ -601,6 +601,7 @@ class RerunLogger:
         if closer.is_alive() or failed:
             # the sink no longer drains: dropping the stream (Rerun's __del__, its exit hook) would wait for ever
             rr.unregister_shutdown()
+            _ABANDONED_RECORDINGS.append(self.rec.to_native())
             self.rec.__class__ = _AbandonedStream
         if closer.is_alive():
             log.warning("the Rerun viewer at %s did not take the end of the recording within %.0f s; what it "
@@ -608,6 +609,12 @@ class RerunLogger:
         elif failed:
             log.warning("the Rerun viewer at %s did not take the recording (%s); what it shows is incomplete "
                         "(the results are written)", self.remote_url, failed[0])
+
+
+_ABANDONED_RECORDINGS: list[object] = []
+"""Native handles of the streams whose viewer stopped taking data, held for the life of the process: a handle
+nothing refers to is *orphaned*, and every later stream's drop (any recording of the process, a file's too)
+sweeps the orphans and flushes them first, which would wait for ever on that viewer."""
 
 
 class _AbandonedStream(rr.RecordingStream):

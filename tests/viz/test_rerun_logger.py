@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import inspect
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -380,3 +382,45 @@ def test_closing_does_not_wait_for_a_viewer_that_stops_reading(tmp_path, caplog,
     assert time.perf_counter() - t0 < 8.0
     assert "did not take" in caplog.text
     del viz  # dropping the stream must not wait for the viewer either
+
+
+_LATER_RECORDINGS = """
+import gc, sys
+from pathlib import Path
+import numpy as np, rerun as rr
+from tests.viz.test_rerun_logger import _FakeServer
+from shgm_slam.viz import default_blueprint, rerun_logger
+from shgm_slam.viz.rerun_logger import RerunMode, make_viz
+rerun_logger.FLUSH_TIMEOUT_S = 1.0
+out = Path(sys.argv[1])
+server = _FakeServer(bytes([0, 0, 0, 4, 0, 0, 0, 0, 0]))
+viz = make_viz(RerunMode.CONNECT, robots=["a"], save_path=out / "run.rrd", connect_url=server.url)
+for _ in range(20):
+    viz.rec.log("world/cloud", rr.Points3D(np.random.default_rng(0).random((20_000, 3))))
+viz.close()
+del viz
+gc.collect()
+for i in range(2):
+    rec = rr.RecordingStream("later")
+    rec.save(out / f"later{i}.rrd", default_blueprint=default_blueprint(["a", "b"]))
+    rec.log("/world", rr.ViewCoordinates.RDF, static=True)
+    rec.flush()
+    rec.disconnect()
+    del rec
+    gc.collect()
+print("done")
+"""
+
+
+def test_a_viewer_that_stopped_reading_never_blocks_a_later_recording(tmp_path):
+    """Dropping any recording sweeps the process's orphaned streams and flushes them: once a stream to a viewer that
+    stopped reading was given up, the next recording saved to a file (a later run in the same process, the blueprint
+    stream that ``save`` drops) waited for that viewer for ever."""
+    root = Path(__file__).resolve().parents[2]
+    try:
+        done = subprocess.run([sys.executable, "-c", _LATER_RECORDINGS, str(tmp_path)], cwd=root,
+                              capture_output=True, text=True, timeout=60)  # fmt: skip
+    except subprocess.TimeoutExpired:
+        pytest.fail("a later recording waited for the viewer that stopped reading")
+    assert done.returncode == 0 and done.stdout.strip() == "done", done.stderr[-2000:]
+    assert all((tmp_path / f"later{i}.rrd").stat().st_size > 0 for i in range(2))
