@@ -13,6 +13,8 @@ from shgm_slam.bench.localization_sparse import (
     NEGATIVE_GAP_M,
     UP_WORLD,
     SparseOptions,
+    SparseOutcome,
+    SparseResults,
     make_pairs,
     parse_seeds,
     run_sparse_benchmark,
@@ -80,6 +82,10 @@ def test_benchmark_runs_scores_and_summarizes(world):
     for o in results.outcomes:
         assert np.isnan(o.truth_margin_nats) != o.overlapping  # measured for overlapping pairs only
     assert "| 4dof |" in sparse_markdown(results, opt.seeds) and "search ceiling" in sparse_markdown(results, opt.seeds)
+    for key, s in summary.items():  # the farthest wrong claim, or None without one
+        errors = [o.trans_err_m for o in results.outcomes
+                  if f"{o.dof}dof" == key and o.overlapping and o.success and not o.correct]  # fmt: skip
+        assert s["worst_wrong_m"] == (max(errors) if errors else None)
     doc = results.to_json()
     assert len(doc["outcomes"]) == 8
 
@@ -101,3 +107,22 @@ def test_the_truth_is_judged_as_a_hypothesis_would_be(world):
     wrong = judge_alignment(pair.graph_a, pair.graph_b, off, cfg)
     assert truth.llr > np.log(1 / cfg.false_alarm_rate) and truth.support >= 6
     assert wrong.llr < truth.llr - 10.0
+
+
+def test_wrong_claims_name_the_farthest():
+    """A wrong claim a few metres off (the right street placed imprecisely) reads differently from an alias."""
+
+    def outcome(index, overlapping, success, err_m):
+        margin = 1.0 if overlapping else float("nan")
+        return SparseOutcome(seed=1, index=index, overlapping=overlapping, dof=4, nodes=(40, 50), common=15,
+                             success=success, correct=success and err_m < 2.0, trans_err_m=err_m, rot_err_deg=1.0,
+                             ms=5.0, cpu_ms=5.0, reason="", truth_margin_nats=margin)  # fmt: skip
+
+    nan = float("nan")
+    results = SparseResults([outcome(0, True, True, 0.4), outcome(1, True, True, 3.8), outcome(2, True, True, 2.6),
+                             outcome(3, True, False, nan), outcome(4, False, False, nan)])  # fmt: skip
+    s = results.summary()["4dof"]
+    assert s["wrong_claims"] == 2 and s["worst_wrong_m"] == 3.8 and s["localized"] == 1
+    assert "| 2 (<= 3.8 m) |" in sparse_markdown(results, (1,))
+    clean = SparseResults([outcome(0, True, True, 0.4)])
+    assert clean.summary()["4dof"]["worst_wrong_m"] is None and "| 0 |" in sparse_markdown(clean, (1,))

@@ -151,6 +151,7 @@ class SparseResults:
                 "localized": sum(o.success and o.correct for o in pos),
                 "localized_rate": sum(o.success and o.correct for o in pos) / max(len(pos), 1),
                 "wrong_claims": sum(o.success and not o.correct for o in pos),
+                "worst_wrong_m": max((o.trans_err_m for o in pos if o.success and not o.correct), default=None),
                 "search_ceiling": sum((o.success and o.correct) or o.truth_margin_nats > 0 for o in pos),
                 "negatives": len(neg),
                 "negatives_accepted": sum(o.success for o in neg),
@@ -383,10 +384,18 @@ def sparse_markdown(results: SparseResults, seeds: tuple[int, ...]) -> str:
     for key, s in results.summary().items():
         lines.append(
             f"| {key} | {s['overlapping_pairs']} | {s['localized']} ({100 * s['localized_rate']:.0f} %) | "
-            f"{s['wrong_claims']} | {s['negatives_accepted']} / {s['negatives']} | {s['median_ms']:.1f} | "
+            f"{_wrong(s)} | {s['negatives_accepted']} / {s['negatives']} | {s['median_ms']:.1f} | "
             f"{s['p90_ms']:.1f} | {s['median_cpu_ms']:.1f} | {s['search_ceiling']} |"
         )
-    lines += ["", "*search ceiling*: overlapping pairs localized, or whose true alignment (refined as any hypothesis) "
-              "clears the match's threshold: what a perfect search would localize with this evidence model; the "
-              "pairs beyond it lack the evidence, not the search."]  # fmt: skip
+    lines += ["", "*wrong claims*: overlapping pairs accepted farther than 2 m or 5 deg from the truth (the "
+              "farthest in brackets: a few metres is the right street placed imprecisely, tens of metres an "
+              "alias). *search ceiling*: overlapping pairs localized, or whose true alignment (refined as any "
+              "hypothesis) clears the match's threshold: what a perfect search would localize with this "
+              "evidence model; the pairs beyond it lack the evidence, not the search."]  # fmt: skip
     return "\n".join(lines) + "\n"
+
+
+def _wrong(summary: dict) -> str:
+    """The wrong claims of one summary row, with the farthest one's translation error when there are any."""
+    worst = summary["worst_wrong_m"]
+    return f"{summary['wrong_claims']}" if worst is None else f"{summary['wrong_claims']} (<= {worst:.1f} m)"
