@@ -133,6 +133,10 @@ class MatchingConfig(_Stage):
     max_rmse_m: float = Field(3.0, gt=0, description="success needs a fit residual below this")
     weighted_pose: bool = Field(True, description="Eq. 2 weights from object size")
     refine_iterations: int = Field(3, ge=0)
+    polish: bool = Field(
+        True, description="refit an accepted alignment robustly (Tukey's biweight, no size weights) on its partners "
+        "within twice the verification radius; the decision is not changed (matching/polish.py)",
+    )
     seed: int = 0
     max_candidates: int = Field(
         600, ge=3, description="clique mode: search the clique among this many best-scoring candidates"

@@ -152,6 +152,7 @@ class SparseResults:
                 "localized_rate": sum(o.success and o.correct for o in pos) / max(len(pos), 1),
                 "wrong_claims": sum(o.success and not o.correct for o in pos),
                 "worst_wrong_m": max((o.trans_err_m for o in pos if o.success and not o.correct), default=None),
+                "median_error_m": _median_or_none([o.trans_err_m for o in pos if o.success]),
                 "search_ceiling": sum((o.success and o.correct) or o.truth_margin_nats > 0 for o in pos),
                 "negatives": len(neg),
                 "negatives_accepted": sum(o.success for o in neg),
@@ -165,6 +166,10 @@ class SparseResults:
 
     def to_json(self) -> dict:
         return {"summary": self.summary(), "outcomes": [o.to_json() for o in self.outcomes]}
+
+
+def _median_or_none(values: list[float]) -> float | None:
+    return float(np.median(values)) if values else None
 
 
 def parse_seeds(text: str) -> tuple[int, ...]:
@@ -378,21 +383,26 @@ def _run_seed(seed: int, opt: SparseOptions, dcfg: DescriptorConfig, mcfg: Match
 def sparse_markdown(results: SparseResults, seeds: tuple[int, ...]) -> str:
     """The summary table as markdown."""
     lines = [f"Sparse map-like localization, seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} worlds)", "",
-             "| matching | overlapping pairs | localized | wrong claims | negatives accepted | median ms | p90 ms "
-             "| median CPU ms | search ceiling |",
-             "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "| matching | overlapping pairs | localized | wrong claims | median error m | negatives accepted "
+             "| median ms | p90 ms | median CPU ms | search ceiling |",
+             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for key, s in results.summary().items():
         lines.append(
             f"| {key} | {s['overlapping_pairs']} | {s['localized']} ({100 * s['localized_rate']:.0f} %) | "
-            f"{_wrong(s)} | {s['negatives_accepted']} / {s['negatives']} | {s['median_ms']:.1f} | "
-            f"{s['p90_ms']:.1f} | {s['median_cpu_ms']:.1f} | {s['search_ceiling']} |"
+            f"{_wrong(s)} | {_metres(s['median_error_m'])} | {s['negatives_accepted']} / {s['negatives']} | "
+            f"{s['median_ms']:.1f} | {s['p90_ms']:.1f} | {s['median_cpu_ms']:.1f} | {s['search_ceiling']} |"
         )
     lines += ["", "*wrong claims*: overlapping pairs accepted farther than 2 m or 5 deg from the truth (the "
               "farthest in brackets: a few metres is the right street placed imprecisely, tens of metres an "
-              "alias). *search ceiling*: overlapping pairs localized, or whose true alignment (refined as any "
-              "hypothesis) clears the match's threshold: what a perfect search would localize with this "
-              "evidence model; the pairs beyond it lack the evidence, not the search."]  # fmt: skip
+              "alias). *median error*: of every accepted overlapping pair, at B's centroid. *search ceiling*: "
+              "overlapping pairs localized, or whose true alignment (refined as any hypothesis) clears the match's "
+              "threshold: what a perfect search would localize with this evidence model; the pairs beyond it lack "
+              "the evidence, not the search."]  # fmt: skip
     return "\n".join(lines) + "\n"
+
+
+def _metres(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
 
 
 def _wrong(summary: dict) -> str:

@@ -21,6 +21,7 @@ from shgm_slam.geometry.se3 import transform_points
 from shgm_slam.matching.candidates import Candidates, match_candidates
 from shgm_slam.matching.clique import clique_hypotheses
 from shgm_slam.matching.pair_voting import pair_vote_hypotheses
+from shgm_slam.matching.polish import polish_alignment
 from shgm_slam.matching.pose import correspondence_weights, fit_pose, padded_correspondence_weights, spread_m
 from shgm_slam.matching.ransac import ransac_alignment
 from shgm_slam.matching.result import MatchResult
@@ -208,9 +209,11 @@ def match_graphs(
     up = np.asarray(cfg.up_axis)
     spread = spread_m(a.positions_xyz[rows_a], cfg.gravity_aligned, up)
     threshold = math.log(searched_hypotheses(len(hypotheses), cfg) / cfg.false_alarm_rate)
+    reason = _rejection_reason(v, threshold, rmse, spread, cfg)
+    if not reason and cfg.polish:  # the decision is made; only the accepted transform is refitted
+        T = polish_alignment(T, a, b, tree_a, cfg.verification_radius_m, gravity_aligned=cfg.gravity_aligned, up=up)
     lap("pose", t)
 
-    reason = _rejection_reason(v, threshold, rmse, spread, cfg)
     pairs = np.stack([a.node_ids[rows_a], b.node_ids[rows_b]], axis=1).astype(np.int64)
     return MatchResult(
         success=not reason,
