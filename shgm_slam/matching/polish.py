@@ -86,18 +86,18 @@ def polish_alignment(
     T = T0.copy()
     gate = GATE_RADII * radius_m
     centre_b = None
+    mapped = transform_points(T, b.positions_xyz)
     for _ in range(ITERATIONS):
-        mapped = transform_points(T, b.positions_xyz)
         pairs, dist = partner_pairs(tree_a, mapped, b.label_ids, gate)
         w = biweight(dist)
-        if np.count_nonzero(w > 0) < MIN_PARTNERS:
-            break
         keep = w > 0
+        if np.count_nonzero(keep) < MIN_PARTNERS:
+            break
         rows_a, rows_b = pairs[keep, 0], pairs[keep, 1]
         centre_b = b.positions_xyz[rows_b].mean(axis=0, keepdims=True)
-        new = fit_pose(b.positions_xyz[rows_b], a.positions_xyz[rows_a], w[keep], gravity_aligned, up)
-        moved = float(np.max(np.linalg.norm(transform_points(new, b.positions_xyz) - mapped, axis=1)))
-        T = new
+        T = fit_pose(b.positions_xyz[rows_b], a.positions_xyz[rows_a], w[keep], gravity_aligned, up)
+        mapped, before = transform_points(T, b.positions_xyz), mapped  # B under the new fit: the next partners
+        moved = float(np.max(np.linalg.norm(mapped - before, axis=1)))
         if moved < TOLERANCE_M:
             break
     if centre_b is None or not np.all(np.isfinite(T)):
