@@ -123,23 +123,18 @@ def consistency_matrix(
     for start in range(0, k, _BLOCK_ROWS):
         stop = min(start + _BLOCK_ROWS, k)
         d_a = np.take(cols_a, index_a[start:stop], axis=0)
-        ok[start:stop] = _close(d_a, np.take(cols_b, index_b[start:stop], axis=0), threshold_m)
-        if dh is not None:
+        d_a -= np.take(cols_b, index_b[start:stop], axis=0)
+        np.abs(d_a, out=d_a)
+        if dh is not None:  # both differences below the threshold <=> the larger one is (NaN: neither)
             d_h = np.subtract.outer(dh[start:stop], dh)
-            ok[start:stop] &= np.abs(d_h, out=d_h) < threshold_m
+            np.maximum(d_a, np.abs(d_h, out=d_h), out=d_a)
+        np.less(d_a, threshold_m, out=ok[start:stop])
     if distinct_nodes:
         for by_row, rows in ((by_row_a, rows_a), (by_row_b, rows_b)):
             if not by_row:  # every candidate its own node: the tables know only the diagonal
                 ok[_same_node_pairs(rows)] = False
     np.fill_diagonal(ok, False)
     return ok
-
-
-def _close(d_a: np.ndarray, d_b: np.ndarray | float, threshold_m: float) -> np.ndarray:
-    """|d_a - d_b| < threshold elementwise, overwriting ``d_a`` (no K^2 temporaries)."""
-    d_a -= d_b
-    np.abs(d_a, out=d_a)
-    return d_a < threshold_m
 
 
 def _same_node_pairs(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
