@@ -142,9 +142,7 @@ class _Segments:
         return int(self.length_m.shape[0])
 
 
-def _agreeing(
-    seg_b: _Segments, seg_a: _Segments, tolerance_m: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _agreeing(seg_b: _Segments, seg_a: _Segments, tolerance_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(V,) rows of ``seg_b`` and (V,) rows of ``seg_a`` of the segment pairs that vote: same labels at both
     ends, horizontal lengths within ``tolerance_m``, both ends' vertical offsets within it. At most
     ``MAX_VOTES`` (B's segments thinned evenly). Also (V,) each vote's rise: the mean vertical offset of its
