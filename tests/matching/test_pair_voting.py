@@ -116,3 +116,20 @@ def test_matching_uses_the_votes_only_when_asked():
     for r in (with_votes, without):
         assert r.success, r.reason
         assert _error_at(r.T_a_b, T_true, b.positions_xyz) < 2.0
+
+
+@pytest.mark.parametrize("rows", [1, 2, 3, 8, 9])
+def test_column_medians_are_numpys_to_the_bit(rows):
+    values = np.random.default_rng(rows).normal(0.0, 50.0, (rows, 3))
+    np.testing.assert_array_equal(pair_voting._column_medians(values), np.median(values, axis=0))
+
+
+def test_each_vote_carries_the_mean_rise_of_its_two_ends():
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-40.0, 40.0, (30, 3)) * np.array([1.0, 1.0, 0.1])
+    labels = rng.integers(0, 3, 30)
+    seg_b = pair_voting._Segments.of(points, labels, ordered=False)
+    seg_a = pair_voting._Segments.of(points + np.array([0.0, 0.0, 2.0]), labels, ordered=True)
+    rows_b, rows_a, rise = pair_voting._agreeing(seg_b, seg_a, 3.0)
+    assert rows_b.size > 0
+    np.testing.assert_allclose(rise, (seg_a.heights[rows_a] - seg_b.heights[rows_b]).mean(axis=1), rtol=0, atol=0)
