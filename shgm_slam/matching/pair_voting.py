@@ -86,10 +86,11 @@ def pair_vote_hypotheses(
     rel = centre_b - seg_b.mid_xy[votes_b]  # B's centroid seen from the segment's midpoint, turned by the yaw
     turned = np.column_stack([cos * rel[:, 0] - sin * rel[:, 1], sin * rel[:, 0] + cos * rel[:, 1]])
     landing = seg_a.mid_xy[votes_a] + turned
-    cells = np.column_stack([
-        np.floor(np.mod(yaw, 2.0 * np.pi) / YAW_CELL_RAD), np.floor(landing / POSITION_CELL_M),
-    ]).astype(np.int64)  # fmt: skip
-    keys = _cell_keys(cells)
+    keys = _cell_keys(
+        np.floor(np.mod(yaw, 2.0 * np.pi) / YAW_CELL_RAD).astype(np.int64),
+        np.floor(landing[:, 0] / POSITION_CELL_M).astype(np.int64),
+        np.floor(landing[:, 1] / POSITION_CELL_M).astype(np.int64),
+    )
     sorted_keys = np.sort(keys)
     starts = np.flatnonzero(run_starts(sorted_keys))
     votes = np.diff(np.r_[starts, sorted_keys.size])  # per cell, cells by ascending key
@@ -117,7 +118,7 @@ class _Segments:
     length_m: np.ndarray  # (P,) horizontal length
     heading: np.ndarray  # (P,) horizontal direction from the first end to the second, radians
     mid_xy: np.ndarray  # (P, 2) horizontal midpoint
-    heights: np.ndarray  # (P, 2) the ends' heights
+    heights: tuple[np.ndarray, np.ndarray]  # (P,) the first ends' heights, (P,) the second ends'
 
     @classmethod
     def of(cls, local_xyz: np.ndarray, label_ids: np.ndarray, *, ordered: bool) -> _Segments:
@@ -136,7 +137,7 @@ class _Segments:
             ends, length = np.vstack([ends, ends[:, ::-1]]), np.r_[length, length]
             heading = np.r_[heading, heading + np.pi]
         mid = 0.5 * (xy[ends[:, 0]] + xy[ends[:, 1]])
-        return cls(label_ids[ends], length, heading, mid, local_xyz[ends, 2])
+        return cls(label_ids[ends], length, heading, mid, (local_xyz[ends[:, 0], 2], local_xyz[ends[:, 1], 2]))
 
     def __len__(self) -> int:
         return int(self.length_m.shape[0])
@@ -165,10 +166,10 @@ def _agreeing(seg_b: _Segments, seg_a: _Segments, tolerance_m: float) -> tuple[n
     rows_b = np.repeat(np.arange(len(seg_b)), per_b)
     starts = np.repeat(lo - (np.cumsum(per_b) - per_b), per_b)
     rows_a = order[starts + np.arange(total)]
-    rise = seg_a.heights[rows_a] - seg_b.heights[rows_b]
-    level = np.abs(rise[:, 0] - rise[:, 1]) < tolerance_m
-    rise = rise[level]
-    return rows_b[level], rows_a[level], 0.5 * (rise[:, 0] + rise[:, 1])
+    rise_first = seg_a.heights[0][rows_a] - seg_b.heights[0][rows_b]
+    rise_second = seg_a.heights[1][rows_a] - seg_b.heights[1][rows_b]
+    level = np.abs(rise_first - rise_second) < tolerance_m
+    return rows_b[level], rows_a[level], 0.5 * (rise_first[level] + rise_second[level])
 
 
 def _column_medians(values: np.ndarray) -> np.ndarray:
@@ -179,8 +180,9 @@ def _column_medians(values: np.ndarray) -> np.ndarray:
     return s[half] if s.shape[0] % 2 else 0.5 * (s[half - 1] + s[half])
 
 
-def _cell_keys(cells: np.ndarray) -> np.ndarray:
-    """(V,) one int64 key per (V, 3) integer vote cell (heading, x, y): equal cells, equal keys."""
-    shifted = cells - cells.min(axis=0)
-    extent = shifted.max(axis=0) + 1
-    return (shifted[:, 0] * extent[1] + shifted[:, 1]) * extent[2] + shifted[:, 2]
+def _cell_keys(heading: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(V,) one int64 key per integer vote cell, given as (V,) heading, x and y cell indices: equal cells,
+    equal keys."""
+    shifted = [c - c.min() for c in (heading, x, y)]
+    extent = [int(c.max()) + 1 for c in shifted]
+    return (shifted[0] * extent[1] + shifted[1]) * extent[2] + shifted[2]

@@ -132,4 +132,5 @@ def test_each_vote_carries_the_mean_rise_of_its_two_ends():
     seg_a = pair_voting._Segments.of(points + np.array([0.0, 0.0, 2.0]), labels, ordered=True)
     rows_b, rows_a, rise = pair_voting._agreeing(seg_b, seg_a, 3.0)
     assert rows_b.size > 0
-    np.testing.assert_allclose(rise, (seg_a.heights[rows_a] - seg_b.heights[rows_b]).mean(axis=1), rtol=0, atol=0)
+    expected = np.column_stack([seg_a.heights[k][rows_a] - seg_b.heights[k][rows_b] for k in (0, 1)]).mean(axis=1)
+    np.testing.assert_allclose(rise, expected, rtol=0, atol=0)
