@@ -282,8 +282,13 @@ def _render_match(
     t.add_row("rotation", lit(dof_note))
     t.add_row("candidates", str(result.candidates))
     rmse = f"{result.rmse_m:.2f} m" if np.isfinite(result.rmse_m) else "-"
-    t.add_row("inliers", f"{result.num_inliers} (rmse {rmse}, spread {result.spread_m:.1f} m, "
-                         f"support {result.support} vs rival {result.rival_support})")  # fmt: skip
+    judged = f"(rmse {rmse}, spread {result.spread_m:.1f} m, support {result.support} vs rival {result.rival_support})"
+    if result.success:
+        t.add_row("inliers", f"{result.num_inliers} {judged}")
+    else:  # the rejected best hypothesis: its partners are not inliers of any match
+        llr = f", LLR {result.llr:.1f} (threshold {result.llr_threshold:.1f})" if np.isfinite(result.llr) else ""
+        best = f"best hypothesis: {result.num_inliers} partners {judged}{llr}"
+        t.add_row("rejected", best if result.num_inliers else "no hypothesis")
     if result.T_a_b is not None:
         T = result.T_a_b
         t.add_row("T_a_b", f"translation {np.round(T[:3, 3], 2).tolist()} m, "

@@ -52,6 +52,20 @@ def test_match_summary_and_no_match(graph_files, tmp_path):
     assert doc["success"] is False and doc["T_a_b"] is None and doc["inliers"] == []
 
 
+def test_the_summary_of_a_rejected_match_names_no_inliers(graph_files, tmp_path):
+    path_a, path_b, _ = graph_files
+    accepted = runner.invoke(app, ["match", str(path_a), str(path_b)], terminal_width=200)
+    rows = [line.split()[0] for line in accepted.output.splitlines() if line.strip()]
+    assert "inliers" in rows and "rejected" not in rows
+    _, other, _ = city_pair(seed=20, overlap=False)
+    path_c = write_graph(tmp_path / "c.json", other)
+    result = runner.invoke(app, ["match", str(path_a), str(path_c)], terminal_width=200)
+    assert result.exit_code == 0 and "no match" in result.output
+    rows = [line.split()[0] for line in result.output.splitlines() if line.strip()]
+    assert "inliers" not in rows and "rejected" in rows
+    assert "best hypothesis" in result.output or "no hypothesis" in result.output
+
+
 def test_match_bad_files_exit_cleanly(graph_files, tmp_path):
     path_a, _, _ = graph_files
     broken = tmp_path / "broken.json"
