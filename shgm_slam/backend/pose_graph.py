@@ -86,6 +86,21 @@ _log = logging.getLogger(__name__)
 PRIOR_SIGMA = 1e-3
 """Sigma (rad and m) of the prior fixing robot 0's first keyframe: the gauge of the shared frame."""
 
+RELINEARIZE_ROT_RAD = 1e-3
+"""iSAM2 relinearizes a keyframe whose pending rotation update exceeds this, radians. The attitude
+factors' measured sigmas are 1-2e-3 rad (``attitude``): a rotation left up to gtsam's default of 0.1 rad
+off its linearization point misplaces the keyframes it holds by that angle times their distance, and
+iSAM2's estimate oscillated: in KITTI 00's last kilometre, translations of hundreds of keyframes flipped
+by 0.2-0.5 m between successive updates, and updates relinearized up to 1400 of 1570 keyframes (with
+this threshold a tenth of the updates there relinearize more than 65 keyframes; before, more than 458). Chosen
+on kitti-paths 05 + 06 (world seed 1; docs/benchmarks.md, "sixth" session of 2026-12-02): the live
+estimate's largest gap to the converged solution 0.06 m instead of 0.22 m, at the same cost."""
+
+RELINEARIZE_TRANS_M = 0.1
+"""iSAM2 relinearizes a keyframe whose pending translation update exceeds this, metres (gtsam's default).
+On the same tuning run 0.2 and 0.5 left the live estimate up to 0.18 and 0.56 m off the converged one
+(0.5 was a third faster in the last 200 keyframes)."""
+
 
 class Factorization(str, Enum):
     CHOLESKY = "CHOLESKY"
@@ -233,6 +248,16 @@ class _Robot:
         return self._odom[:k], self._path[:k]
 
 
+def _relinearize_thresholds(rot_rad: float, trans_m: float) -> gtsam.ISAM2ThresholdMap:
+    """iSAM2's per-variable-kind relinearization thresholds: every robot letter's Pose3 (tangent order:
+    rotation, then translation) gets ``rot_rad`` on its rotation axes and ``trans_m`` on its translation."""
+    thresholds = gtsam.ISAM2ThresholdMap()
+    per_axis = np.array([rot_rad] * 3 + [trans_m] * 3)
+    for letter in ROBOT_LETTERS:
+        thresholds.insert((letter, per_axis))
+    return thresholds
+
+
 def _pose3(T: np.ndarray) -> gtsam.Pose3:
     """numpy (4, 4) -> gtsam.Pose3 with the rotation projected onto SO(3) (REFERENCE.md §3)."""
     return gtsam.Pose3(gtsam.Rot3.ClosestTo(T[:3, :3]), T[:3, 3])
@@ -283,9 +308,8 @@ class MultiRobotPoseGraph:
             keyframes lie on (``stretches``; a stretch ends where the direction of travel turns more than
             this many degrees). None: objects alone decide.
         factorization: iSAM2 linear solver.
-        relinearize_threshold: iSAM2 relinearizes a variable whose update exceeds this (rad and m; gtsam's
-            default). On a 1.5 km drive of repeated loops (a loop closure every 10 keyframes) the CPU of a
-            keyframe update grew from 0.44 to 7.6 ms with 0.01 and from 0.34 to 2.1 ms with 0.1, same ATE.
+        relinearize_threshold: (rotation rad, translation m): iSAM2 relinearizes a keyframe whose pending
+            update exceeds either in any axis (``RELINEARIZE_ROT_RAD``, ``RELINEARIZE_TRANS_M``).
         extra_updates: additional ``isam.update()`` passes after a large correction (``update``).
         attitude: attitude factors from the keyframes' ground normals (module docstring).
         attitude_warmup: measured keyframes a robot needs before its sigma is measured (and the first
@@ -311,7 +335,7 @@ class MultiRobotPoseGraph:
         min_closures_to_anchor: int = 1,
         stretch_turn_deg: float | None = None,
         factorization: Factorization | str = Factorization.QR,
-        relinearize_threshold: float = 0.1,
+        relinearize_threshold: tuple[float, float] = (RELINEARIZE_ROT_RAD, RELINEARIZE_TRANS_M),
         extra_updates: int = 3,
         attitude: bool = True,
         attitude_warmup: int = 20,
@@ -342,7 +366,12 @@ class MultiRobotPoseGraph:
         if max_closures_per_pair < 1:
             raise BackendError(f"max_closures_per_pair must be >= 1, got {max_closures_per_pair}")
         self.max_closures_per_pair = max_closures_per_pair
-        self.relinearize_threshold = relinearize_threshold
+        threshold = np.asarray(relinearize_threshold, dtype=np.float64)
+        if threshold.shape != (2,) or not np.isfinite(threshold).all() or (threshold <= 0).any():
+            raise BackendError(
+                f"relinearize_threshold must be two positive values (rad, m), got {relinearize_threshold}"
+            )
+        self.relinearize_threshold = (float(threshold[0]), float(threshold[1]))
         self.extra_updates = extra_updates
         if attitude_warmup < 2:
             raise BackendError(f"attitude_warmup must be >= 2 (a sigma needs pairs), got {attitude_warmup}")
@@ -733,6 +762,12 @@ class MultiRobotPoseGraph:
         """Every closure so far (canonical robot order) with its current status and reason."""
         return list(self._closures)
 
+    def graph_error(self) -> float:
+        """The graph's nonlinear error at the current estimate (what ``estimate`` answers): half the sum of
+        every factor's squared whitened residual, robust kernels applied; 0 while nothing is anchored."""
+        self._flush()
+        return float(self._isam.getFactorsUnsafe().error(self._values()))
+
     def stats(self) -> PoseGraphStats:
         """Counters: keyframes, iSAM2 variables and factors, closures by status, rebuilds, timing."""
         accepted = sum(c.status is ClosureStatus.ACCEPTED for c in self._closures)
@@ -982,7 +1017,7 @@ class MultiRobotPoseGraph:
     def _reset_isam(self) -> None:
         p = gtsam.ISAM2Params()
         p.setFactorization(self.factorization.value)
-        p.setRelinearizeThreshold(self.relinearize_threshold)
+        p.setRelinearizeThreshold(_relinearize_thresholds(*self.relinearize_threshold))
         p.relinearizeSkip = 1
         p.enablePartialRelinearizationCheck = True  # check the touched cliques only: flat cost per update
         self._version += 1

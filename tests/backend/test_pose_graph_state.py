@@ -63,8 +63,8 @@ def test_restored_graph_continues_exactly_like_the_original(events) -> None:
     k = N // 2
     again = restored(first, odo, k)
     for r, T in first.estimate().items():
-        # the original is iSAM2 partly relinearized (threshold 0.1: a robot just anchored, here c, may be
-        # ~0.1 m from convergence), the restored one a batch solve from it
+        # the original is iSAM2 partly relinearized (beyond 1 mrad or 0.1 m: a robot just anchored, here c,
+        # may be ~0.1 m from convergence), the restored one a batch solve from it
         np.testing.assert_allclose(again.estimate()[r], T, atol=0.15)
     d_again = play(again, evs[cut:])
     assert [(d.accepted, d.reason) for d in d_first + d_again] == [(d.accepted, d.reason) for d in d_whole]
