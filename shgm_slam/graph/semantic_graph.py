@@ -279,10 +279,17 @@ class SemanticGraph:
         self._edges_added: set[int] = set()  # ...and the net changes since then
         self._edges_removed: set[int] = set()
         self._arrays_cache: GraphArrays | None = None
+        self._version = 0
 
     # ------------------------------------------------------------------ queries
     def __len__(self) -> int:
         return self._n
+
+    @property
+    def version(self) -> int:
+        """Bumped by every change of the nodes' positions, the nodes or the edges: equal versions of one
+        graph, equal ``arrays``."""
+        return self._version
 
     @property
     def num_edges(self) -> int:
@@ -597,6 +604,7 @@ class SemanticGraph:
         at the old positions (all still in ``_pos_world``) and its new edges at the new ones.
         """
         self._arrays_cache = None
+        self._version += 1
         if rows.size == 0:
             return
         old = rows[self._cell_key[rows] != _NOT_IN_GRID]
@@ -621,6 +629,7 @@ class SemanticGraph:
         """Recompute every world position, the grid and all edges (after pose corrections)."""
         n = self._n
         self._arrays_cache = None
+        self._version += 1
         p = self._world_positions(np.arange(n)) if n else np.zeros((0, 3))
         self._pos_world[:n] = p
         self._index_grid(n)

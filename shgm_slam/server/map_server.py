@@ -166,6 +166,7 @@ class MapServer:
         self._support: dict[int, Support] = {}  # closure id -> the matched objects (node ids) behind it
         self._placements: tuple[int, dict[str, AgentPlacement]] = (-1, {})  # (pose-graph version, cache)
         self._confirmed_anchors: set[tuple[str, int]] = set()  # (agent, anchoring closure id) once confirmed
+        self._object_ranges: dict[str, tuple[SemanticGraph, int, float]] = {}  # agent -> (graph, its version, m)
         self.timings_ms: dict[str, list[float]] = {"match": [], "backend": []}
 
     def add_agent(self, agent: str) -> None:
@@ -394,8 +395,13 @@ class MapServer:
         graph = self._graphs[agent]
         if len(graph) == 0:
             return None
+        cached = self._object_ranges.get(agent)
+        if cached is not None and cached[0] is graph and cached[1] == graph.version:
+            return cached[2]  # a match asks several times per keyframe; each answer costs the whole graph
         origins = np.stack(self._T_odom_kf[agent])[graph.anchors(), :3, 3]
-        return float(np.percentile(np.linalg.norm(graph.arrays().positions_xyz - origins, axis=1), 95))
+        reach = float(np.percentile(np.linalg.norm(graph.arrays().positions_xyz - origins, axis=1), 95))
+        self._object_ranges[agent] = (graph, graph.version, reach)
+        return reach
 
     def camera_height_m(self, agent: str) -> float | None:
         """How high above the ground ``agent``'s camera looks from (``viewpoints.camera_height_m``: over its

@@ -92,3 +92,20 @@ def test_loop_queries_match_only_the_older_graph_near_the_submap():
     # the older graph holds the whole outbound lane; only its stretch near the submap is matched
     assert max(rec.nodes_a for rec, _ in late) < 0.25 * min(size for _, size in late)
     assert any(rec.accepted for rec, _ in loops_back), [rec.reason for rec, _ in loops_back]
+
+
+def test_object_range_follows_the_graph_as_it_grows():
+    """The object range (95th percentile of node-to-anchor distance) is remembered per graph version: every
+    answer equals the whole graph's, asked once or many times, before and after further keyframes."""
+    T = _out_and_back(out_m=120.0)
+    pos, labels = _landmarks(130.0)
+    server = MapServer(["car"], ShgmConfig())
+    assert server.object_range_m("car") is None
+    answers = []
+    for msg in _messages(T, T, pos, labels):
+        server.receive(msg)
+        origins = server.keyframe_poses("car")[server.graph_anchors("car"), :3, 3]
+        expected = np.percentile(np.linalg.norm(server.graph("car").positions_xyz - origins, axis=1), 95)
+        assert server.object_range_m("car") == pytest.approx(expected) == server.object_range_m("car")
+        answers.append(expected)
+    assert len(set(np.round(answers, 6))) > 3  # it did change as the graph grew
