@@ -153,7 +153,8 @@ class MatchingConfig(_Stage):
         "pairs (matching/pair_voting.py; no descriptors), added to the cliques' before screening (0: none)",
     )
     verified_hypotheses: int = Field(
-        4, ge=1, description="hypotheses (most supporting nodes first) refined and scored by the likelihood ratio"
+        4, ge=1, description="hypotheses (most supporting nodes first) refined and scored by the likelihood ratio, "
+        "plus the best one that places B elsewhere than all of them"
     )
     verification_radius_m: float = Field(
         3.0, gt=0, description="whole-overlap check: a same-label node this close under the hypothesis is a partner"
@@ -183,7 +184,8 @@ class MatchingConfig(_Stage):
     )
     false_alarm_rate: float = Field(
         3e-3, gt=0, lt=1, description="success needs a likelihood ratio (alignment vs chance) above "
-        "hypotheses / false_alarm_rate (tuned: bench sparse, seeds 10-19)",
+        "hypotheses / false_alarm_rate (tuned: bench sparse, seeds 10-19), and a rival alignment beyond it too "
+        "must trail the best by log(1 / false_alarm_rate)",
     )
     up_axis: tuple[float, float, float] = Field(
         (0.0, -1.0, 0.0), description="vertical axis of the world frames (KITTI camera frame: -y is up)"

@@ -140,7 +140,9 @@ def match_graphs(
     whole-overlap partners and judged by ``verification`` (a likelihood ratio of the alignment against
     chance, over every node in the other robot's observed area). Success needs (1) that ratio above
     ``hypotheses searched / false_alarm_rate``, (2) at least ``min_inliers`` partner pairs, (3) an RMSE
-    of at most ``max_rmse_m`` and (4) partners spanning at least ``min_spread_m`` (``pose.spread_m``).
+    of at most ``max_rmse_m``, (4) partners spanning at least ``min_spread_m`` (``pose.spread_m``) and (5) no
+    rival that places B elsewhere beyond chance too unless the best leads it by ``log(1 / false_alarm_rate)``
+    (``_ambiguity_reason``).
     Empty, tiny or edgeless graphs give an unsuccessful result with a reason, never an exception.
 
     Args:
@@ -209,7 +211,7 @@ def match_graphs(
     up = np.asarray(cfg.up_axis)
     spread = spread_m(a.positions_xyz[rows_a], cfg.gravity_aligned, up)
     threshold = math.log(searched_hypotheses(len(hypotheses), cfg) / cfg.false_alarm_rate)
-    reason = _rejection_reason(v, threshold, rmse, spread, cfg)
+    reason = _rejection_reason(v, threshold, rmse, spread, cfg) or _ambiguity_reason(best, rival, b, threshold, cfg)
     if not reason and cfg.polish:  # the decision is made; only the accepted transform is refitted
         T = polish_alignment(T, a, b, tree_a, cfg.verification_radius_m, gravity_aligned=cfg.gravity_aligned, up=up)
     lap("pose", t)
@@ -293,13 +295,14 @@ def _verify(
 def _refined(
     hypotheses: np.ndarray, a: GraphArrays, b: GraphArrays, tree_a: LabelledTree, cfg: MatchingConfig
 ) -> list[np.ndarray]:
-    """Screen (H, 4, 4) hypotheses by their supporting nodes of B, then refine the ``verified_hypotheses``
-    best together: alternate partner selection (``verification.partner_pairs``, the whole graphs) and one
-    batched Eq. 2 fit on each one's partners, ``refine_iterations`` times; a hypothesis stops when its
-    partners are stable or would shrink."""
+    """Screen (H, 4, 4) hypotheses by their supporting nodes of B (``_screened``), then refine them together:
+    alternate partner selection (``verification.partner_pairs``, the whole graphs) and one batched Eq. 2 fit
+    on each one's partners, ``refine_iterations`` times; a hypothesis stops when its partners are stable or
+    would shrink."""
     radius = cfg.verification_radius_m
     counts = support_counts(tree_a, b.positions_xyz, b.label_ids, hypotheses, radius)
-    Ts = hypotheses[np.argsort(-counts, kind="stable")[: cfg.verified_hypotheses]].copy()
+    Ts = hypotheses[_screened(hypotheses, np.argsort(-counts, kind="stable"), b.positions_xyz, radius,
+                              cfg.verified_hypotheses)].copy()  # fmt: skip
 
     def partners(T_stack: np.ndarray) -> list[np.ndarray]:
         if not len(T_stack):
@@ -329,6 +332,32 @@ def _refined(
                 still.append(k)
         active = still
     return list(Ts)
+
+
+def _screened(
+    hypotheses: np.ndarray, order: np.ndarray, points_b: np.ndarray, radius_m: float, count: int
+) -> np.ndarray:
+    """Indices of the hypotheses to refine: the first ``count`` in ``order`` (best first), and the first after
+    them that places B elsewhere than all of those (some node of B lands more than ``radius_m`` apart from
+    where each of them puts it). A well-supported place is often proposed many times and can fill every
+    slot (near-duplicates are worth refining: they settle on different optima); the extra slot makes sure
+    the best *other* place is verified too, so that a second place just as supported (a block built twice,
+    a street seen reversed) is seen and the ambiguity rule (``_ambiguity_reason``) can refuse the match.
+
+    Args:
+        hypotheses: (H, 4, 4) ``T_a_b`` hypotheses.
+        order: (H,) their indices, best first.
+        points_b: (N, 3) B's nodes in B's frame, metres.
+        radius_m: the verification radius, metres.
+        count: hypotheses refined before the extra one (``verified_hypotheses``).
+    """
+    top = order[:count]
+    if len(order) == len(top):
+        return top
+    mapped = transform_points_each(hypotheses[order], points_b)  # (H, N, 3)
+    apart = np.linalg.norm(mapped[len(top) :, None] - mapped[None, : len(top)], axis=3).max(axis=2)  # (H-k, k)
+    elsewhere = np.flatnonzero((apart > radius_m).all(axis=1))
+    return top if elsewhere.size == 0 else np.append(top, order[len(top) + elsewhere[0]])
 
 
 def transform_points_each(T_stack: np.ndarray, points_xyz: np.ndarray) -> np.ndarray:
@@ -361,6 +390,35 @@ def _best_and_rival(
         if np.linalg.norm(transform_points(scored[i][0], c) - at) > 2.0 * radius_m:
             return best, scored[i]
     return best, None
+
+
+def _ambiguity_reason(
+    best: tuple[np.ndarray, Verification],
+    rival: tuple[np.ndarray, Verification] | None,
+    b: GraphArrays,
+    threshold: float,
+    cfg: MatchingConfig,
+) -> str:
+    """'' unless a rival that places B elsewhere is beyond chance too and the best does not lead it by
+    ``log(1 / false_alarm_rate)`` nats, else why the match is ambiguous.
+
+    Two alignments that exclude each other cannot both be right: when the rival clears the chance threshold
+    as well, the chance model has failed for one of them (a repeated street, a layout symmetric under a half
+    turn), so the rival is the measured alias level of this pair and the best must beat it by the margin it
+    must beat chance by (one false alarm in ``1 / false_alarm_rate``)."""
+    if rival is None or rival[1].llr < threshold:
+        return ""
+    lead = best[1].llr - rival[1].llr
+    margin = math.log(1.0 / cfg.false_alarm_rate)
+    if lead >= margin:
+        return ""
+    c = b.positions_xyz.mean(axis=0, keepdims=True)
+    apart = float(np.linalg.norm(transform_points(best[0], c) - transform_points(rival[0], c)))
+    return (
+        f"ambiguous: an alignment that places B {apart:.0f} m elsewhere is beyond chance too (log likelihood "
+        f"ratio {rival[1].llr:.1f} against {best[1].llr:.1f}, threshold {threshold:.1f}); the best leads by "
+        f"{lead:.1f}, less than log(1/false_alarm_rate) = {margin:.1f}"
+    )
 
 
 def _rejection_reason(v: Verification, threshold: float, rmse: float, spread: float, cfg: MatchingConfig) -> str:
