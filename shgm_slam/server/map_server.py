@@ -548,6 +548,16 @@ class MapServer:
         pg = self._pose_graph
         confirming = pg.min_closures_to_anchor > 1 and not (pg.is_anchored(robot_a) and pg.is_anchored(robot_b))
         marginal = robot_a != robot_b and self._marginal(robot_a, robot_b, result)
+        # the objects behind every closure of this match, what makes two matches independent evidence: all of
+        # the match's partners, not the closure's own. The closures are cut from one verified alignment, so a
+        # closure is not evidence apart from the rest of its match: a re-match of a grown graph whose new
+        # stretch's closure rests on new objects rests on the old ones too (KITTI 02, a fleet of 8: a street
+        # alias re-found by every whole-graph match entered as two pieces through such closures, 566 m off)
+        support = {robot_a: frozenset(result.inliers[:, 0].tolist()),
+                   robot_b: frozenset(result.inliers[:, 1].tolist())}  # fmt: skip
+        objects = _objects(support) if robot_a != robot_b else frozenset()
+        if marginal:  # every marginal match of the pair rests on one shared pseudo-object: one piece at most
+            objects |= {(robot_a, f"{MARGINAL_OBJECT}:{robot_b}"), (robot_b, f"{MARGINAL_OBJECT}:{robot_a}")}
         for kf_a, kf_b, T_akf_bkf, n, rows in closures:
             key = (robot_a, kf_a, robot_b, kf_b)
             # a later match that finds the same keyframe pair again is independent evidence: while it
@@ -563,18 +573,12 @@ class MapServer:
                     }
                 )
                 continue
-            # the objects behind it: what makes two matches independent evidence
-            support = {robot_a: frozenset(result.inliers[rows, 0].tolist()),
-                       robot_b: frozenset(result.inliers[rows, 1].tolist())}  # fmt: skip
             b_cfg = self.cfg.backend
             information = closure_information(
                 b_cfg.closure_sigma_rot_rad, b_cfg.closure_sigma_trans_m,
                 elevation_gap_rad(rays_a[rows], rays_b[rows], up_a, up_b), b_cfg.closure_sigma_per_elevation,
             )  # fmt: skip
             t1 = time.perf_counter()
-            objects = _objects(support) if robot_a != robot_b else frozenset()
-            if marginal:  # every marginal match of the pair rests on one shared pseudo-object: one piece at most
-                objects |= {(robot_a, f"{MARGINAL_OBJECT}:{robot_b}"), (robot_b, f"{MARGINAL_OBJECT}:{robot_a}")}
             decision = self._pose_graph.add_inter_robot_closure(
                 robot_a, kf_a, robot_b, kf_b, T_akf_bkf, num_inliers=n, information=information,
                 match_id=self._num_matches, support=objects, update=False,

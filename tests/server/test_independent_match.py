@@ -106,16 +106,23 @@ def test_a_provisional_robot_is_confirmed_by_the_last_look(messages) -> None:
     assert server._independent_match("car2") == []  # nothing waits any more
 
 
-def test_the_end_result_does_not_depend_on_the_order_keyframes_arrived(messages) -> None:
+def test_the_end_result_does_not_depend_on_the_order_keyframes_arrived(messages, robots) -> None:
     """The cars' keyframes interleaved in ten random orders (as a distributed run may deliver them), matched
-    every 3 keyframes: car2 ends placed in every one. One robot's matches along one straight street pair count
-    once (backend/stretches.py), so car2's own last look can fall on the stretches of its earlier queries;
-    the partner's look at the same objects is then the second piece (without it: 3 of these 10 orders wait)."""
+    every 3 keyframes: car2 is never placed wrong, and placed right in all but one. One robot's matches along one
+    straight street pair count once (backend/stretches.py), so car2's own last look can fall on the stretches of
+    its earlier queries; the partner's look at the same objects is then the second piece (without it: 3 of these
+    10 orders wait). A last look leaves out *every* object of the match it must be independent of, so on this
+    brief meeting it is marginal: in order 9 both looks end 0.1 nats short of chance (measured), and car2 waits,
+    saying why."""
     import random
 
     cfg = ShgmConfig()
     cfg.odometry.kind = OdometryKind.GT
     cfg.backend.match_every_keyframes = 3
+    gt1, gt2 = robots["car1"].gt_poses, robots["car2"].gt_poses
+    frames = np.array([m.frame_index for m in messages["car2"]])
+    T_true = np.linalg.inv(gt1[0])[None] @ gt2[frames]
+    placed = 0
     for seed in range(10):
         rng = random.Random(seed)
         queues = {name: list(ms) for name, ms in messages.items()}
@@ -123,4 +130,34 @@ def test_the_end_result_does_not_depend_on_the_order_keyframes_arrived(messages)
         while any(queues.values()):
             server.receive(queues[rng.choice([n for n, q in queues.items() if q])].pop(0))
         server.finalize()
-        assert server.is_placed("car2"), f"order {seed}: {server.waiting_note('car2')}"
+        if not server.is_placed("car2"):
+            assert "last look" in " ".join(server.last_looks()) and server.waiting_note("car2"), f"order {seed}"
+            continue
+        placed += 1
+        err_m = np.linalg.norm(server.T_shared_kf("car2")[:, :3, 3] - T_true[:, :3, 3], axis=1)
+        assert np.sqrt(np.mean(err_m**2)) < 2.0, f"order {seed}: {err_m}"
+    assert placed >= 9
+
+
+def test_every_closure_of_a_match_rests_on_all_of_the_matchs_objects(messages) -> None:
+    """A match is cut into closures (one per stretch of overlap), but it was verified as a whole: a closure is
+    not evidence apart from the rest of its match. Each closure's recorded objects are all of its match's
+    partners, so a re-match of a grown graph, whose closure on a new stretch rests on new objects, still shares
+    the old ones and counts as the same piece (KITTI 02, a fleet of 8: a street alias re-found by whole-graph
+    matches entered as two pieces through such closures and placed a robot 566 m off)."""
+    server = _server(messages, independent=True)
+    by_match: dict[int, list[frozenset]] = {}
+    for c in server._pose_graph.closures():
+        if c.robot_a != c.robot_b and c.closure_id in server._support:
+            objects = frozenset((a, n) for a, ns in server._support[c.closure_id].items() for n in ns)
+            by_match.setdefault(c.match_id, []).append(objects)
+    assert any(len(v) > 1 for v in by_match.values())  # some match was cut into several closures
+    recorded = {frozenset(v[0]) for v in by_match.values()}
+    for objects in by_match.values():
+        assert len(set(objects)) == 1  # every closure of a match: the same objects
+    # ... and those are the match's own partners, every one of them
+    matched = {
+        frozenset({(r.robot_a, int(i)) for i in r.inliers[:, 0]} | {(r.robot_b, int(j)) for j in r.inliers[:, 1]})
+        for r in server.matches if any(c["accepted"] for c in r.closures)
+    }  # fmt: skip
+    assert recorded <= matched
