@@ -152,7 +152,7 @@ def test_every_closure_of_a_match_rests_on_all_of_the_matchs_objects(messages) -
             objects = frozenset((a, n) for a, ns in server._support[c.closure_id].items() for n in ns)
             by_match.setdefault(c.match_id, []).append(objects)
     assert any(len(v) > 1 for v in by_match.values())  # some match was cut into several closures
-    recorded = {frozenset(v[0]) for v in by_match.values()}
+    recorded = {v[0] for v in by_match.values()}
     for objects in by_match.values():
         assert len(set(objects)) == 1  # every closure of a match: the same objects
     # ... and those are the match's own partners, every one of them
