@@ -31,8 +31,12 @@ from shgm_slam.server.snapshot_codec import ServerSnapshot, SnapshotError, decod
 
 log = logging.getLogger(__name__)
 
-SNAPSHOT_VERSION = 1
-"""Version of the snapshot layout; a snapshot of another version is skipped (the journal still has all)."""
+SNAPSHOT_VERSION = 2
+"""Version of the snapshot layout written; a snapshot of a version not in ``READABLE_VERSIONS`` is skipped (the
+journal still has all). 2: each distinct set of objects behind closures stored once (``snapshot_codec``)."""
+
+READABLE_VERSIONS = (1, 2)
+"""Snapshot layouts this build reads (version 1 holds every closure's objects in place)."""
 
 MAX_SNAPSHOT_BYTES = 4 * 1024**3
 """Largest snapshot body read back."""
@@ -101,8 +105,10 @@ class SnapshotStore:
                 magic, version, crc, length = _HEADER.unpack(head)
                 if magic != _MAGIC:
                     raise SnapshotError(f"{path.name} is not a shgm_slam snapshot")
-                if version != SNAPSHOT_VERSION:
-                    raise SnapshotError(f"{path.name} has version {version}, this build reads {SNAPSHOT_VERSION}")
+                if version not in READABLE_VERSIONS:
+                    raise SnapshotError(
+                        f"{path.name} has version {version}, this build reads {', '.join(map(str, READABLE_VERSIONS))}"
+                    )
                 body = f.read(length) if length <= MAX_SNAPSHOT_BYTES else b""
         except OSError as exc:
             raise SnapshotError(f"cannot read {path}: {exc.strerror}") from None

@@ -120,9 +120,24 @@ def _map(m: MapServerState) -> dict:
         "since": dict(m.since_match), "matches": [_match(r) for r in m.matches],
         "closures": [list(c) for c in m.closures], "step": m.step, "nm": m.num_matches,
         "ms": {k: _arr(v, "f8") for k, v in m.timings_ms.items()}, "pg": _pose_graph(m.pose_graph),
-        "support": [[cid, {a: sorted(ids) for a, ids in sup.items()}] for cid, sup in sorted(m.support.items())],
+        **_support(m.support),
         "offset": [float(v) for v in m.surface_offset],
     }  # fmt: skip
+
+
+def _support(support: dict[int, dict[str, frozenset[int]]]) -> dict:
+    """The objects each closure rests on, every distinct set once: all closures of one match rest on the
+    same objects, so "support" holds [closure id, index into "support_sets"]."""
+    sets: list[dict] = []
+    index: dict[tuple, int] = {}
+    rows = []
+    for cid, sup in sorted(support.items()):
+        key = tuple(sorted((a, tuple(sorted(ids))) for a, ids in sup.items()))
+        if key not in index:
+            index[key] = len(sets)
+            sets.append({a: list(ids) for a, ids in key})  # msgpack packs small ids in 1-3 bytes
+        rows.append([cid, index[key]])
+    return {"support_sets": sets, "support": rows}
 
 
 def _session(s: RobotSession) -> dict:
@@ -266,12 +281,35 @@ def _unmap(d: dict) -> MapServerState:
         _typed(d["step"], int, "step"), _typed(d["nm"], int, "num_matches"),
         {k: _unarr(v, "f8", f"timings {k}").tolist() for k, v in _names(d["ms"], "timings").items()},
         _unpose_graph(_names(d["pg"], "pose graph")),
-        {_typed(cid, int, "support closure id"): {
-            a: frozenset(_typed(i, int, "support node id") for i in _typed(ids, list, "support node ids"))
-            for a, ids in _names(sup, "support").items()}
-         for cid, sup in _typed(d.get("support", []), list, "support")},
+        _unsupport(d),
         _surface_offset(d.get("offset", [0.0, 0.0, 0.0])),
     )  # fmt: skip
+
+
+def _unsupport(d: dict) -> dict[int, dict[str, frozenset[int]]]:
+    """``_support`` back; a snapshot written before "support_sets" holds each closure's objects in place."""
+    sets = [_objects(sup) for sup in _typed(d.get("support_sets", []), list, "support sets")]
+    out = {}
+    for row in _typed(d.get("support", []), list, "support"):
+        if len(_typed(row, list, "support row")) != 2:
+            raise SnapshotError(f"snapshot: a support row must be [closure id, objects], got {row!r}")
+        cid, sup = row
+        if isinstance(sup, dict):
+            out[_typed(cid, int, "support closure id")] = _objects(sup)
+            continue
+        k = _typed(sup, int, "support set index")
+        if not 0 <= k < len(sets):
+            raise SnapshotError(f"snapshot: support set {k} of closure {cid} is not among {len(sets)} sets")
+        out[_typed(cid, int, "support closure id")] = sets[k]
+    return out
+
+
+def _objects(sup: object) -> dict[str, frozenset[int]]:
+    """agent -> node ids, as ``_support`` writes one set."""
+    return {
+        a: frozenset(_typed(i, int, "support node id") for i in _typed(ids, list, "support node ids"))
+        for a, ids in _names(sup, "support").items()
+    }
 
 
 def _surface_offset(v: object) -> tuple[float, float, float]:

@@ -11,6 +11,7 @@ import zlib
 from dataclasses import replace
 from pathlib import Path
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -178,6 +179,9 @@ def test_file_header_is_checked(half_run, tmp_path: Path) -> None:
         p.write_bytes(blob)
         with pytest.raises(SnapshotError):
             store.read(p)
+    older = tmp_path / "snapshot-older.bin"  # version 1: every closure's objects in place, still read
+    older.write_bytes(struct.pack("<8sIIQ", magic, 1, crc, length) + raw[24:])
+    assert store.read(older).journal_records == store.read(path).journal_records
 
 
 def test_match_evidence_survives_a_snapshot_and_older_snapshots_decode_without_it(uninterrupted) -> None:
@@ -197,3 +201,22 @@ def test_match_evidence_survives_a_snapshot_and_older_snapshots_decode_without_i
             assert replace(a.evidence, T_a_b_hypothesis=None) == replace(b.evidence, T_a_b_hypothesis=None)
     older = {k: v for k, v in _match(records[0]).items() if k != "ev"}  # written before the record existed
     assert _unmatch(older).evidence is None
+
+
+def test_closures_of_one_match_share_one_support_set_and_older_snapshots_decode(uninterrupted) -> None:
+    from shgm_slam.server.snapshot_codec import _map, _support, _unsupport
+
+    support = uninterrupted.map.state().support
+    assert len(support) > len({frozenset((a, frozenset(ids)) for a, ids in s.items()) for s in support.values()})
+    encoded = _support(support)
+    distinct = {tuple(sorted((a, tuple(sorted(ids))) for a, ids in s.items())) for s in support.values()}
+    assert len(encoded["support_sets"]) == len(distinct)  # each distinct set written once
+    assert _unsupport(encoded) == support
+    older = {"support": [[cid, {a: sorted(ids) for a, ids in s.items()}] for cid, s in support.items()]}
+    assert _unsupport(older) == support  # written before the sets were shared
+    assert len(msgpack.packb(encoded)) < len(msgpack.packb(older))
+    assert _unsupport({}) == {}
+    for bad in ([[0, 99]], [[0]], [[0, "x"]]):
+        with pytest.raises(SnapshotError):
+            _unsupport({**encoded, "support": bad})
+    assert "support_sets" in _map(uninterrupted.map.state())
