@@ -293,14 +293,14 @@ def _unsupport(d: dict) -> dict[int, dict[str, frozenset[int]]]:
     for row in _typed(d.get("support", []), list, "support"):
         if len(_typed(row, list, "support row")) != 2:
             raise SnapshotError(f"snapshot: a support row must be [closure id, objects], got {row!r}")
-        cid, sup = row
+        cid, sup = _typed(row[0], int, "support closure id"), row[1]
         if isinstance(sup, dict):
-            out[_typed(cid, int, "support closure id")] = _objects(sup)
+            out[cid] = _objects(sup)
             continue
         k = _typed(sup, int, "support set index")
         if not 0 <= k < len(sets):
             raise SnapshotError(f"snapshot: support set {k} of closure {cid} is not among {len(sets)} sets")
-        out[_typed(cid, int, "support closure id")] = sets[k]
+        out[cid] = sets[k]
     return out
 
 
