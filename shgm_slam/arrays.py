@@ -1,4 +1,4 @@
-"""Small array helpers for the matching hot paths.
+"""Small array helpers for the hot paths.
 
 numpy 2's ``np.unique`` is several times slower than one sort on the tens to thousands of integers
 the matcher deduplicates per call; these give the same results from one (stable) sort.
@@ -43,3 +43,11 @@ def first_indices(values: np.ndarray) -> np.ndarray:
     a 1-D array, by ascending value."""
     order = np.argsort(values, kind="stable")
     return order[run_starts(values[order])]
+
+
+def thinning_stride(count: int, at_most: int) -> int:
+    """The smallest stride ``k`` for which ``rows[::k]`` of ``count`` rows keeps at most ``at_most`` of them
+    (1 when ``at_most`` < 1: no thinning)."""
+    if at_most < 1:
+        return 1
+    return max(1, -(-int(count) // int(at_most)))

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from shgm_slam.arrays import thinning_stride
 from shgm_slam.backend.confirmation import describe
 from shgm_slam.backend.keys import MAX_AGENTS, segments_per_robot
 from shgm_slam.config import OdometryKind, RobotOverrides, ShgmConfig
@@ -341,7 +342,8 @@ def run_slam(
     schedule = list(interleave(robots))
     with contextlib.ExitStack() as workers:
         if jobs > 1 and len(robots) > 1:
-            fronts = workers.enter_context(ParallelFrontends(fronts, cfg, schedule, jobs, slim=not viz.enabled))
+            fronts = workers.enter_context(ParallelFrontends(
+                fronts, cfg, schedule, jobs, viewer_points=viz.max_cloud_points))
         try:
             return _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame, write_every_keyframes,
                         on_frame, journal)  # fmt: skip
@@ -686,11 +688,12 @@ def _log_frame(
     T_view = res.T_odom_cam if T_shared_odom is None else T_shared_odom @ res.T_odom_cam
     # the heavy parts (depth image, point cloud) only at keyframes: keeps recordings ~100 KB per frame
     key = res.message is not None
-    pts = se3.transform_points(T_view, res.points_cam) if key else None
-    viz.log_frame(
-        r, T_view, res.frame.image_rgb, res.depth_m if key else None, res.label_ids, pts,
-        res.point_labels if key else None,
-    )  # fmt: skip
+    pts = labels = None
+    if key:  # thinned as the viewer would before it is moved into the shared frame
+        step = thinning_stride(len(res.points_cam), viz.max_cloud_points)
+        pts = se3.transform_points(T_view, res.points_cam[::step])
+        labels = None if res.point_labels is None else res.point_labels[::step]
+    viz.log_frame(r, T_view, res.frame.image_rgb, res.depth_m if key else None, res.label_ids, pts, labels)
     viz.log_timings(r, res.timings_ms)
     if res.message is not None:
         view.keyframe(server, front, res)  # only the trajectory stretches and graph parts that changed

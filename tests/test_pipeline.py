@@ -377,6 +377,9 @@ def test_saved_recording_holds_the_run(tiny_scenario: Path, tmp_path: Path) -> N
 class RecordingViz:
     """A viewer that records every call (the log panel's lines in ``texts``)."""
 
+    enabled = True
+    max_cloud_points = 20_000
+
     def __init__(self) -> None:
         self.calls: list[tuple[str, tuple]] = []
 

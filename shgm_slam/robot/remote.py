@@ -38,6 +38,7 @@ from multiprocessing.connection import Connection
 
 import numpy as np
 
+from shgm_slam.arrays import thinning_stride
 from shgm_slam.config import ShgmConfig
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.odometry.health import OdometryFailure
@@ -119,10 +120,12 @@ class _Marks:
                    len(front.depth_scales))  # fmt: skip
 
 
-def frame_delta(front: RobotFrontend, before: _Marks, res: FrameResult, index: int, *, slim: bool) -> FrameDelta:
+def frame_delta(
+    front: RobotFrontend, before: _Marks, res: FrameResult, index: int, *, viewer_points: int
+) -> FrameDelta:
     """The ``FrameDelta`` of frame ``index`` that ``front`` just processed into ``res`` (``before``: its marks
-    taken just before). ``slim`` drops what only a viewer uses (depth, labels, points; the image stays for
-    the still-camera check)."""
+    taken just before), carrying only the share of the frame's images and cloud that a viewer draws
+    (``_viewer_share``)."""
     lo = index
     for f in front.failures[before.failures:]:
         lo = min(lo, int(f.onset_frame))
@@ -131,16 +134,30 @@ def frame_delta(front: RobotFrontend, before: _Marks, res: FrameResult, index: i
         n0 = before.kf_counts[s.index] if s.index < len(before.kf_counts) else 0
         segs.append(SegmentState(s.index, s.agent, s.first_frame, len(s.graph), list(s.kf_frames[n0:]),
                                  [p.copy() for p in s.kf_poses[n0:]], s.end_failure))  # fmt: skip
-    if slim:
-        frame = replace(res.frame, depth_m=None, label_ids=None)
-        res = replace(res, frame=frame, depth_m=None, label_ids=None, points_cam=np.zeros((0, 3), np.float32),
-                      point_labels=None)  # fmt: skip
     rows = slice(lo, index + 1)
     return FrameDelta(
-        index, res, lo, front.T_odom_cam[rows].copy(), front.frame_kf[rows].copy(), front.frame_segment[rows].copy(),
-        segs, list(front.failures[before.failures:]), list(front.depth_scales[before.depth_scales:]),
+        index, _viewer_share(res, viewer_points), lo, front.T_odom_cam[rows].copy(), front.frame_kf[rows].copy(),
+        front.frame_segment[rows].copy(), segs, list(front.failures[before.failures:]),
+        list(front.depth_scales[before.depth_scales:]),
         (front.measured_frames, front.planar_turns, front.road_steps, front.image_steps, front.image_windows),
     )  # fmt: skip
+
+
+def _viewer_share(res: FrameResult, viewer_points: int) -> FrameResult:
+    """``res`` with only what crosses to the orchestrator: the image always (the still-camera check), and for
+    the viewer (``viewer_points`` > 0, the most cloud points it draws) the labels of every frame, the depth
+    and the cloud of keyframes only, the cloud thinned as the viewer thins it (``thinning_stride``): 0.7 MB
+    a frame of the demo's UAV (640x192 pixels, a keyframe in three frames) against 1.7 MB in full.
+    ``viewer_points`` 0: nothing for a viewer."""
+    frame = replace(res.frame, depth_m=None, label_ids=None)  # the result's own ones are those drawn
+    no_cloud = {"points_cam": np.zeros((0, 3), np.float32), "point_labels": None}
+    if viewer_points < 1:
+        return replace(res, frame=frame, depth_m=None, label_ids=None, **no_cloud)
+    if res.message is None:
+        return replace(res, frame=frame, depth_m=None, **no_cloud)
+    step = thinning_stride(len(res.points_cam), viewer_points)
+    labels = None if res.point_labels is None else res.point_labels[::step]
+    return replace(res, frame=frame, points_cam=res.points_cam[::step], point_labels=labels)
 
 
 class FrontendMirror:
@@ -269,7 +286,7 @@ def assign_workers(frames: dict[str, int], jobs: int) -> list[list[str]]:
 
 
 def _work(members: list[tuple[str, Sequence, ShgmConfig]], cfg: ShgmConfig, schedule: list[tuple[str, int]],
-          conn: Connection, slim: bool) -> None:  # fmt: skip
+          conn: Connection, viewer_points: int) -> None:  # fmt: skip
     """A worker process: build its robots' front ends, process ``schedule``'s frames in order, send each
     frame's delta.
 
@@ -320,7 +337,7 @@ def _work(members: list[tuple[str, Sequence, ShgmConfig]], cfg: ShgmConfig, sche
                 sender.put(("error", name, failed(exc)))
                 del fronts[name]
                 continue
-            sender.put(("frame", name, frame_delta(front, before, res, index, slim=slim)))
+            sender.put(("frame", name, frame_delta(front, before, res, index, viewer_points=viewer_points)))
         sender.put(("end",))
     except Exception as exc:  # reported to the orchestrator, which skips the rest of the worker's robots
         sender.put(("error", None, failed(exc)))
@@ -332,14 +349,14 @@ class _Worker:
     """The orchestrator's end of one worker process and its pipe (``_work``)."""
 
     def __init__(self, fronts: list[RobotFrontend], fleet_cfg: ShgmConfig, schedule: list[tuple[str, int]],
-                 *, slim: bool) -> None:  # fmt: skip
+                 *, viewer_points: int) -> None:  # fmt: skip
         self.names = [f.name for f in fronts]
         self.dead: str | None = None  # why the whole worker is gone
         ctx = multiprocessing.get_context("spawn")  # never fork a process that holds ONNX or TBB threads
         self._conn, child = ctx.Pipe(duplex=False)
         members = [(f.name, f.sequence, f.cfg, f.max_segments) for f in fronts]
         self._proc = ctx.Process(target=_work, name=f"shgm-frontend-{'+'.join(self.names)}",
-                                 args=(members, fleet_cfg, schedule, child, slim), daemon=True)  # fmt: skip
+                                 args=(members, fleet_cfg, schedule, child, viewer_points), daemon=True)  # fmt: skip
         try:
             self._proc.start()  # spawn: the sequences and the configuration are pickled here
         except (pickle.PicklingError, TypeError, AttributeError) as exc:
@@ -452,17 +469,18 @@ class ParallelFrontends:
         fleet_cfg: the fleet configuration they were built from.
         schedule: (robot, frame index) in the order the orchestrator will take them (``data.interleave``).
         jobs: worker processes (at most one per robot).
-        slim: leave out of each frame's result what only a viewer needs.
+        viewer_points: the most cloud points the run's viewer draws of a frame (``Viz.max_cloud_points``; 0:
+            no viewer): each frame's result carries only what it draws.
     """
 
     def __init__(self, fronts: dict[str, RobotFrontend], fleet_cfg: ShgmConfig, schedule: list[tuple[str, int]],
-                 jobs: int, *, slim: bool) -> None:  # fmt: skip
+                 jobs: int, *, viewer_points: int) -> None:  # fmt: skip
         self.workers: list[_Worker] = []
         self.fronts: dict[str, RemoteFrontend] = {}
         try:
             for group in assign_workers({r: len(f.sequence) for r, f in fronts.items()}, jobs):
                 mine = [(r, i) for r, i in schedule if r in group]
-                worker = _Worker([fronts[r] for r in group], fleet_cfg, mine, slim=slim)
+                worker = _Worker([fronts[r] for r in group], fleet_cfg, mine, viewer_points=viewer_points)
                 self.workers.append(worker)
                 for r in group:
                     self.fronts[r] = RemoteFrontend(fronts[r], worker)

@@ -26,6 +26,7 @@ from typing import Protocol
 import numpy as np
 import rerun as rr
 
+from shgm_slam.arrays import thinning_stride
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.labels import CITYSCAPES_CLASSES, CITYSCAPES_COLORS_RGB, IGNORE_ID
 from shgm_slam.types import GraphArrays, Intrinsics
@@ -164,10 +165,13 @@ class Viz(Protocol):
     """What the pipeline logs. Implementations: ``RerunLogger`` and ``NullLogger``.
 
     ``enabled`` is False when nothing is shown: callers skip computing what only the viewer needs
-    (fused trajectories, graphs in the shared frame) instead of handing it to a no-op.
+    (fused trajectories, graphs in the shared frame) instead of handing it to a no-op. ``max_cloud_points``:
+    the most points of a frame's cloud it draws (``thinning_stride``; 0 when nothing is shown), so that
+    callers thin a cloud before transforming or sending it.
     """
 
     enabled: bool
+    max_cloud_points: int
 
     def setup(self, robots: dict[str, Intrinsics]) -> None: ...
 
@@ -220,6 +224,7 @@ class NullLogger:
     """A ``Viz`` that does nothing (``--rerun off``); every call is a cheap no-op."""
 
     enabled = False
+    max_cloud_points = 0
 
     def setup(self, robots: dict[str, Intrinsics]) -> None:
         pass
@@ -414,7 +419,7 @@ class RerunLogger:
             self._log_cloud(robot, _xyz("points_shared", points_shared), point_labels)
 
     def _log_cloud(self, robot: str, points: np.ndarray, labels: np.ndarray | None) -> None:
-        stride = max(1, -(-points.shape[0] // self.max_cloud_points))
+        stride = thinning_stride(points.shape[0], self.max_cloud_points)
         class_ids = None
         if labels is not None:
             labels = np.asarray(labels)

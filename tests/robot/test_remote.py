@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
+from shgm_slam.arrays import thinning_stride
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.errors import ConfigError
@@ -51,6 +52,24 @@ def _assert_same_state(mirror: FrontendMirror, front) -> None:
     assert mirror.num_keyframes == front.num_keyframes and mirror.segment.agent == front.segment.agent
 
 
+def _assert_viewer_share(sent, res, viewer_points: int) -> None:
+    """What crosses to the orchestrator: the image always; for a viewer the labels of every frame and the
+    depth and the cloud of keyframes, the cloud thinned to the rows the viewer draws of the full one."""
+    assert sent.frame.image_rgb is res.frame.image_rgb and sent.frame.depth_m is None
+    if viewer_points == 0 or res.message is None:
+        assert sent.depth_m is None and sent.points_cam.shape == (0, 3) and sent.point_labels is None
+    if viewer_points == 0:
+        assert sent.label_ids is None
+        return
+    assert sent.label_ids is res.label_ids
+    if res.message is not None:
+        step = thinning_stride(len(res.points_cam), viewer_points)
+        assert sent.depth_m is res.depth_m and 0 < len(sent.points_cam) <= viewer_points < len(res.points_cam)
+        np.testing.assert_array_equal(sent.points_cam, res.points_cam[::step])
+        np.testing.assert_array_equal(sent.point_labels, res.point_labels[::step])
+        assert thinning_stride(len(sent.points_cam), viewer_points) == 1  # the viewer draws every row sent
+
+
 def test_mirror_holds_the_front_ends_state_after_every_frame(tiny_scenario: Path, tmp_path: Path) -> None:
     """Through a divergence (the segment cut back to its onset, a new segment) and a skipped frame."""
     from shgm_slam.errors import DataError
@@ -67,7 +86,10 @@ def test_mirror_holds_the_front_ends_state_after_every_frame(tiny_scenario: Path
         except DataError:
             skipped += 1
             continue
-        got = mirror.apply(frame_delta(front, before, res, i, slim=bool(i % 2)))
+        viewer_points = 0 if i % 2 else 300
+        delta = frame_delta(front, before, res, i, viewer_points=viewer_points)
+        _assert_viewer_share(delta.result, res, viewer_points)
+        got = mirror.apply(delta)
         assert got.message == res.message and got.agent == res.agent and got.failure == res.failure
         _assert_same_state(mirror, front)
     assert skipped == 1 and len(front.failures) == 1 and len(front.segments) == 2  # the test saw what it meant to
