@@ -6,12 +6,15 @@ same folder at once, and one of them died inside ``shutil.rmtree`` with a stack 
 an advisory lock beside the folder (``<folder>.lock``) before it renders, so the second one waits and then
 finds the world finished; the render goes to a folder of its own (``<folder>.partial-<pid>``) and is renamed
 into place only when it is complete, so an interrupted render never looks finished (``scenario.json``,
-written last, marks a finished world).
+written last, marks a finished world). A render killed outright (SIGKILL, a machine that went down) leaves its
+``.partial-<pid>`` folder behind; the next process to hold the lock removes such folders, since no other
+process can be writing one then.
 """
 
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
 import shutil
 from collections.abc import Iterator
@@ -54,8 +57,9 @@ def simulate_cached(scenario: str, folder: Path | str, **options: Any) -> Path:
     with _exclusive(out.with_name(out.name + ".lock")):
         if (out / FINISHED).is_file():  # rendered by another process while this one waited
             return out
+        for stale in out.parent.glob(f"{glob.escape(out.name)}.partial-*"):  # killed renders: nobody writes them now
+            shutil.rmtree(stale, ignore_errors=True)
         partial = out.with_name(f"{out.name}.partial-{os.getpid()}")
-        shutil.rmtree(partial, ignore_errors=True)
         try:
             simulate(scenario, partial, overwrite=True, **options)
             if out.is_dir():  # an interrupted render of an earlier run (no scenario.json): replaced

@@ -61,8 +61,14 @@ def test_an_interrupted_render_is_replaced_and_a_failed_one_leaves_nothing(tmp_p
     folder = tmp_path / "synthia-like-s5"
     (folder / "car1" / "image_2").mkdir(parents=True)  # an earlier run killed mid-render: no scenario.json
     (folder / "car1" / "image_2" / "000007.png").write_bytes(b"")
+    killed = tmp_path / "synthia-like-s5.partial-99999999"  # a render killed outright left its own folder
+    (killed / "car1").mkdir(parents=True)
+    other_world = tmp_path / "synthia-like-s55.partial-99999999"  # another world's: not this render's to remove
+    other_world.mkdir()
     simulate_cached("synthia-like", folder, seed=5)
     assert (folder / "scenario.json").is_file() and not (folder / "car1" / "image_2").exists()
+    assert not killed.exists() and other_world.is_dir()
+    other_world.rmdir()
 
     other = tmp_path / "synthia-like-s6"
     with pytest.raises(SimulationError, match="renderer failed"):
