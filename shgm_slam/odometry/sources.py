@@ -335,6 +335,7 @@ def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
             min_range_m=cfg.min_range_m,
             max_range_m=cfg.max_range_m,
             max_icp_iterations=cfg.max_icp_iterations,
+            convergence_criterion=cfg.icp_convergence,
             max_threads=cfg.icp_threads,
         ),
         cloud_stride=cfg.cloud_stride,
