@@ -861,6 +861,11 @@ def perceive_command(
                   f"{result.frames} in {result.wall_s:.1f} s ({providers}" + (f"; ms/frame {speed})" if speed else ")"))
     for note in result.notes:
         console.print(f"[yellow]note[/]: {lit(note)}")
+    if result.unreadable:
+        first, why = min(result.unreadable.items())
+        console.print(f"[yellow]skipped[/]: {len(result.unreadable)} unreadable image(s), first frame {first}: "
+                      f"{lit(why)}; written without depth or labels (`run` skips them); fix the file(s) and run "
+                      "the same command again to redo them")  # fmt: skip
     if result.interrupted:
         console.print(f"[yellow]interrupted[/]: run the same command again to finish {lit(out)}")
         raise typer.Exit(130)

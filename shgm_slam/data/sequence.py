@@ -10,6 +10,7 @@ poses.txt exists), one depth and one label PNG (when those folders exist).
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 from types import TracebackType
@@ -26,6 +27,8 @@ from shgm_slam.types import Frame, Intrinsics
 DEPTH_SCALE = 256.0
 """Depth PNG units per metre (KITTI depth convention): uint16 value = round(depth_m * 256)."""
 DEPTH_DIR, LABEL_DIR, IMAGE_DIR = "depth", "semantic", "image_2"
+PERCEIVE_MANIFEST = "perceive.json"
+"""What ``shgm-slam perceive`` writes beside the depth and labels it predicted (``complete`` once done)."""
 _WRITTEN = (IMAGE_DIR, DEPTH_DIR, LABEL_DIR, "calib.txt", "times.txt", "poses.txt")
 
 
@@ -41,6 +44,15 @@ def decode_depth(depth_png: np.ndarray) -> np.ndarray:
     return depth_png.astype(np.float32) / np.float32(DEPTH_SCALE)
 
 
+def _unfinished_perceive(root: Path) -> bool:
+    """True when ``root`` holds a ``perceive`` manifest that says the job did not finish."""
+    try:
+        manifest = json.loads((root / PERCEIVE_MANIFEST).read_text())
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(manifest, dict) and manifest.get("complete") is False
+
+
 class ShgmSequence(KittiSequence):
     """A sequence in our layout: ``KittiSequence`` plus lazily loaded ``depth/`` and ``semantic/``."""
 
@@ -52,6 +64,11 @@ class ShgmSequence(KittiSequence):
         self._label_dir = self.root / LABEL_DIR if (self.root / LABEL_DIR).is_dir() else None
         for folder in (self._depth_dir, self._label_dir):
             if folder is not None and (n := count_frame_files(folder)) != len(self):
+                if _unfinished_perceive(self.root):
+                    raise DataError(
+                        f"{self.root} is an unfinished `shgm-slam perceive` output ({n} of {len(self)} frames in "
+                        f"{folder.name}/): run the same perceive command again to finish it (it resumes)"
+                    )
                 raise DataError(
                     f"{folder} has {n} frames but {self._image_dir} has {len(self)}; "
                     "every image needs one file there (or remove the folder)"

@@ -13,6 +13,10 @@ our layout (ARCHITECTURE.md) that ``shgm-slam run --robot a=OUT`` reads with no 
 Frame ``i`` of OUT is frame ``start + i`` of the source. Each PNG is written atomically (temp file +
 rename), so an interrupted run never leaves a half file; running the same command again skips every
 frame whose depth and label PNGs exist and decode with the right size and type, and redoes the rest.
+A source image that cannot be read (missing or corrupt) is a logged skip, not the end of the job: its
+frame gets placeholder outputs (no valid depth, every pixel ``ignore``) that ``run`` skips like the
+unreadable image itself, the manifest lists it under ``unreadable``, and the next run of the same
+command tries it again (re-export the file, run again).
 Images are fed to the models in batches (one session call per batch, chunked by the adapters when a
 model's batch axis is fixed); sessions use CUDA when onnxruntime-gpu is installed.
 """
@@ -38,20 +42,23 @@ import onnxruntime as ort
 
 from shgm_slam.data.base import open_sequence, parse_sequence_spec
 from shgm_slam.data.kitti import IMAGE_SOURCES, frame_file
-from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, encode_depth
+from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, PERCEIVE_MANIFEST, encode_depth
 from shgm_slam.data.validate import check_sequence_start
 from shgm_slam.errors import ConfigError, DataError, ModelError
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import format_kitti_pose
+from shgm_slam.labels import IGNORE_ID
 from shgm_slam.perception.card import card_to_yaml
 from shgm_slam.perception.depth import DepthModel
 from shgm_slam.perception.onnx_model import OnnxModel
 from shgm_slam.perception.segmentation import SegmentationModel
 
-MANIFEST = "perceive.json"
+MANIFEST = PERCEIVE_MANIFEST
 MANIFEST_FORMAT = "shgm-perceive/1"
 DEFAULT_BATCH = 8
 _HASHES = ("sha256", "card_sha256")
+
+log = logging.getLogger(__name__)
 
 ProgressFn = Callable[[int, int], None]
 """Called with (frames done, frames to compute) after every batch."""
@@ -87,6 +94,8 @@ class PerceiveResult:
     inference_ms_per_frame: dict[str, float] = field(default_factory=dict)
     interrupted: bool = False
     notes: list[str] = field(default_factory=list)
+    unreadable: dict[int, str] = field(default_factory=dict)
+    """Frames whose source image could not be read -> why (placeholder outputs were written)."""
 
     @property
     def complete(self) -> bool:
@@ -98,6 +107,7 @@ class PerceiveResult:
             "reused": self.reused, "providers": self.providers, "batch_size": self.batch_size,
             "wall_s": self.wall_s, "inference_ms_per_frame": self.inference_ms_per_frame,
             "interrupted": self.interrupted, "complete": self.complete, "notes": self.notes,
+            "unreadable": {str(i): why for i, why in sorted(self.unreadable.items())},
         }  # fmt: skip
 
 
@@ -225,6 +235,16 @@ def png_is_valid(path: Path, dtype: type, size_wh: tuple[int, int]) -> bool:
     return (
         image is not None and image.ndim == 2 and image.dtype == dtype and (image.shape[1], image.shape[0]) == size_wh
     )
+
+
+def _unreadable_before(out: Path) -> set[int]:
+    """Frames an earlier run of ``perceive`` into ``out`` could not read (its manifest's ``unreadable``)."""
+    try:
+        previous = json.loads((out / MANIFEST).read_text())
+    except (OSError, ValueError, RecursionError):
+        return set()
+    listed = previous.get("unreadable") if isinstance(previous, dict) else None
+    return {i for i in listed if isinstance(i, int)} if isinstance(listed, list) else set()
 
 
 def _check_out(out: Path, source_root: Path, manifest: dict, overwrite: bool) -> None:
@@ -388,6 +408,7 @@ def perceive(
     outputs: list[tuple[str, type]] = [(DEPTH_DIR, np.uint16)] * (depth is not None) + [(LABEL_DIR, np.uint8)] * (
         seg is not None
     )
+    retry = _unreadable_before(out)  # frames the last run could not read: tried again
     try:  # the output folder's skeleton: a read-only or full folder is one clear error
         _check_out(out, root, manifest, overwrite)
         out.mkdir(parents=True, exist_ok=True)
@@ -401,13 +422,26 @@ def perceive(
         where, why = exc.filename or out, exc.strerror or exc
         raise DataError(f"cannot write {where}: {why}; choose a writable --out with free space") from None
     size = sequence.intrinsics.size_wh
-    todo = [i for i in range(n) if not all(png_is_valid(frame_file(out / f, i), t, size) for f, t in outputs)]
+    todo = [
+        i for i in range(n) if i in retry or not all(png_is_valid(frame_file(out / f, i), t, size) for f, t in outputs)
+    ]
     result = PerceiveResult(out, str(spec), n, 0, n - len(todo), providers, batch_size, 0.0, notes=notes)
     inference_ms = {"depth": 0.0, "segmentation": 0.0}
     batches = [todo[k : k + batch_size] for k in range(0, len(todo), batch_size)]
 
-    def load(batch: list[int]) -> list[np.ndarray]:
-        return [sequence[i].image_rgb for i in batch]  # type: ignore[misc]
+    def load(batch: list[int]) -> list[np.ndarray | None]:
+        """The batch's images; None (and a logged skip) for one that cannot be read."""
+        images: list[np.ndarray | None] = []
+        for i in batch:
+            try:
+                images.append(sequence[i].image_rgb)  # type: ignore[misc]
+            except DataError as exc:
+                result.unreadable[i] = str(exc)
+                log.warning("frame %d skipped: %s", i, exc)
+                images.append(None)
+        return images
+
+    blank_wh = (sequence.intrinsics.height, sequence.intrinsics.width)
 
     def write(batch: list[int], depths: list[np.ndarray] | None, labels: list[np.ndarray] | None) -> int:
         for i, d in zip(batch, depths or [], strict=False):
@@ -415,6 +449,11 @@ def perceive(
         for i, lab in zip(batch, labels or [], strict=False):
             write_png_atomic(frame_file(out / LABEL_DIR, i), lab.astype(np.uint8))
         return len(batch)
+
+    def write_placeholders(batch: list[int]) -> None:
+        """Outputs of unreadable frames: no valid depth, every pixel ``ignore`` (``run`` skips them)."""
+        write(batch, [np.zeros(blank_wh, np.float32)] * len(batch) if depth is not None else None,
+              [np.full(blank_wh, IGNORE_ID, np.uint8)] * len(batch) if seg is not None else None)  # fmt: skip
 
     written: deque[Future[int]] = deque()
 
@@ -433,8 +472,14 @@ def perceive(
                 progress(0, len(todo))
             for k, batch in enumerate(batches):
                 assert pending is not None
-                rgb = pending.result()
+                loaded = pending.result()
                 pending = loader.submit(load, batches[k + 1]) if k + 1 < len(batches) else None
+                write_placeholders([i for i, im in zip(batch, loaded, strict=True) if im is None])
+                batch = [i for i, im in zip(batch, loaded, strict=True) if im is not None]
+                rgb = [im for im in loaded if im is not None]
+                result.computed += len(loaded) - len(rgb)
+                if not rgb:
+                    continue
                 depths = labels = None
                 if depth is not None:
                     depths = depth.predict_batch(rgb, sequence.intrinsics)
@@ -451,11 +496,13 @@ def perceive(
                 pending.cancel()
             while written:  # batches already handed to the writer finish (each file is atomic anyway)
                 result.computed += written.popleft().result()
-    result.inference_ms_per_frame = {
-        k: v / result.computed for k, v in inference_ms.items() if result.computed and k in providers
-    }
+    inferred = result.computed - len(result.unreadable)
+    result.inference_ms_per_frame = {k: v / inferred for k, v in inference_ms.items() if inferred and k in providers}
     result.wall_s = time.perf_counter() - t_start
+    if result.unreadable:
+        manifest["unreadable"] = sorted(result.unreadable)
     if result.complete:
         manifest["complete"] = True
+    if result.complete or result.unreadable:
         _write_text_atomic(out / MANIFEST, to_json_text({**manifest, "last_run": result.to_json_dict()}) + "\n")
     return result

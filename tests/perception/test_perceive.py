@@ -98,11 +98,36 @@ def test_interrupted_run_keeps_whole_files_and_finishes_on_the_next_run(sim_seq,
     assert first.interrupted and not first.complete and first.computed in (4, 8)  # + the batch being written
     assert len(list((out / "depth").glob("*.png"))) == len(list((out / "semantic").glob("*.png"))) == first.computed
     assert not json.loads((out / MANIFEST).read_text())["complete"]
-    with pytest.raises(DataError, match="every image needs one file"):
+    with pytest.raises(DataError, match="unfinished `shgm-slam perceive` output .* run the same perceive command"):
         open_sequence(out)  # an unfinished folder is not mistaken for a shorter sequence
     second = _run(sim_seq, out, models, batch_size=4)
     assert second.complete and (second.computed, second.reused) == (10 - first.computed, first.computed)
     assert len(open_sequence(out)) == 10
+
+
+def test_an_unreadable_image_is_a_skip_that_the_next_run_redoes(sim_seq, models, tmp_path):
+    import shutil
+
+    src = tmp_path / "src"
+    shutil.copytree(sim_seq, src)
+    image = next((src / d / "000004.png" for d in ("image_2", "image_0") if (src / d).is_dir()))
+    good = image.read_bytes()
+    image.write_bytes(good[:100])  # a truncated PNG
+    out = tmp_path / "p"
+    first = _run(src, out, models, batch_size=4)
+    assert first.complete and set(first.unreadable) == {4} and "000004.png" in first.unreadable[4]
+    assert json.loads((out / MANIFEST).read_text())["unreadable"] == [4]
+    seq = open_sequence(out)  # every frame has its outputs: the folder reads
+    assert len(seq) == 10 and seq[3].depth_m.max() > 0
+    blank = ShgmSequence(out)._read_single_channel(out / "depth", 4, np.uint16, "depth")
+    assert not blank.any()  # no valid depth for the unreadable frame
+    with pytest.raises(DataError, match="cannot read image"):
+        seq[4]  # `run` skips the frame as it skips any unreadable image
+    image.write_bytes(good)  # the file re-exported
+    second = _run(src, out, models, batch_size=4)
+    assert second.complete and not second.unreadable and (second.computed, second.reused) == (1, 9)
+    assert "unreadable" not in json.loads((out / MANIFEST).read_text())
+    assert open_sequence(out)[4].depth_m.max() > 0
 
 
 def test_one_model_writes_one_modality(sim_seq, models, tmp_path):
