@@ -105,15 +105,19 @@ def read_projection(calib_path: Path, key: str) -> np.ndarray:
     )
 
 
-MIN_FOCAL_PX, MAX_FOCAL_PX = 1e-2, 1e7
-"""Focal lengths outside this range (pixels) are a wrong calibration, not a camera."""
+MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 170.0
+"""A pinhole image's field of view along either axis outside this range is a wrong calibration (a focal length
+in other units, or of another resolution), not a camera: rectified images of real lenses lie well inside."""
+MAX_PIXEL_ASPECT = 2.0
+"""Most ``fx / fy`` (or ``fy / fx``) of a real camera: pixels are square, anamorphic lenses stretch up to 2x."""
 
 
 def check_projection(P: np.ndarray, width: int, height: int, calib_path: Path, key: str) -> None:
     """Sanity of a (3, 4) projection for a ``width`` x ``height`` image.
 
     Raises:
-        DataError: a focal length that is not positive (zero, or negative: a mirrored map), a skewed or
+        DataError: a focal length that is not positive (zero, or negative: a mirrored map), a field of view
+            outside ``MIN_FOV_DEG``-``MAX_FOV_DEG`` or pixels stretched beyond ``MAX_PIXEL_ASPECT``, a skewed or
             non-pinhole matrix, or a principal point outside the image.
     """
     fx, fy, cx, cy = P[0, 0], P[1, 1], P[0, 2], P[1, 2]
@@ -121,9 +125,14 @@ def check_projection(P: np.ndarray, width: int, height: int, calib_path: Path, k
     if not (fx > 0 and fy > 0):
         raise DataError(f"{where}: focal lengths must be positive (a negative one mirrors the map), got fx={fx:g}, "
                         f"fy={fy:g}")
-    if not (MIN_FOCAL_PX <= fx <= MAX_FOCAL_PX and MIN_FOCAL_PX <= fy <= MAX_FOCAL_PX):
-        raise DataError(f"{where}: focal lengths fx={fx:g}, fy={fy:g} px are outside [{MIN_FOCAL_PX:g}, "
-                        f"{MAX_FOCAL_PX:g}] (a field of view between ~0 and ~180 degrees): wrong units or calib?")
+    fov_deg = np.degrees(2.0 * np.arctan2([width / 2.0, height / 2.0], [fx, fy]))
+    if not (MIN_FOV_DEG <= fov_deg.min() and fov_deg.max() <= MAX_FOV_DEG):
+        raise DataError(f"{where}: focal lengths fx={fx:g}, fy={fy:g} px give a {fov_deg[0]:.3g} x {fov_deg[1]:.3g} "
+                        f"degree field of view on a {width}x{height} image (a camera has {MIN_FOV_DEG:g}-"
+                        f"{MAX_FOV_DEG:g}): wrong units, or a calib for another resolution?")
+    if max(fx, fy) > MAX_PIXEL_ASPECT * min(fx, fy):
+        raise DataError(f"{where}: focal lengths fx={fx:g}, fy={fy:g} px differ {max(fx, fy) / min(fx, fy):.3g}-fold "
+                        f"(a camera's pixels are square, at most {MAX_PIXEL_ASPECT:g}x stretched): a mistyped calib?")
     skewed = abs(P[0, 1]) > 1e-6 * fx or abs(P[1, 0]) > 1e-6 * fx
     if skewed or abs(P[2, 0]) > 1e-9 or abs(P[2, 1]) > 1e-9 or abs(P[2, 2] - 1.0) > 1e-6:
         rows = "; ".join(" ".join(f"{v:g}" for v in row) for row in P[:, :3])

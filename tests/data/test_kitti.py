@@ -93,7 +93,7 @@ def _synthetic_kitti(root: Path, P2: np.ndarray, n: int = 3) -> np.ndarray:
 
 
 def test_image_2_preferred_and_gt_moved_to_camera_2(tmp_path: Path) -> None:
-    K = np.array([[700.0, 0, 4], [0, 700, 3], [0, 0, 1]])
+    K = np.array([[7.0, 0, 4], [0, 7, 3], [0, 0, 1]])  # a 60-degree view of 8x6 px
     t_cam2_cam0 = np.array([0.06, 0.001, 0.005])  # cam0's origin seen from camera 2
     poses_cam0 = _synthetic_kitti(tmp_path / "s", np.hstack([K, (K @ t_cam2_cam0)[:, None]]))
     seq = KittiSequence(tmp_path / "s")
@@ -104,11 +104,11 @@ def test_image_2_preferred_and_gt_moved_to_camera_2(tmp_path: Path) -> None:
 
 
 def test_image_0_uses_p0(tmp_path: Path) -> None:
-    K = np.array([[700.0, 0, 4], [0, 710, 3], [0, 0, 1]])
+    K = np.array([[7.0, 0, 4], [0, 7.1, 3], [0, 0, 1]])
     _synthetic_kitti(tmp_path / "s", np.hstack([K, np.ones((3, 1))]))
     shutil.rmtree(tmp_path / "s" / "image_2")
     seq = KittiSequence(tmp_path / "s")
-    assert (seq.intrinsics.fy, seq.intrinsics.width, seq.intrinsics.height) == (710.0, 8, 6)
+    assert (seq.intrinsics.fy, seq.intrinsics.width, seq.intrinsics.height) == (7.1, 8, 6)
     assert (seq[2].image_rgb == 99).all()
 
 
@@ -121,7 +121,8 @@ def test_image_0_uses_p0(tmp_path: Path) -> None:
         (lambda r: (r / "poses.txt").write_text("1 0 0\n"), "poses.txt line 1"),
         (lambda r: (r / "calib.txt").write_text("P2: 0 0 4 0 0 0 3 0 0 0 1 0\n"), "focal lengths must be positive"),
         (lambda r: (r / "calib.txt").write_text("P2: -700 0 4 0 0 700 3 0 0 0 1 0\n"), "mirrors the map"),
-        (lambda r: (r / "calib.txt").write_text("P2: 700 0 600 0 0 700 3 0 0 0 1 0\n"), "principal point (600, 3)"),
+        (lambda r: (r / "calib.txt").write_text("P2: 700 0 4 0 0 700 3 0 0 0 1 0\n"), "calib for another resolution"),
+        (lambda r: (r / "calib.txt").write_text("P2: 7 0 600 0 0 7 3 0 0 0 1 0\n"), "principal point (600, 3)"),
         (lambda r: (r / "calib.txt").write_bytes(b"P2: 7\xff\xfe 0 4\n"), "not UTF-8 text"),
         (lambda r: (r / "calib.txt").write_text("P2: nan 0 4 0 0 700 3 0 0 0 1 0\n"), "P2 line of 12 finite numbers"),
         (lambda r: (r / "times.txt").write_text("0.0\n0.1\n0.1\n"), "line 3 (0.1 s) is not after line 2"),
@@ -141,6 +142,11 @@ def test_bad_kitti_folder_names_the_problem(tmp_path: Path, damage, culprit: str
         ([700.0, 5000.0, 150.0, 0.0, 0.0, 700.0, 45.0, 0.0, 0.0, 0.0, 1.0, 0.0], "pinhole"),  # skew
         ([1e300, 0.0, 150.0, 0.0, 0.0, 1e300, 45.0, 0.0, 0.0, 0.0, 1.0, 0.0], "focal lengths"),
         ([1e-300, 0.0, 150.0, 0.0, 0.0, 1e-300, 45.0, 0.0, 0.0, 0.0, 1.0, 0.0], "focal lengths"),
+        # KITTI's 707 px mistyped as 0.912 (fx only): a 179.7-degree view and pixels stretched 775-fold
+        ([0.912, 0.0, 150.0, 0.0, 0.0, 707.0, 45.0, 0.0, 0.0, 0.0, 1.0, 0.0], "field of view"),
+        ([7.07, 0.0, 150.0, 0.0, 0.0, 7.07, 45.0, 0.0, 0.0, 0.0, 1.0, 0.0], "field of view"),  # in cm?
+        ([300.0, 0.0, 150.0, 0.0, 0.0, 707.0, 45.0, 0.0, 0.0, 0.0, 1.0, 0.0], "differ 2.36-fold"),
+        ([7.07e5, 0.0, 150.0, 0.0, 0.0, 7.07e5, 45.0, 0.0, 0.0, 0.0, 1.0, 0.0], "field of view"),  # in mm?
     ],
 )
 def test_a_skewed_or_absurd_focal_projection_is_refused(P_row, words):
@@ -149,6 +155,18 @@ def test_a_skewed_or_absurd_focal_projection_is_refused(P_row, words):
     P = np.asarray(P_row).reshape(3, 4)
     with pytest.raises(DataError, match=words):
         check_projection(P, 320, 96, Path("calib.txt"), "P2")
+
+
+@pytest.mark.parametrize("hfov_deg", [10.0, 60.0, 90.0, 150.0])
+def test_real_cameras_fields_of_view_pass(hfov_deg):
+    from shgm_slam.data.kitti import check_projection
+    from shgm_slam.sim.render import make_intrinsics
+
+    for w, h in ((1242, 375), (320, 96), (640, 480)):
+        K = make_intrinsics(w, h, hfov_deg)
+        check_projection(np.array([[K.fx, 0, K.cx, 0], [0, K.fy, K.cy, 0], [0, 0, 1, 0]]), w, h, Path("c"), "P2")
+    kitti = np.array([[718.856, 0, 607.1928, 45.38], [0, 718.856, 185.2157, -0.1130], [0, 0, 1, 3.7e-3]])
+    check_projection(kitti, 1241, 376, Path("calib.txt"), "P2")
 
 
 def test_a_corrupt_frame_advises_a_frame_range_that_leaves_it_out(seq_dir: Path) -> None:

@@ -98,7 +98,7 @@ def test_interrupted_run_keeps_whole_files_and_finishes_on_the_next_run(sim_seq,
     assert first.interrupted and not first.complete and first.computed in (4, 8)  # + the batch being written
     assert len(list((out / "depth").glob("*.png"))) == len(list((out / "semantic").glob("*.png"))) == first.computed
     assert not json.loads((out / MANIFEST).read_text())["complete"]
-    with pytest.raises(DataError, match="unfinished `shgm-slam perceive` output .* run the same perceive command"):
+    with pytest.raises(DataError, match=r"unfinished `shgm-slam perceive` output .* run the same perceive command"):
         open_sequence(out)  # an unfinished folder is not mistaken for a shorter sequence
     second = _run(sim_seq, out, models, batch_size=4)
     assert second.complete and (second.computed, second.reused) == (10 - first.computed, first.computed)
@@ -110,7 +110,7 @@ def test_an_unreadable_image_is_a_skip_that_the_next_run_redoes(sim_seq, models,
 
     src = tmp_path / "src"
     shutil.copytree(sim_seq, src)
-    image = next((src / d / "000004.png" for d in ("image_2", "image_0") if (src / d).is_dir()))
+    image = next(src / d / "000004.png" for d in ("image_2", "image_0") if (src / d).is_dir())
     good = image.read_bytes()
     image.write_bytes(good[:100])  # a truncated PNG
     out = tmp_path / "p"
