@@ -375,12 +375,26 @@ class MapServer:
                 what = {
                     Placement.CONFIRMED: "agreed: it is confirmed in the shared frame",
                     Placement.PROVISIONAL: "was accepted; it is still provisional",
-                }.get(self.placement(agent).placement, "was accepted, but outvoted")
+                }.get(self.placement(agent).placement, "")
+                what = what or (
+                    "agrees with its earlier matches but is not a second, independent piece of evidence (the "
+                    "reason under the robot's warning)" if self._still_accepted(m) else "was accepted, but outvoted"
+                )
             else:
                 what = f"did not confirm it: {m.reason}"
             look = f"a last look with {partner}" if m.query == LAST_LOOK_QUERY else f"{partner}'s last look at it"
             lines.append(f"{agent}: {look}, without the objects behind its accepted match, {what}")
         return lines
+
+    def _still_accepted(self, record: MatchRecord) -> bool:
+        """True when a closure that ``record`` added is in its pair's consistent set now."""
+        added = {(record.robot_a, c["keyframe_a"], record.robot_b, c["keyframe_b"]) for c in record.closures
+                 if c.get("accepted")}  # fmt: skip
+        return any(
+            c.status is ClosureStatus.ACCEPTED
+            and ((c.robot_a, c.kf_a, c.robot_b, c.kf_b) in added or (c.robot_b, c.kf_b, c.robot_a, c.kf_a) in added)
+            for c in self._pose_graph.closures()
+        )
 
     def _confirmed(self, a: str, b: str) -> bool:
         """Both placed and their accepted closures rest on ``CONFIRMING_MATCHES`` independent matches."""

@@ -161,3 +161,23 @@ def test_every_closure_of_a_match_rests_on_all_of_the_matchs_objects(messages) -
         for r in server.matches if any(c["accepted"] for c in r.closures)
     }  # fmt: skip
     assert recorded <= matched
+
+
+def test_an_accepted_last_look_that_does_not_place_says_if_it_agreed_or_was_outvoted(messages, monkeypatch) -> None:
+    """A last look whose closures stay in the consistent set, but which does not count as a second piece of
+    evidence, is not reported as outvoted (it agreed); one whose closures were withdrawn is."""
+    from dataclasses import replace
+
+    from shgm_slam.backend.confirmation import AgentPlacement
+
+    server = _server(messages, independent=True)
+    last = next(m for m in server.matches if m.query == LAST_LOOK_QUERY)
+    assert server._still_accepted(last)
+    gone = replace(last, closures=[{**c, "keyframe_b": -1} for c in last.closures])  # closures it never added
+    assert not server._still_accepted(gone)
+    waiting = server.placement("car1")  # pretend car2 still waits after its look
+    monkeypatch.setattr(server, "placement", lambda agent: AgentPlacement(Placement.UNPLACED)
+                        if agent == "car2" else waiting)  # fmt: skip
+    assert "agrees with its earlier matches but is not a second, independent piece" in server.last_looks()[0]
+    server._matches = [gone if m is last else m for m in server._matches]
+    assert server.last_looks()[0].endswith("was accepted, but outvoted")
