@@ -254,20 +254,34 @@ def describe(agent: str, p: AgentPlacement) -> str:
     )
 
 
+class Sharing(str, Enum):
+    """What makes two graph matches of one robot pair one piece of evidence (``describe_waiting``)."""
+
+    OBJECTS = "matches that found the same objects"
+    STRETCHES = "matches along the same straight stretches of both drives"
+    CHANCE = "matches too close to chance for the number the pair has tried"
+
+
 def describe_waiting(
-    agent: str, partner: str, evidence: int, needed: int, matches: int, others: tuple[str, ...] = ()
-) -> str:
+    agent: str, partner: str, evidence: int, needed: int, matches: int, others: tuple[str, ...] = (),
+    sharing: tuple[Sharing, ...] = (),
+) -> str:  # fmt: skip
     """One line for users: why ``agent`` is not placed although ``matches`` graph matches with placed
     ``partner`` gave accepted closures: they are ``evidence`` independent pieces of evidence, fewer than the
-    ``needed`` (``backend.min_closures_to_anchor``); ``others``: further placed robots with accepted matches,
-    which did not make independent, agreeing pieces together with ``partner``'s (``cross_evidence``)."""
+    ``needed`` (``backend.min_closures_to_anchor``); ``sharing``: what tied these matches together (every kind
+    listed when not given); ``others``: further placed robots with accepted matches, which did not make
+    independent, agreeing pieces together with ``partner``'s (``cross_evidence``)."""
     pieces = "one piece of evidence" if evidence == 1 else f"{evidence} independent pieces of evidence"
     these = f"{matches} accepted graph match{'es' if matches != 1 else ''} with {partner}"
     verb = "are" if matches != 1 else "is"
+    if matches == 1:
+        why = ""
+    elif sharing:
+        why = f" (here: {' and '.join(k.value for k in Sharing if k in sharing)} count once)"
+    else:
+        why = f" ({', '.join(k.value for k in Sharing)}, count once)"
     return (
-        f"{agent} is not placed in the shared frame: its {these} {verb} {pieces} (matches that found the same "
-        "objects, one robot's matches along the same straight stretches of both, or matches too close to chance "
-        "for the number the pair has tried, count once), and a robot "
+        f"{agent} is not placed in the shared frame: its {these} {verb} {pieces}{why}, and a robot "
         f"enters it once {needed} independent matches agree (backend.min_closures_to_anchor; 1 trusts single "
         "matches and reports them provisional)"
     ) + (

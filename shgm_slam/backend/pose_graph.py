@@ -758,6 +758,23 @@ class MultiRobotPoseGraph:
         this history: a restored graph starts it afresh)."""
         return [(robot, self._closures[cid]) for robot, cid in self._anchorings]
 
+    def shared_support(self, robot_a: str, robot_b: str) -> frozenset:
+        """What two or more of the graph matches behind two robots' accepted closures rest on in common (their
+        objects, and the pseudo-objects of straight stretches and of marginal matches): why those matches are
+        fewer independent pieces of evidence than matches. Empty when no two of them share anything."""
+        by_source: dict[tuple, set] = {}
+        for c in self._closures:
+            if c.status is ClosureStatus.ACCEPTED and c.robot_a != c.robot_b and {c.robot_a, c.robot_b} == {
+                robot_a, robot_b,
+            }:  # fmt: skip
+                by_source.setdefault(c.evidence, set()).update(self._support.get(c.closure_id, ()))
+        seen: set = set()
+        shared: set = set()
+        for items in by_source.values():
+            shared |= seen & items
+            seen |= items
+        return frozenset(shared)
+
     def closures(self) -> list[ClosureRecord]:
         """Every closure so far (canonical robot order) with its current status and reason."""
         return list(self._closures)

@@ -9,7 +9,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from shgm_slam.backend.confirmation import AgentPlacement, Placement, Support, describe_waiting, placements
+from shgm_slam.backend.confirmation import (
+    AgentPlacement,
+    Placement,
+    Sharing,
+    Support,
+    describe_waiting,
+    placements,
+)
 from shgm_slam.backend.pose_graph import ClosureStatus, PoseGraphState, make_pose_graph
 from shgm_slam.config import ShgmConfig
 from shgm_slam.descriptors import NodeDescriptors
@@ -785,7 +792,8 @@ class MapServer:
         partner = max(matches, key=lambda o: (pg.evidence_between(agent, o), len(matches[o]), o))
         others = tuple(sorted(set(matches) - {partner}))
         return describe_waiting(agent, partner, max(1, pg.evidence_between(agent, partner)),
-                                pg.min_closures_to_anchor, len(matches[partner]), others)  # fmt: skip
+                                pg.min_closures_to_anchor, len(matches[partner]), others,
+                                _sharing(pg.shared_support(agent, partner)))  # fmt: skip
 
     def measured_drift(self, agent: str) -> float | None:
         """Odometry rotation drift (rad per metre) ``agent``'s own loop closures measured beyond the prior
@@ -874,6 +882,20 @@ def _evidence(result: MatchResult, keyframe_b: int) -> MatchEvidence | None:
 def _listed(pair: tuple[int, int] | None) -> list[int] | None:
     """A closure's stretch pair as ``matches.json`` writes it (a list, or null)."""
     return None if pair is None else list(pair)
+
+
+def _sharing(shared: frozenset) -> tuple[Sharing, ...]:
+    """The kinds of what several graph matches rest on in common (``MultiRobotPoseGraph.shared_support``):
+    stretch tokens (``backend/stretches.py``), the marginal pseudo-object (``MARGINAL_OBJECT``), objects."""
+    kinds = set()
+    for item in shared:
+        if isinstance(item, tuple) and item and item[0] == "stretch":
+            kinds.add(Sharing.STRETCHES)
+        elif isinstance(item, tuple) and len(item) == 2 and str(item[1]).startswith(MARGINAL_OBJECT):
+            kinds.add(Sharing.CHANCE)
+        else:
+            kinds.add(Sharing.OBJECTS)
+    return tuple(k for k in Sharing if k in kinds)
 
 
 def _objects(support: Support) -> frozenset[tuple[str, int]]:

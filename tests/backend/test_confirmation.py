@@ -8,6 +8,7 @@ import pytest
 from shgm_slam.backend.confirmation import (
     AgentPlacement,
     Placement,
+    Sharing,
     confirms,
     describe,
     describe_waiting,
@@ -182,6 +183,13 @@ def test_waiting_line_counts_matches_and_evidence() -> None:
     many = describe_waiting("car2", "car1", evidence=1, needed=3, matches=4)
     assert "4 accepted graph matches with car1 are one piece of evidence" in many and "once 3 independent" in many
     assert "do not count" not in many
+    assert "(matches that found the same objects, matches along the same straight stretches of both drives, " \
+        "matches too close to chance for the number the pair has tried, count once)" in many  # not known: all kinds
+    assert "count once" not in one  # a single match is one piece by itself
+    why = describe_waiting("car2", "car1", evidence=1, needed=2, matches=4,
+                           sharing=(Sharing.STRETCHES, Sharing.OBJECTS))  # fmt: skip
+    assert "(here: matches that found the same objects and matches along the same straight stretches of both " \
+        "drives count once)" in why
     across = describe_waiting("car2", "car1", evidence=1, needed=2, matches=4, others=("uav",))
     assert across.endswith("its accepted matches with uav do not count as another piece: they lie on the same "
                            "straight stretch of its drive, rest on the same objects or disagree on its place")
