@@ -277,7 +277,8 @@ def describe_waiting(
     if matches == 1:
         why = ""
     elif sharing:
-        why = f" (here: {' and '.join(k.value for k in Sharing if k in sharing)} count once)"
+        kinds = [k.value for k in Sharing if k in sharing]
+        why = f" (here: {', '.join(kinds[:-1]) + ' and ' if len(kinds) > 1 else ''}{kinds[-1]} count once)"
     else:
         why = f" ({', '.join(k.value for k in Sharing)}, count once)"
     return (

@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from shgm_slam.agents import agent_robot
+from shgm_slam.backend.confirmation import describe
 from shgm_slam.bench.match_truth import judge_matches
 from shgm_slam.bench.system import write_report
 from shgm_slam.config import ShgmConfig
@@ -50,6 +52,7 @@ from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import read_tum
 from shgm_slam.robot.remote import default_jobs
 from shgm_slam.runner import open_robots, replay_backend, run_slam
+from shgm_slam.server.map_server import MapServer
 from shgm_slam.sim.cache import simulate_cached
 from shgm_slam.sim.corruption import CorruptionLevels
 from shgm_slam.sim.simulate import DEFAULT_MAX_DEPTH_M
@@ -424,10 +427,30 @@ def replay_one(recorded: Path, mode: InputMode, run_dir: Path, robots: list[str]
     metrics["closures_accepted"] = sum(m.accepted for m in matches)
     metrics["closures_rejected"] = sum(m.success and not m.accepted and not m.duplicate for m in matches)
     metrics["replayed_from"] = str(recorded)
+    _replace_placement_facts(metrics, node.map)
     for gt in Path(recorded).glob("*_gt_*.txt"):
         (Path(run_dir) / gt.name).write_bytes(gt.read_bytes())
     (Path(run_dir) / "metrics.json").write_text(to_json_text(metrics) + "\n")
     return metrics
+
+
+def _replace_placement_facts(metrics: dict, server: MapServer) -> None:
+    """The recorded run's placement facts in its ``metrics`` (each robot's ``provisional`` flag and its waiting
+    and provisional lines among its warnings, the ``last_looks``) replaced by what the replayed ``server``
+    decided: the judge reads them, and stale lines would describe the recorded back end."""
+    metrics["last_looks"] = server.last_looks()
+    for rep in metrics.get("robots", []):
+        mine = [a for a in server.agents if agent_robot(a)[0] == rep.get("name")]
+        stale = tuple(f"{a} is {what}" for a in mine for what in ("not placed in the shared frame",
+                                                                  "placed provisionally"))  # fmt: skip
+        lines = [w for w in rep.get("warnings", []) if not str(w).startswith(stale)]
+        for a in mine:
+            if (p := server.placement(a)).provisional:
+                lines.append(describe(a, p))
+            elif (waiting := server.waiting_note(a)) is not None:
+                lines.append(waiting)
+        rep["warnings"] = lines
+        rep["provisional"] = any(server.placement(a).provisional for a in mine)
 
 
 def _match_truth(run_dir: Path, world: Path, mode: InputMode) -> dict:
