@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 
 from shgm_slam.arrays import thinning_stride
-from shgm_slam.backend.confirmation import describe
 from shgm_slam.backend.keys import MAX_AGENTS, segments_per_robot
 from shgm_slam.config import OdometryKind, RobotOverrides, ShgmConfig
 from shgm_slam.data import open_sequence
@@ -553,12 +552,9 @@ def _report_placement(reports: list[RobotReport], fronts: dict[str, RobotFronten
     accepted closures is not placed (too few independent matches): a warning each."""
     for rep in reports:
         for seg in fronts[rep.name].segments:
-            p = server.placement(seg.agent)
-            if p.provisional:
-                rep.provisional = True
-                rep.warnings.append(describe(seg.agent, p))
-            elif (waiting := server.waiting_note(seg.agent)) is not None:
-                rep.warnings.append(waiting)
+            rep.provisional |= server.placement(seg.agent).provisional
+            if (note := server.placement_note(seg.agent)) is not None:
+                rep.warnings.append(note)
 
 
 def _log_placements(viz: Viz, watch: PlacementWatch, server: MapServer) -> None:

@@ -81,3 +81,8 @@ def stretch_token(querier: str, stretch_q: int, partner: str, stretch_p: int) ->
     its keyframe on stretch ``stretch_q`` and ``partner``'s on ``stretch_p``: closures that share it come from
     one robot's queries along one street of each robot and are not independent evidence."""
     return ("stretch", querier, int(stretch_q), partner, int(stretch_p))
+
+
+def is_stretch_token(item: object) -> bool:
+    """True when ``item`` is a pseudo-object ``stretch_token`` made (not a matched object)."""
+    return isinstance(item, tuple) and len(item) == 5 and item[0] == "stretch"

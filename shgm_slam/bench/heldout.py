@@ -40,7 +40,6 @@ from pathlib import Path
 import numpy as np
 
 from shgm_slam.agents import agent_robot
-from shgm_slam.backend.confirmation import describe
 from shgm_slam.bench.match_truth import judge_matches
 from shgm_slam.bench.system import write_report
 from shgm_slam.config import ShgmConfig
@@ -444,12 +443,7 @@ def _replace_placement_facts(metrics: dict, server: MapServer) -> None:
         stale = tuple(f"{a} is {what}" for a in mine for what in ("not placed in the shared frame",
                                                                   "placed provisionally"))  # fmt: skip
         lines = [w for w in rep.get("warnings", []) if not str(w).startswith(stale)]
-        for a in mine:
-            if (p := server.placement(a)).provisional:
-                lines.append(describe(a, p))
-            elif (waiting := server.waiting_note(a)) is not None:
-                lines.append(waiting)
-        rep["warnings"] = lines
+        rep["warnings"] = lines + [note for a in mine if (note := server.placement_note(a)) is not None]
         rep["provisional"] = any(server.placement(a).provisional for a in mine)
 
 

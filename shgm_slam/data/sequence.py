@@ -44,13 +44,19 @@ def decode_depth(depth_png: np.ndarray) -> np.ndarray:
     return depth_png.astype(np.float32) / np.float32(DEPTH_SCALE)
 
 
+def read_perceive_manifest(root: Path) -> dict | None:
+    """``root``'s ``perceive.json`` as a dict; None when it is absent, unreadable or not an object."""
+    try:
+        manifest = json.loads((Path(root) / PERCEIVE_MANIFEST).read_text())
+    except (OSError, ValueError, RecursionError):
+        return None
+    return manifest if isinstance(manifest, dict) else None
+
+
 def _unfinished_perceive(root: Path) -> bool:
     """True when ``root`` holds a ``perceive`` manifest that says the job did not finish."""
-    try:
-        manifest = json.loads((root / PERCEIVE_MANIFEST).read_text())
-    except (OSError, ValueError, RecursionError):
-        return False
-    return isinstance(manifest, dict) and manifest.get("complete") is False
+    manifest = read_perceive_manifest(root)
+    return manifest is not None and manifest.get("complete") is False
 
 
 class ShgmSequence(KittiSequence):

@@ -42,7 +42,7 @@ import onnxruntime as ort
 
 from shgm_slam.data.base import open_sequence, parse_sequence_spec
 from shgm_slam.data.kitti import IMAGE_SOURCES, frame_file
-from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, PERCEIVE_MANIFEST, encode_depth
+from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, PERCEIVE_MANIFEST, encode_depth, read_perceive_manifest
 from shgm_slam.data.validate import check_sequence_start
 from shgm_slam.errors import ConfigError, DataError, ModelError
 from shgm_slam.io.json_text import to_json_text
@@ -239,11 +239,7 @@ def png_is_valid(path: Path, dtype: type, size_wh: tuple[int, int]) -> bool:
 
 def _unreadable_before(out: Path) -> set[int]:
     """Frames an earlier run of ``perceive`` into ``out`` could not read (its manifest's ``unreadable``)."""
-    try:
-        previous = json.loads((out / MANIFEST).read_text())
-    except (OSError, ValueError, RecursionError):
-        return set()
-    listed = previous.get("unreadable") if isinstance(previous, dict) else None
+    listed = (read_perceive_manifest(out) or {}).get("unreadable")
     return {i for i in listed if isinstance(i, int)} if isinstance(listed, list) else set()
 
 

@@ -14,10 +14,12 @@ from shgm_slam.backend.confirmation import (
     Placement,
     Sharing,
     Support,
+    describe,
     describe_waiting,
     placements,
 )
 from shgm_slam.backend.pose_graph import ClosureStatus, PoseGraphState, make_pose_graph
+from shgm_slam.backend.stretches import is_stretch_token
 from shgm_slam.config import ShgmConfig
 from shgm_slam.descriptors import NodeDescriptors
 from shgm_slam.descriptors.incremental import IncrementalDescriptors
@@ -775,6 +777,12 @@ class MapServer:
             self._placements = (pg.version, decided)
         return self._placements[1].get(agent, AgentPlacement(Placement.UNPLACED))
 
+    def placement_note(self, agent: str) -> str | None:
+        """The line a user gets about ``agent``'s placement when it is not plainly placed: provisional
+        (``describe``) or waiting for evidence (``waiting_note``); None otherwise."""
+        p = self.placement(agent)
+        return describe(agent, p) if p.provisional else self.waiting_note(agent)
+
     def waiting_note(self, agent: str) -> str | None:
         """Why unplaced ``agent`` is not in the shared frame although some of its inter-robot closures were
         accepted (too few independent matches, ``describe_waiting``), or None (placed, or nothing accepted)."""
@@ -889,7 +897,7 @@ def _sharing(shared: frozenset) -> tuple[Sharing, ...]:
     stretch tokens (``backend/stretches.py``), the marginal pseudo-object (``MARGINAL_OBJECT``), objects."""
     kinds = set()
     for item in shared:
-        if isinstance(item, tuple) and item and item[0] == "stretch":
+        if is_stretch_token(item):
             kinds.add(Sharing.STRETCHES)
         elif isinstance(item, tuple) and len(item) == 2 and str(item[1]).startswith(MARGINAL_OBJECT):
             kinds.add(Sharing.CHANCE)
