@@ -29,6 +29,13 @@ console = Console()
 err_console = Console(stderr=True)
 
 
+def _nonempty_path(text: str) -> Path:
+    """An output path from the command line; an empty one is refused (it would mean the current folder)."""
+    if not str(text).strip():
+        raise typer.BadParameter("is empty: give a folder or file path (for the current folder, '.')")
+    return Path(text)
+
+
 def lit(value: object) -> str:
     """``value`` as text that rich prints literally (paths, names and messages may hold ``[...]``)."""
     return escape(str(value))
@@ -122,7 +129,8 @@ def _simulate_with_progress(scenario: str, out: Path, seed: int = 0, *, cached: 
 def simulate_command(
     scenario: Annotated[str, typer.Option("--scenario", "-s", help="synthia-like | airsim-like | disjoint | "
                                           "kitti-paths")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="output folder (one sequence per robot)")],
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="output folder (one sequence per robot)")],
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world and trajectory seed")] = 0,
     resolution: Annotated[str, typer.Option(help="image size WIDTHxHEIGHT")] = "640x192",
     fps: Annotated[float, typer.Option(min=0.1, max=100.0, help="frame rate, Hz")] = 10.0,
@@ -177,11 +185,14 @@ def simulate_command(
 def graph(
     sequence: Annotated[str, typer.Argument(help="SEQ[:start-end] with depth/, semantic/ and poses.txt; the range "
                                             "is half-open: frames start..end-1 (08:0-1500 = 1500 frames)")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="graph file to write (shgm-graph/1 JSON)")],
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="graph file to write (shgm-graph/1 JSON)")],
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
     connectivity: Annotated[float | None, typer.Option(help="edge threshold, metres (config: 10)")] = None,
     merge_radius: Annotated[float | None, typer.Option(help="same-label merge radius, m (config: 5)")] = None,
-    keyframe_every: Annotated[float | None, typer.Option(help="keyframe spacing, metres (config: 2)")] = None,
+    keyframe_every: Annotated[
+        float | None, typer.Option(min=0.1, max=1000.0, help="keyframe spacing, metres (config: 2)")
+    ] = None,
 ) -> None:
     """Build a sequence's semantic graph from its ground-truth poses, depth and labels; write it as JSON."""
     from pydantic import ValidationError
@@ -459,7 +470,8 @@ def run(
         ),
     ] = None,
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
-    out: Annotated[Path | None, typer.Option("--out", help="results folder", show_default="results/<time>")] = None,
+    out: Annotated[Path | None, typer.Option("--out", parser=_nonempty_path,
+                                             help="results folder", show_default="results/<time>")] = None,
     rerun: Annotated[str, typer.Option("--rerun", help="spawn | save | connect | off")] = "save",
     rerun_url: Annotated[str | None, typer.Option(help="gRPC URL for --rerun connect")] = None,
     depth_model: Annotated[Path | None, typer.Option(help="ONNX depth model (card next to it)")] = None,
@@ -505,7 +517,7 @@ def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_
 def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_frame: bool, overwrite: bool = False,
                  jobs: int | None = None):  # fmt: skip
     from shgm_slam.errors import ConfigError
-    from shgm_slam.io.export import make_results_dir
+    from shgm_slam.io.export import claimed_results_dir
     from shgm_slam.runner import check_out_outside_sequences, open_robots, prepare_frontends
     from shgm_slam.viz.rerun_logger import DEFAULT_CONNECT_URL, RerunMode, make_viz, viewer_address
 
@@ -521,11 +533,11 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
     # everything that can refuse the run (config, models, first frames) before --out gets a file: a refused
     # run must not leave files that make the next run with the same --out ask for --overwrite
     fronts = prepare_frontends(robots, cfg)
-    out_dir = make_results_dir(out, overwrite=overwrite)
-    viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=rerun_url,
-                   max_cloud_points=8000)
-    with _stop_signals_as_interrupt():
-        return _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame, fronts, jobs)
+    with claimed_results_dir(out, overwrite=overwrite) as out_dir:  # locked: a second run on it is refused
+        viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=rerun_url,
+                       max_cloud_points=8000)
+        with _stop_signals_as_interrupt():
+            return _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame, fronts, jobs)
 
 
 @contextlib.contextmanager
@@ -567,7 +579,8 @@ def _late_stop(_signum, _frame) -> None:
 @app.command("server")
 @handle_errors
 def server_command(
-    out: Annotated[Path, typer.Option("--out", help="results folder (a journal there is replayed: restart)")],
+    out: Annotated[Path, typer.Option("--out", parser=_nonempty_path,
+                                      help="results folder (a journal there is replayed: restart)")],
     listen: Annotated[
         str | None, typer.Option(help="Zenoh endpoint(s) to listen on, comma-separated",
                                   show_default="tcp/127.0.0.1:7447")
@@ -593,7 +606,7 @@ def server_command(
     """Map server for robots in separate processes (Eclipse Zenoh): fuses their maps, writes the results."""
     from shgm_slam.config import load_config
     from shgm_slam.errors import ConfigError
-    from shgm_slam.io.export import make_results_dir
+    from shgm_slam.io.export import claimed_results_dir
     from shgm_slam.server.serve import serve
     from shgm_slam.transport.keys import validate_robot_name
     from shgm_slam.viz.rerun_logger import RerunMode, make_viz
@@ -605,12 +618,14 @@ def server_command(
         mode = RerunMode(rerun)
     except ValueError:
         raise ConfigError(f"--rerun {rerun!r}: choose spawn, save, connect or off") from None
-    out = make_results_dir(out, overwrite=overwrite, resume_file="journal.bin")  # journal there: a restart
-    viz = make_viz(mode, robots=[], save_path=out / "server.rrd", connect_url=rerun_url, max_cloud_points=8000)
-    console.print(f"map server listening on {lit(listen or 'tcp/127.0.0.1:7447')}"
-                  + (f", expecting {expect} robots" if expect else "; Ctrl-C to finish"))  # fmt: skip
-    with _stop_signals_as_interrupt():
-        result = serve(cfg, out, listen=listen, reference=reference, expect=expect, viz=viz, stale_after_s=stale_after)
+    # locked for the server's life: a second server on this folder would mix its files and journal into it
+    with claimed_results_dir(out, overwrite=overwrite, resume_file="journal.bin") as out:  # journal: a restart
+        viz = make_viz(mode, robots=[], save_path=out / "server.rrd", connect_url=rerun_url, max_cloud_points=8000)
+        with _stop_signals_as_interrupt():
+            result = serve(cfg, out, listen=listen, reference=reference, expect=expect, viz=viz,
+                           stale_after_s=stale_after, started=lambda: console.print(
+                               f"map server listening on {lit(listen or 'tcp/127.0.0.1:7447')}"
+                               + (f", expecting {expect} robots" if expect else "; Ctrl-C to finish")))  # fmt: skip
     s = result.summary
     for name, r in s["robots"].items():
         placed = _placed_text(r["placed"], r["provisional"])
@@ -648,7 +663,8 @@ def robot_command(
     realtime: Annotated[
         bool, typer.Option(help="pace frames by their timestamps", show_default="as fast as it can")
     ] = False,
-    out: Annotated[Path | None, typer.Option("--out", help="write this robot's trajectories here")] = None,
+    out: Annotated[Path | None, typer.Option("--out", parser=_nonempty_path,
+                                             help="write this robot's trajectories here")] = None,
     wait: Annotated[
         float, typer.Option(min=0, max=3600, help="seconds to wait for the server after the last frame")
     ] = 60.0,
@@ -825,7 +841,8 @@ def check_model_command(
 @handle_errors
 def perceive_command(
     sequence: Annotated[str, typer.Argument(help="SEQ[:start-end]; the range is half-open: frames start..end-1")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="output sequence folder (run it again to resume)")],
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="output sequence folder (run it again to resume)")],
     depth_model: Annotated[Path | None, typer.Option(help="ONNX depth model (card next to it)")] = None,
     seg_model: Annotated[Path | None, typer.Option(help="ONNX segmentation model (card next to it)")] = None,
     batch_size: Annotated[int, typer.Option(min=1, max=256, help="frames per model call")] = 8,
@@ -928,7 +945,8 @@ def print_report(text: str) -> None:
 @bench_app.command("simulate")
 @handle_errors
 def bench_simulate(
-    out: Annotated[Path, typer.Option("--out", "-o", help="results JSON")] = Path("results/bench_sim.json"),
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="results JSON")] = Path("results/bench_sim.json"),
     resolution: Annotated[str, typer.Option(help="image size WIDTHxHEIGHT")] = "640x192",
     short_frames: Annotated[int, typer.Option(min=1, max=MAX_FRAMES, help="frames per robot, speed run")] = 40,
     long_frames: Annotated[int, typer.Option(min=1, max=MAX_FRAMES, help="frames per robot, memory run")] = 300,
@@ -947,7 +965,8 @@ def bench_simulate(
 @bench_app.command("localization")
 @handle_errors
 def bench_localization(
-    out: Annotated[Path, typer.Option("--out", "-o", help="results folder: localization.json, .md, pr_curve.png")]
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="results folder: localization.json, .md, pr_curve.png")]
     = Path("results/bench_localization"),
     runs: Annotated[int | None, typer.Option(min=1, max=100000,
                                              help="random transforms per configuration [100; quick 10]")]
@@ -985,7 +1004,8 @@ def bench_localization(
 @bench_app.command("sparse")
 @handle_errors
 def bench_sparse(
-    out: Annotated[Path, typer.Option("--out", "-o", help="results folder: sparse.json, sparse.md")]
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="results folder: sparse.json, sparse.md")]
     = Path("results/bench_sparse"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'A-B' or 'A,B,C' (tuning 10-19; report 210-219)")]
     = "10-19",
@@ -1016,7 +1036,8 @@ def bench_sparse(
 @bench_app.command("system")
 @handle_errors
 def bench_system(
-    out: Annotated[Path, typer.Option("--out", "-o", help="results folder")] = Path("results/bench_system"),
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="results folder")] = Path("results/bench_system"),
     cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
     memory: Annotated[bool, typer.Option(help="also the 1000- vs 4000-frame peak-RSS runs")] = True,
@@ -1037,7 +1058,8 @@ def bench_system(
 @bench_app.command("scale")
 @handle_errors
 def bench_scale(
-    out: Annotated[Path, typer.Option("--out", "-o", help="results folder")] = Path("results/bench_scale"),
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="results folder")] = Path("results/bench_scale"),
     cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
     memory: Annotated[bool, typer.Option(help="also the 1 km vs whole-drive peak-RSS runs (fresh processes)")]
@@ -1060,7 +1082,8 @@ def bench_scale(
 @bench_app.command("robots")
 @handle_errors
 def bench_robots(
-    out: Annotated[Path, typer.Option("--out", "-o", help="results folder")] = Path("results/bench_robots"),
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="results folder")] = Path("results/bench_robots"),
     fleets: Annotated[str, typer.Option(help="comma-separated fleet sizes, 1-8")] = "1,2,4,8",
     sequence: Annotated[str, typer.Option(help="KITTI sequence cut into the robots (00-10; 00: bench scale's world)")]
     = "00",
@@ -1090,7 +1113,8 @@ def bench_robots(
 @bench_app.command("distributed")
 @handle_errors
 def bench_distributed(
-    out: Annotated[Path, typer.Option("--out", "-o", help="results folder")] = Path("results/bench_distributed"),
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="results folder")] = Path("results/bench_distributed"),
     cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="demo world seed")] = 0,
     faults: Annotated[
@@ -1150,7 +1174,8 @@ def _world_seeds(seeds: str) -> tuple[int, ...]:
 @bench_app.command("heldout")
 @handle_errors
 def bench_heldout(
-    out: Annotated[Path, typer.Option("--out", "-o", help="results folder (resumes the runs already in it)")]
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="results folder (resumes the runs already in it)")]
     = Path("results/bench_heldout"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-29) or A-B")]
     = "report",
@@ -1211,7 +1236,8 @@ def bench_heldout(
 @bench_app.command("depth-quality")
 @handle_errors
 def bench_depth_quality(
-    out: Annotated[Path, typer.Option("--out", "-o", help="results folder (resumes the runs already in it)")]
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="results folder (resumes the runs already in it)")]
     = Path("results/bench_depth_quality"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-29) or A-B")]
     = "report",
@@ -1275,7 +1301,8 @@ def bench_depth_quality(
 @bench_app.command("table3")
 @handle_errors
 def bench_table3(
-    out: Annotated[Path, typer.Option("--out", "-o", help="results folder: table3.json, table3.md")]
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+                                      help="results folder: table3.json, table3.md")]
     = Path("results/bench_table3"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (200-209), 'tuning' (10-19), A-B or A,B")]
     = "report",

@@ -7,6 +7,7 @@ Defaults follow the paper and the authors' release (ARCHITECTURE.md, "The algori
 
 from __future__ import annotations
 
+import difflib
 import math
 from enum import Enum
 from pathlib import Path
@@ -16,11 +17,36 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from shgm_slam.errors import ConfigError, parse_failure
-from shgm_slam.labels import DEFAULT_GRAPH_LABELS, THIN_OBJECT_DEPTH_PERCENTILES, VIEWPOINT_DEPENDENT_LABELS
+from shgm_slam.labels import (
+    DEFAULT_GRAPH_LABELS,
+    NUM_CLASSES,
+    THIN_OBJECT_DEPTH_PERCENTILES,
+    VIEWPOINT_DEPENDENT_LABELS,
+)
 
 
 class _Stage(BaseModel):
-    model_config = ConfigDict(extra="forbid", use_enum_values=False)
+    """A stage of the config: unknown keys, NaN / infinite numbers and ``true``/``false`` given for a number
+    are refused (``distance_m: .inf`` kept one keyframe per robot; ``distance_m: true`` read as 1 m)."""
+
+    model_config = ConfigDict(extra="forbid", use_enum_values=False, allow_inf_nan=False)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_numbers(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            for name, value in data.items():
+                field = cls.model_fields.get(name)
+                if isinstance(value, bool) and field is not None and not _admits_bool(field.annotation):
+                    raise ValueError(f"{name}: {str(value).lower()} is not a number; give a number")
+        return data
+
+
+def _admits_bool(annotation: Any) -> bool:
+    """Whether a field annotation (a type, ``X | None``, a generic) takes a bool as itself."""
+    if annotation is bool or annotation is Any:
+        return True
+    return any(_admits_bool(arg) for arg in getattr(annotation, "__args__", ()))
 
 
 class ExtractionConfig(_Stage):
@@ -57,11 +83,12 @@ class ExtractionConfig(_Stage):
     def _consistent(self) -> ExtractionConfig:
         if not self.labels:
             raise ValueError("labels is empty: no object could become a graph node (e.g. [2, 5, 6, 7, 8, 13])")
-        if any(not 0 <= k < 255 for k in self.labels):
+        if any(not 0 <= k < NUM_CLASSES for k in self.labels):
             raise ValueError(f"labels must be Cityscapes train ids 0-18 (255 is 'ignore'), got {list(self.labels)}")
-        bad = {k: q for k, q in self.predicted_depth_percentiles.items() if not (0 <= k < 255 and 0 <= q <= 100)}
+        percentiles = self.predicted_depth_percentiles
+        bad = {k: q for k, q in percentiles.items() if not (0 <= k < NUM_CLASSES and 0 <= q <= 100)}
         if bad:
-            raise ValueError(f"predicted_depth_percentiles maps train ids 0-18 to percentiles 0-100, got {bad}")
+            raise ValueError(f"predicted_depth_percentiles maps train ids 0-18 to percentiles 0-100: {bad}")
         if self.max_depth_m is not None and self.min_depth_m >= self.max_depth_m:
             raise ValueError(f"min_depth_m {self.min_depth_m} must be below max_depth_m {self.max_depth_m}")
         return self
@@ -97,7 +124,7 @@ class DescriptorConfig(_Stage):
     count_backtracking: bool = Field(True, description="count i->m->i paths, as the authors' release does")
     num_walks: int = Field(400, ge=1, le=100_000, description="random-walk baseline: walks per node (X-view)")
     walk_length: int = Field(3, ge=1, le=64, description="random-walk baseline: steps per walk")
-    seed: int = 0
+    seed: int = Field(0, ge=0, description="random generator seed")
 
 
 class CandidateMode(str, Enum):
@@ -137,7 +164,7 @@ class MatchingConfig(_Stage):
         True, description="refit an accepted alignment robustly (Tukey's biweight, no size weights) on its partners "
         "within twice the verification radius; the decision is not changed (matching/polish.py)",
     )
-    seed: int = 0
+    seed: int = Field(0, ge=0, description="random generator seed")
     max_candidates: int = Field(
         600, ge=3, description="clique mode: search the clique among this many best-scoring candidates"
     )
@@ -611,6 +638,28 @@ class ShgmConfig(_Stage):
         return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a key given twice in one mapping (plain YAML keeps the last silently)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: set = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if isinstance(key, str | int | float | bool) and key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} given twice in one mapping", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
+def _yaml_problem(exc: yaml.MarkedYAMLError) -> str:
+    """One line: what is wrong and where (1-based line and column)."""
+    mark = exc.problem_mark or exc.context_mark
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return where + " ".join(str(exc.problem or exc.context or exc).split())
+
+
 def load_config(path: Path | str | None) -> ShgmConfig:
     """Load a YAML config (partial configs fill in defaults); ``None`` gives the defaults.
 
@@ -620,12 +669,16 @@ def load_config(path: Path | str | None) -> ShgmConfig:
     if path is None:
         return ShgmConfig()
     path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"config file {path} is a folder; give a YAML file (`shgm-slam dump-config > config.yaml`)")
     if not path.is_file():
         raise ConfigError(f"config file {path} does not exist (write one with `shgm-slam dump-config > {path}`)")
     try:
-        data = yaml.safe_load(path.read_text()) or {}
+        data = yaml.load(path.read_text(), Loader=_UniqueKeyLoader) or {}
+    except yaml.MarkedYAMLError as exc:
+        raise ConfigError(f"config file {path} is not valid YAML: {_yaml_problem(exc)}") from None
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from None
+        raise ConfigError(f"config file {path} is not valid YAML: {' '.join(str(exc).split())}") from None
     except (ValueError, RecursionError) as exc:  # an integer of thousands of digits, nesting too deep
         raise ConfigError(f"config file {path} cannot be read: {parse_failure(exc)}") from None
     if not isinstance(data, dict):
@@ -635,4 +688,36 @@ def load_config(path: Path | str | None) -> ShgmConfig:
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
-        raise ConfigError(f"config file {path}: {where}: {first['msg']} ({exc.error_count()} error(s))") from None
+        hint = ""
+        if first["type"] == "extra_forbidden":
+            hint = _unknown_key_hint(str(first["loc"][-1]), _fields_at(first["loc"][:-1]))
+        raise ConfigError(
+            f"config file {path}: {where}: {first['msg']}{hint} ({exc.error_count()} error(s))"
+        ) from None
+
+
+def _unknown_key_hint(key: str, known: list[str]) -> str:
+    """'; did you mean X?' for a near miss, else the keys allowed there (or where to see them)."""
+    close = difflib.get_close_matches(key, known, n=1)
+    if close:
+        return f"; did you mean {close[0]}?"
+    if known and len(known) <= 12:
+        return f"; known here: {', '.join(known)}"
+    return "; `shgm-slam dump-config` lists every key" if known else ""
+
+
+def _fields_at(loc: tuple) -> list[str]:
+    """The field names a config location (``("robots", "uav")``, ``("matching",)``) takes; [] if unknown."""
+    model: Any = ShgmConfig
+    keyed = False  # the next part is a key of a dict of models (robots.<name>)
+    for part in loc:
+        if keyed:
+            keyed = False
+            continue
+        field = model.model_fields.get(part) if isinstance(model, type) and issubclass(model, BaseModel) else None
+        if field is None:
+            return []
+        model = field.annotation
+        if getattr(model, "__origin__", None) is dict:
+            model, keyed = model.__args__[1], True
+    return list(model.model_fields) if isinstance(model, type) and issubclass(model, BaseModel) else []

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from shgm_slam.data.base import open_sequence
-from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.errors import ConfigError, DataError, parse_failure
 from shgm_slam.io.trajectories import associate, read_comments, read_tum
 from shgm_slam.metrics import AlignMode, ate, joint_ate
 from shgm_slam.shared_frame import shared_frame_ground_truth
@@ -101,9 +101,19 @@ def run_robot_order(results_dir: Path) -> list[str]:
     metrics = results_dir / "metrics.json"
     if metrics.is_file():
         try:
-            return [r["name"] for r in json.loads(metrics.read_text())["robots"]]
-        except (ValueError, KeyError, TypeError, RecursionError) as exc:
-            raise DataError(f"{metrics} is unreadable ({exc}); is {results_dir} a results folder of `run`?") from None
+            data = json.loads(metrics.read_text())
+        except (ValueError, RecursionError) as exc:
+            raise DataError(
+                f"{metrics} is not valid JSON ({parse_failure(exc)}); is {results_dir} a results folder of `run`?"
+            ) from None
+        robots = data.get("robots") if isinstance(data, dict) else None
+        names = [r.get("name") for r in robots if isinstance(r, dict)] if isinstance(robots, list) else []
+        if not names or not all(isinstance(n, str) and n for n in names):
+            raise DataError(
+                f"{metrics} has no list of robots with their names (\"robots\": [{{\"name\": ...}}]); is "
+                f"{results_dir} a results folder of `run`, and the file as the run wrote it?"
+            )
+        return names
     names = sorted(p.name.removesuffix("_odometry_tum.txt") for p in results_dir.glob("*_odometry_tum.txt"))
     if not names:
         raise DataError(
@@ -112,13 +122,29 @@ def run_robot_order(results_dir: Path) -> list[str]:
     return names
 
 
-def run_frame_counts(results_dir: Path) -> dict[str, int]:
-    """Robot -> frames of its sequence (range) in the run, from ``metrics.json``; empty when not recorded."""
+def run_frame_counts(results_dir: Path, key: str = "frames") -> dict[str, int]:
+    """Robot -> frames of its sequence (range) in the run, from ``metrics.json``; empty when not recorded.
+    Another integer of each robot's entry with ``key`` (``fused_poses``: rows of its fused trajectory)."""
     try:
         robots = json.loads((results_dir / "metrics.json").read_text())["robots"]
-        return {r["name"]: r["frames"] for r in robots if isinstance(r.get("frames"), int)}
+        return {r["name"]: r[key] for r in robots if isinstance(r.get(key), int) and not isinstance(r[key], bool)}
     except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
         return {}  # no metrics.json (``run_robot_order`` says what is wrong with an unreadable one)
+
+
+def check_fused_rows(results_dir: Path, robot: str, rows: int) -> None:
+    """Refuse a fused trajectory file whose row count differs from what the run wrote (``metrics.json``'s
+    ``fused_poses``; nothing to check in folders written before it was recorded).
+
+    Raises:
+        DataError: the file was cut short, emptied or extended after the run.
+    """
+    expected = run_frame_counts(results_dir, "fused_poses").get(robot)
+    if expected is not None and expected != rows:
+        raise DataError(
+            f"{results_dir / f'{robot}_fused_tum.txt'} holds {rows} poses but the run wrote {expected} "
+            f"({results_dir / 'metrics.json'}): the file was cut or edited; restore it or run again"
+        )
 
 
 def check_frame_counts(results_dir: Path, sequences: dict[str, Sequence]) -> None:
@@ -137,6 +163,16 @@ def check_frame_counts(results_dir: Path, sequences: dict[str, Sequence]) -> Non
                 f"--gt {name}: its sequence has {len(seq)} frames but the run had {counts[name]} for {name} "
                 f"({results_dir / 'metrics.json'}); pass the same NAME=PATH[:start-end] as the run's --robot"
             )
+        odometry = results_dir / f"{name}_odometry_tum.txt"
+        if odometry.is_file():  # the same count from another range: the run's frame times are not the sequence's
+            t_run = read_tum(odometry)[0]
+            t_seq = np.asarray(seq.timestamps_s, dtype=np.float64)
+            if len(associate(t_run, t_seq)[0]) < len(t_run):
+                raise DataError(
+                    f"--gt {name}: the run's frame times ({t_run[0]:.3f}-{t_run[-1]:.3f} s, {odometry.name}) are not "
+                    f"this sequence's ({t_seq[0]:.3f}-{t_seq[-1]:.3f} s); pass the same NAME=PATH[:start-end] as "
+                    "the run's --robot"
+                )
 
 
 def _evaluate_robot(
@@ -146,8 +182,10 @@ def _evaluate_robot(
     if not fused_file.is_file():
         if fused_file.exists():  # a folder (or another non-file) of that name: not "not placed"
             raise DataError(f"{fused_file} is not a file; it must be the TUM trajectory `run` wrote for {name}")
+        check_fused_rows(fused_file.parent, name, 0)  # the run wrote one: deleted since
         return RobotEvaluation(name, 0, 0, note="not placed (no fused trajectory)"), None
     t_est, est = read_tum(fused_file)
+    check_fused_rows(fused_file.parent, name, len(t_est))
     rows_est, rows_gt = associate(t_est, t_gt)
     rep = RobotEvaluation(name, len(t_est), len(rows_est), provisional=is_provisional(fused_file))
     notes = ["provisional: no independent graph match confirms its place"] if rep.provisional else []
@@ -194,7 +232,8 @@ def evaluate_results(
 
     root = Path(results_dir)
     if not root.is_dir():
-        raise DataError(f"results folder {root} does not exist; pass the --out folder of `run` or `demo`")
+        what = "is a file, not a folder" if root.exists() else "does not exist"
+        raise DataError(f"results folder {root} {what}; pass the --out folder of `run` or `demo`")
     if (root / INCOMPLETE_FILE).is_file():
         raise DataError(
             f"{root} holds no results: its run ended with an error ({root / INCOMPLETE_FILE} says why and what to "
@@ -251,6 +290,8 @@ def evaluate_results(
         else:
             fused = root / f"{r}_fused_tum.txt"
             count = len(read_tum(fused)[0]) if fused.exists() else 0  # read_tum refuses a folder of that name
+            if count:
+                check_fused_rows(root, r, count)
             provisional = count > 0 and is_provisional(fused)
             result.robots.append(RobotEvaluation(r, count, 0, note="no ground truth given", provisional=provisional))
     if joint:

@@ -41,19 +41,21 @@ from shgm_slam.server.node import ServerNode
 from shgm_slam.server.placement import PlacementWatch
 from shgm_slam.server.records import MatchRecord, PairMatches, pair_matches
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
+from shgm_slam.transport.keys import validate_robot_name
 from shgm_slam.types import Sequence
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
 
 log = logging.getLogger(__name__)
 
-_ROBOT_RE = re.compile(r"^(?P<name>[A-Za-z][A-Za-z0-9_-]{0,31})=(?P<spec>.+)$")
+_ROBOT_RE = re.compile(r"^(?P<name>[^=]*)=(?P<spec>.+)$")
 
 
 def parse_robot_arg(text: str) -> tuple[str, str]:
     """Split ``NAME=PATH[:start-end]`` into ``(name, spec)``.
 
     Raises:
-        ConfigError: the text is not of that form (names: a letter, then letters, digits, ``_`` or ``-``).
+        ConfigError: the text is not of that form, or the name is not a valid robot name
+            (``transport.keys.validate_robot_name``: 1-32 characters, a letter first; ``server`` is reserved).
     """
     m = _ROBOT_RE.match(text.strip())
     if not m:
@@ -61,6 +63,10 @@ def parse_robot_arg(text: str) -> tuple[str, str]:
             f"--robot {text!r}: expected NAME=PATH[:start-end], e.g. car1=data/seq08:0-1500 "
             "(names start with a letter; letters, digits, _ and - only)"
         )
+    try:
+        validate_robot_name(m["name"])
+    except ConfigError as exc:
+        raise ConfigError(f"--robot {text!r}: {exc}") from None
     return m["name"], m["spec"]
 
 
@@ -150,6 +156,7 @@ class RobotReport:
     segments: int = 1
     segments_placed: int = 0
     placed_fraction: float = 0.0
+    fused_poses: int = 0  # rows of <robot>_fused_tum.txt (``eval`` refuses a file that holds fewer or more)
     odometry_failures: int = 0
     failure_reasons: list[str] = field(default_factory=list)
     frames_dropped: int = 0  # frames between a divergence's onset and the next segment's first frame
@@ -614,6 +621,7 @@ def _evaluate(
             r, len(seq), processed[r], len(seq) - processed[r], front.num_keyframes,
             sum(s.num_nodes for s in front.segments), bool(with_kf) and all(s.index in placed for s in with_kf),
         )  # fmt: skip
+        rep.fused_poses = 0 if fused is None else int(np.isfinite(fused.reshape(len(fused), -1)).all(axis=1).sum())
         if front.odometry_choice is not None:
             rep.odometry, rep.odometry_reason = front.odometry_choice.kind.value, front.odometry_choice.reason
         if rep.odometry == OdometryKind.VISUAL.value and front.measured_frames:

@@ -20,6 +20,16 @@ from shgm_slam.runner import open_robots, run_slam
         ("extraction: {labels: [2, 255]}", "train ids"),
         ("extraction: {min_depth_m: 40, max_depth_m: 30}", "must be below max_depth_m"),
         ("robots: {uav: {extraction: {labels: []}}}", "labels is empty"),
+        ("extraction: {labels: [0, 99]}", "train ids 0-18"),  # no such Cityscapes class: no node ever
+        ("keyframes: {distance_m: .inf}", r"keyframes\.distance_m: Input should be a finite number"),  # 1 keyframe
+        ("matching: {max_rmse_m: .nan}", "finite number"),
+        ("keyframes: {distance_m: true}", "distance_m: true is not a number"),  # read as 1 m before
+        ("descriptor: {seed: -1}", r"descriptor\.seed: Input should be greater than or equal to 0"),
+        ("matching: {seed: -1}", r"matching\.seed"),
+        ("keyframes: {distance_m: 3}\nkeyframes: {distance_m: 4}", r"line 2, column 1: key 'keyframes' given twice"),
+        ("keyframes:\n  distance_m: [3\n", r"not valid YAML: line \d+, column \d+: expected ',' or ']'"),
+        ("matching: {topk: 3}", r"matching\.topk: Extra inputs are not permitted; did you mean top_k\?"),
+        ("robots: {uav: {graph: {merge_radius_m: 3}}}", "known here: extraction, odometry, keyframes, perception"),
     ],
 )
 def test_settings_that_make_a_run_do_nothing_are_refused(tmp_path: Path, yaml_text: str, culprit: str) -> None:
@@ -98,3 +108,17 @@ def test_an_integer_of_thousands_of_digits_or_deep_nesting_is_said_in_our_words(
     deep.write_text("a: " + "[" * 5000 + "]" * 5000 + "\n")
     with pytest.raises(ConfigError, match="its nesting is too deep"):
         load_config(deep)
+
+
+def test_true_and_false_still_set_switches(tmp_path: Path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text("matching: {gravity_aligned: true, polish: false}\n"
+                    "odometry: {image_rotation: false, shuffle_points: true}\n")  # fmt: skip
+    cfg = load_config(path)
+    assert cfg.matching.gravity_aligned and not cfg.matching.polish
+    assert not cfg.odometry.image_rotation and cfg.odometry.shuffle_points
+
+
+def test_a_folder_given_as_the_config_is_named_so(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="is a folder; give a YAML file"):
+        load_config(tmp_path)

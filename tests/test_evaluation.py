@@ -96,6 +96,8 @@ def test_unplaced_robot_and_errors(world, tmp_path):
         evaluate_results(tmp_path, {**robots, "bus": robots["car1"]})
     with pytest.raises(DataError, match="does not exist"):
         evaluate_results(tmp_path / "nope")
+    with pytest.raises(DataError, match="is a file, not a folder"):
+        evaluate_results(tmp_path / "metrics.json")
     with pytest.raises(ConfigError, match="NAME=PATH"):
         open_ground_truth(["just/a/path"])
 
@@ -109,6 +111,10 @@ def test_ground_truth_with_another_frame_count_than_the_run_is_refused(world, tm
     res = CliRunner().invoke(app, ["eval", str(tmp_path), "--gt", f"car1={world / 'car1'}", "--gt",
                                    f"car2={world / 'car2'}:2-"])  # fmt: skip
     assert res.exit_code == 2 and "has 10 frames but the run had 9 for car2" in " ".join(res.output.split())
+    shifted = {**robots, "car2": open_sequence(f"{world / 'car2'}:0-9")}  # the run's count, another range
+    with pytest.raises(DataError, match=r"--gt car2: the run's frame times .* are not this sequence's"):
+        evaluate_results(tmp_path, shifted)
+    assert not (tmp_path / "car1_gt_tum.txt").exists()
 
 
 def test_a_fused_trajectory_that_is_a_directory_is_not_taken_for_an_unplaced_robot(world, tmp_path):
@@ -116,6 +122,23 @@ def test_a_fused_trajectory_that_is_a_directory_is_not_taken_for_an_unplaced_rob
     (tmp_path / "car2_fused_tum.txt").unlink()
     (tmp_path / "car2_fused_tum.txt").mkdir()
     with pytest.raises(DataError, match=r"car2_fused_tum\.txt is not a file"):
+        evaluate_results(tmp_path, robots)
+
+
+def test_a_fused_trajectory_cut_or_deleted_after_the_run_is_refused(world, tmp_path):
+    """A truncated file evaluated as "3/3 poses" with an ATE; a deleted one as "not placed"."""
+    robots = _results(world, tmp_path)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    for r in metrics["robots"]:
+        r["fused_poses"] = len(read_tum(tmp_path / f"{r['name']}_fused_tum.txt")[0])
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    assert len(evaluate_results(tmp_path, robots).robots) == 2  # as written: fine
+    lines = (tmp_path / "car2_fused_tum.txt").read_text().splitlines(keepends=True)
+    (tmp_path / "car2_fused_tum.txt").write_text("".join(lines[:-3]))
+    with pytest.raises(DataError, match=r"car2_fused_tum\.txt holds 6 poses but the run wrote 9"):
+        evaluate_results(tmp_path)
+    (tmp_path / "car2_fused_tum.txt").unlink()
+    with pytest.raises(DataError, match="holds 0 poses but the run wrote 9"):
         evaluate_results(tmp_path, robots)
 
 
@@ -155,6 +178,9 @@ def test_cli_run_writes_ground_truth_that_eval_and_evo_read(world, tmp_path):
     assert res.exit_code == 0, res.output
     assert (out / "car1_gt_tum.txt").is_file() and (out / "car2_gt_tum.txt").is_file()
     metrics = {r["name"]: r for r in json.loads((out / "metrics.json").read_text())["robots"]}
+    for name in ("car1", "car2"):  # what eval checks the files against
+        fused = out / f"{name}_fused_tum.txt"
+        assert metrics[name]["fused_poses"] == (len(read_tum(fused)[0]) if fused.exists() else 0)
     rows = {r.name: r for r in evaluate_results(out).robots}
     assert rows["car1"].ate_fused_m == pytest.approx(metrics["car1"]["ate_fused_m"], abs=1e-6)
     if metrics["car2"]["localized"]:
@@ -162,3 +188,20 @@ def test_cli_run_writes_ground_truth_that_eval_and_evo_read(world, tmp_path):
         # the joint fit of the run's summary and of eval agree (the same poses, read back from the files)
         for name in ("car1", "car2"):
             assert rows[name].ate_fused_joint_m == pytest.approx(metrics[name]["ate_fused_joint_m"], abs=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ('{"robots": [{"nam": "car1"}]}', "has no list of robots with their names"),
+        ('{"robots": ["car1"]}', "has no list of robots"),
+        ("[1, 2]", "has no list of robots"),
+        ('{"robots": [', "is not valid JSON"),
+    ],
+)
+def test_a_damaged_metrics_file_is_said_in_our_words(world, tmp_path, text, says):
+    """Python's own text leaked before: "unreadable ('name')", "list indices must be integers"."""
+    _results(world, tmp_path)
+    (tmp_path / "metrics.json").write_text(text)
+    with pytest.raises(DataError, match=says):
+        evaluate_results(tmp_path)

@@ -144,6 +144,15 @@ def check_projection(P: np.ndarray, width: int, height: int, calib_path: Path, k
         )
 
 
+MIN_FRAME_INTERVAL_S = 1e-3
+"""Shortest median frame interval ``times.txt`` may give, seconds (1000 frames per second): shorter means the
+times are not in seconds, and every frame's motion reads as an impossible speed (the odometry breaks at each)."""
+
+MAX_FRAME_INTERVAL_S = 30.0
+"""Longest median frame interval, seconds: a 10 Hz camera's times in milliseconds read 100 s apart, in
+microseconds or nanoseconds days or years."""
+
+
 def read_times(path: Path) -> np.ndarray:
     """(N,) float64 seconds from a times.txt (one number a line)."""
     if not path.is_file():
@@ -154,8 +163,11 @@ def read_times(path: Path) -> np.ndarray:
             times = np.loadtxt(path, dtype=np.float64, ndmin=1, comments="#")
     except ValueError as e:
         raise DataError(f"{path} must hold one number per line: {e}") from e
-    if times.ndim != 1 or not np.isfinite(times).all():
-        raise DataError(f"{path} must hold one finite number per line (got shape {times.shape})")
+    if times.ndim != 1:
+        raise DataError(f"{path} must hold one number per line (got {times.shape[1]} columns)")
+    if not np.isfinite(times).all():
+        k = int(np.flatnonzero(~np.isfinite(times))[0])
+        raise DataError(f"{path}: line {k + 1} holds {times[k]:g}; every line needs a finite timestamp in seconds")
     steps = np.diff(times)
     if (steps <= 0).any():
         k = int(np.flatnonzero(steps <= 0)[0])
@@ -163,6 +175,13 @@ def read_times(path: Path) -> np.ndarray:
             f"{path}: timestamps must increase, but line {k + 2} ({times[k + 1]:g} s) is not after line {k + 1} "
             f"({times[k]:g} s); fix the file (frames out of order or duplicated?)"
         )
+    if steps.size:
+        step = float(np.median(steps))
+        if not MIN_FRAME_INTERVAL_S <= step <= MAX_FRAME_INTERVAL_S:
+            raise DataError(
+                f"{path}: frames are {step:.3g} s apart (median), {1.0 / step:.3g} frames per second; timestamps "
+                "must be in seconds (in milliseconds, microseconds or nanoseconds? divide by 1e3, 1e6 or 1e9)"
+            )
     return times
 
 

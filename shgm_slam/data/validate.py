@@ -113,6 +113,8 @@ def check_sequence_start(
                 f"{where}: no label is a Cityscapes train id 0-18 (all 255 = ignore, or other values); "
                 "semantic/ needs uint8 PNGs of train ids"
             )
+        if seg_model is None:
+            _check_label_space(labels, where)
         flat = np.concatenate(known)  # ignore (255) is no class: one class and ignore is still one class
         if seg_model is not None and flat.size > 1 and flat.min() == flat.max():
             raise ModelError(
@@ -120,6 +122,26 @@ def check_sequence_start(
                 f"wherever not ignore) on {where}; a graph of one class cannot be matched: check the model and "
                 "its card (classes: one per class the model outputs) with shgm-slam check-model"
             )
+
+
+def _check_label_space(labels: list[np.ndarray], where: str) -> None:
+    """DataError when more than ``MAX_FOREIGN_LABEL_SHARE`` of the probed label pixels are neither a train id
+    (0-18) nor ignore (255): the files are in another label space (Cityscapes' full label ids 0-33 put road at
+    7, a train id's traffic sign), and even their values in 0-18 would be read as the wrong classes."""
+    flat = np.concatenate([lab.ravel() for lab in labels])
+    foreign = (flat >= NUM_TRAIN_IDS) & (flat != 255)
+    if foreign.mean() > MAX_FOREIGN_LABEL_SHARE:
+        values = np.unique(flat[foreign])
+        shown = ", ".join(map(str, values[:8])) + (", ..." if values.size > 8 else "")
+        raise DataError(
+            f"{where}: {100 * foreign.mean():.0f} % of the label pixels are {shown}, no Cityscapes train id "
+            "(0-18, 255 = ignore); semantic/ needs train ids: are these Cityscapes label ids (0-33)? Map them "
+            "to train ids (cityscapesscripts' labels.py: id -> trainId)"
+        )
+
+
+MAX_FOREIGN_LABEL_SHARE = 0.01
+"""Share of label pixels outside 0-18 and 255 beyond which label files are refused as another label space."""
 
 
 def _checked_map(array: np.ndarray, frame: Frame, what: str, kind: type) -> np.ndarray:

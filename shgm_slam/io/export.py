@@ -22,6 +22,7 @@ import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from datetime import datetime
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -32,7 +33,18 @@ from shgm_slam.io.trajectories import write_kitti_poses, write_tum
 from shgm_slam.shared_frame import shared_frame_ground_truth
 from shgm_slam.types import GraphArrays, Sequence
 
+try:  # advisory file locks: POSIX; elsewhere two processes on one --out are not caught (no crash)
+    import fcntl
+except ImportError:  # pragma: no cover - not on Linux or macOS
+    fcntl = None  # type: ignore[assignment]
+
 log = logging.getLogger(__name__)
+
+LOCK_FILE = ".shgm-slam.lock"
+"""Lock file in a results folder: held by the process writing the folder (its pid inside)."""
+
+_held_locks: dict[Path, IO[str]] = {}
+"""The results folders this process holds (resolved path -> open lock file)."""
 
 RUN_OUTPUT_PATTERNS = (
     "*_fused_tum.txt", "*_fused_kitti.txt", "*_odometry_tum.txt", "*_gt_tum.txt", "*_gt_kitti.txt",
@@ -71,14 +83,16 @@ def make_results_dir(
 ) -> Path:
     """Create the results folder: ``out`` if given, else ``base/<YYYYmmdd_HHMMSS>`` plus ``base/latest``.
 
+    The folder is locked for this process (``LOCK_FILE``; until ``release_results_dir`` or the process ends):
+    a second run or map server on the same folder is refused instead of mixing its files into it.
     A reused ``out`` never mixes two runs' files: a folder holding files an earlier run wrote
     (``RUN_OUTPUT_PATTERNS``) is refused, unless ``overwrite`` (then those are removed first; other files
     are left alone) or ``resume_file`` names a file that is there (a map server's ``journal.bin``: the
     folder is resumed as it is; so is one holding only ``RESUME_START_FILES``).
 
     Raises:
-        DataError: ``out`` is a file, cannot be created, holds an earlier run's files (without
-            ``overwrite``), or one of those cannot be removed.
+        DataError: ``out`` is a file, cannot be created, is in use by another process, holds an earlier run's
+            files (without ``overwrite``), or one of those cannot be removed.
     """
     if out is not None:
         path = Path(out)
@@ -86,18 +100,70 @@ def make_results_dir(
         path = base / datetime.now().strftime("%Y%m%d_%H%M%S")
     if path.exists() and not path.is_dir():
         raise DataError(f"results folder {path} is a file; choose a folder for --out")
-    if out is not None and path.is_dir():
-        _claim_results_dir(path, overwrite=overwrite, resume_file=resume_file)
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise DataError(f"cannot create results folder {path}: {exc.strerror}") from None
+    _lock_results_dir(path)
+    if out is not None:
+        try:
+            _claim_results_dir(path, overwrite=overwrite, resume_file=resume_file)
+        except DataError:
+            release_results_dir(path)
+            raise
     if out is None:
         latest = base / "latest"
         if latest.is_symlink() or latest.exists():
             latest.unlink()
         latest.symlink_to(path.name)
     return path
+
+
+@contextlib.contextmanager
+def claimed_results_dir(out: Path | None, **options) -> Iterator[Path]:
+    """``make_results_dir(out, **options)`` for the block; the folder's lock is released after it."""
+    path = make_results_dir(out, **options)
+    try:
+        yield path
+    finally:
+        release_results_dir(path)
+
+
+def _lock_results_dir(path: Path) -> None:
+    """Hold ``path``'s ``LOCK_FILE`` for this process (again: nothing to do). Raises DataError when another
+    process holds it (naming its pid) or the file cannot be created."""
+    key = path.resolve()
+    if fcntl is None or key in _held_locks:
+        return
+    try:
+        fh = open(path / LOCK_FILE, "a+")
+    except OSError as exc:
+        raise DataError(f"cannot write into results folder {path}: {exc.strerror}; choose another --out") from None
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.seek(0)
+        holder = fh.read().strip() or "unknown"
+        fh.close()
+        raise DataError(
+            f"results folder {path} is in use by another shgm-slam process (pid {holder}); wait for it to "
+            "finish, or choose another --out"
+        ) from None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"{os.getpid()}\n")
+    fh.flush()
+    _held_locks[key] = fh
+
+
+def release_results_dir(path: Path) -> None:
+    """Release this process's lock on the results folder ``path`` and remove its ``LOCK_FILE`` (nothing if it
+    holds none)."""
+    fh = _held_locks.pop(Path(path).resolve(), None)
+    if fh is not None:
+        with contextlib.suppress(OSError):  # the folder keeps only its results
+            (Path(path) / LOCK_FILE).unlink()
+        fh.close()  # closing drops the flock
 
 
 def _claim_results_dir(path: Path, *, overwrite: bool, resume_file: str | None) -> None:

@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from shgm_slam.errors import DataError
+from shgm_slam.errors import DataError, ModelError
 from shgm_slam.labels import IGNORE_ID, colorize_labels, label_name
 from shgm_slam.perception.card import TaskKind, default_card_path, load_card
 from shgm_slam.perception.depth import DepthModel
@@ -149,7 +149,14 @@ def render_preview(
 def open_model(
     model_path: Path | str, card_path: Path | str | None = None, threads: int = 2
 ) -> DepthModel | SegmentationModel:
-    """The adapter the card asks for (``DepthModel`` or ``SegmentationModel``)."""
+    """The adapter the card asks for (``DepthModel`` or ``SegmentationModel``).
+
+    Raises:
+        ModelError: the model file is missing (named before its card), or what the card or adapter raise.
+    """
+    if not Path(model_path).is_file():
+        what = "is a folder" if Path(model_path).is_dir() else "does not exist"
+        raise ModelError(f"model file {model_path} {what} (pass the path of an .onnx file)")
     card = load_card(model_path, card_path)
     cls = DepthModel if card.task is TaskKind.DEPTH else SegmentationModel
     return cls(model_path, card, threads=threads)

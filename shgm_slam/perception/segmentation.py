@@ -25,6 +25,13 @@ from shgm_slam.perception.onnx_model import (
 )
 from shgm_slam.perception.resize import ResizePlan, paste_back
 
+LABEL_MAP_TOLERANCE = 1e-3
+"""A float label map's value counts as a whole class index within this."""
+
+MAX_FRACTIONAL_LABELS = 0.01
+"""Share of a float label map's values allowed off whole numbers (resampling inside a model can blend a few
+borders) before the output is taken for scores, not class indices."""
+
 
 class SegmentationModel(OnnxModel):
     """A semantic segmentation network behind its card.
@@ -78,6 +85,11 @@ class SegmentationModel(OnnxModel):
                 )
         elif len(output.shape) not in (3, 4):
             raise ModelError(f"{where}: a label map must be (N, H, W), (N, 1, H, W) or (N, H, W, 1)")
+        elif len(output.shape) == 4 and all(isinstance(d, int) and d > 1 for d in (output.shape[1], output.shape[3])):
+            raise ModelError(
+                f"{where}: output.kind is label_map but no axis of size 1 holds the labels (per-class scores?); "
+                "set output.kind: logits, or export the model with the ArgMax inside"
+            )
 
     def predict(self, image_rgb: np.ndarray) -> np.ndarray:
         """Labels of one image.
@@ -107,12 +119,35 @@ class SegmentationModel(OnnxModel):
             region = raw[:, by0:by1, bx0:bx1] if nchw else raw[by0:by1, bx0:bx1]
             class_idx = argmax_classes(region, axis=0 if nchw else 2)
         else:
-            label_map = raw.reshape(raw.shape[-2:]) if raw.ndim == 3 and raw.shape[0] == 1 else raw
-            label_map = label_map[..., 0] if label_map.ndim == 3 else label_map
+            label_map = self._label_map(raw)
             bx0, by0, bx1, by1 = plan.output_box((label_map.shape[1], label_map.shape[0]))
             class_idx = label_map[by0:by1, bx0:bx1]
         ids = self.map_classes(class_idx)
         return paste_back(ids, plan, IGNORE_ID, cv2.INTER_NEAREST)
+
+    def _label_map(self, raw: np.ndarray) -> np.ndarray:
+        """One image's (h, w), (1, h, w) or (h, w, 1) label map as (h, w).
+
+        Raises:
+            ModelError: the output has several channels, or float values that are not class indices: the card
+                says ``label_map`` for what are per-class scores (they made silent garbage labels).
+        """
+        if raw.ndim == 3 and 1 not in (raw.shape[0], raw.shape[2]):
+            raise ModelError(
+                f"{self.where}: output.kind is label_map but the output has {min(raw.shape[0], raw.shape[2])} "
+                f"channels (shape {list(raw.shape)}: per-class scores?); set output.kind: logits"
+            )
+        label_map = raw.reshape(raw.shape[-2:]) if raw.ndim == 3 and raw.shape[0] == 1 else raw
+        label_map = label_map[..., 0] if label_map.ndim == 3 else label_map
+        if label_map.dtype.kind == "f":
+            finite = label_map[np.isfinite(label_map)]
+            off = float(np.mean(np.abs(finite - np.rint(finite)) > LABEL_MAP_TOLERANCE)) if finite.size else 0.0
+            if off > MAX_FRACTIONAL_LABELS:
+                raise ModelError(
+                    f"{self.where}: output.kind is label_map but {100 * off:.0f} % of its values are not whole "
+                    "class indices (scores or probabilities?); set output.kind: logits for per-class scores"
+                )
+        return label_map
 
     def map_classes(self, class_idx: np.ndarray) -> np.ndarray:
         """Model class indices (any int/float dtype) -> uint8 train ids; out-of-range indices -> 255."""

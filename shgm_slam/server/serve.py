@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -105,6 +106,7 @@ def serve(
     expect: int | None = None,
     viz: Viz | None = None,
     stale_after_s: float = 5.0,
+    started: Callable[[], None] | None = None,
 ) -> ServeSummary:
     """Run a map server until ``expect`` robots are done (or Ctrl-C / SIGTERM) and write its results.
 
@@ -116,6 +118,7 @@ def serve(
         expect: finish by itself once this many robots have connected and sent their last keyframe.
         viz: live viewer (``NullLogger`` when None).
         stale_after_s: a robot silent this long is marked stale (kept; it resumes when it returns).
+        started: called once the endpoint is listened on (the command line says so then, not before).
 
     Raises:
         TransportError, ConfigError: the endpoint cannot be listened on.
@@ -125,6 +128,8 @@ def serve(
     t0 = time.perf_counter()
     interrupted = False
     with make_transport(NodeRole.SERVER, listen) as transport:
+        if started is not None:
+            started()
         node = ServerNode(cfg, transport, out_dir, reference=reference, expect=expect, stale_after_s=stale_after_s)
         node.writer.write_text("config.yaml", cfg.to_yaml())
         r = node.recovery

@@ -127,6 +127,10 @@ def test_image_0_uses_p0(tmp_path: Path) -> None:
         (lambda r: (r / "calib.txt").write_text("P2: nan 0 4 0 0 700 3 0 0 0 1 0\n"), "P2 line of 12 finite numbers"),
         (lambda r: (r / "times.txt").write_text("0.0\n0.1\n0.1\n"), "line 3 (0.1 s) is not after line 2"),
         (lambda r: (r / "times.txt").write_text("0.2\n0.1\n0.3\n"), "timestamps must increase"),
+        (lambda r: (r / "times.txt").write_text("0.0\nnan\n0.3\n"), "line 2 holds nan"),
+        # a 10 Hz camera's times in microseconds (read as 28 hours apart) and a step of 1 us
+        (lambda r: (r / "times.txt").write_text("".join(f"{1e5 * i}\n" for i in range(3))), "1e+05 s apart"),
+        (lambda r: (r / "times.txt").write_text("".join(f"{1e-6 * i}\n" for i in range(3))), "must be in seconds"),
     ],
 )
 def test_bad_kitti_folder_names_the_problem(tmp_path: Path, damage, culprit: str) -> None:

@@ -65,6 +65,23 @@ def test_labels_all_ignore_is_one_error(tmp_path: Path):
         check_sequence_start("car", open_sequence(write_frames(tmp_path / "s", frames)), files)
 
 
+def test_labels_in_another_label_space_are_one_error(tmp_path: Path):
+    """Cityscapes label ids (road 7, car 26) read as train ids: 7 a traffic sign, 26 ignored, silently."""
+    frames = make_frames(4)
+    for f in frames:
+        f.label_ids = np.where(np.arange(f.label_ids.shape[1]) % 2 == 0, 7, 26).astype(np.uint8)[None].repeat(
+            f.label_ids.shape[0], axis=0)  # fmt: skip
+    with pytest.raises(DataError, match=r"50 % of the label pixels are 26, no Cityscapes train id.*label ids"):
+        check_sequence_start("car", open_sequence(write_frames(tmp_path / "s", frames)), files)
+
+
+def test_a_few_stray_label_values_are_left_alone(tmp_path: Path):
+    frames = make_frames(4)
+    for f in frames:
+        f.label_ids[0, 0] = 77  # one pixel in 768: below 1 %
+    check_sequence_start("car", open_sequence(write_frames(tmp_path / "s", frames)), files)
+
+
 def test_model_outputs_nan_or_constant_are_model_errors(seq_dir: Path):
     seq = open_sequence(seq_dir)
 

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import pytest
 from typer.testing import CliRunner
 
 from shgm_slam.cli import app
 from shgm_slam.errors import DataError
-from shgm_slam.io.export import make_results_dir, run_output_files
+from shgm_slam.io.export import LOCK_FILE, claimed_results_dir, make_results_dir, run_output_files
 
 
 def _earlier_run(folder):
@@ -32,7 +35,8 @@ def test_a_folder_with_an_earlier_run_is_refused(tmp_path):
 
 def test_overwrite_removes_only_the_earlier_runs_files(tmp_path):
     _earlier_run(tmp_path / "out")
-    make_results_dir(tmp_path / "out", overwrite=True)
+    with claimed_results_dir(tmp_path / "out", overwrite=True):
+        pass
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["notes.md"]
     assert run_output_files(tmp_path / "out") == []
 
@@ -77,3 +81,36 @@ def test_run_cli_refuses_a_reused_out_with_exit_2(tmp_path, tiny_scenario):
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 2 and "--overwrite" in res.output, res.output
     assert (tmp_path / "out" / "b_fused_tum.txt").read_text() == "old\n"
+
+
+_HOLD = """
+import sys
+from pathlib import Path
+from shgm_slam.io.export import make_results_dir
+make_results_dir(Path(sys.argv[1]))
+print("held", flush=True)
+sys.stdin.read()
+"""
+
+
+def test_a_folder_another_process_writes_is_refused_then_free_again(tmp_path):
+    """Two servers (or runs) on one --out mixed their files and journals; the second is now refused."""
+    out = tmp_path / "out"
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              text=True)  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(DataError, match=rf"in use by another shgm-slam process \(pid {holder.pid}\)"):
+            make_results_dir(out, overwrite=True)
+        res = CliRunner().invoke(app, ["server", "--out", str(out), "--rerun", "off"])
+        assert res.exit_code == 2 and "in use by" in " ".join(res.output.split()), res.output
+    finally:
+        holder.communicate("")
+    with claimed_results_dir(out) as path:  # the holder ended: its lock went with it
+        assert (path / LOCK_FILE).is_file()
+    assert not (out / LOCK_FILE).exists()
+
+
+def test_the_same_process_may_claim_its_folder_again(tmp_path):
+    with claimed_results_dir(tmp_path / "out"):
+        assert make_results_dir(tmp_path / "out") == tmp_path / "out"

@@ -114,20 +114,22 @@ def onehot_logits_model(
     )
 
 
-def label_map_model(path: Path, *, shape: Sequence[Dim] = NCHW_ANY) -> Path:
-    """Label map (N, H, W) int64 = input channel 0 (read as a class index)."""
+def label_map_model(path: Path, *, shape: Sequence[Dim] = NCHW_ANY, as_float: bool = False) -> Path:
+    """Label map (N, H, W) int64 (``as_float``: float32, the value unrounded) = input channel 0 (read as a
+    class index)."""
     nodes = [
         helper.make_node("Slice", ["x", "starts", "ends", "axes"], ["sl"]),
         helper.make_node("Squeeze", ["sl", "axes"], ["sq"]),
-        helper.make_node("Cast", ["sq"], ["labels"], to=TensorProto.INT64),
+        helper.make_node("Cast", ["sq"], ["labels"], to=TensorProto.FLOAT if as_float else TensorProto.INT64),
     ]
     inits = [_const("starts", [0]), _const("ends", [1]), _const("axes", [1])]
     out_shape = [shape[0], shape[2], shape[3]]
+    out_type = TensorProto.FLOAT if as_float else TensorProto.INT64
     return save_model(
         path,
         nodes,
         [helper.make_tensor_value_info("x", TensorProto.FLOAT, list(shape))],
-        [helper.make_tensor_value_info("labels", TensorProto.INT64, out_shape)],
+        [helper.make_tensor_value_info("labels", out_type, out_shape)],
         inits,
     )
 

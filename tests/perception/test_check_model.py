@@ -105,6 +105,8 @@ def test_cli_check_model_smoke(tmp_path: Path, depth_model: Path) -> None:
     result = runner.invoke(app, ["check-model", str(orphan)])
     assert result.exit_code == 2
     assert "orphan.yaml not found" in " ".join(result.output.split())
+    result = runner.invoke(app, ["check-model", str(tmp_path / "missing.onnx")])  # not "card missing.yaml"
+    assert result.exit_code == 2 and "missing.onnx does not exist" in " ".join(result.output.split())
 
 
 @pytest.mark.parametrize(

@@ -60,6 +60,23 @@ def test_label_map_output_and_out_of_range_indices(tmp_path: Path) -> None:
     assert (labels[:5] == IGNORE_ID).all()
 
 
+def test_scores_declared_as_a_label_map_are_refused(tmp_path: Path) -> None:
+    """Per-class scores under ``kind: label_map`` made silent garbage labels (0, 1 and ignore only)."""
+    with pytest.raises(ModelError, match=r"no axis of size 1 holds the labels.*output.kind: logits"):
+        seg_model(tmp_path, onehot_logits_model, {"kind": "label_map"}, {"size": [57, 20]}, num_classes=19,
+                  shape=[1, 3, 20, 57])  # fmt: skip
+    with pytest.raises(ModelError, match="no axis of size 1 holds the labels"):  # the card's size fixes H, W
+        seg_model(tmp_path, onehot_logits_model, {"kind": "label_map"}, {"size": [57, 20]}, num_classes=19)
+    scores = seg_model(tmp_path, label_map_model, {"kind": "label_map"}, {"size": [57, 20], "scale": 1 / 255},
+                       as_float=True)  # fmt: skip
+    with pytest.raises(ModelError, match="not whole class indices"):
+        scores.predict(class_image(stripes()))
+    whole = seg_model(tmp_path, label_map_model, {"kind": "label_map"}, {"size": [57, 20]}, as_float=True)
+    np.testing.assert_array_equal(whole.predict(class_image(stripes())), stripes())  # float class indices: fine
+    with pytest.raises(ModelError, match=r"has 19 channels.*output.kind: logits"):  # shapes known only at run time
+        whole._label_map(np.zeros((19, 20, 57), dtype=np.float32))
+
+
 def test_custom_classes_map_through_the_table(tmp_path: Path) -> None:
     output = {
         "kind": "logits",
