@@ -623,9 +623,10 @@ def server_command(
         viz = make_viz(mode, robots=[], save_path=out / "server.rrd", connect_url=rerun_url, max_cloud_points=8000)
         with _stop_signals_as_interrupt():
             result = serve(cfg, out, listen=listen, reference=reference, expect=expect, viz=viz,
-                           stale_after_s=stale_after, started=lambda: console.print(
+                           stale_after_s=stale_after, started=lambda resumed: console.print(
                                f"map server listening on {lit(listen or 'tcp/127.0.0.1:7447')}"
-                               + (f", expecting {expect} robots" if expect else "; Ctrl-C to finish")))  # fmt: skip
+                               + (f", expecting {expect} robots" if expect else "; Ctrl-C to finish")
+                               + (f"; {resumed}" if resumed else "")))  # fmt: skip
     s = result.summary
     for name, r in s["robots"].items():
         placed = _placed_text(r["placed"], r["provisional"])
@@ -687,10 +688,18 @@ def robot_command(
         console.print(f"  not placed yet: {lit(', '.join(s.waiting_agents))} (accepted matches, but too few "
                       "independent ones to enter the shared frame; the server's summary says which)")  # fmt: skip
     if s.interrupted:
+        console.print(f"interrupted after {s.frames_processed} of {s.frames} frames"
+                      + (f"; its trajectories so far are in {lit(out)}" if out else "")
+                      + "; the map server keeps its keyframes: start the same command again to go on")  # fmt: skip
         raise typer.Exit(130)
     if not s.acknowledged:
         console.print("[red]the map server did not acknowledge every keyframe (is it running? see --connect)[/red]")
         raise typer.Exit(3)
+    if not s.server_finished:
+        console.print(f"[yellow]the map server had not finished after --wait {wait:g} s[/] (waiting for more "
+                      "robots, --expect?): this robot's place may still change; the server's results folder "
+                      "holds the final trajectories")  # fmt: skip
+        raise typer.Exit(4)
 
 
 @app.command("demo")
@@ -752,6 +761,9 @@ def eval_command(
         typer.echo(to_json_text(result.to_json_dict(), indent=None))
         return
     console.print(_eval_table(result))
+    if result.interrupted:
+        console.print("[yellow]this run was interrupted[/]: its trajectories end where it was stopped "
+                      "(metrics.json: interrupted)")  # fmt: skip
     if result.gt_files_written:
         console.print(f"wrote {len(result.gt_files_written) // 2} ground-truth trajectories; e.g. evo_ape tum "
                       f"{lit(result.gt_files_written[0])} {lit(results / (result.reference_robot + '_fused_tum.txt'))}")

@@ -66,6 +66,7 @@ class EvaluationResult:
     gt_files_written: list[Path] = field(default_factory=list)
     ate_joint_m: float = float("nan")  # all placed robots' poses under their one joint SE(3) fit, RMSE
     joint_robots: int = 0  # robots in that fit (placed, with ground truth in the shared frame)
+    interrupted: bool = False  # the run was stopped early (``metrics.json``): its trajectories end early
 
     def to_json_dict(self) -> dict:
         from shgm_slam.io.json_text import finite_or_none
@@ -74,7 +75,7 @@ class EvaluationResult:
             "results_dir": str(self.results_dir), "reference_robot": self.reference_robot,
             "gt_source": self.gt_source, "robots": [asdict(r) for r in self.robots],
             "gt_files_written": [str(p) for p in self.gt_files_written],
-            "ate_joint_m": self.ate_joint_m, "joint_robots": self.joint_robots,
+            "ate_joint_m": self.ate_joint_m, "joint_robots": self.joint_robots, "interrupted": self.interrupted,
         })  # type: ignore[return-value]  # fmt: skip
 
 
@@ -130,6 +131,14 @@ def run_frame_counts(results_dir: Path, key: str = "frames") -> dict[str, int]:
         return {r["name"]: r[key] for r in robots if isinstance(r.get(key), int) and not isinstance(r[key], bool)}
     except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
         return {}  # no metrics.json (``run_robot_order`` says what is wrong with an unreadable one)
+
+
+def run_was_interrupted(results_dir: Path) -> bool:
+    """Whether ``metrics.json`` says the run was stopped before its end (False when it does not say)."""
+    try:
+        return json.loads((results_dir / "metrics.json").read_text()).get("interrupted") is True
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return False
 
 
 def check_fused_rows(results_dir: Path, robot: str, rows: int) -> None:
@@ -240,7 +249,8 @@ def evaluate_results(
             "do)"
         )
     order = run_robot_order(root)
-    result = EvaluationResult(root, order[0], "")
+    result = EvaluationResult(root, order[0], "", interrupted=run_was_interrupted(root))
+    not_reached = run_frame_counts(root, "frames_not_reached")
     truth: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     own_frame: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     if sequences:
@@ -294,6 +304,11 @@ def evaluate_results(
                 check_fused_rows(root, r, count)
             provisional = count > 0 and is_provisional(fused)
             result.robots.append(RobotEvaluation(r, count, 0, note="no ground truth given", provisional=provisional))
+    for rep in result.robots:
+        if not_reached.get(rep.name):
+            frames = run_frame_counts(root).get(rep.name)
+            cut = f"interrupted: {not_reached[rep.name]} of its {frames} frames were not run"
+            rep.note = f"{rep.note}; {cut}" if rep.note else cut
     if joint:
         per_robot, together = joint_ate([g for g, _ in joint.values()], [e for _, e in joint.values()])
         for row, stats in zip(joint, per_robot, strict=True):

@@ -135,7 +135,7 @@ class RobotReport:
     name: str
     frames: int
     frames_processed: int
-    frames_skipped: int
+    frames_skipped: int  # reached but not processed (unreadable, a worker lost; reasons in the run's 'skipped')
     keyframes: int
     nodes: int
     localized: bool
@@ -157,6 +157,7 @@ class RobotReport:
     segments_placed: int = 0
     placed_fraction: float = 0.0
     fused_poses: int = 0  # rows of <robot>_fused_tum.txt (``eval`` refuses a file that holds fewer or more)
+    frames_not_reached: int = 0  # the run was interrupted before these frames
     odometry_failures: int = 0
     failure_reasons: list[str] = field(default_factory=list)
     frames_dropped: int = 0  # frames between a divergence's onset and the next segment's first frame
@@ -357,6 +358,13 @@ def run_slam(
             if Path(out_dir).is_dir():
                 ResultsWriter(out_dir).mark_failed(exc)
             raise
+        except KeyboardInterrupt:  # a second stop while the results were written (the first one is kept)
+            if Path(out_dir).is_dir():
+                with contextlib.suppress(DataError):
+                    ResultsWriter(out_dir).mark_incomplete("stopped again while its results were being written")
+                log.warning("stopped while writing the results: %s holds a checkpoint, marked by incomplete.txt",
+                            out_dir)  # fmt: skip
+            raise
 
 
 def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame, write_every_keyframes, on_frame,
@@ -384,6 +392,7 @@ def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame,
     timings = _Timings()
     skipped: list[str] = []
     processed = dict.fromkeys(names, 0)
+    reached = dict.fromkeys(names, 0)  # frames whose turn came (the rest: not reached, the run interrupted)
     image_change = {r: ImageChange() for r in names}
     compute_ms = 0.0
     t_start = time.perf_counter()
@@ -395,6 +404,7 @@ def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame,
         for robot, index in schedule:
             with stops_deferred():  # a stop lands between frames, never inside the server's or a robot's step
                 done += 1
+                reached[robot] += 1
                 t_step, cpu_step = time.perf_counter(), time.process_time()
                 try:
                     res = nodes[robot].step(index)
@@ -460,7 +470,7 @@ def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame,
         view.finish(server, fronts.values())  # the viewer ends on the final estimate, not the last keyframe's
     for node in nodes.values():
         node.poll()
-    reports, ate_joint_m = _evaluate(fronts, server, robots, processed, gt_shared_frame)
+    reports, ate_joint_m = _evaluate(fronts, server, robots, processed, gt_shared_frame, reached)
     _report_placement(reports, fronts, server)
     _report_degenerate(reports, fronts, image_change, viz)
     accepted = sum(m.accepted for m in server.matches)
@@ -532,6 +542,11 @@ def _report_degenerate(
         front = fronts[rep.name]
         if rep.frames_skipped:
             rep.warnings.append(f"{rep.frames_skipped} of {rep.frames} frames skipped (reasons in 'skipped')")
+        if rep.frames_not_reached:
+            rep.warnings.append(
+                f"interrupted: {rep.frames_not_reached} of its {rep.frames} frames were not run (from frame "
+                f"{rep.frames - rep.frames_not_reached} of the range on)"
+            )
         if front.stopped:
             rep.warnings.append(
                 f"stopped at frame {front.failures[-1].onset_frame}: its odometry diverged {len(front.failures)} "
@@ -603,10 +618,10 @@ def _fused(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
 
 
 def _evaluate(
-    fronts, server: MapServer, robots, processed, gt_shared_frame: bool
+    fronts, server: MapServer, robots, processed, gt_shared_frame: bool, reached: dict[str, int] | None = None
 ) -> tuple[list[RobotReport], float]:
     """Each robot's report, and the RMSE of all placed robots' fused poses under one joint SE(3) fit (NaN
-    without shared ground truth)."""
+    without shared ground truth). ``reached``: frames per robot whose turn came (default: all of them)."""
     names = list(robots)
     gt0 = robots[names[0]].gt_poses
     reports = []
@@ -617,10 +632,12 @@ def _evaluate(
         placed = {k for k, _ in _placed_segments(front, server)}
         with_kf = [s for s in front.segments if s.num_keyframes]
         in_seg = front.frame_segment >= 0
+        came = len(seq) if reached is None else reached[r]
         rep = RobotReport(
-            r, len(seq), processed[r], len(seq) - processed[r], front.num_keyframes,
+            r, len(seq), processed[r], came - processed[r], front.num_keyframes,
             sum(s.num_nodes for s in front.segments), bool(with_kf) and all(s.index in placed for s in with_kf),
         )  # fmt: skip
+        rep.frames_not_reached = len(seq) - came
         rep.fused_poses = 0 if fused is None else int(np.isfinite(fused.reshape(len(fused), -1)).all(axis=1).sum())
         if front.odometry_choice is not None:
             rep.odometry, rep.odometry_reason = front.odometry_choice.kind.value, front.odometry_choice.reason

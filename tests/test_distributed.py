@@ -145,6 +145,7 @@ def test_server_killed_mid_run_and_restarted_recovers(tiny_scenario: Path, tmp_p
         _wait(r, "robot")
     s = _check_results(out_dir, tiny_scenario)
     assert s["recovery"]["snapshot_records"] > 0, out[-2000:]  # from a snapshot, then the journal after it
+    assert "resumed from its journal" in " ".join(out.split())  # and it said so when it started
 
 
 def test_stale_robot_resumes_and_bad_input_and_name_clash_are_refused(tiny_scenario: Path, tmp_path: Path) -> None:

@@ -147,6 +147,38 @@ def test_interrupted_run_keeps_what_it_has(tiny_scenario: Path, tmp_path: Path) 
     t, _ = read_tum(tmp_path / "out" / "car1_odometry_tum.txt")
     assert 10 <= len(t) < len(robots["car1"])
     assert (tmp_path / "out" / "metrics.json").is_file()
+    # the frames never reached are said so, not called skipped (the old warning: "289 of 300 frames skipped")
+    for rep in summary.robots:
+        assert rep.frames_skipped == 0 and rep.frames_processed + rep.frames_not_reached == rep.frames
+        assert rep.frames_not_reached > 0 and any("were not run" in w for w in rep.warnings)
+    from shgm_slam.evaluation import evaluate_results
+
+    result = evaluate_results(tmp_path / "out")
+    assert result.interrupted and "were not run" in result.robots[0].note
+
+
+def test_a_second_stop_while_writing_marks_the_folder_incomplete(tiny_scenario: Path, tmp_path: Path, monkeypatch):
+    """A second Ctrl-C while the results were written left a folder without metrics.json and no marker."""
+    from shgm_slam.errors import DataError
+    from shgm_slam.evaluation import evaluate_results
+    from shgm_slam.io.export import ResultsWriter
+
+    real = ResultsWriter.write_json
+
+    def stopped_at_metrics(self, name, data, **kwargs):
+        if name == "metrics.json":
+            raise KeyboardInterrupt
+        return real(self, name, data, **kwargs)
+
+    monkeypatch.setattr(ResultsWriter, "write_json", stopped_at_metrics)
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}:0-20", f"car2={tiny_scenario / 'car2'}:0-20"])
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(robots, cfg, tmp_path / "out")
+    assert "stopped again while its results were being written" in (tmp_path / "out" / "incomplete.txt").read_text()
+    with pytest.raises(DataError, match="holds no results"):
+        evaluate_results(tmp_path / "out")
 
 
 def test_results_are_checkpointed_during_the_run(tiny_scenario: Path, tmp_path: Path) -> None:

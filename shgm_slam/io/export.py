@@ -156,6 +156,24 @@ def _lock_results_dir(path: Path) -> None:
     _held_locks[key] = fh
 
 
+def check_writable_dir(path: Path) -> Path:
+    """Create the folder ``path`` if needed and make sure a file can be written in it, before any work.
+
+    Raises:
+        DataError: it is a file, or cannot be created or written (read-only, no space, no permission).
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise DataError(f"output folder {path} is a file; choose a folder for --out")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".write-check-"):
+            pass
+    except OSError as exc:
+        raise DataError(f"cannot write into {path}: {exc.strerror or exc}; choose another --out") from None
+    return path
+
+
 def release_results_dir(path: Path) -> None:
     """Release this process's lock on the results folder ``path`` and remove its ``LOCK_FILE`` (nothing if it
     holds none)."""

@@ -19,7 +19,7 @@ import numpy as np
 from shgm_slam.config import ShgmConfig
 from shgm_slam.errors import DataError
 from shgm_slam.interrupts import stops_deferred
-from shgm_slam.io.export import ResultsWriter
+from shgm_slam.io.export import ResultsWriter, check_writable_dir
 from shgm_slam.robot.build import make_frontend
 from shgm_slam.robot.node import RobotNode
 from shgm_slam.transport.factory import NodeRole, make_transport
@@ -67,6 +67,9 @@ def drive_robot(
 ) -> DriveSummary:
     """Run one robot against a map server over Zenoh.
 
+    Raises:
+        DataError: ``out_dir`` cannot be written (checked before the first frame), or the sequence's data.
+
     Args:
         name: the robot's name (unique in the fleet).
         sequence: its frames.
@@ -77,6 +80,8 @@ def drive_robot(
         wait_s: after the last frame, wait at most this long for the server's acknowledgements.
         progress: called with (frames done, frames total).
     """
+    if out_dir is not None:  # refused now, not after every frame has run
+        check_writable_dir(out_dir)
     front = make_frontend(name, sequence, cfg)
     t_start = time.perf_counter()
     times = np.asarray(sequence.timestamps_s, dtype=np.float64)

@@ -345,6 +345,28 @@ def _work(members: list[tuple[str, Sequence, ShgmConfig]], cfg: ShgmConfig, sche
         sender.close()
 
 
+def _start_without_sigint(proc: multiprocessing.process.BaseProcess) -> None:
+    """Start ``proc`` ignoring SIGINT from its first instruction (``_work`` keeps it so).
+
+    A terminal's Ctrl-C goes to the whole process group: a worker still importing its modules died of it with a
+    traceback, and the run reported its robots' front ends as failed. An ignored signal stays ignored through
+    fork and exec (a blocked mask does not survive multiprocessing's spawn), so SIGINT is ignored here while
+    the process starts; it is also blocked meanwhile, so that a Ctrl-C in that moment stays pending and reaches
+    this process once its handler is back. Off the main thread (no handler can be set there) it just starts."""
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        proc.start()
+        return
+    previous_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        previous_handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            proc.start()
+        finally:
+            signal.signal(signal.SIGINT, previous_handler)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous_mask)
+
+
 class _Worker:
     """The orchestrator's end of one worker process and its pipe (``_work``)."""
 
@@ -358,7 +380,7 @@ class _Worker:
         self._proc = ctx.Process(target=_work, name=f"shgm-frontend-{'+'.join(self.names)}",
                                  args=(members, fleet_cfg, schedule, child, viewer_points), daemon=True)  # fmt: skip
         try:
-            self._proc.start()  # spawn: the sequences and the configuration are pickled here
+            _start_without_sigint(self._proc)  # spawn: the sequences and the configuration are pickled here
         except (pickle.PicklingError, TypeError, AttributeError) as exc:
             self._conn.close()
             child.close()

@@ -106,7 +106,7 @@ def serve(
     expect: int | None = None,
     viz: Viz | None = None,
     stale_after_s: float = 5.0,
-    started: Callable[[], None] | None = None,
+    started: Callable[[str], None] | None = None,
 ) -> ServeSummary:
     """Run a map server until ``expect`` robots are done (or Ctrl-C / SIGTERM) and write its results.
 
@@ -118,7 +118,8 @@ def serve(
         expect: finish by itself once this many robots have connected and sent their last keyframe.
         viz: live viewer (``NullLogger`` when None).
         stale_after_s: a robot silent this long is marked stale (kept; it resumes when it returns).
-        started: called once the endpoint is listened on (the command line says so then, not before).
+        started: called once the endpoint is listened on and the folder's journal replayed, with "" or a line
+            saying what was recovered (the command line says both then, not before).
 
     Raises:
         TransportError, ConfigError: the endpoint cannot be listened on.
@@ -128,14 +129,16 @@ def serve(
     t0 = time.perf_counter()
     interrupted = False
     with make_transport(NodeRole.SERVER, listen) as transport:
-        if started is not None:
-            started()
         node = ServerNode(cfg, transport, out_dir, reference=reference, expect=expect, stale_after_s=stale_after_s)
         node.writer.write_text("config.yaml", cfg.to_yaml())
         r = node.recovery
+        resumed = ""
         if r.snapshot_records or r.replayed:
-            viz.log_text(f"recovered {r.snapshot_records} journal records from a snapshot and replayed {r.replayed} "
-                         f"in {r.seconds:.1f} s", "INFO")  # fmt: skip
+            resumed = (f"resumed from its journal: {r.snapshot_records} records from a snapshot and {r.replayed} "
+                       f"replayed in {r.seconds:.1f} s")  # fmt: skip
+            viz.log_text(resumed, "INFO")
+        if started is not None:
+            started(resumed)
         view = ServerView(viz)
         try:
             while not node.finished:

@@ -114,3 +114,18 @@ def test_a_folder_another_process_writes_is_refused_then_free_again(tmp_path):
 def test_the_same_process_may_claim_its_folder_again(tmp_path):
     with claimed_results_dir(tmp_path / "out"):
         assert make_results_dir(tmp_path / "out") == tmp_path / "out"
+
+
+def test_a_robots_out_is_checked_before_its_first_frame(tmp_path, tiny_scenario):
+    """`robot --out` on an unwritable folder ran every frame and only then failed."""
+    from shgm_slam.config import ShgmConfig
+    from shgm_slam.data import open_sequence
+    from shgm_slam.io.export import check_writable_dir
+    from shgm_slam.robot.drive import drive_robot
+
+    assert check_writable_dir(tmp_path / "a" / "b").is_dir() and not list((tmp_path / "a" / "b").iterdir())
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(DataError, match="is a file"):
+        drive_robot("car1", open_sequence(tiny_scenario / "car1"), ShgmConfig(), out_dir=tmp_path / "f")
+    with pytest.raises(DataError, match="cannot write into"):
+        check_writable_dir(tmp_path / "f" / "sub")

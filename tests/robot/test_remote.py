@@ -202,3 +202,29 @@ def test_a_sequence_that_cannot_go_to_a_worker_is_a_clear_error(tiny_scenario: P
     cfg.odometry.kind = OdometryKind.GT
     with pytest.raises(ConfigError, match=r"car2.*cannot be handed to a worker process.*--jobs 1"):
         run_slam(robots, cfg, tmp_path / "out", jobs=2)
+
+
+def _report_sigint_state(conn) -> None:
+    """A worker's first act: is SIGINT ignored (a Ctrl-C during its imports cannot have killed it)?"""
+    import signal
+
+    conn.send(signal.getsignal(signal.SIGINT) is signal.SIG_IGN)
+    conn.close()
+
+
+@pytest.mark.skipif(not hasattr(__import__("signal"), "pthread_sigmask"), reason="POSIX signal masks")
+def test_a_worker_starts_with_ctrl_c_blocked_and_the_orchestrator_keeps_it() -> None:
+    """A Ctrl-C on the process group killed workers still importing, with tracebacks and robots reported failed."""
+    import signal
+
+    from shgm_slam.robot.remote import _start_without_sigint
+
+    ctx = multiprocessing.get_context("spawn")
+    parent, child = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_report_sigint_state, args=(child,))
+    _start_without_sigint(proc)
+    child.close()
+    assert parent.recv() is True
+    proc.join(timeout=60)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # this process still gets Ctrl-C
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
