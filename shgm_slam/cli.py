@@ -162,12 +162,13 @@ def simulate_command(
     size = parse_resolution(resolution)
     altitude = parse_altitude(uav_altitude) if uav_altitude is not None else None
     corruption = CorruptionLevels.from_levels(depth_noise=depth_noise, label_noise=label_noise)
-    result = _simulate_with_progress(
-        scenario, out, seed, resolution=size, fps=fps, max_frames=max_frames, corruption=corruption,
-        world_size_m=world_size, max_depth_m=max_depth, compact=compact, kitti_root=kitti_root,
-        kitti_robots=tuple(kitti_drive) if kitti_drive else None,
-        overwrite=overwrite, supersample=supersample, uav_altitude_m=altitude,
-    )
+    with _stop_signals_as_interrupt():  # SIGTERM/SIGHUP stop it like Ctrl-C: "interrupted", exit 130
+        result = _simulate_with_progress(
+            scenario, out, seed, resolution=size, fps=fps, max_frames=max_frames, corruption=corruption,
+            world_size_m=world_size, max_depth_m=max_depth, compact=compact, kitti_root=kitti_root,
+            kitti_robots=tuple(kitti_drive) if kitti_drive else None,
+            overwrite=overwrite, supersample=supersample, uav_altitude_m=altitude,
+        )
     table = Table(title=f"{lit(scenario)} (seed {seed}, {size[0]}x{size[1]} @ {fps:g} Hz) -> {lit(out)}")
     for col in ("robot", "kind", "frames", "path m", "shares view with (m)", "folder"):
         table.add_column(col, justify="right" if col in ("frames", "path m") else "left")

@@ -246,3 +246,23 @@ def test_robot_without_a_server_says_so_and_exits_nonzero(tiny_scenario: Path) -
                         "--odometry", "gt", "--wait", "1"], capture_output=True, text=True, timeout=120)  # fmt: skip
     assert p.returncode == 3, p.stdout + p.stderr
     assert "did not acknowledge" in p.stdout + p.stderr
+
+
+def test_a_robot_that_leaves_before_the_server_finishes_and_a_stopped_server_say_so(
+    tiny_scenario: Path, tmp_path: Path
+) -> None:
+    """The robot said "placed: not placed" and exited 0 while the server still waited for --expect robots;
+    the stopped server's folder looked like a finished run's."""
+    port = _free_port()
+    server = _server(tmp_path / "out", port, expect=3)
+    p = subprocess.run([*CLI, "robot", f"car1={tiny_scenario / 'car1'}:0-8", "--connect", f"tcp/127.0.0.1:{port}",
+                        "--odometry", "gt", "--wait", "3", "--out", str(tmp_path / "car1")],
+                       capture_output=True, text=True, timeout=TIMEOUT_S)  # fmt: skip
+    assert p.returncode == 4, p.stdout + p.stderr
+    assert "had not finished" in " ".join(p.stdout.split())
+    assert (tmp_path / "car1" / "car1_odometry_tum.txt").is_file()
+    server.send_signal(signal.SIGTERM)
+    out, _ = server.communicate(timeout=TIMEOUT_S)
+    assert server.returncode == 130, out[-2000:]
+    s = json.loads((tmp_path / "out" / "server.json").read_text())
+    assert s["interrupted"] is True  # "finished": its results are written, after the stop

@@ -178,6 +178,7 @@ class ServerNode:
         self.robots: dict[str, RobotSession] = {}
         self.traffic = TrafficStats()
         self.finished = False
+        self.interrupted = False  # stopped (Ctrl-C / SIGTERM) before every expected robot was done
         self._refused: dict[str, str] = {}
         self._pending: dict[str, tuple[str, float]] = {}  # robot -> (newcomer session, first heard)
         self._admitted_agents: set[str] = set()  # agents whose keyframes go into the map (``_admitted``)
@@ -703,6 +704,7 @@ class ServerNode:
             "session": self.session,
             "reference": self.reference,
             "finished": self.finished,
+            "interrupted": self.interrupted,
             "recovered_messages": self.recovered_messages,
             "recovery": self.recovery.to_json_dict(),
             "snapshots_written": self.snapshots.written if self.snapshots is not None else 0,

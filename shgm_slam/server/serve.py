@@ -147,6 +147,7 @@ def serve(
                 view.update(node, records)
         except KeyboardInterrupt:
             interrupted = True
+            node.interrupted = True  # server.json says so: the folder is not a finished run's
             log.warning("stopping: matching whole graphs once more and writing the results")
             records = node.finish()
             view.update(node, records)
