@@ -627,13 +627,16 @@ def server_command(
                            stale_after_s=stale_after, started=lambda resumed: console.print(
                                f"map server listening on {lit(listen or 'tcp/127.0.0.1:7447')}"
                                + (f", expecting {expect} robots" if expect else "; Ctrl-C to finish")
-                               + (f"; {resumed}" if resumed else "")))  # fmt: skip
+                               + (f"; {resumed}" if resumed else "")),
+                           say=lambda line: console.print(f"  {lit(line)}"))  # fmt: skip
     s = result.summary
     for name, r in s["robots"].items():
         placed = _placed_text(r["placed"], r["provisional"])
         console.print(f"  {lit(name)}: {r['keyframes']} keyframes, {r['state']}, placed: {lit(placed)}")
         for note in r.get("waiting", ()):
             console.print(f"    {lit(note)}")
+    for line in s.get("never_met", ()):
+        console.print(f"[yellow]{lit(line)}[/]")
     t = s["traffic"]
     per_kf = t["bytes_per_keyframe"]
     console.print(f"{s['matches_tried']} matches, {s['closures_accepted']} accepted; "

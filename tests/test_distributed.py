@@ -264,5 +264,7 @@ def test_a_robot_that_leaves_before_the_server_finishes_and_a_stopped_server_say
     server.send_signal(signal.SIGTERM)
     out, _ = server.communicate(timeout=TIMEOUT_S)
     assert server.returncode == 130, out[-2000:]
+    said = " ".join(out.split())  # it said who came while it waited for the others
+    assert "car1: connected (1 of 3 robots expected)" in said and "car1: sent its last keyframe" in said
     s = json.loads((tmp_path / "out" / "server.json").read_text())
     assert s["interrupted"] is True  # "finished": its results are written, after the stop

@@ -51,7 +51,7 @@ from shgm_slam.messages import (
 from shgm_slam.server.journal import Journal
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.ordering import KeyframeOrder
-from shgm_slam.server.records import MatchRecord
+from shgm_slam.server.records import MatchRecord, pair_matches
 from shgm_slam.server.recovery import RecoveryReport, recover
 from shgm_slam.server.sessions import RobotSession
 from shgm_slam.server.snapshot import SnapshotStore, config_digest
@@ -717,5 +717,7 @@ class ServerNode:
             "mean_match_ms": server.mean_match_ms() if server else 0.0,
             "anchorings": server.anchorings() if server else [],
             "last_looks": server.last_looks() if server else [],
+            # a line per robot pair none of whose matches was accepted, and how close the closest came (as `run`)
+            "never_met": [line for p in pair_matches(server.matches) if (line := p.never_met())] if server else [],
             "traffic": self.traffic.to_json_dict(),
         }

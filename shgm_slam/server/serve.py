@@ -20,6 +20,7 @@ from shgm_slam.agents import agent_robot
 from shgm_slam.config import ShgmConfig
 from shgm_slam.geometry import se3
 from shgm_slam.interrupts import stops_deferred
+from shgm_slam.messages import RobotState
 from shgm_slam.server.node import ServerNode
 from shgm_slam.server.placement import PlacementWatch
 from shgm_slam.server.records import MatchRecord
@@ -42,14 +43,24 @@ class ServeSummary:
     wall_s: float
 
 
+def _state_line(name: str, state: RobotState, robots: int, expect: int | None) -> str:
+    """``car1: connected (1 of 3 robots expected)``, ``car1: silent (stale)``, ``car1: done`` ..."""
+    text = {RobotState.ACTIVE: "connected", RobotState.STALE: "silent (stale; kept, it resumes when it returns)",
+            RobotState.DONE: "sent its last keyframe"}[state]  # fmt: skip
+    if state is RobotState.ACTIVE and expect:
+        text += f" ({robots} of {expect} robots expected)"
+    return f"{name}: {text}"
+
+
 class ServerView:
     """Streams a live map server to the viewer: each agent's graph and keyframe trajectory in the shared
     frame (at most every ``every_s`` per robot, so long runs do not re-send everything each keyframe),
     matches, robots joining and going stale, agents placed provisionally or confirmed."""
 
-    def __init__(self, viz: Viz, *, every_s: float = 1.0) -> None:
+    def __init__(self, viz: Viz, *, every_s: float = 1.0, say: Callable[[str], None] | None = None) -> None:
         self.viz = viz
         self.every_s = every_s
+        self.say = say  # robots joining, going stale, coming back and done, as lines (the command line prints them)
         self._last: dict[str, float] = {}
         self._states: dict[str, str] = {}
         self._placements = PlacementWatch()
@@ -62,7 +73,9 @@ class ServerView:
         for name, rs in node.robots.items():
             if self._states.get(name) != rs.state.value:
                 self._states[name] = rs.state.value
-                self.viz.log_text(f"{name}: {rs.state.value}", "WARN" if rs.state.value == "stale" else "INFO")
+                self.viz.log_text(f"{name}: {rs.state.value}", "WARN" if rs.state is RobotState.STALE else "INFO")
+                if self.say is not None:
+                    self.say(_state_line(name, rs.state, len(node.robots), node.expect))
             if now - self._last.get(name, -np.inf) < self.every_s:
                 continue
             self._last[name] = now
@@ -107,6 +120,7 @@ def serve(
     viz: Viz | None = None,
     stale_after_s: float = 5.0,
     started: Callable[[str], None] | None = None,
+    say: Callable[[str], None] | None = None,
 ) -> ServeSummary:
     """Run a map server until ``expect`` robots are done (or Ctrl-C / SIGTERM) and write its results.
 
@@ -120,6 +134,7 @@ def serve(
         stale_after_s: a robot silent this long is marked stale (kept; it resumes when it returns).
         started: called once the endpoint is listened on and the folder's journal replayed, with "" or a line
             saying what was recovered (the command line says both then, not before).
+        say: called with a line when a robot connects, goes silent, comes back or is done.
 
     Raises:
         TransportError, ConfigError: the endpoint cannot be listened on.
@@ -139,7 +154,7 @@ def serve(
             viz.log_text(resumed, "INFO")
         if started is not None:
             started(resumed)
-        view = ServerView(viz)
+        view = ServerView(viz, say=say)
         try:
             while not node.finished:
                 with stops_deferred():  # a stop lands between messages, never inside one
