@@ -181,7 +181,7 @@ def test_eval_table_fits_80_columns_without_cutting(monkeypatch):
               evaluation.RobotEvaluation("uav", 0, 0, note="not placed (no fused trajectory)")]  # fmt: skip
     robots[0].ate_fused_joint_m = 987.65
     result = SimpleNamespace(robots=robots, reference_robot="car1", gt_source="results folder", gt_files_written=[],
-                             joint_robots=2, ate_joint_m=1.5)  # fmt: skip
+                             joint_robots=2, ate_joint_m=1.5, interrupted=False)  # fmt: skip
     monkeypatch.setattr(evaluation, "evaluate_results", lambda *a, **k: result)
     res = runner.invoke(app, ["eval", "anywhere"], env={"COLUMNS": "80"})
     assert res.exit_code == 0, res.output
