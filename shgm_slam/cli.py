@@ -681,8 +681,13 @@ def robot_command(
 
     cfg = _apply_run_options(load_config(config), odometry, depth_model, seg_model)
     (name, seq), = open_robots([robot]).items()
-    with _stop_signals_as_interrupt():
-        s = drive_robot(name, seq, cfg, connect=connect, realtime=realtime, out_dir=out, wait_s=wait)
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
+
+    with _stop_signals_as_interrupt(), Progress(f"{lit(name)}: frames", BarColumn(), MofNCompleteColumn(),
+                                                TimeRemainingColumn(), console=console, transient=True) as bar:
+        task = bar.add_task("frames", total=len(seq))
+        s = drive_robot(name, seq, cfg, connect=connect, realtime=realtime, out_dir=out, wait_s=wait,
+                        progress=lambda done, total: bar.update(task, completed=done))  # fmt: skip
     placed = _placed_text(s.placed_agents, s.provisional_agents)
     down_kb = s.bytes_received.get("correction", 0) / 1e3
     console.print(f"{lit(name)}: {s.frames_processed}/{s.frames} frames, {s.keyframes} keyframes "
