@@ -123,9 +123,9 @@ def run_robot_order(results_dir: Path) -> list[str]:
     return names
 
 
-def run_frame_counts(results_dir: Path, key: str = "frames") -> dict[str, int]:
-    """Robot -> frames of its sequence (range) in the run, from ``metrics.json``; empty when not recorded.
-    Another integer of each robot's entry with ``key`` (``fused_poses``: rows of its fused trajectory)."""
+def run_robot_counts(results_dir: Path, key: str = "frames") -> dict[str, int]:
+    """Robot -> an integer of its entry in ``metrics.json``: ``frames`` of its sequence (range) in the run (default),
+    ``fused_poses`` (rows of its fused trajectory), ``frames_not_reached``; empty when not recorded."""
     try:
         robots = json.loads((results_dir / "metrics.json").read_text())["robots"]
         return {r["name"]: r[key] for r in robots if isinstance(r.get(key), int) and not isinstance(r[key], bool)}
@@ -148,7 +148,7 @@ def check_fused_rows(results_dir: Path, robot: str, rows: int) -> None:
     Raises:
         DataError: the file was cut short, emptied or extended after the run.
     """
-    expected = run_frame_counts(results_dir, "fused_poses").get(robot)
+    expected = run_robot_counts(results_dir, "fused_poses").get(robot)
     if expected is not None and expected != rows:
         raise DataError(
             f"{results_dir / f'{robot}_fused_tum.txt'} holds {rows} poses but the run wrote {expected} "
@@ -165,7 +165,7 @@ def check_frame_counts(results_dir: Path, sequences: dict[str, Sequence]) -> Non
     Raises:
         DataError: a sequence's frame count differs from ``metrics.json``'s for that robot.
     """
-    counts = run_frame_counts(results_dir)
+    counts = run_robot_counts(results_dir)
     for name, seq in sequences.items():
         if name in counts and len(seq) != counts[name]:
             raise DataError(
@@ -250,7 +250,7 @@ def evaluate_results(
         )
     order = run_robot_order(root)
     result = EvaluationResult(root, order[0], "", interrupted=run_was_interrupted(root))
-    not_reached = run_frame_counts(root, "frames_not_reached")
+    not_reached, frames = run_robot_counts(root, "frames_not_reached"), run_robot_counts(root)
     truth: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     own_frame: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     if sequences:
@@ -306,8 +306,7 @@ def evaluate_results(
             result.robots.append(RobotEvaluation(r, count, 0, note="no ground truth given", provisional=provisional))
     for rep in result.robots:
         if not_reached.get(rep.name):
-            frames = run_frame_counts(root).get(rep.name)
-            cut = f"interrupted: {not_reached[rep.name]} of its {frames} frames were not run"
+            cut = f"interrupted: {not_reached[rep.name]} of its {frames.get(rep.name)} frames were not run"
             rep.note = f"{rep.note}; {cut}" if rep.note else cut
     if joint:
         per_robot, together = joint_ate([g for g, _ in joint.values()], [e for _, e in joint.values()])

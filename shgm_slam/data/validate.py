@@ -24,15 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from shgm_slam.errors import DataError, ModelError
-from shgm_slam.labels import label_name
+from shgm_slam.labels import IGNORE_ID, NUM_CLASSES, label_name
 from shgm_slam.types import Frame, Sequence
 
 FIRST_FRAMES = 3
 """Frames 0, 1, 2 are probed ..."""
 SPREAD = (0.25, 0.5, 0.75)
 """... and these fractions of the sequence (a range that starts with a few bad frames is still accepted)."""
-NUM_TRAIN_IDS = 19
-"""Cityscapes train ids 0..18; 255 = ignore."""
 
 Perceive = Callable[[Frame], tuple[np.ndarray, np.ndarray | None]]
 
@@ -102,7 +100,7 @@ def check_sequence_start(
                 "check the model and its card (output kind, scale, clamp range) with shgm-slam check-model"
             )
     if labels:
-        known = [lab[lab < NUM_TRAIN_IDS] for lab in labels]
+        known = [lab[lab < NUM_CLASSES] for lab in labels]  # train ids 0-18
         if not any(k.size for k in known):
             if seg_model is not None:
                 raise ModelError(
@@ -129,7 +127,7 @@ def _check_label_space(labels: list[np.ndarray], where: str) -> None:
     (0-18) nor ignore (255): the files are in another label space (Cityscapes' full label ids 0-33 put road at
     7, a train id's traffic sign), and even their values in 0-18 would be read as the wrong classes."""
     flat = np.concatenate([lab.ravel() for lab in labels])
-    foreign = (flat >= NUM_TRAIN_IDS) & (flat != 255)
+    foreign = (flat >= NUM_CLASSES) & (flat != IGNORE_ID)
     if foreign.mean() > MAX_FOREIGN_LABEL_SHARE:
         values = np.unique(flat[foreign])
         shown = ", ".join(map(str, values[:8])) + (", ..." if values.size > 8 else "")
