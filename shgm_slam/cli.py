@@ -23,6 +23,7 @@ from rich.markup import escape
 from shgm_slam import __version__
 from shgm_slam.config import DescriptorKind, Dof, OdometryKind, OutlierMode
 from shgm_slam.errors import ShgmError
+from shgm_slam.interrupts import INTERRUPTED_EXIT_CODE
 from shgm_slam.io.json_text import to_json_text
 
 console = Console()
@@ -69,7 +70,7 @@ def handle_errors(fn: F) -> F:
             raise typer.Exit(2) from None
         except KeyboardInterrupt:  # before a run's loop (which keeps its results itself) or in another command
             err_console.print("[yellow]interrupted[/]")
-            raise typer.Exit(130) from None
+            raise typer.Exit(INTERRUPTED_EXIT_CODE) from None
 
     return wrapper  # type: ignore[return-value]
 
@@ -490,7 +491,7 @@ def run(
     summary = _run_command(robot, cfg, out, rerun, rerun_url, gt_shared_frame, overwrite, jobs)
     _render_summary(summary)
     if summary.interrupted:
-        raise typer.Exit(130)
+        raise typer.Exit(INTERRUPTED_EXIT_CODE)
 
 
 def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_model: Path | None):
@@ -574,7 +575,7 @@ def _late_stop(_signum, _frame) -> None:
             stream.flush()
     with contextlib.suppress(OSError):
         os.write(2, f"\n{LATE_STOP_NOTE}\n".encode())
-    os._exit(130)
+    os._exit(INTERRUPTED_EXIT_CODE)
 
 
 @app.command("server")
@@ -643,7 +644,7 @@ def server_command(
                   f"{f'{per_kf:.0f} B' if per_kf else 'no'} per keyframe; {t['refused']} messages refused; "
                   f"results in {lit(result.out_dir)}")  # fmt: skip
     if result.interrupted:
-        raise typer.Exit(130)
+        raise typer.Exit(INTERRUPTED_EXIT_CODE)
 
 
 def _placed_text(placed: list[str], provisional: list[str]) -> str:
@@ -700,7 +701,7 @@ def robot_command(
         console.print(f"interrupted after {s.frames_processed} of {s.frames} frames"
                       + (f"; its trajectories so far are in {lit(out)}" if out else "")
                       + "; the map server keeps its keyframes: start the same command again to go on")  # fmt: skip
-        raise typer.Exit(130)
+        raise typer.Exit(INTERRUPTED_EXIT_CODE)
     if not s.acknowledged:
         console.print("[red]the map server did not acknowledge every keyframe (is it running? see --connect)[/red]")
         raise typer.Exit(3)
@@ -906,7 +907,7 @@ def perceive_command(
                       "the same command again to redo them")  # fmt: skip
     if result.interrupted:
         console.print(f"[yellow]interrupted[/]: run the same command again to finish {lit(out)}")
-        raise typer.Exit(130)
+        raise typer.Exit(INTERRUPTED_EXIT_CODE)
     console.print(f"wrote [bold]{lit(out)}[/]; use it with: shgm-slam run --robot NAME={lit(out)}"
                   + (" --odometry visual (predicted depth)" if result.providers.get("depth") else ""))
 
@@ -1393,7 +1394,7 @@ def _skip_teardown() -> None:
 
 
 def main() -> None:
-    """The ``shgm-slam`` command (``python -m shgm_slam.cli``)."""
+    """The ``shgm-slam`` command (entered through ``shgm_slam.__main__``, which loads this module)."""
     import atexit
 
     global _OWN_PROCESS, _EXIT_CODE

@@ -8,6 +8,8 @@ Defaults follow the paper and the authors' release (ARCHITECTURE.md, "The algori
 from __future__ import annotations
 
 import difflib
+import hashlib
+import json
 import math
 from enum import Enum
 from pathlib import Path
@@ -595,6 +597,16 @@ class RobotOverrides(_Stage):
     perception: dict | None = None
 
 
+FRONT_END_STAGES = ("extraction", "graph", "keyframes", "odometry")
+"""The stages that shape a robot's keyframes and graph nodes (``ShgmConfig.front_end_digest``)."""
+
+PER_PROCESS_FIELDS = frozenset({("odometry", "kind"), ("odometry", "poses_file"), ("odometry", "icp_threads")})
+"""Front-end fields a robot process sets for itself (``--odometry``, its machine's threads): not compared."""
+
+DIGEST_CHARS = 16
+"""Hex characters of ``ShgmConfig.front_end_digest`` (64 bits)."""
+
+
 class ShgmConfig(_Stage):
     """The whole system's configuration."""
 
@@ -632,6 +644,28 @@ class ShgmConfig(_Stage):
             data[stage] = {**data[stage], **fields}
         data["robots"] = {}
         return ShgmConfig.model_validate(data)
+
+    def front_end_digest(self, name: str) -> str:
+        """A short hex digest of the settings that shape what robot ``name`` sends the map server: its
+        extraction, graph, keyframe and odometry stages (``for_robot``, before data-derived values), less
+        ``PER_PROCESS_FIELDS``. A robot started with another ``--config`` than its server has another digest
+        (``server.node`` refuses it: its graphs would silently differ from what the server's settings say)."""
+        data = self.for_robot(name).model_dump(mode="json")
+        stages = {s: {k: v for k, v in data[s].items() if (s, k) not in PER_PROCESS_FIELDS} for s in FRONT_END_STAGES}
+        text = json.dumps(stages, sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()[:DIGEST_CHARS]
+
+    def with_robot_values(self, values: dict[str, dict[str, dict[str, Any]]]) -> ShgmConfig:
+        """This config with robots' resolved values (``{robot: {stage: {field: value}}}``, e.g. the data-derived
+        ones, ``scene_scale.effective_fields``) merged into their ``robots`` overrides: loading it reproduces
+        those front ends' settings."""
+        robots = dict(self.robots)
+        for name, stages in values.items():
+            base = robots[name].model_dump() if name in robots else {}
+            for stage, fields in stages.items():
+                base[stage] = {**(base.get(stage) or {}), **fields}
+            robots[name] = RobotOverrides.model_validate(base)
+        return self.model_copy(update={"robots": robots})
 
     def to_yaml(self) -> str:
         """The config as YAML text (enums and paths as plain strings)."""

@@ -16,6 +16,9 @@ STOP_SIGNALS = tuple(
 )
 """The signals that stop a run (the CLI turns SIGTERM and SIGHUP into a Ctrl-C)."""
 
+INTERRUPTED_EXIT_CODE = 130
+"""Exit code of a command stopped by one of them (128 + SIGINT, as the shell reports a Ctrl-C)."""
+
 
 @contextlib.contextmanager
 def stops_deferred() -> Iterator[None]:

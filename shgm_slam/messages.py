@@ -28,7 +28,9 @@ class HelloMessage:
     ``start_s``: the timestamp of its sequence's first frame (s); ``progress_s``: how far it has got, in
     seconds since that first frame (None before its first frame): every keyframe it made of frames up to
     there has arrived at the map server session ``server_session`` ("" = none known yet), by that server's
-    acknowledgements (the map server takes keyframes of all robots in this time order)."""
+    acknowledgements (the map server takes keyframes of all robots in this time order). ``settings_digest``:
+    ``ShgmConfig.front_end_digest`` of the robot's configuration ("" = not said; the map server refuses a robot
+    whose digest differs from its own for that robot)."""
 
     robot: str
     session: str
@@ -37,6 +39,7 @@ class HelloMessage:
     start_s: float = 0.0
     progress_s: float | None = None
     server_session: str = ""
+    settings_digest: str = ""
 
 
 @dataclass(frozen=True)
@@ -74,12 +77,15 @@ class RobotTrajectory:
 @dataclass(frozen=True)
 class DoneMessage:
     """A robot has sent its last keyframe: ``keyframes`` is how many each of its agents sent in all;
-    ``trajectory`` its per-frame odometry (None: the robot does not share it)."""
+    ``trajectory`` its per-frame odometry (None: the robot does not share it); ``settings`` its front end's
+    data-derived values, ``{stage: {field: value}}`` (``scene_scale.effective_fields``; the map server writes
+    them into its ``config.yaml``), None when not said."""
 
     robot: str
     session: str
     keyframes: dict[str, int]
     trajectory: RobotTrajectory | None = None
+    settings: dict[str, dict[str, float | int | bool]] | None = None
 
 
 @dataclass(frozen=True, eq=False)

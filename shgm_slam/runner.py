@@ -19,7 +19,7 @@ import numpy as np
 
 from shgm_slam.arrays import thinning_stride
 from shgm_slam.backend.keys import MAX_AGENTS, segments_per_robot
-from shgm_slam.config import OdometryKind, RobotOverrides, ShgmConfig
+from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.data.base import parse_sequence_spec
 from shgm_slam.data.interleave import interleave
@@ -119,13 +119,7 @@ def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConf
 def effective_config(cfg: ShgmConfig, robot_cfgs: dict[str, ShgmConfig]) -> ShgmConfig:
     """``cfg`` with each robot's data-derived values (``resolve_robot_config``) written into its
     ``robots`` overrides: loading it reproduces every front end's settings."""
-    robots = dict(cfg.robots)
-    for name, rcfg in robot_cfgs.items():
-        base = robots[name].model_dump() if name in robots else {}
-        for stage, values in effective_fields(rcfg).items():
-            base[stage] = {**(base.get(stage) or {}), **values}
-        robots[name] = RobotOverrides.model_validate(base)
-    return cfg.model_copy(update={"robots": robots})
+    return cfg.with_robot_values({name: effective_fields(rcfg) for name, rcfg in robot_cfgs.items()})
 
 
 @dataclass

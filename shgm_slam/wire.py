@@ -48,10 +48,11 @@ from shgm_slam.messages import (
     StatusMessage,
 )
 
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 """Version of the payload layout; a peer with another version is refused (``WireError``). 2: corrections
 carry only what changed (``AgentCorrection``), hellos a resync request, keyframes their own ground normal.
-3: hellos carry the robot's sequence start and progress (the map server orders keyframes by time)."""
+3: hellos carry the robot's sequence start and progress (the map server orders keyframes by time).
+4: hellos carry the digest of the robot's front-end settings, dones its data-derived settings."""
 
 MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 """Largest payload ``decode`` reads (and ``encode`` writes)."""
@@ -70,6 +71,10 @@ _U16_MAX = 2**16 - 1
 _ROBOT_RE = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,31}")
 _AGENT_RE = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,31}(?:#[1-9][0-9]{0,8})?")
 _SESSION_RE = re.compile(r"[0-9A-Za-z_-]{0,64}")
+_DIGEST_RE = re.compile(r"[0-9a-f]{0,64}")
+_SETTING_RE = re.compile(r"[a-z][a-z0-9_]{0,63}")
+MAX_SETTINGS = 256
+"""Most stages, and fields per stage, of a done message's ``settings``."""
 _POSE_BYTES = 12 * 8
 _NODE_BYTES = {"i": 8, "l": 1, "a": 4, "p": 12, "z": 4, "o": 2}  # bytes per node of each column
 _STATE_CODES = {RobotState.ACTIVE: 0, RobotState.STALE: 1, RobotState.DONE: 2}
@@ -109,6 +114,34 @@ def _agent(value: Any, what: str) -> str:
 
 def _session(value: Any, what: str) -> str:
     return _name(value, what, _SESSION_RE, "need at most 64 characters from [0-9A-Za-z_-]")
+
+
+def _digest(value: Any, what: str) -> str:
+    return _name(value, what, _DIGEST_RE, "need at most 64 lowercase hex digits")
+
+
+def _settings(value: Any, what: str) -> dict[str, dict[str, float | int | bool]] | None:
+    """``{stage: {field: number or bool}}`` (names lowercase identifiers, numbers finite), or None."""
+    if value is None:
+        return None
+    if not isinstance(value, Mapping) or len(value) > MAX_SETTINGS:
+        raise WireError(f"{what} must be a map of at most {MAX_SETTINGS} stages")
+    out: dict[str, dict[str, float | int | bool]] = {}
+    for stage, fields in value.items():
+        _name(stage, f"{what} stage", _SETTING_RE, "need a lowercase identifier")
+        if not isinstance(fields, Mapping) or len(fields) > MAX_SETTINGS:
+            raise WireError(f"{what}[{stage}] must be a map of at most {MAX_SETTINGS} fields")
+        out[stage] = {}
+        for name, v in fields.items():
+            _name(name, f"{what}[{stage}] field", _SETTING_RE, "need a lowercase identifier")
+            where = f"{what}[{stage}][{name}]"
+            if isinstance(v, bool):
+                out[stage][name] = v
+            elif type(v) is int or isinstance(v, np.integer):
+                out[stage][name] = _int(v, where, -_I32_MAX)
+            else:
+                out[stage][name] = _float(v, where)
+    return out
 
 
 def _int(value: Any, what: str, lo: int = 0, hi: int = _I32_MAX) -> int:
@@ -398,7 +431,8 @@ def _encode_fields(msg: Message) -> dict[str, Any]:
                 "s": _session(msg.session, "hello session"), "n": _int(msg.num_frames, "hello num_frames"),
                 "y": _bool(msg.resync, "hello resync"), "b": _float(msg.start_s, "hello start_s"),
                 "p": None if msg.progress_s is None else _progress(msg.progress_s),
-                "g": _session(msg.server_session, "hello server_session")}  # fmt: skip
+                "g": _session(msg.server_session, "hello server_session"),
+                "d": _digest(msg.settings_digest, "hello settings_digest")}  # fmt: skip
     if isinstance(msg, KeyframeMessage):
         g = msg.graph_update
         T = np.asarray(msg.T_odom_kf, dtype=np.float64)
@@ -422,7 +456,8 @@ def _encode_fields(msg: Message) -> dict[str, Any]:
         robot = _robot(msg.robot, "done robot")
         return {"k": MessageKind.DONE, "r": robot, "s": _session(msg.session, "done session"),
                 "c": _counts(msg.keyframes, "done keyframes", robot),
-                "j": None if msg.trajectory is None else _trajectory_fields(msg.trajectory)}  # fmt: skip
+                "j": None if msg.trajectory is None else _trajectory_fields(msg.trajectory),
+                "e": _settings(msg.settings, "done settings")}  # fmt: skip
     if isinstance(msg, CorrectionMessage):
         robot = _robot(msg.robot, "correction robot")
         if len(msg.agents) > MAX_AGENTS:
@@ -474,9 +509,9 @@ def encode(msg: Message) -> bytes:
 # --- decode -----------------------------------------------------------------------------------------
 
 _KEYS = {
-    MessageKind.HELLO: ("r", "s", "n", "y", "b", "p", "g"),
+    MessageKind.HELLO: ("r", "s", "n", "y", "b", "p", "g", "d"),
     MessageKind.KEYFRAME: ("r", "s", "i", "f", "t", "T", "u", "gk", "gT", "gn", "gu"),
-    MessageKind.DONE: ("r", "s", "c", "j"),
+    MessageKind.DONE: ("r", "s", "c", "j", "e"),
     MessageKind.CORRECTION: ("r", "s", "c", "q", "F", "A"),
     MessageKind.STATUS: ("s", "e", "b", "x", "y"),
 }
@@ -488,7 +523,8 @@ def _decode_fields(kind: MessageKind, f: _Fields) -> Message:
         return HelloMessage(_robot(d["r"], "hello robot"), _session(d["s"], "hello session"),
                             _int(d["n"], "hello num_frames"), _bool(d["y"], "hello resync"),
                             _float(d["b"], "hello start_s"), None if d["p"] is None else _progress(d["p"]),
-                            _session(d["g"], "hello server_session"))  # fmt: skip
+                            _session(d["g"], "hello server_session"),
+                            _digest(d["d"], "hello settings_digest"))  # fmt: skip
     if kind is MessageKind.KEYFRAME:
         T = _unpack_poses(f.raw("T", _POSE_BYTES, 1), 1, "keyframe T_odom_kf")[0]
         raw_world = f.raw("gT", _POSE_BYTES, 1, nullable=True)
@@ -507,7 +543,8 @@ def _decode_fields(kind: MessageKind, f: _Fields) -> Message:
         robot = _robot(d["r"], "done robot")
         counts = f.map("c", lambda a, w: _own_agent(a, w, robot))
         traj = None if d["j"] is None else _trajectory(d["j"])
-        return DoneMessage(robot, _session(d["s"], "done session"), _counts(counts, "done keyframes", robot), traj)
+        return DoneMessage(robot, _session(d["s"], "done session"), _counts(counts, "done keyframes", robot), traj,
+                           _settings(d["e"], "done settings"))  # fmt: skip
     if kind is MessageKind.CORRECTION:
         robot = _robot(d["r"], "correction robot")
         received = _counts(f.map("c", lambda a, w: _own_agent(a, w, robot)), "correction received", robot)

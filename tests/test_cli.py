@@ -41,7 +41,7 @@ def test_stop_signals_keep_the_results_like_ctrl_c(tiny_scenario, tmp_path, sig)
     for k in range(3):
         robots += ["--robot", f"car{k}={tiny_scenario / 'car1'}", "--robot", f"van{k}={tiny_scenario / 'car2'}"]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "shgm_slam.cli", "run", *robots, "--rerun", "off", "--out", str(out)],
+        [sys.executable, "-m", "shgm_slam", "run", *robots, "--rerun", "off", "--out", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "COLUMNS": "200"},
     )
     deadline = time.monotonic() + 120

@@ -122,3 +122,32 @@ def test_true_and_false_still_set_switches(tmp_path: Path) -> None:
 def test_a_folder_given_as_the_config_is_named_so(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="is a folder; give a YAML file"):
         load_config(tmp_path)
+
+
+def test_the_front_end_digest_follows_what_shapes_a_robots_graph() -> None:
+    """Equal configs agree; a front-end setting, fleet-wide or in this robot's overrides, changes it; another
+    robot's overrides, the back end and what a robot process sets for itself do not."""
+    base = ShgmConfig()
+    d = base.front_end_digest("uav")
+    assert d == ShgmConfig().front_end_digest("uav") and len(d) == 16
+    assert ShgmConfig.model_validate({"graph": {"merge_radius_m": 4}}).front_end_digest("uav") != d
+    assert ShgmConfig.model_validate({"robots": {"uav": {"extraction": {"max_depth_m": 90}}}}).front_end_digest(
+        "uav") != d  # fmt: skip
+    assert ShgmConfig.model_validate({"robots": {"car1": {"extraction": {"max_depth_m": 90}}}}).front_end_digest(
+        "uav") == d  # fmt: skip
+    assert ShgmConfig.model_validate({"matching": {"top_k": 5}}).front_end_digest("uav") == d
+    assert ShgmConfig.model_validate({"odometry": {"kind": "gt", "icp_threads": 1}}).front_end_digest("uav") == d
+
+
+def test_robot_values_merge_into_overrides_and_reload(tmp_path: Path) -> None:
+    cfg = ShgmConfig.model_validate({"robots": {"uav": {"extraction": {"min_depth_m": 2.0}}}})
+    merged = cfg.with_robot_values(
+        {"uav": {"extraction": {"max_depth_m": 90.0}}, "car1": {"odometry": {"voxel_size_m": 1.5}}}
+    )
+    path = tmp_path / "c.yaml"
+    path.write_text(merged.to_yaml())
+    loaded = load_config(path)
+    assert loaded.for_robot("uav").extraction.max_depth_m == 90.0
+    assert loaded.for_robot("uav").extraction.min_depth_m == 2.0  # its own override kept
+    assert loaded.for_robot("car1").odometry.voxel_size_m == 1.5
+    assert loaded.for_robot("car2").model_dump(exclude={"robots"}) == ShgmConfig().model_dump(exclude={"robots"})

@@ -18,7 +18,7 @@ import pytest
 
 from shgm_slam.io.trajectories import read_tum
 
-CLI = [sys.executable, "-m", "shgm_slam.cli"]
+CLI = [sys.executable, "-m", "shgm_slam"]
 TIMEOUT_S = 150
 
 

@@ -1,13 +1,16 @@
-"""Stop signals are held inside a step and delivered after it (``stops_deferred``)."""
+"""Stop signals are held inside a step and delivered after it (``stops_deferred``); a Ctrl-C while the command
+line loads ends it like one during a command (``shgm_slam.__main__``)."""
 
 from __future__ import annotations
 
 import signal
+import subprocess
+import sys
 import threading
 
 import pytest
 
-from shgm_slam.interrupts import STOP_SIGNALS, stops_deferred
+from shgm_slam.interrupts import INTERRUPTED_EXIT_CODE, STOP_SIGNALS, stops_deferred
 
 
 @pytest.fixture
@@ -64,3 +67,31 @@ def test_outside_the_main_thread_the_block_runs_unguarded() -> None:
     t.start()
     t.join()
     assert errors == []
+
+
+CTRL_C_WHILE_LOADING = """
+import os, signal, sys
+
+class CtrlC:  # a Ctrl-C that lands while the command line loads (it takes about a second)
+    def find_spec(self, name, path=None, target=None):
+        if name == "shgm_slam.cli":
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+
+sys.meta_path.insert(0, CtrlC())
+sys.argv = ["shgm-slam", "--version"]
+from shgm_slam.__main__ import main
+main()
+"""
+
+
+def test_a_ctrl_c_while_the_command_loads_says_interrupted_not_a_traceback() -> None:
+    out = subprocess.run([sys.executable, "-c", CTRL_C_WHILE_LOADING], capture_output=True, text=True, timeout=120)
+    assert out.returncode == INTERRUPTED_EXIT_CODE, out.stderr
+    assert out.stderr.strip() == "interrupted"
+    assert "Traceback" not in out.stderr
+
+
+def test_python_dash_m_runs_the_command() -> None:
+    out = subprocess.run([sys.executable, "-m", "shgm_slam", "--version"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.startswith("shgm-slam "), out.stderr

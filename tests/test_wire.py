@@ -75,11 +75,14 @@ def all_messages() -> list:
         HelloMessage("car1", "0123456789abcdef", 4541),
         HelloMessage("car1", "0123456789abcdef", 4541, resync=True),
         HelloMessage("car1", "0123456789abcdef", 4541, start_s=1.3e9, progress_s=12.5),
+        HelloMessage("car1", "0123456789abcdef", 4541, settings_digest="93453205442ead31"),
         *[keyframe(u) for u in updates],
         keyframe(updates[0], up=False, robot="car1"),
         KeyframeMessage("r", 0, 0, 0.0, pose(3), updates[1], None, ""),  # graph pose differs from the keyframe pose
         DoneMessage("car1", "s1", {"car1": 10, "car1#1": 0}, traj),
         DoneMessage("car1", "s1", {}, None),
+        DoneMessage("car1", "s1", {"car1": 2}, None,
+                    {"extraction": {"max_depth_m": 61.5}, "odometry": {"cloud_stride": 2, "shuffle_points": True}}),
         CorrectionMessage("car1", "", {"car1": 3, "car1#1": 2}),  # acknowledgement alone
         CorrectionMessage(
             "car1", "s1", {"car1": 3}, 1, True,
@@ -334,6 +337,30 @@ def test_names_sessions_and_indices_are_checked():
     d = _envelope(all_messages()[-2])
     d["b"]["car1"][0] = 7
     with pytest.raises(WireError, match="state"):
+        decode(_pack(d))
+
+
+@pytest.mark.parametrize(
+    ("settings", "culprit"),
+    [
+        ({"extraction": {"max_depth_m": float("nan")}}, r"done settings\[extraction\]\[max_depth_m\] must be finite"),
+        ({"extraction": {"max_depth_m": "far"}}, "must be a number"),
+        ({"extraction": [1, 2]}, r"done settings\[extraction\] must be a map"),
+        ({"Extraction": {}}, "done settings stage 'Extraction' is invalid"),
+        ({"odometry": {"bad name": 1}}, "field 'bad name' is invalid"),
+        ([1], "done settings must be a map"),
+    ],
+)
+def test_settings_and_digests_are_checked(settings, culprit):
+    d = _envelope(DoneMessage("car1", "s", {}))
+    d["e"] = settings
+    with pytest.raises(WireError, match=culprit):
+        decode(_pack(d))
+    with pytest.raises(WireError, match="settings_digest"):
+        encode(HelloMessage("car1", "s", 1, settings_digest="ABC"))  # lowercase hex only
+    d = _envelope(HelloMessage("car1", "s", 1))
+    d["d"] = "0" * 65
+    with pytest.raises(WireError, match="settings_digest"):
         decode(_pack(d))
 
 

@@ -38,7 +38,7 @@ from shgm_slam.runner import open_robots, run_slam
 from shgm_slam.server.node import ServerNode
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 
-CLI = [sys.executable, "-m", "shgm_slam.cli"]
+CLI = [sys.executable, "-m", "shgm_slam"]
 
 
 class Fault(str, Enum):

@@ -70,7 +70,7 @@ def _peak_rss_mb(args: list[str]) -> tuple[float, float]:
     sampled every ``RSS_SAMPLE_S``) where that is more."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "shgm_slam.cli", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+        [sys.executable, "-m", "shgm_slam", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
     )
     tree_peak = 0
     top = psutil.Process(proc.pid)

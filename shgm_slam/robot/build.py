@@ -69,7 +69,7 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig, *, max_segment
     odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence),
                              timestamps_s=sequence.timestamps_s)  # fmt: skip
     return RobotFrontend(name, sequence, rcfg, perception, odometry, choice, depth_predicted=predicted,
-                         max_segments=max_segments)  # fmt: skip
+                         max_segments=max_segments, settings_digest=cfg.front_end_digest(name))  # fmt: skip
 
 
 def _window_on_image(

@@ -77,8 +77,12 @@ class RobotFrontend:
         *,
         depth_predicted: bool | None = None,
         max_segments: int | None = None,
+        settings_digest: str = "",
     ) -> None:
         self.name = name
+        # ``ShgmConfig.front_end_digest`` of the fleet config it was built from ("" = unknown): the map server
+        # compares it with its own
+        self.settings_digest = settings_digest
         self.max_segments = max_segments  # trajectory segments it may start (None: no limit)
         # depth from a network (a configured model, or files a model wrote), not measured
         self.depth_predicted = cfg.perception.depth_model is not None if depth_predicted is None else depth_predicted

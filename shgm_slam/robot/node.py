@@ -40,6 +40,7 @@ from shgm_slam.messages import (
     StatusMessage,
 )
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
+from shgm_slam.scene_scale import effective_fields
 from shgm_slam.transport.base import Inbox, Transport
 from shgm_slam.transport.keys import STATUS_KEY, correction_key, done_key, hello_key, keyframe_key
 from shgm_slam.wire import decode, encode
@@ -124,7 +125,7 @@ class RobotNode:
 
     def _hello_message(self) -> HelloMessage:
         return HelloMessage(self.name, self.session, len(self.front.sequence), self._resync, self._start_s,
-                            self.progress_s(), self.server_session or "")  # fmt: skip
+                            self.progress_s(), self.server_session or "", self.front.settings_digest)  # fmt: skip
 
     def progress_s(self) -> float | None:
         """How far the server holds this robot's keyframes, in seconds since its first frame: the last frame
@@ -172,7 +173,7 @@ class RobotNode:
         traj = RobotTrajectory(np.asarray(f.sequence.timestamps_s, dtype=np.float64), f.frame_segment.copy(),
                                f.T_odom_cam.copy())  # fmt: skip
         counts = {s.agent: s.num_keyframes for s in f.segments if s.num_keyframes}
-        self._done = encode(DoneMessage(self.name, self.session, counts, traj))
+        self._done = encode(DoneMessage(self.name, self.session, counts, traj, effective_fields(f.cfg)))
         self._send_done()
 
     def _send_done(self) -> None:

@@ -177,6 +177,7 @@ class FrontendMirror:
         self.odometry_choice: OdometryChoice | None = front.odometry_choice
         self.ground_scale_on: bool = front.ground_scale_on
         self.max_segments: int | None = front.max_segments
+        self.settings_digest: str = front.settings_digest
         n = len(front.sequence)
         self.T_odom_cam = np.full((n, 4, 4), np.nan)
         self.frame_kf = np.full(n, -1, dtype=np.int64)

@@ -25,7 +25,7 @@ import logging
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -297,12 +297,14 @@ class ServerNode:
         if isinstance(msg, DoneMessage):
             if live and self.journal is not None and rs.done is None:
                 self.journal.append(payload)
-            rs.done = msg
+            rs.done = self._settings_checked(msg)
             rs.state = RobotState.DONE  # it sent its last keyframe (the status tells it the done arrived)
             return robot, []
         return robot, self._keyframe(rs, msg, payload, live=live)
 
     def _hello(self, msg: HelloMessage, payload: bytes, now: float, *, live: bool) -> str | None:
+        if not self._same_settings(msg):
+            return None
         rs = self.robots.get(msg.robot)
         new_session = rs is None or rs.session != msg.session
         if rs is not None and rs.session != msg.session:
@@ -337,6 +339,38 @@ class ServerNode:
             rs.view = FusedView()  # it holds nothing (new process) or missed a correction: a full one next
             rs.corrected_version = -1
         return msg.robot
+
+    def _same_settings(self, msg: HelloMessage) -> bool:
+        """Whether the robot's front end runs on this server's settings for it (``front_end_digest``); else it
+        is refused, once per session (its process stops with the reason). A hello without a digest passes."""
+        ours = self.cfg.front_end_digest(msg.robot)
+        if msg.settings_digest in ("", ours):
+            return True
+        reason = (f"its front-end settings (extraction, graph, keyframes, odometry; digest {msg.settings_digest}) "
+                  f"differ from the map server's for it (digest {ours}): start every robot with the server's "
+                  "--config file (settings of one robot go under `robots: <name>:` in it)")  # fmt: skip
+        refusal = f"{msg.session}: {reason}"
+        if self._refused.get(msg.robot) != refusal:
+            self._refused[msg.robot] = refusal
+            self._refuse(f"hello of {msg.robot} (session {msg.session}): {reason}")
+            self._broadcast_status()
+        return False
+
+    def _settings_checked(self, msg: DoneMessage) -> DoneMessage:
+        """``msg``, without its ``settings`` when they are not valid front-end values for this config (logged)."""
+        if msg.settings is None:
+            return msg
+        try:
+            self.cfg.with_robot_values({msg.robot: msg.settings}).for_robot(msg.robot)
+        except ValueError as exc:  # (pydantic's ValidationError is one)
+            self._refuse(f"settings of {msg.robot}'s done: {str(exc).splitlines()[0]}; config.yaml leaves them out")
+            return replace(msg, settings=None)
+        return msg
+
+    def robot_settings(self) -> dict[str, dict[str, dict[str, float | int | bool]]]:
+        """Each done robot's front-end values as it said them (``DoneMessage.settings``), by robot name."""
+        return {name: rs.done.settings for name, rs in self.robots.items()
+                if rs.done is not None and rs.done.settings is not None}  # fmt: skip
 
     def _heard(self, rs: RobotSession, now: float) -> None:
         """The robot's current session spoke: it is alive, so a newcomer under its name is a clash."""
@@ -664,6 +698,9 @@ class ServerNode:
                     self.writer.write_graph(a, server.graph(a))
         self.writer.write_matches(server.matches)
         self.writer.write_text("pose_graph.g2o", server.to_g2o())
+        settings = self.robot_settings()
+        if settings:  # with the robots' data-derived values: loading it reproduces their front ends
+            self.writer.write_text("config.yaml", self.cfg.with_robot_values(settings).to_yaml())
         self.writer.write_json("server.json", self.summary())
 
     def provisional_note(self, robot: str) -> str | None:

@@ -24,7 +24,7 @@ def test_a_stop_signal_at_any_moment_keeps_the_results(tiny_scenario: Path, sig:
     with scratch() as d:
         out = d / "out"
         proc = subprocess.Popen(
-            [sys.executable, "-m", "shgm_slam.cli", "run", "--robot", f"car1={tiny_scenario / 'car1'}",
+            [sys.executable, "-m", "shgm_slam", "run", "--robot", f"car1={tiny_scenario / 'car1'}",
              "--robot", f"car2={tiny_scenario / 'car2'}", "--rerun", "off", "--out", str(out)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "COLUMNS": "200"},
         )  # fmt: skip

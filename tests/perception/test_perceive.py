@@ -219,7 +219,7 @@ def test_cli_stopped_by_sigterm_resumes(shared_data, models, tmp_path):
     import time
 
     out = tmp_path / "k"
-    cmd = [sys.executable, "-m", "shgm_slam.cli", "perceive", f"{shared_data / 'kitti' / 'sequences' / '07'}:0-60",
+    cmd = [sys.executable, "-m", "shgm_slam", "perceive", f"{shared_data / 'kitti' / 'sequences' / '07'}:0-60",
            "--out", str(out), "--depth-model", str(DEPTH_ONNX), "--seg-model", str(SEG_ONNX), "--threads", "1",
            "--batch-size", "1"]  # fmt: skip
     env = {**os.environ, "COLUMNS": "200"}

@@ -12,10 +12,12 @@ import numpy as np
 import pytest
 
 from shgm_slam.agents import segment_agent
+from shgm_slam.config import OdometryKind, load_config
 from shgm_slam.errors import ProtocolError
 from shgm_slam.messages import RobotState
 from shgm_slam.robot.node import RobotNode
 from shgm_slam.runner import make_frontend
+from shgm_slam.scene_scale import effective_fields
 from shgm_slam.server.node import CHECKPOINT_SHARE, CLASH_WINDOW_S, ServerNode
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 from shgm_slam.transport.keys import hello_key, keyframe_key
@@ -137,6 +139,42 @@ def test_name_clash_is_refused_and_the_newcomer_told(robots, cfg, tmp_path: Path
     nodes["car1"].poll()  # the original is unaffected
     assert server.robots["car1"].session == nodes["car1"].session
     assert server.traffic.refused == 1
+
+
+def test_a_robot_on_other_front_end_settings_is_refused_with_the_fix(robots, cfg, tmp_path: Path) -> None:
+    """A robot started with another --config than the server (here: its keyframes twice as far apart) builds
+    graphs the server's settings do not describe: refused, the robot told to use the server's file."""
+    clock, bus = FakeClock(), InProcessBus()
+    server = ServerNode(cfg, InProcessTransport(bus), tmp_path, clock=clock)
+    other = cfg.model_copy(deep=True)
+    other.keyframes.distance_m = 2 * cfg.keyframes.distance_m
+    stray = RobotNode(make_frontend("car2", robots["car2"], other), InProcessTransport(bus), clock=clock)
+    stray.hello()
+    server.poll()
+    with pytest.raises(ProtocolError, match=r"differ from the map server's.*--config"):
+        stray.poll()
+    assert "car2" not in server.robots and server.reference is None  # never a session, never the reference
+    for _ in range(3):  # its heartbeats are refused without a new line each
+        stray.hello()
+        server.poll()
+    assert server.traffic.refused == 1
+    # what only the robot process decides (its odometry, its threads) is not compared
+    own = cfg.model_copy(deep=True)
+    own.odometry.kind, own.odometry.icp_threads = OdometryKind.KISS_ICP, 1
+    assert own.front_end_digest("car2") == cfg.front_end_digest("car2")
+
+
+def test_the_servers_config_records_each_robots_derived_values(uninterrupted: ServerNode, robots) -> None:
+    """config.yaml of a server's folder reproduces every robot's front end, as `run`'s does."""
+    loaded = load_config(uninterrupted.writer.root / "config.yaml")
+    assert set(loaded.robots) == set(robots)
+    for name in robots:
+        front = make_frontend(name, robots[name], uninterrupted.cfg)
+        derived = effective_fields(front.cfg)
+        mine = loaded.for_robot(name)
+        for stage, values in derived.items():
+            for field, value in values.items():
+                assert getattr(getattr(mine, stage), field) == value, (name, stage, field)
 
 
 def test_malformed_and_misaddressed_messages_are_refused_not_fatal(robots, cfg, tmp_path: Path) -> None:
