@@ -37,6 +37,14 @@ def _nonempty_path(text: str) -> Path:
     return Path(text)
 
 
+def _out_folder(text: str) -> Path:
+    """An output folder from the command line: not empty (``_nonempty_path``) and not an existing file."""
+    path = _nonempty_path(text)
+    if path.exists() and not path.is_dir():
+        raise typer.BadParameter(f"{text} is a file; give a folder (it is created if missing)")
+    return path
+
+
 def lit(value: object) -> str:
     """``value`` as text that rich prints literally (paths, names and messages may hold ``[...]``)."""
     return escape(str(value))
@@ -214,10 +222,13 @@ def graph(
             cfg.graph = GraphConfig.model_validate({**cfg.graph.model_dump(), **overrides})
         except ValidationError as exc:
             raise ConfigError(f"--connectivity/--merge-radius: {exc.errors()[0]['msg']}") from None
+    from shgm_slam.data.base import parse_sequence_spec
     from shgm_slam.errors import GraphError
+    from shgm_slam.io.export import check_outside_sequence
     from shgm_slam.perception.perceive import depth_model_of
 
     seq = open_sequence(sequence)
+    check_outside_sequence(out, parse_sequence_spec(sequence)[0])  # (a graph over its poses.txt, say)
     with Progress("{task.description}", BarColumn(), MofNCompleteColumn(), console=err_console,
                   transient=True) as bar:  # fmt: skip
         task = bar.add_task("keyframes", total=None)
@@ -763,14 +774,20 @@ def eval_command(
     """Fused ATE of every robot against ground truth in the shared frame (evo, no alignment) and SE(3)-aligned.
     With --gt, also writes <robot>_gt_tum.txt into RESULTS for evo_ape."""
 
+    from shgm_slam.errors import DataError
     from shgm_slam.evaluation import evaluate_results, open_ground_truth
 
     sequences = open_ground_truth(gt) if gt else None
     result = evaluate_results(results, sequences, gt_shared_frame=gt_shared_frame)
+    nothing = not any(r.evaluated_poses for r in result.robots)
     if json_output:
         typer.echo(to_json_text(result.to_json_dict(), indent=None))
+    else:
+        console.print(_eval_table(result))
+    if nothing:  # a script must not read this as a measured result
+        raise DataError(f"no robot of {results} could be evaluated (the notes say why): no ATE was measured")
+    if json_output:
         return
-    console.print(_eval_table(result))
     if result.interrupted:
         console.print("[yellow]this run was interrupted[/]: its trajectories end where it was stopped "
                       "(metrics.json: interrupted)")  # fmt: skip
@@ -967,7 +984,7 @@ def print_report(text: str) -> None:
 @bench_app.command("simulate")
 @handle_errors
 def bench_simulate(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results JSON")] = Path("results/bench_sim.json"),
     resolution: Annotated[str, typer.Option(help="image size WIDTHxHEIGHT")] = "640x192",
     short_frames: Annotated[int, typer.Option(min=1, max=MAX_FRAMES, help="frames per robot, speed run")] = 40,
@@ -987,7 +1004,7 @@ def bench_simulate(
 @bench_app.command("localization")
 @handle_errors
 def bench_localization(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder: localization.json, .md, pr_curve.png")]
     = Path("results/bench_localization"),
     runs: Annotated[int | None, typer.Option(min=1, max=100000,
@@ -1026,7 +1043,7 @@ def bench_localization(
 @bench_app.command("sparse")
 @handle_errors
 def bench_sparse(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder: sparse.json, sparse.md")]
     = Path("results/bench_sparse"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'A-B' or 'A,B,C' (tuning 10-19; report 210-219)")]
@@ -1038,7 +1055,8 @@ def bench_sparse(
     """Sparse, map-like localization (no rendering): map classes only, 30-60 % missed, 0.5-2 m noise,
     label confusions, drives sharing 50-300 m, far-apart negatives; localized / wrong / negatives / ms."""
 
-    from shgm_slam.bench.localization_sparse import SparseOptions, parse_seeds, run_sparse_benchmark, sparse_markdown
+    from shgm_slam.bench.localization_sparse import SparseOptions, run_sparse_benchmark, sparse_markdown
+    from shgm_slam.bench.seeds import parse_seeds
     from shgm_slam.config import load_config
 
     cfg = load_config(config)
@@ -1058,7 +1076,7 @@ def bench_sparse(
 @bench_app.command("system")
 @handle_errors
 def bench_system(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder")] = Path("results/bench_system"),
     cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
@@ -1080,7 +1098,7 @@ def bench_system(
 @bench_app.command("scale")
 @handle_errors
 def bench_scale(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder")] = Path("results/bench_scale"),
     cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
@@ -1104,7 +1122,7 @@ def bench_scale(
 @bench_app.command("robots")
 @handle_errors
 def bench_robots(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder")] = Path("results/bench_robots"),
     fleets: Annotated[str, typer.Option(help="comma-separated fleet sizes, 1-8")] = "1,2,4,8",
     sequence: Annotated[str, typer.Option(help="KITTI sequence cut into the robots (00-10; 00: bench scale's world)")]
@@ -1135,7 +1153,7 @@ def bench_robots(
 @bench_app.command("distributed")
 @handle_errors
 def bench_distributed(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder")] = Path("results/bench_distributed"),
     cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="demo world seed")] = 0,
@@ -1177,26 +1195,17 @@ def _int_list(text: str, option: str) -> tuple[int, ...]:
 
 
 def _world_seeds(seeds: str) -> tuple[int, ...]:
-    """``--seeds`` of the held-out style benchmarks: 'report', 'tuning' or an inclusive range A-B."""
+    """``--seeds`` of the held-out style benchmarks: 'report', 'tuning', an inclusive range A-B or A,B,C."""
     from shgm_slam.bench import heldout
-    from shgm_slam.errors import ConfigError
+    from shgm_slam.bench.seeds import parse_seeds
 
-    named = {"report": heldout.REPORT_SEEDS, "tuning": heldout.TUNING_SEEDS}
-    if seeds in named:
-        return named[seeds]
-    try:
-        a, b = (int(x) for x in seeds.split("-"))
-    except ValueError:
-        raise ConfigError(f"--seeds {seeds!r}: write report, tuning or A-B (inclusive), e.g. 10-14") from None
-    if b < a:
-        raise ConfigError(f"--seeds {seeds!r}: the range is empty (A-B needs A <= B)")
-    return tuple(range(a, b + 1))
+    return parse_seeds(seeds, {"report": heldout.REPORT_SEEDS, "tuning": heldout.TUNING_SEEDS})
 
 
 @bench_app.command("heldout")
 @handle_errors
 def bench_heldout(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder (resumes the runs already in it)")]
     = Path("results/bench_heldout"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-29) or A-B")]
@@ -1258,7 +1267,7 @@ def bench_heldout(
 @bench_app.command("depth-quality")
 @handle_errors
 def bench_depth_quality(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder (resumes the runs already in it)")]
     = Path("results/bench_depth_quality"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-29) or A-B")]
@@ -1323,7 +1332,7 @@ def bench_depth_quality(
 @bench_app.command("table3")
 @handle_errors
 def bench_table3(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder: table3.json, table3.md")]
     = Path("results/bench_table3"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (200-209), 'tuning' (10-19), A-B or A,B")]

@@ -216,6 +216,34 @@ def is_provisional(fused_file: Path) -> bool:
     return any(c.startswith(PROVISIONAL_COMMENT) for c in read_comments(fused_file))
 
 
+GT_AGREEMENT_M = 0.01
+"""Largest position difference (metres) between ``--gt``'s ground truth and the ``<robot>_gt_tum.txt`` the run
+wrote for the two to be the same ground truth (the file keeps positions to 0.1 mm)."""
+
+
+def _check_against_written_truth(root: Path, truth: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
+    """Refuse ``--gt`` ground truth that differs from the ``<robot>_gt_tum.txt`` already in the results folder
+    (written by the run from the sequences it ran on): another sequence of the same length and times passes
+    every other check, and writing it would replace the right file.
+
+    Raises:
+        DataError: a robot's file exists and its times or positions differ from ``truth``'s.
+    """
+    for robot, (times_s, T) in truth.items():
+        path = root / f"{robot}_gt_tum.txt"
+        if not path.is_file():
+            continue
+        old_times, old_T = read_tum(path)
+        same_times = old_times.shape == np.shape(times_s) and np.allclose(old_times, times_s, atol=1e-6)
+        apart = float(np.max(np.linalg.norm(old_T[:, :3, 3] - T[:, :3, 3], axis=1))) if same_times else np.inf
+        if not apart <= GT_AGREEMENT_M:
+            how = f"positions up to {apart:.2f} m apart" if same_times else "other frame times"
+            raise DataError(
+                f"--gt {robot}: its ground truth differs from {path} that the run wrote ({how}); check the "
+                "sequence and frame range, or delete that file to replace it"
+            )
+
+
 def evaluate_results(
     results_dir: Path | str,
     sequences: dict[str, Sequence] | None = None,
@@ -272,6 +300,7 @@ def evaluate_results(
             for r, seq in ordered.items() if r not in poses and seq.gt_poses is not None
         }  # fmt: skip
         result.gt_source = "sequences"
+        _check_against_written_truth(root, truth)
         if write_gt:
             result.gt_files_written = ResultsWriter(root).write_ground_truth(ordered, gt_shared_frame)
     else:

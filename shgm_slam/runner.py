@@ -27,7 +27,7 @@ from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.fusion import fuse_segments
 from shgm_slam.geometry import se3
 from shgm_slam.interrupts import stops_deferred
-from shgm_slam.io.export import ResultsWriter
+from shgm_slam.io.export import ResultsWriter, check_outside_sequence
 from shgm_slam.metrics import ate, joint_ate
 from shgm_slam.odometry.stillness import ImageChange, odometry_motion, stillness_warning
 from shgm_slam.robot.build import make_frontend
@@ -93,15 +93,9 @@ def check_out_outside_sequences(out: Path, robot_args: list[str]) -> None:
         ConfigError: ``out`` is (inside) the folder of a robot's ``NAME=PATH[:start-end]``: the results would
             be written among the sequence's files (a ``graph_*.json`` or ``run.rrd`` in a sequence others read).
     """
-    target = Path(out).resolve()
     for arg in robot_args:
         name, spec = parse_robot_arg(arg)
-        root = parse_sequence_spec(spec)[0].resolve()
-        if target == root or root in target.parents:
-            raise ConfigError(
-                f"--out {out} is in the sequence folder of robot {name!r} ({root}): writing results there would "
-                "change the sequence; choose a folder outside it"
-            )
+        check_outside_sequence(out, parse_sequence_spec(spec)[0], f"of robot {name!r} ")
 
 
 def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConfig:

@@ -16,10 +16,10 @@ from shgm_slam.bench.localization_sparse import (
     SparseOutcome,
     SparseResults,
     make_pairs,
-    parse_seeds,
     run_sparse_benchmark,
     sparse_markdown,
 )
+from shgm_slam.bench.seeds import parse_seeds
 from shgm_slam.config import MatchingConfig
 from shgm_slam.errors import ConfigError
 from shgm_slam.geometry.se3 import make_pose, rot_z, transform_points

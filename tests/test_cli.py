@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import pytest
 from typer.testing import CliRunner
 
@@ -232,3 +234,23 @@ def test_a_refused_run_leaves_nothing_in_its_out_folder(tmp_path):
         assert not out.exists() or not any(out.iterdir()), (args, sorted(p.name for p in out.iterdir()))
     res = CliRunner().invoke(app, ["run", "--robot", f"a={seq}", "--out", str(out), "--rerun", "off"])
     assert res.exit_code == 0, res.output
+
+
+def test_graph_refuses_to_write_into_its_own_sequence(tiny_scenario, tmp_path):
+    """`graph -o SEQ/poses.txt` overwrote the poses the sequence is read from."""
+    seq = tmp_path / "car1"
+    shutil.copytree(tiny_scenario / "car1", seq)
+    before = (seq / "poses.txt").read_bytes()
+    res = runner.invoke(app, ["graph", f"{seq}:0-20", "-o", str(seq / "poses.txt")], env={"COLUMNS": "200"})
+    assert res.exit_code == 2
+    assert "is in the sequence folder" in res.output
+    assert (seq / "poses.txt").read_bytes() == before
+
+
+def test_bench_out_that_is_a_file_is_refused_before_any_work(tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    for bench in (["sparse", "--seeds", "1"], ["table3"], ["scale"]):
+        res = runner.invoke(app, ["bench", *bench, "-o", str(afile)], env={"COLUMNS": "200"})
+        assert res.exit_code == 2, res.output
+        assert "is a file; give a folder" in res.output

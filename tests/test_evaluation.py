@@ -19,7 +19,7 @@ from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.evaluation import associate, evaluate_results, open_ground_truth
 from shgm_slam.geometry import se3
 from shgm_slam.io.export import ResultsWriter
-from shgm_slam.io.trajectories import read_kitti_poses, read_tum
+from shgm_slam.io.trajectories import read_kitti_poses, read_tum, write_tum
 from shgm_slam.metrics import ate
 from shgm_slam.shared_frame import shared_frame_ground_truth
 
@@ -205,3 +205,29 @@ def test_a_damaged_metrics_file_is_said_in_our_words(world, tmp_path, text, says
     (tmp_path / "metrics.json").write_text(text)
     with pytest.raises(DataError, match=says):
         evaluate_results(tmp_path)
+
+
+def test_ground_truth_of_another_sequence_does_not_replace_the_runs(world, tmp_path):
+    """Another sequence with the run's frame count and times passed every check and overwrote the right
+    car2_gt_tum.txt; every later `eval` then measured against it."""
+    robots = _results(world, tmp_path)
+    evaluate_results(tmp_path, robots)  # writes the right ground truth, as `run` does
+    right = (tmp_path / "car2_gt_tum.txt").read_bytes()
+    other = {**robots, "car2": open_sequence(f"{world / 'uav'}:3-")}  # the same times, another drive
+    with pytest.raises(DataError, match=r"--gt car2: its ground truth differs from .*car2_gt_tum\.txt"):
+        evaluate_results(tmp_path, other)
+    assert (tmp_path / "car2_gt_tum.txt").read_bytes() == right
+    evaluate_results(tmp_path, robots)  # the same sequences again: fine
+
+
+def test_eval_that_measures_nothing_fails(world, tmp_path):
+    """A ground truth at other times than the fused poses left every robot without an ATE, and `eval` said
+    nothing was wrong (exit 0): a script would have read it as a result."""
+    _results(world, tmp_path)
+    for name in ("car1", "car2"):
+        times, fused = read_tum(tmp_path / f"{name}_fused_tum.txt")
+        write_tum(tmp_path / f"{name}_gt_tum.txt", times + 1000.0, fused)
+    for extra in ([], ["--json"]):
+        res = CliRunner().invoke(app, ["eval", str(tmp_path), *extra], env={"COLUMNS": "120"})
+        assert res.exit_code == 2
+        assert "no ATE was measured" in " ".join(res.output.split())

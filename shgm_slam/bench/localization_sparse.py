@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 from shgm_slam.bench.localization import single_threaded_blas
 from shgm_slam.bench.localization_metrics import random_transform, true_transform
 from shgm_slam.config import DescriptorConfig, GraphConfig, MatchingConfig
-from shgm_slam.errors import ConfigError, SimulationError
+from shgm_slam.errors import SimulationError
 from shgm_slam.geometry.se3 import pose_error, transform_points
 from shgm_slam.labels import Label
 from shgm_slam.matching import MatchResult, judge_alignment, match_graphs
@@ -170,21 +170,6 @@ class SparseResults:
 
 def _median_or_none(values: list[float]) -> float | None:
     return float(np.median(values)) if values else None
-
-
-def parse_seeds(text: str) -> tuple[int, ...]:
-    """'10-19' or '10,12,15' -> seeds. Raises ``ConfigError`` on anything else."""
-    try:
-        if "-" in text:
-            lo, hi = (int(x) for x in text.split("-"))
-            seeds = tuple(range(lo, hi + 1))
-        else:
-            seeds = tuple(int(x) for x in text.split(","))
-    except ValueError as e:
-        raise ConfigError(f"seeds {text!r}: expected 'A-B' or 'A,B,C' with integers") from e
-    if not seeds:
-        raise ConfigError(f"seeds {text!r} selects no world")
-    return seeds
 
 
 def map_objects(world: World) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

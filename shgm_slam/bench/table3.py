@@ -39,6 +39,7 @@ import numpy as np
 
 from shgm_slam.bench.localization import MODE_OVERRIDES, BenchMode
 from shgm_slam.bench.localization_metrics import CORRECT_M, mean_std, random_transform, score_match
+from shgm_slam.bench.seeds import parse_seeds as seeds_from_text
 from shgm_slam.config import DescriptorKind, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.errors import ConfigError
@@ -220,25 +221,13 @@ class Table3Results:
 
 
 def parse_seeds(text: str) -> tuple[int, ...]:
-    """``report`` (200-209), ``tuning`` (10-19), ``A-B`` (inclusive) or ``A,B,C`` -> world seeds.
+    """``report`` (200-209), ``tuning`` (10-19), ``A-B`` (inclusive) or ``A,B,C`` -> world seeds
+    (``bench.seeds.parse_seeds``).
 
     Raises:
-        ConfigError: anything else, or an empty range.
+        ConfigError: anything else, an empty range or a repeated seed.
     """
-    named = {"report": REPORT_SEEDS, "tuning": TUNING_SEEDS}
-    if text in named:
-        return named[text]
-    try:
-        if "-" in text:
-            lo, hi = (int(x) for x in text.split("-"))
-            seeds = tuple(range(lo, hi + 1))
-        else:
-            seeds = tuple(int(x) for x in text.split(","))
-    except ValueError:
-        raise ConfigError(f"seeds {text!r}: write report, tuning, A-B (inclusive) or A,B,C") from None
-    if not seeds:
-        raise ConfigError(f"seeds {text!r} select no world (A-B needs A <= B)")
-    return seeds
+    return seeds_from_text(text, {"report": REPORT_SEEDS, "tuning": TUNING_SEEDS})
 
 
 def _finite(d: dict) -> dict:

@@ -26,7 +26,7 @@ from typing import IO
 
 import numpy as np
 
-from shgm_slam.errors import DataError
+from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.io.graph_json import write_graph
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import write_kitti_poses, write_tum
@@ -172,6 +172,20 @@ def check_writable_dir(path: Path) -> Path:
     except OSError as exc:
         raise DataError(f"cannot write into {path}: {exc.strerror or exc}; choose another --out") from None
     return path
+
+
+def check_outside_sequence(out: Path, root: Path, whose: str = "") -> None:
+    """Refuse an output path that is the sequence folder ``root`` or lies inside it.
+
+    Raises:
+        ConfigError: it does (results or a graph file among the sequence's files, or over one of them).
+    """
+    target, root = Path(out).resolve(), Path(root).resolve()
+    if target == root or root in target.parents:
+        raise ConfigError(
+            f"--out {out} is in the sequence folder {whose}({root}): writing there would change the sequence; "
+            "choose a path outside it"
+        )
 
 
 def release_results_dir(path: Path) -> None:

@@ -37,6 +37,10 @@ R_WORLD_KITTI = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 _DRIVE_RE = re.compile(r"^(?P<seq>\d{1,2})(?::(?P<start>\d+)-(?P<end>\d*))?$")
 
 
+MIN_DRIVE_FRAMES = 3
+"""Fewest frames of a drive: its path's direction of travel (a numerical gradient) needs three."""
+
+
 @dataclass(frozen=True)
 class KittiDrive:
     """A half-open frame range ``[start, end)`` of a KITTI ground-truth sequence ``seq`` ("00".."21").
@@ -148,12 +152,18 @@ def drive_frames(drive: KittiDrive, num_poses: int) -> tuple[int, int]:
 
     Raises:
         DataError: the range reaches outside the sequence.
+        ConfigError: it holds fewer than ``MIN_DRIVE_FRAMES`` frames.
     """
     end = num_poses if drive.end is None else drive.end
     if drive.start >= num_poses or end > num_poses:
         raise DataError(
             f"KITTI {drive.seq} has {num_poses} poses (frames 0-{num_poses}, half-open); frame range "
             f"{drive.spec} is outside it"
+        )
+    if end - drive.start < MIN_DRIVE_FRAMES:
+        raise ConfigError(
+            f"KITTI drive {drive.spec} has {end - drive.start} frame(s); a drive needs at least {MIN_DRIVE_FRAMES} "
+            "(frame ranges are half-open: START-END holds frames START..END-1)"
         )
     return drive.start, end
 

@@ -12,6 +12,9 @@ stays bounded whatever the sequence length.
 
 from __future__ import annotations
 
+import json
+import logging
+import shutil
 import time
 from collections import deque
 from collections.abc import Callable
@@ -35,6 +38,8 @@ from shgm_slam.sim.trajectories import (
     shared_view_length_m,
 )
 from shgm_slam.types import Frame, Intrinsics
+
+log = logging.getLogger(__name__)
 
 SCENARIO_FORMAT = "shgm-scenario/1"
 OVERLAP_RADIUS_M = 20.0
@@ -155,6 +160,32 @@ def _write_robot(
             job.result()
 
 
+def _remove_stale_robots(out: Path, keep: set[str]) -> None:
+    """Remove the sequence folders an earlier scenario in ``out`` (its ``scenario.json``) rendered for robots
+    this one does not have: left beside the new robots, they would still read as valid sequences.
+
+    Raises:
+        SimulationError: the old ``scenario.json`` is unreadable or a folder cannot be removed.
+    """
+    path = out / "scenario.json"
+    if not path.is_file():
+        return
+    try:
+        old = json.loads(path.read_text())
+        folders = {str(r["folder"]) for r in old["robots"]}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SimulationError(f"cannot read {path} to replace its scenario ({exc}); remove {out} first") from None
+    for name in sorted(folders - keep):
+        folder = out / name
+        if Path(name).name != name or not folder.is_dir():  # only a folder of its own, directly in ``out``
+            continue
+        try:
+            shutil.rmtree(folder)
+        except OSError as exc:
+            raise SimulationError(f"cannot remove {folder} of the scenario replaced: {exc.strerror}") from None
+        log.info("removed %s: the scenario replaced had that robot, this one does not", folder)
+
+
 def simulate(
     scenario: str,
     out_dir: Path | str,
@@ -241,6 +272,8 @@ def simulate(
             f"{out} holds an unfinished render ({', '.join(started)} but no scenario.json); pass --overwrite to "
             "render it again, or choose a new folder"
         )
+    if overwrite:
+        _remove_stale_robots(out, {r.name for r in robots})
     t1 = time.perf_counter()
     try:
         results = ResultsWriter(out)

@@ -109,6 +109,8 @@ def test_whole_sequence_and_open_end(tmp_path):
         (("15:0-10",), ConfigError, "only 00-10"),
         (("03:0-50", "03:0-50"), ConfigError, "given twice"),
         ((), ConfigError, "at least one"),
+        (("03:5-7",), ConfigError, "has 2 frame"),  # a traceback in the path's gradient before
+        (("03:119-",), ConfigError, "has 1 frame"),
     ],
 )
 def test_refusals(tmp_path, specs, error, match):

@@ -93,6 +93,16 @@ def test_errors_are_clear(tmp_path):
     assert (tmp_path / "d" / "scenario.json").is_file()
 
 
+def test_overwriting_with_another_scenario_leaves_no_stale_robots(tmp_path):
+    """car1, car2 and uav of an airsim-like render stayed beside a synthia-like one written over it, and
+    still read as sequences of the folder's scenario."""
+    out = tmp_path / "s"
+    simulate("airsim-like", out, resolution=(32, 16), max_frames=1, compact=True)
+    (out / "notes").mkdir()  # a folder of the user's: not the scenario's, kept
+    simulate("synthia-like", out, resolution=(32, 16), max_frames=1, compact=True, overwrite=True)
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["backward", "forward", "notes"]
+
+
 def test_cli_simulate(tmp_path):
     runner = CliRunner()
     args = [
