@@ -47,7 +47,7 @@ from shgm_slam.data.validate import check_sequence_start
 from shgm_slam.errors import ConfigError, DataError, ModelError
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import format_kitti_pose
-from shgm_slam.labels import IGNORE_ID
+from shgm_slam.labels import IGNORE_ID, NUM_CLASSES
 from shgm_slam.perception.card import card_to_yaml
 from shgm_slam.perception.depth import DepthModel
 from shgm_slam.perception.onnx_model import OnnxModel
@@ -227,14 +227,15 @@ def _write_text_atomic(path: Path, text: str) -> None:
     _write_bytes_atomic(path, text.encode())
 
 
-def png_is_valid(path: Path, dtype: type, size_wh: tuple[int, int]) -> bool:
-    """True when ``path`` decodes as a single-channel ``dtype`` PNG of ``size_wh`` (W, H)."""
+def png_is_valid(path: Path, dtype: type, size_wh: tuple[int, int], *, label_ids: bool = False) -> bool:
+    """True when ``path`` decodes as a single-channel ``dtype`` PNG of ``size_wh`` (W, H); with ``label_ids``, also
+    every value a train id (0 .. ``NUM_CLASSES`` - 1) or ``IGNORE_ID`` (a label file we would have written)."""
     if not path.is_file():
         return False
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    return (
-        image is not None and image.ndim == 2 and image.dtype == dtype and (image.shape[1], image.shape[0]) == size_wh
-    )
+    if image is None or image.ndim != 2 or image.dtype != dtype or (image.shape[1], image.shape[0]) != size_wh:
+        return False
+    return not label_ids or bool(((image < NUM_CLASSES) | (image == IGNORE_ID)).all())
 
 
 def _unreadable_before(out: Path) -> set[int]:
@@ -419,8 +420,9 @@ def perceive(
         raise DataError(f"cannot write {where}: {why}; choose a writable --out with free space") from None
     size = sequence.intrinsics.size_wh
     todo = [
-        i for i in range(n) if i in retry or not all(png_is_valid(frame_file(out / f, i), t, size) for f, t in outputs)
-    ]
+        i for i in range(n) if i in retry
+        or not all(png_is_valid(frame_file(out / f, i), t, size, label_ids=f == LABEL_DIR) for f, t in outputs)
+    ]  # fmt: skip
     result = PerceiveResult(out, str(spec), n, 0, n - len(todo), providers, batch_size, 0.0, notes=notes)
     inference_ms = {"depth": 0.0, "segmentation": 0.0}
     batches = [todo[k : k + batch_size] for k in range(0, len(todo), batch_size)]

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -80,8 +81,13 @@ def test_resume_skips_done_frames_and_redoes_missing_or_partial_ones(sim_seq, mo
     (out / "depth" / "000003.png").write_bytes(good[: len(good) // 2])  # a half-written file
     (out / "semantic" / "000007.png").unlink()
     (out / "depth" / ".000005.png.123.part").write_bytes(b"junk")  # a temp file of a killed run
+    labels = out / "semantic" / "000002.png"
+    right = labels.read_bytes()
+    shape = cv2.imread(str(labels), cv2.IMREAD_UNCHANGED).shape
+    cv2.imwrite(str(labels), np.full(shape, 200, np.uint8))  # no train id: was reused as it was
     resumed = _run(sim_seq, out, models)
-    assert (resumed.computed, resumed.reused) == (2, 8)
+    assert (resumed.computed, resumed.reused) == (3, 7)
+    assert labels.read_bytes() == right
     assert (out / "depth" / "000003.png").read_bytes() == good
     assert not list((out / "depth").glob("*.part"))
     assert len(open_sequence(out)) == 10 and open_sequence(out)[7].label_ids is not None
