@@ -1071,6 +1071,10 @@ def bench_sparse(
     (out / "sparse.md").write_text(text)
     print_report(text)
     console.print(f"wrote {lit(out / 'sparse.json')} and {lit(out / 'sparse.md')}")
+    if results.interrupted:
+        err_console.print(f"[yellow]interrupted[/]: the files hold the {len(results.seeds_done)} seeds finished "
+                          f"of {len(seed_list)}")  # fmt: skip
+        raise typer.Exit(INTERRUPTED_EXIT_CODE)
 
 
 @bench_app.command("system")

@@ -129,3 +129,21 @@ def test_wrong_claims_name_the_farthest():
     assert clean.summary()["4dof"]["worst_wrong_m"] is None and "| 0 | 0.40 |" in sparse_markdown(clean, (1,))
     none = SparseResults([outcome(0, True, False, nan)])
     assert none.summary()["4dof"]["median_error_m"] is None and "| 0 | - |" in sparse_markdown(none, (1,))
+
+
+def test_a_ctrl_c_keeps_the_seeds_finished(monkeypatch):
+    """An interrupted `bench sparse` wrote nothing of the seeds it had finished."""
+    import shgm_slam.bench.localization_sparse as ls
+
+    def fake_seed(seed, opt, dcfg, mcfg, gcfg, results, progress):
+        results.outcomes.append(SparseOutcome(seed, 0, True, 4, (20, 20), 10, True, True, 0.1, 0.1, 5.0, 5.0, "", 9.0))
+        if seed == 12:
+            raise KeyboardInterrupt  # halfway through its pairs
+
+    monkeypatch.setattr(ls, "_run_seed", fake_seed)
+    res = run_sparse_benchmark(SparseOptions(seeds=(10, 11, 12, 13)))
+    assert res.interrupted and res.seeds_done == [10, 11]
+    assert [o.seed for o in res.outcomes] == [10, 11]  # not the seed it stopped in
+    assert "interrupted" in sparse_markdown(res, (10, 11, 12, 13)) and res.to_json()["interrupted"]
+    with pytest.raises(KeyboardInterrupt):  # nothing finished: nothing to keep
+        run_sparse_benchmark(SparseOptions(seeds=(12,)))

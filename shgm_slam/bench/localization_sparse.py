@@ -138,6 +138,8 @@ class SparseResults:
     load on a shared machine)."""
 
     outcomes: list[SparseOutcome] = field(default_factory=list)
+    seeds_done: list[int] = field(default_factory=list)  # seeds whose every pair was matched
+    interrupted: bool = False  # stopped (Ctrl-C) before every seed was done: the outcomes are of seeds_done
 
     def summary(self) -> dict[str, dict]:
         out = {}
@@ -165,7 +167,8 @@ class SparseResults:
         return out
 
     def to_json(self) -> dict:
-        return {"summary": self.summary(), "outcomes": [o.to_json() for o in self.outcomes]}
+        return {"summary": self.summary(), "seeds_done": list(self.seeds_done), "interrupted": self.interrupted,
+                "outcomes": [o.to_json() for o in self.outcomes]}  # fmt: skip
 
 
 def _median_or_none(values: list[float]) -> float | None:
@@ -333,7 +336,10 @@ def run_sparse_benchmark(
     progress: Callable[[str], None] | None = None,
 ) -> SparseResults:
     """Match every pair of every seed with the given (default) configuration, gravity-aligned (4-DoF)
-    and, with ``full_rotation``, 6-DoF; time each match (descriptors included, single-threaded BLAS)."""
+    and, with ``full_rotation``, 6-DoF; time each match (descriptors included, single-threaded BLAS).
+
+    A Ctrl-C (KeyboardInterrupt) keeps the seeds finished before it: the results come back ``interrupted``,
+    without the seed it stopped in (re-raised when no seed was finished)."""
     opt = options or SparseOptions()
     dcfg = descriptor_cfg or DescriptorConfig()
     mcfg = (matching_cfg or MatchingConfig()).model_copy(update={"up_axis": UP_WORLD})
@@ -341,7 +347,16 @@ def run_sparse_benchmark(
     results = SparseResults()
     with single_threaded_blas():
         for seed in opt.seeds:
-            _run_seed(seed, opt, dcfg, mcfg, gcfg, results, progress)
+            kept = len(results.outcomes)
+            try:
+                _run_seed(seed, opt, dcfg, mcfg, gcfg, results, progress)
+            except KeyboardInterrupt:
+                if not results.seeds_done:
+                    raise
+                del results.outcomes[kept:]
+                results.interrupted = True
+                break
+            results.seeds_done.append(seed)
     return results
 
 
@@ -366,8 +381,13 @@ def _run_seed(seed: int, opt: SparseOptions, dcfg: DescriptorConfig, mcfg: Match
 
 
 def sparse_markdown(results: SparseResults, seeds: tuple[int, ...]) -> str:
-    """The summary table as markdown."""
-    lines = [f"Sparse map-like localization, seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} worlds)", "",
+    """The summary table as markdown (of the seeds done, when the run was interrupted)."""
+    title = f"Sparse map-like localization, seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} worlds)"
+    if results.interrupted:
+        done = results.seeds_done
+        title = (f"Sparse map-like localization, **interrupted**: seeds {done[0]}-{done[-1]} ({len(done)} of the "
+                 f"{len(seeds)} worlds asked for, {seeds[0]}-{seeds[-1]})")  # fmt: skip
+    lines = [title, "",
              "| matching | overlapping pairs | localized | wrong claims | median error m | negatives accepted "
              "| median ms | p90 ms | median CPU ms | search ceiling |",
              "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip

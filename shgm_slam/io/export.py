@@ -198,8 +198,18 @@ def release_results_dir(path: Path) -> None:
         fh.close()  # closing drops the flock
 
 
+SEQUENCE_MARKERS = ("calib.txt", "times.txt")
+"""Files that make a folder a sequence (KITTI layout): results are never written among them."""
+
+
 def _claim_results_dir(path: Path, *, overwrite: bool, resume_file: str | None) -> None:
-    """Refuse ``path`` when it holds an earlier run's files, or clear them (see ``make_results_dir``)."""
+    """Refuse ``path`` when it is a sequence folder or holds an earlier run's files, or clear those (see
+    ``make_results_dir``)."""
+    if all((path / name).is_file() for name in SEQUENCE_MARKERS):
+        raise DataError(
+            f"results folder {path} holds a sequence ({', '.join(SEQUENCE_MARKERS)}): results written there would "
+            "mix with its files; choose another --out"
+        )
     try:
         ours = run_output_files(path)
     except OSError as exc:

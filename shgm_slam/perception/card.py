@@ -110,7 +110,12 @@ class LabelSpace(_CaseInsensitiveEnum):
 
 
 class _CardPart(BaseModel):
-    model_config = ConfigDict(extra="forbid", use_enum_values=False, frozen=True)
+    model_config = ConfigDict(extra="forbid", use_enum_values=False, frozen=True, allow_inf_nan=False)
+
+
+MAX_NORMALIZED_INPUT = 1e4
+"""Largest magnitude the input normalization may give a pixel (0..255): beyond it the scale, mean or std are
+wrong (ImageNet's normalization gives at most ~2.6, raw pixels 255)."""
 
 
 def _parse_fraction(value: Any) -> Any:
@@ -169,6 +174,18 @@ class InputSpec(_CardPart):
             raise ValueError("uint8 inputs take raw 0..255 pixels: drop scale/mean/std or use dtype float32")
         return self
 
+    @model_validator(mode="after")
+    def _normalization_is_plausible(self) -> InputSpec:
+        pixels = [0.0 * self.effective_scale, 255.0 * self.effective_scale]
+        largest = max(abs((p - m) / s) for p in pixels for m, s in zip(self.mean, self.std, strict=True))
+        if largest > MAX_NORMALIZED_INPUT:
+            raise ValueError(
+                f"scale, mean and std map pixels 0..255 to values up to {largest:.3g} (more than "
+                f"{MAX_NORMALIZED_INPUT:g}): check them (ImageNet: scale 1/255, mean [0.485, 0.456, 0.406], "
+                "std [0.229, 0.224, 0.225])"
+            )
+        return self
+
     @property
     def effective_scale(self) -> float:
         """The pixel multiplier actually applied (1/255 for float32 inputs unless the card says otherwise)."""
@@ -202,6 +219,11 @@ class DepthOutputSpec(_CardPart):
             raise ValueError("kind disparity needs exactly one of focal_x_baseline or baseline_m")
         if self.min_depth_m >= self.max_depth_m:
             raise ValueError(f"min_depth_m {self.min_depth_m} must be below max_depth_m {self.max_depth_m}")
+        if self.kind in (DepthKind.METRIC, DepthKind.DISPARITY) and (self.scale, self.shift) != (1.0, 0.0):
+            raise ValueError(
+                f"scale and shift apply to kind inverse and relative; a {self.kind.value} output is used as it is, "
+                "so they would be ignored: drop them (or give the kind they belong to)"
+            )
         return self
 
 

@@ -129,3 +129,15 @@ def test_a_robots_out_is_checked_before_its_first_frame(tmp_path, tiny_scenario)
         drive_robot("car1", open_sequence(tiny_scenario / "car1"), ShgmConfig(), out_dir=tmp_path / "f")
     with pytest.raises(DataError, match="cannot write into"):
         check_writable_dir(tmp_path / "f" / "sub")
+
+
+def test_a_sequence_folder_is_never_a_results_folder(tmp_path) -> None:
+    """`run --out` into another sequence's folder (not one of the run's robots) wrote results among its files."""
+    seq = tmp_path / "car2"
+    seq.mkdir()
+    (seq / "calib.txt").write_text("P2: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    (seq / "times.txt").write_text("0.0\n")
+    for overwrite in (False, True):
+        with pytest.raises(DataError, match="holds a sequence"):
+            make_results_dir(seq, overwrite=overwrite)
+    assert sorted(p.name for p in seq.iterdir()) == ["calib.txt", "times.txt"]  # no lock left behind

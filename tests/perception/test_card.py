@@ -66,6 +66,11 @@ def test_enums_parse_case_insensitively() -> None:
         ({"task": "depth", "output": {"min_depth_m": 50, "max_depth_m": 10}}, "max_depth_m"),
         ({"task": "segmentation", "output": {"kind": "probabilities"}}, "output.kind"),
         ({"task": "segmentation", "output": {"classes": []}}, "classes"),
+        # accepted before, and silently ignored or garbage
+        ({"task": "depth", "output": {"kind": "metric", "scale": 2.0}}, "would be ignored"),
+        ({"task": "depth", "output": {"kind": "relative", "scale": float("nan")}}, "finite number"),
+        ({"task": "segmentation", "input": {"mean": [1e30, 0, 0]}}, "check them"),
+        ({"task": "segmentation", "input": {"std": [1e-9, 1, 1]}}, "check them"),
     ],
 )
 def test_invalid_cards_name_the_field(data: dict, needle: str) -> None:

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from shgm_slam.bench.simulate import run_simulate_benchmark, simulate_markdown
 from shgm_slam.cli import app
 from shgm_slam.data import open_sequence
-from shgm_slam.errors import SimulationError
+from shgm_slam.errors import ConfigError, SimulationError
 from shgm_slam.labels import Label
 from shgm_slam.sim.scenarios import ScenarioOptions, build_scenario
 from shgm_slam.sim.simulate import parse_resolution, simulate
@@ -193,3 +193,17 @@ def test_max_depth_is_checked_without_uav_altitude_too(tmp_path):
     assert not (tmp_path / "bad").exists()
     ok = runner.invoke(app, [*base, "-s", "airsim-like", "-o", str(tmp_path / "ok"), "--max-depth", "80"])
     assert ok.exit_code == 0, ok.output
+
+
+def test_a_world_larger_than_the_memory_is_refused_before_it_is_built(tmp_path, monkeypatch):
+    """--world-size 5000 took 5 GB; under a memory limit the ray tracer crashed (signal 11) instead of erring."""
+    import importlib
+
+    sim = importlib.import_module("shgm_slam.sim.simulate")  # (the package's `simulate` is the function)
+    monkeypatch.setattr(sim, "available_memory_bytes", lambda: 2e9)
+    with pytest.raises(ConfigError, match=r"--world-size 5000 m: .* about 5 GB .* choose at most about 2958 m"):
+        simulate("airsim-like", tmp_path / "w", world_size_m=5000.0)
+    assert not (tmp_path / "w").exists()
+    sim.check_world_memory(2000.0)  # ~1 GB: fits
+    monkeypatch.setattr(sim, "available_memory_bytes", lambda: None)
+    sim.check_world_memory(20000.0)  # unknown memory: not refused
