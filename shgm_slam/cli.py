@@ -74,7 +74,7 @@ def handle_errors(fn: F) -> F:
         try:
             return fn(*args, **kwargs)
         except ShgmError as exc:
-            err_console.print(f"[bold red]error:[/] {lit(exc)}")
+            err_console.print(f"[bold red]error:[/] {lit(exc)}", soft_wrap=True)  # one line: paths stay whole
             raise typer.Exit(2) from None
         except KeyboardInterrupt:  # before a run's loop (which keeps its results itself) or in another command
             err_console.print("[yellow]interrupted[/]")

@@ -72,6 +72,8 @@ def test_outside_the_main_thread_the_block_runs_unguarded() -> None:
 CTRL_C_WHILE_LOADING = """
 import os, signal, sys
 
+signal.signal(signal.SIGINT, signal.default_int_handler)  # as from a shell (pytest-xdist's workers ignore it)
+
 class CtrlC:  # a Ctrl-C that lands while the command line loads (it takes about a second)
     def find_spec(self, name, path=None, target=None):
         if name == "shgm_slam.cli":

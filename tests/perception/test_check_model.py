@@ -102,10 +102,11 @@ def test_cli_check_model_smoke(tmp_path: Path, depth_model: Path) -> None:
     assert "depth model" in result.output and "ms/frame" in result.output
     assert out.is_file()
     orphan = channel_model(tmp_path / "orphan.onnx")
-    result = runner.invoke(app, ["check-model", str(orphan)])
+    wide = {"COLUMNS": "1000"}  # long temporary paths would wrap inside a word
+    result = runner.invoke(app, ["check-model", str(orphan)], env=wide)
     assert result.exit_code == 2
     assert "orphan.yaml not found" in " ".join(result.output.split())
-    result = runner.invoke(app, ["check-model", str(tmp_path / "missing.onnx")])  # not "card missing.yaml"
+    result = runner.invoke(app, ["check-model", str(tmp_path / "missing.onnx")], env=wide)  # not "card missing.yaml"
     assert result.exit_code == 2 and "missing.onnx does not exist" in " ".join(result.output.split())
 
 
