@@ -52,12 +52,19 @@ def count_frame_files(folder: Path) -> int:
     names = sorted(p.name for p in folder.iterdir() if p.suffix.lower() == ".png")
     if not names:
         raise DataError(f"image folder {folder} has no .png frames; expected 000000.png, 000001.png, ...")
+    strays = [n for n in names if not (len(n) == 10 and n[:6].isdigit())]
+    if strays:
+        more = f" and {len(strays) - 1} more" if len(strays) > 1 else ""
+        raise DataError(
+            f"{folder / strays[0]}{more} is not a frame: frames are named 000000.png, 000001.png, ...; remove or "
+            "rename the strays"
+        )
     expected = [f"{i:06d}.png" for i in range(len(names))]
     if names != expected:
         first = next(e for n, e in zip(names, expected, strict=True) if n != e)
         raise DataError(
             f"frames in {folder} must be numbered 000000.png ... without gaps; {folder / first} is missing "
-            "(rename the files or remove the strays)"
+            "(rename the files)"
         )
     return len(names)
 

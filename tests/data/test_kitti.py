@@ -117,6 +117,10 @@ def test_image_0_uses_p0(tmp_path: Path) -> None:
     [
         (lambda r: [shutil.rmtree(r / f) for f in ("image_0", "image_2")], "neither image_2/ nor image_0/"),
         (lambda r: [p.unlink() for p in (r / "image_2").iterdir()], "image_2 has no .png"),
+        # a copy beside the frames was reported as the next frame missing, which was there
+        (lambda r: shutil.copy(r / "image_2" / "000001.png", r / "image_2" / "000001_copy.png"),
+         "000001_copy.png is not a frame"),
+        (lambda r: (r / "image_2" / "000001.png").unlink(), "000001.png is missing"),
         (lambda r: (r / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n"), "calib.txt has no P2"),
         (lambda r: (r / "poses.txt").write_text("1 0 0\n"), "poses.txt line 1"),
         (lambda r: (r / "calib.txt").write_text("P2: 0 0 4 0 0 0 3 0 0 0 1 0\n"), "focal lengths must be positive"),
