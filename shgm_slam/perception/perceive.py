@@ -262,8 +262,13 @@ def _check_out(out: Path, source_root: Path, manifest: dict, overwrite: bool) ->
     try:
         previous = json.loads(previous_path.read_text())
     except (OSError, ValueError, RecursionError):
-        previous = {}
-    if not isinstance(previous, dict):  # not a manifest: treated like one of another job
+        previous = None
+    if not isinstance(previous, dict):  # damaged, or not a manifest: nothing in the folder can be trusted
+        if not overwrite:
+            raise DataError(
+                f"{previous_path} is unreadable (not a perceive manifest): the outputs in --out {out} cannot be "
+                "checked; choose a new folder or pass --overwrite to redo them"
+            )
         previous = {}
     changed = [k for k in ("format", "source", "start", "end") if previous.get(k) != manifest[k]]
     for k in ("depth_model", "seg_model"):  # the same model may sit elsewhere now: compare contents only
