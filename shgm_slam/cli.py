@@ -984,7 +984,7 @@ def print_report(text: str) -> None:
 @bench_app.command("simulate")
 @handle_errors
 def bench_simulate(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
                                       help="results JSON")] = Path("results/bench_sim.json"),
     resolution: Annotated[str, typer.Option(help="image size WIDTHxHEIGHT")] = "640x192",
     short_frames: Annotated[int, typer.Option(min=1, max=MAX_FRAMES, help="frames per robot, speed run")] = 40,
@@ -1212,7 +1212,7 @@ def bench_heldout(
     out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder (resumes the runs already in it)")]
     = Path("results/bench_heldout"),
-    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-29) or A-B")]
+    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-29), A-B or A,B,C")]
     = "report",
     scenario: Annotated[list[str] | None, typer.Option(help="scenario (repeatable)", show_default="all four")] = None,
     mode: Annotated[list[str] | None, typer.Option(help="files | rgb (repeatable)", show_default="both")] = None,
@@ -1274,7 +1274,7 @@ def bench_depth_quality(
     out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder (resumes the runs already in it)")]
     = Path("results/bench_depth_quality"),
-    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-29) or A-B")]
+    seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-29), A-B or A,B,C")]
     = "report",
     scenario: Annotated[
         list[str] | None, typer.Option(help="scenario (repeatable)", show_default="airsim-like, synthia-like")

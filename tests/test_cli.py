@@ -254,3 +254,6 @@ def test_bench_out_that_is_a_file_is_refused_before_any_work(tmp_path):
         res = runner.invoke(app, ["bench", *bench, "-o", str(afile)], env={"COLUMNS": "200"})
         assert res.exit_code == 2, res.output
         assert "is a file; give a folder" in res.output
+    # bench simulate writes one JSON file: running it again over that file is not refused
+    res = runner.invoke(app, ["bench", "simulate", "-o", str(afile), "--short-frames", "0"], env={"COLUMNS": "200"})
+    assert res.exit_code == 2 and "is a file" not in res.output and "short-frames" in res.output

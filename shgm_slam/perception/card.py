@@ -176,7 +176,7 @@ class InputSpec(_CardPart):
 
     @model_validator(mode="after")
     def _normalization_is_plausible(self) -> InputSpec:
-        pixels = [0.0 * self.effective_scale, 255.0 * self.effective_scale]
+        pixels = [0.0, 255.0 * self.effective_scale]
         largest = max(abs((p - m) / s) for p in pixels for m, s in zip(self.mean, self.std, strict=True))
         if largest > MAX_NORMALIZED_INPUT:
             raise ValueError(

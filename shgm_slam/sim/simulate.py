@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import psutil
 
 from shgm_slam.data.sequence import SequenceWriter
 from shgm_slam.errors import ConfigError, SimulationError
@@ -174,15 +175,11 @@ def world_memory_bytes(world_size_m: float) -> float:
 
 
 def available_memory_bytes() -> float | None:
-    """Memory available to a new process now (``MemAvailable`` of /proc/meminfo), or None where unknown."""
+    """Memory available to a new process now (psutil), or None where it cannot be read."""
     try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return float(line.split()[1]) * 1024.0
-    except (OSError, ValueError, IndexError):
+        return float(psutil.virtual_memory().available)
+    except (OSError, RuntimeError, AttributeError):
         return None
-    return None
 
 
 def check_world_memory(world_size_m: float) -> None:
