@@ -511,6 +511,11 @@ class BackendConfig(_Stage):
         "rest on other objects and straight stretches of its own drive and agree on its place "
         "(backend/cross_evidence.py)"
     )
+    decisive_match: bool = Field(
+        True, description="one graph match whose log likelihood ratio is min_closures_to_anchor times the bar a piece "
+        "of evidence clears (its chance threshold plus the log of the matches the pair tried) places a robot by "
+        "itself, provisionally until an independent match confirms it (false: only independent matches place)"
+    )
     stretch_turn_deg: float | None = Field(
         STRETCH_TURN_DEG, gt=0, le=180, description="matches on the same straight stretches of both robots count "
         "as one piece of evidence; a stretch ends where the direction of travel turns more than this (degrees). "

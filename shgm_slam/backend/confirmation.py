@@ -31,6 +31,10 @@ reference agent (whose frame is the shared frame) is confirmed by definition, an
 like anchoring: an agent is confirmed only through agents that are confirmed themselves. Loop closures
 (two keyframes of one agent) never confirm a place. Nothing here is a tuned constant: the only
 threshold is "two", the smallest number of pieces of evidence that can check each other.
+
+A robot can also enter the shared frame through one *decisive* match (``backend.decisive_match``,
+``MapServer._decisive``): one whose likelihood ratio alone is as far beyond chance as two pieces together. It
+is still one piece of evidence, so its place is provisional here until an independent match confirms it.
 """
 
 from __future__ import annotations
@@ -66,6 +70,7 @@ class AgentPlacement:
     keyframes: tuple[int, ...] = ()  # the agent's keyframes in those closures
     partner_confirmed: bool = True
     also: tuple[str, ...] = ()  # further partners whose independent matches agree (``cross_evidence``)
+    decisive: bool = False  # a match with the partner carries the evidence of two alone (``backend.decisive_match``)
 
     @property
     def provisional(self) -> bool:
@@ -220,7 +225,7 @@ def _with_evidence(
         return AgentPlacement(state)
     partner_confirmed, n, other, cs = best
     kfs = sorted({c.kf_a if c.robot_a == agent else c.kf_b for c in cs})
-    return AgentPlacement(state, other, n, tuple(kfs), partner_confirmed)
+    return AgentPlacement(state, other, n, tuple(kfs), partner_confirmed, decisive=any(c.decisive for c in cs))
 
 
 def describe(agent: str, p: AgentPlacement) -> str:
@@ -248,6 +253,8 @@ def describe(agent: str, p: AgentPlacement) -> str:
     evidence = f"a single graph match{where}" if p.matches <= 1 else (
         f"{p.matches} graph matches{where} that all found the same objects"
     )
+    if p.decisive:
+        evidence += " (one of them alone as far beyond chance as two independent matches: backend.decisive_match)"
     return (
         f"{agent} is placed provisionally: its place in the shared frame rests on {evidence}; "
         "it may be wrong and may still move until a match on other objects confirms it"
@@ -284,7 +291,7 @@ def describe_waiting(
     return (
         f"{agent} is not placed in the shared frame: its {these} {verb} {pieces}{why}, and a robot "
         f"enters it once {needed} independent matches agree (backend.min_closures_to_anchor; 1 trusts single "
-        "matches and reports them provisional)"
+        "matches and reports them provisional) or one match carries their evidence alone (backend.decisive_match)"
     ) + (
         f"; its accepted matches with {', '.join(others)} do not count as another piece: they lie on the same "
         "straight stretch of its drive, rest on the same objects or disagree on its place"

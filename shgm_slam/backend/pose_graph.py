@@ -142,6 +142,7 @@ class ClosureRecord:
     in_graph: bool = False
     match_id: int | None = None  # the graph match it came from (closures of one match share it)
     querier: str | None = None  # the robot whose query found it (``robot_b`` as given; None: unknown)
+    decisive: bool = False  # its match alone carries the evidence of two independent ones (anchors alone)
 
     @property
     def evidence(self) -> tuple[str, int]:
@@ -448,6 +449,7 @@ class MultiRobotPoseGraph:
         information: np.ndarray | None = None,
         match_id: int | None = None,
         support: Iterable[Hashable] = (),
+        decisive: bool = False,
         update: bool = True,
     ) -> ClosureDecision:
         """Add a relative-pose measurement between keyframes of two robots, or two keyframes of one robot.
@@ -467,6 +469,9 @@ class MultiRobotPoseGraph:
                 source of evidence for ``min_closures_to_anchor`` (None: the closure is its own source).
             support: the objects the closure rests on (hashable, e.g. ``(robot, node id)``); two matches
                 whose closures share one are not independent evidence (``consistency.independent_sources``).
+            decisive: the closure's match alone carries as much evidence as ``min_closures_to_anchor``
+                independent ones (the map server decides, ``MapServer._decisive``): once accepted, it anchors
+                a robot by itself (never a loop closure); the place stays provisional until confirmed.
             update: run iSAM2 now; False leaves the factor pending until ``update`` (add the closures of
                 one match, then update once: one re-elimination instead of one per closure).
 
@@ -495,7 +500,8 @@ class MultiRobotPoseGraph:
                 information = self._inverse_information(information, T)
         noise, info = self._closure_noise_model(information)
         rec = ClosureRecord(
-            len(self._closures), robot_a, kf_a, robot_b, kf_b, T, int(num_inliers), match_id=match_id, querier=querier
+            len(self._closures), robot_a, kf_a, robot_b, kf_b, T, int(num_inliers), match_id=match_id, querier=querier,
+            decisive=bool(decisive) and robot_a != robot_b,
         )
         self._closures.append(rec)
         if support:
@@ -1206,7 +1212,7 @@ class MultiRobotPoseGraph:
             candidates = [
                 c for c in accepted
                 if self._robots[c.robot_a].anchored != self._robots[c.robot_b].anchored
-                and pair_size[(c.robot_a, c.robot_b)] >= self.min_closures_to_anchor
+                and (pair_size[(c.robot_a, c.robot_b)] >= self.min_closures_to_anchor or c.decisive)
             ]  # fmt: skip
             if not candidates and self.min_closures_to_anchor > 1:
                 candidates = self._agreeing_anchor(accepted)

@@ -94,7 +94,7 @@ def _evidence(e: MatchEvidence) -> dict:
 def _closure(c: ClosureRecord) -> dict:
     return {"id": c.closure_id, "a": c.robot_a, "ka": c.kf_a, "b": c.robot_b, "kb": c.kf_b, "T": _arr(c.T_a_b, "f8"),
             "n": c.num_inliers, "st": c.status.value, "why": c.reason, "in": c.in_graph, "mid": c.match_id,
-            "q": c.querier}  # fmt: skip
+            "q": c.querier, "dec": c.decisive}  # fmt: skip
 
 
 def _pose_graph(p: PoseGraphState) -> dict:
@@ -242,6 +242,7 @@ def _unclosure(d: dict) -> ClosureRecord:
         ClosureStatus(d["st"]), _typed(d["why"], str, "closure reason"), _typed(d["in"], bool, "closure in_graph"),
         _typed(d["mid"], (int, type(None)), "closure match_id"),
         _typed(d.get("q"), (str, type(None)), "closure querier"),  # absent in snapshots before it existed
+        _typed(d.get("dec", False), bool, "closure decisive"),  # absent in snapshots before it existed
     )  # fmt: skip
 
 

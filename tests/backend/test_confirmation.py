@@ -78,6 +78,24 @@ def test_closures_of_one_match_never_confirm_each_other(world) -> None:
     assert "provisionally" in describe("b", p) and "a" in describe("b", p)
 
 
+def test_a_decisive_match_places_a_robot_provisionally_and_says_so(world) -> None:
+    """With two independent matches needed, one decisive match places b alone; its place rests on one piece of
+    evidence, so it is provisional, and the line says why one match sufficed. A second match confirms it."""
+    f = Fleet(world)
+    f.pg = MultiRobotPoseGraph(["a", "b"], min_closures_to_anchor=2)
+    for r in ("a", "b"):
+        for k in range(N):
+            f.pg.add_keyframe(r, k, world["odo"][r][k])
+    gt = world["gt"]
+    d = f.pg.add_inter_robot_closure("a", 5, "b", 5, inverse(gt["a"][5]) @ gt["b"][5], match_id=1, decisive=True)
+    f.support[d.closure_id] = {"a": frozenset(range(10)), "b": frozenset(range(1000, 1010))}
+    p = f.placement("b")
+    assert f.pg.is_anchored("b") and p.placement is Placement.PROVISIONAL and p.decisive
+    assert "a single graph match" in describe("b", p) and "backend.decisive_match" in describe("b", p)
+    f.closure("a", 30, "b", 30, match=2, objects=range(40, 50))
+    assert f.placement("b").placement is Placement.CONFIRMED
+
+
 def test_second_match_on_other_objects_confirms(world) -> None:
     f = Fleet(world)
     f.closure("a", 5, "b", 5, match=1, objects=range(0, 10))

@@ -333,6 +333,24 @@ def test_matches_that_share_objects_do_not_anchor_and_object_disjoint_ones_do():
     assert pg.evidence_between("b", "a") == 2 and pg.is_anchored("b")
 
 
+def test_a_decisive_match_anchors_alone_and_a_plain_one_or_a_loop_closure_does_not():
+    """With min_closures_to_anchor=2 one match waits for a second on other objects, unless the map server marks it
+    decisive (its evidence alone is that of two pieces): then its first accepted closure anchors the robot. Its
+    place still rests on one piece of evidence. A loop closure never anchors, decisive or not."""
+    for decisive in (False, True):
+        pg = MultiRobotPoseGraph(["a", "b"], min_closures_to_anchor=2)
+        for k in range(6):
+            pg.add_keyframe("a", k, make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]))
+            pg.add_keyframe("b", k, make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]))
+        pg.add_inter_robot_closure("b", 1, "b", 4, make_pose(np.eye(3), [0.0, 0.0, 6.0]), match_id=1, decisive=True)
+        assert not pg.is_anchored("b") and not pg.closures()[0].decisive
+        decision = pg.add_inter_robot_closure("a", 2, "b", 2, np.eye(4), match_id=2, support={("a", 1), ("b", 1)},
+                                              decisive=decisive)  # fmt: skip
+        assert decision.accepted and pg.is_anchored("b") == decisive
+        assert pg.evidence_between("a", "b") == 1
+        assert pg.anchor_closure("b") == (decision.closure_id if decisive else None)
+
+
 def test_one_match_cut_into_many_closures_does_not_outvote_two_independent_matches():
     """b drives beside a's track (true offset 0): two matches agree on it; one alias match, cut into three
     mutually consistent closures, puts b 40 m further along. The independent matches win."""

@@ -28,9 +28,10 @@ def _by_time(messages: dict[str, list]) -> list:
     return sorted((m for ms in messages.values() for m in ms), key=lambda m: (m.timestamp_s, m.robot))
 
 
-def _server(messages: dict[str, list], *, independent: bool) -> MapServer:
+def _server(messages: dict[str, list], *, independent: bool, decisive: bool = False) -> MapServer:
     cfg = ShgmConfig()
     cfg.odometry.kind = OdometryKind.GT
+    cfg.backend.decisive_match = decisive
     server = MapServer(["car1", "car2"], cfg)
     if not independent:
         server._independent_match = lambda agent: []  # what the server did before
@@ -40,9 +41,32 @@ def _server(messages: dict[str, list], *, independent: bool) -> MapServer:
     return server
 
 
+def _rms_error_m(server: MapServer, messages: dict[str, list], robots) -> float:
+    """RMS distance in metres between car2's fused keyframes (car1's first frame) and the truth."""
+    gt1, gt2 = robots["car1"].gt_poses, robots["car2"].gt_poses
+    frames = np.array([m.frame_index for m in messages["car2"]])
+    T_true = np.linalg.inv(gt1[0])[None] @ gt2[frames]
+    err_m = np.linalg.norm(server.T_shared_kf("car2")[:, :3, 3] - T_true[:, :3, 3], axis=1)
+    return float(np.sqrt(np.mean(err_m**2)))
+
+
+def test_a_decisive_match_places_the_robot_provisionally_before_the_last_look(messages, robots) -> None:
+    """With the default ``backend.decisive_match`` one of car2's matches is far enough beyond chance to place it
+    alone: placed right before the last look, provisional (one piece of evidence), and the last look confirms it."""
+    before = _server(messages, independent=False, decisive=True)
+    assert before.placement("car2").placement is Placement.PROVISIONAL
+    assert any(c.decisive for c in before._pose_graph.closures())
+    assert "backend.decisive_match" in (before.placement_note("car2") or "")
+    assert _rms_error_m(before, messages, robots) < 2.0
+    server = _server(messages, independent=True, decisive=True)
+    assert server.placement("car2").placement is Placement.CONFIRMED
+    assert _rms_error_m(server, messages, robots) < 2.0
+
+
 def test_a_robot_whose_matches_found_the_same_objects_is_confirmed_on_the_others(messages, robots) -> None:
     """The tiny world's cars meet once, briefly: matched every 10 keyframes (the default) every accepted
-    match finds the same objects, one piece of evidence, and car2 stays out without the last look."""
+    match finds the same objects, one piece of evidence, and car2 stays out without the last look (and without a
+    decisive match)."""
     before = _server(messages, independent=False)
     assert not before.is_placed("car2")
     assert before.waiting_note("car2") is not None
@@ -65,12 +89,7 @@ def test_a_robot_whose_matches_found_the_same_objects_is_confirmed_on_the_others
                                                          for n in ns)  # fmt: skip
     newest = max(objects)
     assert any(not (objects[newest] & objects[k]) for k in objects if k != newest)
-    # placed right: car2's fused keyframes in car1's odometry frame against the truth
-    gt1, gt2 = robots["car1"].gt_poses, robots["car2"].gt_poses
-    frames = np.array([m.frame_index for m in messages["car2"]])
-    T_true = np.linalg.inv(gt1[0])[None] @ gt2[frames]
-    err_m = np.linalg.norm(server.T_shared_kf("car2")[:, :3, 3] - T_true[:, :3, 3], axis=1)
-    assert np.sqrt(np.mean(err_m**2)) < 2.0, err_m
+    assert _rms_error_m(server, messages, robots) < 2.0  # placed right
 
 
 def test_the_last_look_leaves_placed_robots_alone(messages) -> None:

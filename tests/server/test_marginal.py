@@ -47,3 +47,19 @@ def test_marginal_matches_of_a_pair_are_one_piece_strong_ones_two() -> None:
             pg.add_inter_robot_closure("a", kf, "b", kf, np.eye(4), num_inliers=8, match_id=match_id, support=objects)
         assert pg.evidence_between("a", "b") == pieces
         assert pg.is_anchored("b") == (pieces == 2)
+
+
+def test_a_decisive_match_clears_the_bar_of_two_pieces() -> None:
+    """One match places a robot alone when its log likelihood ratio is twice the bar a piece clears (threshold
+    plus log of the pair's tries): as unlikely under chance as two pieces together."""
+    server = MapServer(["car1", "car2", "uav"], ShgmConfig())
+    assert not server._decisive("car1", "car2", SimpleNamespace(llr=17.9, llr_threshold=9.0))  # first try: 2 x 9
+    assert server._decisive("car1", "car2", SimpleNamespace(llr=18.0, llr_threshold=9.0))
+    _tried(server, [("car1", "car2")] * 19)  # 20 tries: the bar is 2 x (9 + log 20) = 23.99
+    assert not server._decisive("car1", "car2", SimpleNamespace(llr=23.9, llr_threshold=9.0))
+    assert server._decisive("car1", "car2", SimpleNamespace(llr=24.0, llr_threshold=9.0))
+    assert server._decisive("car1", "uav", SimpleNamespace(llr=18.0, llr_threshold=9.0))  # another pair's count
+    strong = SimpleNamespace(llr=99.0, llr_threshold=9.0)
+    for change in ({"decisive_match": False}, {"min_closures_to_anchor": 1}):  # off, or one match places anyway
+        cfg = ShgmConfig().model_copy(update={"backend": ShgmConfig().backend.model_copy(update=change)})
+        assert not MapServer(["car1", "car2"], cfg)._decisive("car1", "car2", strong)

@@ -220,3 +220,15 @@ def test_closures_of_one_match_share_one_support_set_and_older_snapshots_decode(
         with pytest.raises(SnapshotError):
             _unsupport({**encoded, "support": bad})
     assert "support_sets" in _map(uninterrupted.map.state())
+
+
+def test_a_closures_decisive_flag_survives_a_snapshot_and_older_snapshots_read_it_as_plain() -> None:
+    from shgm_slam.backend.pose_graph import ClosureRecord, ClosureStatus
+    from shgm_slam.server.snapshot_codec import _closure, _unclosure
+
+    for decisive in (False, True):
+        c = ClosureRecord(3, "car1", 4, "car2", 7, np.eye(4), 12, ClosureStatus.ACCEPTED, "accepted", True, 2, "car2",
+                          decisive)  # fmt: skip
+        assert _unclosure(_closure(c)).decisive is decisive
+    older = {k: v for k, v in _closure(replace(c, decisive=True)).items() if k != "dec"}  # before the flag existed
+    assert _unclosure(older).decisive is False
