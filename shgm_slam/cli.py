@@ -1152,6 +1152,7 @@ def bench_robots(
                                        progress=lambda msg: status.update(msg))  # fmt: skip
     print_report(robots_markdown(results))
     console.print(f"wrote {lit(out / 'robots.json')} and {lit(out / 'robots.md')}")
+    _exit_if_interrupted(results, f"the files hold the {len(results['fleets'])} fleets finished")
 
 
 @bench_app.command("distributed")
@@ -1266,6 +1267,15 @@ def bench_heldout(
         results = heldout.run_heldout_benchmark(out, options, progress=lambda msg: status.update(msg), jobs=jobs)
     print_report(heldout.heldout_markdown(results))
     console.print(f"wrote {lit(out / 'heldout.json')} and {lit(out / 'heldout.md')}")
+    _exit_if_interrupted(results, f"the files hold the {len(results['runs'])} runs finished; the same command "
+                                  "resumes the rest")  # fmt: skip
+
+
+def _exit_if_interrupted(results: dict, kept: str) -> None:
+    """Exit with ``INTERRUPTED_EXIT_CODE`` (saying what was kept) when a benchmark's results are ``interrupted``."""
+    if results.get("interrupted"):
+        err_console.print(f"[yellow]interrupted[/]: {kept}")
+        raise typer.Exit(INTERRUPTED_EXIT_CODE)
 
 
 @bench_app.command("depth-quality")

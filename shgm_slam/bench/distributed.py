@@ -28,13 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
+from shgm_slam.bench.stopping import run_to_end
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.errors import ShgmError
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import read_tum
 from shgm_slam.metrics import ate
-from shgm_slam.runner import open_robots, run_slam
+from shgm_slam.runner import open_robots
 from shgm_slam.server.node import ServerNode
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 
@@ -209,7 +210,7 @@ def run_in_process(robots: dict[str, Path], out: Path, cfg: ShgmConfig) -> RunOu
     """``shgm-slam run`` on the same robots (the in-process bus)."""
     seqs = open_robots([f"{r}={p}" for r, p in robots.items()])
     t0 = time.perf_counter()
-    summary = run_slam(seqs, cfg, out)
+    summary = run_to_end(seqs, cfg, out)
     return RunOutcome(
         "shgm-slam run (one process)",
         {r.name: r.localized for r in summary.robots},

@@ -32,7 +32,7 @@ import json
 import multiprocessing
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -41,6 +41,7 @@ import numpy as np
 
 from shgm_slam.agents import agent_robot
 from shgm_slam.bench.match_truth import judge_matches
+from shgm_slam.bench.stopping import run_to_end
 from shgm_slam.bench.system import write_report
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
@@ -50,7 +51,7 @@ from shgm_slam.geometry import se3
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import read_tum
 from shgm_slam.robot.remote import default_jobs
-from shgm_slam.runner import open_robots, replay_backend, run_slam
+from shgm_slam.runner import open_robots, replay_backend
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.sim.cache import simulate_cached
 from shgm_slam.sim.corruption import CorruptionLevels
@@ -405,11 +406,15 @@ def _robots_of(world: Path) -> list[str]:
 
 def run_one(world: Path, mode: InputMode, run_dir: Path, max_frames: int | None, jobs: int | None = 1) -> dict:
     """Run the system once on ``world`` with the default configuration (front ends in ``jobs`` worker
-    processes, ``remote.default_jobs``); returns ``metrics.json``'s dict."""
+    processes, ``remote.default_jobs``); returns ``metrics.json``'s dict.
+
+    Raises:
+        RunStopped: the run was stopped (Ctrl-C): it is neither judged nor cached, so a resume runs it again.
+    """
     names = _robots_of(world)
     cut = f":0-{max_frames}" if max_frames else ""
     robots = open_robots([f"{r}={world / r}{cut}" for r in names])
-    summary = run_slam(robots, heldout_config(mode), run_dir, journal=True, jobs=default_jobs(len(robots), jobs))
+    summary = run_to_end(robots, heldout_config(mode), run_dir, journal=True, jobs=default_jobs(len(robots), jobs))
     return json.loads(json.dumps(summary.to_json_dict(), default=float))
 
 
@@ -501,6 +506,11 @@ def _quiet(_msg: str) -> None:
     pass
 
 
+def _finished(future: Future) -> bool:
+    """The future ran to its end without an exception (not cancelled, not stopped)."""
+    return future.done() and not future.cancelled() and future.exception() is None
+
+
 def run_heldout_benchmark(
     out: Path, options: HeldoutOptions, progress: Progress | None = None, *, jobs: int = 1
 ) -> dict:
@@ -509,20 +519,37 @@ def run_heldout_benchmark(
     Each (scenario, seed, mode) run keeps its results folder under ``out/runs/`` and its verdicts in
     ``verdicts.json`` there; runs that already have one are not repeated. With ``jobs`` > 1 worlds
     run in that many worker processes at once (each world's modes stay in one worker).
+
+    A Ctrl-C (KeyboardInterrupt, or a run stopped by one) ends the benchmark after writing the worlds
+    finished, with ``interrupted`` true; the run it stopped is not cached, so the same command resumes it.
+    Stopped before any world finished, the KeyboardInterrupt is raised again.
     """
     progress = progress or _quiet
     out = Path(out)
     t0 = time.perf_counter()
     worlds = [(sc, seed) for sc in options.scenarios for seed in options.seeds]
+    runs_by_world: list[list[dict]] = []
+    interrupted = False
     if jobs > 1:
         with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
             futures = [pool.submit(_world_runs, sc, seed, options, out, _quiet) for sc, seed in worlds]
-            runs_by_world = []
-            for k, f in enumerate(futures):
-                progress(f"world {k + 1}/{len(worlds)}: {worlds[k][0]} seed {worlds[k][1]}")
-                runs_by_world.append(f.result())
+            try:
+                for k, f in enumerate(futures):
+                    progress(f"world {k + 1}/{len(worlds)}: {worlds[k][0]} seed {worlds[k][1]}")
+                    runs_by_world.append(f.result())
+            except KeyboardInterrupt:  # a worker's run or this process stopped: keep the worlds finished
+                interrupted = True
+                for f in futures:
+                    f.cancel()
+                runs_by_world += [f.result() for f in futures[len(runs_by_world) + 1 :] if _finished(f)]
     else:
-        runs_by_world = [_world_runs(sc, seed, options, out, progress) for sc, seed in worlds]
+        try:
+            for sc, seed in worlds:
+                runs_by_world.append(_world_runs(sc, seed, options, out, progress))
+        except KeyboardInterrupt:
+            interrupted = True
+    if interrupted and not runs_by_world:
+        raise KeyboardInterrupt("stopped before any world was finished")
     skipped = [r for world_runs in runs_by_world for r in world_runs if "skipped" in r]
     done_runs = [r for world_runs in runs_by_world for r in world_runs if "skipped" not in r]
     runs = [{k: v for k, v in d.items() if k != "verdicts"} for d in done_runs]
@@ -542,6 +569,7 @@ def run_heldout_benchmark(
         "skipped_worlds": skipped,
         "robots": rows,
         "wall_s": round(time.perf_counter() - t0, 1),
+        "interrupted": interrupted,
     }  # fmt: skip
     write_report(out, "heldout", results, heldout_markdown)
     return results
@@ -629,8 +657,13 @@ def summarize(rows: list[dict], runs: list[dict] | None = None) -> dict:
 def heldout_markdown(results: dict) -> str:
     """The held-out tables as markdown (what the README shows)."""
     o = results["options"]
+    stopped = (
+        f"**Interrupted**: only the {len(results.get('runs', []))} runs finished before the stop are counted; "
+        "the same command resumes the rest.\n\n"
+        if results.get("interrupted") else ""
+    )
     lines = [
-        f"Seeds {o['seeds'][0]}-{o['seeds'][-1]} ({len(o['seeds'])} worlds per scenario), "
+        stopped + f"Seeds {o['seeds'][0]}-{o['seeds'][-1]} ({len(o['seeds'])} worlds per scenario), "
         f"{o['resolution'][0]}x{o['resolution'][1]}"
         + (f" ({o['supersample']}x{o['supersample']} rays per pixel)" if o.get("supersample", 1) > 1 else "")
         + (f", airsim-like UAVs at {o['uav_altitude_m'][0]:g}-{o['uav_altitude_m'][1]:g} m" if o.get("uav_altitude_m")

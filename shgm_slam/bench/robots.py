@@ -32,11 +32,12 @@ from scipy.spatial import cKDTree
 from shgm_slam.bench import heldout
 from shgm_slam.bench.match_truth import judge_matches
 from shgm_slam.bench.scale import StepCost
+from shgm_slam.bench.stopping import run_to_end
 from shgm_slam.bench.system import _world, peak_rss_runs, write_report
 from shgm_slam.config import ShgmConfig
 from shgm_slam.errors import ConfigError
 from shgm_slam.robot.remote import default_jobs
-from shgm_slam.runner import FrameStats, open_robots, run_slam
+from shgm_slam.runner import FrameStats, open_robots
 from shgm_slam.types import Sequence
 
 Progress = Callable[[str], None]
@@ -189,6 +190,9 @@ def run_robots_benchmark(
     its wall time beside the one-process run's and whether every results file came out the same; with
     ``memory``, the largest fleet's memory run is repeated that way (``out/memory_N_jobs``).
 
+    A Ctrl-C ends it after writing the fleets finished (``interrupted`` true; each stopped run keeps its own
+    results folder); stopped in the first fleet, the KeyboardInterrupt is raised again.
+
     Raises:
         ConfigError: a fleet size outside 1..``STRETCHES``, or a sequence that is not KITTI 00-10.
     """
@@ -210,41 +214,52 @@ def run_robots_benchmark(
     specs = stretch_specs(source, frames)
     everyone = open_robots(specs)
     overlap = overlaps_m([seq.gt_poses[:, :3, 3] for seq in everyone.values()])
-    rows = []
-    for n in sorted(set(fleets)):
-        robots = {name: everyone[name] for name in list(everyone)[:n]}
-        can = dict(zip(robots, overlapping(overlap[:n, :n]).tolist(), strict=True))
-        driven_s = max(float(seq.timestamps_s[-1] - seq.timestamps_s[0]) for seq in robots.values())
-        progress(f"running {n} robot(s) at once")
-        cost = FleetCost()
-        summary = run_slam(robots, cfg, out / f"fleet_{n}", on_frame=cost, journal=True)
-        truth = judge_matches(out / f"fleet_{n}", {k: v.gt_poses for k, v in robots.items()}, PLACED_RIGHT_M,
-                              GROSS_ERROR_M)  # fmt: skip
-        row = {**cost.row(n, driven_s), **placement(summary.to_json_dict(), can, out / f"fleet_{n}", robots),
-               "accepted_judged": truth.accepted, "accepted_gross": truth.gross,
-               "anchorings": truth.anchorings, "anchorings_gross": truth.anchorings_gross}  # fmt: skip
-        workers = min(n, default_jobs(n, jobs))
-        if workers > 1:
-            progress(f"running {n} robot(s) at once again, front ends in {workers} worker processes")
-            again = run_slam(robots, cfg, out / f"fleet_{n}_jobs", on_frame=FleetCost(), journal=True, jobs=workers)
-            row |= {"jobs": workers, "jobs_wall_s": again.wall_s, "jobs_speedup": summary.wall_s / again.wall_s,
-                    "jobs_same_results": same_results(out / f"fleet_{n}", out / f"fleet_{n}_jobs")}  # fmt: skip
-        rows.append(row)
+    rows: list[dict] = []
+    interrupted = False
+    try:  # a stopped fleet ends the benchmark; the fleets finished are kept
+        for n in sorted(set(fleets)):
+            robots = {name: everyone[name] for name in list(everyone)[:n]}
+            can = dict(zip(robots, overlapping(overlap[:n, :n]).tolist(), strict=True))
+            driven_s = max(float(seq.timestamps_s[-1] - seq.timestamps_s[0]) for seq in robots.values())
+            progress(f"running {n} robot(s) at once")
+            cost = FleetCost()
+            summary = run_to_end(robots, cfg, out / f"fleet_{n}", on_frame=cost, journal=True)
+            truth = judge_matches(out / f"fleet_{n}", {k: v.gt_poses for k, v in robots.items()}, PLACED_RIGHT_M,
+                                  GROSS_ERROR_M)  # fmt: skip
+            row = {**cost.row(n, driven_s), **placement(summary.to_json_dict(), can, out / f"fleet_{n}", robots),
+                   "accepted_judged": truth.accepted, "accepted_gross": truth.gross,
+                   "anchorings": truth.anchorings, "anchorings_gross": truth.anchorings_gross}  # fmt: skip
+            workers = min(n, default_jobs(n, jobs))
+            if workers > 1:
+                progress(f"running {n} robot(s) at once again, front ends in {workers} worker processes")
+                again = run_to_end(robots, cfg, out / f"fleet_{n}_jobs", on_frame=FleetCost(), journal=True,
+                                   jobs=workers)
+                row |= {"jobs": workers, "jobs_wall_s": again.wall_s, "jobs_speedup": summary.wall_s / again.wall_s,
+                        "jobs_same_results": same_results(out / f"fleet_{n}", out / f"fleet_{n}_jobs")}  # fmt: skip
+            rows.append(row)
+    except KeyboardInterrupt:
+        if not rows:
+            raise
+        interrupted = True
     base = rows[0]
     for r in rows:
         r["total_per_kf_over_smallest"] = r["total_ms_per_kf"] / base["total_ms_per_kf"]
         r["cpu_per_kf_over_smallest"] = r["cpu_ms_per_kf"] / base["cpu_ms_per_kf"]
     results: dict = {"world": str(world), "sequence": sequence, "seed": seed, "stretch_frames": frames // STRETCHES,
-                     "stretches": specs, "overlap_m": overlap.round(0).tolist(), "fleets": rows}  # fmt: skip
-    if memory:
+                     "stretches": specs, "overlap_m": overlap.round(0).tolist(), "fleets": rows,
+                     "interrupted": interrupted}  # fmt: skip
+    if memory and not interrupted:
         runs: list[tuple[str, str | list[str], str]] = [(str(r["robots"]), specs[: r["robots"]],
                                                           f"memory_{r['robots']}") for r in rows]  # fmt: skip
-        results["memory"] = peak_rss_runs(out, runs, progress, extra_args=("--jobs", "1"))
-        last = rows[-1]
-        if last.get("jobs"):
-            results["memory_jobs"] = peak_rss_runs(
-                out, [(str(last["robots"]), specs[: last["robots"]], f"memory_{last['robots']}_jobs")], progress,
-                extra_args=("--jobs", str(last["jobs"])))  # fmt: skip
+        try:
+            results["memory"] = peak_rss_runs(out, runs, progress, extra_args=("--jobs", "1"))
+            last = rows[-1]
+            if last.get("jobs"):
+                results["memory_jobs"] = peak_rss_runs(
+                    out, [(str(last["robots"]), specs[: last["robots"]], f"memory_{last['robots']}_jobs")],
+                    progress, extra_args=("--jobs", str(last["jobs"])))  # fmt: skip
+        except KeyboardInterrupt:  # the fleets' rows are complete; the memory runs are left out
+            results["interrupted"] = True
     write_report(out, "robots", results, robots_markdown)
     return results
 
@@ -267,6 +282,8 @@ def same_results(a: Path, b: Path) -> bool:
 def robots_markdown(results: dict) -> str:
     """The benchmark's table as markdown (what the README shows)."""
     lines = [
+        ("**Interrupted**: the fleets finished before the stop (and no memory runs).\n\n"
+         if results.get("interrupted") else "") +
         f"KITTI {results.get('sequence', SEQUENCE)} cut into {len(results['stretches'])} stretches of "
         f"{results['stretch_frames']} frames; the first N driving at once. Cost per keyframe of the whole fleet (ms).",
         "",

@@ -21,10 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+from shgm_slam.bench.stopping import run_to_end
 from shgm_slam.bench.system import _world, peak_rss_runs, write_report
 from shgm_slam.config import ShgmConfig
 from shgm_slam.io.trajectories import read_tum
-from shgm_slam.runner import FrameStats, open_robots, run_slam
+from shgm_slam.runner import FrameStats, open_robots
 
 Progress = Callable[[str], None]
 
@@ -180,7 +181,7 @@ def run_scale_benchmark(
     path_m = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))]
     recorder = _Recorder(path_m)
     progress(f"running {', '.join(robots)} ({path_m[-1] / KM_M:.1f} km) with per-step costs")
-    summary = run_slam(robots, cfg, out / "run", on_frame=recorder)
+    summary = run_to_end(robots, cfg, out / "run", on_frame=recorder)
     rows = [
         _bin_row(b, k, min(k + 1.0, path_m[-1] / KM_M)) for k, b in enumerate(recorder.bins) if b.frames
     ]  # fmt: skip

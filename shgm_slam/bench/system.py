@@ -25,10 +25,11 @@ from pathlib import Path
 
 import psutil
 
+from shgm_slam.bench.stopping import RunStopped, run_to_end, stopped_exit_code
 from shgm_slam.config import ShgmConfig
 from shgm_slam.demo import demo_config, prepare_world
 from shgm_slam.io.json_text import to_json_text
-from shgm_slam.runner import RunSummary, open_robots, run_slam
+from shgm_slam.runner import RunSummary, open_robots
 from shgm_slam.sim.cache import simulate_cached
 
 Progress = Callable[[str], None]
@@ -86,7 +87,10 @@ def _peak_rss_mb(args: list[str]) -> tuple[float, float]:
         tree_peak = max(tree_peak, total)
         time.sleep(RSS_SAMPLE_S)
     wall = time.perf_counter() - t0
-    if os.waitstatus_to_exitcode(status) != 0:
+    code = os.waitstatus_to_exitcode(status)
+    if stopped_exit_code(code):  # stopped with this process or alone: the benchmark stops too
+        raise RunStopped(f"shgm-slam {' '.join(args)} was stopped")
+    if code != 0:
         err = proc.stderr.read().decode(errors="replace")[-500:] if proc.stderr else ""
         raise RuntimeError(f"shgm-slam {' '.join(args)} failed: {err}")
     return max(usage.ru_maxrss / 1024.0, tree_peak / 2**20), wall  # ru_maxrss is in KiB on Linux
@@ -140,25 +144,25 @@ def run_system_benchmark(
     world, kinds = prepare_world(cache, seed, lambda folder: _world(cache, "airsim-like", seed, progress))
     progress("running the system on airsim-like (KISS-ICP)")
     robots = open_robots([f"{r}={world / r}" for r in kinds])
-    summary = run_slam(robots, demo_config(), out / "airsim-like")
+    summary = run_to_end(robots, demo_config(), out / "airsim-like")
     results["airsim_like"] = _summary_dict(summary)
 
     # 2. disjoint: nothing may be merged
     dis = _world(cache / "bench", "disjoint", seed, progress)
     progress("running the system on disjoint")
     cfg = ShgmConfig()
-    summary = run_slam(open_robots([f"{r}={dis / r}" for r in _robots_of(dis)]), cfg, out / "disjoint")
+    summary = run_to_end(open_robots([f"{r}={dis / r}" for r in _robots_of(dis)]), cfg, out / "disjoint")
     results["disjoint"] = _summary_dict(summary)
 
     if rgb_only:
         progress("running the system on airsim-like, RGB only (demo models, visual odometry)")
         robots = open_robots([f"{r}={world / r}" for r in kinds])
-        summary = run_slam(robots, demo_config(rgb_only=True), out / "airsim-like-rgb")
+        summary = run_to_end(robots, demo_config(rgb_only=True), out / "airsim-like-rgb")
         results["airsim_like_rgb"] = _summary_dict(summary)
         progress("running the system on disjoint, RGB only")
         robots = open_robots([f"{r}={dis / r}" for r in _robots_of(dis)])
         cfg_rgb = demo_config(rgb_only=True)
-        results["disjoint_rgb"] = _summary_dict(run_slam(robots, cfg_rgb, out / "disjoint-rgb"))
+        results["disjoint_rgb"] = _summary_dict(run_to_end(robots, cfg_rgb, out / "disjoint-rgb"))
 
     # 3. memory: one long drive, 1000 vs long_frames frames, each in a fresh process
     if memory:

@@ -305,3 +305,53 @@ def test_a_replay_reports_its_own_placements_not_the_recorded_ones(tiny_scenario
     assert len(waiting) == 1 and "(here: matches that found the same objects" in waiting[0]
     assert json.loads((tmp_path / "replayed" / "metrics.json").read_text())["robots"][1] == car2
     assert metrics["last_looks"] and all(line.startswith("car2: ") for line in metrics["last_looks"])
+
+
+def test_a_stopped_run_ends_the_benchmark_is_not_cached_and_the_same_command_resumes_it(tiny_scenario, tmp_path,
+                                                                                       monkeypatch):
+    """Ctrl-C lands in the second world's run: ``run_slam`` keeps that run's results and returns normally, but the
+    benchmark must not judge and cache it as finished, nor go on to the next world. It writes the first world,
+    marked interrupted; run again, it runs only the stopped world and the report is whole."""
+    import shgm_slam.bench.heldout as heldout
+    import shgm_slam.bench.stopping as stopping
+
+    monkeypatch.setattr(heldout, "ensure_world", lambda *args, **kwargs: tiny_scenario)
+    real_run, runs = stopping.run_slam, []
+
+    def stopped_in_second_run(robots, cfg, out, **kwargs):
+        summary = real_run(robots, cfg, out, **kwargs)
+        runs.append(Path(out).name)
+        summary.interrupted = summary.interrupted or len(runs) == 2  # as if the stop landed in that run
+        return summary
+
+    monkeypatch.setattr(stopping, "run_slam", stopped_in_second_run)
+    options = heldout.HeldoutOptions(scenarios=("airsim-like",), seeds=(1, 2, 3), modes=(InputMode.FILES,),
+                                     max_frames=12, cache=tmp_path / "cache")  # fmt: skip
+    out = tmp_path / "out"
+    first = heldout.run_heldout_benchmark(out, options)
+    assert first["interrupted"] and [r["seed"] for r in first["runs"]] == [1]
+    assert runs == ["airsim-like-s1-files", "airsim-like-s2-files"]  # seed 3 never started
+    assert not (out / "runs" / "airsim-like-s2-files" / "verdicts.json").exists()
+    assert (out / "heldout.md").read_text().startswith("**Interrupted**")
+    assert json.loads((out / "heldout.json").read_text())["interrupted"] is True
+
+    again = heldout.run_heldout_benchmark(out, options)
+    assert not again["interrupted"] and [r["seed"] for r in again["runs"]] == [1, 2, 3]
+    assert runs[2:] == ["airsim-like-s2-files", "airsim-like-s3-files"]  # seed 1 was not run again
+    assert not (out / "heldout.md").read_text().startswith("**Interrupted**")
+
+
+def test_a_benchmark_stopped_before_any_world_finished_says_so(tiny_scenario, tmp_path, monkeypatch):
+    import shgm_slam.bench.heldout as heldout
+    import shgm_slam.bench.stopping as stopping
+
+    monkeypatch.setattr(heldout, "ensure_world", lambda *args, **kwargs: tiny_scenario)
+
+    def stopped(robots, cfg, out, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stopping, "run_slam", stopped)
+    options = heldout.HeldoutOptions(scenarios=("airsim-like",), seeds=(1,), modes=(InputMode.FILES,),
+                                     max_frames=12, cache=tmp_path / "cache")  # fmt: skip
+    with pytest.raises(KeyboardInterrupt):
+        heldout.run_heldout_benchmark(tmp_path / "out", options)
