@@ -204,3 +204,30 @@ def test_same_results_compares_every_results_file_but_not_the_timings(tmp_path: 
     (tmp_path / "b" / "metrics.json").write_text(json.dumps({"robots": [1], "wall_s": 1}))
     (tmp_path / "b" / "extra_odometry_tum.txt").write_text("")
     assert not same_results(tmp_path / "a", tmp_path / "b")
+
+
+def test_a_stopped_fleet_ends_the_benchmark_and_the_fleets_finished_are_written(tiny_scenario: Path, tmp_path: Path,
+                                                                               monkeypatch: pytest.MonkeyPatch):
+    """Ctrl-C in the second fleet's run: the first fleet's row is written, marked interrupted, the larger fleets
+    and the memory runs never start (before, the benchmark went on to the next fleet as if nothing happened)."""
+    import shgm_slam.bench.robots as robots_bench
+    from shgm_slam.bench.stopping import RunStopped
+
+    world = tmp_path / "world"
+    world.mkdir()
+    (world / "kitti00").symlink_to(tiny_scenario / "car1", target_is_directory=True)
+    monkeypatch.setattr(robots_bench, "_world", lambda *args, **kwargs: world)
+    real_run, runs = robots_bench.run_to_end, []
+
+    def stopped_in_second_fleet(robots, cfg, out, **kwargs):
+        runs.append(Path(out).name)
+        if Path(out).name == "fleet_2":
+            raise RunStopped("stopped")
+        return real_run(robots, cfg, out, **kwargs)
+
+    monkeypatch.setattr(robots_bench, "run_to_end", stopped_in_second_fleet)
+    out = tmp_path / "out"
+    results = run_robots_benchmark(out, fleets=(1, 2, 4), sequence="00", cache=tmp_path / "cache", jobs=1)
+    assert runs == ["fleet_1", "fleet_2"]
+    assert results["interrupted"] and [r["robots"] for r in results["fleets"]] == [1] and "memory" not in results
+    assert (out / "robots.md").read_text().startswith("**Interrupted**")
