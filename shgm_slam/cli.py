@@ -1058,6 +1058,7 @@ def bench_sparse(
     from shgm_slam.bench.localization_sparse import SparseOptions, run_sparse_benchmark, sparse_markdown
     from shgm_slam.bench.seeds import parse_seeds
     from shgm_slam.config import load_config
+    from shgm_slam.environment import environment
 
     cfg = load_config(config)
     seed_list = parse_seeds(seeds)
@@ -1066,7 +1067,7 @@ def bench_sparse(
         results = run_sparse_benchmark(options, cfg.descriptor, cfg.matching, cfg.graph,
                                        progress=lambda msg: status.update(msg))
     out.mkdir(parents=True, exist_ok=True)
-    (out / "sparse.json").write_text(to_json_text(results.to_json()) + "\n")
+    (out / "sparse.json").write_text(to_json_text({**results.to_json(), "environment": environment()}) + "\n")
     text = sparse_markdown(results, seed_list)
     (out / "sparse.md").write_text(text)
     print_report(text)

@@ -23,6 +23,7 @@ from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.data.base import parse_sequence_spec
 from shgm_slam.data.interleave import interleave
+from shgm_slam.environment import environment
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.fusion import fuse_segments
 from shgm_slam.geometry import se3
@@ -215,6 +216,7 @@ class RunSummary:
             "skipped": self.skipped_reasons[:50],
             "last_looks": self.last_looks,
             "ate_joint_m": self.ate_joint_m,
+            "environment": environment(),
         }
 
 

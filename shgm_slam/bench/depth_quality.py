@@ -37,6 +37,7 @@ from shgm_slam.bench.system import write_report
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.demo import MODELS_DIR
+from shgm_slam.environment import environment
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.metrics import AlignMode, ate, drift_percent, trajectory_length
@@ -276,7 +277,7 @@ def _cached(path: Path, compute: Callable[[], dict]) -> dict:
         return _nan_for_null(json.loads(path.read_text()))
     result = compute()
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(to_json_text(result) + "\n")
+    path.write_text(to_json_text({**result, "environment": environment()}) + "\n")
     return result
 
 

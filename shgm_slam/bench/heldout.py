@@ -46,6 +46,7 @@ from shgm_slam.bench.system import write_report
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.demo import MODELS_DIR
+from shgm_slam.environment import environment
 from shgm_slam.errors import DataError, SimulationError
 from shgm_slam.geometry import se3
 from shgm_slam.io.json_text import to_json_text
@@ -431,6 +432,8 @@ def replay_one(recorded: Path, mode: InputMode, run_dir: Path, robots: list[str]
     metrics["closures_accepted"] = sum(m.accepted for m in matches)
     metrics["closures_rejected"] = sum(m.success and not m.accepted and not m.duplicate for m in matches)
     metrics["replayed_from"] = str(recorded)
+    metrics["recorded_environment"] = metrics.get("environment")  # the front ends ran there, this back end here
+    metrics["environment"] = environment()
     _replace_placement_facts(metrics, node.map)
     for gt in Path(recorded).glob("*_gt_*.txt"):
         (Path(run_dir) / gt.name).write_bytes(gt.read_bytes())

@@ -64,6 +64,7 @@ from shgm_slam.config import (
     ShgmConfig,
 )
 from shgm_slam.descriptors import NodeDescriptors, compute_descriptors, similarity
+from shgm_slam.environment import environment
 from shgm_slam.graph.extraction import ObjectObservations, extract_objects
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.labels import Label
@@ -696,7 +697,7 @@ def run_localization_benchmark(
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "localization.json").write_text(to_json_text(results) + "\n")
+        (out_dir / "localization.json").write_text(to_json_text({**results, "environment": environment()}) + "\n")
         (out_dir / "localization.md").write_text(localization_markdown(results))
         plot_pr_curves(results, out_dir / "pr_curve.png")
     return results

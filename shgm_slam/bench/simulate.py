@@ -16,6 +16,7 @@ from pathlib import Path
 
 import psutil
 
+from shgm_slam.environment import environment
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.sim.render import Renderer, make_intrinsics
 from shgm_slam.sim.scenarios import ScenarioOptions, build_scenario
@@ -120,7 +121,7 @@ def run_simulate_benchmark(
     if out is not None:
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(to_json_text(results) + "\n")
+        out.write_text(to_json_text({**results, "environment": environment()}) + "\n")
     return results
 
 

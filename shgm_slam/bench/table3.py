@@ -42,6 +42,7 @@ from shgm_slam.bench.localization_metrics import CORRECT_M, mean_std, random_tra
 from shgm_slam.bench.seeds import parse_seeds as seeds_from_text
 from shgm_slam.config import DescriptorKind, ShgmConfig
 from shgm_slam.data import open_sequence
+from shgm_slam.environment import environment
 from shgm_slam.errors import ConfigError
 from shgm_slam.geometry.se3 import inverse, transform_points
 from shgm_slam.graph.build import build_graph_from_sequence
@@ -438,6 +439,6 @@ def write_table3(results: Table3Results, out: Path) -> tuple[Path, Path]:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     js, md = out / "table3.json", out / "table3.md"
-    js.write_text(to_json_text(results.to_json()) + "\n")
+    js.write_text(to_json_text({**results.to_json(), "environment": environment()}) + "\n")
     md.write_text(table3_markdown(results))
     return js, md
