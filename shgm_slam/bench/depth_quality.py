@@ -33,17 +33,16 @@ from shgm_slam.bench.heldout import (
     ensure_world,
     judge_run,
 )
+from shgm_slam.bench.stopping import run_to_end
 from shgm_slam.bench.system import write_report
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.demo import MODELS_DIR
-from shgm_slam.environment import environment
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.metrics import AlignMode, ate, drift_percent, trajectory_length
 from shgm_slam.odometry.clouds import depth_to_cloud
 from shgm_slam.odometry.sources import make_odometry
-from shgm_slam.runner import run_slam
 from shgm_slam.scene_scale import resolve_robot_config, sample_scene_scale
 from shgm_slam.sim.depth_errors import (
     ErrorFieldSequence,
@@ -277,7 +276,7 @@ def _cached(path: Path, compute: Callable[[], dict]) -> dict:
         return _nan_for_null(json.loads(path.read_text()))
     result = compute()
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(to_json_text({**result, "environment": environment()}) + "\n")
+    path.write_text(to_json_text(result) + "\n")
     return result
 
 
@@ -313,7 +312,7 @@ def _world_rows(scenario: str, seed: int, options: DepthQualityOptions, out: Pat
             progress(f"{tag} depth {level.name}: the system with {kind.value} odometry")
 
             def system(seqs=seqs, kind=kind, run_dir=run_dir) -> dict:
-                summary = run_slam(seqs, system_config(kind), run_dir)
+                summary = run_to_end(seqs, system_config(kind), run_dir)  # a stopped run is not cached
                 metrics = json.loads(json.dumps(summary.to_json_dict(), default=float))
                 verdicts = judge_run(run_dir, world, names, InputMode.RGB, scenario, seed, metrics)
                 return {"wall_s": summary.wall_s, "verdicts": [vars(v) for v in verdicts]}
