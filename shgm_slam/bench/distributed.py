@@ -264,7 +264,8 @@ def run_distributed_benchmark(
             down = t.get("bytes_sent_by_robot", {})
             r["kb_per_s_down_per_robot_at_10hz"] = {n: b / 1e3 / (frames[n] / 10.0) for n, b in down.items()}
     out.mkdir(parents=True, exist_ok=True)
-    (out / "distributed.json").write_text(to_json_text({**result, "environment": environment()}, indent=2) + "\n")
+    result["environment"] = environment()
+    (out / "distributed.json").write_text(to_json_text(result, indent=2) + "\n")
     (out / "distributed.md").write_text(distributed_markdown(result))
     return result
 

@@ -694,10 +694,11 @@ def run_localization_benchmark(
         results["table1"] = table1(ctx, fig5, synthia)
     results["targets"] = _targets(results)
     results["wall_time_s"] = round(time.perf_counter() - t0, 1)
+    results["environment"] = environment()
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "localization.json").write_text(to_json_text({**results, "environment": environment()}) + "\n")
+        (out_dir / "localization.json").write_text(to_json_text(results) + "\n")
         (out_dir / "localization.md").write_text(localization_markdown(results))
         plot_pr_curves(results, out_dir / "pr_curve.png")
     return results

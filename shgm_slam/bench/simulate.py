@@ -117,11 +117,12 @@ def run_simulate_benchmark(
         # what the CPU cost would allow if every core were free (the machine is shared): an estimate
         "cpu_bound_fps_estimate": round((os.cpu_count() or 1) * 1000.0 / short["cpu_ms_per_frame"], 1),
         "meets_target": short["fps"] >= TARGET_FPS,
+        "environment": environment(),
     }
     if out is not None:
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(to_json_text({**results, "environment": environment()}) + "\n")
+        out.write_text(to_json_text(results) + "\n")
     return results
 
 
