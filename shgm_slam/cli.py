@@ -1058,7 +1058,7 @@ def bench_sparse(
     from shgm_slam.bench.localization_sparse import SparseOptions, run_sparse_benchmark, sparse_markdown
     from shgm_slam.bench.seeds import parse_seeds
     from shgm_slam.config import load_config
-    from shgm_slam.environment import environment
+    from shgm_slam.environment import environment, environment_line
 
     cfg = load_config(config)
     seed_list = parse_seeds(seeds)
@@ -1069,7 +1069,7 @@ def bench_sparse(
     out.mkdir(parents=True, exist_ok=True)
     (out / "sparse.json").write_text(to_json_text({**results.to_json(), "environment": environment()}) + "\n")
     text = sparse_markdown(results, seed_list)
-    (out / "sparse.md").write_text(text)
+    (out / "sparse.md").write_text(text.rstrip("\n") + "\n\n" + environment_line(environment()) + "\n")
     print_report(text)
     console.print(f"wrote {lit(out / 'sparse.json')} and {lit(out / 'sparse.md')}")
     if results.interrupted:

@@ -51,3 +51,10 @@ def processor_name(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
     except OSError:
         pass
     return platform.processor() or ""
+
+
+def environment_line(env: dict) -> str:
+    """One markdown line naming what computed a report (``environment``'s dict), for its foot."""
+    libs = ", ".join(f"{name} {version}" for name, version in env.get("libraries", {}).items() if version)
+    where = env.get("processor") or env.get("machine") or "an unknown processor"
+    return f"_Computed by shgm_slam {env.get('shgm_slam')} on {where}, Python {env.get('python')}; {libs}._"

@@ -32,3 +32,10 @@ def test_metrics_and_benchmark_reports_carry_it(tmp_path: Path):
     assert summary.to_json_dict()["environment"] == environment()
     write_report(tmp_path, "bench", {"rows": []}, lambda results: "table\n")
     assert json.loads((tmp_path / "bench.json").read_text())["environment"] == environment()
+
+
+def test_a_report_ends_with_a_line_naming_what_computed_it(tmp_path: Path):
+    write_report(tmp_path, "bench", {"rows": []}, lambda results: "table\n")
+    md = (tmp_path / "bench.md").read_text()
+    assert md.startswith("table\n") and md.rstrip().endswith("._")
+    assert f"shgm_slam {__version__}" in md and f"numpy {importlib.metadata.version('numpy')}" in md
