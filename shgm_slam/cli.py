@@ -1056,9 +1056,9 @@ def bench_sparse(
     label confusions, drives sharing 50-300 m, far-apart negatives; localized / wrong / negatives / ms."""
 
     from shgm_slam.bench.localization_sparse import SparseOptions, run_sparse_benchmark, sparse_markdown
+    from shgm_slam.bench.report import write_report
     from shgm_slam.bench.seeds import parse_seeds
     from shgm_slam.config import load_config
-    from shgm_slam.environment import environment, environment_line
 
     cfg = load_config(config)
     seed_list = parse_seeds(seeds)
@@ -1066,10 +1066,8 @@ def bench_sparse(
     with console.status("starting") as status:
         results = run_sparse_benchmark(options, cfg.descriptor, cfg.matching, cfg.graph,
                                        progress=lambda msg: status.update(msg))
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "sparse.json").write_text(to_json_text({**results.to_json(), "environment": environment()}) + "\n")
     text = sparse_markdown(results, seed_list)
-    (out / "sparse.md").write_text(text.rstrip("\n") + "\n\n" + environment_line(environment()) + "\n")
+    write_report(out, "sparse", results.to_json(), lambda _: text)
     print_report(text)
     console.print(f"wrote {lit(out / 'sparse.json')} and {lit(out / 'sparse.md')}")
     if results.interrupted:

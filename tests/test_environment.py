@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from shgm_slam import __version__
-from shgm_slam.bench.system import write_report
+from shgm_slam.bench.report import write_report
 from shgm_slam.environment import LIBRARIES, environment, processor_name
 from shgm_slam.runner import RunSummary
 

@@ -33,8 +33,8 @@ from shgm_slam.bench.heldout import (
     ensure_world,
     judge_run,
 )
+from shgm_slam.bench.report import write_report
 from shgm_slam.bench.stopping import run_to_end
-from shgm_slam.bench.system import write_report
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.demo import MODELS_DIR

@@ -28,12 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
+from shgm_slam.bench.report import write_report
 from shgm_slam.bench.stopping import run_to_end
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
-from shgm_slam.environment import environment
 from shgm_slam.errors import ShgmError
-from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import read_tum
 from shgm_slam.metrics import ate
 from shgm_slam.runner import open_robots
@@ -263,10 +262,7 @@ def run_distributed_benchmark(
             r["kb_per_s_per_robot_at_10hz"] = {n: b / 1e3 / (frames[n] / 10.0) for n, b in t["bytes_by_robot"].items()}
             down = t.get("bytes_sent_by_robot", {})
             r["kb_per_s_down_per_robot_at_10hz"] = {n: b / 1e3 / (frames[n] / 10.0) for n, b in down.items()}
-    out.mkdir(parents=True, exist_ok=True)
-    result["environment"] = environment()
-    (out / "distributed.json").write_text(to_json_text(result, indent=2) + "\n")
-    (out / "distributed.md").write_text(distributed_markdown(result))
+    write_report(out, "distributed", result, distributed_markdown, indent=2)
     return result
 
 

@@ -41,8 +41,8 @@ import numpy as np
 
 from shgm_slam.agents import agent_robot
 from shgm_slam.bench.match_truth import judge_matches
+from shgm_slam.bench.report import write_report
 from shgm_slam.bench.stopping import run_to_end
-from shgm_slam.bench.system import write_report
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.demo import MODELS_DIR

@@ -53,6 +53,7 @@ from shgm_slam.bench.localization_scenes import (
     extract_keyframes,
     load_scene,
 )
+from shgm_slam.bench.report import write_report
 from shgm_slam.bench.xview_baseline import pairwise_walk_similarity, walk_maps
 from shgm_slam.config import (
     CandidateMode,
@@ -66,7 +67,6 @@ from shgm_slam.config import (
 from shgm_slam.descriptors import NodeDescriptors, compute_descriptors, similarity
 from shgm_slam.environment import environment
 from shgm_slam.graph.extraction import ObjectObservations, extract_objects
-from shgm_slam.io.json_text import to_json_text
 from shgm_slam.labels import Label
 from shgm_slam.matching import match_graphs, select_candidates
 from shgm_slam.sim.corruption import CorruptionLevels
@@ -696,9 +696,6 @@ def run_localization_benchmark(
     results["wall_time_s"] = round(time.perf_counter() - t0, 1)
     results["environment"] = environment()
     if out_dir is not None:
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "localization.json").write_text(to_json_text(results) + "\n")
-        (out_dir / "localization.md").write_text(localization_markdown(results))
-        plot_pr_curves(results, out_dir / "pr_curve.png")
+        write_report(out_dir, "localization", results, localization_markdown)
+        plot_pr_curves(results, Path(out_dir) / "pr_curve.png")
     return results

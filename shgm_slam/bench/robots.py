@@ -31,9 +31,10 @@ from scipy.spatial import cKDTree
 
 from shgm_slam.bench import heldout
 from shgm_slam.bench.match_truth import judge_matches
+from shgm_slam.bench.report import write_report
 from shgm_slam.bench.scale import StepCost
 from shgm_slam.bench.stopping import run_to_end
-from shgm_slam.bench.system import _world, peak_rss_runs, write_report
+from shgm_slam.bench.system import _world, peak_rss_runs
 from shgm_slam.config import ShgmConfig
 from shgm_slam.errors import ConfigError
 from shgm_slam.robot.remote import default_jobs

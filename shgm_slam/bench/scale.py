@@ -21,8 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from shgm_slam.bench.report import write_report
 from shgm_slam.bench.stopping import run_to_end
-from shgm_slam.bench.system import _world, peak_rss_runs, write_report
+from shgm_slam.bench.system import _world, peak_rss_runs
 from shgm_slam.config import ShgmConfig
 from shgm_slam.io.trajectories import read_tum
 from shgm_slam.runner import FrameStats, open_robots

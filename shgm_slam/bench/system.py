@@ -25,11 +25,10 @@ from pathlib import Path
 
 import psutil
 
+from shgm_slam.bench.report import write_report
 from shgm_slam.bench.stopping import RunStopped, run_to_end, stopped_exit_code
 from shgm_slam.config import ShgmConfig
 from shgm_slam.demo import demo_config, prepare_world
-from shgm_slam.environment import environment, environment_line
-from shgm_slam.io.json_text import to_json_text
 from shgm_slam.runner import RunSummary, open_robots
 from shgm_slam.sim.cache import simulate_cached
 
@@ -110,17 +109,6 @@ def peak_rss_runs(out: Path, runs: list[tuple[str, str | list[str], str]], progr
         rss, wall = _peak_rss_mb(args)
         mem[label] = {"peak_rss_mb": round(rss, 1), "wall_s": round(wall, 1)}
     return mem
-
-
-def write_report(out: Path, stem: str, results: dict, markdown: Callable[[dict], str]) -> None:
-    """``out/<stem>.json`` (the results, strict JSON: numpy scalars as floats, NaN as null, with the
-    ``environment`` that computed them added) and ``out/<stem>.md`` (``markdown(results)`` and a line naming that
-    environment); ``out`` is created."""
-    Path(out).mkdir(parents=True, exist_ok=True)
-    results.setdefault("environment", environment())
-    (Path(out) / f"{stem}.json").write_text(to_json_text(results) + "\n")
-    foot = environment_line(results["environment"])
-    (Path(out) / f"{stem}.md").write_text(markdown(results).rstrip("\n") + "\n\n" + foot + "\n")
 
 
 def run_system_benchmark(

@@ -39,14 +39,13 @@ import numpy as np
 
 from shgm_slam.bench.localization import MODE_OVERRIDES, BenchMode
 from shgm_slam.bench.localization_metrics import CORRECT_M, mean_std, random_transform, score_match
+from shgm_slam.bench.report import write_report
 from shgm_slam.bench.seeds import parse_seeds as seeds_from_text
 from shgm_slam.config import DescriptorKind, ShgmConfig
 from shgm_slam.data import open_sequence
-from shgm_slam.environment import environment
 from shgm_slam.errors import ConfigError
 from shgm_slam.geometry.se3 import inverse, transform_points
 from shgm_slam.graph.build import build_graph_from_sequence
-from shgm_slam.io.json_text import to_json_text
 from shgm_slam.matching import match_graphs
 from shgm_slam.sim.cache import simulate_cached
 from shgm_slam.sim.corruption import CorruptionLevels
@@ -435,10 +434,6 @@ def table3_markdown(results: Table3Results) -> str:
 
 
 def write_table3(results: Table3Results, out: Path) -> tuple[Path, Path]:
-    """Write ``out/table3.json`` and ``out/table3.md``; returns both paths."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    js, md = out / "table3.json", out / "table3.md"
-    js.write_text(to_json_text({**results.to_json(), "environment": environment()}) + "\n")
-    md.write_text(table3_markdown(results))
-    return js, md
+    """Write ``out/table3.json`` (with the environment) and ``out/table3.md`` (the table alone, as the README
+    shows it); returns both paths."""
+    return write_report(out, "table3", results.to_json(), lambda _: table3_markdown(results), name_environment=False)

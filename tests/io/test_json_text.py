@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shgm_slam.bench.system import write_report
+from shgm_slam.bench.report import write_report
 from shgm_slam.io.json_text import to_json_text
 
 
