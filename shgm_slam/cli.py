@@ -1220,6 +1220,8 @@ def bench_heldout(
         int | None, typer.Option(min=10, max=MAX_FRAMES, help="cut every robot's sequence (quick looks)")
     ] = None,
     cache: Annotated[Path, typer.Option(help="rendered worlds are cached here")] = Path("cache/heldout"),
+    resolution: Annotated[str, typer.Option(help="render size WIDTHxHEIGHT (every default was chosen at 320x96; "
+                                            "other sizes are cached apart)")] = "320x96",
     jobs: Annotated[int, typer.Option(min=1, max=64, help="worlds run in this many processes at once (1: one world "
                                       "at a time, its robots' front ends in worker processes, up to the cores)")] = 1,
     supersample: Annotated[int, typer.Option(min=1, max=8, help="render the worlds' colour with SxS rays per pixel "
@@ -1242,9 +1244,10 @@ def bench_heldout(
     from shgm_slam.bench import heldout
     from shgm_slam.errors import ConfigError
     from shgm_slam.sim.corruption import CorruptionLevels
-    from shgm_slam.sim.simulate import check_uav_altitude, parse_altitude
+    from shgm_slam.sim.simulate import check_uav_altitude, parse_altitude, parse_resolution
 
     seed_list = _world_seeds(seeds)
+    size = parse_resolution(resolution)
     altitude = parse_altitude(uav_altitude) if uav_altitude is not None else None
     if altitude is not None:
         check_uav_altitude("airsim-like", altitude, heldout.MAX_DEPTH_M)
@@ -1256,7 +1259,7 @@ def bench_heldout(
     except ValueError:
         raise ConfigError(f"--mode {mode}: choose files or rgb") from None
     options = heldout.HeldoutOptions(scenarios=tuple(scenario or heldout.SCENARIOS), seeds=seed_list, modes=modes,
-                                     max_frames=max_frames, cache=cache, replay_from=replay_from,
+                                     max_frames=max_frames, cache=cache, replay_from=replay_from, resolution=size,
                                      supersample=supersample, uav_altitude_m=altitude,
                                      corruption=CorruptionLevels.from_levels(depth_noise, label_noise),
                                      front_end_jobs=None if jobs == 1 else 1)  # fmt: skip

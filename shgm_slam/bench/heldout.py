@@ -47,7 +47,7 @@ from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.demo import MODELS_DIR
 from shgm_slam.environment import environment
-from shgm_slam.errors import DataError, SimulationError
+from shgm_slam.errors import ConfigError, DataError, SimulationError
 from shgm_slam.geometry import se3
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import read_tum
@@ -500,9 +500,45 @@ def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, pr
             "matches": _match_truth(run_dir, world, mode),
             "verdicts": [vars(v) for v in verdicts],
         }  # fmt: skip
-        cached.write_text(to_json_text(done) + "\n")
+        cached.write_text(to_json_text({**done, "asked": run_options(options)}) + "\n")
         done_runs.append(done)
     return done_runs
+
+
+def run_options(options: HeldoutOptions) -> dict:
+    """What a run's results depend on beyond its world seed, scenario and mode (recorded with each cached run):
+    the rendering (size, rays per pixel, UAV altitude, corruption) and the frames run."""
+    return {
+        "resolution": list(options.resolution), "supersample": options.supersample,
+        "uav_altitude_m": list(options.uav_altitude_m) if options.uav_altitude_m else None,
+        "depth_noise": options.corruption.depth_noise, "label_noise": options.corruption.label_confusion,
+        "max_frames": options.max_frames,
+    }  # fmt: skip
+
+
+def check_resumable(out: Path, options: HeldoutOptions) -> None:
+    """Refuse to resume into a folder whose cached runs were made with other options: their verdicts would be
+    reported as this benchmark's (a resume reuses every run that has a ``verdicts.json``).
+
+    Raises:
+        ConfigError: a run of the worlds asked for was made with another resolution, rays per pixel, UAV
+            altitude, corruption or frame cut (runs cached before these were recorded are taken as they are).
+    """
+    asked = run_options(options)
+    for scenario in options.scenarios:
+        for seed in options.seeds:
+            for mode in options.modes:
+                cached = Path(out) / "runs" / f"{scenario}-s{seed}-{mode.value}" / "verdicts.json"
+                if not cached.is_file():
+                    continue
+                made = json.loads(cached.read_text()).get("asked")
+                if made is None or made == asked:
+                    continue
+                differ = ", ".join(f"{k} {made.get(k)} (asked: {v})" for k, v in asked.items() if made.get(k) != v)
+                raise ConfigError(
+                    f"{out} holds runs made with other options ({cached.parent.name}: {differ}); a resume would "
+                    "report them as this benchmark's: choose another --out, or delete that folder's runs/"
+                )
 
 
 def _quiet(_msg: str) -> None:
@@ -529,6 +565,7 @@ def run_heldout_benchmark(
     """
     progress = progress or _quiet
     out = Path(out)
+    check_resumable(out, options)
     t0 = time.perf_counter()
     worlds = [(sc, seed) for sc in options.scenarios for seed in options.seeds]
     runs_by_world: list[list[dict]] = []
@@ -560,10 +597,7 @@ def run_heldout_benchmark(
     results = {
         "options": {
             "scenarios": list(options.scenarios), "seeds": list(options.seeds),
-            "modes": [m.value for m in options.modes], "resolution": list(options.resolution),
-            "max_frames": options.max_frames, "supersample": options.supersample,
-            "uav_altitude_m": list(options.uav_altitude_m) if options.uav_altitude_m else None,
-            "depth_noise": options.corruption.depth_noise, "label_noise": options.corruption.label_confusion,
+            "modes": [m.value for m in options.modes], **run_options(options),
             "tuning_seeds": list(TUNING_SEEDS),
             "report_seeds": list(REPORT_SEEDS), "placed_right_m": {m.value: v for m, v in PLACED_RIGHT_M.items()},
         },

@@ -85,6 +85,35 @@ def test_bench_heldout_refuses_a_uav_altitude_whose_ground_is_out_of_range(tmp_p
                                        "--cache", str(tmp_path / "c")])  # fmt: skip
         assert bad.exit_code == 2 and words in bad.output, bad.output
     assert not (tmp_path / "c").exists()
+    bad = CliRunner().invoke(app, ["bench", "heldout", "--resolution", "640", "-o", str(tmp_path / "o"),
+                                   "--cache", str(tmp_path / "c")])  # fmt: skip
+    assert bad.exit_code == 2 and "WIDTHxHEIGHT" in bad.output, bad.output
+    assert not (tmp_path / "c").exists()
+
+
+def test_a_resume_refuses_runs_made_with_other_options(tmp_path):
+    """A results folder resumed with another render size, UAV altitude, corruption or frame cut would report its
+    old runs as the new benchmark's: refused before anything runs, naming what differs."""
+    from shgm_slam.bench.heldout import HeldoutOptions, check_resumable, run_options
+    from shgm_slam.errors import ConfigError
+
+    made = HeldoutOptions(scenarios=("airsim-like",), seeds=(1, 2), modes=(InputMode.FILES,), max_frames=30)
+    run = tmp_path / "runs" / "airsim-like-s2-files"
+    run.mkdir(parents=True)
+    (run / "verdicts.json").write_text(json.dumps({"seed": 2, "asked": run_options(made)}))
+    check_resumable(tmp_path, made)  # the same options: resumed
+    check_resumable(tmp_path, HeldoutOptions(scenarios=("airsim-like",), seeds=(3,), modes=(InputMode.FILES,),
+                                             resolution=(640, 192)))  # other worlds: none of its runs is reused
+    for other, words in ((dict(resolution=(640, 192)), "resolution [320, 96] (asked: [640, 192])"),
+                         (dict(max_frames=None), "max_frames 30 (asked: None)"),
+                         (dict(uav_altitude_m=(85.0, 95.0)), "uav_altitude_m None (asked: [85.0, 95.0])")):
+        asked = HeldoutOptions(scenarios=("airsim-like",), seeds=(1, 2), modes=(InputMode.FILES,),
+                               **{"max_frames": 30, **other})  # fmt: skip
+        with pytest.raises(ConfigError, match="another --out") as err:
+            check_resumable(tmp_path, asked)
+        assert "airsim-like-s2-files" in str(err.value) and words in str(err.value)
+    (run / "verdicts.json").write_text(json.dumps({"seed": 2}))  # cached before the options were recorded
+    check_resumable(tmp_path, HeldoutOptions(scenarios=("airsim-like",), seeds=(2,), modes=(InputMode.FILES,)))
 
 
 def test_perfect_odometry_has_no_breaks():
@@ -332,6 +361,8 @@ def test_a_stopped_run_ends_the_benchmark_is_not_cached_and_the_same_command_res
     assert first["interrupted"] and [r["seed"] for r in first["runs"]] == [1]
     assert runs == ["airsim-like-s1-files", "airsim-like-s2-files"]  # seed 3 never started
     assert not (out / "runs" / "airsim-like-s2-files" / "verdicts.json").exists()
+    cached = json.loads((out / "runs" / "airsim-like-s1-files" / "verdicts.json").read_text())
+    assert cached["asked"] == heldout.run_options(options)  # what a resume checks
     assert (out / "heldout.md").read_text().startswith("**Interrupted**")
     assert json.loads((out / "heldout.json").read_text())["interrupted"] is True
 
