@@ -15,7 +15,7 @@ sequence protocol and a perception callable.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -91,6 +91,7 @@ class SceneScale:
         image_px: (width, height) of the depth maps, pixels.
         depth_noise_rel: the depth's random error relative to the depth (``relative_depth_noise``, median
             over the frames; 0 when not measured): 0 for perfect renders, ~0.05 for 5 % sensor noise.
+        frame_indices: the sequence's frames measured (``sample_scene_scale``; empty when not known).
     """
 
     frames: int
@@ -101,6 +102,7 @@ class SceneScale:
     depth_percentiles_m: tuple[float, float, float]
     image_px: tuple[int, int] = (0, 0)
     depth_noise_rel: float = 0.0
+    frame_indices: tuple[int, ...] = ()
 
     @property
     def horizon_in_view(self) -> bool:
@@ -109,7 +111,7 @@ class SceneScale:
 
 
 def fit_ground_plane(
-    depth_m: np.ndarray, label_ids: np.ndarray | None, intrinsics: Intrinsics
+    depth_m: np.ndarray, label_ids: np.ndarray | None, intrinsics: Intrinsics, *, labelled_only: bool = False
 ) -> tuple[np.ndarray, float] | None:
     """Ground plane of one frame in the camera frame: ``(n, h)`` with ``n . p = -h`` for ground points.
 
@@ -118,6 +120,8 @@ def fit_ground_plane(
         label_ids: (H, W) train ids, or None; the road, sidewalk and terrain pixels are the ground, the
             lowest quarter of the image rows when there are too few of them.
         intrinsics: pinhole intrinsics of ``depth_m``.
+        labelled_only: with ``label_ids``, no fit (None) when too few pixels are labelled ground, instead of
+            taking the lowest rows (a UAV beside a tower sees its facade there, not the ground).
 
     Returns:
         ``n`` (3,) unit normal pointing up (towards the camera) and ``h`` the camera's height above the
@@ -131,6 +135,8 @@ def fit_ground_plane(
     if label_ids is not None:
         ground = np.isin(np.asarray(label_ids).reshape(-1)[pixel], GROUND_LABEL_IDS)
         if ground.sum() < MIN_PLANE_POINTS:
+            if labelled_only:
+                return None
             ground = None
     if ground is None:
         ground = pixel // W >= (3 * H) // 4
@@ -340,16 +346,25 @@ def effective_fields(cfg: ShgmConfig) -> dict[str, dict[str, float | bool]]:
 
 
 SAMPLE_FRAMES = 5
-"""Frames measured per robot (those with valid depth among the first ``SAMPLE_FRAMES * SAMPLE_STEP``)."""
+"""Frames measured per robot: the first with valid depth whose labels show the ground (``sample_scene_scale``)."""
 
 SAMPLE_STEP = 5
 """Every this many frames (0.5 s at 10 fps: the frames differ a little)."""
+
+SAMPLE_SPAN_FRAMES = 100
+"""Frames searched for views of the ground, from the first (10 s at 10 fps). A UAV that takes off beside a tower
+sees its facade and roof for the first seconds: measured on those frames, the scale was a car's (a 'ground' 10 m
+below, objects kept up to 30 m), and from 44 m up its graph held 28 objects and it never joined (airsim-like
+seed 530 at 640x192, the first world where this happened; its ground came into view after 3 s)."""
 
 
 def sample_scene_scale(
     sequence: Sequence, perceive: Callable[[Frame], tuple[np.ndarray, np.ndarray | None]]
 ) -> SceneScale | None:
-    """``measure_scene_scale`` on the first frames of ``sequence`` with valid depth.
+    """``measure_scene_scale`` on the first ``SAMPLE_FRAMES`` of frames ``0, SAMPLE_STEP, ...`` with valid depth
+    whose labels show the ground (``fit_ground_plane(labelled_only=True)``), searched over the first
+    ``SAMPLE_SPAN_FRAMES``; where none does (or frames have no labels), on the first ``SAMPLE_FRAMES`` with
+    valid depth among the first ``2 x SAMPLE_FRAMES`` tried, as the ground then cannot be told apart.
 
     Args:
         sequence: the robot's frames.
@@ -357,11 +372,14 @@ def sample_scene_scale(
             perception source; a frame it raises ``DataError`` on is skipped.
 
     Returns:
-        The scale, or None when none of frames ``0, SAMPLE_STEP, ...`` (2 x SAMPLE_FRAMES tried) has
-        valid depth.
+        The scale (``frame_indices``: the frames measured), or None when no frame tried has valid depth.
     """
-    depths, labels, intrinsics = [], [], None
-    for index in range(0, min(len(sequence), 2 * SAMPLE_FRAMES * SAMPLE_STEP), SAMPLE_STEP):
+    first: list[tuple[int, np.ndarray, np.ndarray | None]] = []  # the first frames with valid depth
+    grounded: list[tuple[int, np.ndarray, np.ndarray | None]] = []  # those whose labels show the ground
+    intrinsics = None
+    for index in range(0, min(len(sequence), SAMPLE_SPAN_FRAMES), SAMPLE_STEP):
+        if index >= 2 * SAMPLE_FRAMES * SAMPLE_STEP and (len(first) < SAMPLE_FRAMES and not grounded):
+            break  # no valid depth early on: the first frames decide, as they would have
         try:
             frame = sequence[index]
             depth, label = perceive(frame)
@@ -376,8 +394,19 @@ def sample_scene_scale(
         if intrinsics is not None and K != intrinsics:
             continue
         intrinsics = intrinsics or K
-        depths.append(depth)
-        labels.append(None if label is None or np.shape(label) != depth.shape else label)
-        if len(depths) == SAMPLE_FRAMES:
-            break
-    return measure_scene_scale(depths, labels, intrinsics) if depths else None
+        label = None if label is None or np.shape(label) != depth.shape else label
+        if len(first) < SAMPLE_FRAMES:
+            first.append((index, depth, label))
+        if label is None:  # no labels: the ground cannot be told apart; the first frames decide
+            if len(first) == SAMPLE_FRAMES:
+                break
+            continue
+        if fit_ground_plane(depth, label, K, labelled_only=True) is not None:
+            grounded.append((index, depth, label))
+            if len(grounded) == SAMPLE_FRAMES:
+                break
+    chosen = grounded or first
+    if not chosen:
+        return None
+    scale = measure_scene_scale([d for _, d, _ in chosen], [lab for _, _, lab in chosen], intrinsics)
+    return None if scale is None else replace(scale, frame_indices=tuple(i for i, _, _ in chosen))

@@ -260,6 +260,37 @@ def test_sample_scene_scale_skips_frames_without_depth():
     assert sample_scene_scale(seq, lambda f: (np.zeros_like(f.depth_m), None)) is None
 
 
+def _facade(distance_m: float = 12.0) -> tuple[np.ndarray, np.ndarray]:
+    """A building's wall filling the view ``distance_m`` ahead: no labelled ground, its lowest rows a plane."""
+    depth = np.full((INTR.height, INTR.width), distance_m, np.float32)
+    return depth, np.full(depth.shape, Label.BUILDING, np.uint8)
+
+
+def test_sample_scene_scale_measures_where_the_ground_comes_into_view():
+    """A UAV that takes off beside a tower sees only its facade for the first seconds: measured there, it got a
+    car's scale (objects up to 30 m, from 50 m up). The frames whose labels show the ground decide; without
+    labels, or where no frame shows ground, the first frames decide as before."""
+    seq = GroundSequence("uav", 50.0, 50.0, frames=80)
+    tower_until = 32
+
+    def perceive(frame):
+        return _facade() if frame.index < tower_until else (frame.depth_m, frame.label_ids)
+
+    s = sample_scene_scale(seq, perceive)
+    assert s.frame_indices == (35, 40, 45, 50, 55)
+    assert s.camera_height_m == pytest.approx(50.0, rel=0.05)
+    assert derived_values(s)["extraction"]["max_depth_m"] > 2.0 * 50.0  # the nearest ground is ~60 m away
+    first_only = derived_values(measure_scene_scale([_facade()[0]] * 5, [_facade()[1]] * 5, INTR))
+    assert first_only["extraction"]["max_depth_m"] == ExtractionConfig.FLEET["max_depth_m"]  # the old fault
+
+    unlabelled = sample_scene_scale(seq, lambda f: (perceive(f)[0], None))
+    assert unlabelled.frame_indices == (0, 5, 10, 15, 20)  # the ground cannot be told apart: the first frames
+    never = sample_scene_scale(GroundSequence("uav", 50.0, 50.0, frames=200), lambda f: _facade())
+    assert never.frame_indices == (0, 5, 10, 15, 20)
+    car = sample_scene_scale(GroundSequence("car", 1.6, 0.0, frames=80), lambda f: (f.depth_m, f.label_ids))
+    assert car.frame_indices == (0, 5, 10, 15, 20)
+
+
 def test_results_config_holds_each_robots_resolved_values(tmp_path: Path):
     robots = {"car": GroundSequence("car", 1.6, 0.0), "uav": GroundSequence("uav", 50.0, 50.0)}
     cfg = ShgmConfig.model_validate({"odometry": {"kind": OdometryKind.GT.value}})

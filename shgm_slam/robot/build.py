@@ -62,6 +62,9 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig, *, max_segment
         log.info("%s: camera %.1f m above the ground, nearest ground at %.1f m, depth noise %.1f %% of the depth",
                  name, scale.camera_height_m or float("nan"), scale.nearest_ground_depth_m,
                  100.0 * scale.depth_noise_rel)  # fmt: skip
+        if scale.frame_indices and scale.frame_indices[0] > 0:
+            log.info("%s: its first frames show no labelled ground; its scale is measured on frames %s", name,
+                     ", ".join(map(str, scale.frame_indices)))  # fmt: skip
     rcfg = resolve_robot_config(rcfg, scale)
     rcfg = _window_on_image(name, rcfg, sequence, perception, written_by)
     choice = choose_odometry(rcfg.odometry.kind, depth_from_model=predicted)
