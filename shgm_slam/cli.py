@@ -83,6 +83,19 @@ def handle_errors(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+def stops_like_ctrl_c(fn: F) -> F:
+    """Run a command with SIGTERM and SIGHUP stopping it as Ctrl-C does (``_stop_signals_as_interrupt``): a
+    benchmark stopped by ``timeout``, a job scheduler or a closed terminal writes what it finished and exits 130,
+    instead of dying by the signal with its report unwritten."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        with _stop_signals_as_interrupt():
+            return fn(*args, **kwargs)
+
+    return wrapper  # type: ignore[return-value]
+
+
 def _version(value: bool) -> None:
     if value:
         console.print(f"shgm-slam {__version__}")
@@ -983,6 +996,7 @@ def print_report(text: str) -> None:
 
 @bench_app.command("simulate")
 @handle_errors
+@stops_like_ctrl_c
 def bench_simulate(
     out: Annotated[Path, typer.Option("--out", "-o", parser=_nonempty_path,
                                       help="results JSON")] = Path("results/bench_sim.json"),
@@ -1003,6 +1017,7 @@ def bench_simulate(
 
 @bench_app.command("localization")
 @handle_errors
+@stops_like_ctrl_c
 def bench_localization(
     out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder: localization.json, .md, pr_curve.png")]
@@ -1042,6 +1057,7 @@ def bench_localization(
 
 @bench_app.command("sparse")
 @handle_errors
+@stops_like_ctrl_c
 def bench_sparse(
     out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder: sparse.json, sparse.md")]
@@ -1078,6 +1094,7 @@ def bench_sparse(
 
 @bench_app.command("system")
 @handle_errors
+@stops_like_ctrl_c
 def bench_system(
     out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder")] = Path("results/bench_system"),
@@ -1100,6 +1117,7 @@ def bench_system(
 
 @bench_app.command("scale")
 @handle_errors
+@stops_like_ctrl_c
 def bench_scale(
     out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder")] = Path("results/bench_scale"),
@@ -1124,6 +1142,7 @@ def bench_scale(
 
 @bench_app.command("robots")
 @handle_errors
+@stops_like_ctrl_c
 def bench_robots(
     out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder")] = Path("results/bench_robots"),
@@ -1156,6 +1175,7 @@ def bench_robots(
 
 @bench_app.command("distributed")
 @handle_errors
+@stops_like_ctrl_c
 def bench_distributed(
     out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder")] = Path("results/bench_distributed"),
@@ -1208,6 +1228,7 @@ def _world_seeds(seeds: str) -> tuple[int, ...]:
 
 @bench_app.command("heldout")
 @handle_errors
+@stops_like_ctrl_c
 def bench_heldout(
     out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder (resumes the runs already in it)")]
@@ -1282,6 +1303,7 @@ def _exit_if_interrupted(results: dict, kept: str) -> None:
 
 @bench_app.command("depth-quality")
 @handle_errors
+@stops_like_ctrl_c
 def bench_depth_quality(
     out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder (resumes the runs already in it)")]
@@ -1347,6 +1369,7 @@ def bench_depth_quality(
 
 @bench_app.command("table3")
 @handle_errors
+@stops_like_ctrl_c
 def bench_table3(
     out: Annotated[Path, typer.Option("--out", "-o", parser=_out_folder,
                                       help="results folder: table3.json, table3.md")]

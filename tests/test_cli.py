@@ -58,6 +58,43 @@ def test_stop_signals_keep_the_results_like_ctrl_c(tiny_scenario, tmp_path, sig)
     assert (out / "car0_odometry_tum.txt").is_file()
 
 
+def test_a_benchmark_stopped_by_sigterm_writes_what_it_finished(tmp_path, monkeypatch):
+    """``timeout``, a job scheduler or a closed terminal stop a benchmark with SIGTERM / SIGHUP: it must stop as
+    after a Ctrl-C (the seeds finished written, marked interrupted, exit 130), not die with nothing written."""
+    import json
+    import os
+    import signal
+
+    import shgm_slam.bench.localization_sparse as sparse
+
+    class UnhandledError(Exception):
+        pass
+
+    def unhandled(_signum, _frame):
+        raise UnhandledError("SIGTERM reached the test's handler: the command did not take it")
+
+    real, seen = sparse._run_seed, []
+
+    def stopped_in_second_seed(seed, *args, **kwargs):
+        seen.append(seed)
+        if len(seen) == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real(seed, *args, **kwargs)
+
+    monkeypatch.setattr(sparse, "_run_seed", stopped_in_second_seed)
+    previous = signal.signal(signal.SIGTERM, unhandled)
+    try:
+        res = runner.invoke(app, ["bench", "sparse", "--seeds", "10-12", "--pairs", "1", "--no-full-rotation",
+                                  "-o", str(tmp_path / "o")])  # fmt: skip
+        assert signal.getsignal(signal.SIGTERM) is unhandled  # the command put the handler back
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert res.exit_code == 130 and not isinstance(res.exception, UnhandledError), res.output
+    assert seen == [10, 11]
+    written = json.loads((tmp_path / "o" / "sparse.json").read_text())
+    assert written["interrupted"] is True and written["seeds_done"] == [10]
+
+
 def _summary(names, failures=0):
     from types import SimpleNamespace
 
