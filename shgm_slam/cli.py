@@ -45,6 +45,29 @@ def _out_folder(text: str) -> Path:
     return path
 
 
+def _float_in(low: float, high: float) -> Callable[[str], float]:
+    """A parser of a float option bounded to [low, high]: NaN and infinities are refused as such (a range
+    check alone called NaN "not less than or equal to" the bound), then the range is checked."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise typer.BadParameter(f"{text!r} is not a number") from None
+        if not math.isfinite(value):
+            raise typer.BadParameter(f"{text} is not a finite number; give one in {low:g}..{high:g}")
+        if not low <= value <= high:
+            raise typer.BadParameter(f"{value:g} is out of range {low:g}..{high:g}")
+        return value
+
+    return parse
+
+
+def _bounded(low: float, high: float, *names: str, **kwargs: Any) -> Any:
+    """``typer.Option`` for a float in [low, high] (``_float_in``), its range shown in ``--help``."""
+    return typer.Option(*names, parser=_float_in(low, high), metavar=f"<float {low:g}..{high:g}>", **kwargs)
+
+
 def lit(value: object) -> str:
     """``value`` as text that rich prints literally (paths, names and messages may hold ``[...]``)."""
     return escape(str(value))
@@ -155,13 +178,13 @@ def simulate_command(
                                       help="output folder (one sequence per robot)")],
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world and trajectory seed")] = 0,
     resolution: Annotated[str, typer.Option(help="image size WIDTHxHEIGHT")] = "640x192",
-    fps: Annotated[float, typer.Option(min=0.1, max=100.0, help="frame rate, Hz")] = 10.0,
+    fps: Annotated[float, _bounded(0.1, 100.0, help="frame rate, Hz")] = 10.0,
     max_frames: Annotated[int | None, typer.Option(min=1, max=MAX_FRAMES, help="cut every robot's sequence")] = None,
-    depth_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="relative depth error std (0.05 = 5 %)")] = 0.0,
-    label_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="segment confusion probability "
+    depth_noise: Annotated[float, _bounded(0.0, 1.0, help="relative depth error std (0.05 = 5 %)")] = 0.0,
+    label_noise: Annotated[float, _bounded(0.0, 1.0, help="segment confusion probability "
                                                "(boundaries also jitter by 10x this many px)")] = 0.0,
-    world_size: Annotated[float | None, typer.Option(min=150.0, max=20000.0, help="city side length, metres")] = None,
-    max_depth: Annotated[float, typer.Option(min=1.0, max=10000.0, help="depth range, metres (farther = 0)")] = 200.0,
+    world_size: Annotated[float | None, _bounded(150.0, 20000.0, help="city side length, metres")] = None,
+    max_depth: Annotated[float, _bounded(1.0, 10000.0, help="depth range, metres (farther = 0)")] = 200.0,
     compact: Annotated[bool, typer.Option("--compact", help="small world, short paths")] = False,
     kitti_root: Annotated[Path | None, typer.Option(help="KITTI folder with poses/ (kitti-paths)")] = None,
     kitti_drive: Annotated[list[str] | None, typer.Option(
@@ -214,7 +237,7 @@ def graph(
     connectivity: Annotated[float | None, typer.Option(help="edge threshold, metres (config: 10)")] = None,
     merge_radius: Annotated[float | None, typer.Option(help="same-label merge radius, m (config: 5)")] = None,
     keyframe_every: Annotated[
-        float | None, typer.Option(min=0.1, max=1000.0, help="keyframe spacing, metres (config: 2)")
+        float | None, _bounded(0.1, 1000.0, help="keyframe spacing, metres (config: 2)")
     ] = None,
 ) -> None:
     """Build a sequence's semantic graph from its ground-truth poses, depth and labels; write it as JSON."""
@@ -623,7 +646,7 @@ def server_command(
     rerun: Annotated[str, typer.Option("--rerun", help="spawn | save | connect | off")] = "save",
     rerun_url: Annotated[str | None, typer.Option(help="gRPC URL for --rerun connect")] = None,
     stale_after: Annotated[
-        float, typer.Option(min=0.5, max=3600, help="seconds of silence before a robot is stale")
+        float, _bounded(0.5, 3600, help="seconds of silence before a robot is stale")
     ] = 5.0,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="start fresh: remove an earlier run's results "
                                             "and journal from --out first (without it a journal there is "
@@ -696,7 +719,7 @@ def robot_command(
     out: Annotated[Path | None, typer.Option("--out", parser=_nonempty_path,
                                              help="write this robot's trajectories here")] = None,
     wait: Annotated[
-        float, typer.Option(min=0, max=3600, help="seconds to wait for the server after the last frame")
+        float, _bounded(0, 3600, help="seconds to wait for the server after the last frame")
     ] = 60.0,
 ) -> None:
     """One robot in its own process: front end, keyframes to the map server, corrections applied."""
@@ -1249,9 +1272,9 @@ def bench_heldout(
                                              "(antialiased; cached apart)")] = 1,
     uav_altitude: Annotated[str | None, typer.Option(help="airsim-like worlds: the UAV's altitude, LOW-HIGH metres "
                                                      "(default 44-54; cached apart)")] = None,
-    depth_noise: Annotated[float, typer.Option(min=0.0, max=0.5, help="relative depth error std of the renders the "
+    depth_noise: Annotated[float, _bounded(0.0, 0.5, help="relative depth error std of the renders the "
                                                "files mode reads (0.05 = 5 %; cached apart)")] = 0.0,
-    label_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="segment confusion probability of the "
+    label_noise: Annotated[float, _bounded(0.0, 1.0, help="segment confusion probability of the "
                                                "renders' labels (boundaries jitter by 10x this many px)")] = 0.0,
     replay_from: Annotated[
         Path | None,
@@ -1390,8 +1413,8 @@ def bench_table3(
     resolution: Annotated[str, typer.Option(help="render size WIDTHxHEIGHT")] = "320x96",
     mode: Annotated[str, typer.Option(help="robust (the default configuration) | paper (Alg. 2 RANSAC over "
                                       "the best candidate per node, as the authors' release)")] = "robust",
-    depth_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="relative depth error std of the renders")] = 0.0,
-    label_noise: Annotated[float, typer.Option(min=0.0, max=1.0, help="label confusion of the renders")] = 0.0,
+    depth_noise: Annotated[float, _bounded(0.0, 1.0, help="relative depth error std of the renders")] = 0.0,
+    label_noise: Annotated[float, _bounded(0.0, 1.0, help="label confusion of the renders")] = 0.0,
     kitti_root: Annotated[Path | None, typer.Option(help="KITTI folder with poses/")] = None,
     cache: Annotated[Path, typer.Option(help="rendered worlds are cached here")] = Path("cache/table3"),
     jobs: Annotated[int, typer.Option(min=1, max=64, help="world seeds run in this many processes at once")] = 1,

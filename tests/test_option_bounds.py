@@ -38,6 +38,25 @@ def test_absurd_options_are_refused_with_exit_2(tmp_path, args):
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize("value", ["nan", "-inf", "Infinity"])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["simulate", "-s", "airsim-like", "-o", "{tmp}/x", "--depth-noise"],
+        ["simulate", "-s", "airsim-like", "-o", "{tmp}/x", "--world-size"],
+        ["bench", "heldout", "-o", "{tmp}/x", "--label-noise"],
+        ["server", "--out", "{tmp}/x", "--stale-after"],
+    ],
+)
+def test_non_finite_bounded_floats_are_named_as_such(tmp_path, args, value):
+    # a range check alone said NaN was "not less than or equal to" the upper bound
+    res = runner.invoke(app, [a.replace("{tmp}", str(tmp_path)) for a in args] + [value])
+    assert res.exit_code == 2, res.output
+    assert "not a finite number" in res.output, res.output
+    assert "less than or equal" not in res.output
+    assert not (tmp_path / "x").exists()
+
+
 @pytest.mark.parametrize(
     "yaml_text",
     [
