@@ -1,7 +1,7 @@
 """The one exception tree of shgm_slam.
 
 Library code raises these with actionable messages (what is wrong, which file, how to fix it);
-only ``cli.py`` catches them, prints one line and exits non-zero.
+only the command line (``shgm_slam.cli``) catches them, prints one line and exits non-zero.
 """
 
 from __future__ import annotations

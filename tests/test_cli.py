@@ -114,10 +114,10 @@ def _summary(names, failures=0):
 def test_summary_table_fits_80_columns_without_cutting(failures):
     from rich.console import Console
 
-    from shgm_slam.cli import _summary_table
+    from shgm_slam.cli import summary_table
 
     console = Console(width=80, record=True, color_system=None)
-    console.print(_summary_table(_summary(["car1", "kitti08a", "uav"], failures)))
+    console.print(summary_table(_summary(["car1", "kitti08a", "uav"], failures)))
     text = console.export_text()
     assert "…" not in text and max(len(line) for line in text.splitlines()) <= 80
     for word in ("robot", "frames", "kf", "nodes", "odo", "fail", "fused", "path", "ATE", "aligned", "odo/fused"):
@@ -134,11 +134,11 @@ def test_summary_table_fits_80_columns_without_cutting(failures):
 def test_summary_table_folds_long_robot_names_instead_of_cutting():
     from rich.console import Console
 
-    from shgm_slam.cli import _summary_table
+    from shgm_slam.cli import summary_table
 
     name = "a_very_long_robot_name_of_32_chr"
     console = Console(width=80, record=True, color_system=None)
-    console.print(_summary_table(_summary([name])))
+    console.print(summary_table(_summary([name])))
     text = console.export_text()
     assert "…" not in text and max(len(line) for line in text.splitlines()) <= 80
     assert "".join(line.split()[0] for line in text.splitlines() if line.strip() and line.split()[0] in name)

@@ -57,12 +57,13 @@ def test_plain_and_rgb_only_demos_write_separate_results(monkeypatch, tmp_path):
     from typer.testing import CliRunner
 
     import shgm_slam.cli as cli
+    import shgm_slam.cli.system as system
     import shgm_slam.demo as demo
 
     outs = []
     monkeypatch.setattr(demo, "prepare_world", lambda cache, seed, fn: (tmp_path, {"car1": "car"}))
-    monkeypatch.setattr(cli, "_run_command", lambda robots, cfg, out, *a: outs.append(out) or SimpleNamespace())
-    monkeypatch.setattr(cli, "_render_summary", lambda summary: None)
+    monkeypatch.setattr(system, "_run_command", lambda robots, cfg, out, *a: outs.append(out) or SimpleNamespace())
+    monkeypatch.setattr(system, "render_summary", lambda summary: None)
     for args in ([], ["--rgb-only"], ["--out", str(tmp_path / "mine")]):
         res = CliRunner().invoke(cli.app, ["demo", "--rerun", "off", *args])
         assert res.exit_code == 0, res.output
@@ -78,6 +79,7 @@ def test_a_demo_whose_first_render_was_interrupted_renders_again(monkeypatch, tm
     from typer.testing import CliRunner
 
     import shgm_slam.cli as cli
+    import shgm_slam.cli.system as system
 
     half = tmp_path / "cache" / "airsim-like-seed0" / "car1" / "image_2"
     half.mkdir(parents=True)
@@ -90,8 +92,8 @@ def test_a_demo_whose_first_render_was_interrupted_renders_again(monkeypatch, tm
         (out / "scenario.json").write_text('{"robots": [{"name": "car1", "kind": "car"}]}')
 
     monkeypatch.setattr("shgm_slam.sim.cache.simulate", fake_simulate)
-    monkeypatch.setattr(cli, "_run_command", lambda *a: SimpleNamespace())
-    monkeypatch.setattr(cli, "_render_summary", lambda summary: None)
+    monkeypatch.setattr(system, "_run_command", lambda *a: SimpleNamespace())
+    monkeypatch.setattr(system, "render_summary", lambda summary: None)
     res = CliRunner().invoke(cli.app, ["demo", "--rerun", "off", "--cache", str(tmp_path / "cache"),
                                        "--out", str(tmp_path / "out")])  # fmt: skip
     assert res.exit_code == 0, res.output

@@ -57,8 +57,8 @@ def test_a_stop_signal_after_the_run_ended_exits_as_interrupted_not_killed() -> 
     code = (
         "import os, signal, time\n"
         "import shgm_slam.cli as cli\n"
-        "cli._OWN_PROCESS = True\n"
-        "with cli._stop_signals_as_interrupt():\n"
+        "cli.signals.OWN_PROCESS = True\n"
+        "with cli.stop_signals_as_interrupt():\n"
         "    pass\n"
         "print('done', flush=True)\n"
         "os.kill(os.getpid(), signal.SIGHUP)\n"

@@ -1,0 +1,82 @@
+"""Option types and parsers shared by the commands: output paths, bounded floats, frame and seed lists."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+
+def nonempty_path(text: str) -> Path:
+    """An output path from the command line; an empty one is refused (it would mean the current folder)."""
+    if not str(text).strip():
+        raise typer.BadParameter("is empty: give a folder or file path (for the current folder, '.')")
+    return Path(text)
+
+
+def out_folder(text: str) -> Path:
+    """An output folder from the command line: not empty (``nonempty_path``) and not an existing file."""
+    path = nonempty_path(text)
+    if path.exists() and not path.is_dir():
+        raise typer.BadParameter(f"{text} is a file; give a folder (it is created if missing)")
+    return path
+
+
+def float_in(low: float, high: float) -> Callable[[str], float]:
+    """A parser of a float option bounded to [low, high]: NaN and infinities are refused as such (a range
+    check alone called NaN "not less than or equal to" the bound), then the range is checked."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise typer.BadParameter(f"{text!r} is not a number") from None
+        if not math.isfinite(value):
+            raise typer.BadParameter(f"{text} is not a finite number; give one in {low:g}..{high:g}")
+        if not low <= value <= high:
+            raise typer.BadParameter(f"{value:g} is out of range {low:g}..{high:g}")
+        return value
+
+    return parse
+
+
+def bounded(low: float, high: float, *names: str, **kwargs: Any) -> Any:
+    """``typer.Option`` for a float in [low, high] (``float_in``), its range shown in ``--help``."""
+    return typer.Option(*names, parser=float_in(low, high), metavar=f"<float {low:g}..{high:g}>", **kwargs)
+
+
+MAX_FRAMES = 1_000_000
+"""Upper bound of every frame-count option (KITTI's longest sequence has 4,661 frames)."""
+
+
+JobsOption = Annotated[
+    int | None,
+    typer.Option("--jobs", "-j", min=1, max=256, show_default="one per robot, at most one per core",
+                 help="worker processes for the robots' front ends (the same results, sooner); 1: everything in "
+                 "this one process"),
+]
+
+
+def int_list(text: str, option: str) -> tuple[int, ...]:
+    """Comma-separated integers of ``option`` (e.g. ``--fleets 1,2,4``)."""
+    from shgm_slam.errors import ConfigError
+
+    try:
+        values = tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ConfigError(f"{option} {text!r}: write comma-separated whole numbers, e.g. 1,2,4,8") from None
+    if not values:
+        raise ConfigError(f"{option} {text!r} names no value")
+    return values
+
+
+def world_seeds(seeds: str) -> tuple[int, ...]:
+    """``--seeds`` of the held-out style benchmarks: 'report', 'tuning', an inclusive range A-B or A,B,C."""
+    from shgm_slam.bench import heldout
+    from shgm_slam.bench.seeds import parse_seeds
+
+    return parse_seeds(seeds, {"report": heldout.REPORT_SEEDS, "tuning": heldout.TUNING_SEEDS})
+
