@@ -199,5 +199,6 @@ def match(
             dof_fields["up_axis"] = list(matching_cfg.up_axis)
         typer.echo(to_json_text({**result.to_json_dict(), **dof_fields}, indent=None))
         return
-    render_match(result, len(a), len(b), descriptor_cfg.kind, matching_cfg.outlier_mode, dof_note)
+    render_match(result, len(a), len(b), descriptor_cfg.kind, matching_cfg.outlier_mode, dof_note,
+                 matching_cfg.false_alarm_rate, cfg.backend.min_closures_to_anchor)
 

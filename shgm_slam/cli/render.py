@@ -20,9 +20,11 @@ def lit(value: object) -> str:
 
 
 def render_match(
-    result, nodes_a: int, nodes_b: int, kind: DescriptorKind, mode: OutlierMode, dof_note: str
+    result, nodes_a: int, nodes_b: int, kind: DescriptorKind, mode: OutlierMode, dof_note: str,
+    false_alarm_rate: float, pieces_to_place: int,
 ) -> None:
-    """Print a match result as a short rich summary."""
+    """Print a match result as a short rich summary; an accepted one with its evidence against chance
+    (``match_evidence``)."""
     import numpy as np
     from rich.table import Table
 
@@ -39,6 +41,7 @@ def render_match(
     judged = f"(rmse {rmse}, spread {result.spread_m:.1f} m, support {result.support} vs rival {result.rival_support})"
     if result.success:
         t.add_row("inliers", f"{result.num_inliers} {judged}")
+        t.add_row("evidence", match_evidence(result, false_alarm_rate, pieces_to_place))
     else:  # the rejected best hypothesis: its partners are not inliers of any match
         llr = f", LLR {result.llr:.1f} (threshold {result.llr_threshold:.1f})" if np.isfinite(result.llr) else ""
         best = f"best hypothesis: {result.num_inliers} partners {judged}{llr}"
@@ -50,6 +53,24 @@ def render_match(
         t.add_row("", "\n".join("  ".join(f"{v:9.4f}" for v in row) for row in T))
     t.add_row("ms", ", ".join(f"{k} {v:.2f}" for k, v in result.timings_ms.items()))
     console.print(t)
+
+
+def match_evidence(result, false_alarm_rate: float, pieces_to_place: int) -> str:
+    """What an accepted match's evidence is worth, as rich text: its log likelihood ratio against the chance
+    threshold, and whether it alone is as strong as the ``pieces_to_place`` independent matches a robot needs
+    in the running system (``MatchResult.is_decisive``) or is one piece of evidence that a far-apart pair
+    passes by chance about once in ``1 / false_alarm_rate`` (the match says so rather than claim more)."""
+    head = f"log likelihood ratio {result.llr:.1f} nats, chance threshold {result.llr_threshold:.1f}"
+    if result.is_decisive(pieces_to_place):
+        return f"{head}: as far beyond chance as {pieces_to_place} independent matches together"
+    chance = f"[yellow]one piece of evidence[/] (about 1 in {1.0 / false_alarm_rate:.0f} far-apart pairs passes this bar"
+    if pieces_to_place <= 1:
+        return f"{head}: {chance} by chance; backend.min_closures_to_anchor 1 places a robot on one)"
+    return (
+        f"{head}: {chance} by chance); a match on other objects would confirm it: the running system waits for "
+        f"{pieces_to_place} before it places a robot, or one with a ratio of "
+        f"{pieces_to_place * result.llr_threshold:.1f}"
+    )
 
 
 def metres(value: float) -> str:

@@ -67,6 +67,18 @@ class MatchResult:
         timings = {key: 0.0 for key in TIMING_KEYS} | (timings_ms or {})
         return MatchResult(False, None, np.zeros((0, 2), dtype=np.int64), candidates, timings, reason=reason)
 
+    def evidence_bar(self, tried: int = 1) -> float:
+        """The log likelihood ratio a match must reach to count as one piece of evidence, nats: its chance
+        threshold plus the log of the matches tried between the same two robots (the one being decided
+        included; 1 for a single ``shgm-slam match``)."""
+        return self.llr_threshold + math.log(max(int(tried), 1))
+
+    def is_decisive(self, pieces: int, tried: int = 1) -> bool:
+        """Whether this match alone is as unlikely under chance as ``pieces`` independent ones together: its
+        log likelihood ratio reaches ``pieces`` times ``evidence_bar(tried)`` (``backend.decisive_match``; the
+        map server asks with ``backend.min_closures_to_anchor`` pieces, the number that places a robot)."""
+        return self.success and pieces > 1 and self.llr >= pieces * self.evidence_bar(tried)
+
     def to_json_dict(self) -> dict[str, Any]:
         """The ARCHITECTURE.md match JSON: success, T_a_b, inliers, candidates, timings_ms, then extras."""
         return {

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -654,7 +653,7 @@ class MapServer:
         still counted, by 0.05 nats; a spending whose sum stays within the rate (``2 ln n + ln(pi^2 / 6)``)
         kept it out but also left robots that meet after many tries waiting (docs/benchmarks.md).
         """
-        return result.llr - result.llr_threshold < math.log(self._tried(robot_a, robot_b))
+        return result.llr < result.evidence_bar(self._tried(robot_a, robot_b))
 
     def _decisive(self, robot_a: str, robot_b: str, result: MatchResult) -> bool:
         """Whether an accepted match between two robots carries, alone, the evidence of the independent
@@ -672,8 +671,7 @@ class MapServer:
         """
         if not self.cfg.backend.decisive_match:
             return False
-        needed = self._pose_graph.min_closures_to_anchor
-        return needed > 1 and result.llr >= needed * (result.llr_threshold + math.log(self._tried(robot_a, robot_b)))
+        return result.is_decisive(self._pose_graph.min_closures_to_anchor, self._tried(robot_a, robot_b))
 
     def _tried(self, robot_a: str, robot_b: str) -> int:
         """Matches tried between two robots so far (either direction), the one being decided included."""

@@ -83,3 +83,31 @@ def test_match_bad_files_exit_cleanly(graph_files, tmp_path):
         assert result.exit_code == 2 and "error" in result.output
     result = runner.invoke(app, ["match", str(path_a), str(path_a), "--mode", "magic"])
     assert result.exit_code != 0
+
+
+def test_an_accepted_match_says_what_its_evidence_is_worth(graph_files):
+    # a match barely past chance is one piece of evidence (a far-apart pair passes ~alpha of the time): the
+    # summary says so instead of a bare "match"; a strong one is as unlikely under chance as two together
+    from shgm_slam.cli.render import match_evidence
+    from shgm_slam.matching import MatchResult
+
+    path_a, path_b, _ = graph_files
+    out = runner.invoke(app, ["match", str(path_a), str(path_b)], terminal_width=300).output
+    assert "evidence" in out and "chance threshold" in out
+
+    def accepted(llr: float, threshold: float) -> MatchResult:
+        r = MatchResult(True, np.eye(4), np.zeros((0, 2), np.int64), 10)
+        r.llr, r.llr_threshold = llr, threshold
+        return r
+
+    weak, strong = accepted(9.5, 9.1), accepted(18.3, 9.1)
+    assert not weak.is_decisive(2) and strong.is_decisive(2)
+    assert not strong.is_decisive(2, tried=2)  # the bar grows with the matches a pair tried: 2 (9.1 + ln 2) > 18.3
+    assert not strong.is_decisive(1)  # one piece needed: nothing to be decisive about
+    assert "one piece of evidence" in match_evidence(weak, 0.003, 2)
+    assert "about 1 in 333" in match_evidence(weak, 0.003, 2)
+    assert "as far beyond chance as 2 independent matches" in match_evidence(strong, 0.003, 2)
+    assert "places a robot on one" in match_evidence(weak, 0.003, 1)
+    failed = accepted(30.0, 9.1)
+    failed.success = False
+    assert not failed.is_decisive(2)

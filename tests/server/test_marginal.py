@@ -12,7 +12,13 @@ import numpy as np
 from shgm_slam.backend.pose_graph import MultiRobotPoseGraph
 from shgm_slam.config import ShgmConfig
 from shgm_slam.geometry.se3 import make_pose, rot_y
+from shgm_slam.matching import MatchResult
 from shgm_slam.server.map_server import MARGINAL_OBJECT, MapServer
+
+
+def _accepted(llr: float, threshold: float) -> MatchResult:
+    """An accepted match with this log likelihood ratio and chance threshold, nats."""
+    return MatchResult(True, np.eye(4), np.zeros((0, 2), np.int64), 0, llr=llr, llr_threshold=threshold)
 
 
 def _tried(server: MapServer, pairs: list[tuple[str, str]]) -> None:
@@ -21,7 +27,7 @@ def _tried(server: MapServer, pairs: list[tuple[str, str]]) -> None:
 
 def test_the_bar_rises_with_the_matches_the_pair_tried() -> None:
     server = MapServer(["car1", "car2", "uav"], ShgmConfig())
-    clear = SimpleNamespace(llr=12.5, llr_threshold=9.0)  # 3.5 nats beyond the threshold
+    clear = _accepted(12.5, 9.0)  # 3.5 nats beyond the threshold
     assert not server._marginal("car1", "car2", clear)  # the first try: the threshold alone
     _tried(server, [("car1", "car2")] * 20 + [("car2", "car1")] * 10)  # either robot's queries count
     assert math.log(31) < 3.5 + 0.01 and not server._marginal("car1", "car2", clear)
@@ -29,7 +35,7 @@ def test_the_bar_rises_with_the_matches_the_pair_tried() -> None:
     assert server._marginal("car1", "car2", clear)  # 36 tries: log 36 = 3.58 > 3.5
     _tried(server, [("car1", "uav")] * 100)  # other pairs' tries do not count
     assert not server._marginal("car2", "uav", clear)
-    assert not server._marginal("car1", "car2", SimpleNamespace(llr=30.0, llr_threshold=9.0))
+    assert not server._marginal("car1", "car2", _accepted(30.0, 9.0))
 
 
 def test_marginal_matches_of_a_pair_are_one_piece_strong_ones_two() -> None:
@@ -53,13 +59,13 @@ def test_a_decisive_match_clears_the_bar_of_two_pieces() -> None:
     """One match places a robot alone when its log likelihood ratio is twice the bar a piece clears (threshold
     plus log of the pair's tries): as unlikely under chance as two pieces together."""
     server = MapServer(["car1", "car2", "uav"], ShgmConfig())
-    assert not server._decisive("car1", "car2", SimpleNamespace(llr=17.9, llr_threshold=9.0))  # first try: 2 x 9
-    assert server._decisive("car1", "car2", SimpleNamespace(llr=18.0, llr_threshold=9.0))
+    assert not server._decisive("car1", "car2", _accepted(17.9, 9.0))  # first try: 2 x 9
+    assert server._decisive("car1", "car2", _accepted(18.0, 9.0))
     _tried(server, [("car1", "car2")] * 19)  # 20 tries: the bar is 2 x (9 + log 20) = 23.99
-    assert not server._decisive("car1", "car2", SimpleNamespace(llr=23.9, llr_threshold=9.0))
-    assert server._decisive("car1", "car2", SimpleNamespace(llr=24.0, llr_threshold=9.0))
-    assert server._decisive("car1", "uav", SimpleNamespace(llr=18.0, llr_threshold=9.0))  # another pair's count
-    strong = SimpleNamespace(llr=99.0, llr_threshold=9.0)
+    assert not server._decisive("car1", "car2", _accepted(23.9, 9.0))
+    assert server._decisive("car1", "car2", _accepted(24.0, 9.0))
+    assert server._decisive("car1", "uav", _accepted(18.0, 9.0))  # another pair's count
+    strong = _accepted(99.0, 9.0)
     for change in ({"decisive_match": False}, {"min_closures_to_anchor": 1}):  # off, or one match places anyway
         cfg = ShgmConfig().model_copy(update={"backend": ShgmConfig().backend.model_copy(update=change)})
         assert not MapServer(["car1", "car2"], cfg)._decisive("car1", "car2", strong)
