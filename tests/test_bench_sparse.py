@@ -125,7 +125,12 @@ def test_wrong_claims_name_the_farthest():
     assert s["wrong_claims"] == 2 and s["worst_wrong_m"] == 3.8 and s["localized"] == 1
     assert s["median_error_m"] == 2.6  # of the three accepted overlapping pairs (0.4, 2.6, 3.8 m)
     assert "| 2 (<= 3.8 m) | 2.60 |" in sparse_markdown(results, (1,))
+    # each wrong claim named, farthest first, so that it can be looked at; accepted negatives after them
+    results.outcomes.append(outcome(5, False, True, nan))
+    assert "pair, matching, error at B's centroid): 1/1 4dof 3.8 m, 1/2 4dof 2.6 m, 1/5 4dof negative." in (
+        sparse_markdown(results, (1,)).replace("\n", " "))
     clean = SparseResults([outcome(0, True, True, 0.4)])
+    assert "Wrong claims and" not in sparse_markdown(clean, (1,))
     assert clean.summary()["4dof"]["worst_wrong_m"] is None and "| 0 | 0.40 |" in sparse_markdown(clean, (1,))
     none = SparseResults([outcome(0, True, False, nan)])
     assert none.summary()["4dof"]["median_error_m"] is None and "| 0 | - |" in sparse_markdown(none, (1,))

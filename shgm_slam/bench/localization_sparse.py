@@ -403,7 +403,21 @@ def sparse_markdown(results: SparseResults, seeds: tuple[int, ...]) -> str:
               "overlapping pairs localized, or whose true alignment (refined as any hypothesis) clears the match's "
               "threshold: what a perfect search would localize with this evidence model; the pairs beyond it lack "
               "the evidence, not the search."]  # fmt: skip
+    lines += _claims_listed(results)
     return "\n".join(lines) + "\n"
+
+
+def _claims_listed(results: SparseResults) -> list[str]:
+    """Markdown lines naming every wrong claim and accepted negative (seed/pair, DoF, error at B's centroid),
+    farthest first, so that each can be matched again and looked at; none when there are none."""
+    wrong = sorted((o for o in results.outcomes if o.success and (not o.overlapping or not o.correct)),
+                   key=lambda o: (not o.overlapping, -o.trans_err_m, o.seed, o.index, o.dof))  # fmt: skip
+    if not wrong:
+        return []
+    named = [f"{o.seed}/{o.index} {o.dof}dof " + (f"{o.trans_err_m:.1f} m" if o.overlapping else "negative")
+             for o in wrong]  # fmt: skip
+    return ["", "Wrong claims and accepted negatives (seed/pair, matching, error at B's centroid): " + ", ".join(named)
+            + "."]  # fmt: skip
 
 
 def _metres(value: float | None) -> str:

@@ -63,7 +63,8 @@ def match_evidence(result, false_alarm_rate: float, pieces_to_place: int) -> str
     head = f"log likelihood ratio {result.llr:.1f} nats, chance threshold {result.llr_threshold:.1f}"
     if result.is_decisive(pieces_to_place):
         return f"{head}: as far beyond chance as {pieces_to_place} independent matches together"
-    chance = f"[yellow]one piece of evidence[/] (about 1 in {1.0 / false_alarm_rate:.0f} far-apart pairs passes this bar"
+    rate = f"{1.0 / false_alarm_rate:.0f}"
+    chance = f"[yellow]one piece of evidence[/] (about 1 in {rate} far-apart pairs passes this bar"
     if pieces_to_place <= 1:
         return f"{head}: {chance} by chance; backend.min_closures_to_anchor 1 places a robot on one)"
     return (
