@@ -59,6 +59,7 @@ def stops_like_ctrl_c(fn: F) -> F:
 
 
 def _version(value: bool) -> None:
+    """``--version``: print the package version and exit."""
     if value:
         console.print(f"shgm-slam {__version__}")
         raise typer.Exit()

@@ -18,6 +18,8 @@ from shgm_slam.io.json_text import to_json_text
 
 
 def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool, fronts=None, jobs: int | None = None):
+    """``runner.run_slam`` over the opened robots with a progress bar of frames (all robots together) and ETA;
+    returns its summary."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
     from shgm_slam.robot.remote import default_jobs
@@ -72,6 +74,8 @@ def run(
 
 
 def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_model: Path | None):
+    """The configuration with ``--odometry`` (a kind, or a poses file, ``{robot}`` standing for each robot's name),
+    ``--depth-model`` and ``--seg-model`` applied over it; an ``--odometry`` that is neither is a ``ConfigError``."""
     from shgm_slam.errors import ConfigError
 
     kinds = {k.value: k for k in OdometryKind if k is not OdometryKind.FILE}
@@ -94,6 +98,9 @@ def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_
 
 def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_frame: bool, overwrite: bool = False,
                  jobs: int | None = None):  # fmt: skip
+    """Open the robots, check every input that can refuse the run (``--rerun``, config, models, first frames)
+    before ``--out`` is claimed (locked, ``--overwrite`` to reuse one with results), then run with SIGTERM/SIGHUP
+    stopping it as Ctrl-C does; returns the run's summary."""
     from shgm_slam.errors import ConfigError
     from shgm_slam.io.export import claimed_results_dir
     from shgm_slam.runner import check_out_outside_sequences, open_robots, prepare_frontends
