@@ -9,7 +9,7 @@ import typer
 
 from shgm_slam.cli.app import bench_app, handle_errors, stops_like_ctrl_c
 from shgm_slam.cli.maps import simulate_with_progress
-from shgm_slam.cli.options import MAX_FRAMES, bounded, int_list, nonempty_path, out_folder, world_seeds
+from shgm_slam.cli.options import MAX_FRAMES, bounded, int_list, nonempty_path, results_folder, world_seeds
 from shgm_slam.cli.render import console, err_console, lit, print_report
 from shgm_slam.config import DescriptorKind, OdometryKind
 from shgm_slam.interrupts import INTERRUPTED_EXIT_CODE
@@ -40,8 +40,7 @@ def bench_simulate(
 @handle_errors
 @stops_like_ctrl_c
 def bench_localization(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=out_folder,
-                                      help="results folder: localization.json, .md, pr_curve.png")]
+    out: Annotated[Path, results_folder("results folder: localization.json, .md, pr_curve.png")]
     = Path("results/bench_localization"),
     runs: Annotated[int | None, typer.Option(min=1, max=100000,
                                              help="random transforms per configuration [100; quick 10]")]
@@ -80,8 +79,7 @@ def bench_localization(
 @handle_errors
 @stops_like_ctrl_c
 def bench_sparse(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=out_folder,
-                                      help="results folder: sparse.json, sparse.md")]
+    out: Annotated[Path, results_folder("results folder: sparse.json, sparse.md")]
     = Path("results/bench_sparse"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'A-B' or 'A,B,C' (tuning 10-19; report 210-219)")]
     = "10-19",
@@ -117,8 +115,7 @@ def bench_sparse(
 @handle_errors
 @stops_like_ctrl_c
 def bench_system(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=out_folder,
-                                      help="results folder")] = Path("results/bench_system"),
+    out: Annotated[Path, results_folder("results folder")] = Path("results/bench_system"),
     cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
     memory: Annotated[bool, typer.Option(help="also the 1000- vs 4000-frame peak-RSS runs")] = True,
@@ -140,8 +137,7 @@ def bench_system(
 @handle_errors
 @stops_like_ctrl_c
 def bench_scale(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=out_folder,
-                                      help="results folder")] = Path("results/bench_scale"),
+    out: Annotated[Path, results_folder("results folder")] = Path("results/bench_scale"),
     cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world seed")] = 0,
     memory: Annotated[bool, typer.Option(help="also the 1 km vs whole-drive peak-RSS runs (fresh processes)")]
@@ -165,8 +161,7 @@ def bench_scale(
 @handle_errors
 @stops_like_ctrl_c
 def bench_robots(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=out_folder,
-                                      help="results folder")] = Path("results/bench_robots"),
+    out: Annotated[Path, results_folder("results folder")] = Path("results/bench_robots"),
     fleets: Annotated[str, typer.Option(help="comma-separated fleet sizes, 1-8")] = "1,2,4,8",
     sequence: Annotated[str, typer.Option(help="KITTI sequence cut into the robots (00-10; 00: bench scale's world)")]
     = "00",
@@ -198,8 +193,7 @@ def bench_robots(
 @handle_errors
 @stops_like_ctrl_c
 def bench_distributed(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=out_folder,
-                                      help="results folder")] = Path("results/bench_distributed"),
+    out: Annotated[Path, results_folder("results folder")] = Path("results/bench_distributed"),
     cache: Annotated[Path, typer.Option(help="simulated worlds are cached here")] = Path("cache"),
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="demo world seed")] = 0,
     faults: Annotated[
@@ -230,8 +224,7 @@ def bench_distributed(
 @handle_errors
 @stops_like_ctrl_c
 def bench_heldout(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=out_folder,
-                                      help="results folder (resumes the runs already in it)")]
+    out: Annotated[Path, results_folder("results folder (resumes the runs already in it)")]
     = Path("results/bench_heldout"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-29), A-B or A,B,C")]
     = "report",
@@ -305,8 +298,7 @@ def _exit_if_interrupted(results: dict, kept: str) -> None:
 @handle_errors
 @stops_like_ctrl_c
 def bench_depth_quality(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=out_folder,
-                                      help="results folder (resumes the runs already in it)")]
+    out: Annotated[Path, results_folder("results folder (resumes the runs already in it)")]
     = Path("results/bench_depth_quality"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (210-219), 'tuning' (10-29), A-B or A,B,C")]
     = "report",
@@ -371,8 +363,7 @@ def bench_depth_quality(
 @handle_errors
 @stops_like_ctrl_c
 def bench_table3(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=out_folder,
-                                      help="results folder: table3.json, table3.md")]
+    out: Annotated[Path, results_folder("results folder: table3.json, table3.md")]
     = Path("results/bench_table3"),
     seeds: Annotated[str, typer.Option(help="world seeds: 'report' (200-209), 'tuning' (10-19), A-B or A,B")]
     = "report",

@@ -25,6 +25,11 @@ def out_folder(text: str) -> Path:
     return path
 
 
+def results_folder(help_text: str) -> Any:
+    """``typer.Option`` for a benchmark's ``--out``/``-o`` results folder (``out_folder``: not empty, not a file)."""
+    return typer.Option("--out", "-o", parser=out_folder, help=help_text)
+
+
 def float_in(low: float, high: float) -> Callable[[str], float]:
     """A parser of a float option bounded to [low, high]: NaN and infinities are refused as such (a range
     check alone called NaN "not less than or equal to" the bound), then the range is checked."""
