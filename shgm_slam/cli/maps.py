@@ -197,7 +197,8 @@ def match(
         dof_fields = {"dof": 4 if matching_cfg.gravity_aligned else 6, "dof_note": dof_note}
         if matching_cfg.gravity_aligned:
             dof_fields["up_axis"] = list(matching_cfg.up_axis)
-        typer.echo(to_json_text({**result.to_json_dict(), **dof_fields}, indent=None))
+        decisive = {"decisive": result.is_decisive(cfg.backend.min_closures_to_anchor)}
+        typer.echo(to_json_text({**result.to_json_dict(), **dof_fields, **decisive}, indent=None))
         return
     render_match(result, len(a), len(b), descriptor_cfg.kind, matching_cfg.outlier_mode, dof_note,
                  matching_cfg.false_alarm_rate, cfg.backend.min_closures_to_anchor)

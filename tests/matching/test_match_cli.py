@@ -34,6 +34,8 @@ def test_match_json(graph_files, options):
     doc = json.loads(result.output)
     assert list(doc)[:5] == ["success", "T_a_b", "inliers", "candidates", "timings_ms"]
     assert doc["success"] is True
+    v = doc["verification"]
+    assert doc["decisive"] is (v["llr"] >= 2 * v["llr_threshold"])  # backend.min_closures_to_anchor: 2
     _, dr = pose_error(np.asarray(doc["T_a_b"]), T_a_b)
     assert dr < 1.0
 
