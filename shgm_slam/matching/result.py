@@ -73,6 +73,11 @@ class MatchResult:
         included; 1 for a single ``shgm-slam match``)."""
         return self.llr_threshold + math.log(max(int(tried), 1))
 
+    def is_marginal(self, tried: int = 1) -> bool:
+        """Whether this match's log likelihood ratio stays below ``evidence_bar(tried)``: it clears its threshold
+        by less than the log of the matches tried (computed as the map server always has, margin against log)."""
+        return self.llr - self.llr_threshold < math.log(max(int(tried), 1))
+
     def is_decisive(self, pieces: int, tried: int = 1) -> bool:
         """Whether this match alone is as unlikely under chance as ``pieces`` independent ones together: its
         log likelihood ratio reaches ``pieces`` times ``evidence_bar(tried)`` (``backend.decisive_match``; the

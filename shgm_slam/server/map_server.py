@@ -653,7 +653,7 @@ class MapServer:
         still counted, by 0.05 nats; a spending whose sum stays within the rate (``2 ln n + ln(pi^2 / 6)``)
         kept it out but also left robots that meet after many tries waiting (docs/benchmarks.md).
         """
-        return result.llr < result.evidence_bar(self._tried(robot_a, robot_b))
+        return result.is_marginal(self._tried(robot_a, robot_b))
 
     def _decisive(self, robot_a: str, robot_b: str, result: MatchResult) -> bool:
         """Whether an accepted match between two robots carries, alone, the evidence of the independent
