@@ -90,6 +90,32 @@ def test_benchmark_runs_scores_and_summarizes(world):
     assert len(doc["outcomes"]) == 8
 
 
+def test_noisier_maps_localize_fewer_pairs_and_say_so_in_the_report():
+    """The same pairs (seed 10) with centroids 3 m off instead of 0.3 m: what the whole-overlap evidence can
+    support shrinks (the search ceiling with it), and the report names the conditions it ran under."""
+    def run(noise_m):
+        opt = SparseOptions(seeds=(SEED,), pairs_per_seed=4, full_rotation=False, noise_range_m=noise_m)
+        return run_sparse_benchmark(opt)
+
+    precise, noisy = run((0.3, 0.3)), run((3.0, 3.0))
+    assert precise.summary()["4dof"]["search_ceiling"] > noisy.summary()["4dof"]["search_ceiling"]
+    assert precise.summary()["4dof"]["localized"] > noisy.summary()["4dof"]["localized"]
+    assert noisy.to_json()["conditions"]["noise_range_m"] == [3.0, 3.0]
+    assert "centroid noise 3-3 m (specified: 0.5-2 m)" in sparse_markdown(noisy, (SEED,))
+    assert "unlike the specification" not in sparse_markdown(run_sparse_benchmark(
+        SparseOptions(seeds=(SEED,), pairs_per_seed=1, full_rotation=False)), (SEED,))
+
+
+@pytest.mark.parametrize(
+    "conditions",
+    [{"miss_range": (0.6, 0.3)}, {"noise_range_m": (0.5, float("nan"))}, {"confusion_rate": 1.5},
+     {"share_range_m": (5.0, 50.0)}],
+)
+def test_map_conditions_outside_their_bounds_are_config_errors(conditions):
+    with pytest.raises(ConfigError, match="within"):
+        SparseOptions(**conditions)
+
+
 def test_seed_parsing():
     assert parse_seeds("10-12") == (10, 11, 12)
     assert parse_seeds("200,205") == (200, 205)

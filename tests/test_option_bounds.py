@@ -72,3 +72,36 @@ def test_absurd_config_values_are_config_errors(tmp_path, yaml_text):
     path.write_text(yaml_text + "\n")
     with pytest.raises(ConfigError, match="than or equal to"):
         load_config(path)
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "says"),
+    [
+        ("--noise-m", "3-1", "start is above its end; write 1-3"),
+        ("--noise-m", "nan-2", "must be finite"),
+        ("--miss", "a-b", "write a range of numbers"),
+        ("--miss", "0.1-0.2-0.3", "write a range of numbers"),
+        ("--share-m", "", "write a range of numbers"),
+    ],
+)
+def test_malformed_number_ranges_are_refused_before_anything_runs(tmp_path, option, value, says):
+    res = runner.invoke(app, ["bench", "sparse", "-o", str(tmp_path / "x"), option, value])
+    assert res.exit_code == 2, res.output
+    assert "Invalid value" in res.output and says in " ".join(res.output.replace("│", " ").split()), res.output
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_number_range_is_one_argument_and_reads_exponents():
+    from shgm_slam.cli.options import NumberRange, number_range
+
+    assert number_range("0.5-2") == NumberRange(0.5, 2.0)
+    assert number_range("2") == NumberRange(2.0, 2.0)  # one number: the range of that number alone
+    assert number_range("1e-3-0.5") == NumberRange(0.001, 0.5)  # the exponent's minus is not the range's
+    assert number_range(" 3 - 4 ").as_tuple() == (3.0, 4.0)
+
+
+def test_map_conditions_out_of_bounds_are_refused_with_the_bounds(tmp_path):
+    res = runner.invoke(app, ["bench", "sparse", "-o", str(tmp_path / "x"), "--miss", "0.2-0.99"])
+    assert res.exit_code == 2, res.output
+    assert "miss_range 0.2-0.99" in res.output and "within 0..0.95" in res.output, res.output
+    assert not (tmp_path / "x").exists()

@@ -20,6 +20,7 @@ is a false acceptance. Deterministic by seed. Tuning seeds: ``TUNING_SEEDS``; th
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -30,7 +31,7 @@ from scipy.spatial import cKDTree
 from shgm_slam.bench.localization import single_threaded_blas
 from shgm_slam.bench.localization_metrics import random_transform, true_transform
 from shgm_slam.config import DescriptorConfig, GraphConfig, MatchingConfig
-from shgm_slam.errors import SimulationError
+from shgm_slam.errors import ConfigError, SimulationError
 from shgm_slam.geometry.se3 import pose_error, transform_points
 from shgm_slam.labels import Label
 from shgm_slam.matching import MatchResult, judge_alignment, match_graphs
@@ -92,6 +93,47 @@ class SparseOptions:
     share_range_m: tuple[float, float] = (50.0, 300.0)
     full_rotation: bool = True
 
+    def __post_init__(self) -> None:
+        for name, (low, high, _, _) in MAP_CONDITIONS.items():
+            values = _values(getattr(self, name))
+            if not all(math.isfinite(v) and low <= v <= high for v in values) or list(values) != sorted(values):
+                wanted = "a range A-B with A <= B" if len(values) == 2 else "a value"
+                given = "-".join(f"{v:g}" for v in values)
+                raise ConfigError(f"sparse benchmark {name} {given}: give {wanted} within {low:g}..{high:g}")
+
+    def conditions(self) -> dict[str, float | list[float]]:
+        """How the maps are made (miss rate, centroid noise, confusions, shared street), for the JSON report."""
+        return {name: (list(v) if isinstance(v := getattr(self, name), tuple) else v) for name in MAP_CONDITIONS}
+
+    def conditions_note(self) -> str:
+        """'' for the specified map conditions, else each one that differs, e.g. 'centroid noise 1.5-2.5 m
+        (specified: 0.5-2 m)'."""
+        spec = SparseOptions()
+        return ", ".join(
+            f"{what} {_shown(getattr(self, name), unit)} (specified: {_shown(getattr(spec, name), unit)})"
+            for name, (_, _, what, unit) in MAP_CONDITIONS.items() if getattr(self, name) != getattr(spec, name)
+        )  # fmt: skip
+
+
+MAP_CONDITIONS: dict[str, tuple[float, float, str, str]] = {
+    "miss_range": (0.0, 0.95, "missed", "%"),
+    "noise_range_m": (0.0, 10.0, "centroid noise", "m"),
+    "confusion_rate": (0.0, 1.0, "confused", "%"),
+    "share_range_m": (10.0, 1000.0, "shared street", "m"),
+}
+"""The map conditions ``SparseOptions`` varies (``bench sparse --miss/--noise-m/--confusion/--share-m``): field ->
+(lowest, highest accepted, what it is in words, unit written: '%' for a fraction, 'm')."""
+
+
+def _values(value: float | tuple[float, ...]) -> tuple[float, ...]:
+    return tuple(value) if isinstance(value, tuple) else (value,)
+
+
+def _shown(value: float | tuple[float, ...], unit: str) -> str:
+    """A condition's value as text: '0.5-2 m', '30-60 %', '5 %'."""
+    scale = 100.0 if unit == "%" else 1.0
+    return "-".join(f"{round(v * scale, 6):g}" for v in _values(value)) + f" {unit}"
+
 
 @dataclass
 class SparsePair:
@@ -138,6 +180,7 @@ class SparseResults:
     load on a shared machine)."""
 
     outcomes: list[SparseOutcome] = field(default_factory=list)
+    options: SparseOptions = field(default_factory=SparseOptions)  # what was run (its map conditions)
     seeds_done: list[int] = field(default_factory=list)  # seeds whose every pair was matched
     interrupted: bool = False  # stopped (Ctrl-C) before every seed was done: the outcomes are of seeds_done
 
@@ -167,8 +210,8 @@ class SparseResults:
         return out
 
     def to_json(self) -> dict:
-        return {"summary": self.summary(), "seeds_done": list(self.seeds_done), "interrupted": self.interrupted,
-                "outcomes": [o.to_json() for o in self.outcomes]}  # fmt: skip
+        return {"summary": self.summary(), "conditions": self.options.conditions(), "seeds_done": list(self.seeds_done),
+                "interrupted": self.interrupted, "outcomes": [o.to_json() for o in self.outcomes]}  # fmt: skip
 
 
 def _median_or_none(values: list[float]) -> float | None:
@@ -245,7 +288,11 @@ def make_pairs(world: World, seed: int, opt: SparseOptions, connectivity_m: floa
                 pair.seed, pair.index = seed, len(pairs)
                 pairs.append(pair)
         else:
-            raise SimulationError(f"seed {seed}: could not draw {opt.pairs_per_seed} sparse pairs")
+            kind = f"overlapping pairs sharing at least {MIN_COMMON} objects" if overlapping else "far-apart pairs"
+            raise SimulationError(
+                f"seed {seed}: could not draw {opt.pairs_per_seed} {kind} with graphs of {MIN_NODES}-{MAX_NODES} nodes"
+                + (f" under these map conditions ({note}); make them milder" if (note := opt.conditions_note()) else "")
+            )
     return pairs
 
 
@@ -344,7 +391,7 @@ def run_sparse_benchmark(
     dcfg = descriptor_cfg or DescriptorConfig()
     mcfg = (matching_cfg or MatchingConfig()).model_copy(update={"up_axis": UP_WORLD})
     gcfg = graph_cfg or GraphConfig()
-    results = SparseResults()
+    results = SparseResults(options=opt)
     with single_threaded_blas():
         for seed in opt.seeds:
             kept = len(results.outcomes)
@@ -387,6 +434,8 @@ def sparse_markdown(results: SparseResults, seeds: tuple[int, ...]) -> str:
         done = results.seeds_done
         title = (f"Sparse map-like localization, **interrupted**: seeds {done[0]}-{done[-1]} ({len(done)} of the "
                  f"{len(seeds)} worlds asked for, {seeds[0]}-{seeds[-1]})")  # fmt: skip
+    if note := results.options.conditions_note():
+        title += f"; maps unlike the specification: {note}"
     lines = [title, "",
              "| matching | overlapping pairs | localized | wrong claims | median error m | negatives accepted "
              "| median ms | p90 ms | median CPU ms | search ceiling |",

@@ -9,7 +9,17 @@ import typer
 
 from shgm_slam.cli.app import bench_app, handle_errors, stops_like_ctrl_c
 from shgm_slam.cli.maps import simulate_with_progress
-from shgm_slam.cli.options import MAX_FRAMES, bounded, int_list, nonempty_path, results_folder, world_seeds
+from shgm_slam.cli.options import (
+    MAX_FRAMES,
+    NumberRange,
+    bounded,
+    float_in,
+    int_list,
+    nonempty_path,
+    number_range,
+    results_folder,
+    world_seeds,
+)
 from shgm_slam.cli.render import console, err_console, lit, print_report
 from shgm_slam.config import DescriptorKind, OdometryKind
 from shgm_slam.interrupts import INTERRUPTED_EXIT_CODE
@@ -75,6 +85,11 @@ def bench_localization(
                   f"{lit(out / 'localization.json')} and {lit(out / 'pr_curve.png')}")
 
 
+def _condition(name: str, help_text: str, default: str) -> Any:
+    """``typer.Option`` for one of ``bench sparse``'s map conditions given as a range 'A-B' (or one number)."""
+    return typer.Option(name, parser=number_range, metavar="<A-B>", show_default=default, help=help_text)
+
+
 @bench_app.command("sparse")
 @handle_errors
 @stops_like_ctrl_c
@@ -86,9 +101,18 @@ def bench_sparse(
     pairs: Annotated[int, typer.Option(min=1, max=10000, help="overlapping pairs per world (as many negatives)")] = 10,
     full_rotation: Annotated[bool, typer.Option(help="also match every pair 6-DoF")] = True,
     config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
+    miss: Annotated[NumberRange | None, _condition("--miss", "share of objects each robot misses, drawn per "
+                    "robot from A-B (0..0.95)", "0.3-0.6")] = None,
+    noise_m: Annotated[NumberRange | None, _condition("--noise-m", "horizontal centroid noise (RMS, metres), "
+                       "drawn per robot from A-B (0..10)", "0.5-2")] = None,
+    confusion: Annotated[float | None, typer.Option(parser=float_in(0.0, 1.0), metavar="<float 0..1>",
+                         show_default="0.05", help="share of each robot's nodes given a confusable class")] = None,
+    share_m: Annotated[NumberRange | None, _condition("--share-m", "street two overlapping drives share, "
+                       "metres, drawn per pair from A-B (10..1000)", "50-300")] = None,
 ) -> None:
     """Sparse, map-like localization (no rendering): map classes only, 30-60 % missed, 0.5-2 m noise,
-    label confusions, drives sharing 50-300 m, far-apart negatives; localized / wrong / negatives / ms."""
+    label confusions, drives sharing 50-300 m, far-apart negatives; localized / wrong / negatives / ms.
+    --miss, --noise-m, --confusion and --share-m make the maps unlike that, to see how it degrades."""
 
     from shgm_slam.bench.localization_sparse import SparseOptions, run_sparse_benchmark, sparse_markdown
     from shgm_slam.bench.report import write_report
@@ -97,7 +121,9 @@ def bench_sparse(
 
     cfg = load_config(config)
     seed_list = parse_seeds(seeds)
-    options = SparseOptions(seeds=seed_list, pairs_per_seed=pairs, full_rotation=full_rotation)
+    given = {"miss_range": miss, "noise_range_m": noise_m, "confusion_rate": confusion, "share_range_m": share_m}
+    conditions = {k: v.as_tuple() if isinstance(v, NumberRange) else v for k, v in given.items() if v is not None}
+    options = SparseOptions(seeds=seed_list, pairs_per_seed=pairs, full_rotation=full_rotation, **conditions)
     with console.status("starting") as status:
         results = run_sparse_benchmark(options, cfg.descriptor, cfg.matching, cfg.graph,
                                        progress=lambda msg: status.update(msg))

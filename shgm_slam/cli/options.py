@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -51,6 +53,33 @@ def float_in(low: float, high: float) -> Callable[[str], float]:
 def bounded(low: float, high: float, *names: str, **kwargs: Any) -> Any:
     """``typer.Option`` for a float in [low, high] (``float_in``), its range shown in ``--help``."""
     return typer.Option(*names, parser=float_in(low, high), metavar=f"<float {low:g}..{high:g}>", **kwargs)
+
+
+@dataclass(frozen=True)
+class NumberRange:
+    """A range of finite numbers given on the command line (``number_range``): ``low`` <= ``high``."""
+
+    low: float
+    high: float
+
+    def as_tuple(self) -> tuple[float, float]:
+        return (self.low, self.high)
+
+
+def number_range(text: str) -> NumberRange:
+    """A range of finite numbers from the command line: 'A-B' with A <= B, or one number A (the range A-A)."""
+    parts = re.split(r"(?<![eE])-", str(text).strip())  # a minus after an exponent's e is the exponent's
+    try:
+        if len(parts) not in (1, 2):
+            raise ValueError(text)
+        values = (float(parts[0]), float(parts[-1]))
+    except ValueError:
+        raise typer.BadParameter(f"{text!r}: write a range of numbers A-B (e.g. 0.5-2) or one number") from None
+    if not all(math.isfinite(v) for v in values):
+        raise typer.BadParameter(f"{text!r}: the numbers must be finite")
+    if values[0] > values[1]:
+        raise typer.BadParameter(f"{text!r}: the range's start is above its end; write {values[1]:g}-{values[0]:g}")
+    return NumberRange(*values)
 
 
 MAX_FRAMES = 1_000_000
