@@ -199,6 +199,11 @@ class MatchingConfig(_Stage):
         0.4, gt=0, lt=1, description="chance model: probability that an object inside the other robot's area was "
         "mapped by both robots (maps miss 30-60 % of objects)",
     )
+    confusion_evidence: bool = Field(
+        True, description="whole-overlap check: a node without a same-label partner but with another label's node "
+        "within the verification radius (a confused label: a pole mapped as a sign) supports the alignment as far as "
+        "such traces are beyond chance (matching/verification.confusion_llrs); never counts against it",
+    )
     viewpoint_dependent_labels: tuple[int, ...] = Field(
         VIEWPOINT_DEPENDENT_LABELS, description="whole-overlap check between robots whose cameras look from very "
         "different heights (view_height_ratio): train ids that then neither support nor contradict an alignment (they "

@@ -288,7 +288,7 @@ def _verify(
     return verify_alignments(
         tree_a, tree_b, T_stack, radius_m=cfg.verification_radius_m, coverage_m=cfg.coverage_radius_m,
         density_radius_m=cfg.density_radius_m, partner_probability=cfg.partner_probability, shifts_m=shifts_m,
-        shift_labels=shift_labels, evidence_free_labels=evidence_free_labels,
+        shift_labels=shift_labels, evidence_free_labels=evidence_free_labels, confusions=cfg.confusion_evidence,
     )  # fmt: skip
 
 

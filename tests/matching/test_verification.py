@@ -16,6 +16,7 @@ from shgm_slam.matching.verification import (
     MAX_SHIFT_HEADINGS,
     MIN_ROW_NODES,
     LabelledTree,
+    _confusion_factors,
     _one_to_one,
     label_chance,
     map_stack,
@@ -467,3 +468,59 @@ def test_a_place_built_twice_is_ambiguous_and_rejected(seed):
     assert "ambiguous" in r.reason, r.reason
     assert r.llr > r.llr_threshold and r.rival_llr > r.llr_threshold
     assert match_graphs(a_once, b, DescriptorConfig(), _cfg()).success
+
+
+def test_a_confusions_trace_counts_only_beyond_chance():
+    """The traces' Bayes factor: 1 (0 nats) at the chance rate, above 1 only with more traces than chance gives,
+    growing with them; each hypothesis judged on its own nodes."""
+    rng = np.random.default_rng(0)
+    q0 = np.full(200, 0.3)
+    at_chance = rng.random(200) < 0.3
+    assert _confusion_factors(q0, at_chance, np.zeros(200, int), 1)[0] == 0.0
+    factors = [_confusion_factors(q0, rng.random(200) < rate, np.zeros(200, int), 1)[0] for rate in (0.45, 0.6, 0.8)]
+    assert 0.0 < factors[0] < factors[1] < factors[2]
+    # three hypotheses side by side: 4 traces of 4 where chance gives 0.1, 1 of 2, none
+    grouped = _confusion_factors(np.array([0.1] * 4 + [0.2] * 2 + [0.2]), np.array([1, 1, 1, 1, 0, 1, 0], bool),
+                                 np.array([0, 0, 0, 0, 1, 1, 2]), 3)  # fmt: skip
+    alone = _confusion_factors(np.full(4, 0.1), np.ones(4, bool), np.zeros(4, int), 1)
+    assert grouped[0] == alone[0] > 5.0 and grouped[2] == 0.0
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_confused_labels_support_the_true_alignment_and_not_an_alias(seed):
+    """B maps street 1 with a quarter of its objects under a confusable label (poles as signs, trees as
+    buildings): without the traces those are lost partners on both sides; with them the true alignment gains
+    and an alias onto street 2 (the same rows of trees and lamps) gains nothing that would accept it."""
+    rng = np.random.default_rng(seed)
+    street_1, street_2 = _street(rng), _street(rng)
+    a, _ = _robot(*street_1, rng, 0.3, 0.5, np.eye(4))
+    T_b_world = _random_pose_z(rng)
+    b, _ = _robot(*street_1, rng, 0.3, 0.5, T_b_world, 100_000)
+    confused = rng.random(len(b)) < 0.25
+    swap = {Label.POLE: Label.TRAFFIC_SIGN, Label.VEGETATION: Label.BUILDING}
+    labels = np.array([swap.get(int(x), x) if c else x for x, c in zip(b.label_ids, confused, strict=True)])
+    b = graph_of(b.positions_xyz, labels, b.sizes, b.node_ids)
+    tree_a, tree_b = LabelledTree(a.positions_xyz, a.label_ids), LabelledTree(b.positions_xyz, b.label_ids)
+    truth = inverse(T_b_world)
+    args = dict(radius_m=3.0, coverage_m=10.0, density_radius_m=15.0, partner_probability=0.4,
+                shifts_m=shift_vectors(np.array(UP_Z), 3.0))  # fmt: skip
+    with_traces = verify_alignment(tree_a, tree_b, truth, **args)
+    without = verify_alignment(tree_a, tree_b, truth, confusions=False, **args)
+    assert with_traces.llr > without.llr + 1.0
+    b_alias, _ = _robot(*street_2, rng, 0.3, 0.5, T_b_world, 100_000)
+    r = match_graphs(a, b_alias, DescriptorConfig(), _cfg())
+    assert not r.success, f"alias accepted: llr {r.llr:.1f} > {r.llr_threshold:.1f}"
+
+
+def test_the_traces_never_count_against_an_alignment():
+    rng = np.random.default_rng(3)
+    pos_a, lab_a = rng.uniform(0, 80, (70, 3)) * [1.0, 1.0, 0.1], rng.integers(0, 4, 70)
+    pos_b, lab_b = pos_a[20:] + rng.normal(0, 0.8, (50, 3)), rng.integers(0, 4, 50)
+    tree_a, tree_b = LabelledTree(pos_a, lab_a), LabelledTree(pos_b, lab_b)
+    Ts = np.stack([make_pose(rot_z(0.2 * k), [3.0 * k, -k, 0.0]) for k in range(6)])
+    args = dict(radius_m=3.0, coverage_m=10.0, density_radius_m=15.0, partner_probability=0.4,
+                shifts_m=shift_vectors(np.array(UP_Z), 3.0))  # fmt: skip
+    on = verify_alignments(tree_a, tree_b, Ts, **args)
+    off = verify_alignments(tree_a, tree_b, Ts, confusions=False, **args)
+    assert all(x.llr >= y.llr for x, y in zip(on, off, strict=True))
+    assert any(x.llr > y.llr for x, y in zip(on, off, strict=True))  # labels drawn at random: traces abound
