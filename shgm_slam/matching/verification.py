@@ -503,10 +503,14 @@ def verify_alignments(
         # A's nodes seen from B: the hypothesis shifted by s in A's frame moves B's nodes by s, i.e. A's node by
         # -s turned into B's frame
         general_in_b = None if general is None else -np.einsum("hsi,hij->hsj", general, T_stack[:, :3, :3])
+        within = d <= radius_m  # same-label pairs within the radius (the others are counted from the trees)
+        same_b = (np.bincount(i_b[within], minlength=h * n_b).reshape(h, n_b), near_b)
+        same_a = (np.bincount(j_a[within], minlength=h * n_a).reshape(h, n_a), near_a)
+        radii = {"radius_m": radius_m, "density_radius_m": density_radius_m}
         trace_b = confusion_llrs(inside_b & ~np.isfinite(res_b), pb, tree_b.label_ids, tree_a, usable_a, general,
-                                 radius_m=radius_m, density_radius_m=density_radius_m)  # fmt: skip
+                                 same_b, **radii)  # fmt: skip
         trace_a = confusion_llrs(inside_a & ~np.isfinite(res_a), pa_in_b, tree_a.label_ids, tree_b, usable_b,
-                                 general_in_b, radius_m=radius_m, density_radius_m=density_radius_m)  # fmt: skip
+                                 general_in_b, same_a, **radii)  # fmt: skip
     contradictions = (inside_b & ~np.isfinite(res_b)).sum(axis=1) + (inside_a & ~np.isfinite(res_a)).sum(axis=1)
     of = pairs[:, 1] // max(n_b, 1)  # pairs come by hypothesis, then B's row
     local = pairs - of[:, None] * np.array([n_a, n_b])
@@ -524,7 +528,8 @@ def verify_alignments(
 
 def confusion_llrs(
     unpartnered: np.ndarray, points: list[np.ndarray], label_ids: np.ndarray, other: LabelledTree,
-    usable: np.ndarray, shifts_m: np.ndarray | None, *, radius_m: float, density_radius_m: float,
+    usable: np.ndarray, shifts_m: np.ndarray | None, same_near: tuple[np.ndarray, np.ndarray] | None = None, *,
+    radius_m: float, density_radius_m: float,
 ) -> np.ndarray:  # fmt: skip
     """(H,) log Bayes factor, >= 0, of the *traces of confused labels* among one side's nodes under H hypotheses.
 
@@ -546,6 +551,8 @@ def confusion_llrs(
         other: the other graph's nodes.
         usable: (M,) bool, the other graph's nodes whose labels give evidence.
         shifts_m: (H, S, 3) shifts of the nodes in the other's frame (the chance model's) or None.
+        same_near: (H, N) counts of the other graph's nodes of each node's own label within ``radius_m`` and within
+            ``density_radius_m`` (the verification has them), or None: counted here.
         radius_m, density_radius_m: the verification's radii, metres.
     """
     h, n = unpartnered.shape
@@ -555,17 +562,20 @@ def confusion_llrs(
     hyp, rows = flat // n, flat % n
     placed = np.stack(points).reshape(-1, 3)[flat]
     counted = other.any if usable.all() else cKDTree(other.positions_xyz[usable])
-    embedded = embed(placed, label_ids[rows])
 
-    def other_labels_within(r: float) -> np.ndarray:
+    def other_labels_within(r: float, same: np.ndarray | None) -> np.ndarray:
         # every usable node within r less those of the node's own label (a usable label: the node gives evidence)
-        every = counted.query_ball_point(placed, r, return_length=True)
-        return every - other.same.query_ball_point(embedded, r, return_length=True)
+        if same is None:
+            same = other.same.query_ball_point(embed(placed, label_ids[rows]), r, return_length=True)
+        else:
+            same = same.reshape(-1)[flat]
+        return counted.query_ball_point(placed, r, return_length=True) - same
 
-    trace = other_labels_within(radius_m) > 0
+    same_r, same_density = (None, None) if same_near is None else same_near
+    trace = other_labels_within(radius_m, same_r) > 0
     if not trace.any():  # no trace anywhere: every factor is below 1
         return np.zeros(h)
-    q0 = 1.0 - np.exp(-other_labels_within(density_radius_m) * (radius_m / density_radius_m) ** 2)
+    q0 = 1.0 - np.exp(-other_labels_within(density_radius_m, same_density) * (radius_m / density_radius_m) ** 2)
     bound = _confusion_factors(np.clip(q0, 1e-3, 1.0 - 1e-3), trace, hyp, h)
     live = (bound > 0.0)[hyp]  # the shifted chance only raises q0, and a higher q0 only lowers the factor
     if shifts_m is None or not shifts_m.size or not live.any():
