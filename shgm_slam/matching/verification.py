@@ -528,7 +528,7 @@ def verify_alignments(
 
 def confusion_llrs(
     unpartnered: np.ndarray, points: list[np.ndarray], label_ids: np.ndarray, other: LabelledTree,
-    usable: np.ndarray, shifts_m: np.ndarray | None, same_near: tuple[np.ndarray, np.ndarray] | None = None, *,
+    usable: np.ndarray, shifts_m: np.ndarray | None, same_near: tuple[np.ndarray, np.ndarray], *,
     radius_m: float, density_radius_m: float,
 ) -> np.ndarray:  # fmt: skip
     """(H,) log Bayes factor, >= 0, of the *traces of confused labels* among one side's nodes under H hypotheses.
@@ -551,8 +551,8 @@ def confusion_llrs(
         other: the other graph's nodes.
         usable: (M,) bool, the other graph's nodes whose labels give evidence.
         shifts_m: (H, S, 3) shifts of the nodes in the other's frame (the chance model's) or None.
-        same_near: (H, N) counts of the other graph's nodes of each node's own label within ``radius_m`` and within
-            ``density_radius_m`` (the verification has them), or None: counted here.
+        same_near: (H, N) counts of the other graph's nodes of each node's own label within ``radius_m`` and (H, N)
+            within ``density_radius_m`` (the verification has them).
         radius_m, density_radius_m: the verification's radii, metres.
     """
     h, n = unpartnered.shape
@@ -563,15 +563,11 @@ def confusion_llrs(
     placed = np.stack(points).reshape(-1, 3)[flat]
     counted = other.any if usable.all() else cKDTree(other.positions_xyz[usable])
 
-    def other_labels_within(r: float, same: np.ndarray | None) -> np.ndarray:
+    def other_labels_within(r: float, same: np.ndarray) -> np.ndarray:
         # every usable node within r less those of the node's own label (a usable label: the node gives evidence)
-        if same is None:
-            same = other.same.query_ball_point(embed(placed, label_ids[rows]), r, return_length=True)
-        else:
-            same = same.reshape(-1)[flat]
-        return counted.query_ball_point(placed, r, return_length=True) - same
+        return counted.query_ball_point(placed, r, return_length=True) - same.reshape(-1)[flat]
 
-    same_r, same_density = (None, None) if same_near is None else same_near
+    same_r, same_density = same_near
     trace = other_labels_within(radius_m, same_r) > 0
     if not trace.any():  # no trace anywhere: every factor is below 1
         return np.zeros(h)
@@ -621,7 +617,7 @@ def _shifted_hits(
 
 
 _CONFUSION_RATES = np.linspace(0.0, 1.0, 129)
-"""Grid of the confused share ``c`` over which ``_confusion_factor`` integrates."""
+"""Grid of the confused share ``c`` over which ``_confusion_factors`` integrates."""
 
 
 def _confusion_factors(q0: np.ndarray, trace: np.ndarray, hypotheses: np.ndarray, h: int) -> np.ndarray:
