@@ -485,8 +485,15 @@ def verify_alignments(
         per_hypothesis = np.broadcast_to(shifts_m, (h, *np.shape(shifts_m)[-2:]))
         hits_b = np.zeros((per_hypothesis.shape[1], h * n_b), dtype=bool)
         hits_a = np.zeros((per_hypothesis.shape[1], h * n_a), dtype=bool)
-        for k, (i, j) in enumerate(pairwise(np.concatenate([[0], np.cumsum(pair_counts)]).tolist())):
-            hb, ha = _shifted_hits_both(offsets[i:j], i_b[i:j], j_a[i:j], h * n_b, h * n_a, per_hypothesis[k], radius_m)
+        flat = per_hypothesis.reshape(h, -1)
+        shared = (flat == flat[0]).all(axis=1)  # the hypotheses whose shifts are the first's (B's rows do not turn)
+        bounds = np.concatenate([[0], np.cumsum(pair_counts)])
+        runs = [(np.flatnonzero(np.repeat(shared, pair_counts)), 0)] if shared.any() else []
+        runs += [(np.arange(bounds[k], bounds[k + 1]), k) for k in np.flatnonzero(~shared).tolist()]
+        for rows, k in runs:
+            hb, ha = _shifted_hits_both(
+                offsets[rows], i_b[rows], j_a[rows], h * n_b, h * n_a, per_hypothesis[k], radius_m
+            )
             hits_b |= hb
             hits_a |= ha
         if shift_labels is not None:  # a row's repeat measures its own label only
