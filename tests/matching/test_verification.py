@@ -507,7 +507,7 @@ def test_shifted_hits_shared_shift_sets_as_one_at_a_time():
     """Hypotheses whose shifts are the first's share one product; the hits are those of each hypothesis alone."""
     rng = np.random.default_rng(6)
     fixed = rng.normal(0, 8, (10, 3))
-    shifts = np.stack([fixed, fixed, fixed + [0.5, 0.0, 0.0], fixed])  # hypothesis 2 turns its own way
+    shifts = np.stack([fixed, fixed, fixed + np.array([0.5, 0.0, 0.0]), fixed])  # hypothesis 2 turns its own way
     offsets = rng.normal(0, 8, (300, 3))
     owner = rng.integers(0, 4, 300)
     rows = rng.integers(0, 50, 300)
