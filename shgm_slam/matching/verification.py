@@ -458,20 +458,17 @@ def verify_alignments(
     reach = density_radius_m
     if shifts_m is not None and np.size(shifts_m):
         reach = max(reach, float(np.linalg.norm(shifts_m, axis=-1).max()) + radius_m)
-    # every pair within reach, of any label (the confused labels' traces are pairs of different labels); the
-    # hypotheses' graphs side by side: B's node i of hypothesis k is k * N_b + i (A's likewise), so every step
-    # below works on all hypotheses at once and, per hypothesis, as on one
-    near = [cKDTree(p).sparse_distance_matrix(tree_a.any, reach, output_type="ndarray") for p in pb]
-    hyp_any = np.repeat(np.arange(h), [x.size for x in near])
-    i_any = np.concatenate([x["i"] for x in near]).astype(np.int64)
-    j_any = np.concatenate([x["j"] for x in near]).astype(np.int64)
-    d_any = np.concatenate([x["v"] for x in near])
-    same_label = tree_b.label_ids[i_any] == tree_a.label_ids[j_any]
-    hyp = hyp_any[same_label]
-    pair_counts = np.bincount(hyp, minlength=h).tolist()
-    i_b = i_any[same_label] + hyp * n_b
-    j_a = j_any[same_label] + hyp * n_a
-    d = d_any[same_label]
+    near = [
+        cKDTree(embed(p, tree_b.label_ids)).sparse_distance_matrix(tree_a.same, reach, output_type="ndarray")
+        for p in pb
+    ]
+    # the hypotheses' graphs side by side: B's node i of hypothesis k is k * N_b + i (A's likewise), so
+    # every step below works on all hypotheses at once and, per hypothesis, as on one
+    pair_counts = [x.size for x in near]
+    hyp = np.repeat(np.arange(h), pair_counts)
+    i_b = np.concatenate([x["i"] for x in near]).astype(np.int64) + hyp * n_b
+    j_a = np.concatenate([x["j"] for x in near]).astype(np.int64) + hyp * n_a
+    d = np.concatenate([x["v"] for x in near])
     pairs, dist = _partners_from_near(i_b, j_a, d, radius_m)
     res_a = np.full(h * n_a, np.inf)
     res_b = np.full(h * n_b, np.inf)
@@ -513,23 +510,14 @@ def verify_alignments(
         # A's nodes seen from B: the hypothesis shifted by s in A's frame moves B's nodes by s, i.e. A's node by
         # -s turned into B's frame
         general_in_b = None if general is None else -np.einsum("hsi,hij->hsj", general, T_stack[:, :3, :3])
-        # both sides at once, as 2H groups of max(N_a, N_b) rows: B's nodes under each hypothesis, then A's
-        other, width = ~same_label, max(n_a, n_b)
-        hyp_o, i_o, j_o, d_o = hyp_any[other], i_any[other], j_any[other], d_any[other]
-        unpartnered = np.zeros((2 * h, width), dtype=bool)
-        unpartnered[:h, :n_b] = inside_b & ~np.isfinite(res_b)
-        unpartnered[h:, :n_a] = inside_a & ~np.isfinite(res_a)
-        labels = np.full((2 * h, width), -1, dtype=np.int64)
-        labels[:h, :n_b], labels[h:, :n_a] = tree_b.label_ids, tree_a.label_ids
-        offsets_b = tree_a.positions_xyz[j_o] - np.concatenate(pb)[i_o + hyp_o * n_b]  # in A's frame
-        offsets_a = tree_b.positions_xyz[i_o] - np.concatenate(pa_in_b)[j_o + hyp_o * n_a]  # in B's frame
-        traces = confusion_llrs(
-            unpartnered, labels, np.r_[hyp_o * width + i_o, (h + hyp_o) * width + j_o], np.r_[d_o, d_o],
-            np.vstack([offsets_b, offsets_a]), np.r_[usable_a[j_o], usable_b[i_o]],
-            None if general is None else np.concatenate([general, general_in_b]),
-            radius_m=radius_m, density_radius_m=density_radius_m,
-        )  # fmt: skip
-        trace_b, trace_a = traces[:h], traces[h:]
+        within = d <= radius_m  # same-label pairs within the radius (the others are counted from the trees)
+        same_b = (np.bincount(i_b[within], minlength=h * n_b).reshape(h, n_b), near_b)
+        same_a = (np.bincount(j_a[within], minlength=h * n_a).reshape(h, n_a), near_a)
+        radii = {"radius_m": radius_m, "density_radius_m": density_radius_m}
+        trace_b = confusion_llrs(inside_b & ~np.isfinite(res_b), pb, tree_b.label_ids, tree_a, usable_a, general,
+                                 same_b, **radii)  # fmt: skip
+        trace_a = confusion_llrs(inside_a & ~np.isfinite(res_a), pa_in_b, tree_a.label_ids, tree_b, usable_b,
+                                 general_in_b, same_a, **radii)  # fmt: skip
     contradictions = (inside_b & ~np.isfinite(res_b)).sum(axis=1) + (inside_a & ~np.isfinite(res_a)).sum(axis=1)
     of = pairs[:, 1] // max(n_b, 1)  # pairs come by hypothesis, then B's row
     local = pairs - of[:, None] * np.array([n_a, n_b])
@@ -546,11 +534,11 @@ def verify_alignments(
 
 
 def confusion_llrs(
-    unpartnered: np.ndarray, label_ids: np.ndarray, nodes: np.ndarray, dist_m: np.ndarray, offsets_m: np.ndarray,
-    usable: np.ndarray, shifts_m: np.ndarray | None, *, radius_m: float, density_radius_m: float,
+    unpartnered: np.ndarray, points: list[np.ndarray], label_ids: np.ndarray, other: LabelledTree,
+    usable: np.ndarray, shifts_m: np.ndarray | None, same_near: tuple[np.ndarray, np.ndarray], *,
+    radius_m: float, density_radius_m: float,
 ) -> np.ndarray:  # fmt: skip
-    """(G,) log Bayes factor, >= 0, of the *traces of confused labels* among the nodes of G groups (a side of the
-    match under one hypothesis each: the verification passes B's nodes under each hypothesis, then A's).
+    """(H,) log Bayes factor, >= 0, of the *traces of confused labels* among one side's nodes under H hypotheses.
 
     A node inside the other's area without a same-label partner is either an object the other robot did not map,
     or one it mapped under another label (a pole taken for a sign, a tree for a building): then another label's
@@ -564,41 +552,51 @@ def confusion_llrs(
     confused per robot cost a fifth of the sparse benchmark's localizations).
 
     Args:
-        unpartnered: (G, N) bool, the group's nodes inside the other's area, giving evidence, without a partner
-            (rows beyond a side's node count False).
-        label_ids: (G, N) their labels.
-        nodes, dist_m, offsets_m, usable: the pairs of one of a group's nodes and a node of the other graph of
-            *another* label within reach (at least ``density_radius_m``, and the longest shift plus ``radius_m``):
-            (P,) the group's node as group * N + row, (P,) their distance, metres, (P, 3) the other's node less
-            the group's node placed by its hypothesis, in the other graph's frame, metres, and (P,) bool, the
-            other's node's label gives evidence.
-        shifts_m: (G, S, 3) shifts of the group's nodes in the other's frame (the chance model's) or None.
+        unpartnered: (H, N) bool, the side's nodes inside the other's area, giving evidence, without a partner.
+        points: H arrays (N, 3): the side's nodes placed in the other graph's frame by each hypothesis.
+        label_ids: (N,) the side's labels.
+        other: the other graph's nodes.
+        usable: (M,) bool, the other graph's nodes whose labels give evidence.
+        shifts_m: (H, S, 3) shifts of the nodes in the other's frame (the chance model's) or None.
+        same_near: (H, N) counts of the other graph's nodes of each node's own label within ``radius_m`` and (H, N)
+            within ``density_radius_m`` (the verification has them).
         radius_m, density_radius_m: the verification's radii, metres.
     """
     h, n = unpartnered.shape
-    keys = unpartnered.reshape(-1)
-    pick = usable & keys[nodes]  # pairs of an unpartnered node and a node whose label counts
-    nodes, dist_m, offsets_m = nodes[pick], dist_m[pick], offsets_m[pick]
-    flat = np.flatnonzero(keys)  # (hypothesis, node) keys k * N + row
-    if flat.size == 0 or nodes.size == 0:
+    flat = np.flatnonzero(unpartnered.reshape(-1))  # (hypothesis, node) keys k * N + row
+    if flat.size == 0 or not usable.any():
         return np.zeros(h)
-    hyp = flat // n
-    trace = np.bincount(nodes[dist_m <= radius_m], minlength=h * n)[flat] > 0
+    hyp, rows = flat // n, flat % n
+    placed = np.stack(points).reshape(-1, 3)[flat]
+    counted = other.any if usable.all() else cKDTree(other.positions_xyz[usable])
+
+    def other_labels_within(r: float, same: np.ndarray) -> np.ndarray:
+        # every usable node within r less those of the node's own label (a usable label: the node gives evidence)
+        return counted.query_ball_point(placed, r, return_length=True) - same.reshape(-1)[flat]
+
+    same_r, same_density = same_near
+    trace = other_labels_within(radius_m, same_r) > 0
     if not trace.any():  # no trace anywhere: every factor is below 1
         return np.zeros(h)
-    nearby = np.bincount(nodes[dist_m <= density_radius_m], minlength=h * n)[flat]
-    q0 = 1.0 - np.exp(-nearby * (radius_m / density_radius_m) ** 2)
+    q0 = 1.0 - np.exp(-other_labels_within(density_radius_m, same_density) * (radius_m / density_radius_m) ** 2)
     bound = _confusion_factors(np.clip(q0, 1e-3, 1.0 - 1e-3), trace, hyp, h)
     live = (bound > 0.0)[hyp]  # the shifted chance only raises q0, and a higher q0 only lowers the factor
     if shifts_m is None or not shifts_m.size or not live.any():
         return bound
-    sel = np.flatnonzero(live)
-    position = np.full(h * n, -1)
-    position[flat[sel]] = np.arange(sel.size)  # a live node's index among the live ones
-    at = position[nodes]
-    shifted = at >= 0
-    hits = _shifted_hits(offsets_m[shifted], at[shifted], sel.size, shifts_m, nodes[shifted] // n, radius_m)
-    groups = hyp[sel] * (n + 1) + _label_index(label_ids.reshape(-1))[flat[sel]]
+    reach = max(density_radius_m, float(np.linalg.norm(shifts_m, axis=-1).max()) + radius_m)
+    # the live hypotheses side by side: their copies of the other graph (node j of a copy is copy * M + j) and
+    # their nodes lie apart in a fourth coordinate, so no pair of different hypotheses is formed
+    m, sel = len(other), np.flatnonzero(live)
+    tiles = np.flatnonzero(bound > 0.0)  # a copy of the other graph per live hypothesis
+    mine = cKDTree(np.column_stack([placed[sel], hyp[sel] * _LABEL_GAP_M]))
+    theirs = cKDTree(np.column_stack([np.tile(other.positions_xyz, (tiles.size, 1)),
+                                      np.repeat(tiles, m) * _LABEL_GAP_M]))  # fmt: skip
+    near = mine.sparse_distance_matrix(theirs, reach, output_type="ndarray")
+    i, j = near["i"].astype(np.int64), near["j"].astype(np.int64) % m
+    keep = usable[j] & (other.label_ids[j] != label_ids[rows[sel[i]]])
+    i, j = i[keep], j[keep]
+    hits = _shifted_hits(other.positions_xyz[j] - placed[sel[i]], i, sel.size, shifts_m, hyp[sel[i]], radius_m)
+    groups = hyp[sel] * (n + 1) + _label_index(label_ids)[rows[sel]]
     q0[sel] = label_chance(hits, groups, np.ones(sel.size, bool), q0[sel])
     return _confusion_factors(np.clip(q0, 1e-3, 1.0 - 1e-3), trace, hyp, h)
 
@@ -623,7 +621,8 @@ def _shifted_hits(
     sets = [(np.flatnonzero(of_pair == k), shifts_m[k]) for k in np.unique(of_pair).tolist()]
     for pairs, shifts in sets:
         sq_s = np.einsum("si,si->s", shifts, shifts)
-        close = sq_off[pairs, None] - 2.0 * (offsets[pairs] @ shifts.T) + sq_s[None, :] < radius_m**2  # (P_k, S)
+        cross = np.einsum("pi,si->ps", offsets[pairs], shifts)  # einsum, not BLAS: no threads for a 3-term sum
+        close = sq_off[pairs, None] - 2.0 * cross + sq_s[None, :] < radius_m**2  # (P_k, S)
         p_idx, s_idx = np.nonzero(close)
         hits[s_idx, rows[pairs[p_idx]]] = True
     return hits
@@ -724,7 +723,7 @@ def _shifted_hits_both(
         return hits_b, hits_a
     r2 = radius_m**2
     sq_off = np.einsum("pi,pi->p", offsets, offsets)
-    cross = shifts_m @ offsets.T  # (S, P)
+    cross = np.einsum("si,pi->sp", shifts_m, offsets)  # (S, P); einsum, not BLAS: no threads for a 3-term sum
     sq_s = np.einsum("si,si->s", shifts_m, shifts_m)[:, None]
     s_idx, p_idx = np.nonzero(sq_off[None, :] - 2.0 * cross + sq_s < r2)
     hits_b[s_idx, i_b[p_idx]] = True
