@@ -38,7 +38,6 @@ from shgm_slam.matching.verification import (
 from shgm_slam.types import GraphArrays
 
 MIN_NODES = 3
-"""Graphs with fewer nodes cannot determine a rigid transform."""
 
 SECOND_LOOK_NATS = 3.0
 """A best alignment whose log likelihood ratio falls short of the threshold by less than this many nats is
@@ -51,6 +50,7 @@ second optimizer's result for the same hypothesis, so it is charged twice the lo
 ``log 2``. Chosen on sparse tuning seeds 10-39, 50-59, 600-619 and 900-919: 3 and 6 nats localized the
 same pairs (a wider window costs time on rejections); without the ``log 2`` one more far-apart negative was
 accepted (610/17, 6-DoF, 0.3 nats above its threshold)."""
+"""Graphs with fewer nodes cannot determine a rigid transform."""
 
 HypothesisGenerator = Callable[
     [np.ndarray, np.ndarray, Candidates, np.ndarray | None, MatchingConfig], list[np.ndarray]
