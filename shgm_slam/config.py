@@ -181,11 +181,6 @@ class MatchingConfig(_Stage):
         4, ge=0, description="gravity-aligned: also this many alignments most voted for by agreeing same-label node "
         "pairs (matching/pair_voting.py; no descriptors), added to the cliques' before screening (0: none)",
     )
-    second_look: bool = Field(
-        True, description="a best alignment short of the likelihood-ratio threshold by less than 3 nats is refitted "
-        "robustly (as an accepted one is polished) and judged again, its log ratio less log 2 for the second fit "
-        "(matching/matcher.SECOND_LOOK_NATS)",
-    )
     verified_hypotheses: int = Field(
         4, ge=1, description="hypotheses (most supporting nodes first) refined and scored by the likelihood ratio, "
         "plus the best one that places B elsewhere than all of them"

@@ -8,7 +8,6 @@ against many cheaply.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -38,18 +37,6 @@ from shgm_slam.matching.verification import (
 from shgm_slam.types import GraphArrays
 
 MIN_NODES = 3
-
-SECOND_LOOK_NATS = 3.0
-"""A best alignment whose log likelihood ratio falls short of the threshold by less than this many nats is
-polished (``polish.polish_alignment``: partners within twice the verification radius, Tukey's biweight) and
-judged again (``matching.second_look``). The refinement fits each hypothesis to the partners a hard 3 m gate
-keeps; on noisy sparse maps that gate drops right partners and keeps wrong ones, and the fit settles beside
-the alignment that the whole overlap supports (sparse tuning seeds: 7 of 42 misses were alignments the search
-had found within 0.5-2 m whose truth cleared the threshold by up to 5 nats). The polished alignment is a
-second optimizer's result for the same hypothesis, so it is charged twice the looks: its ratio counts less
-``log 2``. Chosen on sparse tuning seeds 10-39, 50-59, 600-619 and 900-919: 3 and 6 nats localized the
-same pairs (a wider window costs time on rejections); without the ``log 2`` one more far-apart negative was
-accepted (610/17, 6-DoF, 0.3 nats above its threshold)."""
 """Graphs with fewer nodes cannot determine a rigid transform."""
 
 HypothesisGenerator = Callable[
@@ -155,8 +142,7 @@ def match_graphs(
     ``hypotheses searched / false_alarm_rate``, (2) at least ``min_inliers`` partner pairs, (3) an RMSE
     of at most ``max_rmse_m``, (4) partners spanning at least ``min_spread_m`` (``pose.spread_m``) and (5) no
     rival that places B elsewhere beyond chance too unless the best leads it by ``log(1 / false_alarm_rate)``
-    (``_ambiguity_reason``). A best alignment just short of (1) is polished and judged once more
-    (``SECOND_LOOK_NATS``).
+    (``_ambiguity_reason``).
     Empty, tiny or edgeless graphs give an unsuccessful result with a reason, never an exception.
 
     Args:
@@ -218,18 +204,13 @@ def match_graphs(
     verified = _verify(tree_a, tree_b, refined, cfg, shifts, shift_labels, evidence_free_labels)
     scored = list(zip(refined, verified, strict=True))
     best, rival = _best_and_rival(scored, b, cfg.verification_radius_m)
-    up = np.asarray(cfg.up_axis)
-    threshold = math.log(searched_hypotheses(len(hypotheses), cfg) / cfg.false_alarm_rate)
-    if cfg.second_look and threshold - SECOND_LOOK_NATS < best[1].llr < threshold:
-        second = _second_look(best[0], a, b, tree_a, tree_b, cfg, evidence_free_labels)
-        if second[1].llr > best[1].llr:
-            scored.append(second)
-            best, rival = _best_and_rival(scored, b, cfg.verification_radius_m)
     T, v = best
     rows_a, rows_b = v.pairs[:, 0], v.pairs[:, 1]
     res = np.linalg.norm(transform_points(T, b.positions_xyz[rows_b]) - a.positions_xyz[rows_a], axis=1)
     rmse = float(np.sqrt(np.mean(res**2))) if res.size else math.inf
+    up = np.asarray(cfg.up_axis)
     spread = spread_m(a.positions_xyz[rows_a], cfg.gravity_aligned, up)
+    threshold = math.log(searched_hypotheses(len(hypotheses), cfg) / cfg.false_alarm_rate)
     reason = _rejection_reason(v, threshold, rmse, spread, cfg) or _ambiguity_reason(best, rival, b, threshold, cfg)
     if not reason and cfg.polish:  # the decision is made; only the accepted transform is refitted
         T = polish_alignment(T, a, b, tree_a, cfg.verification_radius_m, gravity_aligned=cfg.gravity_aligned, up=up)
@@ -280,20 +261,6 @@ def judge_alignment(
     shifts, shift_labels = _shifts(tree_a, tree_b, stack, cfg)
     verified = _verify(tree_a, tree_b, stack, cfg, shifts, shift_labels, evidence_free_labels)
     return max(verified, key=lambda v: v.llr)
-
-
-def _second_look(
-    T_a_b: np.ndarray, a: GraphArrays, b: GraphArrays, tree_a: LabelledTree, tree_b: LabelledTree,
-    cfg: MatchingConfig, evidence_free_labels: tuple[int, ...],
-) -> tuple[np.ndarray, Verification]:  # fmt: skip
-    """A near miss judged once more after ``polish_alignment``'s robust refit: (4, 4) the polished ``T_a_b`` and
-    its verification, the log likelihood ratio less ``log 2`` (``SECOND_LOOK_NATS``)."""
-    up = np.asarray(cfg.up_axis)
-    polished = polish_alignment(T_a_b, a, b, tree_a, cfg.verification_radius_m, gravity_aligned=cfg.gravity_aligned,
-                                up=up)[None]  # fmt: skip
-    shifts, shift_labels = _shifts(tree_a, tree_b, polished, cfg)
-    v = _verify(tree_a, tree_b, polished, cfg, shifts, shift_labels, evidence_free_labels)[0]
-    return polished[0], dataclasses.replace(v, llr=v.llr - math.log(2.0))
 
 
 def _shifts(
