@@ -194,3 +194,29 @@ def test_an_alias_one_block_along_the_shared_street_is_refused():
     r = match_graphs(pair.graph_a, pair.graph_b, DescriptorConfig(), cfg)
     c = pair.graph_b.positions_xyz.mean(axis=0, keepdims=True)
     assert not r.success or np.linalg.norm(transform_points(r.T_a_b, c) - transform_points(pair.T_a_b, c)) < 2.0
+
+
+@pytest.mark.parametrize(
+    ("seed", "index", "noise_m"),
+    [(1024, 1, (1.5, 2.5)), (1020, 14, None)],
+    ids=["alias-146m-on-noisy-maps", "far-apart-negative"],
+)
+def test_wrong_alignments_a_second_fit_would_lift_stay_refused(seed, index, noise_m):
+    """Seeds run once (2026-12-05): a near miss polished and judged again (a second look, tried and reverted) lifted
+    these wrong alignments 4-5.5 nats over the threshold, an alias 146 m off and a far-apart pair; the matcher as it
+    is refuses them (or places B right), in 4-DoF and 6-DoF."""
+    from shgm_slam.bench.localization_sparse import rotate_fully
+    from shgm_slam.config import DescriptorConfig, GraphConfig
+    from shgm_slam.matching import match_graphs
+
+    opt = SparseOptions() if noise_m is None else SparseOptions(noise_range_m=noise_m)
+    pairs = make_pairs(build_city(CityParams(), seed=seed), seed, opt, GraphConfig().connectivity_m)
+    rng = np.random.default_rng(seed + 5)  # the benchmark's 6-DoF draw
+    turned = [rotate_fully(p, rng) for p in pairs]
+    for pair, gravity in ((pairs[index], True), (turned[index], False)):
+        cfg = MatchingConfig().model_copy(update={"up_axis": UP_WORLD, "gravity_aligned": gravity})
+        r = match_graphs(pair.graph_a, pair.graph_b, DescriptorConfig(), cfg)
+        if r.success:
+            assert pair.overlapping, "a far-apart pair was accepted"
+            c = pair.graph_b.positions_xyz.mean(axis=0, keepdims=True)
+            assert np.linalg.norm(transform_points(r.T_a_b, c) - transform_points(pair.T_a_b, c)) < 2.0
