@@ -334,6 +334,10 @@ def _refined(
     return list(Ts)
 
 
+_SCREEN_CHUNK = 8
+"""``_screened`` looks for the hypothesis elsewhere this many at a time."""
+
+
 def _screened(
     hypotheses: np.ndarray, order: np.ndarray, points_b: np.ndarray, radius_m: float, count: int
 ) -> np.ndarray:
@@ -354,10 +358,15 @@ def _screened(
     top = order[:count]
     if len(order) == len(top):
         return top
-    mapped = transform_points_each(hypotheses[order], points_b)  # (H, N, 3)
-    apart = np.linalg.norm(mapped[len(top) :, None] - mapped[None, : len(top)], axis=3).max(axis=2)  # (H-k, k)
-    elsewhere = np.flatnonzero((apart > radius_m).all(axis=1))
-    return top if elsewhere.size == 0 else np.append(top, order[len(top) + elsewhere[0]])
+    placed = transform_points_each(hypotheses[top], points_b)  # (k, N, 3)
+    for start in range(len(top), len(order), _SCREEN_CHUNK):  # the first one elsewhere is usually early
+        rest = order[start : start + _SCREEN_CHUNK]
+        mapped = transform_points_each(hypotheses[rest], points_b)
+        apart = np.linalg.norm(mapped[:, None] - placed[None], axis=3).max(axis=2)  # (chunk, k)
+        elsewhere = np.flatnonzero((apart > radius_m).all(axis=1))
+        if elsewhere.size:
+            return np.append(top, rest[elsewhere[0]])
+    return top
 
 
 def transform_points_each(T_stack: np.ndarray, points_xyz: np.ndarray) -> np.ndarray:
