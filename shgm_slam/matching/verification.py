@@ -482,10 +482,9 @@ def verify_alignments(
         per_hypothesis = np.broadcast_to(shifts_m, (h, *np.shape(shifts_m)[-2:]))
         hits_b = np.zeros((per_hypothesis.shape[1], h * n_b), dtype=bool)
         hits_a = np.zeros((per_hypothesis.shape[1], h * n_a), dtype=bool)
-        flat = per_hypothesis.reshape(h, -1)
-        shared = (flat == flat[0]).all(axis=1)  # the hypotheses whose shifts are the first's (B's rows do not turn)
+        shared = _shares_first(per_hypothesis)  # B's rows seldom turn: most hypotheses share one product
         bounds = np.concatenate([[0], np.cumsum(pair_counts)])
-        runs = [(np.flatnonzero(np.repeat(shared, pair_counts)), 0)] if shared.any() else []
+        runs = [(np.flatnonzero(np.repeat(shared, pair_counts)), 0)]
         runs += [(np.arange(bounds[k], bounds[k + 1]), k) for k in np.flatnonzero(~shared).tolist()]
         for rows, k in runs:
             hb, ha = _shifted_hits_both(
@@ -615,8 +614,7 @@ def _shifted_hits(
     equal the first's: those that do not turn with the hypothesis)."""
     hits = np.zeros((shifts_m.shape[1], n), dtype=bool)
     sq_off = np.einsum("pi,pi->p", offsets, offsets)
-    flat = shifts_m.reshape(len(shifts_m), -1)
-    set_of = np.where((flat == flat[0]).all(axis=1), 0, np.arange(len(flat)))  # the hypotheses sharing the first's
+    set_of = np.where(_shares_first(shifts_m), 0, np.arange(len(shifts_m)))
     of_pair = set_of[hypotheses]
     sets = [(np.flatnonzero(of_pair == k), shifts_m[k]) for k in np.unique(of_pair).tolist()]
     for pairs, shifts in sets:
@@ -626,6 +624,12 @@ def _shifted_hits(
         p_idx, s_idx = np.nonzero(close)
         hits[s_idx, rows[pairs[p_idx]]] = True
     return hits
+
+
+def _shares_first(shifts_m: np.ndarray) -> np.ndarray:
+    """(H,) bool: the hypothesis' (S, 3) shifts of (H, S, 3) equal the first hypothesis' (True for the first)."""
+    flat = shifts_m.reshape(len(shifts_m), -1)
+    return (flat == flat[0]).all(axis=1)
 
 
 _CONFUSION_RATES = np.linspace(0.0, 1.0, 129)
