@@ -202,7 +202,7 @@ class MatchingConfig(_Stage):
     confusion_evidence: bool = Field(
         True, description="whole-overlap check: a node without a same-label partner but with another label's node "
         "within the verification radius (a confused label: a pole mapped as a sign) supports the alignment as far as "
-        "such traces are beyond chance (matching/verification.confusion_llrs); never counts against it",
+        "such traces are beyond chance (matching/confusion.confusion_llrs); never counts against it",
     )
     viewpoint_dependent_labels: tuple[int, ...] = Field(
         VIEWPOINT_DEPENDENT_LABELS, description="whole-overlap check between robots whose cameras look from very "

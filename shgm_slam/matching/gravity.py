@@ -85,7 +85,7 @@ def choose_dof(
 
     When both graphs lie flat along the same coordinate axis (``shared_up_axis``) that axis becomes the
     ``up_axis`` whatever ``dof`` says: the chance model shifts the hypothesis along the horizontal
-    (``verification.shift_vectors``, ``row_steps``), and with the wrong vertical (the KITTI camera frame's
+    (``chance.shift_vectors``, ``row_steps``), and with the wrong vertical (the KITTI camera frame's
     default -y on a z-up map) it shifted across the street and up into the air instead, found no repeats,
     and let aliases through (the sparse benchmark's map-like graphs, tuning seeds 10-19, 6-DoF: 5 of 100
     far-apart negatives accepted with up -y, none with up +z). Then ``AUTO`` and ``FOUR`` match

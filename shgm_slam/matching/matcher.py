@@ -19,21 +19,15 @@ from shgm_slam.descriptors import NodeDescriptors, compute_descriptors
 from shgm_slam.errors import ConfigError, GraphError
 from shgm_slam.geometry.se3 import transform_points
 from shgm_slam.matching.candidates import Candidates, match_candidates
+from shgm_slam.matching.chance import row_steps, shift_vectors
 from shgm_slam.matching.clique import clique_hypotheses
+from shgm_slam.matching.labelled_tree import LabelledTree
 from shgm_slam.matching.pair_voting import pair_vote_hypotheses
 from shgm_slam.matching.polish import polish_alignment
 from shgm_slam.matching.pose import correspondence_weights, fit_pose, padded_correspondence_weights, spread_m
 from shgm_slam.matching.ransac import ransac_alignment
 from shgm_slam.matching.result import MatchResult
-from shgm_slam.matching.verification import (
-    LabelledTree,
-    Verification,
-    partner_pairs_stack,
-    row_steps,
-    shift_vectors,
-    support_counts,
-    verify_alignments,
-)
+from shgm_slam.matching.verification import Verification, partner_pairs_stack, support_counts, verify_alignments
 from shgm_slam.types import GraphArrays
 
 MIN_NODES = 3

@@ -29,8 +29,9 @@ from __future__ import annotations
 import numpy as np
 
 from shgm_slam.geometry.se3 import transform_points
+from shgm_slam.matching.labelled_tree import LabelledTree
 from shgm_slam.matching.pose import fit_pose
-from shgm_slam.matching.verification import LabelledTree, partner_pairs
+from shgm_slam.matching.verification import partner_pairs
 from shgm_slam.types import GraphArrays
 
 GATE_RADII = 2.0

@@ -513,7 +513,7 @@ class MapServer:
         free = self.evidence_free_labels(robot_a, robot_b)
         if up_a is not None and up_b is not None:
             # both robots know where "up" is (their ground plane): match in frames whose z is up, so that the
-            # chance model shifts hypotheses along the ground (``verification.shift_vectors``); 4-DoF when
+            # chance model shifts hypotheses along the ground (``chance.shift_vectors``); 4-DoF when
             # both ups are level enough for it, else 6-DoF, which absorbs a submap's own tilt
             R_a, R_b = rotation_to_z(up_a), rotation_to_z(up_b)
             level = self.gravity_aligned(robot_a) and self.gravity_aligned(robot_b)

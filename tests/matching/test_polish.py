@@ -7,9 +7,10 @@ import numpy as np
 from shgm_slam.config import DescriptorConfig, MatchingConfig
 from shgm_slam.geometry.se3 import inverse, make_pose, rot_y, transform_points
 from shgm_slam.matching import match_graphs
+from shgm_slam.matching.labelled_tree import LabelledTree
 from shgm_slam.matching.polish import MIN_SCALE_M, TUKEY_C, biweight, polish_alignment
 from shgm_slam.matching.pose import fit_pose
-from shgm_slam.matching.verification import LabelledTree, partner_pairs
+from shgm_slam.matching.verification import partner_pairs
 
 from .synthetic import city_pair, graph_of
 

@@ -10,24 +10,14 @@ from shgm_slam.config import DescriptorConfig, MatchingConfig
 from shgm_slam.geometry.se3 import inverse, make_pose, pose_error, rot_z, transform_points
 from shgm_slam.labels import FLAT_GROUND_LABELS, VIEWPOINT_DEPENDENT_LABELS, Label
 from shgm_slam.matching import match_graphs
+from shgm_slam.matching.chance import shift_vectors
+from shgm_slam.matching.confusion import _confusion_factors
+from shgm_slam.matching.labelled_tree import LabelledTree, nearest_same_label
 from shgm_slam.matching.verification import (
-    CHANCE_PRIOR_OBSERVATIONS,
-    MAX_ROW_STEP_M,
-    MAX_SHIFT_HEADINGS,
-    MIN_ROW_NODES,
-    LabelledTree,
-    _confusion_factors,
-    _integrated_factors,
     _one_to_one,
-    _shifted_hits,
-    label_chance,
     map_stack,
-    nearest_same_label,
     partner_pairs,
     partner_pairs_stack,
-    row_steps,
-    shift_headings,
-    shift_vectors,
     verify_alignment,
     verify_alignments,
 )
@@ -124,25 +114,6 @@ def test_repeated_street_alias_between_the_shift_headings_is_rejected(seed):
     _assert_alias_rejected_and_street_accepted(street_1, street_2, rng)
 
 
-@pytest.mark.parametrize("radius_m", [1.0, 2.0, 3.0, 5.0])
-def test_some_shift_runs_along_a_street_of_any_heading(radius_m):
-    """Whatever the street's heading, at every shift distance one shift lands within the radius of the
-    along-street shift (so a row repeating along the street is measured by chance)."""
-    distances = (6.0, 10.0, 14.0)
-    shifts = shift_vectors(np.array(UP_Z), radius_m, distances)
-    n = shift_headings(radius_m, distances)
-    assert shifts.shape == (n * len(distances), 3) and n % 2 == 0
-    assert not shifts.flags.writeable and np.allclose(shifts[:, 2], 0.0)
-    theta = np.linspace(0.0, 2.0 * np.pi, 721)
-    for d in distances:
-        along = d * np.column_stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)])
-        gap = np.linalg.norm(along[:, None] - shifts[None], axis=2).min(axis=1)
-        assert gap.max() <= radius_m + 1e-9
-    assert shift_headings(3.0, distances) == 16  # 8 (45 degrees apart) missed by up to 5.4 m at 14 m
-    assert shift_headings(2.0 * 14.0, distances) == 4
-    assert shift_headings(1e-3, distances) == MAX_SHIFT_HEADINGS  # a needle radius does not explode the cost
-
-
 def _lamp_street(rng: np.random.Generator, length_m: float = 240.0, surroundings: int = 12, lamp_m: float = 25.0):
     """A straight street along x, z up: trees every 10 m on both sides and lamps every ``lamp_m`` on one side
     (perfectly regular, the same on every street; 25 m is beyond the fixed shifts' 14 + 3 m), plus
@@ -169,28 +140,6 @@ def test_alias_of_a_row_repeating_beyond_the_shifts_is_rejected(seed):
     street_1, street_2 = _lamp_street(rng), _lamp_street(rng)
     _assert_alias_rejected_and_street_accepted(street_1, street_2, rng)
 
-
-def test_row_steps_are_the_repeats_many_nodes_share():
-    """A lamp row every 25 m gives its +-25 m step along the row (horizontal, its label); trees every 10 m are
-    within the fixed shifts' reach and give none; scattered signs give none (no step shared by
-    ``MIN_ROW_NODES``); a row of three is not a row; the frame's vertical is dropped from every step."""
-    rng = np.random.default_rng(0)
-    heading = np.array([np.cos(0.3), np.sin(0.3), 0.0])
-    lamps = np.arange(8)[:, None] * 25.0 * heading + [0.0, -6.0, 0.0] + np.c_[np.zeros((8, 2)), rng.uniform(3, 5, 8)]
-    trees = np.arange(20)[:, None] * 10.0 * heading + [0.0, 7.0, 4.0]
-    signs = np.column_stack([rng.uniform(0, 200, 6), rng.uniform(-60, 60, 6), np.full(6, 2.0)])
-    three = np.arange(3)[:, None] * 30.0 * heading + [0.0, 40.0, 1.0]
-    pos = np.vstack([lamps, trees, signs, three])
-    labels = np.concatenate([np.full(8, Label.POLE), np.full(20, Label.VEGETATION), np.full(6, Label.TRAFFIC_SIGN),
-                             np.full(3, Label.TRAFFIC_LIGHT)])  # fmt: skip
-    steps, owners = row_steps(LabelledTree(pos, labels), np.array(UP_Z), radius_m=3.0, longer_than_m=17.0)
-    assert len(steps) >= 2 and set(owners.tolist()) == {int(Label.POLE)}
-    assert np.allclose(steps[:, 2], 0.0)
-    assert np.allclose(np.linalg.norm(steps, axis=1), 25.0, atol=1.0)
-    assert np.allclose(np.abs(steps @ heading), 25.0, atol=1.0)
-    none, _ = row_steps(LabelledTree(pos, labels), np.array(UP_Z), radius_m=3.0, longer_than_m=17.0, max_m=20.0)
-    assert none.shape == (0, 3)
-    assert MIN_ROW_NODES > 3 and MAX_ROW_STEP_M >= 25.0
 
 
 def _sparse_area(rng: np.random.Generator, num: int = 55):
@@ -366,29 +315,6 @@ def test_chance_expectation_grows_with_density():
     assert expected[0] < expected[1] < expected[2]
 
 
-def _label_chance_per_label(hits, label_ids, inside, prior):
-    """``label_chance`` label by label (the definition)."""
-    out = prior.copy()
-    for label in np.unique(label_ids[inside]):
-        rows = np.flatnonzero(inside & (label_ids == label))
-        best = np.sort(hits[:, rows].sum(axis=1))[-2]
-        m = CHANCE_PRIOR_OBSERVATIONS
-        out[rows] = np.maximum(prior[rows], (best + m * prior[rows]) / (rows.size + m))
-    return out
-
-
-def test_label_chance_equals_the_per_label_loop():
-    rng = np.random.default_rng(3)
-    for trial in range(200):
-        n, shifts = int(rng.integers(1, 80)), int(rng.integers(2, 30))
-        hits = rng.random((shifts, n)) < rng.random()
-        labels = rng.integers(0, 19 if trial % 2 else 3, n)
-        inside = rng.random(n) < rng.random()
-        prior = rng.random(n) * rng.random()
-        expected = _label_chance_per_label(hits, labels, inside, prior)
-        np.testing.assert_array_equal(label_chance(hits, labels, inside, prior), expected)
-
-
 def test_partner_pairs_of_a_stack_equal_one_query_per_hypothesis():
     rng = np.random.default_rng(4)
     pos_a, lab_a = rng.uniform(0, 40, (60, 3)) * [1.0, 1.0, 0.1], rng.integers(0, 3, 60)
@@ -486,37 +412,6 @@ def test_a_confusions_trace_counts_only_beyond_chance():
                                  np.array([0, 0, 0, 0, 1, 1, 2]), 3)  # fmt: skip
     alone = _confusion_factors(np.full(4, 0.1), np.ones(4, bool), np.zeros(4, int), 1)
     assert grouped[0] == alone[0] > 5.0 and grouped[2] == 0.0
-
-
-def test_the_traces_integral_is_skipped_only_where_it_is_zero():
-    """Hypotheses whose likelihood ratio falls from chance (slope <= 0 at c = 0) are not integrated: their factor is 0,
-    as the integral gives; the others are integrated as on their own."""
-    rng = np.random.default_rng(5)
-    h, n = 40, 600
-    owner = rng.integers(0, h, n)
-    q0 = rng.uniform(0.05, 0.6, n)
-    rate = rng.uniform(0.0, 0.5, h)  # some hypotheses far beyond chance, most at or below it
-    trace = rng.random(n) < np.minimum(1.0, q0 + rate[owner] * (1.0 - q0) - 0.1)
-    fast = _confusion_factors(q0, trace, owner, h)
-    full = _integrated_factors(q0, trace, owner, h)
-    np.testing.assert_allclose(fast, full, rtol=1e-12, atol=1e-12)
-    assert (fast > 0.0).sum() >= 5 and (fast == 0.0).sum() >= 5
-
-
-def test_shifted_hits_shared_shift_sets_as_one_at_a_time():
-    """Hypotheses whose shifts are the first's share one product; the hits are those of each hypothesis alone."""
-    rng = np.random.default_rng(6)
-    fixed = rng.normal(0, 8, (10, 3))
-    shifts = np.stack([fixed, fixed, fixed + np.array([0.5, 0.0, 0.0]), fixed])  # hypothesis 2 turns its own way
-    offsets = rng.normal(0, 8, (300, 3))
-    owner = rng.integers(0, 4, 300)
-    rows = rng.integers(0, 50, 300)
-    together = _shifted_hits(offsets, rows, 50, shifts, owner, 3.0)
-    alone = np.zeros_like(together)
-    for k in range(4):
-        mine = owner == k
-        alone |= _shifted_hits(offsets[mine], rows[mine], 50, shifts[k : k + 1], np.zeros(mine.sum(), int), 3.0)
-    assert together.any() and np.array_equal(together, alone)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
