@@ -43,7 +43,7 @@ from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from enum import Enum
 
-from shgm_slam.backend.pose_graph import ClosureRecord, ClosureStatus
+from shgm_slam.backend.records import ClosureRecord, ClosureStatus
 
 Support = Mapping[str, frozenset[int]]
 """The objects behind one closure: agent -> ids of its graph nodes among the closure's inliers."""

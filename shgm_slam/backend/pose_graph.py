@@ -48,6 +48,10 @@ Bayes tree an update touches, so adding a keyframe costs about the same at 5000 
 
 ``estimate()`` is cached until the next change of the graph (a version counter), so callers that
 ask for poses per keyframe do not pay a full recomputation each time.
+
+Beside this module: the plain records it answers with (``records.py``), its snapshot and the check of
+one (``state.py``), each robot's recorded keyframes (``track.py``), the GTSAM noise models, poses and
+iSAM2 parameters (``factors.py``) and the g2o export (``g2o.py``).
 """
 
 from __future__ import annotations
@@ -57,233 +61,69 @@ import logging
 import math
 import time
 from collections.abc import Hashable, Iterable, Mapping
-from dataclasses import dataclass, field, replace
-from enum import Enum
+from dataclasses import replace
 from pathlib import Path
 
 import gtsam
 import numpy as np
 
+from shgm_slam.backend import g2o
 from shgm_slam.backend.attitude import normal_sigma_rad, up_at_start
 from shgm_slam.backend.consistency import (
     MAX_CLOSURES_PER_PAIR,
     ConsistencyThresholds,
     PairConsistency,
-    PairVote,
     consistent_with,
     consistent_with_odometry,
 )
 from shgm_slam.backend.cross_evidence import Piece, agreeing_pieces, strongest
 from shgm_slam.backend.drift import closure_rate, drift_level, loop_rotation_error_rad, measured_rate
+from shgm_slam.backend.factors import (
+    PRIOR_SIGMA,
+    RELINEARIZE_ROT_RAD,
+    RELINEARIZE_TRANS_M,
+    attitude_noise,
+    check_pose,
+    closure_noise_model,
+    inverse_information,
+    isam2_params,
+    odometry_noise,
+    pose3,
+    prior_noise,
+    sigmas6,
+)
 from shgm_slam.backend.keys import ROBOT_LETTERS, RobotKeys
+from shgm_slam.backend.records import (
+    Anchor,
+    ClosureDecision,
+    ClosureRecord,
+    ClosureStatus,
+    Factorization,
+    PoseGraphStats,
+)
+from shgm_slam.backend.state import PoseGraphState, check_state
 from shgm_slam.backend.stretches import StretchTracker, stretch_token
+from shgm_slam.backend.track import RobotTrack
 from shgm_slam.config import BackendConfig, RobustKernel
 from shgm_slam.errors import BackendError
 from shgm_slam.geometry.se3 import inverse
 
+__all__ = [
+    "PRIOR_SIGMA",
+    "RELINEARIZE_ROT_RAD",
+    "RELINEARIZE_TRANS_M",
+    "Anchor",
+    "ClosureDecision",
+    "ClosureRecord",
+    "ClosureStatus",
+    "Factorization",
+    "MultiRobotPoseGraph",
+    "PoseGraphState",
+    "PoseGraphStats",
+    "make_pose_graph",
+]  # the pose graph, and the records and constants callers use with it (re-exported: importable from here)
+
 _log = logging.getLogger(__name__)
-
-PRIOR_SIGMA = 1e-3
-"""Sigma (rad and m) of the prior fixing robot 0's first keyframe: the gauge of the shared frame."""
-
-RELINEARIZE_ROT_RAD = 1e-3
-"""iSAM2 relinearizes a keyframe whose pending rotation update exceeds this, radians. The attitude
-factors' measured sigmas are 1-2e-3 rad (``attitude``): a rotation left up to gtsam's default of 0.1 rad
-off its linearization point misplaces the keyframes it holds by that angle times their distance, and
-iSAM2's estimate oscillated: in KITTI 00's last kilometre, translations of hundreds of keyframes flipped
-by 0.2-0.5 m between successive updates, and updates relinearized up to 1400 of 1570 keyframes (with
-this threshold a tenth of the updates there relinearize more than 65 keyframes; before, more than 458). Chosen
-on kitti-paths 05 + 06 (world seed 1; docs/benchmarks.md, "sixth" session of 2026-12-02): the live
-estimate's largest gap to the converged solution 0.06 m instead of 0.22 m, at the same cost."""
-
-RELINEARIZE_TRANS_M = 0.1
-"""iSAM2 relinearizes a keyframe whose pending translation update exceeds this, metres (gtsam's default).
-On the same tuning run 0.2 and 0.5 left the live estimate up to 0.18 and 0.56 m off the converged one
-(0.5 was a third faster in the last 200 keyframes)."""
-
-
-class Factorization(str, Enum):
-    CHOLESKY = "CHOLESKY"
-    QR = "QR"
-
-
-class ClosureStatus(str, Enum):
-    ACCEPTED = "accepted"  # in its robot pair's maximum consistent set
-    REJECTED = "rejected"  # outside it (may come back if the evidence changes)
-
-
-@dataclass(frozen=True)
-class ClosureDecision:
-    """What happened to a closure when it was added (``accepted`` may change with later evidence)."""
-
-    accepted: bool
-    reason: str
-    closure_id: int = -1
-
-
-@dataclass
-class ClosureRecord:
-    """One closure, stored in canonical order: robot_a has the lower robot index; a loop closure
-    (``robot_a == robot_b``) has the older keyframe as ``kf_a``.
-
-    ``T_a_b`` is ``T_akf_bkf``: it maps points in b's keyframe ``kf_b`` camera frame into a's keyframe
-    ``kf_a`` camera frame. ``in_graph`` tells whether its factor is currently in iSAM2.
-    """
-
-    closure_id: int
-    robot_a: str
-    kf_a: int
-    robot_b: str
-    kf_b: int
-    T_a_b: np.ndarray
-    num_inliers: int
-    status: ClosureStatus = ClosureStatus.REJECTED
-    reason: str = ""
-    in_graph: bool = False
-    match_id: int | None = None  # the graph match it came from (closures of one match share it)
-    querier: str | None = None  # the robot whose query found it (``robot_b`` as given; None: unknown)
-    decisive: bool = False  # its match alone carries the evidence of two independent ones (anchors alone)
-
-    @property
-    def evidence(self) -> tuple[str, int]:
-        """Its independent source of evidence: its match, or the closure itself when not given."""
-        return ("match", self.match_id) if self.match_id is not None else ("closure", self.closure_id)
-
-
-@dataclass(frozen=True)
-class Anchor:
-    """How a robot entered the shared frame: the closure used (None for robot 0) and the odometry-frame
-    alignment ``T_shared_odom`` (4, 4) its buffered keyframes were inserted with."""
-
-    closure_id: int | None
-    T_shared_odom: np.ndarray
-
-
-@dataclass(frozen=True, eq=False)
-class PoseGraphState:
-    """What a pose graph decided, without its keyframes (``MultiRobotPoseGraph.state``; a map server's
-    snapshot): ``restore_state`` rebuilds iSAM2 from it and the keyframe poses in one batch.
-
-    Attributes:
-        robots: every robot in key order (the first defines the shared frame).
-        anchors: anchored robot -> (closure id that anchored it or None for the first robot,
-            ``T_shared_odom`` (4, 4) its keyframes were initialised with).
-        T_shared_kf: anchored robot -> (K, 4, 4) current estimate (the restored graph starts there).
-        closures: every closure with its status, reason and whether its factor is in iSAM2.
-        information: (C, 6, 6) each closure's information matrix (gtsam order [rot, trans]).
-        pairs: robot pair -> its consistency vote.
-        rebuilds, recoveries: counters; factorization: the solver in use (QR after a recovery).
-        up_odom: robot -> (K, 3) each keyframe's ground normal in its odometry frame (NaN rows: none
-            measured); the attitude factors are rebuilt from them.
-    """
-
-    robots: tuple[str, ...]
-    anchors: dict[str, tuple[int | None, np.ndarray]]
-    T_shared_kf: dict[str, np.ndarray]
-    closures: tuple[ClosureRecord, ...]
-    information: np.ndarray
-    pairs: dict[tuple[str, str], PairVote]
-    rebuilds: int
-    recoveries: int
-    factorization: Factorization
-    up_odom: dict[str, np.ndarray] = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class PoseGraphStats:
-    """Counters of the pose graph; ``last_update_ms`` is the latest iSAM2 update including extra passes."""
-
-    num_keyframes: int
-    num_variables: int
-    num_factors: int
-    closures_total: int
-    closures_accepted: int
-    closures_rejected: int
-    closures_in_graph: int
-    anchored_robots: tuple[str, ...]
-    rebuilds: int
-    last_update_ms: float
-    recoveries: int = 0  # iSAM2 failures recovered by rebuilding with QR
-    attitude_factors: int = 0  # keyframes whose ground normal is a factor in iSAM2 now
-
-
-@dataclass
-class _Robot:
-    index: int
-    T_odom_kf: list[np.ndarray] = field(default_factory=list)
-    path_m: list[float] = field(default_factory=list)
-    anchor_closure: int | None = None  # closure id that anchored it (None for robot 0 or unanchored)
-    anchored: bool = False
-    T_shared_odom_init: np.ndarray | None = None  # alignment used when it was anchored
-    up_odom: list[np.ndarray] = field(default_factory=list)  # each keyframe's ground normal (NaN: none)
-    measured: list[int] = field(default_factory=list)  # keyframes with a ground normal
-    attitude_sigma_rad: float | None = None  # measured once it has ``attitude_warmup`` normals
-    attitude_next: int = 0  # keyframes before this one have had their attitude factor (if measured)
-    drift_rot_rad_per_m: float | None = None  # rotation drift rate its odometry factors use (None: the prior)
-    stretches: StretchTracker | None = None  # each keyframe's straight stretch (None: not tracked)
-    _odom: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))  # T_odom_kf as a growing array
-    _path: np.ndarray = field(default_factory=lambda: np.zeros(0))
-
-    def append(self, T_odom_kf: np.ndarray, up_odom: np.ndarray | None = None) -> None:
-        """Record the next keyframe pose, its ground normal (odometry frame; None: not measured) and the
-        odometry path length up to it."""
-        k = len(self.T_odom_kf)
-        self.up_odom.append(np.full(3, np.nan) if up_odom is None else up_odom)
-        if up_odom is not None:
-            self.measured.append(k)
-        step = 0.0 if k == 0 else float(np.linalg.norm(T_odom_kf[:3, 3] - self.T_odom_kf[-1][:3, 3]))
-        self.path_m.append((self.path_m[-1] if k else 0.0) + step)
-        self.T_odom_kf.append(T_odom_kf)
-        if k == self._odom.shape[0]:  # amortised O(1): double the buffers
-            size = max(16, 2 * k)
-            self._odom = np.concatenate([self._odom, np.zeros((size - k, 4, 4))])
-            self._path = np.concatenate([self._path, np.zeros(size - k)])
-        self._odom[k] = T_odom_kf
-        self._path[k] = self.path_m[-1]
-        if self.stretches is not None:
-            self.stretches.append(self._odom[: k + 1, :3, 3], self._path[: k + 1])
-
-    def odometry(self) -> tuple[np.ndarray, np.ndarray]:
-        """(K, 4, 4) keyframe poses in the odometry frame and (K,) path length at each, metres (views)."""
-        k = len(self.T_odom_kf)
-        return self._odom[:k], self._path[:k]
-
-
-def _relinearize_thresholds(rot_rad: float, trans_m: float) -> gtsam.ISAM2ThresholdMap:
-    """iSAM2's per-variable-kind relinearization thresholds: every robot letter's Pose3 (tangent order:
-    rotation, then translation) gets ``rot_rad`` on its rotation axes and ``trans_m`` on its translation."""
-    thresholds = gtsam.ISAM2ThresholdMap()
-    per_axis = np.array([rot_rad] * 3 + [trans_m] * 3)
-    for letter in ROBOT_LETTERS:
-        thresholds.insert((letter, per_axis))
-    return thresholds
-
-
-def _pose3(T: np.ndarray) -> gtsam.Pose3:
-    """numpy (4, 4) -> gtsam.Pose3 with the rotation projected onto SO(3) (REFERENCE.md §3)."""
-    return gtsam.Pose3(gtsam.Rot3.ClosestTo(T[:3, :3]), T[:3, 3])
-
-
-def _check_pose(T: np.ndarray, what: str) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise BackendError(f"{what} must be a finite (4, 4) pose, got shape {T.shape}")
-    return T
-
-
-def _sigmas6(rot_trans: tuple[float, float]) -> np.ndarray:
-    rot, trans = (float(v) for v in rot_trans)
-    if rot <= 0 or trans <= 0:
-        raise BackendError(f"noise sigmas must be positive, got rotation {rot} rad, translation {trans} m")
-    return np.r_[[rot] * 3, [trans] * 3]  # Pose3 tangent order: [rx ry rz tx ty tz]
-
-
-_KERNELS = {
-    RobustKernel.HUBER: lambda k: gtsam.noiseModel.mEstimator.Huber.Create(k),
-    RobustKernel.CAUCHY: lambda k: gtsam.noiseModel.mEstimator.Cauchy.Create(k),
-    RobustKernel.TUKEY: lambda k: gtsam.noiseModel.mEstimator.Tukey.Create(k),
-}
-_KERNEL_WIDTH = {RobustKernel.HUBER: 1.345, RobustKernel.CAUCHY: 1.0, RobustKernel.TUKEY: 4.685}
 
 
 class MultiRobotPoseGraph:
@@ -348,12 +188,12 @@ class MultiRobotPoseGraph:
             self.factorization = Factorization(str(getattr(factorization, "value", factorization)).upper())
         except ValueError as exc:
             raise BackendError(f"pose graph: {exc}; robust kernels: none, huber, cauchy, tukey") from None
-        self._odometry_floor = _sigmas6(odometry_sigmas)
+        self._odometry_floor = sigmas6(odometry_sigmas)
         drift = np.asarray(odometry_drift, dtype=np.float64)
         if drift.shape != (2,) or not np.isfinite(drift).all() or (drift < 0).any():
             raise BackendError(f"odometry drift must be two non-negative rates, got {odometry_drift}")
         self._odometry_drift = np.r_[[drift[0]] * 3, [drift[1]] * 3]
-        self._closure_sigmas = _sigmas6(closure_sigmas)
+        self._closure_sigmas = sigmas6(closure_sigmas)
         self._kernel_width = kernel_width
         self.thresholds = ConsistencyThresholds(
             consistency_trans_m, consistency_rot_deg, consistency_trans_per_m, consistency_rot_deg_per_m
@@ -415,7 +255,7 @@ class MultiRobotPoseGraph:
             BackendError: unknown robot, a keyframe index out of order, a non-finite pose or normal.
         """
         r = self._robot(robot)
-        T = _check_pose(T_odom_kf, f"keyframe {kf_index} of {robot}")
+        T = check_pose(T_odom_kf, f"keyframe {kf_index} of {robot}")
         if up_odom is not None:
             up_odom = np.asarray(up_odom, dtype=np.float64)
             norm = float(np.linalg.norm(up_odom)) if up_odom.shape == (3,) else 0.0
@@ -486,7 +326,7 @@ class MultiRobotPoseGraph:
         ia, ib = self.keys.index(robot_a), self.keys.index(robot_b)
         if ia == ib and kf_a == kf_b:
             raise BackendError(f"closure between keyframe {kf_a} of {robot_a} and itself")
-        T = _check_pose(T_akf_bkf, f"closure {robot_a}{kf_a}-{robot_b}{kf_b}")
+        T = check_pose(T_akf_bkf, f"closure {robot_a}{kf_a}-{robot_b}{kf_b}")
         for name, kf in ((robot_a, kf_a), (robot_b, kf_b)):
             if not 0 <= kf < len(self._robots[name].T_odom_kf):
                 raise BackendError(
@@ -497,7 +337,7 @@ class MultiRobotPoseGraph:
         if ia > ib or (ia == ib and kf_a > kf_b):  # canonical order: lower robot index, older keyframe first
             robot_a, kf_a, robot_b, kf_b, T = robot_b, kf_b, robot_a, kf_a, inverse(T)
             if information is not None:
-                information = self._inverse_information(information, T)
+                information = inverse_information(information, T)
         noise, info = self._closure_noise_model(information)
         rec = ClosureRecord(
             len(self._closures), robot_a, kf_a, robot_b, kf_b, T, int(num_inliers), match_id=match_id, querier=querier,
@@ -609,9 +449,9 @@ class MultiRobotPoseGraph:
         self._robots[robot] = self._new_robot(self.keys.add(robot))
         self._version += 1
 
-    def _new_robot(self, index: int) -> _Robot:
+    def _new_robot(self, index: int) -> RobotTrack:
         turn = self._stretch_turn_rad
-        return _Robot(index, stretches=None if turn is None else StretchTracker(turn))
+        return RobotTrack(index, stretches=None if turn is None else StretchTracker(turn))
 
     @property
     def tracks_stretches(self) -> bool:
@@ -816,28 +656,23 @@ class MultiRobotPoseGraph:
         odometry factors and the closures in the graph, information matrices in g2o order
         [trans, rot]. Robust kernels, robot 0's prior and the attitude factors are not part of the format.
         """
-        values = self._values()
-        lines = []
-        for k in sorted(values.keys()):
-            lines.append(f"VERTEX_SE3:QUAT {k} " + _g2o_pose(values.atPose3(k)))
+        edges = []
         for name, r in self._robots.items():
             if not r.anchored:
                 continue
             for k in range(1, len(r.T_odom_kf)):
                 T = inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k]
                 odo_info = np.diag(1.0 / self._odometry_sigmas(T, r) ** 2)
-                lines.append(_g2o_edge(self.keys.key(name, k - 1), self.keys.key(name, k), T, odo_info))
+                edges.append((self.keys.key(name, k - 1), self.keys.key(name, k), T, odo_info))
         for c in self._closures:
             if c.in_graph:
                 k_a, k_b = self.keys.key(c.robot_a, c.kf_a), self.keys.key(c.robot_b, c.kf_b)
-                lines.append(_g2o_edge(k_a, k_b, c.T_a_b, self._information[c.closure_id]))
-        return "\n".join(lines) + "\n"
+                edges.append((k_a, k_b, c.T_a_b, self._information[c.closure_id]))
+        return g2o.g2o_text(self._values(), edges)
 
     def write_g2o(self, path: Path | str) -> None:
         """Write ``to_g2o()`` to ``path`` (creating the parent folder)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(self.to_g2o())
+        g2o.write_g2o(path, self.to_g2o())
 
     # --- snapshots ---------------------------------------------------------------------------------
 
@@ -888,8 +723,8 @@ class MultiRobotPoseGraph:
                 ups = np.full((len(poses), 3), np.nan)
             for k, (T, up) in enumerate(zip(poses, ups, strict=True)):
                 measured = bool(np.isfinite(up).all())
-                self._robots[name].append(_check_pose(T, f"keyframe {k} of {name}"), up if measured else None)
-        self._check_state(state)
+                self._robots[name].append(check_pose(T, f"keyframe {k} of {name}"), up if measured else None)
+        check_state(state, self.keys.names, {n: len(r.T_odom_kf) for n, r in self._robots.items()})
         if misfit:
             raise BackendError(f"pose graph state: {'; '.join(misfit)}")
         default_info = np.diag(1.0 / self._closure_sigmas**2)
@@ -921,60 +756,22 @@ class MultiRobotPoseGraph:
             r.anchored, r.anchor_closure, r.T_shared_odom_init = True, closure_id, np.array(T_init, dtype=np.float64)
             T_shared = state.T_shared_kf[name]
             if name == first:
-                prior = gtsam.noiseModel.Isotropic.Sigma(6, PRIOR_SIGMA)
-                self._add_factor(gtsam.PriorFactorPose3(self.keys.key(name, 0), _pose3(r.T_odom_kf[0]), prior))
+                self._add_factor(gtsam.PriorFactorPose3(self.keys.key(name, 0), pose3(r.T_odom_kf[0]), prior_noise()))
             for k in range(len(r.T_odom_kf)):
                 key = self.keys.key(name, k)
-                self._new_values.insert(key, _pose3(T_shared[k]))
+                self._new_values.insert(key, pose3(T_shared[k]))
                 if k:
                     delta = inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k]
                     prev = self.keys.key(name, k - 1)
-                    noise = gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(delta, r))
-                    self._add_factor(gtsam.BetweenFactorPose3(prev, key, _pose3(delta), noise))
+                    noise = odometry_noise(self._odometry_sigmas(delta, r))
+                    self._add_factor(gtsam.BetweenFactorPose3(prev, key, pose3(delta), noise))
         for c in self._closures:
             if c.in_graph:
                 k_a, k_b = self.keys.key(c.robot_a, c.kf_a), self.keys.key(c.robot_b, c.kf_b)
                 noise = self._closure_noise[c.closure_id]
-                self._add_factor(gtsam.BetweenFactorPose3(k_a, k_b, _pose3(c.T_a_b), noise), c.closure_id)
+                self._add_factor(gtsam.BetweenFactorPose3(k_a, k_b, pose3(c.T_a_b), noise), c.closure_id)
         self._push_attitudes()
         self._flush()
-
-    def _check_state(self, state: PoseGraphState) -> None:
-        """``BackendError`` naming the first thing in ``state`` that does not fit itself or the keyframes."""
-        count = {n: len(r.T_odom_kf) for n, r in self._robots.items()}
-        index = {n: i for i, n in enumerate(self.keys.names)}
-        first = self.keys.names[0]
-
-        def fail(what: str) -> None:
-            raise BackendError(f"pose graph state is inconsistent: {what}")
-
-        if np.shape(state.information) != (len(state.closures), 6, 6):
-            fail(f"{np.shape(state.information)} information matrices for {len(state.closures)} closures")
-        for i, c in enumerate(state.closures):
-            if c.closure_id != i or c.robot_a not in index or c.robot_b not in index:
-                fail(f"closure {i} has id {c.closure_id} or unknown robots {c.robot_a}, {c.robot_b}")
-            if not (0 <= c.kf_a < count[c.robot_a] and 0 <= c.kf_b < count[c.robot_b]):
-                fail(f"closure {i} joins keyframes that do not exist")
-            if (index[c.robot_a], c.kf_a) >= (index[c.robot_b], c.kf_b):
-                fail(f"closure {i} is not in canonical order")
-            if np.shape(c.T_a_b) != (4, 4) or not np.isfinite(c.T_a_b).all():
-                fail(f"closure {i} has no finite (4, 4) pose")
-            if c.in_graph and not (c.status is ClosureStatus.ACCEPTED and {c.robot_a, c.robot_b} <= set(state.anchors)):
-                fail(f"closure {i} is in the graph but not accepted between anchored robots")
-        if (first in state.anchors) != (count[first] > 0):
-            fail(f"{first} (the shared frame) must be anchored exactly when it has keyframes")
-        for name, (closure_id, T_init) in state.anchors.items():
-            T = np.asarray(state.T_shared_kf.get(name, np.zeros(0)))
-            if name not in count or T.shape != (count[name], 4, 4) or not np.isfinite(T).all():
-                fail(f"anchored robot {name} has no finite estimate for each of its keyframes")
-            if np.shape(T_init) != (4, 4) or (closure_id is None) != (name == first):
-                fail(f"anchor of {name} is malformed")
-            if closure_id is not None and not 0 <= closure_id < len(state.closures):
-                fail(f"{name} is anchored by closure {closure_id}, which does not exist")
-        for (a, b), v in state.pairs.items():
-            ids = np.asarray(v.ids, dtype=np.int64)
-            if a not in index or b not in index or ((ids < 0) | (ids >= len(state.closures))).any():
-                fail(f"the vote of {a}-{b} names unknown robots or closures")
 
     # --- consistency: which closures are accepted -------------------------------------------------
 
@@ -1038,11 +835,7 @@ class MultiRobotPoseGraph:
     # --- anchoring and iSAM2 bookkeeping ---------------------------------------------------------
 
     def _reset_isam(self) -> None:
-        p = gtsam.ISAM2Params()
-        p.setFactorization(self.factorization.value)
-        p.setRelinearizeThreshold(_relinearize_thresholds(*self.relinearize_threshold))
-        p.relinearizeSkip = 1
-        p.enablePartialRelinearizationCheck = True  # check the touched cliques only: flat cost per update
+        p = isam2_params(self.factorization, self.relinearize_threshold)
         self._version += 1
         self._isam = gtsam.ISAM2(p)
         self._new_factors = gtsam.NonlinearFactorGraph()
@@ -1056,13 +849,12 @@ class MultiRobotPoseGraph:
         r = self._robots[name]
         r.anchored, r.T_shared_odom_init = True, np.eye(4)
         k0 = self.keys.key(name, 0)
-        prior_noise = gtsam.noiseModel.Isotropic.Sigma(6, PRIOR_SIGMA)
-        self._add_factor(gtsam.PriorFactorPose3(k0, _pose3(r.T_odom_kf[0]), prior_noise))
-        self._new_values.insert(k0, _pose3(r.T_odom_kf[0]))
+        self._add_factor(gtsam.PriorFactorPose3(k0, pose3(r.T_odom_kf[0]), prior_noise()))
+        self._new_values.insert(k0, pose3(r.T_odom_kf[0]))
         for k in range(1, len(r.T_odom_kf)):
             self._push_keyframe(name, k)
 
-    def _odometry_sigmas(self, delta: np.ndarray, r: _Robot) -> np.ndarray:
+    def _odometry_sigmas(self, delta: np.ndarray, r: RobotTrack) -> np.ndarray:
         """(6,) [rot rad x3, trans m x3] sigmas of an odometry step ``delta`` (4, 4) of robot ``r``: the floor
         plus the drift rates times the step's length (the rotation rate the robot's loop closures measured,
         when they measured more than the prior: ``drift.py``)."""
@@ -1111,9 +903,9 @@ class MultiRobotPoseGraph:
             prev = self._new_values.atPose3(k_prev).matrix()
         else:
             prev = self._isam.calculateEstimatePose3(k_prev).matrix()
-        noise = gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(delta, r))
-        self._add_factor(gtsam.BetweenFactorPose3(k_prev, k_new, _pose3(delta), noise))
-        self._new_values.insert(k_new, _pose3(prev @ delta))
+        noise = odometry_noise(self._odometry_sigmas(delta, r))
+        self._add_factor(gtsam.BetweenFactorPose3(k_prev, k_new, pose3(delta), noise))
+        self._new_values.insert(k_new, pose3(prev @ delta))
 
     def _anchor_robot(self, robot: str, closure: ClosureRecord) -> None:
         """Insert all keyframes of unanchored ``robot`` placed through ``closure`` to an anchored robot."""
@@ -1128,7 +920,7 @@ class MultiRobotPoseGraph:
         r.anchored, r.anchor_closure, r.T_shared_odom_init = True, closure.closure_id, T_shared_odom
         if (robot, closure.closure_id) not in self._anchorings:
             self._anchorings.append((robot, closure.closure_id))
-        self._new_values.insert(self.keys.key(robot, 0), _pose3(T_shared_odom @ r.T_odom_kf[0]))
+        self._new_values.insert(self.keys.key(robot, 0), pose3(T_shared_odom @ r.T_odom_kf[0]))
         for k in range(1, len(r.T_odom_kf)):
             self._push_keyframe(robot, k)
 
@@ -1227,7 +1019,7 @@ class MultiRobotPoseGraph:
             if c.status is ClosureStatus.ACCEPTED and both and not c.in_graph:
                 k_a, k_b = self.keys.key(c.robot_a, c.kf_a), self.keys.key(c.robot_b, c.kf_b)
                 self._add_factor(
-                    gtsam.BetweenFactorPose3(k_a, k_b, _pose3(c.T_a_b), self._closure_noise[c.closure_id]),
+                    gtsam.BetweenFactorPose3(k_a, k_b, pose3(c.T_a_b), self._closure_noise[c.closure_id]),
                     c.closure_id,
                 )
                 c.in_graph = True
@@ -1264,10 +1056,7 @@ class MultiRobotPoseGraph:
                 continue
             if r.attitude_next == len(r.T_odom_kf):
                 continue
-            noise = gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Huber.Create(_KERNEL_WIDTH[RobustKernel.HUBER]),
-                gtsam.noiseModel.Isotropic.Sigma(2, r.attitude_sigma_rad),
-            )
+            noise = attitude_noise(r.attitude_sigma_rad)
             start = bisect.bisect_left(r.measured, r.attitude_next)
             for k in r.measured[start:]:
                 n_cam = r.T_odom_kf[k][:3, :3].T @ r.up_odom[k]
@@ -1275,7 +1064,7 @@ class MultiRobotPoseGraph:
                 self._attitude_factors += 1
             r.attitude_next = len(r.T_odom_kf)
 
-    def _measure_up_shared(self, anchored: list[tuple[str, _Robot]]) -> np.ndarray | None:
+    def _measure_up_shared(self, anchored: list[tuple[str, RobotTrack]]) -> np.ndarray | None:
         """The shared frame's up, from the first anchored robot (in index order) with ``attitude_warmup``
         measured keyframes: those normals rotated by their current estimates, weighed against the odometry's
         rotation drift since its first keyframe (``attitude.up_at_start``; the drift as the odometry factors
@@ -1295,7 +1084,7 @@ class MultiRobotPoseGraph:
             return up_at_start(np.stack(ups), walk, self._attitude_sigma(r))
         return None
 
-    def _attitude_sigma(self, r: _Robot) -> float | None:
+    def _attitude_sigma(self, r: RobotTrack) -> float | None:
         """The robot's attitude sigma, measured once from its first ``attitude_warmup`` measured normals
         (``attitude.normal_sigma_rad``); None while it has fewer."""
         if r.attitude_sigma_rad is None and len(r.measured) >= self.attitude_warmup:
@@ -1407,11 +1196,11 @@ class MultiRobotPoseGraph:
 
     # --- helpers ---------------------------------------------------------------------------------
 
-    def _robot(self, robot: str) -> _Robot:
+    def _robot(self, robot: str) -> RobotTrack:
         self.keys.index(robot)  # raises BackendError naming the known robots
         return self._robots[robot]
 
-    def _require_anchored(self, robot: str) -> _Robot:
+    def _require_anchored(self, robot: str) -> RobotTrack:
         r = self._robot(robot)
         if not r.anchored:
             raise BackendError(
@@ -1419,49 +1208,14 @@ class MultiRobotPoseGraph:
             )
         return r
 
-    def _closure_noise_model(
-        self, information: np.ndarray | None
-    ) -> tuple[gtsam.noiseModel.Base, np.ndarray]:
-        if information is None:
-            base = gtsam.noiseModel.Diagonal.Sigmas(self._closure_sigmas)
-            info = np.diag(1.0 / self._closure_sigmas**2)
-        else:
-            info = np.asarray(information, dtype=np.float64)
-            if info.shape != (6, 6) or not np.isfinite(info).all() or np.linalg.eigvalsh(info).min() <= 0:
-                raise BackendError("closure information must be a finite, positive definite (6, 6) matrix")
-            base = gtsam.noiseModel.Gaussian.Information(info)
-        if self.robust_kernel is RobustKernel.NONE:
-            return base, info
-        width = self._kernel_width or _KERNEL_WIDTH[self.robust_kernel]
-        return gtsam.noiseModel.Robust.Create(_KERNELS[self.robust_kernel](width), base), info
-
-    @staticmethod
-    def _inverse_information(information: np.ndarray, T_b_a: np.ndarray) -> np.ndarray:
-        """Information of the flipped measurement ``T_b_a`` given that of ``T_a_b = T_b_a⁻¹``.
-
-        With right perturbations, ``T_a_b·Exp(ξ)`` inverts to ``T_b_a·Exp(-Ad(T_a_b)·ξ)``, so the
-        information becomes ``Ad(T_b_a)ᵀ · I · Ad(T_b_a)`` (gtsam [rot, trans] order).
-        """
-        Ad = _pose3(T_b_a).AdjointMap()
-        return Ad.T @ np.asarray(information, dtype=np.float64) @ Ad
+    def _closure_noise_model(self, information: np.ndarray | None) -> tuple[gtsam.noiseModel.Base, np.ndarray]:
+        """A closure's noise model (with the robust kernel) and (6, 6) information (``factors.closure_noise_model``)."""
+        return closure_noise_model(information, self._closure_sigmas, self.robust_kernel, self._kernel_width)
 
 
 def _first_line(exc: BaseException) -> str:
     """The first non-empty line of an exception message (gtsam's run over many lines)."""
     return next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
-
-
-def _g2o_pose(p: gtsam.Pose3) -> str:
-    t = p.translation()
-    q = p.rotation().toQuaternion()
-    return f"{t[0]:.9f} {t[1]:.9f} {t[2]:.9f} {q.x():.9f} {q.y():.9f} {q.z():.9f} {q.w():.9f}"
-
-
-def _g2o_edge(k1: int, k2: int, T: np.ndarray, info_rot_trans: np.ndarray) -> str:
-    perm = np.r_[3, 4, 5, 0, 1, 2]  # gtsam [rot, trans] -> g2o [trans, rot]
-    I = info_rot_trans[np.ix_(perm, perm)]
-    upper = I[np.triu_indices(6)]
-    return f"EDGE_SE3:QUAT {k1} {k2} " + _g2o_pose(_pose3(T)) + " " + " ".join(f"{v:.6g}" for v in upper)
 
 
 def make_pose_graph(robot_names: list[str], cfg: BackendConfig) -> MultiRobotPoseGraph:

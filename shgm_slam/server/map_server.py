@@ -17,7 +17,9 @@ from shgm_slam.backend.confirmation import (
     describe_waiting,
     placements,
 )
-from shgm_slam.backend.pose_graph import ClosureStatus, PoseGraphState, make_pose_graph
+from shgm_slam.backend.pose_graph import make_pose_graph
+from shgm_slam.backend.records import ClosureStatus
+from shgm_slam.backend.state import PoseGraphState
 from shgm_slam.backend.stretches import is_stretch_token
 from shgm_slam.config import ShgmConfig
 from shgm_slam.descriptors import NodeDescriptors

@@ -17,7 +17,8 @@ import msgpack
 import numpy as np
 
 from shgm_slam.backend.consistency import PairVote
-from shgm_slam.backend.pose_graph import ClosureRecord, ClosureStatus, Factorization, PoseGraphState
+from shgm_slam.backend.records import ClosureRecord, ClosureStatus, Factorization
+from shgm_slam.backend.state import PoseGraphState
 from shgm_slam.errors import DataError, ShgmError
 from shgm_slam.graph.semantic_graph import GraphState
 from shgm_slam.messages import DoneMessage, RobotState
