@@ -4,14 +4,12 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from shgm_slam.backend.confirmation import (
     AgentPlacement,
     Placement,
-    Sharing,
     Support,
     describe,
     describe_waiting,
@@ -19,107 +17,69 @@ from shgm_slam.backend.confirmation import (
 )
 from shgm_slam.backend.pose_graph import make_pose_graph
 from shgm_slam.backend.records import ClosureStatus
-from shgm_slam.backend.state import PoseGraphState
-from shgm_slam.backend.stretches import is_stretch_token
 from shgm_slam.config import ShgmConfig
 from shgm_slam.descriptors import NodeDescriptors
 from shgm_slam.descriptors.incremental import IncrementalDescriptors
 from shgm_slam.errors import BackendError, ConfigError
 from shgm_slam.geometry import se3
 from shgm_slam.geometry.ground import rotation_to_z
-from shgm_slam.graph.semantic_graph import GraphState, SemanticGraph
+from shgm_slam.graph.semantic_graph import SemanticGraph
 from shgm_slam.labels import FLAT_GROUND_LABELS
 from shgm_slam.matching import MatchResult, match_graphs
 from shgm_slam.messages import KeyframeMessage
 from shgm_slam.server.closures import SurfaceOffset, local_closures
-from shgm_slam.server.places import free_path_m, near_keyframes, tolerance_m
-from shgm_slam.server.records import MatchEvidence, MatchRecord
+from shgm_slam.server.evidence import MARGINAL_OBJECT, match_evidence, match_objects, sharing, support_objects
+from shgm_slam.server.last_look import (
+    LAST_LOOK_QUERY,
+    PARTNER_LOOK_QUERY,
+    last_look_lines,
+    smallest_matches,
+    still_accepted,
+)
+from shgm_slam.server.places import free_path_m, loop_near, rows_near
+from shgm_slam.server.queries import (
+    BACKFILL_QUERY,
+    CONFIRMING_MATCHES,
+    RECENT_WINDOW_SUBMAPS,
+    WINDOW_QUERY,
+    loop_cutoff,
+    loop_exclusion_m,
+    recent_window,
+    unclosed_window,
+)
+from shgm_slam.server.records import MatchRecord
+from shgm_slam.server.state import MapServerState
 from shgm_slam.server.viewpoints import (
     camera_height_m,
     closure_information,
     elevation_gap_rad,
     up_is_level,
     up_spread_rad,
+    viewing_rays,
     views_differ,
 )
 from shgm_slam.types import GraphArrays
 
+__all__ = [
+    "BACKFILL_QUERY",
+    "CONFIRMING_MATCHES",
+    "HEIGHT_NODES",
+    "LAST_LOOK_QUERY",
+    "MARGINAL_OBJECT",
+    "PARTNER_LOOK_QUERY",
+    "RECENT_WINDOW_SUBMAPS",
+    "WINDOW_QUERY",
+    "MapServer",
+    "MapServerState",
+]
+
 log = logging.getLogger(__name__)
+
+_sharing = sharing  # its former name here (tests/backend/test_stretches.py imports it)
 
 HEIGHT_NODES = 512
 """Newest flat-ground nodes a robot's camera height is measured over (``camera_height_m``): enough for a
 stable median, and a cost that does not grow with the graph."""
-
-WINDOW_QUERY = "window"
-"""``MatchRecord.query`` of a confirmed pair's re-match over the querying robot's recent window."""
-
-RECENT_WINDOW_SUBMAPS = 2
-"""Length of that window in submaps (``backend.submap_keyframes`` each): the querying robot's newest keyframes'
-nodes against the partner's nodes near them in the fused estimate. Once two robots are placed, matching their
-whole graphs again found one rigid transform for hundreds of metres of both robots' drift: exact near the
-middle of its inliers, and metres off along the street at its ends, where the cut closures paired each object
-with its neighbour and kept the error (RGB only, synthia-like tuning worlds: closures 5-13 m off at the newest
-end outvoted later right ones, the backward camera ending 12-14 m off). A window twice a submap still holds
-more evidence than a submap (whose likelihood ratios mostly stay below the threshold on a network's depth)
-and spans little drift: on the RGB tuning seeds 10-19 (replayed journals) the backward cameras placed wrong
-went from 5 of 10 to 1 (on seeds 10-14 three submaps also left none wrong, five one: two is the shorter);
-the files-depth tuning worlds 10-29 kept the same robots right (placements 0.05 m from before on average)."""
-
-BACKFILL_QUERY = "backfill"
-"""``MatchRecord.query`` of a placed pair's re-match over an older window of the querying robot that no closure
-ties yet (``MapServer._unclosed_window``): the recent window never returns to what a robot drove before it was
-placed, which whole-graph re-matches used to reach."""
-
-LAST_LOOK_QUERY = "independent"
-"""``MatchRecord.query`` of the last look for a second, independent match (``MapServer._independent_match``)."""
-
-MARGINAL_OBJECT = "marginal-with"
-"""Pseudo-object every marginal match of a robot pair rests on (``MapServer._marginal``), with the partner's name."""
-
-PARTNER_LOOK_QUERY = "independent-partner"
-"""``MatchRecord.query`` of the same last look from the partner's side (the partner's graph as the query, robot_a
-the waiting agent), taken when the agent's own look lies on the straight stretches of its earlier queries."""
-
-CONFIRMING_MATCHES = 2
-"""Independent graph matches (on mutually disjoint objects, ``MultiRobotPoseGraph.evidence_between``) behind a
-placed robot pair's accepted closures before its submaps are matched only near where the fused estimate puts
-them (one match may be a wrong placement: global matching goes on)."""
-
-
-@dataclass(frozen=True, eq=False)
-class MapServerState:
-    """Everything a ``MapServer`` holds (``MapServer.state``, what a snapshot stores);
-    ``MapServer.from_state`` rebuilds a server that matches, votes and answers as this one would.
-
-    Attributes:
-        agents: every agent in the order the server learnt of them (the reference first).
-        graphs: agent -> its mirrored semantic graph.
-        T_odom_kf: agent -> (K, 4, 4) keyframe poses in its odometry frame, as received.
-        up: agent -> (3,) sum of its keyframes' ground normals in its odometry frame (zeros while none
-            fitted the ground; None is read as zeros).
-        since_match: agent -> keyframes received since its last match.
-        matches: every match attempt so far (the match log).
-        closures: accepted closure keys ``(agent_a, kf_a, agent_b, kf_b)``.
-        step, num_matches: keyframes received and successful matches so far.
-        timings_ms: ``"match"`` / ``"backend"`` -> wall times so far, milliseconds.
-        pose_graph: the pose graph's decisions and estimate.
-        support: closure id -> agent -> the node ids behind it (confirmation of placements).
-        surface_offset: the fleet's surface-to-centre offset estimate (``closures.SurfaceOffset.state``).
-    """
-
-    agents: tuple[str, ...]
-    graphs: dict[str, GraphState]
-    T_odom_kf: dict[str, np.ndarray]
-    up: dict[str, np.ndarray | None]
-    since_match: dict[str, int]
-    matches: tuple[MatchRecord, ...]
-    closures: tuple[tuple[str, int, str, int], ...]
-    step: int
-    num_matches: int
-    timings_ms: dict[str, list[float]]
-    pose_graph: PoseGraphState
-    support: dict[int, dict[str, frozenset[int]]] = field(default_factory=dict)
-    surface_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 class MapServer:
@@ -280,25 +240,15 @@ class MapServer:
         return self._keep(records)
 
     def _recent_window(self, robot: str) -> np.ndarray:
-        """``robot``'s newest ``RECENT_WINDOW_SUBMAPS`` submaps of keyframes (indices)."""
-        n_kf = len(self._T_odom_kf[robot])
-        return np.arange(max(0, n_kf - RECENT_WINDOW_SUBMAPS * self.cfg.backend.submap_keyframes), n_kf)
+        """``robot``'s newest ``RECENT_WINDOW_SUBMAPS`` submaps of keyframes (indices, ``queries.recent_window``)."""
+        return recent_window(len(self._T_odom_kf[robot]), self.cfg.backend.submap_keyframes)
 
     def _unclosed_window(self, robot: str) -> np.ndarray | None:
-        """One older window of ``robot``'s keyframes (indices) that no closure ties yet, or None: its keyframes
-        cut into windows as long as the recent one, those wholly before it that hold no closure keyframe,
-        taken in turn (the robot's match round picks which), so each is tried again as the maps grow."""
-        w = RECENT_WINDOW_SUBMAPS * self.cfg.backend.submap_keyframes
-        n_kf = len(self._T_odom_kf[robot])
-        starts = np.arange(0, n_kf - 2 * w + 1, w)
-        if starts.size == 0:
-            return None
-        closed = self._pose_graph.closure_keyframes(robot)
-        open_ = starts[np.searchsorted(closed, starts) == np.searchsorted(closed, starts + w)]
-        if open_.size == 0:
-            return None
-        start = open_[(n_kf // self.cfg.backend.match_every_keyframes) % open_.size]
-        return np.arange(start, start + w)
+        """One older window of ``robot``'s keyframes (indices) that no closure ties yet, or None
+        (``queries.unclosed_window``)."""
+        b = self.cfg.backend
+        return unclosed_window(len(self._T_odom_kf[robot]), b.submap_keyframes, b.match_every_keyframes,
+                               self._pose_graph.closure_keyframes(robot))  # fmt: skip
 
     def _match_window(
         self, other: str, robot: str, kfs: np.ndarray, query: str, graph_a: GraphArrays, desc_a: NodeDescriptors,
@@ -333,17 +283,7 @@ class MapServer:
                                                                             Placement.CONFIRMED):  # fmt: skip
             return []
         pg = self._pose_graph
-        objects: dict[tuple[str, int], dict[str, set[int]]] = {}  # (partner, match id) -> agent -> node ids
-        for c in pg.closures():
-            if c.status is not ClosureStatus.ACCEPTED or c.robot_a == c.robot_b or agent not in (c.robot_a, c.robot_b):
-                continue
-            partner = c.robot_b if c.robot_a == agent else c.robot_a
-            ids = objects.setdefault((partner, c.evidence[1]), {agent: set(), partner: set()})
-            for a, nodes in self._support.get(c.closure_id, {}).items():
-                ids[a] |= set(nodes)
-        smallest: dict[str, dict[str, set[int]]] = {}  # partner -> the objects of its smallest match with agent
-        for (partner, _), ids in sorted(objects.items(), key=lambda kv: (sum(map(len, kv[1].values())), kv[0])):
-            smallest.setdefault(partner, ids)
+        smallest = smallest_matches(agent, pg.closures(), self._support)  # partner -> what the look leaves out
         records = []
         for partner, ids in smallest.items():
             if (self.placement(agent).placement is Placement.CONFIRMED or not self.is_placed(partner)
@@ -375,36 +315,12 @@ class MapServer:
     def last_looks(self) -> list[str]:
         """One line per last look (``_independent_match``) so far, for the run's summary, ``metrics.json`` and
         ``server.json``: whose, with whom, and what came of it (confirmed, provisional, outvoted, or why
-        the match was rejected)."""
-        lines = []
-        for m in self._matches:
-            if m.query not in (LAST_LOOK_QUERY, PARTNER_LOOK_QUERY):
-                continue
-            agent, partner = (m.robot_b, m.robot_a) if m.query == LAST_LOOK_QUERY else (m.robot_a, m.robot_b)
-            if m.accepted:
-                what = {
-                    Placement.CONFIRMED: "agreed: it is confirmed in the shared frame",
-                    Placement.PROVISIONAL: "was accepted; it is still provisional",
-                }.get(self.placement(agent).placement, "")
-                what = what or (
-                    "agrees with its earlier matches but is not a second, independent piece of evidence (the "
-                    "reason under the robot's warning)" if self._still_accepted(m) else "was accepted, but outvoted"
-                )
-            else:
-                what = f"did not confirm it: {m.reason}"
-            look = f"a last look with {partner}" if m.query == LAST_LOOK_QUERY else f"{partner}'s last look at it"
-            lines.append(f"{agent}: {look}, without the objects behind its accepted match, {what}")
-        return lines
+        the match was rejected; ``last_look.last_look_lines``)."""
+        return last_look_lines(self._matches, lambda agent: self.placement(agent).placement, self._still_accepted)
 
     def _still_accepted(self, record: MatchRecord) -> bool:
         """True when a closure that ``record`` added is in its pair's consistent set now."""
-        added = {(record.robot_a, c["keyframe_a"], record.robot_b, c["keyframe_b"]) for c in record.closures
-                 if c.get("accepted")}  # fmt: skip
-        return any(
-            c.status is ClosureStatus.ACCEPTED
-            and ((c.robot_a, c.kf_a, c.robot_b, c.kf_b) in added or (c.robot_b, c.kf_b, c.robot_a, c.kf_a) in added)
-            for c in self._pose_graph.closures()
-        )
+        return still_accepted(record, self._pose_graph.closures())
 
     def _confirmed(self, a: str, b: str) -> bool:
         """Both placed and their accepted closures rest on ``CONFIRMING_MATCHES`` independent matches."""
@@ -452,7 +368,7 @@ class MapServer:
         twice the robot's object range (``object_range_m``; the fleet's extraction depth until the graph has
         nodes)."""
         reach = self.object_range_m(robot)
-        return 2.0 * (float(self.cfg.extraction.filled().max_depth_m) if reach is None else reach)
+        return loop_exclusion_m(reach, self.cfg.extraction.filled().max_depth_m)
 
     def _free_path_m(self, agent: str) -> np.ndarray:
         """(K,) metres from each keyframe of placed ``agent`` to its nearest keyframe tied by a closure."""
@@ -462,11 +378,10 @@ class MapServer:
         """Rows of placed ``a``'s graph anchored near placed ``b``'s keyframes ``kfs_b`` in the fused
         estimate (``places``): within both object ranges plus the drift tolerance."""
         estimate = self._pose_graph.estimate()
-        drift_m = self._free_path_m(b)[kfs_b][:, None] + self._free_path_m(a)[None, :]
-        tol = tolerance_m(drift_m, self._pose_graph.thresholds)
+        free_b, free_a = self._free_path_m(b)[kfs_b], self._free_path_m(a)
         reach = (self.object_range_m(a) or 0.0) + (self.object_range_m(b) or 0.0)
-        near = near_keyframes(estimate[b][kfs_b, :3, 3], estimate[a][:, :3, 3], tol, reach)
-        return np.flatnonzero(near[self._graphs[a].anchors()])
+        return rows_near(self._graphs[a].anchors(), estimate[a][:, :3, 3], free_a, estimate[b][kfs_b, :3, 3], free_b,
+                         reach, self._pose_graph.thresholds)  # fmt: skip
 
     def _loop_query(
         self, robot: str, kfs: np.ndarray, recent: GraphArrays
@@ -479,24 +394,18 @@ class MapServer:
         its descriptors count paths within it. Of it, the nodes anchored near the submap (class docstring).
         Recent nodes: the submap's nodes first seen after that stretch began, so no node is in both.
         """
-        n_kf, window = len(self._T_odom_kf[robot]), self.cfg.backend.submap_keyframes
-        first = n_kf - window  # the submap's first keyframe
         path = np.asarray(self._path_m[robot])
-        cutoff = min(first - window, int(np.searchsorted(path, path[first] - self.loop_exclusion_m(robot), "right")))
+        cutoff = loop_cutoff(path, self.cfg.backend.submap_keyframes, self.loop_exclusion_m(robot))
         if cutoff <= 0:
             return None
         graph = self._graphs[robot]
         anchors = graph.anchors()
-        d_path = np.abs(path[kfs][:, None] - path[None, :cutoff])
         if self.is_placed(robot):
             free = self._free_path_m(robot)
-            d_path = np.minimum(d_path, free[kfs][:, None] + free[None, :cutoff])
             xyz = self._pose_graph.estimate()[robot][:, :3, 3]
         else:
-            xyz = np.stack(self._T_odom_kf[robot])[:, :3, 3]
-        near = np.zeros(n_kf, dtype=bool)
-        near[:cutoff] = near_keyframes(xyz[kfs], xyz[:cutoff], tolerance_m(d_path, self._pose_graph.thresholds),
-                                       self.loop_exclusion_m(robot))  # fmt: skip
+            free, xyz = None, np.stack(self._T_odom_kf[robot])[:, :3, 3]
+        near = loop_near(xyz, path, free, kfs, cutoff, self.loop_exclusion_m(robot), self._pose_graph.thresholds)
         older = np.flatnonzero(anchors < cutoff)  # a prefix of the rows: nodes are created in keyframe order
         rows = np.flatnonzero(near[anchors])
         new = recent.subset(graph.anchor_keyframes(recent.node_ids) >= cutoff)
@@ -537,7 +446,7 @@ class MapServer:
         rec = MatchRecord(
             self._step, robot_a, robot_b, query, result.success, False, result.reason, None, None,
             result.T_a_b, result.inliers, result.candidates, len(graph_a), len(graph_b), dict(result.timings_ms),
-            evidence=_evidence(result, len(self._T_odom_kf[robot_b]) - 1),
+            evidence=match_evidence(result, len(self._T_odom_kf[robot_b]) - 1),
         )  # fmt: skip
         if not result.success:
             return rec
@@ -583,9 +492,7 @@ class MapServer:
         # alias re-found by every whole-graph match entered as two pieces through such closures, 566 m off)
         support = {robot_a: frozenset(result.inliers[:, 0].tolist()),
                    robot_b: frozenset(result.inliers[:, 1].tolist())}  # fmt: skip
-        objects = _objects(support) if robot_a != robot_b else frozenset()
-        if marginal:  # every marginal match of the pair rests on one shared pseudo-object: one piece at most
-            objects |= {(robot_a, f"{MARGINAL_OBJECT}:{robot_b}"), (robot_b, f"{MARGINAL_OBJECT}:{robot_a}")}
+        objects = match_objects(robot_a, robot_b, support, marginal)
         for kf_a, kf_b, T_akf_bkf, n, rows in closures:
             key = (robot_a, kf_a, robot_b, kf_b)
             # a later match that finds the same keyframe pair again is independent evidence: while it
@@ -630,15 +537,7 @@ class MapServer:
         t1 = time.perf_counter()
         self._pose_graph.update()  # one iSAM2 update for all closures of this match
         self.timings_ms["backend"].append((time.perf_counter() - t1) * 1e3)
-        accepted = [c for c in rec.closures if c["accepted"]]
-        rec.accepted = bool(accepted)
-        shown = accepted[0] if accepted else rec.closures[0]
-        rec.kf_a, rec.kf_b, rec.reason = shown["keyframe_a"], shown["keyframe_b"], shown["reason"]
-        if len(rec.closures) > 1:
-            rec.reason = f"{len(accepted)} of {len(rec.closures)} local closures accepted; {rec.reason}"
-        rec.duplicate = all(c["reason"].startswith("duplicate") for c in rec.closures if not c["accepted"]) and (
-            not accepted
-        )
+        rec.conclude()
         return rec
 
     def _marginal(self, robot_a: str, robot_b: str, result: MatchResult) -> bool:
@@ -684,8 +583,7 @@ class MapServer:
         one that first saw it) towards the node at (M, 3) ``positions_xyz``."""
         poses = self._T_odom_kf[agent]
         cameras = np.stack([poses[k][:3, 3] for k in anchors]) if len(anchors) else np.zeros((0, 3))
-        rays = positions_xyz - cameras
-        return rays / np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-9)
+        return viewing_rays(cameras, positions_xyz)
 
     # --- snapshots --------------------------------------------------------------------------------
 
@@ -740,8 +638,8 @@ class MapServer:
         server._support = {
             int(cid): {a: frozenset(ids) for a, ids in sup.items()} for cid, sup in state.support.items()
         }
-        server._pose_graph.restore_state(state.pose_graph, {a: server.keyframe_poses(a) for a in agents},
-                                         {cid: _objects(sup) for cid, sup in server._support.items()})  # fmt: skip
+        objects = {cid: support_objects(sup) for cid, sup in server._support.items()}
+        server._pose_graph.restore_state(state.pose_graph, {a: server.keyframe_poses(a) for a in agents}, objects)
         try:
             server._surface_offset = SurfaceOffset.from_state(state.surface_offset)
         except ValueError as exc:
@@ -828,7 +726,7 @@ class MapServer:
         others = tuple(sorted(set(matches) - {partner}))
         return describe_waiting(agent, partner, max(1, pg.evidence_between(agent, partner)),
                                 pg.min_closures_to_anchor, len(matches[partner]), others,
-                                _sharing(pg.shared_support(agent, partner)))  # fmt: skip
+                                sharing(pg.shared_support(agent, partner)))  # fmt: skip
 
     def measured_drift(self, agent: str) -> float | None:
         """Odometry rotation drift (rad per metre) ``agent``'s own loop closures measured beyond the prior
@@ -903,39 +801,9 @@ class MapServer:
         return float(np.mean(self.timings_ms["match"])) if self.timings_ms["match"] else 0.0
 
 
-def _evidence(result: MatchResult, keyframe_b: int) -> MatchEvidence | None:
-    """The match's best hypothesis and its verification numbers (None when it formed no hypothesis)."""
-    if result.T_a_b_hypothesis is None:
-        return None
-    return MatchEvidence(
-        np.asarray(result.T_a_b_hypothesis, dtype=np.float64), keyframe_b, float(result.llr),
-        float(result.llr_threshold), int(result.support), float(result.expected_chance), int(result.overlap_a),
-        int(result.overlap_b),
-    )  # fmt: skip
-
-
 def _listed(pair: tuple[int, int] | None) -> list[int] | None:
     """A closure's stretch pair as ``matches.json`` writes it (a list, or null)."""
     return None if pair is None else list(pair)
-
-
-def _sharing(shared: frozenset) -> tuple[Sharing, ...]:
-    """The kinds of what several graph matches rest on in common (``MultiRobotPoseGraph.shared_support``):
-    stretch tokens (``backend/stretches.py``), the marginal pseudo-object (``MARGINAL_OBJECT``), objects."""
-    kinds = set()
-    for item in shared:
-        if is_stretch_token(item):
-            kinds.add(Sharing.STRETCHES)
-        elif isinstance(item, tuple) and len(item) == 2 and str(item[1]).startswith(MARGINAL_OBJECT):
-            kinds.add(Sharing.CHANCE)
-        else:
-            kinds.add(Sharing.OBJECTS)
-    return tuple(k for k in Sharing if k in kinds)
-
-
-def _objects(support: Support) -> frozenset[tuple[str, int]]:
-    """A closure's support (agent -> node ids) as the pose graph's objects: ``(agent, node id)`` pairs."""
-    return frozenset((agent, node) for agent, nodes in support.items() for node in nodes)
 
 
 def _rows_of(graph: GraphArrays, node_ids: np.ndarray) -> np.ndarray:

@@ -59,3 +59,52 @@ def near_keyframes(
         return np.zeros(c.shape[0], dtype=bool)
     d = np.linalg.norm(q[:, None, :] - c[None, :, :], axis=2)
     return (d <= reach_m + np.broadcast_to(tol_m, d.shape)).any(axis=0)
+
+
+def rows_near(
+    anchors_a: np.ndarray, xyz_a: np.ndarray, free_a: np.ndarray, xyz_b: np.ndarray, free_b: np.ndarray,
+    reach_m: float, thresholds: ConsistencyThresholds,
+) -> np.ndarray:  # fmt: skip
+    """Rows of placed robot a's graph anchored near placed robot b's query keyframes in the fused estimate:
+    within both object ranges (``reach_m``) plus the drift tolerance (``free_path_m`` of both sides).
+
+    Args:
+        anchors_a: (N,) keyframe each node of a's graph is anchored to (row order of the graph).
+        xyz_a: (K_a, 3) a's keyframe positions in the shared frame (fused estimate), metres.
+        free_a: (K_a,) ``free_path_m`` of a's keyframes, metres.
+        xyz_b: (Q, 3) b's query keyframe positions in the shared frame, metres.
+        free_b: (Q,) ``free_path_m`` of those keyframes, metres.
+        reach_m: the sum of the two robots' object ranges, metres.
+        thresholds: the pose graph's consistency thresholds.
+
+    Returns:
+        (M,) int row indices of a's graph, ascending.
+    """
+    tol = tolerance_m(free_b[:, None] + free_a[None, :], thresholds)
+    near = near_keyframes(xyz_b, xyz_a, tol, reach_m)
+    return np.flatnonzero(near[anchors_a])
+
+
+def loop_near(
+    xyz: np.ndarray, path_m: np.ndarray, free_m: np.ndarray | None, kfs: np.ndarray, cutoff: int, reach_m: float,
+    thresholds: ConsistencyThresholds,
+) -> np.ndarray:  # fmt: skip
+    """(K,) bool: a robot's keyframes before ``cutoff`` near its query keyframes ``kfs`` (a loop closure's
+    candidates): within ``reach_m`` plus the drift tolerance, counted along the robot's odometry between the
+    two keyframes (exactly what the pose graph's odometry check of a loop closure allows) or, once the robot
+    is placed (``free_m``), from each to its nearest keyframe tied by a closure, whichever is shorter.
+
+    Args:
+        xyz: (K, 3) keyframe positions: the fused estimate once placed, else the odometry frame, metres.
+        path_m: (K,) cumulative odometry path length at each keyframe, metres.
+        free_m: (K,) ``free_path_m`` of each keyframe once the robot is placed, else None.
+        kfs: (Q,) the query keyframes; cutoff: keyframes from here on are never candidates.
+        reach_m: how far apart two keyframes can be and still see one object, metres.
+        thresholds: the pose graph's consistency thresholds.
+    """
+    d_path = np.abs(path_m[kfs][:, None] - path_m[None, :cutoff])
+    if free_m is not None:
+        d_path = np.minimum(d_path, free_m[kfs][:, None] + free_m[None, :cutoff])
+    near = np.zeros(len(path_m), dtype=bool)
+    near[:cutoff] = near_keyframes(xyz[kfs], xyz[:cutoff], tolerance_m(d_path, thresholds), reach_m)
+    return near

@@ -59,8 +59,8 @@ class MatchRecord:
     robot_a: str
     robot_b: str
     query: str  # "submap" | "whole" | "window": which part of robot_b's graph was matched against robot_a's
-    # (its recent submap, its whole graph, or a placed pair's recent window: map_server.RECENT_WINDOW_SUBMAPS);
-    # "backfill": a placed pair's older window of robot_b that no closure ties yet (map_server.BACKFILL_QUERY);
+    # (its recent submap, its whole graph, or a placed pair's recent window: queries.RECENT_WINDOW_SUBMAPS);
+    # "backfill": a placed pair's older window of robot_b that no closure ties yet (queries.BACKFILL_QUERY);
     # "loop": robot_b == robot_a, its recent submap against its own older graph (intra-robot loop closure);
     # "independent": at the end, whole graphs without the objects behind robot_b's one piece of evidence
     # "independent-partner": the same from the partner's side (robot_a the waiting agent, robot_b the partner)
@@ -101,6 +101,21 @@ class MatchRecord:
             "closures": self.closures,
             "evidence": None if self.evidence is None else self.evidence.to_json_dict(),
         }
+
+    def conclude(self) -> None:
+        """Sum up a successful match's decided ``closures`` (at least one) in the record's own fields: accepted
+        when any closure was; the keyframes and reason of the first accepted closure (else of the first), the
+        reason prefixed with the count accepted when there were several; a duplicate when every closure not
+        accepted repeated an earlier one and none was accepted."""
+        accepted = [c for c in self.closures if c["accepted"]]
+        self.accepted = bool(accepted)
+        shown = accepted[0] if accepted else self.closures[0]
+        self.kf_a, self.kf_b, self.reason = shown["keyframe_a"], shown["keyframe_b"], shown["reason"]
+        if len(self.closures) > 1:
+            self.reason = f"{len(accepted)} of {len(self.closures)} local closures accepted; {self.reason}"
+        self.duplicate = all(c["reason"].startswith("duplicate") for c in self.closures if not c["accepted"]) and (
+            not accepted
+        )
 
 
 @dataclass(frozen=True)

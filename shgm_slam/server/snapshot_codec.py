@@ -22,9 +22,9 @@ from shgm_slam.backend.state import PoseGraphState
 from shgm_slam.errors import DataError, ShgmError
 from shgm_slam.graph.semantic_graph import GraphState
 from shgm_slam.messages import DoneMessage, RobotState
-from shgm_slam.server.map_server import MapServerState
 from shgm_slam.server.records import MatchEvidence, MatchRecord
 from shgm_slam.server.sessions import RobotSession
+from shgm_slam.server.state import MapServerState
 from shgm_slam.wire import decode, encode
 
 _DTYPES = {"f8": np.dtype("<f8"), "i8": np.dtype("<i8"), "b1": np.dtype("|b1")}

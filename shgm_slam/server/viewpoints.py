@@ -100,6 +100,17 @@ def elevation_gap_rad(
     return float(np.median(np.abs(elev_a - elev_b)))
 
 
+def viewing_rays(cameras_xyz: np.ndarray, positions_xyz: np.ndarray) -> np.ndarray:
+    """(M, 3) unit rays from each camera towards its node.
+
+    Args:
+        cameras_xyz: (M, 3) position of the camera that first saw each node (its anchor keyframe), metres.
+        positions_xyz: (M, 3) the nodes' positions in the same frame, metres.
+    """
+    rays = positions_xyz - cameras_xyz
+    return rays / np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-9)
+
+
 def closure_information(
     sigma_rot_rad: float, sigma_trans_m: float, elevation_gap: float, per_elevation: float
 ) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""A placed pair's re-matches over the querying robot's recent window (``map_server.RECENT_WINDOW_SUBMAPS``):
+"""A placed pair's re-matches over the querying robot's recent window (``queries.RECENT_WINDOW_SUBMAPS``):
 closures stay right at their place while the two robots' odometries drift apart; one rigid transform over
 both whole graphs does not."""
 
@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import shgm_slam.server.map_server as map_server
+import shgm_slam.server.queries as query_plan
 from shgm_slam.config import ShgmConfig
 from shgm_slam.geometry import se3
 from shgm_slam.graph.extraction import ObjectObservations
@@ -64,7 +65,7 @@ def _messages(robot: str, T: np.ndarray, T_odom: np.ndarray, pos: np.ndarray, la
 
 def _run(window_submaps: int, monkeypatch: pytest.MonkeyPatch) -> tuple[MapServer, list, dict, int]:
     """The convoy driven through a map server: (server, match records, true poses, b's keyframe when placed)."""
-    monkeypatch.setattr(map_server, "RECENT_WINDOW_SUBMAPS", window_submaps)
+    monkeypatch.setattr(query_plan, "RECENT_WINDOW_SUBMAPS", window_submaps)
     pos, labels = _street()
     T_a, odo_a = _drive(10.0, 1.0)
     T_b, odo_b = _drive(0.0, SCALE_B)
