@@ -75,7 +75,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-_sharing = sharing  # its former name here (tests/backend/test_stretches.py imports it)
 
 HEIGHT_NODES = 512
 """Newest flat-ground nodes a robot's camera height is measured over (``camera_height_m``): enough for a

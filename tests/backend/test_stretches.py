@@ -83,20 +83,20 @@ def test_what_tied_two_matches_together_is_named():
     object-disjoint matches on one street, the objects of two matches that found the same ones; the map server
     names the kinds in its waiting line."""
     from shgm_slam.backend.confirmation import Sharing
-    from shgm_slam.server.map_server import MARGINAL_OBJECT, _sharing
+    from shgm_slam.server.evidence import MARGINAL_OBJECT, sharing
 
     pg = _pose_graph_on_corner(30.0)
     pg.add_inter_robot_closure("a", 10, "b", 10, np.eye(4), match_id=1, support={("a", 1), ("b", 1)})
     assert pg.shared_support("a", "b") == frozenset()  # one match: nothing shared
     pg.add_inter_robot_closure("a", 30, "b", 30, np.eye(4), match_id=2, support={("a", 2), ("b", 2)})
     shared = pg.shared_support("b", "a")
-    assert shared == {pg.stretches()[0]} and _sharing(shared) == (Sharing.STRETCHES,)
+    assert shared == {pg.stretches()[0]} and sharing(shared) == (Sharing.STRETCHES,)
     objects = _pose_graph_on_corner(None)
     objects.add_inter_robot_closure("a", 10, "b", 10, np.eye(4), match_id=1, support={("a", 1), ("b", 1)})
     objects.add_inter_robot_closure("a", 80, "b", 80, np.eye(4), match_id=2, support={("a", 1), ("b", 7)})
-    assert objects.shared_support("a", "b") == {("a", 1)} and _sharing({("a", 1)}) == (Sharing.OBJECTS,)
+    assert objects.shared_support("a", "b") == {("a", 1)} and sharing({("a", 1)}) == (Sharing.OBJECTS,)
     marginal = {("a", f"{MARGINAL_OBJECT}:b"), ("a", 1), pg.stretches()[0]}
-    assert _sharing(frozenset(marginal)) == (Sharing.OBJECTS, Sharing.STRETCHES, Sharing.CHANCE)
+    assert sharing(frozenset(marginal)) == (Sharing.OBJECTS, Sharing.STRETCHES, Sharing.CHANCE)
 
 
 def test_without_stretches_objects_alone_decide():
