@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,6 +28,9 @@ class MatchEvidence:
         support: its same-label partners.
         expected_chance: B's overlapping nodes expected to find a partner by chance.
         overlap_a, overlap_b: nodes of A (B) inside the area the other robot observed.
+        rival_llr: the ratio of the best verified alignment that places B elsewhere, nats (-inf: none was
+            verified); an accepted match whose rival clears the threshold too leads it by log(1 / false alarm
+            rate), so an accepted alias shows what it was weighed against.
     """
 
     T_a_b_hypothesis: np.ndarray
@@ -37,6 +41,7 @@ class MatchEvidence:
     expected_chance: float
     overlap_a: int
     overlap_b: int
+    rival_llr: float = -math.inf
 
     def to_json_dict(self) -> dict:
         return {
@@ -48,6 +53,7 @@ class MatchEvidence:
             "expected_chance": round(float(self.expected_chance), 3),
             "overlap_a": self.overlap_a,
             "overlap_b": self.overlap_b,
+            "rival_llr": finite_or_none(round(float(self.rival_llr), 3)),
         }
 
 

@@ -10,6 +10,7 @@ consistent (keyframes that exist, closures between known robots, ...) is checked
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -89,7 +90,8 @@ def _match(m: MatchRecord) -> dict:
 
 def _evidence(e: MatchEvidence) -> dict:
     return {"T": _arr(e.T_a_b_hypothesis, "f8"), "kb": e.keyframe_b, "llr": e.llr, "thr": e.llr_threshold,
-            "sup": e.support, "ch": e.expected_chance, "oa": e.overlap_a, "ob": e.overlap_b}  # fmt: skip
+            "sup": e.support, "ch": e.expected_chance, "oa": e.overlap_a, "ob": e.overlap_b,
+            "rl": e.rival_llr}  # fmt: skip
 
 
 def _closure(c: ClosureRecord) -> dict:
@@ -231,6 +233,7 @@ def _unevidence(d: dict) -> MatchEvidence:
         float(_typed(d["llr"], num, "evidence llr")), float(_typed(d["thr"], num, "evidence llr_threshold")),
         _typed(d["sup"], int, "evidence support"), float(_typed(d["ch"], num, "evidence expected_chance")),
         _typed(d["oa"], int, "evidence overlap_a"), _typed(d["ob"], int, "evidence overlap_b"),
+        float(_typed(d.get("rl", -math.inf), num, "evidence rival_llr")),  # older snapshots: none recorded
     )  # fmt: skip
 
 

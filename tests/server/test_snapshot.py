@@ -6,6 +6,7 @@ other-configuration snapshot falls back to an older one or to the journal."""
 
 from __future__ import annotations
 
+import math
 import struct
 import zlib
 from dataclasses import replace
@@ -201,6 +202,25 @@ def test_match_evidence_survives_a_snapshot_and_older_snapshots_decode_without_i
             assert replace(a.evidence, T_a_b_hypothesis=None) == replace(b.evidence, T_a_b_hypothesis=None)
     older = {k: v for k, v in _match(records[0]).items() if k != "ev"}  # written before the record existed
     assert _unmatch(older).evidence is None
+
+
+def test_an_accepted_matchs_rival_is_recorded_and_older_snapshots_read_none(uninterrupted) -> None:
+    """The best alignment placing B elsewhere is kept with the evidence: an accepted match whose rival clears the
+    threshold too leads it by log(1 / false alarm rate); a snapshot written before the field reads -inf."""
+    from shgm_slam.config import MatchingConfig
+    from shgm_slam.server.snapshot_codec import _match, _unmatch
+
+    margin = math.log(1.0 / MatchingConfig().false_alarm_rate)
+    records = [m for m in uninterrupted.snapshot().map.matches if m.evidence is not None]
+    assert any(np.isfinite(m.evidence.rival_llr) for m in records)
+    for m in records:
+        e = m.evidence
+        if m.success and e.rival_llr >= e.llr_threshold:
+            assert e.llr - e.rival_llr >= margin - 1e-9
+        assert e.to_json_dict()["rival_llr"] == (round(e.rival_llr, 3) if np.isfinite(e.rival_llr) else None)
+    encoded = _match(records[0])
+    older = {**encoded, "ev": {k: v for k, v in encoded["ev"].items() if k != "rl"}}
+    assert _unmatch(older).evidence.rival_llr == -math.inf
 
 
 def test_closures_of_one_match_share_one_support_set_and_older_snapshots_decode(uninterrupted) -> None:
