@@ -1,4 +1,8 @@
-"""What ``run`` sends the viewer at each keyframe: only the stretches of the map that changed.
+"""What ``run`` sends the viewer: each frame and match as it comes, and at each keyframe only the stretches of the
+map that changed.
+
+``log_frame`` sends a processed frame (pose, image; depth and cloud at keyframes only) and, through ``log_matches``,
+the matches its server poll tried; ``last_healthy_position`` is where the viewer marks an odometry failure.
 
 Trajectories are drawn in stretches of ``TRAJECTORY_CHUNK_FRAMES`` frames and graphs in parts of the
 nodes anchored to ``GRAPH_CHUNK_KEYFRAMES`` consecutive keyframes (``Viz.log_trajectories`` /
@@ -19,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from shgm_slam.arrays import thinning_stride
 from shgm_slam.geometry import se3
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
 from shgm_slam.server.map_server import MapServer
@@ -138,3 +143,54 @@ class RunView:
                                graph.sizes[rows], np.searchsorted(rows, edges))  # fmt: skip
             self.viz.log_graph(robot, part, chunk=c, drawn=chunk_of[rows] == c)
             self.points_sent += len(rows)
+
+
+def log_frame(viz: Viz, view: RunView, server: MapServer, front: RobotFrontend, res: FrameResult, records) -> None:
+    """Send robot ``res.robot``'s processed frame ``res`` to the viewer (at a keyframe also what changed of its
+    trajectory and graph, ``RunView.keyframe``), then the matches ``records`` its server poll tried."""
+    r, agent = res.robot, res.agent or res.robot
+    if not viz.enabled:  # nothing shown: skip the poses, clouds, trajectories and graphs only the viewer needs
+        log_matches(viz, server, records)
+        return
+    viz.set_time(r, res.frame.index, res.frame.timestamp_s)
+    if not np.isfinite(res.T_odom_cam).all():  # between a divergence and the next measured frame
+        log_matches(viz, server, records)
+        return
+    T_shared_odom = server.T_shared_odom(agent)
+    T_view = res.T_odom_cam if T_shared_odom is None else T_shared_odom @ res.T_odom_cam
+    # the heavy parts (depth image, point cloud) only at keyframes: keeps recordings ~100 KB per frame
+    key = res.message is not None
+    pts = labels = None
+    if key:  # thinned as the viewer would before it is moved into the shared frame
+        step = thinning_stride(len(res.points_cam), viz.max_cloud_points)
+        pts = se3.transform_points(T_view, res.points_cam[::step])
+        labels = None if res.point_labels is None else res.point_labels[::step]
+    viz.log_frame(r, T_view, res.frame.image_rgb, res.depth_m if key else None, res.label_ids, pts, labels)
+    viz.log_timings(r, res.timings_ms)
+    if res.message is not None:
+        view.keyframe(server, front, res)  # only the trajectory stretches and graph parts that changed
+    log_matches(viz, server, records)
+
+
+def log_matches(viz: Viz, server: MapServer, records) -> None:
+    """Each successful match of ``records`` (``MatchRecord``s): its inliers in the shared frame when both robots
+    are placed, and a line in the viewer's log panel (INFO accepted or already known, WARN rejected)."""
+    for m in records:
+        if not m.success:
+            continue
+        if server.is_placed(m.robot_a) and server.is_placed(m.robot_b):
+            pa = se3.transform_points(server.T_shared_odom(m.robot_a), m.inlier_positions_a)
+            pb = se3.transform_points(server.T_shared_odom(m.robot_b), m.inlier_positions_b)
+            viz.log_matches(m.robot_a, m.robot_b, pa, pb, m.accepted, len(m.inliers))
+        level = "INFO" if m.accepted or m.duplicate else "WARN"
+        verdict = "accepted" if m.accepted else "already known" if m.duplicate else "rejected"
+        viz.log_text(f"{m.robot_a}<->{m.robot_b} ({m.query}): {len(m.inliers)} inliers, {verdict}: {m.reason}", level)
+
+
+def last_healthy_position(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
+    """(3,) shared-frame position of the last frame of the segment that just failed, if that is placed."""
+    seg = front.segments[-1] if front.stopped else front.segments[-2]
+    frames = np.flatnonzero(front.frame_segment == seg.index)
+    if not len(frames) or server.T_shared_kf(seg.agent) is None:
+        return None
+    return (server.T_shared_odom(seg.agent) @ front.T_odom_cam[frames[-1]])[:3, 3]

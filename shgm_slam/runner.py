@@ -2,7 +2,8 @@
 
 ``run_slam`` interleaves the robots in time, streams every stage to the viewer, writes the results
 folder as it goes (and once more at the end, also after Ctrl-C), and evaluates against ground truth
-when the sequences have it.
+when the sequences have it. What the viewer is sent is in ``run_view``; the reports, the summary and the
+evaluation in ``run_report``.
 """
 
 from __future__ import annotations
@@ -12,39 +13,58 @@ import logging
 import re
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
-from shgm_slam.arrays import thinning_stride
 from shgm_slam.backend.keys import MAX_AGENTS, segments_per_robot
-from shgm_slam.config import OdometryKind, ShgmConfig
+from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.data.base import parse_sequence_spec
 from shgm_slam.data.interleave import interleave
-from shgm_slam.environment import environment
 from shgm_slam.errors import ConfigError, DataError
-from shgm_slam.fusion import fuse_segments
-from shgm_slam.geometry import se3
 from shgm_slam.interrupts import stops_deferred
 from shgm_slam.io.export import ResultsWriter, check_outside_sequence
-from shgm_slam.metrics import ate, joint_ate
-from shgm_slam.odometry.stillness import ImageChange, odometry_motion, stillness_warning
+from shgm_slam.odometry.stillness import ImageChange
 from shgm_slam.robot.build import make_frontend
-from shgm_slam.robot.frontend import FrameResult, RobotFrontend
+from shgm_slam.robot.frontend import RobotFrontend
 from shgm_slam.robot.node import RobotNode
 from shgm_slam.robot.remote import ParallelFrontends
-from shgm_slam.run_view import RunView
+from shgm_slam.run_report import (
+    FrameStats,
+    RobotReport,
+    RunSummary,
+    StageTimings,
+    evaluate,
+    report_degenerate,
+    report_placement,
+)
+from shgm_slam.run_report import fused_poses as _fused
+from shgm_slam.run_view import RunView, last_healthy_position, log_frame, log_matches
 from shgm_slam.scene_scale import effective_fields
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.node import ServerNode
 from shgm_slam.server.placement import PlacementWatch
-from shgm_slam.server.records import MatchRecord, PairMatches, pair_matches
+from shgm_slam.server.records import pair_matches
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 from shgm_slam.transport.keys import validate_robot_name
 from shgm_slam.types import Sequence
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
+
+__all__ = [  # the pipeline's API; _fused (run_report.fused_poses) only because tests import it from here
+    "FrameFn",
+    "FrameStats",
+    "ProgressFn",
+    "RunSummary",
+    "_fused",
+    "check_out_outside_sequences",
+    "effective_config",
+    "fleet_backend",
+    "make_frontend",
+    "open_robots",
+    "parse_robot_arg",
+    "prepare_frontends",
+    "replay_backend",
+    "run_slam",
+]
 
 log = logging.getLogger(__name__)
 
@@ -117,153 +137,8 @@ def effective_config(cfg: ShgmConfig, robot_cfgs: dict[str, ShgmConfig]) -> Shgm
     return cfg.with_robot_values({name: effective_fields(rcfg) for name, rcfg in robot_cfgs.items()})
 
 
-@dataclass
-class RobotReport:
-    """Per-robot outcome of a run (one row of the summary table)."""
-
-    name: str
-    frames: int
-    frames_processed: int
-    frames_skipped: int  # reached but not processed (unreadable, a worker lost; reasons in the run's 'skipped')
-    keyframes: int
-    nodes: int
-    localized: bool
-    path_length_m: float = float("nan")
-    # ATEs (RMSE, metres). "shared": in the shared frame without alignment (needs shared ground truth);
-    # odometry alone is placed at the robot's TRUE start pose there, the best it could do without matching.
-    ate_odometry_m: float = float("nan")
-    ate_fused_m: float = float("nan")
-    ate_odometry_aligned_m: float = float("nan")  # SE(3)-aligned (shape only)
-    ate_fused_aligned_m: float = float("nan")
-    # after ONE SE(3) fit of every placed robot's fused poses together (``metrics.joint_ate``): the shared frame
-    # without the first robot's own drift, i.e. how well the robots agree (needs shared ground truth)
-    ate_fused_joint_m: float = float("nan")
-    # odometry health: each detected divergence cuts the trajectory and starts a new segment whose pose
-    # is unknown until graph matching places it; the odometry ATEs above treat each segment on its own
-    # (placed at its true first pose / aligned on its own). ``localized``: every segment with keyframes
-    # is placed; ``placed_fraction``: the share of the robot's segment frames that are in the shared frame.
-    segments: int = 1
-    segments_placed: int = 0
-    placed_fraction: float = 0.0
-    fused_poses: int = 0  # rows of <robot>_fused_tum.txt (``eval`` refuses a file that holds fewer or more)
-    frames_not_reached: int = 0  # the run was interrupted before these frames
-    odometry_failures: int = 0
-    failure_reasons: list[str] = field(default_factory=list)
-    frames_dropped: int = 0  # frames between a divergence's onset and the next segment's first frame
-    segment_start_frames: list[int] = field(default_factory=list)  # first frame of each segment
-    # degenerate data, reported, never hidden: skipped frames, no graph nodes, odometry that did not move
-    # while the images did (then ``localized`` is False: the trajectory is known to be invalid)
-    warnings: list[str] = field(default_factory=list)
-    # placed from a single piece of evidence (``backend.confirmation``): no independent graph match confirms
-    # a segment's place in the shared frame yet; it may be wrong (its fused trajectory is written, marked so)
-    provisional: bool = False
-    odometry: str = ""  # the odometry kind the robot ran (``--odometry auto`` resolved)
-    odometry_reason: str = ""  # why (auto's reason, or "set in the configuration")
-    # visual odometry: share of its measured frames whose turn came from a ground vehicle's planar motion
-    # (``odometry/planar_motion.py``; a UAV's frames keep PnP's); None for other odometries
-    planar_turn_share: float | None = None
-    # its odometry's heading drift as its own loop closures measured it, degrees per 100 m, where more than the
-    # pose graph's prior (``backend/drift.py``: its odometry factors then weigh that much less); None otherwise
-    measured_drift_deg_per_100m: float | None = None
-    road_step_share: float | None = None
-    # KISS-ICP: frames where its step slipped against the image motion and the step solved from image tracks was
-    # kept (``odometry/flow_check.py``); None for other odometries
-    image_steps: int | None = None
-    # KISS-ICP: frames where its motion over the last second slid against the image motion and the motion solved
-    # from image tracks was kept (``odometry/window_check.py``); None for other odometries
-    image_windows: int | None = None
-    # predicted depth scaled to the camera's height above the road (``perception/ground_scale.py``): the
-    # median factor (None: no frame scaled) and the share of processed frames scaled (None: not on for this
-    # robot - measured depth, or perception.camera_height_m null; 0.0: on, but no level road at a plausible
-    # height was found, e.g. a UAV)
-    depth_scale: float | None = None
-    depth_scale_share: float | None = None
-    # the depth's random error relative to the depth that the robot's KISS-ICP voxel and spacing filter were sized
-    # to (``odometry.depth_noise_rel``: measured on its first frames, ``scene_scale``, unless set in the config)
-    depth_noise_rel: float | None = None
-    voxel_size_m: float | None = None  # its KISS-ICP voxel (derived or set)
-
-
-@dataclass
-class RunSummary:
-    """What ``run_slam`` returns: per-robot reports, closures, timings and where the results are."""
-
-    out_dir: Path
-    robots: list[RobotReport]
-    matches_tried: int
-    closures_accepted: int
-    closures_rejected: int
-    timings_ms: dict[str, float]  # mean per call of each stage
-    per_keyframe_ms: float  # front end + back end (no loading, no perception) per keyframe
-    wall_s: float
-    interrupted: bool = False
-    skipped_reasons: list[str] = field(default_factory=list)
-    pairs: list[PairMatches] = field(default_factory=list)  # how the matches between each two robots went
-    last_looks: list[str] = field(default_factory=list)  # ``MapServer.last_looks``: what each last look found
-    ate_joint_m: float = float("nan")  # all placed robots' fused poses under one joint SE(3) fit, RMSE, metres
-
-    def to_json_dict(self) -> dict:
-        return {
-            "robots": [vars(r) for r in self.robots],
-            "matches_tried": self.matches_tried,
-            "closures_accepted": self.closures_accepted,
-            "closures_rejected": self.closures_rejected,
-            "pairs": [p.to_json_dict() for p in self.pairs],
-            "timings_ms": self.timings_ms,
-            "per_keyframe_ms": self.per_keyframe_ms,
-            "wall_s": self.wall_s,
-            "interrupted": self.interrupted,
-            "skipped": self.skipped_reasons[:50],
-            "last_looks": self.last_looks,
-            "ate_joint_m": self.ate_joint_m,
-            "environment": environment(),
-        }
-
-
 ProgressFn = Callable[[int, int], None]
-
-
-@dataclass(frozen=True)
-class FrameStats:
-    """What one step of ``run_slam`` cost (for benchmarks): ``front_end_ms`` the robot's stages without
-    loading and perception (``RobotFrontend.process``: cloud, odometry, extraction, graph); ``load_ms``
-    loading the frame and perception; ``match_ms`` / ``backend_ms`` the server's graph matching and
-    pose-graph work the step triggered; ``server_ms`` the whole server poll (those two, decoding,
-    corrections, results files; ``write_ms`` and ``correction_ms`` of them rewriting the results folder and
-    answering the robots); ``step_ms`` the whole step (all of these and the viewer), wall time;
-    ``step_cpu_ms`` its CPU time (all threads of the process: what it costs, whatever else the machine
-    runs). ``matches`` the attempts it triggered."""
-
-    robot: str
-    frame_index: int
-    keyframe: bool
-    front_end_ms: float
-    load_ms: float
-    match_ms: float
-    backend_ms: float
-    server_ms: float
-    step_ms: float
-    matches: tuple[MatchRecord, ...] = ()
-    step_cpu_ms: float = 0.0
-    write_ms: float = 0.0
-    correction_ms: float = 0.0
-
-
 FrameFn = Callable[[FrameStats], None]
-
-
-class _Timings:
-    def __init__(self) -> None:
-        self.sums: dict[str, float] = {}
-        self.counts: dict[str, int] = {}
-
-    def add(self, timings: dict[str, float]) -> None:
-        for k, v in timings.items():
-            self.sums[k] = self.sums.get(k, 0.0) + v
-            self.counts[k] = self.counts.get(k, 0) + 1
-
-    def means(self) -> dict[str, float]:
-        return {k: self.sums[k] / self.counts[k] for k in self.sums}
 
 
 def prepare_frontends(robots: dict[str, Sequence], cfg: ShgmConfig) -> dict[str, RobotFrontend]:
@@ -379,7 +254,7 @@ def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame,
     view = RunView(viz)
     writer.write_text("config.yaml", effective_config(cfg, {r: f.cfg for r, f in fronts.items()}).to_yaml())
     total = sum(len(s) for s in robots.values())
-    timings = _Timings()
+    timings = StageTimings()
     skipped: list[str] = []
     processed = dict.fromkeys(names, 0)
     reached = dict.fromkeys(names, 0)  # frames whose turn came (the rest: not reached, the run interrupted)
@@ -413,7 +288,7 @@ def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame,
                         f"new trajectory segment {res.agent}")  # fmt: skip
                     viz.log_odometry_failure(
                         robot, f"{robot}: odometry diverged, {res.failure.describe()}; {then}",
-                        _last_healthy_position(fronts[robot], server),
+                        last_healthy_position(fronts[robot], server),
                     )  # fmt: skip
                 t0 = time.perf_counter()
                 n_match, n_backend = len(server.timings_ms["match"]), len(server.timings_ms["backend"])
@@ -424,7 +299,7 @@ def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame,
                 timings.add(res.timings_ms)
                 step_compute = sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
                 compute_ms += step_compute
-                _log_frame(viz, view, server, fronts[robot], res, records)
+                log_frame(viz, view, server, fronts[robot], res, records)
                 if records:
                     _log_placements(viz, watch, server)
                 kf_total += res.message is not None
@@ -454,15 +329,16 @@ def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame,
         interrupted = True
     if not server_node.finished:
         server_node.finish(match=not interrupted)
-    _log_matches(viz, server, records)
+    log_matches(viz, server, records)
     _log_placements(viz, watch, server)
     if viz.enabled:
         view.finish(server, fronts.values())  # the viewer ends on the final estimate, not the last keyframe's
     for node in nodes.values():
         node.poll()
-    reports, ate_joint_m = _evaluate(fronts, server, robots, processed, gt_shared_frame, reached)
-    _report_placement(reports, fronts, server)
-    _report_degenerate(reports, fronts, image_change, viz)
+    reports, ate_joint_m = evaluate(fronts, server, robots, processed, gt_shared_frame, reached)
+    report_placement(reports, fronts, server)
+    report_degenerate(reports, fronts, image_change)
+    _say_warnings(reports, viz)
     accepted = sum(m.accepted for m in server.matches)
     summary = RunSummary(
         out_dir=Path(out_dir),
@@ -524,51 +400,6 @@ def replay_backend(recorded: Path, cfg: ShgmConfig, out_dir: Path, robots: list[
     return node
 
 
-def _report_degenerate(
-    reports: list[RobotReport], fronts: dict[str, RobotFrontend], image_change: dict[str, ImageChange], viz: Viz
-) -> None:
-    """Add each robot's degenerate-data warnings to its report, the log and the viewer's log panel."""
-    for rep in reports:
-        front = fronts[rep.name]
-        if rep.frames_skipped:
-            rep.warnings.append(f"{rep.frames_skipped} of {rep.frames} frames skipped (reasons in 'skipped')")
-        if rep.frames_not_reached:
-            rep.warnings.append(
-                f"interrupted: {rep.frames_not_reached} of its {rep.frames} frames were not run (from frame "
-                f"{rep.frames - rep.frames_not_reached} of the range on)"
-            )
-        if front.stopped:
-            rep.warnings.append(
-                f"stopped at frame {front.failures[-1].onset_frame}: its odometry diverged {len(front.failures)} "
-                f"times, and {front.max_segments} trajectory segments is each robot's share of the pose graph's "
-                f"{MAX_AGENTS} agents in a run of {len(reports)} robots; its later frames are dropped (reasons in "
-                "'failure_reasons'; check its depth, timestamps and odometry)"
-            )
-        if rep.frames_processed and rep.nodes == 0:
-            rep.warnings.append(
-                "no graph nodes: no object passed extraction, so it cannot be matched (check the labels, "
-                "extraction.labels, the depth range and the blob size)"
-            )
-        if rep.frames_processed:
-            still = stillness_warning(*odometry_motion(front.T_odom_cam, front.frame_segment), image_change[rep.name])
-            if still is not None:
-                rep.warnings.append(still)
-                rep.localized = False  # a trajectory known to be invalid is never "fused"
-        for text in rep.warnings:
-            log.warning("%s: %s", rep.name, text)
-            viz.log_text(f"{rep.name}: {text}", "WARN")
-
-
-def _report_placement(reports: list[RobotReport], fronts: dict[str, RobotFrontend], server: MapServer) -> None:
-    """Flag each robot with a segment placed from a single piece of evidence, and say why a segment with
-    accepted closures is not placed (too few independent matches): a warning each."""
-    for rep in reports:
-        for seg in fronts[rep.name].segments:
-            rep.provisional |= server.placement(seg.agent).provisional
-            if (note := server.placement_note(seg.agent)) is not None:
-                rep.warnings.append(note)
-
-
 def _log_placements(viz: Viz, watch: PlacementWatch, server: MapServer) -> None:
     """Agents that joined the shared frame provisionally, were confirmed or lost their place: log and viewer."""
     for level, text in watch.changes(server):
@@ -576,149 +407,10 @@ def _log_placements(viz: Viz, watch: PlacementWatch, server: MapServer) -> None:
         viz.log_text(text, level)
 
 
-def _last_healthy_position(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
-    """(3,) shared-frame position of the last frame of the segment that just failed, if that is placed."""
-    seg = front.segments[-1] if front.stopped else front.segments[-2]
-    frames = np.flatnonzero(front.frame_segment == seg.index)
-    if not len(frames) or server.T_shared_kf(seg.agent) is None:
-        return None
-    return (server.T_shared_odom(seg.agent) @ front.T_odom_cam[frames[-1]])[:3, 3]
-
-
-def _placed_segments(front: RobotFrontend, server: MapServer) -> list[tuple[int, np.ndarray]]:
-    """(segment index, (K, 4, 4) T_shared_kf) of every segment of ``front`` placed in the shared frame."""
-    out = []
-    for seg in front.segments:
-        T_shared_kf = server.T_shared_kf(seg.agent) if seg.num_keyframes else None
-        if T_shared_kf is not None:
-            out.append((seg.index, T_shared_kf))
-    return out
-
-
-def _fused(front: RobotFrontend, server: MapServer) -> np.ndarray | None:
-    """(N, 4, 4) fused poses: the frames of every placed segment in the shared frame, NaN elsewhere;
-    None when no segment is placed."""
-    segs = [s for s in front.segments if s.num_keyframes]
-    return fuse_segments(
-        front.T_odom_cam, front.frame_segment,
-        {s.index: np.asarray(s.kf_frames, dtype=np.int64) for s in segs},
-        {s.index: np.stack(s.kf_poses) for s in segs},
-        dict(_placed_segments(front, server)),
-    )  # fmt: skip
-
-
-def _evaluate(
-    fronts, server: MapServer, robots, processed, gt_shared_frame: bool, reached: dict[str, int] | None = None
-) -> tuple[list[RobotReport], float]:
-    """Each robot's report, and the RMSE of all placed robots' fused poses under one joint SE(3) fit (NaN
-    without shared ground truth). ``reached``: frames per robot whose turn came (default: all of them)."""
-    names = list(robots)
-    gt0 = robots[names[0]].gt_poses
-    reports = []
-    joint: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # report row -> (M, 4, 4) ground truth, fused
-    for r, front in fronts.items():
-        seq = robots[r]
-        fused = _fused(front, server)
-        placed = {k for k, _ in _placed_segments(front, server)}
-        with_kf = [s for s in front.segments if s.num_keyframes]
-        in_seg = front.frame_segment >= 0
-        came = len(seq) if reached is None else reached[r]
-        rep = RobotReport(
-            r, len(seq), processed[r], came - processed[r], front.num_keyframes,
-            sum(s.num_nodes for s in front.segments), bool(with_kf) and all(s.index in placed for s in with_kf),
-        )  # fmt: skip
-        rep.frames_not_reached = len(seq) - came
-        rep.fused_poses = 0 if fused is None else int(np.isfinite(fused.reshape(len(fused), -1)).all(axis=1).sum())
-        if front.odometry_choice is not None:
-            rep.odometry, rep.odometry_reason = front.odometry_choice.kind.value, front.odometry_choice.reason
-        if rep.odometry == OdometryKind.VISUAL.value and front.measured_frames:
-            rep.planar_turn_share = front.planar_turns / front.measured_frames
-            rep.road_step_share = front.road_steps / front.measured_frames
-        if rep.odometry == OdometryKind.KISS_ICP.value:
-            rep.image_steps = front.image_steps
-            rep.image_windows = front.image_windows
-        rep.depth_noise_rel, rep.voxel_size_m = front.cfg.odometry.depth_noise_rel, front.cfg.odometry.voxel_size_m
-        if front.ground_scale_on:
-            rep.depth_scale_share = len(front.depth_scales) / max(processed[r], 1)
-            rep.depth_scale = float(np.median(front.depth_scales)) if front.depth_scales else None
-        drifts = [d for s in with_kf if (d := server.measured_drift(s.agent)) is not None]
-        rep.measured_drift_deg_per_100m = float(np.degrees(max(drifts)) * 100.0) if drifts else None
-        rep.segment_start_frames = [int(s.first_frame) for s in front.segments if s.first_frame >= 0]
-        rep.segments = len(rep.segment_start_frames)
-        rep.segments_placed = len(placed)
-        rep.placed_fraction = float(np.isin(front.frame_segment, list(placed)).sum() / max(in_seg.sum(), 1))
-        rep.odometry_failures = len(front.failures)
-        rep.failure_reasons = [f.describe() for f in front.failures]
-        rep.frames_dropped = int((~in_seg).sum()) - (len(seq) - processed[r])
-        gt = seq.gt_poses
-        ok = np.isfinite(front.T_odom_cam.reshape(len(seq), -1)).all(axis=1)
-        if gt is not None and ok.sum() >= 3:
-            rep.path_length_m = float(np.linalg.norm(np.diff(gt[ok][:, :3, 3], axis=0), axis=1).sum())
-            shared = gt_shared_frame and gt0 is not None
-            gt_ref = se3.inverse(gt0[0]) @ gt if shared else gt
-            sq_aligned, sq_start = [], []
-            for seg in front.segments:  # each segment on its own: their relative poses are unknown
-                rows = ok & (front.frame_segment == seg.index)
-                if not rows.any():
-                    continue
-                odo = front.T_odom_cam[rows]
-                if rows.sum() >= 3:
-                    sq_aligned.append(ate(gt[rows], odo, align="se3")["rmse"] ** 2 * rows.sum())
-                placed_at_start = gt_ref[rows][0] @ se3.inverse(odo[0]) @ odo
-                sq_start.append(np.sum((placed_at_start[:, :3, 3] - gt_ref[rows][:, :3, 3]) ** 2))
-            rep.ate_odometry_aligned_m = float(np.sqrt(sum(sq_aligned) / ok.sum()))
-            if shared:
-                rep.ate_odometry_m = float(np.sqrt(sum(sq_start) / ok.sum()))
-            if fused is not None:
-                okf = ok & np.isfinite(fused.reshape(len(seq), -1)).all(axis=1)
-                rep.ate_fused_aligned_m = ate(gt[okf], fused[okf], align="se3")["rmse"]
-                if shared:
-                    rep.ate_fused_m = ate(gt_ref[okf], fused[okf], align="none")["rmse"]
-                    joint[len(reports)] = (gt_ref[okf], fused[okf])
-        reports.append(rep)
-    if not joint:
-        return reports, float("nan")
-    per_robot, together = joint_ate([g for g, _ in joint.values()], [f for _, f in joint.values()])
-    for row, stats in zip(joint, per_robot, strict=True):
-        reports[row].ate_fused_joint_m = stats.rmse
-    return reports, together.rmse
-
-
-def _log_frame(
-    viz: Viz, view: RunView, server: MapServer, front: RobotFrontend, res: FrameResult, records
-) -> None:
-    r, agent = res.robot, res.agent or res.robot
-    if not viz.enabled:  # nothing shown: skip the poses, clouds, trajectories and graphs only the viewer needs
-        _log_matches(viz, server, records)
-        return
-    viz.set_time(r, res.frame.index, res.frame.timestamp_s)
-    if not np.isfinite(res.T_odom_cam).all():  # between a divergence and the next measured frame
-        _log_matches(viz, server, records)
-        return
-    T_shared_odom = server.T_shared_odom(agent)
-    T_view = res.T_odom_cam if T_shared_odom is None else T_shared_odom @ res.T_odom_cam
-    # the heavy parts (depth image, point cloud) only at keyframes: keeps recordings ~100 KB per frame
-    key = res.message is not None
-    pts = labels = None
-    if key:  # thinned as the viewer would before it is moved into the shared frame
-        step = thinning_stride(len(res.points_cam), viz.max_cloud_points)
-        pts = se3.transform_points(T_view, res.points_cam[::step])
-        labels = None if res.point_labels is None else res.point_labels[::step]
-    viz.log_frame(r, T_view, res.frame.image_rgb, res.depth_m if key else None, res.label_ids, pts, labels)
-    viz.log_timings(r, res.timings_ms)
-    if res.message is not None:
-        view.keyframe(server, front, res)  # only the trajectory stretches and graph parts that changed
-    _log_matches(viz, server, records)
-
-
-def _log_matches(viz: Viz, server: MapServer, records) -> None:
-    for m in records:
-        if not m.success:
-            continue
-        if server.is_placed(m.robot_a) and server.is_placed(m.robot_b):
-            pa = se3.transform_points(server.T_shared_odom(m.robot_a), m.inlier_positions_a)
-            pb = se3.transform_points(server.T_shared_odom(m.robot_b), m.inlier_positions_b)
-            viz.log_matches(m.robot_a, m.robot_b, pa, pb, m.accepted, len(m.inliers))
-        level = "INFO" if m.accepted or m.duplicate else "WARN"
-        verdict = "accepted" if m.accepted else "already known" if m.duplicate else "rejected"
-        viz.log_text(f"{m.robot_a}<->{m.robot_b} ({m.query}): {len(m.inliers)} inliers, {verdict}: {m.reason}", level)
+def _say_warnings(reports: list[RobotReport], viz: Viz) -> None:
+    """Each robot's warnings (``run_report.report_placement`` / ``report_degenerate``) in the log and the viewer's
+    log panel."""
+    for rep in reports:
+        for text in rep.warnings:
+            log.warning("%s: %s", rep.name, text)
+            viz.log_text(f"{rep.name}: {text}", "WARN")

@@ -8,7 +8,7 @@ earlier ones did, and others nowhere near any other. For each fleet size N the f
 **at once** (every robot's clock starts at its first frame, so N robots drive the same 57 s side by side)
 by ``run_slam`` with the default configuration and no viewer. Per fleet size: the keyframes of all
 robots, the time per keyframe of the front end, graph matching and the pose graph
-(``runner.FrameStats``), the matches tried per keyframe and their mean cost, the CPU the whole fleet
+(``run_report.FrameStats``), the matches tried per keyframe and their mean cost, the CPU the whole fleet
 needs per second of driving (one process runs every robot's front end and the server; below 1 it keeps
 up in real time on one core), and the peak memory of the same run alone in a fresh process. Side by side
 in one invocation, so the ratios between fleet sizes are measured on one machine under one load.
@@ -38,7 +38,8 @@ from shgm_slam.bench.system import _world, peak_rss_runs
 from shgm_slam.config import ShgmConfig
 from shgm_slam.errors import ConfigError
 from shgm_slam.robot.remote import default_jobs
-from shgm_slam.runner import FrameStats, open_robots
+from shgm_slam.run_report import FrameStats
+from shgm_slam.runner import open_robots
 from shgm_slam.types import Sequence
 
 Progress = Callable[[str], None]

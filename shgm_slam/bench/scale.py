@@ -2,7 +2,7 @@
 
 The whole of KITTI 00 (4541 frames, 3.7 km, many loops) with 07 beside it, as a ``kitti-paths`` world
 (real KITTI motion, a generated city; 320x96), run once by ``run_slam`` with the default configuration
-and no viewer. Every step's cost is recorded (``runner.FrameStats``) and binned by how far the 00 robot
+and no viewer. Every step's cost is recorded (``run_report.FrameStats``) and binned by how far the 00 robot
 has driven (ground-truth path length): per kilometre, the time per keyframe of the front end (cloud,
 odometry, extraction, graph), graph matching and the pose graph (separately), what else the server and
 the runner spent, the matches tried and their mean cost and graph sizes, and the process's resident
@@ -26,7 +26,8 @@ from shgm_slam.bench.stopping import run_to_end
 from shgm_slam.bench.system import _world, peak_rss_runs
 from shgm_slam.config import ShgmConfig
 from shgm_slam.io.trajectories import read_tum
-from shgm_slam.runner import FrameStats, open_robots
+from shgm_slam.run_report import FrameStats
+from shgm_slam.runner import open_robots
 
 Progress = Callable[[str], None]
 

@@ -16,7 +16,8 @@ from typing import Any
 
 from shgm_slam.config import ShgmConfig
 from shgm_slam.interrupts import INTERRUPTED_EXIT_CODE
-from shgm_slam.runner import RunSummary, run_slam
+from shgm_slam.run_report import RunSummary
+from shgm_slam.runner import run_slam
 from shgm_slam.types import Sequence
 
 

@@ -29,7 +29,8 @@ from shgm_slam.bench.report import write_report
 from shgm_slam.bench.stopping import RunStopped, run_to_end, stopped_exit_code
 from shgm_slam.config import ShgmConfig
 from shgm_slam.demo import demo_config, prepare_world
-from shgm_slam.runner import RunSummary, open_robots
+from shgm_slam.run_report import RunSummary
+from shgm_slam.runner import open_robots
 from shgm_slam.sim.cache import simulate_cached
 
 Progress = Callable[[str], None]
