@@ -37,7 +37,6 @@ from shgm_slam.run_report import (
     report_degenerate,
     report_placement,
 )
-from shgm_slam.run_report import fused_poses as _fused
 from shgm_slam.run_view import RunView, last_healthy_position, log_frame, log_matches
 from shgm_slam.scene_scale import effective_fields
 from shgm_slam.server.map_server import MapServer
@@ -49,12 +48,9 @@ from shgm_slam.transport.keys import validate_robot_name
 from shgm_slam.types import Sequence
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
 
-__all__ = [  # the pipeline's API; _fused (run_report.fused_poses) only because tests import it from here
+__all__ = [  # the pipeline's API
     "FrameFn",
-    "FrameStats",
     "ProgressFn",
-    "RunSummary",
-    "_fused",
     "check_out_outside_sequences",
     "effective_config",
     "fleet_backend",

@@ -9,7 +9,7 @@ from pathlib import Path
 from shgm_slam import __version__
 from shgm_slam.bench.report import write_report
 from shgm_slam.environment import LIBRARIES, environment, processor_name
-from shgm_slam.runner import RunSummary
+from shgm_slam.run_report import RunSummary
 
 
 def test_the_environment_names_this_package_python_and_the_installed_library_versions():

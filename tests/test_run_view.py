@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 
 from shgm_slam.config import OdometryKind, ShgmConfig
+from shgm_slam.run_report import fused_poses
 from shgm_slam.run_view import TRAJECTORY_CHUNK_FRAMES, RunView
-from shgm_slam.runner import _fused, open_robots, run_slam
+from shgm_slam.runner import open_robots, run_slam
 from shgm_slam.viz.rerun_logger import NullLogger
 
 
@@ -67,7 +68,7 @@ def test_stretches_draw_the_whole_trajectory_and_graph(tiny_scenario: Path, tmp_
     run_slam(robots, cfg, tmp_path / "out", viz=viz)
     server = captured["server"]
     for name, front in captured["fronts"].items():
-        fused = _fused(front, server)
+        fused = fused_poses(front, server)
         if fused is None:
             continue
         last_kf_frame = front.segments[-1].kf_frames[-1]

@@ -20,7 +20,8 @@ from shgm_slam.bench.robots import (
     stretch_specs,
 )
 from shgm_slam.errors import ConfigError
-from shgm_slam.runner import FrameStats, parse_robot_arg
+from shgm_slam.run_report import FrameStats
+from shgm_slam.runner import parse_robot_arg
 from shgm_slam.server.records import MatchRecord
 
 

@@ -9,7 +9,7 @@ import pytest
 
 from shgm_slam.bench.scale import KM_M, ROBOT, _bin_row, _Recorder, height_split_m, scale_markdown
 from shgm_slam.io.trajectories import write_tum
-from shgm_slam.runner import FrameStats
+from shgm_slam.run_report import FrameStats
 from shgm_slam.server.records import MatchRecord
 
 
