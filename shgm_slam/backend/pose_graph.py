@@ -51,13 +51,13 @@ ask for poses per keyframe do not pay a full recomputation each time.
 
 Beside this module: the plain records it answers with (``records.py``), its snapshot and the check of
 one (``state.py``), each robot's recorded keyframes (``track.py``), the GTSAM noise models, poses and
-iSAM2 parameters (``factors.py``) and the g2o export (``g2o.py``).
+iSAM2 parameters (``factors.py``), the iSAM2 instance with its pending factors, removals and recovery
+(``isam.py``) and the g2o export (``g2o.py``).
 """
 
 from __future__ import annotations
 
 import bisect
-import logging
 import math
 import time
 from collections.abc import Hashable, Iterable, Mapping
@@ -86,12 +86,12 @@ from shgm_slam.backend.factors import (
     check_pose,
     closure_noise_model,
     inverse_information,
-    isam2_params,
     odometry_noise,
     pose3,
     prior_noise,
     sigmas6,
 )
+from shgm_slam.backend.isam import IncrementalSolver, poses_by_key
 from shgm_slam.backend.keys import ROBOT_LETTERS, RobotKeys
 from shgm_slam.backend.records import (
     Anchor,
@@ -122,8 +122,6 @@ __all__ = [
     "PoseGraphStats",
     "make_pose_graph",
 ]  # the pose graph, and the records and constants callers use with it (re-exported: importable from here)
-
-_log = logging.getLogger(__name__)
 
 
 class MultiRobotPoseGraph:
@@ -185,7 +183,7 @@ class MultiRobotPoseGraph:
         self.keys = RobotKeys(robot_names)
         try:
             self.robust_kernel = RobustKernel(robust_kernel)
-            self.factorization = Factorization(str(getattr(factorization, "value", factorization)).upper())
+            factorization = Factorization(str(getattr(factorization, "value", factorization)).upper())
         except ValueError as exc:
             raise BackendError(f"pose graph: {exc}; robust kernels: none, huber, cauchy, tukey") from None
         self._odometry_floor = sigmas6(odometry_sigmas)
@@ -212,8 +210,7 @@ class MultiRobotPoseGraph:
             raise BackendError(
                 f"relinearize_threshold must be two positive values (rad, m), got {relinearize_threshold}"
             )
-        self.relinearize_threshold = (float(threshold[0]), float(threshold[1]))
-        self.extra_updates = extra_updates
+        relinearize_threshold = (float(threshold[0]), float(threshold[1]))
         if attitude_warmup < 2:
             raise BackendError(f"attitude_warmup must be >= 2 (a sigma needs pairs), got {attitude_warmup}")
         self.attitude = attitude
@@ -237,7 +234,23 @@ class MultiRobotPoseGraph:
         self._cache_version = -1
         self._cache: dict[str, np.ndarray] = {}
         self._converged: tuple[int, gtsam.Values] | None = None  # (version, solution) of ``converge``
-        self._reset_isam()
+        self._solver = IncrementalSolver(factorization, relinearize_threshold, extra_updates)
+        self._version += 1  # a fresh iSAM2 (as ``_reset_isam``)
+
+    @property
+    def factorization(self) -> Factorization:
+        """iSAM2's linear solver now (QR after a recovery, module docstring)."""
+        return self._solver.factorization
+
+    @property
+    def relinearize_threshold(self) -> tuple[float, float]:
+        """(rotation rad, translation m) iSAM2's relinearization thresholds."""
+        return self._solver.relinearize_threshold
+
+    @property
+    def extra_updates(self) -> int:
+        """Additional ``isam.update()`` passes after a large correction (``update``)."""
+        return self._solver.extra_updates
 
     # --- public API ---------------------------------------------------------------------------------
 
@@ -392,26 +405,13 @@ class MultiRobotPoseGraph:
             BackendError: the optimizer fails (an underconstrained graph).
         """
         self._flush()
-        factors = self._isam.getFactorsUnsafe()
-        graph = gtsam.NonlinearFactorGraph()
-        for i in range(factors.size()):
-            if factors.exists(i):
-                graph.add(factors.at(i))
-        initial = self._isam.calculateEstimate()
-        if initial.size() == 0:
+        solved = self._solver.solve_batch(max_iterations)
+        if solved is None:
             return 0
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(max_iterations)
-        params.setRelativeErrorTol(1e-9)
-        params.setAbsoluteErrorTol(1e-12)
-        try:
-            optimizer = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
-            result = optimizer.optimize()
-        except RuntimeError as exc:
-            raise BackendError(f"converging the pose graph failed: {_first_line(exc)}") from None
+        result, iterations = solved
         self._version += 1
         self._converged = (self._version, result)
-        return int(optimizer.iterations())
+        return iterations
 
     def add_loop_closure(
         self,
@@ -536,7 +536,7 @@ class MultiRobotPoseGraph:
             return self.estimate()[robot][kfs].copy()
         out = np.zeros((kfs.size, 4, 4))
         for i, k in enumerate(kfs.tolist()):
-            out[i] = self._isam.calculateEstimatePose3(self.keys.key(robot, k)).matrix()
+            out[i] = self._solver.estimate_pose(self.keys.key(robot, k))
         return out
 
     def T_shared_kf(self, robot: str, kf_index: int) -> np.ndarray:
@@ -546,7 +546,7 @@ class MultiRobotPoseGraph:
             raise BackendError(f"{robot} has no keyframe {kf_index} ({len(r.T_odom_kf)} keyframes)")
         if self._cache_version == self._version or (self._converged and self._converged[0] == self._version):
             return self.estimate()[robot][kf_index].copy()
-        return self._isam.calculateEstimatePose3(self.keys.key(robot, kf_index)).matrix()
+        return self._solver.estimate_pose(self.keys.key(robot, kf_index))
 
     def T_shared_odom(self, robot: str, kf_index: int | None = None) -> np.ndarray:
         """(4, 4) alignment of ``robot``'s odometry frame in the shared frame.
@@ -629,15 +629,15 @@ class MultiRobotPoseGraph:
         """The graph's nonlinear error at the current estimate (what ``estimate`` answers): half the sum of
         every factor's squared whitened residual, robust kernels applied; 0 while nothing is anchored."""
         self._flush()
-        return float(self._isam.getFactorsUnsafe().error(self._values()))
+        return float(self._solver.factors().error(self._values()))
 
     def stats(self) -> PoseGraphStats:
         """Counters: keyframes, iSAM2 variables and factors, closures by status, rebuilds, timing."""
         accepted = sum(c.status is ClosureStatus.ACCEPTED for c in self._closures)
         return PoseGraphStats(
             num_keyframes=sum(len(r.T_odom_kf) for r in self._robots.values()),
-            num_variables=int(self._isam.getLinearizationPoint().size()),
-            num_factors=int(self._isam.getFactorsUnsafe().nrFactors()),
+            num_variables=self._solver.num_variables(),
+            num_factors=int(self._solver.factors().nrFactors()),
             closures_total=len(self._closures),
             closures_accepted=accepted,
             closures_rejected=len(self._closures) - accepted,
@@ -748,28 +748,29 @@ class MultiRobotPoseGraph:
         self._rebuilds, self._recoveries = int(state.rebuilds), int(state.recoveries)
         for name in names:
             self._robots[name].drift_rot_rad_per_m = self._drift_level(name)
-        self.factorization = Factorization(state.factorization)
-        self._reset_isam()
+        self._reset_isam(Factorization(state.factorization))
         first = self.keys.names[0]
         for name, (closure_id, T_init) in state.anchors.items():
             r = self._robots[name]
             r.anchored, r.anchor_closure, r.T_shared_odom_init = True, closure_id, np.array(T_init, dtype=np.float64)
             T_shared = state.T_shared_kf[name]
             if name == first:
-                self._add_factor(gtsam.PriorFactorPose3(self.keys.key(name, 0), pose3(r.T_odom_kf[0]), prior_noise()))
+                self._solver.add_factor(
+                    gtsam.PriorFactorPose3(self.keys.key(name, 0), pose3(r.T_odom_kf[0]), prior_noise())
+                )
             for k in range(len(r.T_odom_kf)):
                 key = self.keys.key(name, k)
-                self._new_values.insert(key, pose3(T_shared[k]))
+                self._solver.add_value(key, T_shared[k])
                 if k:
                     delta = inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k]
                     prev = self.keys.key(name, k - 1)
                     noise = odometry_noise(self._odometry_sigmas(delta, r))
-                    self._add_factor(gtsam.BetweenFactorPose3(prev, key, pose3(delta), noise))
+                    self._solver.add_factor(gtsam.BetweenFactorPose3(prev, key, pose3(delta), noise))
         for c in self._closures:
             if c.in_graph:
                 k_a, k_b = self.keys.key(c.robot_a, c.kf_a), self.keys.key(c.robot_b, c.kf_b)
                 noise = self._closure_noise[c.closure_id]
-                self._add_factor(gtsam.BetweenFactorPose3(k_a, k_b, pose3(c.T_a_b), noise), c.closure_id)
+                self._solver.add_factor(gtsam.BetweenFactorPose3(k_a, k_b, pose3(c.T_a_b), noise), c.closure_id)
         self._push_attitudes()
         self._flush()
 
@@ -834,23 +835,18 @@ class MultiRobotPoseGraph:
 
     # --- anchoring and iSAM2 bookkeeping ---------------------------------------------------------
 
-    def _reset_isam(self) -> None:
-        p = isam2_params(self.factorization, self.relinearize_threshold)
+    def _reset_isam(self, factorization: Factorization | None = None) -> None:
+        """An empty iSAM2 (``factorization`` when given, else the current one): a change of the graph."""
         self._version += 1
-        self._isam = gtsam.ISAM2(p)
-        self._new_factors = gtsam.NonlinearFactorGraph()
-        self._new_values = gtsam.Values()
-        self._new_tags: list[int | None] = []  # closure id of each pending factor (None: odometry/prior)
-        self._factor_index: dict[int, int] = {}  # closure id -> iSAM2 factor index
-        self._to_remove: list[int] = []
+        self._solver.reset(factorization)
 
     def _anchor_first_robot(self) -> None:
         name = self.keys.names[0]
         r = self._robots[name]
         r.anchored, r.T_shared_odom_init = True, np.eye(4)
         k0 = self.keys.key(name, 0)
-        self._add_factor(gtsam.PriorFactorPose3(k0, pose3(r.T_odom_kf[0]), prior_noise()))
-        self._new_values.insert(k0, pose3(r.T_odom_kf[0]))
+        self._solver.add_factor(gtsam.PriorFactorPose3(k0, pose3(r.T_odom_kf[0]), prior_noise()))
+        self._solver.add_value(k0, r.T_odom_kf[0])
         for k in range(1, len(r.T_odom_kf)):
             self._push_keyframe(name, k)
 
@@ -899,13 +895,10 @@ class MultiRobotPoseGraph:
         r = self._robots[robot]
         k_prev, k_new = self.keys.key(robot, k - 1), self.keys.key(robot, k)
         delta = inverse(r.T_odom_kf[k - 1]) @ r.T_odom_kf[k]
-        if self._new_values.exists(k_prev):
-            prev = self._new_values.atPose3(k_prev).matrix()
-        else:
-            prev = self._isam.calculateEstimatePose3(k_prev).matrix()
+        prev = self._solver.pose(k_prev)
         noise = odometry_noise(self._odometry_sigmas(delta, r))
-        self._add_factor(gtsam.BetweenFactorPose3(k_prev, k_new, pose3(delta), noise))
-        self._new_values.insert(k_new, pose3(prev @ delta))
+        self._solver.add_factor(gtsam.BetweenFactorPose3(k_prev, k_new, pose3(delta), noise))
+        self._solver.add_value(k_new, prev @ delta)
 
     def _anchor_robot(self, robot: str, closure: ClosureRecord) -> None:
         """Insert all keyframes of unanchored ``robot`` placed through ``closure`` to an anchored robot."""
@@ -920,7 +913,7 @@ class MultiRobotPoseGraph:
         r.anchored, r.anchor_closure, r.T_shared_odom_init = True, closure.closure_id, T_shared_odom
         if (robot, closure.closure_id) not in self._anchorings:
             self._anchorings.append((robot, closure.closure_id))
-        self._new_values.insert(self.keys.key(robot, 0), pose3(T_shared_odom @ r.T_odom_kf[0]))
+        self._solver.add_value(self.keys.key(robot, 0), T_shared_odom @ r.T_odom_kf[0])
         for k in range(1, len(r.T_odom_kf)):
             self._push_keyframe(robot, k)
 
@@ -981,10 +974,9 @@ class MultiRobotPoseGraph:
         return agreeing_pieces(pieces, odom, path, self.thresholds, needed) if pieces else []
 
     def _current_pose(self, robot: str, k: int) -> np.ndarray:
-        key = self.keys.key(robot, k)
-        if self._new_values.exists(key):
-            return self._new_values.atPose3(key).matrix()
-        return self._isam.calculateEstimatePose3(key).matrix()
+        """(4, 4) ``T_shared_kf`` of keyframe ``k`` of anchored ``robot``: its initial value while pending, else
+        iSAM2's estimate (``IncrementalSolver.pose``)."""
+        return self._solver.pose(self.keys.key(robot, k))
 
     def _sync(self) -> None:
         """Bring iSAM2 in line with the accepted closures: anchor robots, add and remove closure factors."""
@@ -1018,7 +1010,7 @@ class MultiRobotPoseGraph:
             both = self._robots[c.robot_a].anchored and self._robots[c.robot_b].anchored
             if c.status is ClosureStatus.ACCEPTED and both and not c.in_graph:
                 k_a, k_b = self.keys.key(c.robot_a, c.kf_a), self.keys.key(c.robot_b, c.kf_b)
-                self._add_factor(
+                self._solver.add_factor(
                     gtsam.BetweenFactorPose3(k_a, k_b, pose3(c.T_a_b), self._closure_noise[c.closure_id]),
                     c.closure_id,
                 )
@@ -1029,12 +1021,10 @@ class MultiRobotPoseGraph:
                     off_m = float(np.linalg.norm((inverse(c.T_a_b) @ T_est)[:3, 3]))
                     self._large_correction = off_m > self._closure_sigmas[3]
             elif c.status is ClosureStatus.REJECTED and c.in_graph:
-                if c.closure_id in self._new_tags:  # still pending (added with update=False): give it an index
+                if self._solver.is_pending(c.closure_id):  # still pending (added with update=False): give it an index
                     self._flush()
-                idx = self._factor_index.pop(c.closure_id, None)
-                if idx is None:  # cannot happen after a flush; be safe
+                if not self._solver.remove(c.closure_id):  # cannot happen after a flush; be safe
                     raise BackendError(f"closure {c.closure_id} was rejected before its factor was added")
-                self._to_remove.append(idx)
                 c.in_graph = False
                 self._corrections += 1
                 self._large_correction = True
@@ -1060,7 +1050,9 @@ class MultiRobotPoseGraph:
             start = bisect.bisect_left(r.measured, r.attitude_next)
             for k in r.measured[start:]:
                 n_cam = r.T_odom_kf[k][:3, :3].T @ r.up_odom[k]
-                self._add_factor(gtsam.AttitudeFactorPose3(self.keys.key(name, k), nav_up, noise, gtsam.Unit3(n_cam)))
+                self._solver.add_factor(
+                    gtsam.AttitudeFactorPose3(self.keys.key(name, k), nav_up, noise, gtsam.Unit3(n_cam))
+                )
                 self._attitude_factors += 1
             r.attitude_next = len(r.T_odom_kf)
 
@@ -1108,76 +1100,36 @@ class MultiRobotPoseGraph:
             self._anchor_first_robot()
             self._sync()
 
-    def _add_factor(self, factor: gtsam.NonlinearFactor, closure_id: int | None = None) -> None:
-        self._new_factors.add(factor)
-        self._new_tags.append(closure_id)
-
     def _flush(self) -> None:
         """Run iSAM2 on the pending factors/values/removals (plus extra passes after a large correction).
 
-        An update that raises is recovered by rebuilding the graph with QR (a logged warning);
-        ``BackendError`` when that fails too.
+        An update that raises is recovered by rebuilding the graph with QR (a logged warning,
+        ``IncrementalSolver.update``); ``BackendError`` when that fails too.
         """
-        if self._new_factors.size() == 0 and not self._to_remove:
+        if not self._solver.pending:
             return
         t0 = time.perf_counter()
         self._version += 1
         closures_changed, self._large_correction = self._large_correction, False
-        try:
-            self._update_isam(closures_changed)
-        except RuntimeError as exc:
-            self._recover(exc)
+        self._solver.update(closures_changed, self._rebuild_after_failure)
         self._last_update_ms = (time.perf_counter() - t0) * 1e3
 
-    def _update_isam(self, closures_changed: bool) -> None:
-        try:
-            result = self._isam.update(self._new_factors, self._new_values, self._to_remove)
-            for idx, tag in zip(result.getNewFactorsIndices(), self._new_tags, strict=True):
-                if tag is not None:
-                    self._factor_index[tag] = int(idx)
-            if closures_changed:
-                for _ in range(self.extra_updates):
-                    self._isam.update()
-        finally:
-            self._new_factors = gtsam.NonlinearFactorGraph()
-            self._new_values = gtsam.Values()
-            self._new_tags = []
-            self._to_remove = []
-
-    def _recover(self, exc: RuntimeError) -> None:
-        """Rebuild iSAM2 with QR from the recorded keyframes and accepted closures after ``exc``."""
-        first = _first_line(exc)
-        _log.warning(
-            "iSAM2 update with %s factorization failed (%s); rebuilding the pose graph with QR",
-            self.factorization.value, first,
-        )  # fmt: skip
+    def _rebuild_after_failure(self) -> None:
+        """The solver's recovery (``IncrementalSolver.update``, now on QR): count it and refill iSAM2 from the
+        recorded keyframes and accepted closures."""
         self._recoveries += 1
-        self.factorization = Factorization.QR
         self._rebuild()
-        try:
-            self._update_isam(closures_changed=True)
-        except RuntimeError as again:
-            raise BackendError(
-                f"iSAM2 update failed ({first}) and rebuilding the graph with QR failed too "
-                f"({_first_line(again)}); the graph is underconstrained or a pose is invalid"
-            ) from None
 
     def _values(self) -> gtsam.Values:
         """The current estimate: the converged solution while the graph has not changed since
         ``converge``, else iSAM2's."""
         if self._converged is not None and self._converged[0] == self._version:
             return self._converged[1]
-        return self._isam.calculateEstimate()
+        return self._solver.estimate()
 
     def _compute_estimate(self) -> dict[str, np.ndarray]:
         """All anchored robots' ``T_shared_kf`` from one ``calculateEstimate`` (vectorised extraction)."""
-        values = self._values()
-        keys = np.fromiter(values.keys(), dtype=np.uint64, count=values.size())
-        rows = gtsam.utilities.extractPose3(values)  # (N, 12): R row-major, t; in key order
-        T = np.zeros((len(keys), 4, 4))
-        T[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
-        T[:, :3, 3] = rows[:, 9:12]
-        T[:, 3, 3] = 1.0
+        keys, T = poses_by_key(self._values())
         letters = (keys >> np.uint64(56)).astype(np.int64)
         kf = (keys & np.uint64((1 << 56) - 1)).astype(np.int64)
         out = {}
@@ -1211,11 +1163,6 @@ class MultiRobotPoseGraph:
     def _closure_noise_model(self, information: np.ndarray | None) -> tuple[gtsam.noiseModel.Base, np.ndarray]:
         """A closure's noise model (with the robust kernel) and (6, 6) information (``factors.closure_noise_model``)."""
         return closure_noise_model(information, self._closure_sigmas, self.robust_kernel, self._kernel_width)
-
-
-def _first_line(exc: BaseException) -> str:
-    """The first non-empty line of an exception message (gtsam's run over many lines)."""
-    return next((line.strip() for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
 
 
 def make_pose_graph(robot_names: list[str], cfg: BackendConfig) -> MultiRobotPoseGraph:

@@ -22,7 +22,7 @@ def scene():
 
 def fresh(pg: MultiRobotPoseGraph) -> dict[str, np.ndarray]:
     """The estimate read key by key from iSAM2 (the uncached reference)."""
-    values = pg._isam.calculateEstimate()
+    values = pg._solver.estimate()
     return {
         name: np.stack([values.atPose3(pg.keys.key(name, k)).matrix() for k in range(len(est))])
         for name, est in pg.estimate().items()

@@ -75,6 +75,6 @@ def test_backend_error_only_when_recovery_fails_too(monkeypatch):
     def broken(*args, **kwargs):
         raise RuntimeError("Indeterminate linear system detected while working near variable a1")
 
-    monkeypatch.setattr(pg, "_update_isam", broken)
+    monkeypatch.setattr(pg._solver, "_update", broken)
     with pytest.raises(BackendError, match="rebuilding the graph with QR failed too"):
         pg.add_keyframe("a", 1, make_pose(np.eye(3), [0.0, 0.0, 1.0]))
