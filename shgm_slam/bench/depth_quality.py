@@ -7,7 +7,7 @@ AbsRel levels, and the demo depth model's own output is the last level. For each
   the visual odometry, the hybrid): drift in % of the distance driven (``metrics.drift_percent``) and
   SE(3)-aligned ATE per robot;
 * the whole system with each kind forced: the share of overlapping robots placed right by graph
-  matching and the false merges, judged like the held-out benchmark (``heldout.judge_run``).
+  matching and the false merges, judged like the held-out benchmark (``heldout_judge.judge_run``).
 
 Labels are the rendered ones throughout, so depth is the only thing that changes between levels.
 Worlds are the held-out benchmark's (same cache); every finished piece is cached as JSON, so an
@@ -24,15 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from shgm_slam.bench.heldout import (
-    PLACED_RIGHT_M,
-    REPORT_SEEDS,
-    RESOLUTION,
-    InputMode,
-    Outcome,
-    ensure_world,
-    judge_run,
-)
+from shgm_slam.bench.heldout import REPORT_SEEDS, RESOLUTION, ensure_world
+from shgm_slam.bench.heldout_judge import PLACED_RIGHT_M, InputMode, Outcome, judge_run
 from shgm_slam.bench.report import write_report
 from shgm_slam.bench.stopping import run_to_end
 from shgm_slam.config import OdometryKind, ShgmConfig

@@ -3,7 +3,8 @@
 For every scenario (airsim-like, disjoint, synthia-like, kitti-paths) and every world seed, the
 world is rendered once into a cache and the whole system runs with the **default configuration**:
 on the rendered depth and labels (``files``: KISS-ICP odometry) and from RGB alone (``rgb``: the demo
-ONNX models). Each robot of each world is then judged against ground truth:
+ONNX models). Each robot of each world is then judged against ground truth (``heldout_judge``; the
+tables: ``heldout_summary``):
 
 * ``right``: placed in the shared frame within ``PLACED_RIGHT_M`` of its mode (2 m from files, 5 m
   from RGB): the rigid transform that best lays its fused trajectory onto the truth (the shared frame's
@@ -34,12 +35,11 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
-from enum import Enum
 from pathlib import Path
 
-import numpy as np
-
 from shgm_slam.agents import agent_robot
+from shgm_slam.bench.heldout_judge import GROSS_ERROR_M, PLACED_RIGHT_M, InputMode, judge_run
+from shgm_slam.bench.heldout_summary import heldout_markdown, summarize
 from shgm_slam.bench.match_truth import judge_matches
 from shgm_slam.bench.report import write_report
 from shgm_slam.bench.stopping import run_to_end
@@ -48,9 +48,7 @@ from shgm_slam.data import open_sequence
 from shgm_slam.demo import MODELS_DIR
 from shgm_slam.environment import environment
 from shgm_slam.errors import ConfigError, DataError, SimulationError
-from shgm_slam.geometry import se3
 from shgm_slam.io.json_text import to_json_text
-from shgm_slam.io.trajectories import read_tum
 from shgm_slam.robot.remote import default_jobs
 from shgm_slam.runner import open_robots, replay_backend
 from shgm_slam.server.map_server import MapServer
@@ -68,8 +66,6 @@ RESOLUTION = (320, 96)
 """Render size: the demo models' input size, and fast enough for ~80 runs in an hour on 2 cores."""
 MAX_DEPTH_M = DEFAULT_MAX_DEPTH_M
 """Depth range the worlds are rendered with (the simulator's; a UAV's altitude must keep its ground within it)."""
-MIN_SHARED_VIEW_M = 30.0
-"""A robot 'overlaps' when it shares at least this much view with another robot (scenario.json)."""
 KITTI_DRIVE_PAIRS = (
     ("00:2600-2901", "07:0-351"),  # the same street on two days (the scenario's default)
     ("00:546-763", "08:0-301"),
@@ -83,27 +79,7 @@ KITTI_DRIVE_PAIRS = (
 laid into one world by ``sim.kitti_paths.align_drive`` (found by aligning 300-frame pieces of 08 and 10
 onto 00 and 09; the generated city grows around both drives). Frame ranges are half-open (END excluded):
 the ends are the inclusive ends these worlds were first rendered with, plus one."""
-BREAK_WINDOW_S = 1.0
-"""Odometry is judged against ground truth over windows of this length."""
 
-
-class InputMode(str, Enum):
-    """Where depth and labels come from."""
-
-    FILES = "files"  # the rendered depth and labels; KISS-ICP odometry (auto)
-    RGB = "rgb"  # the demo ONNX models on the RGB images (odometry: auto)
-
-
-GROSS_ERROR_M = 20.0
-"""A wrong placement farther than this is an outright false merge (an alias), not imprecision."""
-PLACED_RIGHT_M = {InputMode.FILES: 2.0, InputMode.RGB: 5.0}
-"""A placed robot is right when its fused ATE (RMSE, shared frame, no alignment) is within this."""
-
-
-class Outcome(str, Enum):
-    RIGHT = "right"
-    WRONG = "wrong"
-    NOT_PLACED = "not placed"
 
 
 Progress = Callable[[str], None]
@@ -138,29 +114,6 @@ class HeldoutOptions:
     cores, ``remote.default_jobs``): the same results, sooner when the worlds run one at a time."""
 
 
-@dataclass
-class RobotVerdict:
-    """One robot of one world in one mode (a row of the held-out table)."""
-
-    scenario: str
-    seed: int
-    mode: str
-    robot: str
-    reference: bool
-    overlaps: bool
-    outcome: str
-    placed_fraction: float
-    placement_error_m: float  # how far the best rigid fit moves the fused trajectory onto the truth
-    ate_fused_m: float  # fused ATE: gauge fixed by the reference's trajectory (``judge_run``)
-    ate_fused_raw_m: float  # no alignment at all (the shared frame as the system defines it)
-    max_error_m: float
-    ate_odometry_aligned_m: float
-    odometry_breaks: int  # ground truth: grossly wrong stretches inside reported segments (missed failures)
-    failures_detected: int  # divergences the system detected and cut (new segments)
-    path_length_m: float
-    notes: list[str] = field(default_factory=list)
-    provisional: bool = False  # placed at the end only provisionally: the run said the place was unconfirmed
-    waiting: bool = False  # not placed although matches were accepted: too few independent ones (server.json)
 
 
 def world_folder(
@@ -215,190 +168,6 @@ def heldout_config(mode: InputMode) -> ShgmConfig:
     return ShgmConfig.model_validate(cfg.model_dump())
 
 
-def odometry_breaks(
-    times_s: np.ndarray, T_est: np.ndarray, T_gt: np.ndarray, boundaries: set[int] | None = None
-) -> int:
-    """Count ground-truth odometry failures: 1 s windows whose relative motion is grossly wrong.
-
-    A window [i, j] (consecutive valid frames ``BREAK_WINDOW_S`` apart, not straddling a reported
-    segment start in ``boundaries``) breaks when its translation error exceeds max(3 m, 50 % of the
-    true motion) or its rotation error exceeds 15 deg. Consecutive breaking windows count once.
-
-    Args:
-        times_s: (N,) frame times. T_est: (N, 4, 4) odometry poses (NaN rows for missing frames).
-        T_gt: (N, 4, 4) ground-truth poses of the same frames.
-        boundaries: frame indices where the system started a new odometry segment.
-    """
-    ok = np.isfinite(T_est.reshape(len(T_est), -1)).all(axis=1)
-    idx = np.flatnonzero(ok)
-    if len(idx) < 2:
-        return 0
-    j = np.searchsorted(times_s[idx], times_s[idx] + BREAK_WINDOW_S)
-    valid = j < len(idx)
-    i_f, j_f = idx[valid], idx[j[valid]]
-    if boundaries:
-        b = np.array(sorted(boundaries))
-        straddle = np.searchsorted(b, i_f, side="right") != np.searchsorted(b, j_f, side="right")
-        i_f, j_f = i_f[~straddle], j_f[~straddle]
-    if len(i_f) == 0:
-        return 0
-    rel_est = se3.inverse(T_est[i_f]) @ T_est[j_f]
-    rel_gt = se3.inverse(T_gt[i_f]) @ T_gt[j_f]
-    err = se3.inverse(rel_gt) @ rel_est
-    t_err = np.linalg.norm(err[:, :3, 3], axis=1)
-    cos = np.clip((np.trace(err[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    r_err = np.degrees(np.arccos(cos))
-    broken = (t_err > np.maximum(3.0, 0.5 * np.linalg.norm(rel_gt[:, :3, 3], axis=1))) | (r_err > 15.0)
-    starts = broken & ~np.concatenate([[False], broken[:-1]])
-    return int(starts.sum())
-
-
-def poses_by_time(path: Path, times_s: np.ndarray) -> np.ndarray:
-    """(N, 4, 4) poses of a TUM file at the sequence's frame times (NaN where the file has none)."""
-    out = np.full((len(times_s), 4, 4), np.nan)
-    if not path.is_file() or path.stat().st_size == 0:
-        return out
-    t, T = read_tum(path)
-    k = np.searchsorted(times_s, t)
-    k = np.clip(k, 0, len(times_s) - 1)
-    hit = np.abs(times_s[k] - t) < 1e-3
-    out[k[hit]] = T[hit]
-    return out
-
-
-@dataclass(frozen=True)
-class PlacementError:
-    """How far one robot's fused trajectory is from the truth (metres; NaN without placed poses).
-
-    Attributes:
-        placement_m: how far the best rigid fit (yaw + translation) moves its gauge-fixed trajectory onto the truth
-            (RMS over its placed poses; NaN with fewer than 3): where it was placed, not its own drift.
-        ate_m: fused ATE once the shared frame's gauge is fixed by the reference's trajectory.
-        ate_raw_m: fused ATE with no alignment at all (the shared frame as the system defines it).
-        max_m: the largest gauge-fixed position error.
-    """
-
-    placement_m: float
-    ate_m: float
-    ate_raw_m: float
-    max_m: float
-
-
-def placement_errors(
-    fused: list[np.ndarray], gt_world: list[np.ndarray], up_world: tuple[float, float, float] = (0.0, 0.0, 1.0)
-) -> list[PlacementError]:
-    """Judge each robot's placement in the shared frame, the first robot being the reference (``judge_run``).
-
-    The shared frame is the reference's first camera frame, so a small heading error of that one estimated pose
-    turns every robot's whole trajectory by the same amount: the gauge, not a placement error. One rigid
-    transform (yaw about the world's vertical + translation; a straight reference drive leaves the roll about
-    its own line undetermined in a 6-DoF fit) lays the reference's fused trajectory onto its truth and is
-    applied to every robot alike; each robot's placement error is then what its own best rigid fit still moves.
-
-    Args:
-        fused: per robot, (N_k, 4, 4) fused ``T_shared_cam`` at its frames, NaN where not placed.
-        gt_world: per robot, (N_k, 4, 4) ground truth ``T_world_cam`` in one world frame (all robots').
-        up_world: the world frame's vertical (the simulator's worlds: z up).
-    """
-    T_ref_world = se3.inverse(gt_world[0][0])
-    up_shared = T_ref_world[:3, :3] @ np.asarray(up_world, dtype=np.float64)
-    placed = [np.isfinite(f.reshape(len(f), -1)).all(axis=1) for f in fused]
-    T_gauge = np.eye(4)
-    if placed[0].sum() >= 3:
-        ref_gt = T_ref_world @ gt_world[0][placed[0]]
-        T_gauge = se3.kabsch_yaw(fused[0][placed[0], :3, 3], ref_gt[:, :3, 3], up=up_shared)
-    out = []
-    for f, gt, ok in zip(fused, gt_world, placed, strict=True):
-        truth = (T_ref_world @ gt[ok])[:, :3, 3]
-        xyz = f[ok, :3, 3]
-        xyz_g = se3.transform_points(T_gauge, xyz)
-        err = np.linalg.norm(xyz_g - truth, axis=1)
-        raw = np.linalg.norm(xyz - truth, axis=1)
-        placement = float("nan")
-        if ok.sum() >= 3:
-            T_fit = se3.kabsch_yaw(xyz_g, truth, up=up_shared)
-            placement = float(np.sqrt(np.mean(np.sum((se3.transform_points(T_fit, xyz_g) - xyz_g) ** 2, axis=1))))
-        out.append(PlacementError(placement, _rms(err), _rms(raw), float(err.max()) if err.size else float("nan")))
-    return out
-
-
-def _rms(values: np.ndarray) -> float:
-    """Root mean square of (N,) values; NaN when empty."""
-    return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
-
-
-def judge_run(
-    run_dir: Path, world: Path, robots: list[str], mode: InputMode, scenario: str, seed: int, metrics: dict
-) -> list[RobotVerdict]:
-    """Judge every robot of one finished run against ground truth (reads the results folder).
-
-    The shared frame is the reference robot's first camera frame, so a small heading error of that one
-    estimated pose turns every robot's whole trajectory by the same amount: the gauge, not a placement
-    error. Placement is therefore judged after one rigid transform (yaw about the vertical +
-    translation) that lays the *reference's* fused trajectory onto its ground truth, applied to every
-    robot alike (a robot merged in the wrong place stays wrong; the reference's own error is its aligned
-    ATE). ``ate_fused_raw_m`` keeps the error with no alignment at all.
-    """
-    scen = json.loads((world / "scenario.json").read_text())
-    shared = scen.get("overlap", {}).get("shared_view_m", {})
-    reports = {r["name"]: r for r in metrics.get("robots", [])}
-    server = run_dir / "server.json"
-    server_robots = json.loads(server.read_text()).get("robots", {}) if server.is_file() else {}
-    loaded = []
-    for name in robots:
-        seq = open_sequence(str(world / name))
-        times = np.asarray(seq.timestamps_s, dtype=np.float64)
-        if seq.gt_poses is None:
-            raise DataError(f"{world / name} has no poses.txt: the held-out benchmark needs ground truth")
-        fused = poses_by_time(run_dir / f"{name}_fused_tum.txt", times)
-        loaded.append((name, times, seq.gt_poses, fused))
-    errors = placement_errors([fused for *_, fused in loaded], [gt for _, _, gt, _ in loaded])
-    verdicts = []
-    for k, ((name, times, gt, fused), e) in enumerate(zip(loaded, errors, strict=True)):
-        overlaps = max(shared.get(name, {}).values(), default=0.0) >= MIN_SHARED_VIEW_M
-        odo = poses_by_time(run_dir / f"{name}_odometry_tum.txt", times)
-        rep = reports.get(name, {})
-        boundaries = set(rep.get("segment_start_frames", []) or [])
-        placed = np.isfinite(fused.reshape(len(times), -1)).all(axis=1)
-        frac = float(placed.mean()) if len(times) else 0.0
-        notes = []
-        if placed.sum() >= 3:
-            outcome = Outcome.RIGHT if e.placement_m <= PLACED_RIGHT_M[mode] else Outcome.WRONG
-            if k == 0:  # the reference defines the frame: judged on its own fused trajectory's error
-                outcome = Outcome.RIGHT if e.ate_m <= PLACED_RIGHT_M[mode] else Outcome.WRONG
-            elif not overlaps:
-                outcome = Outcome.WRONG
-                notes.append("merged a robot that shares no view with any other")
-        else:
-            outcome = Outcome.NOT_PLACED if overlaps else Outcome.RIGHT
-        if 0 < frac < 0.999 and placed.sum() >= 3:
-            notes.append(f"{frac:.0%} of frames placed")
-        provisional = bool(rep.get("provisional")) and placed.sum() >= 3
-        if provisional:
-            notes.append("provisional: the run flagged this place as unconfirmed")
-        waiting = outcome is Outcome.NOT_PLACED and bool(server_robots.get(name, {}).get("waiting"))
-        if waiting:
-            notes.append("matches accepted, but too few independent ones to enter the shared frame")
-        verdicts.append(
-            RobotVerdict(
-                scenario=scenario, seed=seed, mode=mode.value, robot=name, reference=k == 0, overlaps=overlaps,
-                outcome=outcome.value, placed_fraction=frac, placement_error_m=e.placement_m, ate_fused_m=e.ate_m,
-                ate_fused_raw_m=e.ate_raw_m, max_error_m=e.max_m,
-                ate_odometry_aligned_m=_number(rep.get("ate_odometry_aligned_m")),
-                odometry_breaks=odometry_breaks(times, odo, gt, boundaries),
-                failures_detected=int(rep.get("odometry_failures", 0) or 0),
-                path_length_m=_number(rep.get("path_length_m")),
-                notes=notes,
-                provisional=provisional,
-                waiting=waiting,
-            )
-        )
-    return verdicts
-
-
-def _number(value: object) -> float:
-    """A metrics.json number (null for 'not measured') as a float (NaN)."""
-    return float("nan") if value is None else float(value)
 
 
 def _robots_of(world: Path) -> list[str]:
@@ -610,168 +379,3 @@ def run_heldout_benchmark(
     }  # fmt: skip
     write_report(out, "heldout", results, heldout_markdown)
     return results
-
-
-def summarize(rows: list[dict], runs: list[dict] | None = None) -> dict:
-    """Rates per mode and per (mode, scenario): placed right, wrong (false merges), not placed, odometry;
-    with ``runs`` (their ``matches`` entries), the accepted matches and how many were off at their place."""
-
-    def tol(r: dict) -> float:
-        return PLACED_RIGHT_M[InputMode(r["mode"])]
-
-    def stats(sel: list[dict]) -> dict:
-        refs = [r for r in sel if r["reference"]]
-        ovl = [r for r in sel if r["overlaps"] and not r["reference"]]
-        apart = [r for r in sel if not r["overlaps"] and not r["reference"]]
-        right = sum(r["outcome"] == Outcome.RIGHT.value for r in ovl)
-        return {
-            "robot_worlds": len(sel),
-            "overlapping": len(ovl),
-            "placed_right": right,
-            "placed_right_rate": right / len(ovl) if ovl else float("nan"),
-            "fused_within": sum(
-                r["outcome"] != Outcome.NOT_PLACED.value and r["ate_fused_m"] <= tol(r) for r in ovl
-            ),
-            "fused_within_unaligned": sum(
-                r["outcome"] != Outcome.NOT_PLACED.value and r["ate_fused_raw_m"] <= tol(r) for r in ovl
-            ),
-            "wrong": sum(r["outcome"] == Outcome.WRONG.value for r in ovl + apart),
-            "wrong_gross": sum(
-                r["outcome"] == Outcome.WRONG.value and not r["placement_error_m"] <= GROSS_ERROR_M for r in ovl + apart
-            ),
-            "wrong_gross_provisional": sum(
-                r["outcome"] == Outcome.WRONG.value and not r["placement_error_m"] <= GROSS_ERROR_M
-                and bool(r.get("provisional")) for r in ovl + apart
-            ),
-            "not_placed": sum(r["outcome"] == Outcome.NOT_PLACED.value for r in ovl),
-            "not_placed_waiting": sum(r["outcome"] == Outcome.NOT_PLACED.value and bool(r.get("waiting")) for r in ovl),
-            "references": len(refs),
-            "references_within": sum(r["outcome"] == Outcome.RIGHT.value for r in refs),
-            "apart_kept_apart": sum(r["outcome"] == Outcome.RIGHT.value for r in apart),
-            "apart": len(apart),
-            "failures_detected": sum(r["failures_detected"] for r in sel),
-            "robots_with_failures_detected": sum(r["failures_detected"] > 0 for r in sel),
-            "undetected_breaks": sum(r["odometry_breaks"] for r in sel),
-            "robots_with_undetected_breaks": sum(r["odometry_breaks"] > 0 for r in sel),
-            "median_ate_right_m": float(np.median([r["ate_fused_m"] for r in ovl if r["outcome"] == "right"]))
-            if right else float("nan"),
-        }
-
-    def match_stats(mode: str, scenario: str | None) -> dict:
-        judged = [r["matches"] for r in runs or [] if r["mode"] == mode and "matches" in r
-                  and scenario in (None, r["scenario"])]  # fmt: skip
-        return {
-            "matches_accepted": sum(m["accepted"] for m in judged),
-            "matches_off": sum(m["off"] for m in judged),
-            "matches_gross": sum(m["gross"] for m in judged),
-            "anchorings": sum(m.get("anchorings") or 0 for m in judged),
-            "anchorings_gross": sum(m.get("anchorings_gross", 0) for m in judged),
-            "anchorings_gross_confirmed": sum(m.get("anchorings_gross_confirmed", 0) for m in judged),
-            "anchorings_unrecorded": sum(m.get("anchorings") is None for m in judged),
-            "rejected": sum(m.get("rejected") or 0 for m in judged),
-            "rejected_right": sum(m.get("rejected_right", 0) for m in judged),
-            "rejected_unrecorded": sum(m.get("rejected") is None for m in judged),
-        }
-
-    out: dict = {}
-    for mode in sorted({r["mode"] for r in rows}):
-        sel = [r for r in rows if r["mode"] == mode]
-        out[mode] = {"all": stats(sel) | match_stats(mode, None)}
-        for scenario in sorted({r["scenario"] for r in sel}):
-            out[mode][scenario] = stats([r for r in sel if r["scenario"] == scenario]) | match_stats(mode, scenario)
-        bad = [r for r in sel if r["outcome"] != Outcome.RIGHT.value]
-        bad.sort(key=lambda r: (r["reference"], r["outcome"] != Outcome.WRONG.value,
-                                -np.nan_to_num(r["placement_error_m"]), -np.nan_to_num(r["ate_fused_m"])))
-        out[mode]["worst"] = [
-            {k: r[k] for k in ("scenario", "seed", "robot", "reference", "outcome", "placement_error_m", "ate_fused_m",
-                               "placed_fraction",
-                               "notes")}
-            for r in bad[:8]
-        ]
-    return out
-
-
-def heldout_markdown(results: dict) -> str:
-    """The held-out tables as markdown (what the README shows)."""
-    o = results["options"]
-    stopped = (
-        f"**Interrupted**: only the {len(results.get('runs', []))} runs finished before the stop are counted; "
-        "the same command resumes the rest.\n\n"
-        if results.get("interrupted") else ""
-    )
-    lines = [
-        stopped + f"Seeds {o['seeds'][0]}-{o['seeds'][-1]} ({len(o['seeds'])} worlds per scenario), "
-        f"{o['resolution'][0]}x{o['resolution'][1]}"
-        + (f" ({o['supersample']}x{o['supersample']} rays per pixel)" if o.get("supersample", 1) > 1 else "")
-        + (f", airsim-like UAVs at {o['uav_altitude_m'][0]:g}-{o['uav_altitude_m'][1]:g} m" if o.get("uav_altitude_m")
-           else "")
-        + (f", rendered frames corrupted (depth noise {o['depth_noise']:g}, label noise {o['label_noise']:g})"
-           if o.get("depth_noise") or o.get("label_noise") else "")
-        + ", default configuration; tuning seeds "
-        f"{o['tuning_seeds'][0]}-{o['tuning_seeds'][-1]}. Placed right: placed within "
-        + ", ".join(f"{v:g} m ({k})" for k, v in o["placed_right_m"].items())
-        + ": the rigid transform that best lays its fused trajectory onto the truth moves it less than that "
-        "(placement, not its own drift). 'Fused ATE within': its fused ATE in the shared frame within the "
-        "same tolerance once the shared frame's gauge is fixed by the reference robot's trajectory (one rigid "
-        "transform for all robots); '(unaligned)': with no alignment at all. 'Accepted matches off': the map "
-        "server's accepted graph matches whose transform, read at the two keyframes it joins, is farther from "
-        "the truth than the same tolerance (> 20 m: an alias); a robot placed wrong whose matches were all "
-        "right at their place was bent away by its own drift, not merged by a false match. 'Placed through "
-        "a false closure': times a robot entered the shared frame through a closure more than 20 m off at its "
-        "place, of all times a robot entered it, even if later matches withdrew it (a false merge the final "
-        "trajectories no longer show); in brackets those the server ever confirmed (two independent matches "
-        "agreeing), the rest stayed provisional and were reported so; '?' where the run predates that record. "
-        "'Not placed': in brackets those 'waiting', whose accepted matches were fewer independent pieces of "
-        "evidence than a robot needs to enter the shared frame. "
-        "'Rejected matches right': matches the verification rejected whose best hypothesis, read at B's newest "
-        "keyframe, was within the tolerance anyway (right alignments missed), of all rejected matches with a "
-        "hypothesis.",
-        "",
-        "| input | scenario | robot-worlds | overlapping placed right | fused ATE within | (unaligned) | wrong |"
-        " of which > 20 m | not placed |"
-        " disjoint kept apart | reference within | odometry failures detected (robots) |"
-        " undetected breaks (robots) | median ATE right m | accepted matches off (> 20 m) |"
-        " placed through a false closure (confirmed) | rejected matches right |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for mode, per in results["summary"].items():
-        for scenario, s in per.items():
-            if scenario == "worst":
-                continue
-            rate = f"{s['placed_right']}/{s['overlapping']}" + (
-                f" ({100 * s['placed_right_rate']:.0f} %)" if s["overlapping"] else ""
-            )
-            lines.append(
-                f"| {mode} | {'**all**' if scenario == 'all' else scenario} | {s['robot_worlds']} | {rate} | "
-                f"{s['fused_within']} | {s['fused_within_unaligned']} | {s['wrong']} | {s['wrong_gross']}"
-                + (f" ({s['wrong_gross_provisional']} provisional)" if s.get("wrong_gross_provisional") else "")
-                + " | "
-                f"{s['not_placed']}"
-                + (f" ({s['not_placed_waiting']} waiting)" if s.get("not_placed_waiting") else "")
-                + " | "
-                f"{s['apart_kept_apart']}/{s['apart']} | "
-                f"{s['references_within']}/{s['references']} | "
-                f"{s['failures_detected']} ({s['robots_with_failures_detected']}) | "
-                f"{s['undetected_breaks']} ({s['robots_with_undetected_breaks']}) | "
-                f"{s['median_ate_right_m']:.2f} | "
-                f"{s.get('matches_off', 0)}/{s.get('matches_accepted', 0)} ({s.get('matches_gross', 0)}) | "
-                + ("?" if s.get("anchorings_unrecorded") else f"{s.get('anchorings_gross', 0)}/{s.get('anchorings')} "
-                   f"({s.get('anchorings_gross_confirmed', 0)})")
-                + " | "
-                + ("?" if s.get("rejected_unrecorded") else f"{s.get('rejected_right', 0)}/{s.get('rejected', 0)}")
-                + " |"
-            )
-    if results.get("skipped_worlds"):
-        lines += ["", "Worlds skipped (not built as asked; not in the tables):", ""]
-        lines += [f"- {w['scenario']} seed {w['seed']}: {w['skipped']}" for w in results["skipped_worlds"]]
-    for mode, per in results["summary"].items():
-        if per["worst"]:
-            lines += ["", f"Worst cases ({mode}):", ""]
-            for w in per["worst"]:
-                note = "; ".join(w["notes"])
-                lines.append(
-                    f"- {w['scenario']} seed {w['seed']} {w['robot']}{' (reference)' if w['reference'] else ''}: "
-                    f"{w['outcome']}, placement {w['placement_error_m']:.1f} m, fused ATE "
-                    f"{w['ate_fused_m']:.1f} m, {w['placed_fraction']:.0%} placed" + (f" ({note})" if note else "")
-                )
-    return "\n".join(lines) + "\n"

@@ -29,7 +29,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from shgm_slam.bench import heldout
+from shgm_slam.bench import heldout_judge
+from shgm_slam.bench.heldout_judge import placement_errors, poses_by_time
 from shgm_slam.bench.match_truth import judge_matches
 from shgm_slam.bench.report import write_report
 from shgm_slam.bench.scale import StepCost
@@ -52,9 +53,9 @@ OVERLAP_M = 10.0
 """A stretch overlaps another where its ground-truth path passes within this of the other's."""
 OVERLAP_MIN_M = 40.0
 """... along at least this much of its path: enough shared street for a graph match to stand on."""
-PLACED_RIGHT_M = heldout.PLACED_RIGHT_M[heldout.InputMode.FILES]
-"""A placed robot is right when its placement error (``heldout.placement_errors``) is within this (rendered depth)."""
-GROSS_ERROR_M = heldout.GROSS_ERROR_M
+PLACED_RIGHT_M = heldout_judge.PLACED_RIGHT_M[heldout_judge.InputMode.FILES]
+"""A placed robot is right when its placement error (``placement_errors``) is within this (rendered depth)."""
+GROSS_ERROR_M = heldout_judge.GROSS_ERROR_M
 """An accepted match farther off than this at its place is an alias."""
 STRETCHES = 8
 """Equal stretches 00 is cut into: the largest fleet."""
@@ -132,7 +133,7 @@ def overlapping(overlap_m: np.ndarray, min_m: float = OVERLAP_MIN_M) -> np.ndarr
 
 
 def placement(summary_json: dict, can_place: dict[str, bool], run_dir: Path, robots: dict[str, Sequence]) -> dict:
-    """How the fleet was placed, judged as ``bench heldout`` judges (``heldout.placement_errors``): robots that
+    """How the fleet was placed, judged as ``bench heldout`` judges (``placement_errors``): robots that
     could be placed (``can_place``: name -> bool, the reference included), placed right (the best rigid fit of
     its trajectory, the shared frame's gauge fixed by the reference r1, moves it less than ``PLACED_RIGHT_M``;
     r1 itself: its gauge-fixed fused ATE within that), placed wrong (farther; robots that could not be placed
@@ -146,8 +147,8 @@ def placement(summary_json: dict, can_place: dict[str, bool], run_dir: Path, rob
     """
     reports = {r["name"]: r for r in summary_json["robots"]}
     names = [n for n in robots if n in can_place]
-    fused = [heldout.poses_by_time(run_dir / f"{n}_fused_tum.txt", np.asarray(robots[n].timestamps_s)) for n in names]
-    errors = dict(zip(names, heldout.placement_errors(fused, [robots[n].gt_poses for n in names]), strict=True))
+    fused = [poses_by_time(run_dir / f"{n}_fused_tum.txt", np.asarray(robots[n].timestamps_s)) for n in names]
+    errors = dict(zip(names, placement_errors(fused, [robots[n].gt_poses for n in names]), strict=True))
     placed = [n for n in names if reports[n]["localized"]]
     right = [
         n for n in placed

@@ -282,6 +282,8 @@ def bench_heldout(
     not placed, odometry failures (ground truth and detected), accepted matches and placements judged
     at their own place (false ones withdrawn later included), per scenario and input."""
     from shgm_slam.bench import heldout
+    from shgm_slam.bench.heldout_judge import InputMode
+    from shgm_slam.bench.heldout_summary import heldout_markdown
     from shgm_slam.errors import ConfigError
     from shgm_slam.sim.corruption import CorruptionLevels
     from shgm_slam.sim.simulate import check_uav_altitude, parse_altitude, parse_resolution
@@ -295,7 +297,7 @@ def bench_heldout(
         if s not in heldout.SCENARIOS:
             raise ConfigError(f"--scenario {s!r}: choose from {', '.join(heldout.SCENARIOS)}")
     try:
-        modes = tuple(heldout.InputMode(m) for m in (mode or [m.value for m in heldout.InputMode]))
+        modes = tuple(InputMode(m) for m in (mode or [m.value for m in InputMode]))
     except ValueError:
         raise ConfigError(f"--mode {mode}: choose files or rgb") from None
     options = heldout.HeldoutOptions(scenarios=tuple(scenario or heldout.SCENARIOS), seeds=seed_list, modes=modes,
@@ -307,7 +309,7 @@ def bench_heldout(
         raise ConfigError(f"--replay-from {replay_from}: no runs/ folder there (a `bench heldout` results folder)")
     with console.status("starting") as status:
         results = heldout.run_heldout_benchmark(out, options, progress=lambda msg: status.update(msg), jobs=jobs)
-    print_report(heldout.heldout_markdown(results))
+    print_report(heldout_markdown(results))
     console.print(f"wrote {lit(out / 'heldout.json')} and {lit(out / 'heldout.md')}")
     _exit_if_interrupted(results, f"the files hold the {len(results['runs'])} runs finished; the same command "
                                   "resumes the rest")  # fmt: skip
