@@ -25,18 +25,16 @@ import logging
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from shgm_slam.agents import agent_robot
-from shgm_slam.backend.confirmation import describe
 from shgm_slam.backend.keys import MAX_AGENTS, segments_per_robot
 from shgm_slam.config import ShgmConfig
 from shgm_slam.corrections import FusedView
 from shgm_slam.errors import DataError, ShgmError
-from shgm_slam.fusion import fuse_segments
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.messages import (
     CorrectionMessage,
@@ -53,9 +51,11 @@ from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.ordering import KeyframeOrder
 from shgm_slam.server.records import MatchRecord, pair_matches
 from shgm_slam.server.recovery import RecoveryReport, recover
+from shgm_slam.server.results import fused_trajectory, keyframe_trajectory, provisional_note, robot_summary
 from shgm_slam.server.sessions import RobotSession
 from shgm_slam.server.snapshot import SnapshotStore, config_digest
 from shgm_slam.server.snapshot_codec import ServerSnapshot, SnapshotError
+from shgm_slam.server.traffic import TrafficStats
 from shgm_slam.transport.base import Inbox, Transport
 from shgm_slam.transport.keys import ALL_DONE, ALL_HELLO, ALL_KEYFRAMES, STATUS_KEY, correction_key, robot_of
 from shgm_slam.wire import decode, encode
@@ -75,47 +75,6 @@ session has been silent this long the newcomer is a restart and takes over (robo
 CONNECT_WAIT_S = 30.0
 """With ``expect``, keyframes wait (in the server's time order, ``ordering``) at most this long after the
 server started for the expected robots that have not connected yet."""
-
-
-@dataclass
-class TrafficStats:
-    """Bytes and messages the server received, by kind, and what it refused."""
-
-    bytes_by_kind: dict[str, int] = field(default_factory=dict)
-    count_by_kind: dict[str, int] = field(default_factory=dict)
-    bytes_by_robot: dict[str, int] = field(default_factory=dict)  # everything a robot sent
-    sent_by_kind: dict[str, int] = field(default_factory=dict)  # what the server sent (corrections, status)
-    sent_by_robot: dict[str, int] = field(default_factory=dict)  # corrections sent to each robot
-    refused: int = 0
-    refusal_reasons: list[str] = field(default_factory=list)
-
-    def add(self, kind: str, size: int, robot: str) -> None:
-        self.bytes_by_kind[kind] = self.bytes_by_kind.get(kind, 0) + size
-        self.count_by_kind[kind] = self.count_by_kind.get(kind, 0) + 1
-        self.bytes_by_robot[robot] = self.bytes_by_robot.get(robot, 0) + size
-
-    def sent(self, kind: str, size: int, robot: str | None = None) -> None:
-        self.sent_by_kind[kind] = self.sent_by_kind.get(kind, 0) + size
-        if robot is not None:
-            self.sent_by_robot[robot] = self.sent_by_robot.get(robot, 0) + size
-
-    def refuse(self, reason: str) -> None:
-        self.refused += 1
-        if len(self.refusal_reasons) < 50:
-            self.refusal_reasons.append(reason)
-
-    def to_json_dict(self) -> dict:
-        kf_n = self.count_by_kind.get("keyframe", 0)
-        return {
-            "bytes_by_kind": dict(self.bytes_by_kind),
-            "messages_by_kind": dict(self.count_by_kind),
-            "bytes_by_robot": dict(self.bytes_by_robot),
-            "bytes_sent_by_kind": dict(self.sent_by_kind),
-            "bytes_sent_by_robot": dict(self.sent_by_robot),
-            "bytes_per_keyframe": self.bytes_by_kind.get("keyframe", 0) / kf_n if kf_n else None,
-            "refused": self.refused,
-            "refusal_reasons": list(self.refusal_reasons),
-        }
 
 
 class ServerNode:
@@ -632,39 +591,17 @@ class ServerNode:
         """``(timestamps_s (N,), T_shared_cam (N, 4, 4) or None)`` of ``robot``'s frames, once it has sent
         its trajectory (``DoneMessage``); None before (see ``keyframe_trajectory``) or for unknown robots."""
         rs = self.robots.get(robot)
-        traj = self.trajectory(robot)
-        if rs is None or self.map is None or traj is None:
+        if rs is None or self.map is None or self.trajectory(robot) is None:
             return None
-        server = self.map
-        seg = {agent_robot(a)[1]: a for a in server.agents if agent_robot(a)[0] == robot}
-        fused = fuse_segments(
-            traj.T_odom_cam, traj.frame_segment,
-            {k: np.asarray(rs.kf_frames.get(a, []), dtype=np.int64) for k, a in seg.items()},
-            {k: server.keyframe_poses(a) for k, a in seg.items()},
-            {k: server.T_shared_kf(a) for k, a in seg.items()},
-        )  # fmt: skip
-        return traj.timestamps_s, fused
+        return fused_trajectory(self.map, rs)
 
     def keyframe_trajectory(self, robot: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """``(timestamps_s (K,), T_odom_kf (K, 4, 4), T_shared_kf (K, 4, 4) or None)`` of all of ``robot``'s
-        keyframes in time order (odometry in each segment's own frame; fused NaN for unplaced segments)."""
+        keyframes in time order (``results.keyframe_trajectory``; empty for unknown robots)."""
         rs = self.robots.get(robot)
-        server = self.map
-        times, odo, fused = [], [], []
-        for a in server.agents if server is not None and rs is not None else []:
-            if agent_robot(a)[0] != robot or not server.received(a):
-                continue
-            T_odom = server.keyframe_poses(a)
-            T_shared = server.T_shared_kf(a)
-            times += rs.kf_timestamps.get(a, [])[: len(T_odom)]
-            odo.append(T_odom)
-            fused.append(T_shared if T_shared is not None else np.full_like(T_odom, np.nan))
-        if not odo:
+        if rs is None or self.map is None:
             return np.zeros(0), np.zeros((0, 4, 4)), None
-        order = np.argsort(times, kind="stable")
-        T_fused = np.concatenate(fused)[order]
-        placed = np.isfinite(T_fused).all(axis=(1, 2)).any()
-        return np.asarray(times)[order], np.concatenate(odo)[order], T_fused if placed else None
+        return keyframe_trajectory(self.map, rs)
 
     def trajectory(self, robot: str) -> RobotTrajectory | None:
         """The per-frame odometry ``robot`` sent with its last keyframe, if it has."""
@@ -704,39 +641,13 @@ class ServerNode:
         self.writer.write_json("server.json", self.summary())
 
     def provisional_note(self, robot: str) -> str | None:
-        """Why ``robot``'s place in the shared frame is provisional (one line per such agent), or None when
-        every placed agent of it is confirmed (``backend.confirmation``)."""
-        server = self.map
-        if server is None:
-            return None
-        notes = [describe(a, p) for a in server.agents if agent_robot(a)[0] == robot
-                 and (p := server.placement(a)).provisional]  # fmt: skip
-        return "; ".join(notes) or None
+        """Why ``robot``'s place in the shared frame is provisional (``results.provisional_note``), or None."""
+        return provisional_note(self.map, robot) if self.map is not None else None
 
     def summary(self) -> dict:
         """Server-side metrics: robots, their state and placement, traffic, refusals."""
         server = self.map
-        agents = server.agents if server else []
-        robots = {}
-        for name, rs in self.robots.items():
-            mine = [a for a in agents if agent_robot(a)[0] == name]
-            robots[name] = {
-                "state": rs.state.value,
-                "agents": mine,
-                "placed": [a for a in mine if server.is_placed(a)],
-                "provisional": [a for a in mine if server.placement(a).provisional],
-                "waiting": [note for a in mine if (note := server.waiting_note(a)) is not None],
-                # odometry heading drift its loop closures measured beyond the prior, deg per 100 m, per agent
-                "measured_drift_deg_per_100m": {
-                    a: round(float(np.degrees(d)) * 100.0, 2)
-                    for a in mine
-                    if (d := server.measured_drift(a)) is not None
-                },
-                "keyframes": sum(server.received(a) for a in mine) if server else 0,
-                "done": rs.done is not None,
-                "went_stale": rs.went_stale,
-                "dropped_segments": {a: why for a, why in self._dropped.items() if agent_robot(a)[0] == name},
-            }
+        robots = {name: robot_summary(server, rs, self._dropped) for name, rs in self.robots.items()}
         return {
             "session": self.session,
             "reference": self.reference,
