@@ -40,6 +40,8 @@ PLACED_RIGHT_M = {InputMode.FILES: 2.0, InputMode.RGB: 5.0}
 
 
 class Outcome(str, Enum):
+    """What became of one robot of one world (``judge_run``)."""
+
     RIGHT = "right"
     WRONG = "wrong"
     NOT_PLACED = "not placed"
