@@ -81,7 +81,6 @@ onto 00 and 09; the generated city grows around both drives). Frame ranges are h
 the ends are the inclusive ends these worlds were first rendered with, plus one."""
 
 
-
 Progress = Callable[[str], None]
 
 
@@ -112,8 +111,6 @@ class HeldoutOptions:
     front_end_jobs: int | None = 1
     """Worker processes for each run's robot front ends (``run_slam(jobs=...)``; None: one per robot up to the
     cores, ``remote.default_jobs``): the same results, sooner when the worlds run one at a time."""
-
-
 
 
 def world_folder(
@@ -166,8 +163,6 @@ def heldout_config(mode: InputMode) -> ShgmConfig:
                 raise DataError(f"{p} is missing: train the demo models with `python tools/train_demo_models.py`")
         cfg.perception.depth_model, cfg.perception.seg_model = depth, seg
     return ShgmConfig.model_validate(cfg.model_dump())
-
-
 
 
 def _robots_of(world: Path) -> list[str]:

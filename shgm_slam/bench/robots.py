@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from shgm_slam.bench import heldout_judge
-from shgm_slam.bench.heldout_judge import placement_errors, poses_by_time
+from shgm_slam.bench.heldout_judge import GROSS_ERROR_M, InputMode, placement_errors, poses_by_time
+from shgm_slam.bench.heldout_judge import PLACED_RIGHT_M as PLACED_RIGHT_BY_MODE_M
 from shgm_slam.bench.match_truth import judge_matches
 from shgm_slam.bench.report import write_report
 from shgm_slam.bench.scale import StepCost
@@ -53,10 +53,8 @@ OVERLAP_M = 10.0
 """A stretch overlaps another where its ground-truth path passes within this of the other's."""
 OVERLAP_MIN_M = 40.0
 """... along at least this much of its path: enough shared street for a graph match to stand on."""
-PLACED_RIGHT_M = heldout_judge.PLACED_RIGHT_M[heldout_judge.InputMode.FILES]
+PLACED_RIGHT_M = PLACED_RIGHT_BY_MODE_M[InputMode.FILES]
 """A placed robot is right when its placement error (``placement_errors``) is within this (rendered depth)."""
-GROSS_ERROR_M = heldout_judge.GROSS_ERROR_M
-"""An accepted match farther off than this at its place is an alias."""
 STRETCHES = 8
 """Equal stretches 00 is cut into: the largest fleet."""
 FLEETS = (1, 2, 4, 8)
