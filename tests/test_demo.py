@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from shgm_slam.config import MATCHES_TO_ANCHOR, ExtractionConfig, OdometryConfig, OdometryKind
-from shgm_slam.demo import MODELS_DIR, demo_config
+from shgm_slam.demo import DEMO_DEPTH_MODEL, DEMO_SEG_MODEL, MODELS_DIR, demo_config, demo_model_paths, model_dirs
 from shgm_slam.errors import DataError
 from shgm_slam.odometry.sources import resolve_kind
 from shgm_slam.scene_scale import SceneScale, resolve_robot_config
@@ -44,10 +44,54 @@ def test_rgb_only_demo_uses_models_visual_odometry_and_confirmed_anchors():
     assert cfg.odometry.visual_max_depth_m is None  # derived per robot
 
 
-def test_rgb_only_without_models_names_the_training_script(monkeypatch, tmp_path):
-    monkeypatch.setattr("shgm_slam.demo.MODELS_DIR", tmp_path)
-    with pytest.raises(DataError, match="train_demo_models"):
+def test_rgb_only_without_models_names_where_it_looked_and_what_to_do(monkeypatch, tmp_path):
+    monkeypatch.setattr("shgm_slam.demo.model_dirs", lambda: [tmp_path / "checkout", tmp_path / "venv"])
+    with pytest.raises(DataError) as err:
         demo_config(rgb_only=True)
+    message = str(err.value)
+    assert str(tmp_path / "checkout") in message and str(tmp_path / "venv") in message
+    assert "train_demo_models" in message and "--depth-model" in message
+
+
+def test_installed_models_are_found_when_the_checkout_has_none(tmp_path):
+    """A wheel (``pip install .``, not editable) puts the models under ``share/shgm-slam/models``."""
+    checkout, installed = tmp_path / "checkout", tmp_path / "installed"
+    checkout.mkdir()
+    (checkout / DEMO_DEPTH_MODEL).write_bytes(b"only one of the two")
+    installed.mkdir()
+    for name in (DEMO_DEPTH_MODEL, DEMO_SEG_MODEL):
+        (installed / name).write_bytes(b"onnx")
+    assert demo_model_paths([checkout, installed]) == (installed / DEMO_DEPTH_MODEL, installed / DEMO_SEG_MODEL)
+
+
+def test_the_checkout_comes_first_and_the_environment_is_searched():
+    dirs = model_dirs()
+    assert dirs[0] == MODELS_DIR
+    assert any(d.parts[-3:] == ("share", "shgm-slam", "models") for d in dirs[1:])
+
+
+def test_every_committed_model_file_is_shipped_by_the_package():
+    """``pyproject.toml``'s data-files globs cover every file of models/."""
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    project = tomllib.loads((MODELS_DIR.parent / "pyproject.toml").read_text())
+    globs = project["tool"]["setuptools"]["data-files"]["share/shgm-slam/models"]
+    shipped = {p.name for g in globs for p in MODELS_DIR.parent.glob(g)}
+    assert {DEMO_DEPTH_MODEL, DEMO_SEG_MODEL, "demo_depth.yaml", "demo_seg.yaml"} <= shipped
+    assert shipped == {p.name for p in MODELS_DIR.iterdir() if p.is_file()}
+
+
+def test_rgb_only_demo_without_models_fails_before_rendering_the_world(monkeypatch, tmp_path):
+    from typer.testing import CliRunner
+
+    import shgm_slam.cli as cli
+    import shgm_slam.demo as demo
+
+    rendered = []
+    monkeypatch.setattr(demo, "model_dirs", lambda: [tmp_path])
+    monkeypatch.setattr(demo, "prepare_world", lambda *a: rendered.append(a) or (tmp_path, {}))
+    res = CliRunner().invoke(cli.app, ["demo", "--rgb-only", "--rerun", "off"])
+    assert res.exit_code == 2, res.output
+    assert "demo models" in res.output and rendered == []
 
 
 def test_plain_and_rgb_only_demos_write_separate_results(monkeypatch, tmp_path):

@@ -30,7 +30,7 @@ from shgm_slam.bench.report import write_report
 from shgm_slam.bench.stopping import run_to_end
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
-from shgm_slam.demo import MODELS_DIR
+from shgm_slam.demo import demo_model_paths
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.metrics import AlignMode, ate, drift_percent, trajectory_length
@@ -146,7 +146,7 @@ def model_depth(sequence: Sequence, model_path: Path | None = None, threads: int
     """``sequence`` with its depth predicted by an ONNX depth model (default: the demo model)."""
     from shgm_slam.perception.depth import DepthModel
 
-    model = DepthModel(model_path or MODELS_DIR / "demo_depth.onnx", threads=threads)
+    model = DepthModel(model_path or demo_model_paths()[0], threads=threads)
 
     def depth_fn(frame: Frame) -> np.ndarray:
         return model.predict(frame.image_rgb, frame.intrinsics)

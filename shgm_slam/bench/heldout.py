@@ -45,9 +45,9 @@ from shgm_slam.bench.report import write_report
 from shgm_slam.bench.stopping import run_to_end
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
-from shgm_slam.demo import MODELS_DIR
+from shgm_slam.demo import demo_model_paths
 from shgm_slam.environment import environment
-from shgm_slam.errors import ConfigError, DataError, SimulationError
+from shgm_slam.errors import ConfigError, SimulationError
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.robot.remote import default_jobs
 from shgm_slam.runner import open_robots, replay_backend
@@ -153,15 +153,11 @@ def heldout_config(mode: InputMode) -> ShgmConfig:
     """The default configuration; RGB mode only adds the demo models (nothing tuned per world).
 
     Raises:
-        DataError: RGB mode but the demo models are missing.
+        DataError: RGB mode but the demo models are found nowhere (``demo.demo_model_paths``).
     """
     cfg = ShgmConfig()
     if mode is InputMode.RGB:
-        depth, seg = MODELS_DIR / "demo_depth.onnx", MODELS_DIR / "demo_seg.onnx"
-        for p in (depth, seg):
-            if not p.is_file():
-                raise DataError(f"{p} is missing: train the demo models with `python tools/train_demo_models.py`")
-        cfg.perception.depth_model, cfg.perception.seg_model = depth, seg
+        cfg.perception.depth_model, cfg.perception.seg_model = demo_model_paths()
     return ShgmConfig.model_validate(cfg.model_dump())
 
 

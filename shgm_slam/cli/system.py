@@ -279,9 +279,9 @@ def demo(
         console.print(f"simulating the airsim-like world into [bold]{lit(folder)}[/] (once; cached afterwards)")
         simulate_with_progress("airsim-like", folder, seed, cached=True)
 
+    cfg = demo_config(rgb_only=rgb_only)  # before the world is rendered: missing demo models fail at once
     world, kinds = prepare_world(cache, seed, simulate_world)
     console.print(f"world: [bold]{lit(world)}[/] robots: {lit(', '.join(f'{r} ({k})' for r, k in kinds.items()))}")
-    cfg = demo_config(rgb_only=rgb_only)
     summary = _run_command([f"{r}={world / r}" for r in kinds], cfg, out, rerun, None, True, overwrite, jobs)
     render_summary(summary)
     if (out / "run.rrd").is_file():
