@@ -143,3 +143,12 @@ def test_a_demo_whose_first_render_was_interrupted_renders_again(monkeypatch, tm
     assert res.exit_code == 0, res.output
     world = tmp_path / "cache" / "airsim-like-seed0"
     assert len(rendered) == 1 and (world / "scenario.json").is_file() and not (world / "car1" / "image_2").exists()
+
+
+def test_the_viewer_command_is_the_one_beside_this_python(monkeypatch, tmp_path):
+    from shgm_slam.cli.system import viewer_command
+
+    monkeypatch.setattr("sys.executable", str(tmp_path / "python"))
+    assert viewer_command() == "rerun"  # none beside it: the PATH's
+    (tmp_path / "rerun").write_text("#!/bin/sh\n")
+    assert viewer_command() == str(tmp_path / "rerun")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -285,9 +286,16 @@ def demo(
     summary = _run_command([f"{r}={world / r}" for r in kinds], cfg, out, rerun, None, True, overwrite, jobs)
     render_summary(summary)
     if (out / "run.rrd").is_file():
-        console.print(f"open the recording with: [bold].venv/bin/rerun {lit(out / 'run.rrd')}[/]")
+        console.print(f"open the recording with: [bold]{lit(viewer_command())} {lit(out / 'run.rrd')}[/]")
     console.print(f"evaluate against ground truth: [bold]shgm-slam eval {lit(out)}[/] or "
                   f"[bold]evo_ape tum {lit(out / 'car2_gt_tum.txt')} {lit(out / 'car2_fused_tum.txt')}[/]")
+
+
+def viewer_command() -> str:
+    """How to start the Rerun viewer that came with this environment: the ``rerun`` script beside this Python
+    (``.venv/bin/rerun`` after the quick start), else ``rerun`` from the PATH."""
+    beside = Path(sys.executable).parent / "rerun"
+    return str(beside) if beside.is_file() else "rerun"
 
 
 @app.command("eval")
