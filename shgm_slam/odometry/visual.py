@@ -275,7 +275,7 @@ class DepthVisualOdometry:
         self.planar_motion = planar_motion
         self.road_steps = road_steps
         self._road: tuple[np.ndarray, np.ndarray, RoadPlane] | None = None  # previous image, its road pixels, plane
-        self._road_sign = 1.0  # the last road step's sign along the chord (a camera looking backwards: -1)
+        self._road_sign: float | None = None  # the last road step's sign along the chord (backward camera: -1)
         self.num_road_steps = 0
         self._turn: PlanarTurn | None = None  # this frame's planar turn (accepted ones only)
         self._turn_used = False  # this frame's pose took it
@@ -395,7 +395,11 @@ class DepthVisualOdometry:
         The car moves along the chord of its turn in the road plane: the previous camera's forward axis laid
         into the plane and turned by half the step's rotation (planar circular motion, with the camera's own
         pitch and roll to the road taken out); forward or backward as the tracking chain's step says (a camera
-        looking backwards)."""
+        looking backwards). Where the chain's step points against the last road step's and the road gives no
+        distinct answer that way, the road is searched the way the car was going too: a car does not reverse
+        from one frame to the next, while a chain whose tracks slide along the street reads a step of a few
+        centimetres, either way, where the car drove a metre (synthia-like, 10 m/s: the road then found the
+        1.1 m step only the way the car was going)."""
         if self._road is None:
             return None
         prev_gray, pixels, plane = self._road
@@ -405,13 +409,16 @@ class DepthVisualOdometry:
         forward /= np.linalg.norm(forward)
         chord_prev = half_rotation(R_cam_prev.T) @ forward  # the step's direction in the previous frame
         along = float(-(R_cam_prev.T @ step[:3, 3]) @ chord_prev)  # the tracking chain's step along it
-        if abs(along) > 1e-6:
-            self._road_sign = 1.0 if along > 0 else -1.0
-        chord_prev *= self._road_sign
-        direction_cam = -R_cam_prev @ chord_prev
-        found = ground_step(prev_gray, gray, pixels, intrinsics.K, R_cam_prev, direction_cam, plane, max_length_m)
-        if found is None or found.contrast > MAX_ROAD_CONTRAST:
+        chain_sign = (1.0 if along > 0 else -1.0) if abs(along) > 1e-6 else (self._road_sign or 1.0)
+        signs = [chain_sign] if self._road_sign in (None, chain_sign) else [chain_sign, self._road_sign]
+        for sign in signs:
+            direction_cam = -R_cam_prev @ (sign * chord_prev)
+            found = ground_step(prev_gray, gray, pixels, intrinsics.K, R_cam_prev, direction_cam, plane, max_length_m)
+            if found is not None and found.contrast <= MAX_ROAD_CONTRAST:
+                break
+        else:
             return None
+        self._road_sign = sign
         out = np.eye(4)
         out[:3, :3] = R_cam_prev
         out[:3, 3] = found.length_m * direction_cam

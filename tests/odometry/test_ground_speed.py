@@ -112,3 +112,31 @@ def test_without_labels_or_road_the_steps_are_the_tracks(drive):
     unlabelled, regs, vo = run(drive, True, labels=False)
     assert vo.num_road_steps == 0 and not any(r.road_step for r in regs)
     assert np.allclose(off, unlabelled, atol=1e-6)
+
+
+def test_a_chain_that_reads_the_step_backwards_does_not_turn_the_road_around(drive):
+    """Tracks that slide along the street read a few centimetres, either way, where the car drove a metre
+    (synthia-like at 10 m/s): five frames whose tracking chain steps 5 cm backwards. A car does not reverse
+    from one frame to the next: the road is searched the way it was going too, and finds the true steps."""
+    gt = inverse(drive[0]) @ drive
+    vo = DepthVisualOdometry(depth_window_px=1, planar_motion=True, road_steps=True)
+    solve = vo._solve_pnp
+
+    def sliding(T_pred, intrinsics):
+        T, inliers = solve(T_pred, intrinsics)
+        if 8 <= vo.num_frames < 13 and T is not None:
+            motion = inverse(vo._track_T) @ T  # this camera in the previous one: PnP's turn is kept
+            motion[:3, 3] *= -0.05 / np.linalg.norm(motion[:3, 3])  # 5 cm back where it drove 0.9 m on
+            return vo._track_T @ motion, inliers
+        return T, inliers
+
+    vo._solve_pnp = sliding
+    est = []
+    for T in drive:
+        gray, depth = render(T)
+        lab = road_labels(depth)
+        est.append(vo.register(gray, depth, INTRINSICS, lab).T_odom_cam)
+    est = np.stack(est)
+    assert vo.num_road_steps >= 20
+    assert trajectory_length(est) == pytest.approx(trajectory_length(gt), rel=0.02)
+    assert ate(gt, est, align="none").rmse < 0.3
