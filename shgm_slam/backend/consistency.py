@@ -18,6 +18,12 @@ four submap matches 31 m off, each sharing 23-52 objects with the others), so a 
 group of its matches whose objects are mutually disjoint (greedy, and exact for two), not its distinct
 matches. The objects may include pseudo-objects: the pose graph adds the pair of straight stretches a
 closure lies on (``backend/stretches.py``), so one robot's matches along one street pair count once.
+A *decisive* match (alone as far beyond chance as the matches a robot needs to enter the shared frame,
+``backend.decisive_match``) counts as that many pieces of evidence here too, as it does for anchoring:
+every right match of a pair re-finds the same true objects, so without it a set of right matches counted
+one piece however strong they were, and two alias matches on disjoint objects kept a robot 310 m off
+against a final look at the whole overlap with 141 partners and a likelihood ratio three times its
+threshold (airsim-like files, seed 569).
 
 The set is maintained incrementally per robot pair (``PairConsistency``): a new closure is tested
 against the pair's other closures only (O(n)); it joins the current set when it agrees with all of it,
@@ -165,10 +171,11 @@ def max_consistent_set(
     preferred: np.ndarray | None = None,
     sources: np.ndarray | None = None,
     source_masks: list[int] | None = None,
+    source_pieces: list[int] | None = None,
 ) -> np.ndarray:
     """Maximum clique of a consistency graph by independent evidence, ties broken for stability.
 
-    The clique with the most independent ``sources`` (``independent_sources``) wins, then the one with
+    The clique with the most independent evidence (``independent_sources``) wins, then the one with
     most members, then the one with the most ``preferred`` members (keeps the established set when new
     evidence is only a tie), then the largest total weight, then the one with the earliest members.
 
@@ -180,6 +187,8 @@ def max_consistent_set(
             own source when None.
         source_masks: the objects each source rests on as a bit mask, indexed by source id (0: none
             recorded); every distinct source is independent when None.
+        source_pieces: each source's pieces of evidence, indexed by source id (a decisive match's: more than
+            one); one each when None.
 
     Returns:
         Sorted int64 indices of the chosen clique (empty only for n = 0). Exact up to
@@ -193,37 +202,55 @@ def max_consistent_set(
     w = np.ones(n) if weights is None else np.asarray(weights, dtype=np.float64)
     pref = np.zeros(n, dtype=bool) if preferred is None else np.asarray(preferred, dtype=bool)
     src = np.arange(n) if sources is None else np.asarray(sources, dtype=np.int64)
-    found, _ = best_clique(A, w, pref, min_size=1, budget=CLIQUE_BUDGET, sources=src, source_masks=source_masks)
+    found, _ = best_clique(
+        A, w, pref, min_size=1, budget=CLIQUE_BUDGET, sources=src, source_masks=source_masks,
+        source_pieces=source_pieces,
+    )  # fmt: skip
     return found
 
 
-def independent_sources(sources: np.ndarray, source_masks: list[int] | None = None) -> int:
-    """How many of the distinct ``sources`` rest on mutually disjoint objects.
+def independent_sources(
+    sources: np.ndarray, source_masks: list[int] | None = None, source_pieces: list[int] | None = None
+) -> int:
+    """How many pieces of evidence the distinct ``sources`` give: those that rest on mutually disjoint
+    objects, each counted with its pieces (1; a decisive match's, more).
 
     Greedy, fewest objects first (ties: the lower source id): a source counts when it shares no object
     with the sources counted before it. A source without recorded objects (mask 0) always counts. Two is
     the count that decides (two independent matches agree: a robot enters the shared frame) and greedy
     can miss it (a small source overlapping two disjoint larger ones is taken first), so when greedy
-    counts fewer than two, every pair is checked: adding a source never lowers the count below two.
+    counts fewer than two, every pair is checked: adding a source never lowers the count below two. With
+    pieces, greedy runs a second time with the sources of most pieces first (a decisive match over the
+    whole overlap shares objects with every smaller one) and the larger count holds; adding a source never
+    lowers it below the most pieces one source has.
 
     Args:
         sources: (k,) int64 source ids (repeats allowed).
         source_masks: each source id's objects as a bit mask; every distinct source counts when None.
+        source_pieces: each source id's pieces of evidence (>= 1); one each when None.
     """
-    ids = np.unique(np.asarray(sources, dtype=np.int64))
+    ids = np.unique(np.asarray(sources, dtype=np.int64)).tolist()
+    pieces = [1] * len(ids) if source_pieces is None else [int(source_pieces[s]) for s in ids]
     if source_masks is None:
-        return int(ids.size)
-    masks = sorted((source_masks[s] for s in ids.tolist()), key=int.bit_count)  # stable: ties by id
-    taken, count = 0, 0
-    for mask in masks:
-        if not mask & taken:
-            taken |= mask
-            count += 1
-    if count < 2:
+        return int(sum(pieces))
+    by_size = sorted(zip(ids, pieces, strict=True), key=lambda sp: source_masks[sp[0]].bit_count())  # ties: id
+    orders = [by_size]
+    if max(pieces, default=1) > 1:
+        orders.append(sorted(by_size, key=lambda sp: -sp[1]))
+    best = 0
+    for order in orders:
+        taken, count = 0, 0
+        for s, n in order:
+            if not source_masks[s] & taken:
+                taken |= source_masks[s]
+                count += n
+        best = max(best, count)
+    if best < 2:
+        masks = [source_masks[s] for s, _ in by_size]
         for i, mask in enumerate(masks):
             if any(not mask & other for other in masks[i + 1:]):
                 return 2
-    return count
+    return best
 
 
 def clique_score(
@@ -232,15 +259,21 @@ def clique_score(
     preferred: np.ndarray,
     sources: np.ndarray,
     source_masks: list[int] | None = None,
+    source_pieces: list[int] | None = None,
 ) -> tuple:
-    """Rank of a clique (larger is better): (independent sources, members, preferred members, total weight,
+    """Rank of a clique (larger is better): (independent evidence, members, preferred members, total weight,
     earliest members first), for the (k,) int ``members`` of (m,) ``weights``, ``preferred`` and ``sources``
-    (``independent_sources`` with ``source_masks``)."""
+    (``independent_sources`` with ``source_masks`` and ``source_pieces``)."""
     mem = np.sort(np.asarray(members, dtype=np.int64))
     return (
-        independent_sources(sources[mem], source_masks), int(mem.size), int(preferred[mem].sum()),
+        independent_sources(sources[mem], source_masks, source_pieces), int(mem.size), int(preferred[mem].sum()),
         float(weights[mem].sum()), tuple(-int(i) for i in mem),
     )  # fmt: skip
+
+
+def _most_pieces(source_pieces: list[int] | None) -> int:
+    """The most pieces of evidence one source gives (1 without pieces): members bound evidence by this factor."""
+    return max(source_pieces, default=1) if source_pieces else 1
 
 
 def best_clique(
@@ -252,8 +285,9 @@ def best_clique(
     start: np.ndarray | None = None,
     sources: np.ndarray | None = None,
     source_masks: list[int] | None = None,
+    source_pieces: list[int] | None = None,
 ) -> tuple[np.ndarray | None, bool]:
-    """Best clique of at least ``min_size`` vertices by ``clique_score`` (independent sources, size,
+    """Best clique of at least ``min_size`` vertices by ``clique_score`` (independent evidence, size,
     preferred members, weight, earliest).
 
     Degree peeling first drops vertices that cannot be in such a clique, greedy cliques (from the
@@ -270,6 +304,7 @@ def best_clique(
         sources: (m,) int64 source id of each vertex; each vertex its own when None.
         source_masks: each source id's objects as a bit mask (``independent_sources``); None: every
             distinct source is independent.
+        source_pieces: each source id's pieces of evidence (``independent_sources``); one each when None.
 
     Returns:
         (sorted int64 indices or None when no clique reaches ``min_size``, whether the search was exact).
@@ -282,15 +317,18 @@ def best_clique(
         return None, True
 
     def rank(mask: np.ndarray) -> tuple:
-        return clique_score(np.flatnonzero(mask), weights, preferred, src_all, source_masks)
+        return clique_score(np.flatnonzero(mask), weights, preferred, src_all, source_masks, source_pieces)
 
     greedy = _improve(A, _greedy(A, alive), alive)
     if start is not None and (start := start & alive).any():
         grown = _improve(A, _greedy(A, alive, start), alive)
         if rank(grown) > rank(greedy):
             greedy = grown
-    # a clique ranked above the greedy one has at least as many independent sources, so as many members
-    best_size = max(min_size, rank(greedy)[0])
+    # a clique ranked above the greedy one has at least as much independent evidence, so at least that many
+    # members over the most pieces one source gives
+    most = _most_pieces(source_pieces)
+    best_evidence = max(min_size, rank(greedy)[0])
+    best_size = max(min_size, -(-best_evidence // most))
     alive = _peel(A, alive, best_size)
     idx = np.flatnonzero(alive)
     if idx.size < best_size:  # cannot happen for a clique found inside alive; be safe
@@ -300,17 +338,17 @@ def best_clique(
     w, pref, src = weights[idx], preferred[idx], src_all[idx]
 
     def score(bits: int) -> tuple:
-        return clique_score(np.array(_members(bits), dtype=np.int64), w, pref, src, source_masks)
+        return clique_score(np.array(_members(bits), dtype=np.int64), w, pref, src, source_masks, source_pieces)
 
     g = greedy[idx]
     best_bits = _to_bits(g) if g.sum() >= min_size else 0
-    best = score(best_bits) if best_bits else (best_size - 1,)
+    best = score(best_bits) if best_bits else (best_evidence - 1,)
     left = budget
     stack: list[list] = []
 
     def push(R: int, P: int, X: int) -> None:
         nonlocal left, best_bits, best
-        if R.bit_count() + P.bit_count() < best[0]:  # members bound independent sources from above
+        if most * (R.bit_count() + P.bit_count()) < best[0]:  # members bound the evidence from above
             return
         left -= 1 + (P | X).bit_count()  # the pivot choice scans P and X
         if P == 0:
@@ -326,7 +364,7 @@ def best_clique(
     while stack and left > 0:
         frame = stack[-1]
         R, P, X, todo, i = frame
-        if i == len(todo) or R.bit_count() + P.bit_count() < best[0]:
+        if i == len(todo) or most * (R.bit_count() + P.bit_count()) < best[0]:
             stack.pop()
             continue
         v = todo[i]
@@ -382,6 +420,7 @@ class PairConsistency:
     _chosen: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     _src: list = field(default_factory=list)  # each voting closure's source (hashable), in ``ids`` order
     _mask: list[int] = field(default_factory=list)  # each voting closure's objects as a bit mask (``_bit``)
+    _pieces: list[int] = field(default_factory=list)  # each voting closure's pieces of evidence (its match's)
     _bit: dict = field(default_factory=dict)  # object (hashable) -> its bit
 
     def __post_init__(self) -> None:
@@ -401,9 +440,10 @@ class PairConsistency:
         return self._chosen[: len(self.ids)].copy()
 
     def evidence(self) -> int:
-        """Independent sources (``independent_sources``) of the current set: the evidence it rests on."""
+        """Independent sources (``independent_sources``, one piece each) of the current set: the matches on
+        mutually disjoint objects it rests on (a decisive one anchors by its own rule)."""
         n = len(self.ids)
-        src, masks = self._sources(n)
+        src, masks, _ = self._sources(n)
         return independent_sources(src[self._chosen[:n]], masks)
 
     def vote(self) -> PairVote:
@@ -415,11 +455,12 @@ class PairConsistency:
     @classmethod
     def from_vote(
         cls, vote: PairVote, capacity: int = MAX_CLOSURES_PER_PAIR, sources: list | None = None,
-        supports: list | None = None,
+        supports: list | None = None, pieces: list[int] | None = None,
     ) -> PairConsistency:
         """Rebuild a pair from ``vote()``, its closures' ``sources`` (in ``vote.ids`` order; each closure its
-        own when None) and the objects each rests on (``supports``, same order; none when None); it then
-        votes on new closures exactly as the original would.
+        own when None), the objects each rests on (``supports``, same order; none when None) and the pieces
+        of evidence each one's match gives (``pieces``; one each when None); it then votes on new closures
+        exactly as the original would.
 
         Raises:
             BackendError: the arrays are inconsistent (shapes, an asymmetric adjacency, more closures
@@ -440,21 +481,26 @@ class PairConsistency:
             )
         src = [("closure", int(i)) for i in ids] if sources is None else list(sources)
         sup = [()] * n if supports is None else list(supports)
-        if len(src) != n or len(sup) != n:
-            raise BackendError(f"consistency vote has {n} closures but {len(src)} sources, {len(sup)} supports")
+        pcs = [1] * n if pieces is None else [int(p) for p in pieces]
+        if len(src) != n or len(sup) != n or len(pcs) != n or any(p < 1 for p in pcs):
+            raise BackendError(
+                f"consistency vote has {n} closures but {len(src)} sources, {len(sup)} supports, {len(pcs)} "
+                "pieces (each >= 1)"
+            )
         pair = cls(capacity, ids=ids.tolist(), exact=bool(vote.exact), searches=int(vote.searches),
-                   _A=A.copy(), _w=w.copy(), _chosen=chosen.copy(), _src=src)  # fmt: skip
+                   _A=A.copy(), _w=w.copy(), _chosen=chosen.copy(), _src=src, _pieces=pcs)  # fmt: skip
         pair._mask = [pair._objects_mask(objects) for objects in sup]
         return pair
 
     def add(
         self, closure_id: int, consistent: np.ndarray, weight: float = 1.0, source: object = None,
-        support: Iterable = (),
+        support: Iterable = (), pieces: int = 1,
     ) -> tuple[int, bool] | None:
         """Add a closure given its consistency with the current ``ids`` (an (n,) bool row), its evidence
-        ``weight``, its ``source`` (hashable: the graph match it was cut from; the closure itself when None)
-        and its ``support`` (hashable objects it rests on, e.g. ``(agent, node id)``: two sources that share
-        one are not independent evidence).
+        ``weight``, its ``source`` (hashable: the graph match it was cut from; the closure itself when None),
+        its ``support`` (hashable objects it rests on, e.g. ``(agent, node id)``: two sources that share
+        one are not independent evidence) and the ``pieces`` of evidence its match gives (1; a decisive
+        match's more: the set ranking counts them, ``independent_sources``).
 
         Returns:
             The closure that left the vote to make room, with whether it was in the set, or None.
@@ -479,6 +525,7 @@ class PairConsistency:
         self.ids.append(int(closure_id))
         self._src.append(("closure", int(closure_id)) if source is None else source)
         self._mask.append(self._objects_mask(support))
+        self._pieces.append(max(1, int(pieces)))
         self._select(n, row)
         return evicted
 
@@ -489,41 +536,51 @@ class PairConsistency:
             mask |= 1 << self._bit.setdefault(obj, len(self._bit))
         return mask
 
-    def _sources(self, n: int) -> tuple[np.ndarray, list[int]]:
-        """(n,) int64 the first ``n`` voting closures' sources numbered densely (first seen first), and each
-        source number's objects: the union of its closures' bit masks."""
+    def _sources(self, n: int) -> tuple[np.ndarray, list[int], list[int]]:
+        """(n,) int64 the first ``n`` voting closures' sources numbered densely (first seen first), each
+        source number's objects (the union of its closures' bit masks) and its pieces of evidence (the most
+        any of its closures carries)."""
         number: dict = {}
         src = np.array([number.setdefault(x, len(number)) for x in self._src[:n]], dtype=np.int64)
-        masks = [0] * len(number)
-        for s, mask in zip(src.tolist(), self._mask[:n], strict=True):
+        masks, pieces = [0] * len(number), [1] * len(number)
+        for s, mask, p in zip(src.tolist(), self._mask[:n], self._pieces[:n], strict=True):
             masks[s] |= mask
-        return src, masks
+            pieces[s] = max(pieces[s], p)
+        return src, masks, pieces
 
     def _select(self, v: int, row: np.ndarray) -> None:
         S = self._chosen[:v]
         if not S.any():
             self._chosen[v] = True
             return
+        src, masks, pieces = self._sources(v + 1)
+        incumbent = np.r_[S, False]
         if row[S].all():  # joins: a closure consistent with the whole set adds to it
-            self._chosen[v] = True
-            return
-        src, masks = self._sources(v + 1)
+            # that is the best set through v too when its match is new to the set; when the match is in the set
+            # already, a set through v without some of the set's closures can have more independent evidence
+            # (v brings its match to a set that lacked it) or more closures: then the search below decides
+            if src[v] not in src[:v][S]:
+                self._chosen[v] = True
+                return
+            incumbent[v] = True
         w, pref = self._w[: v + 1], np.r_[S, False]
-        current = clique_score(np.flatnonzero(S), w, pref, src, masks)
+        current = clique_score(np.flatnonzero(incumbent), w, pref, src, masks, pieces)
         # every clique through v lies in v's consistent neighbourhood: it cannot rank above S when even all
-        # of the neighbourhood's distinct sources (independent or not) and members could not
+        # of the neighbourhood's distinct sources (independent or not, with their pieces) and members could not
         cand = np.r_[np.flatnonzero(row), v]
-        if (np.unique(src[cand]).size, cand.size) <= current[:2]:
+        if (sum(pieces[s] for s in np.unique(src[cand]).tolist()), cand.size) <= current[:2]:
+            self._chosen[: v + 1] = incumbent
             return
         self.searches += 1
         sub = self._A[np.ix_(cand, cand)].copy()
         sub[-1, :-1] = sub[:-1, -1] = True  # v agrees with each of its neighbours
         found, exact = best_clique(
-            sub, w[cand], pref[cand], current[0], self.budget, start=pref[cand], sources=src[cand],
-            source_masks=masks,
+            sub, w[cand], pref[cand], -(-current[0] // _most_pieces(pieces)), self.budget, start=pref[cand],
+            sources=src[cand], source_masks=masks, source_pieces=pieces,
         )  # fmt: skip
         self.exact &= exact
-        if found is not None and clique_score(cand[found], w, pref, src, masks) > current:
+        self._chosen[: v + 1] = incumbent
+        if found is not None and clique_score(cand[found], w, pref, src, masks, pieces) > current:
             self._chosen[: v + 1] = False
             self._chosen[cand[found]] = True
 
@@ -549,6 +606,7 @@ class PairConsistency:
         del self.ids[i]
         del self._src[i]
         del self._mask[i]
+        del self._pieces[i]
 
 
 def _clean(adjacency: np.ndarray) -> np.ndarray:

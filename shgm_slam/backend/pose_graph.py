@@ -741,7 +741,8 @@ class MultiRobotPoseGraph:
         }  # fmt: skip
         self._pairs = {
             pair: PairConsistency.from_vote(
-                v, cap, [evidence[int(i)] for i in v.ids], [self._support.get(int(i), ()) for i in v.ids]
+                v, cap, [evidence[int(i)] for i in v.ids], [self._support.get(int(i), ()) for i in v.ids],
+                [self._pieces(self._closures[int(i)]) for i in v.ids],
             )
             for pair, v in state.pairs.items()
         }
@@ -805,7 +806,9 @@ class MultiRobotPoseGraph:
             np.array([c.kf_b for c in others], dtype=np.int64),
             odom_a, odom_b, path_a, path_b, self.thresholds,
         )  # fmt: skip
-        evicted = voting.add(rec.closure_id, row, rec.num_inliers, rec.evidence, self._support.get(rec.closure_id, ()))
+        evicted = voting.add(
+            rec.closure_id, row, rec.num_inliers, rec.evidence, self._support.get(rec.closure_id, ()), self._pieces(rec)
+        )
         where = f"{rec.robot_a}-{rec.robot_b}"
         if evicted is not None:
             c = self._closures[evicted[0]]
@@ -832,6 +835,12 @@ class MultiRobotPoseGraph:
                     f"rejected: inconsistent with the maximum consistent set ({size} of {n} closures "
                     f"between {where})"
                 )
+
+    def _pieces(self, rec: ClosureRecord) -> int:
+        """Pieces of evidence a closure's match gives in its pair's consistency vote: a decisive match as many as
+        a robot needs to enter the shared frame (``min_closures_to_anchor``, as its anchoring rule says), any
+        other one."""
+        return self.min_closures_to_anchor if rec.decisive else 1
 
     # --- anchoring and iSAM2 bookkeeping ---------------------------------------------------------
 

@@ -52,6 +52,57 @@ def test_incremental_set_equals_the_exact_search_with_closures_from_shared_match
     assert pc.exact
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_incremental_set_equals_the_exact_search_with_decisive_matches(seed):
+    """Some matches are decisive (two pieces each): the incremental set still equals the exact search ranked
+    by evidence (pieces of the distinct sources) first."""
+    rng = np.random.default_rng(200 + seed)
+    A = random_graph(rng, 40, 14, 0.9, 0.3)
+    w = rng.integers(1, 10, 40).astype(float)
+    src = np.cumsum(rng.random(40) < 0.4)
+    pieces = rng.choice([1, 2], size=int(src.max()) + 1, p=[0.75, 0.25])
+    pc = PairConsistency()
+    for v in range(40):
+        before = pc.chosen_mask()
+        pc.add(v, A[v, :v], w[v], ("match", int(src[v])), (), int(pieces[src[v]]))
+        dense = {x: i for i, x in enumerate(dict.fromkeys(src[: v + 1].tolist()))}
+        exact = max_consistent_set(
+            A[: v + 1, : v + 1], w[: v + 1], np.r_[before, False], np.array([dense[x] for x in src[: v + 1]]),
+            None, [int(pieces[x]) for x in dense],
+        )  # fmt: skip
+        np.testing.assert_array_equal(np.flatnonzero(pc.chosen_mask()), exact)
+    assert pc.exact
+
+
+def test_a_decisive_match_counts_as_the_evidence_it_anchors_with():
+    """Right matches all re-find the true objects (they share them), an alias found twice lands on
+    different objects each time (airsim-like files, seed 569: car2 310 m off). Counted one piece each, the
+    alias's two disjoint matches outrank any number of right ones; a decisive right match counts two, as
+    it does for anchoring, and then the larger set wins."""
+
+    def vote(pieces_of_right: int) -> PairConsistency:
+        pc = PairConsistency()
+        pc.add(0, np.zeros(0, dtype=bool), 10.0, "alias1", [1, 2, 3])
+        pc.add(1, np.array([True]), 10.0, "alias2", [4, 5, 6])
+        for v in range(2, 8):  # one decisive match over the whole overlap, cut into six closures
+            pc.add(v, np.r_[False, False, np.ones(v - 2, dtype=bool)], 20.0, "right", [7, 8, 9], pieces_of_right)
+        return pc
+
+    assert vote(1).chosen_ids == [0, 1]
+    assert vote(2).chosen_ids == [2, 3, 4, 5, 6, 7]
+    assert vote(2).evidence() == 1  # what the set rests on for anchoring: one match (its own rule anchors it)
+
+
+def test_independent_sources_counts_a_decisive_source_as_its_pieces():
+    """A decisive match over the whole overlap shares objects with every narrower one: greedy by size would
+    count one narrow match; the decisive one alone gives its two pieces."""
+    masks = [0b0001, 0b0010, 0b1111]
+    assert independent_sources(np.array([0, 2]), masks) == 1
+    assert independent_sources(np.array([0, 2]), masks, [1, 1, 2]) == 2
+    assert independent_sources(np.array([0, 1, 2]), masks, [1, 1, 2]) == 2  # the two narrow ones: two too
+    assert independent_sources(np.array([0, 1]), None, [3, 1, 1]) == 4  # no objects: every source, its pieces
+
+
 def test_closures_of_one_match_count_once_against_independent_matches():
     """One match cut into three mutually consistent closures (an alias along a street) does not outvote two
     independent matches that agree; a third closure of the alias match changes nothing either."""
