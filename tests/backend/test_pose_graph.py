@@ -518,3 +518,26 @@ def test_anchorings_keep_a_robot_once_placed_through_a_closure_that_was_withdraw
     assert history[0][1].closure_id == first.closure_id and history[0][1].status is ClosureStatus.REJECTED
     assert history[1][1].status is ClosureStatus.ACCEPTED and pg.anchor_closure("b") == history[1][1].closure_id
     assert np.linalg.norm(pg.estimate()["b"][5][:3, 3] - [0.0, 0.0, 10.0]) < 0.5
+
+
+def test_a_decisive_match_that_refinds_the_true_objects_outvotes_two_alias_matches():
+    """b drives a's street (true offset 0). Two alias matches on disjoint objects put b 80 m further along and
+    place it there (two pieces). The right matches all find the same true objects (one piece however many), but
+    one of them is decisive: it counts the two pieces it anchors with, its set has more closures, and b moves
+    to its true place (airsim-like files, seed 569: car2 310 m off until the end)."""
+    pg = MultiRobotPoseGraph(["a", "b"], min_closures_to_anchor=2)
+    for k in range(40):
+        pg.add_keyframe("a", k, make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]))
+        pg.add_keyframe("b", k, make_pose(np.eye(3), [0.0, 0.0, 2.0 * k]))
+    alias = make_pose(np.eye(3), [0.0, 0.0, 80.0])
+    for match, k, objects in ((1, 2, {("a", 1), ("a", 2)}), (2, 4, {("a", 3), ("a", 4)})):
+        pg.add_inter_robot_closure("a", k, "b", k, alias, num_inliers=15, match_id=match, support=objects)
+    assert pg.is_anchored("b")
+    assert np.linalg.norm(pg.estimate()["b"][5][:3, 3] - [0.0, 0.0, 90.0]) < 0.5  # placed by the alias
+    truth = {("a", 10), ("a", 11), ("a", 12)}
+    pg.add_inter_robot_closure("a", 10, "b", 10, np.eye(4), num_inliers=20, match_id=3, support=truth)
+    for k in (12, 14, 16, 18):  # the whole overlap matched: decisive, the same true objects
+        pg.add_inter_robot_closure("a", k, "b", k, np.eye(4), num_inliers=40, match_id=4, support=truth, decisive=True)
+    accepted = sorted(c.kf_b for c in pg.closures() if c.status is ClosureStatus.ACCEPTED)
+    assert accepted == [10, 12, 14, 16, 18]
+    assert np.linalg.norm(pg.estimate()["b"][5][:3, 3] - [0.0, 0.0, 10.0]) < 0.5
