@@ -273,7 +273,7 @@ def clique_score(
 
 def _most_pieces(source_pieces: list[int] | None) -> int:
     """The most pieces of evidence one source gives (1 without pieces): members bound evidence by this factor."""
-    return max(source_pieces, default=1) if source_pieces else 1
+    return max(source_pieces or [1])
 
 
 def best_clique(
@@ -553,16 +553,15 @@ class PairConsistency:
         if not S.any():
             self._chosen[v] = True
             return
+        joins = bool(row[S].all())  # a closure consistent with the whole set adds to it
+        # that is the best set through v too when its match is new to the set; when the match is in the set
+        # already, a set through v without some of the set's closures can have more independent evidence
+        # (v brings its match to a set that lacked it) or more closures: then the search below decides
+        if joins and self._src[v] not in {self._src[i] for i in np.flatnonzero(S)}:
+            self._chosen[v] = True
+            return
         src, masks, pieces = self._sources(v + 1)
-        incumbent = np.r_[S, False]
-        if row[S].all():  # joins: a closure consistent with the whole set adds to it
-            # that is the best set through v too when its match is new to the set; when the match is in the set
-            # already, a set through v without some of the set's closures can have more independent evidence
-            # (v brings its match to a set that lacked it) or more closures: then the search below decides
-            if src[v] not in src[:v][S]:
-                self._chosen[v] = True
-                return
-            incumbent[v] = True
+        incumbent = np.r_[S, joins]
         w, pref = self._w[: v + 1], np.r_[S, False]
         current = clique_score(np.flatnonzero(incumbent), w, pref, src, masks, pieces)
         # every clique through v lies in v's consistent neighbourhood: it cannot rank above S when even all
