@@ -41,6 +41,9 @@ def drifting_run(tiny_scenario: Path, tmp_path_factory: pytest.TempPathFactory):
     cfg = ShgmConfig()
     cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, tmp / "odo_{robot}.txt"
     cfg.backend.match_every_keyframes = 3  # car2 meets car1 once, briefly: two independent matches to enter
+    # ... on one straight street: with stretches tracked every match there is one piece of evidence
+    # (backend/stretches.py); this run is about fusion, so matches count by their objects
+    cfg.backend.stretch_turn_deg = None
     out = tmp / "out"
     summary = run_slam(robots, cfg, out)
     return summary, robots, out
@@ -432,6 +435,7 @@ def early_stop(tiny_scenario: Path, tmp_path_factory: pytest.TempPathFactory):
     trusting = ShgmConfig()
     trusting.odometry.kind = OdometryKind.GT
     trusting.backend.min_closures_to_anchor = 1
+    trusting.backend.stretch_turn_deg = None  # the cars meet on one straight street: confirmed by objects alone
     default = ShgmConfig()
     default.odometry.kind = OdometryKind.GT
     runs = {}

@@ -473,16 +473,22 @@ class MultiRobotPoseGraph:
         rec = self._closures[closure_id]
         if not self.tracks_stretches or rec.robot_a == rec.robot_b:
             return None
-        _, _, q, _, p = self._stretch_token(rec)
-        return q, p
+        (q, kf_q), (o, kf_o) = self._querier_first(rec)
+        return self._robots[q].stretches.ids[kf_q], self._robots[o].stretches.ids[kf_o]
 
-    def _stretch_token(self, rec: ClosureRecord) -> tuple:
-        """The querying robot's stretch, then the other's (``stretches.stretch_token``)."""
+    @staticmethod
+    def _querier_first(rec: ClosureRecord) -> list[tuple[str, int]]:
+        """[(the querying robot, its keyframe), (the other, its keyframe)] of an inter-robot closure."""
         ends = [(rec.robot_b, rec.kf_b), (rec.robot_a, rec.kf_a)]
         if rec.querier == rec.robot_a:
             ends.reverse()
-        (q, kf_q), (o, kf_o) = ends
-        return stretch_token(q, self._robots[q].stretches.ids[kf_q], o, self._robots[o].stretches.ids[kf_o])
+        return ends
+
+    def _stretch_token(self, rec: ClosureRecord) -> tuple:
+        """The pair of stretches of a closure's two keyframes (``stretches.stretch_token``: either query's)."""
+        ids = self._robots
+        return stretch_token(rec.robot_a, ids[rec.robot_a].stretches.ids[rec.kf_a],
+                             rec.robot_b, ids[rec.robot_b].stretches.ids[rec.kf_b])  # fmt: skip
 
     def _with_stretches(self, rec: ClosureRecord, support: Iterable[Hashable]) -> frozenset:
         """A closure's objects, plus the pair of straight stretches its keyframes lie on when stretches are

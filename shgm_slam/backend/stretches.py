@@ -6,14 +6,20 @@ lamps and parked cars that is not enough: a street that aliases onto another one
 robots drive on, so the next submap match finds *new* objects under the *same* wrong transform and
 "confirms" it (airsim-like tuning seed 14 with objects placed at their centres: car1's straight street
 merged 413 m off onto car2's, then confirmed 97 m further along the same street, both found by car1's
-submap queries). So matches one robot's queries find on the same straight stretch of its own trajectory
-and of its partner's count once: each closure also rests on a pseudo-object, (querying robot, its
-stretch, partner, its stretch) (``stretch_token``), and matches that share it are not independent.
-Evidence from around a corner (either robot turned between the two matches) still is, and so is a match
-the partner's own query found (its recent submap: other observations). Making the pair symmetric (the
-partner's queries on the same two stretches count once too) lost four of the 19 right placements on the
-airsim-like files tuning worlds 10-19 (replayed; car2s and a UAV whose only overlap with car1 is one
-straight street), so it is not.
+submap queries). So matches found on the same straight stretch of each robot's trajectory count once: each
+closure also rests on a pseudo-object, (one robot, its stretch, the other, its stretch) (``stretch_token``), and
+matches that share it are not independent, whichever robot's query found them. Evidence from around a corner
+(either robot turned between the two matches) still is.
+
+The token used to be per querying robot (a match the partner's own query found, on its recent submap, counted as
+other evidence). Report world airsim-like 569 showed why it must not: car1 and car2 drove one long straight street
+in opposite directions, and car2's submap query and car1's found the same alias 405-434 m along it, on disjoint
+objects, seven keyframes apart: two "independent" pieces that placed car2 310 m off for most of the run. An
+aliased street aliases whoever queries. In November the symmetric token had lost four of 19 right placements on
+the airsim-like files tuning worlds 10-19 (car2s and a UAV whose only overlap with car1 is one straight street);
+with the decisive match (``backend.decisive_match``) and the vote that counts it as two pieces, replayed on tuning
+worlds 10-14 (all scenarios) and airsim-like 15-19, it lost none: every robot placed right as before, one car
+provisional instead of confirmed (airsim-like 14's car2, placed by a decisive match on one straight street).
 
 A stretch ends where the direction of travel, measured over ``HEADING_BASE_M`` of path, has turned more
 than ``turn_rad`` from the direction the stretch started with (a 90° corner starts two or three new
@@ -76,11 +82,13 @@ class StretchTracker:
         return self._current
 
 
-def stretch_token(querier: str, stretch_q: int, partner: str, stretch_p: int) -> tuple[str, str, int, str, int]:
-    """The pseudo-object a closure rests on (with its matched objects) when ``querier``'s query found it between
-    its keyframe on stretch ``stretch_q`` and ``partner``'s on ``stretch_p``: closures that share it come from
-    one robot's queries along one street of each robot and are not independent evidence."""
-    return ("stretch", querier, int(stretch_q), partner, int(stretch_p))
+def stretch_token(robot_a: str, stretch_a: int, robot_b: str, stretch_b: int) -> tuple[str, str, int, str, int]:
+    """The pseudo-object a closure rests on (with its matched objects) when it joins ``robot_a``'s keyframe on
+    stretch ``stretch_a`` and ``robot_b``'s on ``stretch_b``: closures that share it lie along one street of each
+    robot and are not independent evidence. The same for either order of the two robots (and so for either
+    robot's query)."""
+    (r1, s1), (r2, s2) = sorted([(robot_a, int(stretch_a)), (robot_b, int(stretch_b))])
+    return ("stretch", r1, s1, r2, s2)
 
 
 def is_stretch_token(item: object) -> bool:

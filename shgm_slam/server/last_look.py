@@ -14,7 +14,8 @@ LAST_LOOK_QUERY = "independent"
 
 PARTNER_LOOK_QUERY = "independent-partner"
 """``MatchRecord.query`` of the same last look from the partner's side (the partner's graph as the query, robot_a
-the waiting agent), taken when the agent's own look lies on the straight stretches of its earlier queries."""
+the waiting agent): versions before 2026-12-05 took it (a resumed server's match log may hold one); this one does
+not (``MapServer._independent_match``)."""
 
 
 def smallest_matches(

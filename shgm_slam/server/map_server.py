@@ -31,7 +31,6 @@ from shgm_slam.server.closures import SurfaceOffset, local_closures
 from shgm_slam.server.evidence import MARGINAL_OBJECT, match_evidence, match_objects, sharing, support_objects
 from shgm_slam.server.last_look import (
     LAST_LOOK_QUERY,
-    PARTNER_LOOK_QUERY,
     last_look_lines,
     smallest_matches,
     still_accepted,
@@ -66,7 +65,6 @@ __all__ = [
     "HEIGHT_NODES",
     "LAST_LOOK_QUERY",
     "MARGINAL_OBJECT",
-    "PARTNER_LOOK_QUERY",
     "RECENT_WINDOW_SUBMAPS",
     "WINDOW_QUERY",
     "MapServer",
@@ -270,13 +268,12 @@ class MapServer:
         ``backend.min_closures_to_anchor: 1``): the two whole graphs matched again without the objects
         behind the smallest of its accepted matches with that partner (query ``"independent"``), once per
         partner. What it finds rests on other objects, so it counts as independent evidence when it agrees
-        and is outvoted or rejected when it does not. When the agent's look is not a second piece of evidence
-        because it lies on the straight stretches of the agent's earlier queries (``backend/stretches.py``), the
-        partner looks too (the same objects left out, the partner's graph as the query: the partner's own
-        evidence); without it the end result depended on the order keyframes arrived (the tiny test world's
-        car2 stayed out in 6 of 30 random orders). Which matches a run tried depends on when keyframes
-        arrived (in a distributed run, also on the order of messages): the last look makes the end result
-        depend on what the two graphs hold. Returns its match records (none when nothing is waiting).
+        and is outvoted or rejected when it does not; where it lies on the same two straight stretches as the
+        earlier matches (``backend/stretches.py``) it is not a second piece either. Which matches a run tried
+        depends on when keyframes arrived (in a distributed run, also on the order of messages): the last look
+        makes the end result depend on what the two graphs hold. Returns its match records (none when nothing
+        is waiting). (The partner used to look too, its graph as the query, which counted as its own evidence
+        while a straight stretch pair was per querying robot; it no longer is, so that look is no other piece.)
         """
         if agent not in self._graphs or self.placement(agent).placement in (Placement.REFERENCE,
                                                                             Placement.CONFIRMED):  # fmt: skip
@@ -297,11 +294,6 @@ class MapServer:
             desc_b = self._descriptors[agent].update(graph_b).subset(rows_b)
             records.append(self._match_pair(partner, agent, LAST_LOOK_QUERY, graph_a.subset(rows_a),
                                             graph_b.subset(rows_b), desc_a, desc_b))  # fmt: skip
-            if pg.evidence_between(agent, partner) < CONFIRMING_MATCHES and pg.tracks_stretches:
-                # agent's look lies on the stretches of its earlier queries (backend/stretches.py): the
-                # partner's look at the same objects is the partner's own evidence
-                records.append(self._match_pair(agent, partner, PARTNER_LOOK_QUERY, graph_b.subset(rows_b),
-                                                graph_a.subset(rows_a), desc_b, desc_a))  # fmt: skip
         return self._keep(records)
 
     def _keep(self, records: list[MatchRecord]) -> list[MatchRecord]:

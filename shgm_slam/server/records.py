@@ -69,7 +69,7 @@ class MatchRecord:
     # "backfill": a placed pair's older window of robot_b that no closure ties yet (queries.BACKFILL_QUERY);
     # "loop": robot_b == robot_a, its recent submap against its own older graph (intra-robot loop closure);
     # "independent": at the end, whole graphs without the objects behind robot_b's one piece of evidence
-    # "independent-partner": the same from the partner's side (robot_a the waiting agent, robot_b the partner)
+    # "independent-partner": the same from the partner's side (robot_a the waiting agent; versions before 2026-12-05)
     success: bool
     accepted: bool
     reason: str

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from shgm_slam.backend.pose_graph import MultiRobotPoseGraph
-from shgm_slam.backend.stretches import HEADING_BASE_M, StretchTracker
+from shgm_slam.backend.stretches import HEADING_BASE_M, StretchTracker, stretch_token
 from shgm_slam.geometry.se3 import make_pose, rot_y
 
 
@@ -141,24 +141,32 @@ def test_a_match_on_the_same_stretches_does_not_confirm_a_place():
         )  # objects alone: the second match confirms
 
 
-def test_the_stretch_pair_is_per_querying_robot():
-    """What counts once is one robot's successive queries sliding along one street pair (its submaps re-find an
-    aliased street with new objects); a match found by the partner's query (its own recent submap) is other
-    data and counts on its own. Canonical closure order does not change whose query it was."""
+def test_matches_on_one_street_pair_count_once_whichever_robot_queried():
+    """An aliased street aliases whoever queries (report world airsim-like 569: car2's submap query and car1's
+    found one alias along one long straight street, on disjoint objects, and placed car2 310 m off): a match the
+    partner's query found on the same two stretches shares the pseudo-object; one round the corner does not."""
     pg = _pose_graph_on_corner(30.0)
     pg.add_inter_robot_closure("a", 10, "b", 10, np.eye(4), match_id=1, support={("a", 1), ("b", 1)})
     pg.add_inter_robot_closure("b", 30, "a", 30, np.eye(4), match_id=2, support={("a", 2), ("b", 2)})
     tokens = pg.stretches()
-    assert tokens[0] == ("stretch", "b", 0, "a", 0) and tokens[1] == ("stretch", "a", 0, "b", 0)
-    assert pg.closures()[1].robot_a == "a" and pg.closures()[1].querier == "a"
-    assert pg.is_anchored("b")
+    assert tokens[0] == tokens[1] == ("stretch", "a", 0, "b", 0)
+    assert pg.closures()[0].querier == "b" and pg.closures()[1].querier == "a"
+    assert not pg.is_anchored("b")  # one piece of evidence
+    pg.add_inter_robot_closure("b", 80, "a", 80, np.eye(4), match_id=3, support={("a", 3), ("b", 3)})
+    assert pg.stretches()[2] != tokens[0] and pg.is_anchored("b")
+
+
+def test_the_stretch_token_does_not_depend_on_the_order_of_the_robots():
+    token = ("stretch", "car1", 5, "car2", 3)
+    assert stretch_token("car2", 3, "car1", 5) == stretch_token("car1", 5, "car2", 3) == token
+    assert stretch_token("car1", 3, "car2", 5) != stretch_token("car1", 5, "car2", 3)
 
 
 def test_stretch_pair_is_the_queriers_stretch_then_the_partners():
     pg = _pose_graph_on_corner(30.0)
     pg.add_inter_robot_closure("a", 80, "b", 10, np.eye(4), match_id=1, support={("a", 1), ("b", 1)})
     pg.add_inter_robot_closure("b", 80, "a", 10, np.eye(4), match_id=2, support={("a", 2), ("b", 2)})
-    stretch_80 = pg.stretches()[0][4]
+    stretch_80 = pg.stretches()[0][2]  # a's stretch (the robots in name order)
     assert stretch_80 > 0
     assert pg.stretch_pair(0) == (0, stretch_80)  # b's query: b's keyframe 10 on stretch 0, a's 80 later
     assert pg.stretch_pair(1) == (0, stretch_80)  # a's query: the same, seen from a

@@ -69,7 +69,9 @@ def _run(window_submaps: int, monkeypatch: pytest.MonkeyPatch) -> tuple[MapServe
     pos, labels = _street()
     T_a, odo_a = _drive(10.0, 1.0)
     T_b, odo_b = _drive(0.0, SCALE_B)
-    server = MapServer(["a", "b"], ShgmConfig())
+    cfg = ShgmConfig()
+    cfg.backend.stretch_turn_deg = None  # one straight street: counted by stretches, b would never be confirmed
+    server = MapServer(["a", "b"], cfg)
     records, placed_at = [], None
     for msg_a, msg_b in zip(_messages("a", T_a, odo_a, pos, labels), _messages("b", T_b, odo_b, pos, labels),
                             strict=True):  # fmt: skip
