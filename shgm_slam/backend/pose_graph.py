@@ -486,9 +486,9 @@ class MultiRobotPoseGraph:
 
     def _stretch_token(self, rec: ClosureRecord) -> tuple:
         """The pair of stretches of a closure's two keyframes (``stretches.stretch_token``: either query's)."""
-        ids = self._robots
-        return stretch_token(rec.robot_a, ids[rec.robot_a].stretches.ids[rec.kf_a],
-                             rec.robot_b, ids[rec.robot_b].stretches.ids[rec.kf_b])  # fmt: skip
+        robots = self._robots
+        return stretch_token(rec.robot_a, robots[rec.robot_a].stretches.ids[rec.kf_a],
+                             rec.robot_b, robots[rec.robot_b].stretches.ids[rec.kf_b])  # fmt: skip
 
     def _with_stretches(self, rec: ClosureRecord, support: Iterable[Hashable]) -> frozenset:
         """A closure's objects, plus the pair of straight stretches its keyframes lie on when stretches are
