@@ -228,8 +228,10 @@ def _with_evidence(
     return AgentPlacement(state, other, n, tuple(kfs), partner_confirmed, decisive=any(c.decisive for c in cs))
 
 
-def describe(agent: str, p: AgentPlacement) -> str:
-    """One line for users: what ``agent``'s placement means (the log, the viewer, metrics, the summary)."""
+def describe(agent: str, p: AgentPlacement, sharing: tuple[Sharing, ...] = ()) -> str:
+    """One line for users: what ``agent``'s placement means (the log, the viewer, metrics, the summary).
+    ``sharing``: for a provisional agent placed by several matches with one partner, what tied them into one piece
+    of evidence (``MapServer.placement_note`` reads it from the pose graph); not given: "the same objects"."""
     if p.placement is Placement.REFERENCE:
         return f"{agent} defines the shared frame"
     if p.placement is Placement.UNPLACED:
@@ -250,14 +252,22 @@ def describe(agent: str, p: AgentPlacement) -> str:
             f"{agent} is placed provisionally: it was placed through graph matches{where}, and {p.partner} is "
             "provisional itself; it may be wrong and may still move until both are confirmed"
         )
-    evidence = f"a single graph match{where}" if p.matches <= 1 else (
-        f"{p.matches} graph matches{where} that all found the same objects"
-    )
+    if p.matches <= 1:
+        evidence = f"a single graph match{where}"
+    elif sharing and sharing != (Sharing.OBJECTS,):
+        kinds = [k.value for k in Sharing if k in sharing]
+        kinds_text = ", ".join(kinds[:-1]) + " and " + kinds[-1] if len(kinds) > 1 else kinds[0]
+        evidence = f"{p.matches} graph matches{where} that are one piece of evidence (here: {kinds_text} count once)"
+    else:
+        evidence = f"{p.matches} graph matches{where} that all found the same objects"
     if p.decisive:
         evidence += " (one of them alone as far beyond chance as two independent matches: backend.decisive_match)"
+    other = "a match on other objects away from those straight stretches" if Sharing.STRETCHES in sharing else (
+        "a match on other objects"
+    )
     return (
         f"{agent} is placed provisionally: its place in the shared frame rests on {evidence}; "
-        "it may be wrong and may still move until a match on other objects confirms it"
+        f"it may be wrong and may still move until {other} confirms it"
     )
 
 

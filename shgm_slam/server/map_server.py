@@ -697,7 +697,10 @@ class MapServer:
         """The line a user gets about ``agent``'s placement when it is not plainly placed: provisional
         (``describe``) or waiting for evidence (``waiting_note``); None otherwise."""
         p = self.placement(agent)
-        return describe(agent, p) if p.provisional else self.waiting_note(agent)
+        if not p.provisional:
+            return self.waiting_note(agent)
+        tied = sharing(self._pose_graph.shared_support(agent, p.partner)) if p.partner and p.matches > 1 else ()
+        return describe(agent, p, tied)
 
     def waiting_note(self, agent: str) -> str | None:
         """Why unplaced ``agent`` is not in the shared frame although some of its inter-robot closures were

@@ -37,7 +37,8 @@ class PlacementWatch:
             if p.placement is Placement.UNPLACED:
                 out.append(("WARN", f"{agent} left the shared frame: the closures that placed it were outvoted"))
             else:
-                out.append(("INFO" if p.placement is Placement.CONFIRMED else "WARN", describe(agent, p)))
+                note = describe(agent, p) if p.placement is Placement.CONFIRMED else server.placement_note(agent)
+                out.append(("INFO" if p.placement is Placement.CONFIRMED else "WARN", note or describe(agent, p)))
         return out
 
 

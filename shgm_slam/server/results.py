@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 
 from shgm_slam.agents import agent_robot
-from shgm_slam.backend.confirmation import describe
 from shgm_slam.fusion import fuse_segments
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.sessions import RobotSession
@@ -57,7 +56,7 @@ def keyframe_trajectory(server: MapServer, session: RobotSession) -> tuple[np.nd
 def provisional_note(server: MapServer, robot: str) -> str | None:
     """Why ``robot``'s place in the shared frame is provisional (one line per such agent), or None when every
     placed agent of it is confirmed (``backend.confirmation``)."""
-    notes = [describe(a, p) for a in _agents_of(server, robot) if (p := server.placement(a)).provisional]
+    notes = [server.placement_note(a) or "" for a in _agents_of(server, robot) if server.placement(a).provisional]
     return "; ".join(notes) or None
 
 

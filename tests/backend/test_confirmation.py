@@ -211,3 +211,15 @@ def test_waiting_line_counts_matches_and_evidence() -> None:
     across = describe_waiting("car2", "car1", evidence=1, needed=2, matches=4, others=("uav",))
     assert across.endswith("its accepted matches with uav do not count as another piece: they lie on the same "
                            "straight stretch of its drive, rest on the same objects or disagree on its place")
+
+
+def test_a_provisional_place_names_what_tied_its_matches() -> None:
+    """Several matches with one partner that are one piece of evidence: the line says why (the same objects, or the
+    same straight stretches of both drives, on which a match on other objects is no other piece either)."""
+    p = AgentPlacement(Placement.PROVISIONAL, "a", 5, (3, 9), True, decisive=True)
+    assert "5 graph matches with a (its keyframes 3-9) that all found the same objects" in describe("b", p)
+    assert describe("b", p, (Sharing.OBJECTS,)) == describe("b", p)
+    both = describe("b", p, (Sharing.OBJECTS, Sharing.STRETCHES))
+    assert "that are one piece of evidence (here: matches that found the same objects and matches along the same " \
+           "straight stretches of both drives count once)" in both
+    assert both.endswith("until a match on other objects away from those straight stretches confirms it")

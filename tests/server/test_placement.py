@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from shgm_slam.backend.confirmation import AgentPlacement, Placement
+from shgm_slam.backend.confirmation import AgentPlacement, Placement, describe
 from shgm_slam.server.placement import PlacementWatch, describe_drift
 
 
 class _Server:
-    """The part of a map server the watch reads: agents, their placements and measured drifts."""
+    """The part of a map server the watch reads: agents, their placements (and a provisional one's line) and
+    measured drifts."""
 
     def __init__(self) -> None:
         self.agents = ["car1", "car2"]
@@ -18,6 +19,9 @@ class _Server:
 
     def placement(self, agent: str) -> AgentPlacement:
         return self.places[agent]
+
+    def placement_note(self, agent: str) -> str | None:
+        return describe(agent, self.places[agent]) if self.places[agent].provisional else None
 
     def measured_drift(self, agent: str) -> float | None:
         return self.drift[agent]
