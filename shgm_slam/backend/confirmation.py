@@ -255,9 +255,8 @@ def describe(agent: str, p: AgentPlacement, sharing: tuple[Sharing, ...] = ()) -
     if p.matches <= 1:
         evidence = f"a single graph match{where}"
     elif sharing and sharing != (Sharing.OBJECTS,):
-        kinds = [k.value for k in Sharing if k in sharing]
-        kinds_text = ", ".join(kinds[:-1]) + " and " + kinds[-1] if len(kinds) > 1 else kinds[0]
-        evidence = f"{p.matches} graph matches{where} that are one piece of evidence (here: {kinds_text} count once)"
+        tied = f"one piece of evidence (here: {_listed(sharing)} count once)"
+        evidence = f"{p.matches} graph matches{where} that are {tied}"
     else:
         evidence = f"{p.matches} graph matches{where} that all found the same objects"
     if p.decisive:
@@ -279,6 +278,12 @@ class Sharing(str, Enum):
     CHANCE = "matches too close to chance for the number the pair has tried"
 
 
+def _listed(sharing: tuple[Sharing, ...]) -> str:
+    """The kinds in ``sharing`` as words, in ``Sharing``'s order: "a", "a and b", "a, b and c"."""
+    kinds = [k.value for k in Sharing if k in sharing]
+    return ", ".join(kinds[:-1]) + " and " + kinds[-1] if len(kinds) > 1 else kinds[0]
+
+
 def describe_waiting(
     agent: str, partner: str, evidence: int, needed: int, matches: int, others: tuple[str, ...] = (),
     sharing: tuple[Sharing, ...] = (),
@@ -294,8 +299,7 @@ def describe_waiting(
     if matches == 1:
         why = ""
     elif sharing:
-        kinds = [k.value for k in Sharing if k in sharing]
-        why = f" (here: {', '.join(kinds[:-1]) + ' and ' if len(kinds) > 1 else ''}{kinds[-1]} count once)"
+        why = f" (here: {_listed(sharing)} count once)"
     else:
         why = f" ({', '.join(k.value for k in Sharing)}, count once)"
     return (

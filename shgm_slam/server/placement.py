@@ -37,8 +37,9 @@ class PlacementWatch:
             if p.placement is Placement.UNPLACED:
                 out.append(("WARN", f"{agent} left the shared frame: the closures that placed it were outvoted"))
             else:
-                note = describe(agent, p) if p.placement is Placement.CONFIRMED else server.placement_note(agent)
-                out.append(("INFO" if p.placement is Placement.CONFIRMED else "WARN", note or describe(agent, p)))
+                confirmed = p.placement is Placement.CONFIRMED
+                note = None if confirmed else server.placement_note(agent)  # names what tied its matches
+                out.append(("INFO" if confirmed else "WARN", note or describe(agent, p)))
         return out
 
 
