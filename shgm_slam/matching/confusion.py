@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from shgm_slam.arrays import unique_first
+from shgm_slam.arrays import run_starts, unique_first
 from shgm_slam.matching.chance import label_chance, shares_first
 from shgm_slam.matching.labelled_tree import LABEL_GAP_M, LabelledTree
 
@@ -140,7 +140,7 @@ def _integrated_factors(q0: np.ndarray, trace: np.ndarray, hypotheses: np.ndarra
     owner = hypotheses[trace][order]
     log_f = np.zeros((c.size, h))  # (C, H)
     if lift.size:
-        starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+        starts = np.flatnonzero(run_starts(owner))
         log_f[:, owner[starts]] = np.add.reduceat(np.log1p(np.outer(c, lift)), starts, axis=1)
     log_f[:-1] += np.outer(np.log1p(-c[:-1]), without)
     log_f[-1, without > 0] = -np.inf  # (1 - c)^n at c = 1 (0^0 = 1 where every node shows a trace)

@@ -93,7 +93,7 @@ def pair_vote_hypotheses(
     )
     sorted_keys = np.sort(keys)
     starts = np.flatnonzero(run_starts(sorted_keys))
-    votes = np.diff(np.r_[starts, sorted_keys.size])  # per cell, cells by ascending key
+    votes = np.diff(starts, append=sorted_keys.size)  # per cell, cells by ascending key
     hypotheses = []
     for cell in np.argsort(-votes, kind="stable")[:count]:
         member = np.flatnonzero(keys == sorted_keys[starts[cell]])
@@ -134,8 +134,8 @@ class _Segments:
         ends, step, length = ends[keep], step[keep], length[keep]
         heading = np.arctan2(step[:, 1], step[:, 0])
         if ordered:
-            ends, length = np.vstack([ends, ends[:, ::-1]]), np.r_[length, length]
-            heading = np.r_[heading, heading + np.pi]
+            ends, length = np.vstack([ends, ends[:, ::-1]]), np.concatenate([length, length])
+            heading = np.concatenate([heading, heading + np.pi])
         mid = 0.5 * (xy[ends[:, 0]] + xy[ends[:, 1]])
         return cls(label_ids[ends], length, heading, mid, (local_xyz[ends[:, 0], 2], local_xyz[ends[:, 1], 2]))
 

@@ -260,17 +260,17 @@ def verify_alignments(
     reach = density_radius_m
     if shifts_m is not None and np.size(shifts_m):
         reach = max(reach, float(np.linalg.norm(shifts_m, axis=-1).max()) + radius_m)
-    near = [
-        cKDTree(embed(p, tree_b.label_ids)).sparse_distance_matrix(tree_a.same, reach, output_type="ndarray")
-        for p in pb
-    ]
     # the hypotheses' graphs side by side: B's node i of hypothesis k is k * N_b + i (A's likewise), so
-    # every step below works on all hypotheses at once and, per hypothesis, as on one
-    pair_counts = [x.size for x in near]
-    hyp = np.repeat(np.arange(h), pair_counts)
-    i_b = np.concatenate([x["i"] for x in near]).astype(np.int64) + hyp * n_b
-    j_a = np.concatenate([x["j"] for x in near]).astype(np.int64) + hyp * n_a
-    d = np.concatenate([x["v"] for x in near])
+    # every step below works on all hypotheses at once and, per hypothesis, as on one; one query of B's nodes
+    # placed by every hypothesis (same-label layers of A's tree; each pair's distance as alone)
+    placed_b = np.concatenate(pb)
+    near = cKDTree(embed(placed_b, np.tile(tree_b.label_ids, h))).sparse_distance_matrix(
+        tree_a.same, reach, output_type="ndarray"
+    )
+    i_b = near["i"].astype(np.int64)
+    hyp = i_b // max(n_b, 1)
+    j_a = near["j"].astype(np.int64) + hyp * n_a
+    d = near["v"]
     pairs, dist = _partners_from_near(i_b, j_a, d, radius_m)
     res_a = np.full(h * n_a, np.inf)
     res_b = np.full(h * n_b, np.inf)
@@ -280,14 +280,13 @@ def verify_alignments(
     near_a = np.bincount(j_a[dense], minlength=h * n_a).reshape(h, n_a)
     hits_b = hits_a = None
     if shifts_m is not None:
-        offsets = tree_a.positions_xyz[j_a - hyp * n_a] - np.concatenate(pb)[i_b]  # (P, 3) in A's frame
+        offsets = tree_a.positions_xyz[j_a - hyp * n_a] - placed_b[i_b]  # (P, 3) in A's frame
         per_hypothesis = np.broadcast_to(shifts_m, (h, *np.shape(shifts_m)[-2:]))
         hits_b = np.zeros((per_hypothesis.shape[1], h * n_b), dtype=bool)
         hits_a = np.zeros((per_hypothesis.shape[1], h * n_a), dtype=bool)
         shared = shares_first(per_hypothesis)  # B's rows seldom turn: most hypotheses share one product
-        bounds = np.concatenate([[0], np.cumsum(pair_counts)])
-        runs = [(np.flatnonzero(np.repeat(shared, pair_counts)), 0)]
-        runs += [(np.arange(bounds[k], bounds[k + 1]), k) for k in np.flatnonzero(~shared).tolist()]
+        runs = [(np.flatnonzero(shared[hyp]), 0)]
+        runs += [(np.flatnonzero(hyp == k), k) for k in np.flatnonzero(~shared).tolist()]
         for rows, k in runs:
             hb, ha = shifted_hits_both(
                 offsets[rows], i_b[rows], j_a[rows], h * n_b, h * n_a, per_hypothesis[k], radius_m
