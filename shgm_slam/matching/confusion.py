@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 from shgm_slam.arrays import run_starts, unique_first
 from shgm_slam.matching.chance import label_chance, shares_first
-from shgm_slam.matching.labelled_tree import LABEL_GAP_M, LabelledTree
+from shgm_slam.matching.labelled_tree import LabelledTree
 
 
 def confusion_llrs(
@@ -63,15 +63,11 @@ def confusion_llrs(
     if shifts_m is None or not shifts_m.size or not live.any():
         return bound
     reach = max(density_radius_m, float(np.linalg.norm(shifts_m, axis=-1).max()) + radius_m)
-    # the live hypotheses side by side: their copies of the other graph (node j of a copy is copy * M + j) and
-    # their nodes lie apart in a fourth coordinate, so no pair of different hypotheses is formed
-    m, sel = len(other), np.flatnonzero(live)
-    tiles = np.flatnonzero(bound > 0.0)  # a copy of the other graph per live hypothesis
-    mine = cKDTree(np.column_stack([placed[sel], hyp[sel] * LABEL_GAP_M]))
-    theirs = cKDTree(np.column_stack([np.tile(other.positions_xyz, (tiles.size, 1)),
-                                      np.repeat(tiles, m) * LABEL_GAP_M]))  # fmt: skip
-    near = mine.sparse_distance_matrix(theirs, reach, output_type="ndarray")
-    i, j = near["i"].astype(np.int64), near["j"].astype(np.int64) % m
+    # the other graph is one for every hypothesis (its own frame): the pairs of each live node are those of its
+    # hypothesis alone
+    sel = np.flatnonzero(live)
+    near = cKDTree(placed[sel]).sparse_distance_matrix(other.any, reach, output_type="ndarray")
+    i, j = near["i"].astype(np.int64), near["j"].astype(np.int64)
     keep = usable[j] & (other.label_ids[j] != label_ids[rows[sel[i]]])
     i, j = i[keep], j[keep]
     hits = _shifted_hits(other.positions_xyz[j] - placed[sel[i]], i, sel.size, shifts_m, hyp[sel[i]], radius_m)

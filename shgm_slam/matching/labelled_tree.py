@@ -40,7 +40,10 @@ class LabelledTree:
 
 def embed(positions_xyz: np.ndarray, label_ids: np.ndarray) -> np.ndarray:
     """(N, 4) points (x, y, z, label * gap): Euclidean distance is infinite-like across labels."""
-    return np.column_stack([positions_xyz, np.asarray(label_ids, dtype=np.float64) * LABEL_GAP_M])
+    out = np.empty((np.shape(positions_xyz)[0], 4))
+    out[:, :3] = positions_xyz
+    np.multiply(label_ids, LABEL_GAP_M, out=out[:, 3])
+    return out
 
 
 def nearest_same_label(

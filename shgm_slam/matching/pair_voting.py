@@ -91,12 +91,12 @@ def pair_vote_hypotheses(
         np.floor(landing[:, 0] / POSITION_CELL_M).astype(np.int64),
         np.floor(landing[:, 1] / POSITION_CELL_M).astype(np.int64),
     )
-    sorted_keys = np.sort(keys)
-    starts = np.flatnonzero(run_starts(sorted_keys))
-    votes = np.diff(starts, append=sorted_keys.size)  # per cell, cells by ascending key
+    by_cell = np.argsort(keys, kind="stable")  # each cell's votes together, in vote order
+    starts = np.flatnonzero(run_starts(keys[by_cell]))
+    votes = np.diff(starts, append=keys.size)  # per cell, cells by ascending key
     hypotheses = []
-    for cell in np.argsort(-votes, kind="stable")[:count]:
-        member = np.flatnonzero(keys == sorted_keys[starts[cell]])
+    for cell in np.argsort(-votes, kind="stable")[:count].tolist():
+        member = by_cell[starts[cell] : starts[cell] + votes[cell]]
         heading = float(np.angle(np.exp(1j * yaw[member]).mean()))
         c, s = np.cos(heading), np.sin(heading)
         turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

@@ -255,8 +255,9 @@ def verify_alignments(
     pb = [transform(T, tree_b.positions_xyz) for T in T_stack]
     pa_in_b = [(tree_a.positions_xyz - T[:3, 3]) @ T[:3, :3] for T in T_stack]  # B's trees are reused
     free = evidence_free_labels
-    inside_b = _within(tree_a.any, pb, coverage_m).reshape(h, n_b) & _counts(tree_b.label_ids, free)
-    inside_a = _within(tree_b.any, pa_in_b, coverage_m).reshape(h, n_a) & _counts(tree_a.label_ids, free)
+    usable_a, usable_b = _counts(tree_a.label_ids, free), _counts(tree_b.label_ids, free)
+    inside_b = _within(tree_a.any, pb, coverage_m).reshape(h, n_b) & usable_b
+    inside_a = _within(tree_b.any, pa_in_b, coverage_m).reshape(h, n_a) & usable_a
     reach = density_radius_m
     if shifts_m is not None and np.size(shifts_m):
         reach = max(reach, float(np.linalg.norm(shifts_m, axis=-1).max()) + radius_m)
@@ -306,7 +307,6 @@ def verify_alignments(
         if shifts_m is not None and np.size(shifts_m):
             every = np.ones(np.shape(shifts_m)[-2], bool) if shift_labels is None else np.asarray(shift_labels) == -1
             general = np.broadcast_to(shifts_m, (h, *np.shape(shifts_m)[-2:]))[:, every]
-        usable_a, usable_b = _counts(tree_a.label_ids, free)[0], _counts(tree_b.label_ids, free)[0]
         # A's nodes seen from B: the hypothesis shifted by s in A's frame moves B's nodes by s, i.e. A's node by
         # -s turned into B's frame
         general_in_b = None if general is None else -np.einsum("hsi,hij->hsj", general, T_stack[:, :3, :3])
@@ -314,9 +314,9 @@ def verify_alignments(
         same_b = (np.bincount(i_b[within], minlength=h * n_b).reshape(h, n_b), near_b)
         same_a = (np.bincount(j_a[within], minlength=h * n_a).reshape(h, n_a), near_a)
         radii = {"radius_m": radius_m, "density_radius_m": density_radius_m}
-        trace_b = confusion_llrs(inside_b & ~np.isfinite(res_b), pb, tree_b.label_ids, tree_a, usable_a, general,
+        trace_b = confusion_llrs(inside_b & ~np.isfinite(res_b), pb, tree_b.label_ids, tree_a, usable_a[0], general,
                                  same_b, **radii)  # fmt: skip
-        trace_a = confusion_llrs(inside_a & ~np.isfinite(res_a), pa_in_b, tree_a.label_ids, tree_b, usable_b,
+        trace_a = confusion_llrs(inside_a & ~np.isfinite(res_a), pa_in_b, tree_a.label_ids, tree_b, usable_b[0],
                                  general_in_b, same_a, **radii)  # fmt: skip
     contradictions = (inside_b & ~np.isfinite(res_b)).sum(axis=1) + (inside_a & ~np.isfinite(res_a)).sum(axis=1)
     of = pairs[:, 1] // max(n_b, 1)  # pairs come by hypothesis, then B's row
@@ -335,6 +335,8 @@ def verify_alignments(
 
 def _counts(label_ids: np.ndarray, evidence_free_labels: tuple[int, ...]) -> np.ndarray:
     """(1, N) bool: the node's label gives evidence (is not one of ``evidence_free_labels``)."""
+    if not evidence_free_labels:  # every label (np.isin costs tens of microseconds even on an empty set)
+        return np.ones((1, np.shape(label_ids)[0]), dtype=bool)
     return ~np.isin(np.asarray(label_ids), np.asarray(evidence_free_labels, dtype=np.int64))[None, :]
 
 
