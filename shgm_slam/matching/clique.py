@@ -120,13 +120,15 @@ def consistency_matrix(
     cols_a = np.take(_node_distances(nodes_a, inf), index_a, axis=1)
     cols_b = np.take(_node_distances(nodes_b, None if inf is None else -inf), index_b, axis=1)
     ok = np.empty((k, k), dtype=bool)
+    buffers = np.empty((2, min(_BLOCK_ROWS, k), k), dtype=np.float32)  # one block's rows, reused by every block
     for start in range(0, k, _BLOCK_ROWS):
         stop = min(start + _BLOCK_ROWS, k)
-        d_a = np.take(cols_a, index_a[start:stop], axis=0)
-        d_a -= np.take(cols_b, index_b[start:stop], axis=0)
+        d_a, d_b = buffers[:, : stop - start]
+        np.take(cols_a, index_a[start:stop], axis=0, out=d_a)
+        np.subtract(d_a, np.take(cols_b, index_b[start:stop], axis=0, out=d_b), out=d_a)
         np.abs(d_a, out=d_a)
         if dh is not None:  # both differences below the threshold <=> the larger one is (NaN: neither)
-            d_h = np.subtract.outer(dh[start:stop], dh)
+            d_h = np.subtract.outer(dh[start:stop], dh, out=d_b)
             np.maximum(d_a, np.abs(d_h, out=d_h), out=d_a)
         np.less(d_a, threshold_m, out=ok[start:stop])
     if distinct_nodes:
