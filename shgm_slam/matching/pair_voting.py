@@ -124,8 +124,11 @@ class _Segments:
     def of(cls, local_xyz: np.ndarray, label_ids: np.ndarray, *, ordered: bool) -> _Segments:
         """Segments of (N, 3) nodes (vertical frame): i < j, and with ``ordered`` each also reversed."""
         xy = local_xyz[:, :2]
+        n = xy.shape[0]
         ends = cKDTree(xy).query_pairs(MAX_SEGMENT_M, output_type="ndarray").astype(np.int64).reshape(-1, 2)
-        ends = ends[np.lexsort((ends[:, 1], ends[:, 0]))]  # query_pairs' order is the tree's: fix it
+        # query_pairs' order is the tree's: fix it, by (i, j) with i < j (one key i * N + j, one sort)
+        key = np.sort(ends[:, 0] * n + ends[:, 1])
+        ends = np.stack([key // max(n, 1), key % max(n, 1)], axis=1)
         step = xy[ends[:, 1]] - xy[ends[:, 0]]
         length = np.hypot(step[:, 0], step[:, 1])
         keep = np.flatnonzero(length >= MIN_SEGMENT_M)
