@@ -61,11 +61,14 @@ class GroundStep:
         contrast: the photometric cost at that length over the median cost of all lengths tried (0-1; low:
             a distinct minimum, near 1: the road gave no answer).
         pixels: textured road pixels compared.
+        cost: the photometric cost at that length, grey levels (mean absolute difference, brightness change
+            removed): comparable between searches of the same two images and pixels (another direction).
     """
 
     length_m: float
     contrast: float
     pixels: int
+    cost: float
 
 
 def textured_road_pixels(
@@ -169,4 +172,4 @@ def ground_step(
             if f[j, m] < best[0]:
                 best = (float(f[j, m]), float(fine_l[m]))
     contrast = best[0] / median if median > 0 else 1.0
-    return GroundStep(best[1], float(contrast), len(pixels_uv))
+    return GroundStep(best[1], float(contrast), len(pixels_uv), best[0])

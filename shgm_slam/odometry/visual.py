@@ -395,11 +395,14 @@ class DepthVisualOdometry:
         The car moves along the chord of its turn in the road plane: the previous camera's forward axis laid
         into the plane and turned by half the step's rotation (planar circular motion, with the camera's own
         pitch and roll to the road taken out); forward or backward as the tracking chain's step says (a camera
-        looking backwards). Where the chain's step points against the last road step's and the road gives no
-        distinct answer that way, the road is searched the way the car was going too: a car does not reverse
-        from one frame to the next, while a chain whose tracks slide along the street reads a step of a few
-        centimetres, either way, where the car drove a metre (synthia-like, 10 m/s: the road then found the
-        1.1 m step only the way the car was going)."""
+        looking backwards). Where the chain's step points against the last road step's, the road is searched
+        both ways and the way whose best length moves the road better (lower photometric cost: the same pixels
+        of the same images) is taken. A car does not reverse from one frame to the next, while a chain whose
+        tracks slide along the street reads a step of a few centimetres, either way, where the car drove a metre
+        (synthia-like, 10 m/s), and PnP on a dozen inliers can read a whole step backwards (synthia-like 584:
+        1 m back and 0.8 m sideways at 10 m/s). Searched one way only, stripes across the road (a zebra
+        crossing, lane dashes) line up again a stripe period the wrong way: a distinct best length too (584:
+        0.54 m back, contrast 0.61, where the car drove 1.07 m on; the true way 0.39)."""
         if self._road is None:
             return None
         prev_gray, pixels, plane = self._road
@@ -411,13 +414,16 @@ class DepthVisualOdometry:
         along = float(-(R_cam_prev.T @ step[:3, 3]) @ chord_prev)  # the tracking chain's step along it
         chain_sign = (1.0 if along > 0 else -1.0) if abs(along) > 1e-6 else (self._road_sign or 1.0)
         signs = [chain_sign] if self._road_sign in (None, chain_sign) else [chain_sign, self._road_sign]
+        best = None
         for sign in signs:
             direction_cam = -R_cam_prev @ (sign * chord_prev)
             found = ground_step(prev_gray, gray, pixels, intrinsics.K, R_cam_prev, direction_cam, plane, max_length_m)
-            if found is not None and found.contrast <= MAX_ROAD_CONTRAST:
-                break
-        else:
+            distinct = found is not None and found.contrast <= MAX_ROAD_CONTRAST
+            if distinct and (best is None or found.cost < best[1].cost):
+                best = (sign, found, direction_cam)
+        if best is None:
             return None
+        sign, found, direction_cam = best
         self._road_sign = sign
         out = np.eye(4)
         out[:3, :3] = R_cam_prev
