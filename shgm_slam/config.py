@@ -270,7 +270,7 @@ class OdometryConfig(_Stage):
 
     FLEET: ClassVar[dict[str, float | bool]] = {
         "voxel_size_m": 1.0, "max_range_m": 100.0, "shuffle_points": False, "visual_max_depth_m": 40.0,
-        "cloud_stride": 2, "depth_noise_rel": 0.0,
+        "cloud_stride": 2, "depth_noise_rel": 0.0, "visual_ground_attitude": False,
     }
 
     kind: OdometryKind = OdometryKind.AUTO
@@ -338,6 +338,11 @@ class OdometryConfig(_Stage):
         True, description="visual odometry: each frame's step from the road's image motion where a level road "
         "plane is in view (odometry/ground_speed.py: the plane-induced homography; tracks sliding along edges "
         "that run with the street shortened steps by 30-70 %); a UAV's frames keep the tracks' steps"
+    )
+    visual_ground_attitude: bool | None = Field(
+        None, description="visual odometry: hold each new reference frame's roll and pitch to the ground plane in "
+        "view (level ground; odometry/visual.py, step 5: a UAV's tilt drifted 10-34 deg over 600 m without it); "
+        "None: on when the horizon is out of view (the camera sees only the ground)"
     )
     hybrid_edge_rel_jump: float = Field(
         0.1, gt=0, description="hybrid: pixels where inverse depth bends by more than this share of itself "

@@ -283,7 +283,7 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
       it, in ``resolve_robot_config``);
     * ``depth_noise_rel``: the measured noise to 0.1 % (``relative_depth_noise``, ``NOISE_DECIMALS``; the spacing
       filter's allowance);
-    * ``shuffle_points``: the horizon is out of view;
+    * ``shuffle_points`` and ``visual_ground_attitude``: the horizon is out of view;
     * ``max_range_m = max(100, 1.1 x farthest ground range)`` (100 when the horizon is in view);
     * ``cloud_stride = round(sqrt(W x H / CLOUD_TARGET_POINTS))``, at least 1: the pseudo-LiDAR cloud keeps
       about as many points whatever the image size (640x192 -> 2, 320x96 -> 1, KITTI's 1242x375 -> 4).
@@ -300,6 +300,7 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
                             NOISE_VOXEL_SIGMAS * scale.depth_noise_rel * scale.depth_percentiles_m[1]),
         "max_range_m": max(od["max_range_m"], FAR_GROUND_MARGIN * far) if np.isfinite(far) else od["max_range_m"],
         "shuffle_points": not scale.horizon_in_view,
+        "visual_ground_attitude": not scale.horizon_in_view,
         "visual_max_depth_m": od["visual_max_depth_m"] * ratio,
         "depth_noise_rel": round(scale.depth_noise_rel, NOISE_DECIMALS),
     }

@@ -317,6 +317,7 @@ def _visual_factory(cfg: OdometryConfig) -> Callable[[], DepthVisualOdometry]:
             depth_window_px=cfg.visual_depth_window_px,
             planar_motion=cfg.visual_planar_motion,
             road_steps=cfg.visual_road_steps,
+            ground_attitude=bool(cfg.visual_ground_attitude),
         )
 
     return factory

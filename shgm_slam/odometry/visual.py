@@ -31,6 +31,17 @@ The method (per frame):
    steps on the tracking chain's turns; the tracking chain itself (PnP against the reference) is kept
    as it is, so its turns still do not compound.
 
+5. With ``ground_attitude`` (a camera that sees only the ground: a UAV looking down), each new reference's
+   roll and pitch are pulled towards level: the ground plane fitted to its depth and labels
+   (``geometry.ground.ground_normal``) says where up is in the camera; turned into the odometry frame by
+   the reference's pose it should point where the first references' did, and the pose (the tracking chain
+   and the output chain alike, about the camera centre) is turned towards that by at most
+   ``GROUND_ATTITUDE_STEP_DEG`` (a plane ``GROUND_ATTITUDE_MAX_TILT_DEG`` or more from the last one used is a
+   bad plane, skipped).
+   The tracking chain compounds its rotation error at every new reference, and a UAV's tilt, which no
+   planar turn holds, drifted by 10-34 deg over 600 m (airsim-like tuning worlds, demo models), its
+   steps tilted with it. Yaw is not touched: the ground does not see it.
+
 Frames where PnP fails keep the constant-velocity prediction and are reported (``ok`` False).
 Poses are ``T_odom_cam``: the camera in the odometry frame, which is the first frame's camera.
 """
@@ -44,6 +55,8 @@ import cv2
 import numpy as np
 
 from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.geometry.camera import backproject
+from shgm_slam.geometry.ground import ground_normal
 from shgm_slam.geometry.se3 import inverse, project_to_so3
 from shgm_slam.labels import Label
 from shgm_slam.odometry.ground_speed import MAX_ROAD_CONTRAST, MIN_ROAD_GRADIENT, ground_step, textured_road_pixels
@@ -57,6 +70,32 @@ MIN_PLANAR_SUPPORT = 0.8
 cars, 320x96: median 0.96-0.99 and 1st percentile 0.66-0.85 per drive; the frames whose turn was off by
 more than 0.5 deg had 0.40-0.77; a UAV (which does not move like a car) 0.2-0.33. Real KITTI 07 (160
 frames, 1226x370): 154 frames at or above it, their turns 0.13 deg RMS from the ground truth."""
+
+GROUND_ATTITUDE_STEP_DEG = 1.0
+"""Most a new reference's tilt is turned towards level (``ground_attitude``, module docstring step 5). The
+chain's tilt drifts by a few tenths of a degree between references; a plane fitted to a network's depth errs
+by 2-3 deg (median, UAV at 44-54 m; ``geometry.ground``), so each reference moves the tilt a little and many
+average its error."""
+
+GROUND_ATTITUDE_MAX_TILT_DEG = 10.0
+"""A reference whose up (in the odometry frame) lies this far or farther from the last one used is not used:
+a bad plane (the 90th percentile of a UAV's plane errors on the demo models' depth is 6-10 deg, frames with
+little ground in view err by 40-58 deg), while the chain turns by a fraction of a degree between references.
+Measured against the last plane used, not against level: a chain that has tilted far from level (a rough
+start) is brought back a step at a time."""
+
+GROUND_ATTITUDE_FIRST = 9
+"""Level is where most of the first this many references' measured up agree (the odometry frame's, before any
+correction: within ``GROUND_ATTITUDE_MAX_TILT_DEG`` of each other, more than half of them); until they do, the
+oldest gives way to the next. One plane's error would tilt the whole run (airsim-like tuning world 11: the
+first two references' planes 32-41 deg off the rest)."""
+
+GROUND_ATTITUDE_EARLIEST = 3
+"""Level is the mean of the earliest this many of the agreeing references' up: the chain has drifted least
+there (by the ninth reference a UAV's chain had tilted by up to 7 deg: airsim-like tuning world 11)."""
+
+GROUND_STRIDE = 2
+"""Every this many pixels (both directions) back-projected for the ground plane (thousands of points at 320x96)."""
 
 
 class VisualStatus(str, Enum):
@@ -227,6 +266,8 @@ class DepthVisualOdometry:
             vehicle), where at least ``MIN_PLANAR_SUPPORT`` of them agree with it (module docstring).
         road_steps: take each frame's step from the road where a level road plane is in view and the road's
             image motion gives a distinct answer (module docstring, step 4; needs ``label_ids``).
+        ground_attitude: hold each new reference's roll and pitch to the ground plane in view (module
+            docstring, step 5; needs ``label_ids``; assumes level ground).
     """
 
     def __init__(
@@ -249,6 +290,7 @@ class DepthVisualOdometry:
         depth_window_px: int = 5,
         planar_motion: bool = False,
         road_steps: bool = False,
+        ground_attitude: bool = False,
     ) -> None:
         if not 0.0 <= min_depth_m < max_depth_m:
             raise ConfigError(f"visual odometry needs 0 <= min_depth_m < max_depth_m, got {min_depth_m}, {max_depth_m}")
@@ -274,6 +316,11 @@ class DepthVisualOdometry:
         self.depth_window_px = depth_window_px
         self.planar_motion = planar_motion
         self.road_steps = road_steps
+        self.ground_attitude = ground_attitude
+        self._ups: list[np.ndarray] = []  # the first references' measured up, odometry frame (ground_attitude)
+        self._level_up: np.ndarray | None = None  # level: where up points in the odometry frame
+        self._last_up: np.ndarray | None = None  # the last plane used: its up, odometry frame, as corrected
+        self.num_levelled = 0  # references turned towards level
         self._road: tuple[np.ndarray, np.ndarray, RoadPlane] | None = None  # previous image, its road pixels, plane
         self._road_sign: float | None = None  # the last road step's sign along the chord (backward camera: -1)
         self.num_road_steps = 0
@@ -447,6 +494,8 @@ class DepthVisualOdometry:
     def _new_reference(
         self, gray: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, label_ids: np.ndarray | None
     ) -> None:
+        if self.ground_attitude and label_ids is not None:
+            self._level(depth, intrinsics, label_ids)
         usable = (depth > self.min_depth_m) & (depth < self.max_depth_m)
         if label_ids is not None and self.exclude_labels:
             usable &= ~np.isin(label_ids, self.exclude_labels)
@@ -468,6 +517,47 @@ class DepthVisualOdometry:
         self._ref_T_odom_cam = self._track_T.copy()
         self._ref_count = len(corners)
         self.num_references += 1
+
+    def _level(self, depth: np.ndarray, intrinsics: Intrinsics, label_ids: np.ndarray) -> None:
+        """Turn this frame's pose (tracking and output chain, about the camera centre) towards level by at most
+        ``GROUND_ATTITUDE_STEP_DEG`` (module docstring, step 5); nothing without a ground plane in view."""
+        points_cam, index = backproject(depth, intrinsics, stride=GROUND_STRIDE, min_depth_m=self.min_depth_m)
+        normal = ground_normal(points_cam, np.asarray(label_ids).reshape(-1)[index])
+        if normal is None:
+            return
+        up = self._track_T[:3, :3] @ normal  # where this frame says up is, in the odometry frame
+        level = self._level_up
+        if level is None:
+            self._level_up = self._agreed_level(up)
+            self._last_up = up if self._level_up is not None else None
+            return
+        if self._last_up is not None and up @ self._last_up < np.cos(np.radians(GROUND_ATTITUDE_MAX_TILT_DEG)):
+            return  # a bad plane
+        axis = np.cross(up, level)
+        tilt = float(np.arctan2(np.linalg.norm(axis), up @ level))
+        self._last_up = up
+        if tilt < 1e-9:
+            return
+        turn = cv2.Rodrigues(axis / np.linalg.norm(axis) * min(tilt, np.radians(GROUND_ATTITUDE_STEP_DEG)))[0]
+        self._last_up = turn @ up
+        self._track_T[:3, :3] = turn @ self._track_T[:3, :3]
+        self.T_odom_cam[:3, :3] = turn @ self.T_odom_cam[:3, :3]
+        self.num_levelled += 1
+
+    def _agreed_level(self, up: np.ndarray) -> np.ndarray | None:
+        """Level from the first references' measured up (``GROUND_ATTITUDE_FIRST``), or None while too few
+        agree; ``up`` is the newest, (3,) unit, odometry frame."""
+        self._ups.append(up)
+        if len(self._ups) < GROUND_ATTITUDE_FIRST:
+            return None
+        ups = np.array(self._ups)
+        agree = ups @ ups.T >= np.cos(np.radians(GROUND_ATTITUDE_MAX_TILT_DEG))
+        best = int(np.argmax(agree.sum(axis=1)))
+        if 2 * int(agree[best].sum()) <= len(ups):
+            self._ups.pop(0)
+            return None
+        mean = ups[np.flatnonzero(agree[best])[:GROUND_ATTITUDE_EARLIEST]].mean(axis=0)
+        return mean / np.linalg.norm(mean)
 
     def _track(self, gray: np.ndarray, intrinsics: Intrinsics) -> int:
         """KLT-track the reference corners from the previous image into ``gray``; drop lost tracks; with
