@@ -114,30 +114,35 @@ def test_without_labels_or_road_the_steps_are_the_tracks(drive):
     assert np.allclose(off, unlabelled, atol=1e-6)
 
 
+def misread_drive(drive: np.ndarray, frames: range, misread) -> np.ndarray:
+    """(N, 4, 4) odometry poses along ``drive`` (planar turns and road steps on) where PnP's step in ``frames``
+    (frame counts) is misread: its translation (this camera in the previous one) replaced by ``misread(t)``."""
+    vo = DepthVisualOdometry(depth_window_px=1, planar_motion=True, road_steps=True)
+    solve = vo._solve_pnp
+
+    def misreading(T_pred, intrinsics):
+        T, inliers = solve(T_pred, intrinsics)
+        if vo.num_frames in frames and T is not None:
+            motion = inverse(vo._track_T) @ T  # PnP's turn is kept
+            motion[:3, 3] = misread(motion[:3, 3])
+            return vo._track_T @ motion, inliers
+        return T, inliers
+
+    vo._solve_pnp = misreading
+    est = []
+    for T in drive:
+        gray, depth = render(T)
+        est.append(vo.register(gray, depth, INTRINSICS, road_labels(depth)).T_odom_cam)
+    assert vo.num_road_steps >= len(drive) - 5
+    return np.stack(est)
+
+
 def test_a_chain_that_reads_the_step_backwards_does_not_turn_the_road_around(drive):
     """Tracks that slide along the street read a few centimetres, either way, where the car drove a metre
     (synthia-like at 10 m/s): five frames whose tracking chain steps 5 cm backwards. A car does not reverse
     from one frame to the next: the road is searched the way it was going too, and finds the true steps."""
     gt = inverse(drive[0]) @ drive
-    vo = DepthVisualOdometry(depth_window_px=1, planar_motion=True, road_steps=True)
-    solve = vo._solve_pnp
-
-    def sliding(T_pred, intrinsics):
-        T, inliers = solve(T_pred, intrinsics)
-        if 8 <= vo.num_frames < 13 and T is not None:
-            motion = inverse(vo._track_T) @ T  # this camera in the previous one: PnP's turn is kept
-            motion[:3, 3] *= -0.05 / np.linalg.norm(motion[:3, 3])  # 5 cm back where it drove 0.9 m on
-            return vo._track_T @ motion, inliers
-        return T, inliers
-
-    vo._solve_pnp = sliding
-    est = []
-    for T in drive:
-        gray, depth = render(T)
-        lab = road_labels(depth)
-        est.append(vo.register(gray, depth, INTRINSICS, lab).T_odom_cam)
-    est = np.stack(est)
-    assert vo.num_road_steps >= 20
+    est = misread_drive(drive, range(8, 13), lambda t: -0.05 * t / np.linalg.norm(t))  # 5 cm back, not 0.9 m on
     assert trajectory_length(est) == pytest.approx(trajectory_length(gt), rel=0.02)
     assert ate(gt, est, align="none").rmse < 0.3
 
@@ -154,24 +159,7 @@ def test_a_chain_that_reads_a_whole_step_backwards_does_not_turn_the_road_around
     monkeypatch.setattr(corridor, "_TEXTURE", (corridor._TEXTURE * 0.3 + stripes).clip(0, 255).astype(np.uint8))
     drive = car_path(20, step_m=0.9, turn_rad=0.015)
     gt = inverse(drive[0]) @ drive
-    vo = DepthVisualOdometry(depth_window_px=1, planar_motion=True, road_steps=True)
-    solve = vo._solve_pnp
-
-    def reversed_step(T_pred, intrinsics):
-        T, inliers = solve(T_pred, intrinsics)
-        if 8 <= vo.num_frames < 11 and T is not None:
-            motion = inverse(vo._track_T) @ T  # this camera in the previous one: PnP's turn is kept
-            motion[:3, 3] *= -1.0
-            return vo._track_T @ motion, inliers
-        return T, inliers
-
-    vo._solve_pnp = reversed_step
-    est = []
-    for T in drive:
-        gray, depth = corridor.render(T)
-        est.append(vo.register(gray, depth, INTRINSICS, road_labels(depth)).T_odom_cam)
-    est = np.stack(est)
-    steps = np.diff(est[:, :3, 3], axis=0)
-    along = np.einsum("ni,ni->n", steps, est[:-1, :3, 2])  # each step along the camera's axis
+    est = misread_drive(drive, range(8, 11), lambda t: -t)
+    along = np.einsum("ni,ni->n", np.diff(est[:, :3, 3], axis=0), est[:-1, :3, 2])  # each step along the camera's axis
     assert (along > 0.8).all(), f"steps along the car's heading: {np.round(along, 2)}"
     assert ate(gt, est, align="none").rmse < 0.3
