@@ -57,7 +57,7 @@ import numpy as np
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.geometry.camera import backproject
 from shgm_slam.geometry.ground import ground_normal
-from shgm_slam.geometry.se3 import inverse, project_to_so3
+from shgm_slam.geometry.se3 import inverse, project_to_so3, so3_exp
 from shgm_slam.labels import Label
 from shgm_slam.odometry.ground_speed import MAX_ROAD_CONTRAST, MIN_ROAD_GRADIENT, ground_step, textured_road_pixels
 from shgm_slam.odometry.image_rotation import rot_y
@@ -535,10 +535,7 @@ class DepthVisualOdometry:
             return  # a bad plane
         axis = np.cross(up, level)
         tilt = float(np.arctan2(np.linalg.norm(axis), up @ level))
-        self._last_up = up
-        if tilt < 1e-9:
-            return
-        turn = cv2.Rodrigues(axis / np.linalg.norm(axis) * min(tilt, np.radians(GROUND_ATTITUDE_STEP_DEG)))[0]
+        turn = so3_exp(axis / max(np.linalg.norm(axis), 1e-12) * min(tilt, np.radians(GROUND_ATTITUDE_STEP_DEG)))
         self._last_up = turn @ up
         self._track_T[:3, :3] = turn @ self._track_T[:3, :3]
         self.T_odom_cam[:3, :3] = turn @ self.T_odom_cam[:3, :3]
