@@ -76,6 +76,9 @@ class RobotReport:
     # pose graph's prior (``backend/drift.py``: its odometry factors then weigh that much less); None otherwise
     measured_drift_deg_per_100m: float | None = None
     road_step_share: float | None = None
+    # visual odometry holding a camera's tilt to the ground in view (``odometry.visual_ground_attitude``, a UAV):
+    # share of its tracking references turned towards level; None where that is off
+    levelled_share: float | None = None
     # KISS-ICP: frames where its step slipped against the image motion and the step solved from image tracks was
     # kept (``odometry/flow_check.py``); None for other odometries
     image_steps: int | None = None
@@ -199,6 +202,8 @@ def evaluate(
         if rep.odometry == OdometryKind.VISUAL.value and front.measured_frames:
             rep.planar_turn_share = front.planar_turns / front.measured_frames
             rep.road_step_share = front.road_steps / front.measured_frames
+            if front.cfg.odometry.visual_ground_attitude and front.references:
+                rep.levelled_share = front.levelled_references / front.references
         if rep.odometry == OdometryKind.KISS_ICP.value:
             rep.image_steps = front.image_steps
             rep.image_windows = front.image_windows

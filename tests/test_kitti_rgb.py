@@ -30,6 +30,7 @@ def test_kitti_sequence_split_into_two_robots_runs_rgb_only(shared_data: Path, t
     # a car on a real road: the visual odometry takes most steps from the road's image motion
     assert reports["a"].road_step_share is not None and reports["a"].road_step_share > 0.5
     assert reports["a"].planar_turn_share is not None
+    assert reports["a"].levelled_share is None  # the horizon is in view: its tilt is not held to the ground
     assert any(k.startswith("perception") for k in summary.timings_ms)  # model inference was timed
     # ground truth of KITTI is found, so the odometry is evaluated
     assert reports["a"].path_length_m > 2.0

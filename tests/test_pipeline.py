@@ -93,7 +93,7 @@ def test_results_folder_has_every_output(drifting_run) -> None:
     for r in metrics["robots"]:  # which odometry ran, and why
         assert r["odometry"] == "file" and r["odometry_reason"] == "set in the configuration"
         assert r["planar_turn_share"] is None  # reported for the visual odometry only
-        assert r["road_step_share"] is None
+        assert r["road_step_share"] is None and r["levelled_share"] is None
 
 
 def test_fused_car2_is_in_car1_frame(drifting_run) -> None:

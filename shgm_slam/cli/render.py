@@ -141,6 +141,10 @@ def render_summary(summary) -> None:
                       "tracks (frames): " + lit(", ".join(slides)))  # fmt: skip
     if roads:
         console.print("steps from the road's image motion, share of measured frames: " + lit(", ".join(roads)))
+    levels = [f"{r.name} {100 * r.levelled_share:.0f} %" for r in summary.robots if r.levelled_share is not None]
+    if levels:
+        console.print("tilt held to the ground in view, share of tracking references turned towards level: "
+                      + lit(", ".join(levels)))  # fmt: skip
     drifts = [f"{r.name} {r.measured_drift_deg_per_100m:.1f}" for r in summary.robots
               if r.measured_drift_deg_per_100m is not None]  # fmt: skip
     if drifts:

@@ -32,7 +32,9 @@ class OdometryEstimate:
     ``image_step`` whether ICP slipped against the image motion and the step solved from image tracks was
     kept (KISS-ICP, ``flow_check``), ``image_window`` whether the step also corrects the pose by the motion
     of the last second solved from image tracks (KISS-ICP, ``window_check``: the step then holds that
-    correction, not one frame's motion).
+    correction, not one frame's motion); ``new_reference`` whether the frame became the visual odometry's
+    tracking reference, ``levelled`` whether that reference's tilt was turned towards level (the ground in
+    view: a UAV's camera).
     """
 
     T_odom_cam: np.ndarray
@@ -44,6 +46,8 @@ class OdometryEstimate:
     road_step: bool = False
     image_step: bool = False
     image_window: bool = False
+    new_reference: bool = False
+    levelled: bool = False
 
 
 @runtime_checkable

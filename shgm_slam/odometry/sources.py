@@ -291,7 +291,7 @@ class VisualOdometrySource:
         disagreement = None if yaw_img is None or first else yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
         return OdometryEstimate(
             reg.T_odom_cam, reg.ok, note, rotation_disagreement_deg=disagreement, planar_turn=reg.planar_turn,
-            road_step=reg.road_step,
+            road_step=reg.road_step, new_reference=reg.new_reference, levelled=reg.levelled,
         )
 
 

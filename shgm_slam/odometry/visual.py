@@ -119,6 +119,8 @@ class VisualRegistration:
         new_reference: whether this frame became the tracking reference.
         planar_turn: whether this frame's turn came from planar circular motion (``planar_motion``).
         road_step: whether this frame's step (length and direction) came from the road (``road_steps``).
+        levelled: whether this frame became the tracking reference and its tilt was turned towards level
+            (``ground_attitude``).
     """
 
     T_odom_cam: np.ndarray
@@ -128,6 +130,7 @@ class VisualRegistration:
     new_reference: bool
     planar_turn: bool = False
     road_step: bool = False
+    levelled: bool = False
 
     @property
     def ok(self) -> bool:
@@ -375,6 +378,7 @@ class DepthVisualOdometry:
         """
         gray, depth = self._check_inputs(image_gray, depth_m, label_ids)
         self.num_frames += 1
+        levelled_before = self.num_levelled
         if self._prev_gray is None:
             self._new_reference(gray, depth, intrinsics, label_ids)
             self._prev_gray = gray
@@ -415,7 +419,8 @@ class DepthVisualOdometry:
             self._new_reference(gray, depth, intrinsics, label_ids)
         planar = self._turn_used and status is VisualStatus.OK
         return VisualRegistration(
-            self.T_odom_cam.copy(), status, num_tracks, num_inliers, renew, planar, road is not None
+            self.T_odom_cam.copy(), status, num_tracks, num_inliers, renew, planar, road is not None,
+            self.num_levelled > levelled_before,
         )
 
     # ----------------------------------------------------------------------------------------------

@@ -96,6 +96,8 @@ class RobotFrontend:
         self.road_steps = 0  # of them, frames whose step came from the road's image motion (visual odometry)
         self.image_steps = 0  # of them, frames where KISS-ICP slipped and the image tracks' step was kept
         self.image_windows = 0  # of them, frames where KISS-ICP slid over the last second, corrected from image tracks
+        self.references = 0  # frames that became the visual odometry's tracking reference
+        self.levelled_references = 0  # of them, references whose tilt was turned towards level (ground attitude)
         # predicted depth scaled to the camera's height above the road (``perception.ground_scale``): whether
         # it is on for this robot, and the factor of each processed frame it scaled
         self.ground_scale_on = getattr(perception, "ground_scale", None) is not None
@@ -222,6 +224,8 @@ class RobotFrontend:
         self.road_steps += bool(est.road_step)
         self.image_steps += bool(est.image_step)
         self.image_windows += bool(est.image_window)
+        self.references += bool(est.new_reference)
+        self.levelled_references += bool(est.levelled)
         T_odom_cam = est.T_odom_cam if seg.first_frame >= 0 else np.full((4, 4), np.nan)
         t_odo = time.perf_counter()
         message = None

@@ -102,7 +102,8 @@ class FrameDelta:
     segments: list[SegmentState]  # kf_frames / kf_poses: only the keyframes added by this frame
     new_failures: list[OdometryFailure]
     new_depth_scales: list[float]
-    counters: tuple[int, int, int, int, int]  # measured_frames, planar_turns, road_steps, image_steps, image_windows
+    # measured_frames, planar_turns, road_steps, image_steps, image_windows, references, levelled_references
+    counters: tuple[int, int, int, int, int, int, int]
 
 
 @dataclass
@@ -139,7 +140,8 @@ def frame_delta(
         index, _viewer_share(res, viewer_points), lo, front.T_odom_cam[rows].copy(), front.frame_kf[rows].copy(),
         front.frame_segment[rows].copy(), segs, list(front.failures[before.failures:]),
         list(front.depth_scales[before.depth_scales:]),
-        (front.measured_frames, front.planar_turns, front.road_steps, front.image_steps, front.image_windows),
+        (front.measured_frames, front.planar_turns, front.road_steps, front.image_steps, front.image_windows,
+         front.references, front.levelled_references),
     )  # fmt: skip
 
 
@@ -188,6 +190,7 @@ class FrontendMirror:
         self.failures: list[OdometryFailure] = []
         self.depth_scales: list[float] = []
         self.measured_frames = self.planar_turns = self.road_steps = self.image_steps = self.image_windows = 0
+        self.references = self.levelled_references = 0
 
     @property
     def segment(self) -> SegmentState:
@@ -217,7 +220,8 @@ class FrontendMirror:
             mine.kf_poses.extend(s.kf_poses)
         self.failures.extend(d.new_failures)
         self.depth_scales.extend(d.new_depth_scales)
-        self.measured_frames, self.planar_turns, self.road_steps, self.image_steps, self.image_windows = d.counters
+        (self.measured_frames, self.planar_turns, self.road_steps, self.image_steps, self.image_windows,
+         self.references, self.levelled_references) = d.counters
         return d.result
 
 

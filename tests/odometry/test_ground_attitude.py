@@ -38,9 +38,9 @@ def tilt_deg(T_a: np.ndarray, T_b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(down_a @ down_b, -1.0, 1.0))))
 
 
-def drive(ground_attitude: bool, poses: np.ndarray) -> tuple[np.ndarray, DepthVisualOdometry]:
+def drive(ground_attitude: bool, poses: np.ndarray) -> tuple[np.ndarray, DepthVisualOdometry, list]:
     """The odometry's poses (first frame = identity) with the chain tilted by ``DRIFT_DEG`` at every new reference
-    (how PnP's rotation error compounds), and the odometry."""
+    (how PnP's rotation error compounds), the odometry, and its registrations."""
     vo = DepthVisualOdometry(depth_window_px=1, ground_attitude=ground_attitude)
     new_reference = vo._new_reference
 
@@ -52,11 +52,11 @@ def drive(ground_attitude: bool, poses: np.ndarray) -> tuple[np.ndarray, DepthVi
         new_reference(gray, depth, intrinsics, label_ids)
 
     vo._new_reference = drifting
-    est = []
+    regs = []
     for T in poses:
         gray, depth = render(T)
-        est.append(vo.register(gray, depth, INTRINSICS, floor_labels(T, depth)).T_odom_cam)
-    return np.stack(est), vo
+        regs.append(vo.register(gray, depth, INTRINSICS, floor_labels(T, depth)))
+    return np.stack([r.T_odom_cam for r in regs]), vo, regs
 
 
 @pytest.fixture(scope="module")
@@ -65,16 +65,18 @@ def poses() -> np.ndarray:
 
 
 def test_the_tilt_drifts_without_the_ground(poses):
-    est, vo = drive(False, poses)
+    est, vo, regs = drive(False, poses)
     gt = inverse(poses[0]) @ poses
-    assert vo.num_references > GROUND_ATTITUDE_FIRST + 5
+    assert vo.num_references > GROUND_ATTITUDE_FIRST + 5 and not any(r.levelled for r in regs)
     assert tilt_deg(est[-1], gt[-1]) > 0.8 * DRIFT_DEG * (vo.num_references - 1)
 
 
 def test_the_ground_holds_the_tilt(poses):
-    est, vo = drive(True, poses)
+    est, vo, regs = drive(True, poses)
     gt = inverse(poses[0]) @ poses
     assert vo.num_levelled >= vo.num_references - GROUND_ATTITUDE_FIRST - 2
+    # each registration says whether it was a reference turned towards level (what the run's summary counts)
+    assert sum(r.levelled for r in regs) == vo.num_levelled and all(r.new_reference for r in regs if r.levelled)
     # level is agreed on over the first references, whose drift (0 to FIRST - 1 steps) it averages; from then on
     # each reference is turned back by its drift and more, so the chain settles at level: about half the first
     # references' drift off the truth (without the ground: 23 deg by the end)

@@ -47,8 +47,9 @@ def _assert_same_state(mirror: FrontendMirror, front) -> None:
         np.testing.assert_array_equal(np.reshape(m.kf_poses, (-1, 4, 4)), np.reshape(s.kf_poses, (-1, 4, 4)))
     assert mirror.failures == front.failures and mirror.depth_scales == front.depth_scales
     assert (mirror.measured_frames, mirror.planar_turns, mirror.road_steps, mirror.image_steps,
-            mirror.image_windows) == (front.measured_frames, front.planar_turns, front.road_steps,
-                                      front.image_steps, front.image_windows)  # fmt: skip
+            mirror.image_windows, mirror.references, mirror.levelled_references) == (
+        front.measured_frames, front.planar_turns, front.road_steps, front.image_steps, front.image_windows,
+        front.references, front.levelled_references)  # fmt: skip
     assert mirror.num_keyframes == front.num_keyframes and mirror.segment.agent == front.segment.agent
 
 
