@@ -369,6 +369,10 @@ class OdometryConfig(_Stage):
     max_accel_mps2: float = Field(
         30.0, gt=0, description="health: acceleration limit incl. centripetal (sim cars reach 2 g in sharp turns)"
     )
+    max_speed_change_mps2: float = Field(
+        12.0, gt=0, description="health: how fast the speed itself can change (cars brake at about 1 g); an "
+        "odometry whose speed jumps by more (plus its own measured noise) for three frames diverged"
+    )
     max_turn_rate_dps: float = Field(180.0, gt=0, description="health: turn-rate limit (sim cars: up to 107 deg/s)")
     step_noise_m: float = Field(
         2.0, ge=0, description="health: per-step position noise of healthy odometry (acceleration slack; KISS-ICP "

@@ -595,6 +595,34 @@ def test_injected_jump_is_detected_and_the_new_segment_is_placed_again(tiny_scen
     np.testing.assert_allclose(odo_file[np.flatnonzero(np.isclose(t_odo, t[25]))[0]], np.eye(4), atol=1e-6)
 
 
+def test_an_odometry_that_stalls_at_speed_is_cut_where_it_stalled(tiny_scenario: Path, tmp_path: Path) -> None:
+    """car1's odometry reads standing still for five frames mid-drive (as a road whose stripes line up at no
+    motion does) and then drives on: no single step breaks a motion limit, but the speed continuity check
+    dates the failure to the first stalled frame and the stall belongs to no segment."""
+    from shgm_slam.odometry.health import FailureReason
+    from shgm_slam.runner import make_frontend
+
+    seq = open_sequence(str(tiny_scenario / "car1"))
+    gt = se3.inverse(seq.gt_poses[0]) @ seq.gt_poses
+    speeds = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1) / np.diff(seq.timestamps_s)
+    start = 28
+    assert speeds[start - 1 : start + 5].min() > 3.0, "the car must be moving where the stall is injected"
+    odo = gt.copy()
+    for i in range(start, start + 5):  # frames start..start+4 stay where start-1 was
+        odo[i] = odo[start - 1]
+    odo[start + 5 :] = odo[start - 1] @ se3.inverse(gt[start + 4]) @ gt[start + 5 :]  # and then drive on
+    write_kitti_poses(tmp_path / "odo.txt", odo)
+    cfg = ShgmConfig()
+    cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, tmp_path / "odo.txt"
+    front = make_frontend("car1", seq, cfg)
+    for i in range(len(seq)):
+        front.process(i)
+    assert [f.reason for f in front.failures] == [FailureReason.SPEED_CHANGE], [f.describe() for f in front.failures]
+    assert front.failures[0].onset_frame == start
+    assert (front.frame_segment[:start] == 0).all() and (front.frame_segment[start:] != 0).all()
+    assert front.segments[1].first_frame >= front.failures[0].detected_frame  # re-initialised from there
+
+
 def test_every_step_reports_its_cost(tiny_scenario: Path, tmp_path: Path) -> None:
     stats = []
     cfg = ShgmConfig()
