@@ -14,10 +14,10 @@ source's own diagnostics (``OdometryEstimate``):
 - **speed continuity**: the odometry's speed (its steps' lengths, median of three consecutive steps so that
   one misread step is not counted) leaves what the last trusted speed allows (``max_speed_change_mps2``
   of braking or speeding up in one frame, the direction may turn faster, plus the segment's own measured
-  speed noise) and stays out until the steps since have gained or lost ``SPEED_BREAK_M`` against that
-  speed: catches an odometry that stalls at speed (a road whose stripes line up at no motion, an ICP
-  stuck in a corridor) or doubles its steps, far below the acceleration check's slack (onset: the first
-  stalled step),
+  speed noise) and stays out until the steps since have gained or lost ``SPEED_BREAK_M`` against the
+  trusted speed, which meanwhile follows them no faster than ``max_speed_change_mps2``: catches an
+  odometry that stalls at speed (a road whose stripes line up at no motion, an ICP stuck in a corridor)
+  or doubles its steps, far below the acceleration check's slack (onset: the first stalled step),
 - **turn rate**: ``angle(ΔR) ≤ max_turn_rate_dps·Δt + step_noise_deg`` (the simulated cars turn
   at up to 107°/s at intersections),
 - **coasting**: the source predicted instead of measured (no depth, too few points, a cloud in too few
@@ -273,9 +273,8 @@ class OdometryHealthMonitor:
         ref = self._speed_ref
         if len(self._speed_noise) >= SPEED_NOISE_SAMPLES:
             noise = SPEED_NOISE_FACTOR * float(np.median(self._speed_noise))
-            # one frame's change: out of bounds the trusted speed stays, and the bounds do not widen with time
-            # (they would take in a stalled speed and then call the car's true speed the jump)
-            allowed = self.limits.max_speed_change_mps2 * (t_mid - self._speeds[0][1]) + noise
+            frame_dt = t_mid - self._speeds[0][1]
+            allowed = self.limits.max_speed_change_mps2 * frame_dt + noise  # one frame's change
             if abs(filtered - ref) > allowed:
                 if self._speed_jump is None:  # the steps from the middle one on are out of bounds
                     onset, gained = middle_frame, (self._speeds[1][2] - ref) * (t_mid - self._speeds[0][1])
@@ -283,6 +282,11 @@ class OdometryHealthMonitor:
                     onset, gained = self._speed_jump
                 gained += (speed - ref) * (t - prev_t)
                 self._speed_jump = (onset, gained)
+                # out of bounds the trusted speed follows at most as fast as the robot can brake or speed up
+                # (a simulated car speeds up at up to 13 m/s2 for a frame or two); the bounds stay one frame's:
+                # bounds that widened with time would take in a stalled speed and call the true speed the jump
+                reach = self.limits.max_speed_change_mps2 * frame_dt
+                self._speed_ref = ref + float(np.clip(filtered - ref, -reach, reach))
                 if abs(gained) < SPEED_BREAK_M:
                     return None
                 return OdometryFailure(
