@@ -371,7 +371,8 @@ class OdometryConfig(_Stage):
     )
     max_speed_change_mps2: float = Field(
         12.0, gt=0, description="health: how fast the speed itself can change (cars brake at about 1 g); an "
-        "odometry whose speed jumps by more (plus its own measured noise) for three frames diverged"
+        "odometry whose speed jumps by more (plus its own measured noise) and stays until 3 m are lost or gained "
+        "diverged"
     )
     max_turn_rate_dps: float = Field(180.0, gt=0, description="health: turn-rate limit (sim cars: up to 107 deg/s)")
     step_noise_m: float = Field(

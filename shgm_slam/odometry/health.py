@@ -277,7 +277,7 @@ class OdometryHealthMonitor:
             allowed = self.limits.max_speed_change_mps2 * frame_dt + noise  # one frame's change
             if abs(filtered - ref) > allowed:
                 if self._speed_jump is None:  # the steps from the middle one on are out of bounds
-                    onset, gained = middle_frame, (self._speeds[1][2] - ref) * (t_mid - self._speeds[0][1])
+                    onset, gained = middle_frame, (self._speeds[1][2] - ref) * frame_dt
                 else:
                     onset, gained = self._speed_jump
                 gained += (speed - ref) * (t - prev_t)
