@@ -68,8 +68,15 @@ class OdometrySource(Protocol):
         """
         ...
 
-    def reset(self) -> None:
-        """Re-initialise: the next frame starts a new odometry frame (after a detected divergence)."""
+    def reset(self, motion: np.ndarray | None = None) -> None:
+        """Re-initialise: the next frame starts a new odometry frame (after a detected divergence).
+
+        Args:
+            motion: optional (4, 4) the vehicle's last trusted frame-to-frame motion (a frame's camera in the
+                previous frame's camera, metres): the constant-velocity model's prediction of the new odometry
+                frame's first step, since a vehicle's velocity does not restart with its odometry (sources that
+                measure absolute poses ignore it); None: the first step is predicted at rest.
+        """
         ...
 
 

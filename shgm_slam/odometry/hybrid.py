@@ -84,9 +84,11 @@ class HybridOdometrySource:
         self.noise = YawNoiseTracker(noise_window)
         self.icp_weight = 0.0  # ICP's weight in the last fused step (diagnostics)
 
-    def reset(self) -> None:
-        self.kiss.reset()
+    def reset(self, motion: np.ndarray | None = None) -> None:
+        self.kiss.reset(motion)
         self.visual = self._visual_factory()
+        if motion is not None:
+            self.visual.seed_motion(motion)
         self.noise.reset()
         if self.image_yaw is not None:
             self.image_yaw.reset()

@@ -188,13 +188,20 @@ class KissOdometry:
         self._icp = KissICP(self.config)
         self._no_stamps = np.array([])  # KISS-ICP needs an array; empty = no deskew
         self.num_frames = 0
+        self._seed_delta: np.ndarray | None = None  # ``reset``'s motion, taken once the first frame is in
 
-    def reset(self) -> None:
-        """Start afresh: empty map, zero velocity; the next frame defines a new odometry frame."""
+    def reset(self, motion: np.ndarray | None = None) -> None:
+        """Start afresh: empty map; the next frame defines a new odometry frame.
+
+        Args:
+            motion: optional (4, 4) frame-to-frame motion (a frame's camera in the previous one) the
+                constant-velocity model predicts the second frame with; None: zero velocity (KISS-ICP's start).
+        """
         from kiss_icp.kiss_icp import KissICP
 
         self._icp = KissICP(self.config)
         self.num_frames = 0
+        self._seed_delta = None if motion is None else np.asarray(motion, dtype=np.float64).copy()
 
     @property
     def threshold_m(self) -> float:
@@ -260,6 +267,8 @@ class KissOdometry:
             self._icp.register_frame(np.ascontiguousarray(pts), self._no_stamps)
         else:
             self._register_fused(np.ascontiguousarray(pts), fuse_step)
+        if self._seed_delta is not None:  # the first frame is in (at the origin): predict on at the seeded motion
+            self._icp.last_delta, self._seed_delta = self._seed_delta, None
         if not np.isfinite(self._icp.last_pose).all():
             # the map may now hold points placed with a non-finite pose: restart it from the next frame
             self._icp.local_map.clear()

@@ -83,8 +83,8 @@ class KissIcpSource:
         self.window = window
         self._T_odom_anchor: np.ndarray | None = None  # pose of the window's anchor frame
 
-    def reset(self) -> None:
-        self.odometry.reset()
+    def reset(self, motion: np.ndarray | None = None) -> None:
+        self.odometry.reset(motion)
         self._T_odom_anchor = None
         if self.window is not None:
             self.window.reset()
@@ -167,7 +167,7 @@ class GroundTruthSource:
     def __init__(self) -> None:
         self._T_cam0_world: np.ndarray | None = None
 
-    def reset(self) -> None:
+    def reset(self, motion: np.ndarray | None = None) -> None:
         self._T_cam0_world = None
 
     def update(
@@ -224,7 +224,7 @@ class PoseFileSource:
             )
         return rows
 
-    def reset(self) -> None:
+    def reset(self, motion: np.ndarray | None = None) -> None:
         self._T_cam0_file = np.full((4, 4), np.nan)
 
     def update(
@@ -268,10 +268,12 @@ class VisualOdometrySource:
         self.image_yaw = image_yaw
         self.prior_min_rad = float(np.radians(prior_min_deg))
 
-    def reset(self) -> None:
+    def reset(self, motion: np.ndarray | None = None) -> None:
         if self._factory is None:
             raise ConfigError("this visual odometry source was built without a factory and cannot re-initialise")
         self.odometry = self._factory()
+        if motion is not None:
+            self.odometry.seed_motion(motion)
         if self.image_yaw is not None:
             self.image_yaw.reset()
 

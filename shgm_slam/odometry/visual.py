@@ -351,6 +351,16 @@ class DepthVisualOdometry:
         """(4, 4) the constant-velocity model's next frame-to-frame motion (the last measured step), a copy."""
         return self._T_prev_cam.copy()
 
+    def seed_motion(self, motion: np.ndarray) -> None:
+        """Predict the next step with ``motion`` instead of at rest (before the second frame: a re-initialised
+        odometry continues the vehicle's last trusted velocity; PnP's initial guess, and the step kept where PnP
+        fails, as with any constant-velocity prediction).
+
+        Args:
+            motion: (4, 4) frame-to-frame motion, a frame's camera in the previous frame's camera, metres.
+        """
+        self._T_prev_cam = np.asarray(motion, dtype=np.float64).copy()
+
     def register(
         self,
         image_gray: np.ndarray,

@@ -11,6 +11,7 @@ import numpy as np
 from shgm_slam.agents import segment_agent
 from shgm_slam.config import ShgmConfig
 from shgm_slam.geometry.ground import ground_normal
+from shgm_slam.geometry.se3 import inverse
 from shgm_slam.graph.extraction import extract_objects
 from shgm_slam.graph.semantic_graph import SemanticGraph
 from shgm_slam.messages import KeyframeMessage
@@ -28,6 +29,14 @@ log = logging.getLogger(__name__)
 
 SEGMENT_GRACE_S = 1.0
 """After a re-initialisation, predicted poses are not checked against the image motion for this long."""
+
+MOTION_MEMORY_S = 1.0
+"""A re-initialised odometry predicts its first step with the robot's last trusted frame-to-frame motion (the
+step into the frame before the divergence's onset) when the new segment's first frame comes at most this long
+after it: a vehicle's velocity does not restart with its odometry, and a segment that begins inside a sharp
+turn, predicted at rest, reads its first steps as standing still wherever PnP fails and the images give no
+sure turn (airsim-like, a car's visual odometry: 21 deg of a turn lost in two frames). Older motion says
+little about the present one: the first step is then predicted at rest."""
 
 
 @dataclass
@@ -111,6 +120,10 @@ class RobotFrontend:
         self.frame_segment = np.full(n, -1, dtype=np.int64)  # segment of each frame (-1: none)
         self.segments: list[TrajectorySegment] = []
         self.failures: list[OdometryFailure] = []
+        # the last trusted frame-to-frame motion before the last divergence (4, 4) and its frame's time, seconds
+        self._last_motion: tuple[np.ndarray, float] | None = None
+        self._steady = True  # the current segment has measured a step (a restarted one: not yet; ``process``)
+        self.first_changed_row = 0  # the first row of the per-frame arrays the last ``process`` call changed
         self._new_segment(0)
 
     def release(self) -> None:
@@ -161,6 +174,7 @@ class RobotFrontend:
         self.failures.append(failure)
         seg = self.segment
         seg.end_failure = failure
+        self._last_motion = self._motion_before(failure.onset_frame)
         cut = np.arange(self.T_odom_cam.shape[0]) >= failure.onset_frame
         cut &= self.frame_segment == seg.index
         self.T_odom_cam[cut] = np.nan
@@ -168,10 +182,30 @@ class RobotFrontend:
         self.frame_kf[cut] = -1
         if last:
             return
-        self.odometry.reset()
+        self.odometry.reset(self._restart_motion(failure.detected_frame))
         self.health.reset()
         # a new segment starts at the next measured frame (the one after a re-initialisation)
         self._new_segment(-1)
+        self._steady = False
+        self.first_changed_row = min(self.first_changed_row, failure.onset_frame)
+
+    def _motion_before(self, onset: int) -> tuple[np.ndarray, float] | None:
+        """The current segment's last step before frame ``onset`` (4, 4: frame onset-1's camera in frame onset-2's)
+        and frame onset-1's time, seconds; None when those two frames are not both in the segment."""
+        a, b = onset - 2, onset - 1
+        seg = self.segment.index
+        if a < 0 or self.frame_segment[a] != seg or self.frame_segment[b] != seg:
+            return None
+        motion = inverse(self.T_odom_cam[a]) @ self.T_odom_cam[b]
+        return (motion, float(self.sequence.timestamps_s[b])) if np.isfinite(motion).all() else None
+
+    def _restart_motion(self, index: int) -> np.ndarray | None:
+        """(4, 4) the motion a re-initialised odometry whose first frame is ``index`` predicts its first step with
+        (``MOTION_MEMORY_S``), or None (at rest)."""
+        if self._last_motion is None or index >= len(self.sequence):
+            return None
+        motion, t_s = self._last_motion
+        return motion if self.sequence.timestamps_s[index] - t_s <= MOTION_MEMORY_S else None
 
     # --- one frame -------------------------------------------------------------------------------
 
@@ -182,6 +216,7 @@ class RobotFrontend:
             DataError: the frame cannot be loaded or has no usable depth (the caller logs and skips it).
         """
         t0 = time.perf_counter()
+        self.first_changed_row = index
         frame = self.sequence[index]
         t_load = time.perf_counter()
         if self.stopped:
@@ -217,8 +252,11 @@ class RobotFrontend:
                 if failure is None:  # (a frame that just failed was checked again above)
                     self.health.check(index, frame.timestamp_s, est.T_odom_cam)
             else:
-                self.odometry.reset()
+                self.odometry.reset(self._restart_motion(index + 1))
                 self.health.reset()
+        elif not self._steady and not est.ok:  # a restarted segment whose first step was not measured either
+            est = self._move_origin(index, frame, points_cam, perceived.depth_m, perceived.label_ids)
+        self._steady = self._steady or (est.ok and index > seg.first_frame >= 0)
         self.measured_frames += bool(est.ok)
         self.planar_turns += bool(est.planar_turn)
         self.road_steps += bool(est.road_step)
@@ -239,13 +277,40 @@ class RobotFrontend:
             self.T_odom_cam[index] = T_odom_cam
             self.frame_segment[index] = seg.index
             # keyframes only from measured poses: a prediction may be cut away by a later failure
-            if est.ok and seg.keyframes.is_keyframe(T_odom_cam) and perceived.label_ids is not None:
+            # (and in a restarted segment only once it has measured a step: its origin may still move)
+            if est.ok and self._steady and seg.keyframes.is_keyframe(T_odom_cam) and perceived.label_ids is not None:
                 message = self._keyframe(seg, index, frame, perceived, T_odom_cam, points_cam, point_labels, timings)
             self.frame_kf[index] = seg.num_keyframes - 1
         return FrameResult(
             self.name, frame, T_odom_cam, perceived.depth_m, perceived.label_ids, points_cam, point_labels,
             est.ok, message, timings, seg.agent, failure,
         )  # fmt: skip
+
+    def _move_origin(
+        self, index: int, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray, label_ids: np.ndarray | None
+    ) -> OdometryEstimate:
+        """Restart the current segment's odometry at frame ``index``: a segment restarted after a divergence
+        whose steps so far were predicted, not measured (PnP failed, a blank frame), would carry that guess as
+        its motion (a new segment that begins inside a sharp turn: its first steps predicted at the last trusted
+        motion or at rest, 15-21 deg of the turn lost); its frames so far (no keyframe yet) leave it, and this
+        frame becomes its origin. Returns this frame's estimate (the new origin)."""
+        seg = self.segment
+        dropped = (np.arange(self.T_odom_cam.shape[0]) < index) & (self.frame_segment == seg.index)
+        self.T_odom_cam[dropped] = np.nan
+        self.frame_segment[dropped] = -1
+        self.frame_kf[dropped] = -1
+        self.first_changed_row = min(self.first_changed_row, seg.first_frame)
+        seg.first_frame = index
+        self.odometry.reset(self._restart_motion(index))
+        self.health.reset()
+        est = self.odometry.update(frame, points_cam, depth_m, label_ids)
+        if not est.ok:  # no origin here either (a blank frame): wait for a measured pose, as after a divergence
+            seg.first_frame = -1
+            self.odometry.reset(self._restart_motion(index + 1))
+            self.health.reset()
+        else:
+            self.health.check(index, frame.timestamp_s, est.T_odom_cam)
+        return est
 
     def _dropped(self, frame: Frame, timings: dict[str, float], failure: OdometryFailure | None = None) -> FrameResult:
         """The result of a frame after the robot ``stopped``: in no segment, nothing sent."""

@@ -88,7 +88,8 @@ class FrameDelta:
     """One processed frame and what it changed in its front end's state.
 
     ``rows_from``..``index`` (inclusive) are the rows of the per-frame arrays it may have changed (a
-    divergence cuts its segment back to the failure's onset); ``segments`` the segments from the one current
+    divergence cuts its segment back to the failure's onset, a restarted segment may move its origin:
+    ``RobotFrontend.first_changed_row``); ``segments`` the segments from the one current
     before the frame on, whose ``kf_frames`` / ``kf_poses`` hold only the keyframes this frame added (poses
     (4, 4), T_odom_kf in the segment's odometry frame); counters are totals, lists only what was appended.
     """
@@ -127,9 +128,7 @@ def frame_delta(
     """The ``FrameDelta`` of frame ``index`` that ``front`` just processed into ``res`` (``before``: its marks
     taken just before), carrying only the share of the frame's images and cloud that a viewer draws
     (``_viewer_share``)."""
-    lo = index
-    for f in front.failures[before.failures:]:
-        lo = min(lo, int(f.onset_frame))
+    lo = min(index, front.first_changed_row)
     segs = []
     for s in front.segments[before.segment:]:
         n0 = before.kf_counts[s.index] if s.index < len(before.kf_counts) else 0

@@ -202,3 +202,21 @@ def test_a_relocation_moves_the_pose_restarts_the_map_and_sets_the_velocity():
     assert 0 < len(local) <= len(clouds[6])  # only this frame (voxelized)
     d = np.linalg.norm(local[:, None, :] - frame_at_jump[None, ::7, :], axis=2).min(axis=1)
     assert np.median(d) < 0.5  # where the corrected pose put it
+
+
+def test_a_reset_with_motion_starts_at_the_origin_and_predicts_that_motion():
+    """A re-initialisation carrying the vehicle's last motion: the first frame is the new origin (an empty map
+    has nothing to register against), the second is predicted at that motion (where a plain reset predicts rest)."""
+    _, clouds = _street_clouds(6, 7)
+    motion = make_pose(rot_y(np.radians(8.0)), [0.1, 0.0, 0.9])
+    for seed, expected in ((motion, motion), (None, np.eye(4))):
+        odo = KissOdometry()
+        for c in clouds[:4]:
+            odo.register(c)
+        odo.reset(seed)
+        first = odo.register(clouds[4])
+        assert first.ok and odo.num_frames == 1
+        np.testing.assert_allclose(first.T_odom_cam, np.eye(4), atol=1e-12)
+        np.testing.assert_allclose(odo.predicted_delta, expected, atol=1e-12)
+        coasted = odo.register(np.zeros((0, 3)))  # no cloud: the prediction is the pose
+        np.testing.assert_allclose(coasted.T_odom_cam, expected, atol=1e-12)

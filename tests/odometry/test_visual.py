@@ -259,6 +259,29 @@ class _FixedYaw:
         return self.yaw_rad if seen else None
 
 
+def test_a_source_reset_with_motion_coasts_at_it_where_pnp_fails(corridor):
+    """A re-initialisation inside a turn: the new segment's first frame is its origin, and a second frame that
+    PnP cannot register (textureless, no image yaw) keeps the seeded motion, not rest."""
+    motion = inverse(corridor[3]) @ corridor[4]
+    for seed, expected in ((motion, motion), (None, np.eye(4))):
+        src = make_odometry(OdometryConfig(kind=OdometryKind.VISUAL, visual_depth_window_px=1), 5)
+        src.image_yaw = None
+        poses = []
+        for i, T in enumerate(corridor[:7]):
+            if i == 5:
+                src.reset(seed)
+            gray, depth = render(T)
+            if i == 6:
+                gray = np.full_like(gray, 128)
+            frame = Frame(index=i, timestamp_s=0.1 * i, intrinsics=INTRINSICS,
+                          image_rgb=np.repeat(gray[..., None], 3, 2))  # fmt: skip
+            est = src.update(frame, np.zeros((0, 3)), depth)
+            poses.append(est.T_odom_cam)
+        assert not est.ok
+        np.testing.assert_allclose(poses[5], np.eye(4), atol=1e-12)
+        np.testing.assert_allclose(poses[6], expected, atol=1e-9)
+
+
 def test_source_follows_the_image_turn_while_pnp_fails(corridor):
     """A textureless frame in a turn: the source's pose turns by the image yaw, not by the last step's."""
     src = make_odometry(OdometryConfig(kind=OdometryKind.VISUAL, visual_depth_window_px=1), 5)

@@ -1,14 +1,18 @@
-"""The robot front end's object extraction: thin objects of predicted depth are placed at their near part."""
+"""The robot front end: thin objects of predicted depth are placed at their near part; a restarted odometry
+continues the vehicle's last trusted motion."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import shgm_slam.robot.frontend as frontend_module
-from shgm_slam.config import ShgmConfig
+from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data import open_sequence
+from shgm_slam.geometry import se3
+from shgm_slam.io.trajectories import write_kitti_poses
 from shgm_slam.labels import THIN_OBJECT_DEPTH_PERCENTILES, Label
 from shgm_slam.runner import make_frontend
 from tests.perception.test_ground_scale import _perceived_copy
@@ -41,3 +45,45 @@ def test_thin_objects_take_the_near_percentile_only_with_predicted_depth(
     own = make_frontend("car1", open_sequence(tmp_path / "p"), mine)
     used = _percentiles_used(own, monkeypatch)
     assert used and all(u == {Label.VEGETATION: 40.0} for u in used)  # a configured mapping replaces the default
+
+
+class _RecordingResets:
+    """Wraps an odometry source and records the motion of every ``reset``."""
+
+    def __init__(self, inner) -> None:
+        self.inner, self.motions = inner, []
+
+    def update(self, *args, **kwargs):
+        return self.inner.update(*args, **kwargs)
+
+    def reset(self, motion=None) -> None:
+        self.motions.append(None if motion is None else motion.copy())
+        self.inner.reset(motion)
+
+
+@pytest.mark.parametrize("memory_s", [frontend_module.MOTION_MEMORY_S, 0.1])
+def test_a_restarted_odometry_continues_the_last_trusted_motion(
+    tiny_scenario: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, memory_s: float
+) -> None:
+    """car1's odometry jumps 30 m at frame 25 (4 Hz): the new segment's odometry is re-initialised with the
+    step into frame 24 (the last one before the onset), the vehicle's velocity; a restart more than
+    ``MOTION_MEMORY_S`` after that step (here 0.25 s against 0.1 s) starts at rest."""
+    monkeypatch.setattr(frontend_module, "MOTION_MEMORY_S", memory_s)
+    seq = open_sequence(str(tiny_scenario / "car1"))
+    gt = se3.inverse(seq.gt_poses[0]) @ seq.gt_poses
+    odo = gt.copy()
+    odo[25:, 0, 3] += 30.0
+    write_kitti_poses(tmp_path / "odo.txt", odo)
+    cfg = ShgmConfig()
+    cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, tmp_path / "odo.txt"
+    front = make_frontend("car1", seq, cfg)
+    front.odometry = _RecordingResets(front.odometry)
+    for i in range(30):
+        front.process(i)
+    assert [f.onset_frame for f in front.failures] == [25] and front.segments[1].first_frame == 25
+    assert len(front.odometry.motions) == 1
+    if memory_s >= 0.25:
+        np.testing.assert_allclose(front.odometry.motions[0], se3.inverse(gt[23]) @ gt[24], atol=1e-6)
+        assert np.linalg.norm(front.odometry.motions[0][:3, 3]) > 1.0  # the car was moving
+    else:
+        assert front.odometry.motions == [None]

@@ -8,6 +8,7 @@ import json
 import multiprocessing
 import os
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -234,3 +235,46 @@ def test_a_worker_starts_with_ctrl_c_ignored_and_the_orchestrator_keeps_it() -> 
     finally:
         signal.signal(signal.SIGINT, previous)
     assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+
+
+class _Unmeasured:
+    """Wraps an odometry source: the frames in ``frames`` are reported as predicted (not measured)."""
+
+    def __init__(self, inner, frames: set[int]) -> None:
+        self.inner, self.frames = inner, frames
+
+    def update(self, frame, *args, **kwargs):
+        est = self.inner.update(frame, *args, **kwargs)
+        return replace(est, ok=False) if frame.index in self.frames else est
+
+    def reset(self, motion=None) -> None:
+        self.inner.reset(motion)
+
+
+def test_a_restarted_segment_moves_its_origin_until_it_measures_a_step(tiny_scenario: Path, tmp_path: Path) -> None:
+    """car1's odometry jumps 30 m at frame 25 and frames 26-27 are not measured (PnP failing inside a sharp
+    turn): the new segment's origin moves to frame 28, frames 25-27 belong to no segment, its first keyframe is
+    the first frame after a measured step; the mirror follows the rows moved back."""
+    seq = open_sequence(str(tiny_scenario / "car1"))
+    gt = se3.inverse(seq.gt_poses[0]) @ seq.gt_poses
+    odo = gt.copy()
+    odo[25:, 0, 3] += 30.0
+    write_kitti_poses(tmp_path / "odo.txt", odo)
+    cfg = ShgmConfig()
+    cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, tmp_path / "odo.txt"
+    front = make_frontend("car1", seq, cfg)
+    front.odometry = _Unmeasured(front.odometry, {26, 27, 33})
+    mirror = FrontendMirror(make_frontend("car1", seq, cfg))
+    for i in range(36):
+        before = _Marks.of(front)
+        res = front.process(i)
+        mirror.apply(frame_delta(front, before, res, i, viewer_points=0))
+        _assert_same_state(mirror, front)
+    assert [f.onset_frame for f in front.failures] == [25] and len(front.segments) == 2
+    seg = front.segments[1]
+    assert seg.first_frame == 28 and seg.kf_frames[0] == 29
+    assert (front.frame_segment[25:28] == -1).all() and np.isnan(front.T_odom_cam[25:28]).all()
+    assert (front.frame_segment[28:36] == 1).all()
+    np.testing.assert_allclose(front.T_odom_cam[28], np.eye(4), atol=1e-6)
+    np.testing.assert_allclose(front.T_odom_cam[32], se3.inverse(gt[28]) @ gt[32], atol=1e-6)
+    assert front.frame_segment[33] == 1  # a steady segment coasts over an unmeasured frame, as before
