@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 import shgm_slam.robot.frontend as frontend_module
-from shgm_slam.config import OdometryKind, ShgmConfig
+from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.geometry import se3
-from shgm_slam.io.trajectories import write_kitti_poses
 from shgm_slam.labels import THIN_OBJECT_DEPTH_PERCENTILES, Label
 from shgm_slam.runner import make_frontend
 from tests.perception.test_ground_scale import _perceived_copy
+from tests.robot.jumps import jumping_odometry
 from tests.spies import record_depth_percentiles
 
 
@@ -69,13 +69,7 @@ def test_a_restarted_odometry_continues_the_last_trusted_motion(
     step into frame 24 (the last one before the onset), the vehicle's velocity; a restart more than
     ``MOTION_MEMORY_S`` after that step (here 0.25 s against 0.1 s) starts at rest."""
     monkeypatch.setattr(frontend_module, "MOTION_MEMORY_S", memory_s)
-    seq = open_sequence(str(tiny_scenario / "car1"))
-    gt = se3.inverse(seq.gt_poses[0]) @ seq.gt_poses
-    odo = gt.copy()
-    odo[25:, 0, 3] += 30.0
-    write_kitti_poses(tmp_path / "odo.txt", odo)
-    cfg = ShgmConfig()
-    cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, tmp_path / "odo.txt"
+    seq, cfg, gt = jumping_odometry(tiny_scenario / "car1", tmp_path, 25)
     front = make_frontend("car1", seq, cfg)
     front.odometry = _RecordingResets(front.odometry)
     for i in range(30):

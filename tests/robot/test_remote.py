@@ -23,6 +23,7 @@ from shgm_slam.geometry import se3
 from shgm_slam.io.trajectories import read_tum, write_kitti_poses
 from shgm_slam.robot.remote import FrontendMirror, _Marks, assign_workers, default_jobs, frame_delta
 from shgm_slam.runner import make_frontend, open_robots, run_slam
+from tests.robot.jumps import jumping_odometry
 
 
 def _blanked_and_corrupt(tiny_scenario: Path, tmp_path: Path) -> Path:
@@ -255,13 +256,7 @@ def test_a_restarted_segment_moves_its_origin_until_it_measures_a_step(tiny_scen
     """car1's odometry jumps 30 m at frame 25 and frames 26-27 are not measured (PnP failing inside a sharp
     turn): the new segment's origin moves to frame 28, frames 25-27 belong to no segment, its first keyframe is
     the first frame after a measured step; the mirror follows the rows moved back."""
-    seq = open_sequence(str(tiny_scenario / "car1"))
-    gt = se3.inverse(seq.gt_poses[0]) @ seq.gt_poses
-    odo = gt.copy()
-    odo[25:, 0, 3] += 30.0
-    write_kitti_poses(tmp_path / "odo.txt", odo)
-    cfg = ShgmConfig()
-    cfg.odometry.kind, cfg.odometry.poses_file = OdometryKind.FILE, tmp_path / "odo.txt"
+    seq, cfg, gt = jumping_odometry(tiny_scenario / "car1", tmp_path, 25)
     front = make_frontend("car1", seq, cfg)
     front.odometry = _Unmeasured(front.odometry, {26, 27, 33})
     mirror = FrontendMirror(make_frontend("car1", seq, cfg))
