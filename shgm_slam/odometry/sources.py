@@ -252,8 +252,12 @@ class VisualOdometrySource:
     constant-velocity prediction's yaw (when they differ by more than ``prior_min_deg``) as PnP's initial
     guess and as the pose kept when PnP fails (in a sharp turn, and in the first frames of a new segment,
     the prediction alone under-turns by up to 10°/frame, airsim-like with demo depth), and the
-    difference after PnP is reported for the health check. ``factory`` builds a fresh
-    ``DepthVisualOdometry`` for ``reset``.
+    difference after PnP is reported for the health check. Where PnP fails but the step's turn came from the
+    images (a sure peak) and its length and direction from the road's image motion (``road_steps``), the step
+    counts as measured: a street of smooth trees and facades gives PnP 6-11 inliers for half a second and more,
+    while the images' shift and the road's zebra stripes still measure every step (without this such a stretch
+    was cut as a coasting failure: four of the RGB report worlds 585-619, a car's whole later trajectory left
+    unplaced). ``factory`` builds a fresh ``DepthVisualOdometry`` for ``reset``.
     """
 
     def __init__(
@@ -286,14 +290,19 @@ class VisualOdometrySource:
         yaw_img = None if self.image_yaw is None else self.image_yaw.update(frame.image_rgb, frame.intrinsics.fx)
         prior = None if yaw_img is None else yaw_prior(self.odometry.predicted_delta, yaw_img, self.prior_min_rad)
         reg = self.odometry.register(gray, depth_m, frame.intrinsics, label_ids, prior)
+        # where PnP failed, a step turned by the images' yaw (a sure peak) and moved as the road's image motion
+        # says is measured all the same, by two other measurements of the same images
+        from_images = not reg.ok and reg.road_step and yaw_img is not None
         note = "" if reg.ok else (
             f"frame {frame.index}: {reg.status.value} ({reg.num_tracks} tracks, {reg.num_inliers} inliers)"
+            + ("; the step from the images' yaw and the road's motion kept" if from_images else "")
         )
         first = reg.status is VisualStatus.FIRST_FRAME
         disagreement = None if yaw_img is None or first else yaw_disagreement_deg(T_prev, reg.T_odom_cam, yaw_img)
         return OdometryEstimate(
-            reg.T_odom_cam, reg.ok, note, rotation_disagreement_deg=disagreement, planar_turn=reg.planar_turn,
-            road_step=reg.road_step, new_reference=reg.new_reference, levelled=reg.levelled,
+            reg.T_odom_cam, reg.ok or from_images, note, rotation_disagreement_deg=disagreement,
+            planar_turn=reg.planar_turn, road_step=reg.road_step, new_reference=reg.new_reference,
+            levelled=reg.levelled,
         )
 
 

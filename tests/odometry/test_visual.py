@@ -17,7 +17,13 @@ from shgm_slam.odometry.sources import (
     resolve_kind,
     yaw_prior,
 )
-from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus, backproject_pixels, depth_window_on_image
+from shgm_slam.odometry.visual import (
+    DepthVisualOdometry,
+    VisualRegistration,
+    VisualStatus,
+    backproject_pixels,
+    depth_window_on_image,
+)
 from shgm_slam.types import Frame
 from tests.odometry.corridor import INTRINSICS, path, render
 
@@ -280,6 +286,38 @@ def test_a_source_reset_with_motion_coasts_at_it_where_pnp_fails(corridor):
         assert not est.ok
         np.testing.assert_allclose(poses[5], np.eye(4), atol=1e-12)
         np.testing.assert_allclose(poses[6], expected, atol=1e-9)
+
+
+class _FailingPnP:
+    """Stands in for ``DepthVisualOdometry``: every frame after the first fails PnP, its step from the road or not."""
+
+    def __init__(self, road_step: bool) -> None:
+        self.road_step, self.T_odom_cam, self.predicted_delta, self.frames = road_step, np.eye(4), np.eye(4), 0
+
+    def register(self, gray, depth_m, intrinsics, label_ids=None, motion_prior=None) -> VisualRegistration:
+        self.frames += 1
+        if self.frames == 1:
+            return VisualRegistration(np.eye(4), VisualStatus.FIRST_FRAME, 0, 0, True)
+        return VisualRegistration(np.eye(4), VisualStatus.PNP_FAILED, 20, 8, False, road_step=self.road_step)
+
+
+@pytest.mark.parametrize(
+    ("road_step", "yaw_deg", "measured"), [(True, 9.0, True), (False, 9.0, False), (True, None, False)]
+)
+def test_a_step_from_the_images_yaw_and_the_road_is_measured_where_pnp_fails(road_step, yaw_deg, measured):
+    """PnP failing (a street of smooth trees): the step counts as measured when the images gave its turn (a sure
+    peak) and the road its length and direction; either alone leaves it a prediction (the health check's coasting)."""
+    yaw = _FixedYaw(0.0 if yaw_deg is None else np.radians(yaw_deg))
+    src = VisualOdometrySource(_FailingPnP(road_step), image_yaw=yaw)
+    if yaw_deg is None:
+        src.image_yaw.update = lambda image_rgb, fx_px: None  # no sure peak
+    rgb = np.zeros((INTRINSICS.height, INTRINSICS.width, 3), np.uint8)
+    depth = np.full((INTRINSICS.height, INTRINSICS.width), 10.0, np.float32)
+    for i in range(2):
+        frame = Frame(index=i, timestamp_s=0.1 * i, intrinsics=INTRINSICS, image_rgb=rgb)
+        est = src.update(frame, np.zeros((0, 3)), depth)
+    assert est.ok is measured
+    assert "pnp-failed" in est.note and ("road's motion kept" in est.note) is measured
 
 
 def test_source_follows_the_image_turn_while_pnp_fails(corridor):
