@@ -254,10 +254,10 @@ class VisualOdometrySource:
     the prediction alone under-turns by up to 10°/frame, airsim-like with demo depth), and the
     difference after PnP is reported for the health check. Where PnP fails but the step's turn came from the
     images (a sure peak) and its length and direction from the road's image motion (``road_steps``), the step
-    counts as measured: a street of smooth trees and facades gives PnP 6-11 inliers for half a second and more,
-    while the images' shift and the road's zebra stripes still measure every step (without this such a stretch
-    was cut as a coasting failure: four of the RGB report worlds 585-619, a car's whole later trajectory left
-    unplaced). ``factory`` builds a fresh ``DepthVisualOdometry`` for ``reset``.
+    counts as measured: a turn past smooth trees gave PnP 6-11 inliers for seven frames while the images' shift
+    and the road measured every step within 0.4 deg and 0.1 m (disjoint-like world 591, a car turning 9 deg per
+    frame), and without this the stretch was cut as a coasting failure, the car's later frames a new segment to
+    place again. ``factory`` builds a fresh ``DepthVisualOdometry`` for ``reset``.
     """
 
     def __init__(
