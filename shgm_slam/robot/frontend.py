@@ -175,19 +175,28 @@ class RobotFrontend:
         seg = self.segment
         seg.end_failure = failure
         self._last_motion = self._motion_before(failure.onset_frame)
-        cut = np.arange(self.T_odom_cam.shape[0]) >= failure.onset_frame
-        cut &= self.frame_segment == seg.index
-        self.T_odom_cam[cut] = np.nan
-        self.frame_segment[cut] = -1
-        self.frame_kf[cut] = -1
+        self._leave_segment(np.arange(self.T_odom_cam.shape[0]) >= failure.onset_frame)
         if last:
             return
-        self.odometry.reset(self._restart_motion(failure.detected_frame))
-        self.health.reset()
+        self._restart(failure.detected_frame)
         # a new segment starts at the next measured frame (the one after a re-initialisation)
         self._new_segment(-1)
         self._steady = False
-        self.first_changed_row = min(self.first_changed_row, failure.onset_frame)
+
+    def _leave_segment(self, rows: np.ndarray) -> None:
+        """The current segment's frames among ``rows`` ((N,) bool over all frames) belong to no segment now."""
+        rows = rows & (self.frame_segment == self.segment.index)
+        self.T_odom_cam[rows] = np.nan
+        self.frame_segment[rows] = -1
+        self.frame_kf[rows] = -1
+        if rows.any():
+            self.first_changed_row = min(self.first_changed_row, int(np.argmax(rows)))
+
+    def _restart(self, first_index: int) -> None:
+        """Re-initialise the odometry (``_restart_motion``) and the health check for a segment whose first frame
+        is ``first_index``."""
+        self.odometry.reset(self._restart_motion(first_index))
+        self.health.reset()
 
     def _motion_before(self, onset: int) -> tuple[np.ndarray, float] | None:
         """The current segment's last step before frame ``onset`` (4, 4: frame onset-1's camera in frame onset-2's)
@@ -252,8 +261,7 @@ class RobotFrontend:
                 if failure is None:  # (a frame that just failed was checked again above)
                     self.health.check(index, frame.timestamp_s, est.T_odom_cam)
             else:
-                self.odometry.reset(self._restart_motion(index + 1))
-                self.health.reset()
+                self._restart(index + 1)
         elif not self._steady and not est.ok:  # a restarted segment whose first step was not measured either
             est = self._move_origin(index, frame, points_cam, perceived.depth_m, perceived.label_ids)
         self._steady = self._steady or (est.ok and index > seg.first_frame >= 0)
@@ -295,19 +303,13 @@ class RobotFrontend:
         motion or at rest, 15-21 deg of the turn lost); its frames so far (no keyframe yet) leave it, and this
         frame becomes its origin. Returns this frame's estimate (the new origin)."""
         seg = self.segment
-        dropped = (np.arange(self.T_odom_cam.shape[0]) < index) & (self.frame_segment == seg.index)
-        self.T_odom_cam[dropped] = np.nan
-        self.frame_segment[dropped] = -1
-        self.frame_kf[dropped] = -1
-        self.first_changed_row = min(self.first_changed_row, seg.first_frame)
+        self._leave_segment(np.arange(self.T_odom_cam.shape[0]) < index)
         seg.first_frame = index
-        self.odometry.reset(self._restart_motion(index))
-        self.health.reset()
+        self._restart(index)
         est = self.odometry.update(frame, points_cam, depth_m, label_ids)
         if not est.ok:  # no origin here either (a blank frame): wait for a measured pose, as after a divergence
             seg.first_frame = -1
-            self.odometry.reset(self._restart_motion(index + 1))
-            self.health.reset()
+            self._restart(index + 1)
         else:
             self.health.check(index, frame.timestamp_s, est.T_odom_cam)
         return est
