@@ -78,7 +78,7 @@ def planar_turn(uv_prev: np.ndarray, uv_cur: np.ndarray, intrinsics: Intrinsics)
         return None
     x1, x2 = _rays(uv_prev, intrinsics), _rays(uv_cur, intrinsics)
     fx = float(intrinsics.fx)
-    truncate_px = max(TRUNCATE_PX, fx * np.tan(np.radians(TRUNCATE_DEG)))
+    truncate_px = _truncate_px(fx)
     coarse = np.radians(np.arange(-MAX_TURN_DEG, MAX_TURN_DEG + 1e-9, COARSE_STEP_DEG))
     cost = _cost(coarse, x1, x2, fx, truncate_px)
     centre = coarse[int(np.argmin(cost))]
@@ -93,6 +93,46 @@ def planar_turn(uv_prev: np.ndarray, uv_cur: np.ndarray, intrinsics: Intrinsics)
             yaw += 0.5 * (c0 - c2) / curvature * np.radians(FINE_STEP_DEG)
     d2 = _sampson_px2(np.array([yaw]), x1, x2, fx)[0]
     return PlanarTurn(yaw, float(np.mean(d2 < truncate_px**2)), len(x1))
+
+
+def epipolar_support(
+    T_prev_cur: np.ndarray, uv_prev: np.ndarray, uv_cur: np.ndarray, intrinsics: Intrinsics
+) -> float | None:
+    """Share of corners that a motion explains as well as ``planar_turn`` counts its own support: their Sampson
+    distance to the epipolar lines of ``T_prev_cur`` within the same truncation (``TRUNCATE_PX``,
+    ``TRUNCATE_DEG``).
+
+    Args:
+        T_prev_cur: (4, 4) the current camera in the previous one (any motion; its translation's length does not
+            matter, its direction does).
+        uv_prev, uv_cur: (N, 2) pixels of the same corners in the previous and the current image.
+        intrinsics: pinhole intrinsics of both images.
+
+    Returns:
+        The share in [0, 1], or None with fewer than ``MIN_CORNERS`` corners or a motion without translation
+        (no epipolar geometry).
+    """
+    uv_prev = np.asarray(uv_prev, dtype=np.float64).reshape(-1, 2)
+    uv_cur = np.asarray(uv_cur, dtype=np.float64).reshape(-1, 2)
+    t = np.asarray(T_prev_cur, dtype=np.float64)[:3, 3]
+    norm = float(np.linalg.norm(t))
+    if len(uv_prev) < MIN_CORNERS or uv_cur.shape != uv_prev.shape or not norm > 1e-9:
+        return None
+    c = t / norm
+    skew = np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
+    E = np.asarray(T_prev_cur, dtype=np.float64)[:3, :3].T @ skew  # x_cur^T E x_prev = 0
+    x1, x2 = _rays(uv_prev, intrinsics), _rays(uv_cur, intrinsics)
+    Ex1, Etx2 = x1 @ E.T, x2 @ E
+    num = np.einsum("ni,ni->n", x2, Ex1)
+    den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2
+    fx = float(intrinsics.fx)
+    d2 = num**2 / np.maximum(den, 1e-18) * fx**2
+    return float(np.mean(d2 < _truncate_px(fx) ** 2))
+
+
+def _truncate_px(fx: float) -> float:
+    """A corner's Sampson distance counts up to this many pixels (``TRUNCATE_PX``, ``TRUNCATE_DEG``)."""
+    return max(TRUNCATE_PX, fx * np.tan(np.radians(TRUNCATE_DEG)))
 
 
 def _rays(uv: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:

@@ -8,7 +8,7 @@ import pytest
 from shgm_slam.config import OdometryConfig, OdometryKind
 from shgm_slam.geometry.se3 import inverse
 from shgm_slam.odometry.image_rotation import rot_y, yaw_of
-from shgm_slam.odometry.planar_motion import MIN_CORNERS, planar_turn
+from shgm_slam.odometry.planar_motion import MIN_CORNERS, epipolar_support, planar_turn
 from shgm_slam.odometry.sources import make_odometry
 from shgm_slam.odometry.visual import MIN_PLANAR_SUPPORT, DepthVisualOdometry, translation_given_rotation
 from shgm_slam.types import Frame, Intrinsics
@@ -96,6 +96,31 @@ def test_motion_unlike_a_car_finds_little_support(scene):
 def test_too_few_corners_give_no_turn(scene):
     uv0, uv1 = project(scene[: MIN_CORNERS - 1], car_step(0.01, 1.0))
     assert planar_turn(uv0, uv1, K) is None
+
+
+def test_the_epipolar_support_of_a_motion_counts_what_it_explains(scene):
+    """The true motion explains every corner (any translation length), as the planar turn counts its own support; a
+    turn 2 deg off explains far fewer, the translation 5 deg sideways (what PnP trades a turn for) fewer; no
+    translation, or too few corners, gives no answer."""
+    rng = np.random.default_rng(11)
+    T = car_step(np.radians(6.0), 1.5)
+    uv0, uv1 = project(scene, T)
+    uv1 = uv1 + rng.normal(0.0, 0.3, uv1.shape)
+    assert epipolar_support(T, uv0, uv1, K) == pytest.approx(planar_turn(uv0, uv1, K).support)
+    assert epipolar_support(T, uv0, uv1, K) > 0.95
+    longer = T.copy()
+    longer[:3, 3] *= 7.0
+    assert epipolar_support(longer, uv0, uv1, K) == epipolar_support(T, uv0, uv1, K)
+    off = T.copy()
+    off[:3, :3] = rot_y(np.radians(8.0))
+    sideways = T.copy()
+    sideways[:3, 3] = 1.5 * np.array([np.sin(np.radians(8.0)), 0.0, np.cos(np.radians(8.0))])
+    assert epipolar_support(off, uv0, uv1, K) < 0.8
+    assert epipolar_support(sideways, uv0, uv1, K) < epipolar_support(T, uv0, uv1, K) - 0.03
+    still = T.copy()
+    still[:3, 3] = 0.0
+    assert epipolar_support(still, uv0, uv1, K) is None
+    assert epipolar_support(T, uv0[: MIN_CORNERS - 1], uv1[: MIN_CORNERS - 1], K) is None
 
 
 def test_essential_matrix_holds_the_epipolar_constraint(scene):
