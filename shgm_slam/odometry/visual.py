@@ -268,8 +268,8 @@ class DepthVisualOdometry:
             window the demo model's path comes out 5-7 % short (3: 2-5 %, 5: 1-3 %; with true
             depth 5 overshoots by 2 %, so sensor depth wants 1).
         planar_motion: take each frame's turn from corners tracked since the previous image under planar
-            circular motion (a ground vehicle), where at least ``MIN_PLANAR_SUPPORT`` of them agree with it
-            (module docstring).
+            circular motion (a ground vehicle), where at least ``MIN_PLANAR_SUPPORT`` of them agree with it or
+            at least as many as agree with PnP's motion (``_planar_fits``; module docstring).
         road_steps: take each frame's step from the road where a level road plane is in view and the road's
             image motion gives a distinct answer (module docstring, step 4; needs ``label_ids``).
         ground_attitude: hold each new reference's roll and pitch to the ground plane in view (module
@@ -342,7 +342,7 @@ class DepthVisualOdometry:
         self._track_T = np.eye(4)  # the tracking chain: PnP against the reference
         self._T_prev_cam = np.eye(4)  # last frame-to-frame motion of the tracking chain (constant velocity)
         self._prev_gray: np.ndarray | None = None
-        self._prev_mask: np.ndarray | None = None  # (H, W) uint8: where the previous image may give corners
+        self._prev_labels: np.ndarray | None = None  # (H, W) the previous image's labels (its fresh corners' mask)
         self._ref_T_odom_cam = np.eye(4)
         self._ref_points = np.zeros((0, 3))  # (M, 3) reference corners in the reference camera frame
         self._tracks_uv = np.zeros((0, 1, 2), np.float32)  # (M, 1, 2) their pixels in the previous image
@@ -396,7 +396,7 @@ class DepthVisualOdometry:
         levelled_before = self.num_levelled
         if self._prev_gray is None:
             self._new_reference(gray, depth, intrinsics, label_ids)
-            self._prev_gray, self._prev_mask = gray, self._corner_mask(label_ids)
+            self._prev_gray, self._prev_labels = gray, label_ids
             if self.road_steps:
                 self._road = self._road_view(gray, depth, intrinsics, label_ids)
             return VisualRegistration(self.T_odom_cam.copy(), VisualStatus.FIRST_FRAME, 0, 0, True)
@@ -428,7 +428,7 @@ class DepthVisualOdometry:
             self._road = self._road_view(gray, depth, intrinsics, label_ids)
         else:
             self.T_odom_cam = T_new.copy()
-        self._prev_gray, self._prev_mask = gray, self._corner_mask(label_ids)
+        self._prev_gray, self._prev_labels = gray, label_ids
         renew = len(self._ref_points) < max(self.min_tracks, self.min_track_fraction * self._ref_count)
         if renew:
             self._new_reference(gray, depth, intrinsics, label_ids)
@@ -615,7 +615,8 @@ class DepthVisualOdometry:
     def _fresh_corners(self) -> np.ndarray:
         """(F, 1, 2) float32 corners found afresh in the previous image (``_corner_mask``), for the turn."""
         corners = cv2.goodFeaturesToTrack(
-            self._prev_gray, self.max_features, 0.01, self.min_feature_distance_px, mask=self._prev_mask, blockSize=5
+            self._prev_gray, self.max_features, 0.01, self.min_feature_distance_px,
+            mask=self._corner_mask(self._prev_labels), blockSize=5,
         )  # fmt: skip
         return np.zeros((0, 1, 2), np.float32) if corners is None else corners.astype(np.float32)
 
