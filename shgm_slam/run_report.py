@@ -22,6 +22,7 @@ from shgm_slam.fusion import fuse_segments
 from shgm_slam.geometry import se3
 from shgm_slam.metrics import ate, joint_ate
 from shgm_slam.odometry.stillness import ImageChange, odometry_motion, stillness_warning
+from shgm_slam.perception.ground_scale import USUAL_FACTOR, usual_factor
 from shgm_slam.robot.frontend import RobotFrontend
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.records import MatchRecord, PairMatches
@@ -306,6 +307,14 @@ def report_degenerate(
                 f"times, and {front.max_segments} trajectory segments is each robot's share of the pose graph's "
                 f"{MAX_AGENTS} agents in a run of {len(reports)} robots; its later frames are dropped (reasons in "
                 "'failure_reasons'; check its depth, timestamps and odometry)"
+            )
+        if rep.depth_scale is not None and not usual_factor(rep.depth_scale):
+            rep.warnings.append(
+                f"predicted depth scaled by x{rep.depth_scale:.2f} (median) to put the road "
+                f"{front.cfg.perception.camera_height_m:g} m below the camera, outside the usual "
+                f"x{USUAL_FACTOR[0]:g}-{USUAL_FACTOR[1]:g}: the depth model's metric scale is far off on these images "
+                "(a model trained on other scenes varies from frame to frame too), or the camera is not mounted at "
+                "that height (set perception.camera_height_m)"
             )
         if rep.frames_processed and rep.nodes == 0:
             rep.warnings.append(

@@ -10,9 +10,11 @@ smoothed by a running median over recent frames (the scale of monocular visual o
 the ground plane: Kitt et al. 2011, Song & Chandraker 2014).
 
 Only a level camera's road counts: the plane's normal must be within ``MAX_TILT_DEG`` of the camera's
-vertical (image down) axis, and the measured factor within [``MIN_FACTOR``, ``MAX_FACTOR``]; a UAV's
-oblique view (normal 40-50 deg off, ground 30-60 m away) or a wrong mounting height fails these and
-leaves the depth as predicted, which the caller reports.
+vertical (image down) axis, the road within ``ROAD_RANGE_M``, and the measured factor within
+[``MIN_FACTOR``, ``MAX_FACTOR``]; a UAV's oblique view (normal 40-50 deg off, ground 30-60 m away) fails
+these and leaves the depth as predicted, which the caller reports. A running factor outside
+``USUAL_FACTOR`` is used but reported (``usual_factor``): a network far off scale, or a wrong mounting
+height.
 """
 
 from __future__ import annotations
@@ -29,8 +31,15 @@ from shgm_slam.types import Intrinsics
 
 MAX_TILT_DEG = 25.0
 """The road plane's normal is at most this far from the camera's vertical axis (a level car camera)."""
-MIN_FACTOR, MAX_FACTOR = 0.67, 1.5
-"""A per-frame factor outside this range is not a car camera at the configured height: not used."""
+MIN_FACTOR, MAX_FACTOR = 0.2, 5.0
+"""A per-frame factor outside this range is not a car camera at the configured height: not used. Wide, since
+a network can be off by several times on images unlike its training set (the demo models, trained on our
+synthetic cities, read KITTI 07's road 2-10 m below the camera where it lies 1.65 m: between 0.67 and 1.5
+only the first ten frames' factors were used, and the odometry ran 2-4 times too far with too few corners
+within its depth range); a UAV's ground lies beyond ``ROAD_RANGE_M`` or tilted past ``MAX_TILT_DEG``."""
+USUAL_FACTOR = (0.67, 1.5)
+"""A running factor outside this range is reported (``usual_factor``): the network's scale is far off, or the
+camera is not at the configured height, which the road alone cannot tell apart."""
 ROAD_RANGE_M = (2.0, 25.0)
 """Road pixels whose predicted depth is in this range are fitted (near road is predicted best)."""
 MIN_ROAD_POINTS = 100
@@ -144,3 +153,8 @@ class GroundScale:
                         plane.height, self.camera_height_m,
                     )  # fmt: skip
         return float(np.median(self._factors)) if self._factors else None
+
+
+def usual_factor(factor: float) -> bool:
+    """Whether a running depth factor lies within ``USUAL_FACTOR`` (a network's usual scale error)."""
+    return USUAL_FACTOR[0] <= factor <= USUAL_FACTOR[1]

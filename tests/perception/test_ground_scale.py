@@ -13,7 +13,7 @@ from shgm_slam.data import open_sequence
 from shgm_slam.labels import Label
 from shgm_slam.perception import OnnxPerception, make_perception
 from shgm_slam.perception.depth import DepthModel
-from shgm_slam.perception.ground_scale import MAX_FACTOR, GroundScale, road_plane
+from shgm_slam.perception.ground_scale import MAX_FACTOR, MIN_FACTOR, GroundScale, road_plane, usual_factor
 from shgm_slam.types import Frame, Intrinsics
 from tests.perception.onnx_builders import channel_model, write_card
 
@@ -94,13 +94,35 @@ def test_no_road_or_a_steep_view_gives_no_plane() -> None:
 
 
 def test_a_road_at_the_wrong_height_is_refused_and_counted() -> None:
-    depth, labels = flat_road(1.65 * MAX_FACTOR * 1.2)  # a camera far higher than configured
+    low = 1.65 / (MAX_FACTOR * 1.2)
+    depth, labels = flat_road(low)  # a camera far lower than configured
     scale = GroundScale(1.65)
     assert scale.update(depth, labels, INTR) is None
-    assert (scale.planes, scale.rejected) == (0, 1) and scale.rejected_height == pytest.approx(1.65 * MAX_FACTOR * 1.2)
+    assert (scale.planes, scale.rejected) == (0, 1) and scale.rejected_height == pytest.approx(low)
     good, good_labels = flat_road(1.5)
     assert scale.update(good, good_labels, INTR) == pytest.approx(1.1)
     assert scale.update(depth, labels, INTR) == pytest.approx(1.1)  # the refused frame keeps the median
+
+
+def test_a_road_far_higher_than_configured_is_refused() -> None:
+    """A camera 6x higher than configured (a low UAV's level camera) whose road is in range: refused."""
+    height = 1.65 / (MIN_FACTOR * 0.8)
+    depth, labels = flat_road(height, pitch_deg=12.0)  # pitched down: road within ROAD_RANGE_M
+    assert road_plane(depth, labels, INTR).height == pytest.approx(height, rel=1e-6)
+    scale = GroundScale(1.65)
+    assert scale.update(depth, labels, INTR) is None and scale.rejected == 1
+
+
+@pytest.mark.parametrize("off", [0.3, 2.5, 3.5])
+def test_a_network_several_times_off_scale_is_still_scaled(off: float) -> None:
+    """A depth network off by several times on unfamiliar images (the demo models on real KITTI 07 read the
+    road 2-10 m below the camera) is scaled to the road like any other, and reported as unusual."""
+    depth, labels = flat_road(1.65)
+    scale = GroundScale(1.65)
+    factor = scale.update(depth * np.float32(off), labels, INTR)
+    assert factor == pytest.approx(1 / off, rel=1e-5) and scale.rejected == 0
+    assert not usual_factor(factor)
+    assert usual_factor(1 / 1.12) and usual_factor(1.12)
 
 
 def test_the_factor_is_a_running_median() -> None:
@@ -228,10 +250,10 @@ def test_a_perceived_sequence_runs_as_predicted_depth(tiny_scenario: Path, tmp_p
 def test_a_road_never_at_the_configured_height_is_logged_once(caplog: pytest.LogCaptureFixture) -> None:
     from shgm_slam.perception.ground_scale import WARN_AFTER_REJECTED
 
-    depth, labels = flat_road(3.3)  # twice the configured height: every frame refused
+    depth, labels = flat_road(0.275)  # a sixth of the configured height: every frame refused
     scale = GroundScale(1.65)
     with caplog.at_level("WARNING", logger="shgm_slam.perception.ground_scale"):
         for _ in range(WARN_AFTER_REJECTED + 5):
             assert scale.update(depth, labels, INTR) is None
     warnings = [r for r in caplog.records if "camera_height_m" in r.getMessage()]
-    assert len(warnings) == 1 and "3.3 m below the camera" in warnings[0].getMessage()
+    assert len(warnings) == 1 and "0.3 m below the camera" in warnings[0].getMessage()
