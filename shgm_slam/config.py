@@ -339,6 +339,12 @@ class OdometryConfig(_Stage):
         "plane is in view (odometry/ground_speed.py: the plane-induced homography; tracks sliding along edges "
         "that run with the street shortened steps by 30-70 %); a UAV's frames keep the tracks' steps"
     )
+    visual_road_height_m: float | None = Field(
+        None, gt=0, le=10.0, description="visual odometry: the camera's height above the road, metres, that road "
+        "steps take their length in; None: the road plane's height measured in each frame's depth. A robot whose "
+        "predicted depth is scaled to perception.camera_height_m gets that height (the network's scale swings "
+        "from frame to frame, the camera's mounting does not)"
+    )
     visual_ground_attitude: bool | None = Field(
         None, description="visual odometry: hold each new reference frame's roll and pitch to the ground plane in "
         "view (level ground; odometry/visual.py, step 5: a UAV's tilt drifted 10-34 deg over 600 m without it); "

@@ -340,10 +340,10 @@ def resolve_robot_config(cfg: ShgmConfig, scale: SceneScale | None) -> ShgmConfi
 
 def effective_fields(cfg: ShgmConfig) -> dict[str, dict[str, float | bool]]:
     """The data-derived fields' values in a resolved robot config (for ``config.yaml``'s ``robots``)."""
-    return {
-        "extraction": {k: getattr(cfg.extraction, k) for k in ExtractionConfig.FLEET},
-        "odometry": {k: getattr(cfg.odometry, k) for k in (*OdometryConfig.FLEET, "max_spacing_m")},
-    }
+    odometry = {k: getattr(cfg.odometry, k) for k in (*OdometryConfig.FLEET, "max_spacing_m")}
+    if cfg.odometry.visual_road_height_m is not None:  # set from perception.camera_height_m (``robot.build``)
+        odometry["visual_road_height_m"] = cfg.odometry.visual_road_height_m
+    return {"extraction": {k: getattr(cfg.extraction, k) for k in ExtractionConfig.FLEET}, "odometry": odometry}
 
 
 SAMPLE_FRAMES = 5

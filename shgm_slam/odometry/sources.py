@@ -328,6 +328,7 @@ def _visual_factory(cfg: OdometryConfig) -> Callable[[], DepthVisualOdometry]:
             depth_window_px=cfg.visual_depth_window_px,
             planar_motion=cfg.visual_planar_motion,
             road_steps=cfg.visual_road_steps,
+            road_height_m=cfg.visual_road_height_m,
             ground_attitude=bool(cfg.visual_ground_attitude),
         )
 

@@ -30,7 +30,9 @@ The method (per frame):
    kerb) slide along themselves under forward motion, and PnP then read steps 30-70 % short and up to
    40 deg sideways for seconds (with true depth as with a network's). The output chain composes these
    steps on the tracking chain's turns; the tracking chain itself (PnP against the reference) is kept
-   as it is, so its turns still do not compound.
+   as it is, so its turns still do not compound. The length is in the road plane's height: measured in
+   each frame's depth, or, with ``road_height_m``, the camera's known mounting height (a network's scale
+   swings from frame to frame; on real KITTI 07 the demo depth model's road lay 2-10 m below the camera).
 
 5. With ``ground_attitude`` (a camera that sees only the ground: a UAV looking down), each new reference's
    roll and pitch are pulled towards level: the ground plane fitted to its depth and labels
@@ -272,6 +274,8 @@ class DepthVisualOdometry:
             at least as many as agree with PnP's motion (``_planar_fits``; module docstring).
         road_steps: take each frame's step from the road where a level road plane is in view and the road's
             image motion gives a distinct answer (module docstring, step 4; needs ``label_ids``).
+        road_height_m: the camera's height above the road, metres, that road steps take their length in;
+            None: the road plane's height measured in each frame's depth.
         ground_attitude: hold each new reference's roll and pitch to the ground plane in view (module
             docstring, step 5; needs ``label_ids``; assumes level ground).
     """
@@ -296,6 +300,7 @@ class DepthVisualOdometry:
         depth_window_px: int = 5,
         planar_motion: bool = False,
         road_steps: bool = False,
+        road_height_m: float | None = None,
         ground_attitude: bool = False,
     ) -> None:
         if not 0.0 <= min_depth_m < max_depth_m:
@@ -322,6 +327,7 @@ class DepthVisualOdometry:
         self.depth_window_px = depth_window_px
         self.planar_motion = planar_motion
         self.road_steps = road_steps
+        self.road_height_m = road_height_m
         self.ground_attitude = ground_attitude
         self._ups: list[np.ndarray] = []  # the first references' measured up, odometry frame (ground_attitude)
         self._level_up: np.ndarray | None = None  # level: where up points in the odometry frame
@@ -443,13 +449,16 @@ class DepthVisualOdometry:
     def _road_view(
         self, gray: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics, label_ids: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray, RoadPlane] | None:
-        """This frame's image, textured road pixels and level road plane, for the next frame's road step
-        (None without labels or a level road plane: a UAV's oblique view, a road out of sight)."""
+        """This frame's image, textured road pixels and level road plane (at ``road_height_m`` where set), for
+        the next frame's road step (None without labels or a level road plane: a UAV's oblique view, a road out
+        of sight)."""
         if label_ids is None:
             return None
         plane = road_plane(depth, label_ids, intrinsics)
         if plane is None:
             return None
+        if self.road_height_m is not None:  # the road's direction from the depth, its distance known
+            plane = RoadPlane(plane.normal_cam, self.road_height_m, plane.inliers)
         pixels = textured_road_pixels(gray, depth, np.asarray(label_ids) == Label.ROAD, MIN_ROAD_GRADIENT)
         return gray, pixels, plane
 

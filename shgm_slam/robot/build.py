@@ -67,12 +67,23 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig, *, max_segment
                      ", ".join(map(str, scale.frame_indices)))  # fmt: skip
     rcfg = resolve_robot_config(rcfg, scale)
     rcfg = _window_on_image(name, rcfg, sequence, perception, written_by)
+    rcfg = _road_at_camera_height(rcfg, perception)
     choice = choose_odometry(rcfg.odometry.kind, depth_from_model=predicted)
     log.info("%s: odometry %s (%s)", name, choice.kind.value, choice.reason)
     odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence),
                              timestamps_s=sequence.timestamps_s)  # fmt: skip
     return RobotFrontend(name, sequence, rcfg, perception, odometry, choice, depth_predicted=predicted,
                          max_segments=max_segments, settings_digest=cfg.front_end_digest(name))  # fmt: skip
+
+
+def _road_at_camera_height(rcfg: ShgmConfig, perception: object) -> ShgmConfig:
+    """``rcfg`` with the visual odometry's road steps at ``perception.camera_height_m`` where the robot's predicted
+    depth is scaled to that height (``perception.ground_scale``) and no road height is set: the configured height
+    is what the scale assumes, and each frame's measured one swings with the network's scale."""
+    if getattr(perception, "ground_scale", None) is None or rcfg.odometry.visual_road_height_m is not None:
+        return rcfg
+    height = rcfg.perception.camera_height_m
+    return rcfg.model_copy(update={"odometry": rcfg.odometry.model_copy(update={"visual_road_height_m": height})})
 
 
 def _window_on_image(

@@ -66,8 +66,8 @@ def test_no_texture_or_no_room_gives_no_length():
     assert len(textured_road_pixels(flat, prev[1], road_labels(prev[1]) == Label.ROAD, MIN_ROAD_GRADIENT)) == 0
 
 
-def run(poses, road_steps, depth_fn=lambda d, labels: d, labels=True):
-    vo = DepthVisualOdometry(depth_window_px=1, planar_motion=True, road_steps=road_steps)
+def run(poses, road_steps, depth_fn=lambda d, labels: d, labels=True, road_height_m=None):
+    vo = DepthVisualOdometry(depth_window_px=1, planar_motion=True, road_steps=road_steps, road_height_m=road_height_m)
     est, regs = [], []
     for T in poses:
         gray, depth = render(T)
@@ -104,6 +104,28 @@ def test_road_steps_hold_where_the_tracks_mislead(drive):
     assert abs(trajectory_length(tracks) / true_len - 1.0) > 0.15
     assert trajectory_length(road) == pytest.approx(true_len, rel=0.03)
     assert ate(gt, road, align="none").rmse < 0.5 * ate(gt, tracks, align="none").rmse
+
+
+def test_road_steps_at_the_known_camera_height_hold_where_the_depth_scale_swings(drive):
+    """Each frame's whole depth off by its own factor (0.6-1.6: a network on images unlike its training set):
+    measured in that depth, the road's height and with it each road step swing too; at the camera's known
+    height (``road_height_m``) the steps keep their length."""
+    rng = np.random.default_rng(7)
+    factors = rng.uniform(0.6, 1.6, size=len(drive))
+    calls = iter(range(len(drive)))
+
+    def swinging(depth, labels):
+        return (depth * np.float32(factors[next(calls)])).astype(np.float32)
+
+    gt = inverse(drive[0]) @ drive
+    measured, _, _ = run(drive, True, swinging)
+    calls = iter(range(len(drive)))
+    known, _, vo = run(drive, True, swinging, road_height_m=FLOOR_Y_M)
+    assert vo.num_road_steps >= 20
+    true_len = trajectory_length(gt)
+    assert trajectory_length(known) == pytest.approx(true_len, rel=0.03)
+    assert ate(gt, known, align="none").rmse < 0.2
+    assert ate(gt, known, align="none").rmse < 0.5 * ate(gt, measured, align="none").rmse
 
 
 def test_without_labels_or_road_the_steps_are_the_tracks(drive):
