@@ -245,6 +245,11 @@ def test_a_perceived_sequence_runs_as_predicted_depth(tiny_scenario: Path, tmp_p
     no_height = cfg.model_copy(update={"perception": PerceptionConfig(camera_height_m=None)})
     off = make_frontend("car1", open_sequence(tmp_path / "car"), no_height)
     assert off.depth_predicted and not off.ground_scale_on
+    # road steps at the height the depth is scaled to (the config's own value wins); measured where not scaled
+    assert car.cfg.odometry.visual_road_height_m == cfg.perception.camera_height_m == 1.65
+    assert plain.cfg.odometry.visual_road_height_m is None and off.cfg.odometry.visual_road_height_m is None
+    own = cfg.model_copy(update={"odometry": cfg.odometry.model_copy(update={"visual_road_height_m": 1.5})})
+    assert make_frontend("car1", open_sequence(tmp_path / "car"), own).cfg.odometry.visual_road_height_m == 1.5
 
 
 def test_a_road_never_at_the_configured_height_is_logged_once(caplog: pytest.LogCaptureFixture) -> None:
