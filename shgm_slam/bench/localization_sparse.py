@@ -24,6 +24,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from itertools import pairwise
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -206,12 +207,31 @@ class SparseResults:
                 "median_cpu_ms": float(np.median(cpu)) if cpu.size else 0.0,
                 "nodes_median": float(np.median([o.nodes for o in pos + neg])) if pos + neg else 0.0,
                 "common_median": float(np.median([o.common for o in pos])) if pos else 0.0,
+                "by_common": _by_common(pos),
             }
         return out
 
     def to_json(self) -> dict:
         return {"summary": self.summary(), "conditions": self.options.conditions(), "seeds_done": list(self.seeds_done),
                 "interrupted": self.interrupted, "outcomes": [o.to_json() for o in self.outcomes]}  # fmt: skip
+
+
+COMMON_BINS = (MIN_COMMON, 15, 20, 30)
+"""Lower edges of the shared-object bins the report breaks the overlapping pairs down by (the last bin is open)."""
+
+
+def _by_common(pos: list[SparseOutcome]) -> list[dict]:
+    """Overlapping pairs and those localized per bin of objects both maps hold (``COMMON_BINS``): where the
+    misses lie (a pair sharing a dozen objects carries less evidence than one sharing forty). Empty bins are left
+    out."""
+    edges = (*COMMON_BINS, None)
+    rows = []
+    for lo, hi in pairwise(edges):
+        inside = [o for o in pos if o.common >= lo and (hi is None or o.common < hi)]
+        if inside:
+            rows.append({"common": f"{lo}-{hi - 1}" if hi is not None else f"{lo}+", "pairs": len(inside),
+                         "localized": sum(o.success and o.correct for o in inside)})  # fmt: skip
+    return rows
 
 
 def _median_or_none(values: list[float]) -> float | None:
@@ -452,6 +472,10 @@ def sparse_markdown(results: SparseResults, seeds: tuple[int, ...]) -> str:
               "overlapping pairs localized, or whose true alignment (refined as any hypothesis) clears the match's "
               "threshold: what a perfect search would localize with this evidence model; the pairs beyond it lack "
               "the evidence, not the search."]  # fmt: skip
+    bins = [f"{key} " + ", ".join(f"{r['common']}: {r['localized']} of {r['pairs']}" for r in s["by_common"])
+            for key, s in results.summary().items() if s["by_common"]]  # fmt: skip
+    if bins:
+        lines += ["", "Localized by objects the two maps share (overlapping pairs): " + "; ".join(bins) + "."]
     lines += _claims_listed(results)
     return "\n".join(lines) + "\n"
 
