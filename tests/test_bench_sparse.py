@@ -179,6 +179,7 @@ def test_the_report_breaks_the_pairs_down_by_shared_objects():
     assert "maps share (overlapping pairs): 4dof 12-14: 1 of 3, 20-29: 2 of 2, 30+: 1 of 1." in sparse_markdown(
         results, (1,))
     assert SparseResults([outcome(60, overlapping=False)]).summary()["4dof"]["by_common"] == []
+    assert SparseResults([outcome(9)]).summary()["4dof"]["by_common"] == [{"common": "<12", "pairs": 1, "localized": 1}]
 
 
 def test_a_ctrl_c_keeps_the_seeds_finished(monkeypatch):

@@ -216,8 +216,9 @@ class SparseResults:
                 "interrupted": self.interrupted, "outcomes": [o.to_json() for o in self.outcomes]}  # fmt: skip
 
 
-COMMON_BINS = (MIN_COMMON, 15, 20, 30)
-"""Lower edges of the shared-object bins the report breaks the overlapping pairs down by (the last bin is open)."""
+COMMON_BINS = (0, MIN_COMMON, 15, 20, 30)
+"""Lower edges of the shared-object bins the report breaks the overlapping pairs down by (the last bin is open; the
+first holds only pairs drawn with fewer than ``MIN_COMMON`` shared objects, which the benchmark does not draw)."""
 
 
 def _by_common(pos: list[SparseOutcome]) -> list[dict]:
@@ -229,7 +230,8 @@ def _by_common(pos: list[SparseOutcome]) -> list[dict]:
     for lo, hi in pairwise(edges):
         inside = [o for o in pos if o.common >= lo and (hi is None or o.common < hi)]
         if inside:
-            rows.append({"common": f"{lo}-{hi - 1}" if hi is not None else f"{lo}+", "pairs": len(inside),
+            label = f"<{hi}" if lo == 0 else f"{lo}-{hi - 1}" if hi is not None else f"{lo}+"
+            rows.append({"common": label, "pairs": len(inside),
                          "localized": sum(o.success and o.correct for o in inside)})  # fmt: skip
     return rows
 
