@@ -462,7 +462,8 @@ def sparse_markdown(results: SparseResults, seeds: tuple[int, ...]) -> str:
              "| matching | overlapping pairs | localized | wrong claims | median error m | negatives accepted "
              "| median ms | p90 ms | median CPU ms | search ceiling |",
              "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
-    for key, s in results.summary().items():
+    summary = results.summary()
+    for key, s in summary.items():
         lines.append(
             f"| {key} | {s['overlapping_pairs']} | {s['localized']} ({100 * s['localized_rate']:.0f} %) | "
             f"{_wrong(s)} | {_metres(s['median_error_m'])} | {s['negatives_accepted']} / {s['negatives']} | "
@@ -475,7 +476,7 @@ def sparse_markdown(results: SparseResults, seeds: tuple[int, ...]) -> str:
               "threshold: what a perfect search would localize with this evidence model; the pairs beyond it lack "
               "the evidence, not the search."]  # fmt: skip
     bins = [f"{key} " + ", ".join(f"{r['common']}: {r['localized']} of {r['pairs']}" for r in s["by_common"])
-            for key, s in results.summary().items() if s["by_common"]]  # fmt: skip
+            for key, s in summary.items() if s["by_common"]]  # fmt: skip
     if bins:
         lines += ["", "Localized by objects the two maps share (overlapping pairs): " + "; ".join(bins) + "."]
     lines += _claims_listed(results)

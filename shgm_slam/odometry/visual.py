@@ -51,7 +51,7 @@ Poses are ``T_odom_cam``: the camera in the odometry frame, which is the first f
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 
 import cv2
@@ -458,7 +458,7 @@ class DepthVisualOdometry:
         if plane is None:
             return None
         if self.road_height_m is not None:  # the road's direction from the depth, its distance known
-            plane = RoadPlane(plane.normal_cam, self.road_height_m, plane.inliers)
+            plane = replace(plane, height=self.road_height_m)
         pixels = textured_road_pixels(gray, depth, np.asarray(label_ids) == Label.ROAD, MIN_ROAD_GRADIENT)
         return gray, pixels, plane
 
