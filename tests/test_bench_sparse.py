@@ -163,23 +163,29 @@ def test_wrong_claims_name_the_farthest():
 
 
 def test_the_report_breaks_the_pairs_down_by_shared_objects():
-    """Where the misses lie: per bin of objects both maps hold, the overlapping pairs and those localized (negatives
-    and wrong claims never count as localized; empty bins are left out)."""
+    """Where the misses lie: per bin of objects both maps hold, the overlapping pairs, those localized (negatives
+    and wrong claims never count as localized; empty bins are left out) and the search ceiling (localized, or the
+    truth beyond the threshold), which sums to the summary's."""
 
-    def outcome(common, overlapping=True, success=True, correct=True):
+    def outcome(common, overlapping=True, success=True, correct=True, margin=-1.0):
         return SparseOutcome(seed=1, index=common, overlapping=overlapping, dof=4, nodes=(40, 50), common=common,
                              success=success, correct=correct, trans_err_m=0.5 if correct else 6.0, rot_err_deg=0.1,
-                             ms=5.0, cpu_ms=5.0, reason="", truth_margin_nats=1.0)  # fmt: skip
+                             ms=5.0, cpu_ms=5.0, reason="", truth_margin_nats=margin)  # fmt: skip
 
-    results = SparseResults([outcome(12), outcome(14, success=False, correct=False), outcome(13, correct=False),
-                             outcome(22), outcome(29), outcome(41), outcome(60, overlapping=False, success=True)])
-    bins = results.summary()["4dof"]["by_common"]
-    assert bins == [{"common": "12-14", "pairs": 3, "localized": 1}, {"common": "20-29", "pairs": 2, "localized": 2},
-                    {"common": "30+", "pairs": 1, "localized": 1}]  # fmt: skip
-    assert "maps share (overlapping pairs): 4dof 12-14: 1 of 3, 20-29: 2 of 2, 30+: 1 of 1." in sparse_markdown(
-        results, (1,))
+    results = SparseResults([outcome(12), outcome(14, success=False, correct=False, margin=0.5),
+                             outcome(13, correct=False), outcome(22), outcome(29, success=False, correct=False),
+                             outcome(41), outcome(60, overlapping=False, success=True, margin=3.0)])  # fmt: skip
+    summary = results.summary()["4dof"]
+    bins = summary["by_common"]
+    assert bins == [{"common": "12-14", "pairs": 3, "localized": 1, "search_ceiling": 2},
+                    {"common": "20-29", "pairs": 2, "localized": 1, "search_ceiling": 1},
+                    {"common": "30+", "pairs": 1, "localized": 1, "search_ceiling": 1}]  # fmt: skip
+    assert sum(b["search_ceiling"] for b in bins) == summary["search_ceiling"] == 4
+    assert ("(overlapping pairs; the search ceiling in brackets): 4dof 12-14: 1 of 3 (2), 20-29: 1 of 2 (1), "
+            "30+: 1 of 1 (1).") in sparse_markdown(results, (1,))  # fmt: skip
     assert SparseResults([outcome(60, overlapping=False)]).summary()["4dof"]["by_common"] == []
-    assert SparseResults([outcome(9)]).summary()["4dof"]["by_common"] == [{"common": "<12", "pairs": 1, "localized": 1}]
+    assert SparseResults([outcome(9)]).summary()["4dof"]["by_common"] == [
+        {"common": "<12", "pairs": 1, "localized": 1, "search_ceiling": 1}]
 
 
 def test_a_ctrl_c_keeps_the_seeds_finished(monkeypatch):

@@ -199,7 +199,7 @@ class SparseResults:
                 "wrong_claims": sum(o.success and not o.correct for o in pos),
                 "worst_wrong_m": max((o.trans_err_m for o in pos if o.success and not o.correct), default=None),
                 "median_error_m": _median_or_none([o.trans_err_m for o in pos if o.success]),
-                "search_ceiling": sum((o.success and o.correct) or o.truth_margin_nats > 0 for o in pos),
+                "search_ceiling": sum(map(_within_ceiling, pos)),
                 "negatives": len(neg),
                 "negatives_accepted": sum(o.success for o in neg),
                 "median_ms": float(np.median(ms)) if ms.size else 0.0,
@@ -221,18 +221,24 @@ COMMON_BINS = (0, MIN_COMMON, 15, 20, 30)
 first holds only pairs drawn with fewer than ``MIN_COMMON`` shared objects, which the benchmark does not draw)."""
 
 
+def _within_ceiling(o: SparseOutcome) -> bool:
+    """An overlapping pair a perfect search would localize: localized, or its true alignment clears the threshold."""
+    return (o.success and o.correct) or o.truth_margin_nats > 0
+
+
 def _by_common(pos: list[SparseOutcome]) -> list[dict]:
-    """Overlapping pairs and those localized per bin of objects both maps hold (``COMMON_BINS``): where the
-    misses lie (a pair sharing a dozen objects carries less evidence than one sharing forty). Empty bins are left
-    out."""
+    """Overlapping pairs, those localized and the search ceiling (``_within_ceiling``) per bin of objects both maps
+    hold (``COMMON_BINS``): where the misses lie, and whether the evidence or the search loses them (a pair sharing
+    a dozen objects carries less evidence than one sharing forty). Empty bins are left out."""
     edges = (*COMMON_BINS, None)
     rows = []
     for lo, hi in pairwise(edges):
         inside = [o for o in pos if o.common >= lo and (hi is None or o.common < hi)]
         if inside:
             label = f"<{hi}" if lo == 0 else f"{lo}-{hi - 1}" if hi is not None else f"{lo}+"
-            rows.append({"common": label, "pairs": len(inside),
-                         "localized": sum(o.success and o.correct for o in inside)})  # fmt: skip
+            localized = sum(o.success and o.correct for o in inside)
+            rows.append({"common": label, "pairs": len(inside), "localized": localized,
+                         "search_ceiling": sum(map(_within_ceiling, inside))})  # fmt: skip
     return rows
 
 
@@ -475,10 +481,12 @@ def sparse_markdown(results: SparseResults, seeds: tuple[int, ...]) -> str:
               "overlapping pairs localized, or whose true alignment (refined as any hypothesis) clears the match's "
               "threshold: what a perfect search would localize with this evidence model; the pairs beyond it lack "
               "the evidence, not the search."]  # fmt: skip
-    bins = [f"{key} " + ", ".join(f"{r['common']}: {r['localized']} of {r['pairs']}" for r in s["by_common"])
+    bins = [f"{key} " + ", ".join(f"{r['common']}: {r['localized']} of {r['pairs']} ({r['search_ceiling']})"
+                                  for r in s["by_common"])
             for key, s in summary.items() if s["by_common"]]  # fmt: skip
     if bins:
-        lines += ["", "Localized by objects the two maps share (overlapping pairs): " + "; ".join(bins) + "."]
+        lines += ["", "Localized by objects the two maps share (overlapping pairs; the search ceiling in brackets): "
+                  + "; ".join(bins) + "."]
     lines += _claims_listed(results)
     return "\n".join(lines) + "\n"
 
