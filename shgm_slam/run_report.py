@@ -96,6 +96,10 @@ class RobotReport:
     # to (``odometry.depth_noise_rel``: measured on its first frames, ``scene_scale``, unless set in the config)
     depth_noise_rel: float | None = None
     voxel_size_m: float | None = None  # its KISS-ICP voxel (derived or set)
+    # the longest stretch of its placed path that rests on its own odometry: metres of path from a keyframe to the
+    # nearest one a factor ties to the shared frame (a closure's end; the prior for the first robot), the most over
+    # its placed segments (``MapServer.path_from_closures_m``); None when no segment is placed
+    path_from_closures_m: float | None = None
 
 
 @dataclass
@@ -212,6 +216,8 @@ def evaluate(
         if front.ground_scale_on:
             rep.depth_scale_share = len(front.depth_scales) / max(processed[r], 1)
             rep.depth_scale = float(np.median(front.depth_scales)) if front.depth_scales else None
+        free = [m for s in with_kf if (m := server.path_from_closures_m(s.agent)) is not None]
+        rep.path_from_closures_m = round(max(free), 1) if free else None
         drifts = [d for s in with_kf if (d := server.measured_drift(s.agent)) is not None]
         rep.measured_drift_deg_per_100m = float(np.degrees(max(drifts)) * 100.0) if drifts else None
         rep.segment_start_frames = [int(s.first_frame) for s in front.segments if s.first_frame >= 0]

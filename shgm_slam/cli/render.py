@@ -121,6 +121,10 @@ def render_summary(summary) -> None:
         console.print(f"fused ATE after one SE(3) fit of the {len(joint)} placed robots together (how well they agree, "
                       f"without the first robot's own drift), metres: {lit(', '.join(joint))}; "
                       f"{metres(summary.ate_joint_m)} over all")  # fmt: skip
+    free = [f"{r.name} {r.path_from_closures_m:.0f}" for r in summary.robots if r.path_from_closures_m is not None]
+    if free:
+        console.print("the longest stretch of each placed path on its own odometry (metres of path from the nearest "
+                      "keyframe a closure ties to the shared frame; drift grows there): " + lit(", ".join(free)))
     chosen: dict[tuple[str, str], list[str]] = {}
     for r in summary.robots:
         if r.odometry:

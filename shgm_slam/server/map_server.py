@@ -361,6 +361,16 @@ class MapServer:
         reach = self.object_range_m(robot)
         return loop_exclusion_m(reach, self.cfg.extraction.filled().max_depth_m)
 
+    def path_from_closures_m(self, agent: str) -> float | None:
+        """The longest stretch of placed ``agent``'s path that rests on its own odometry alone: the most metres of
+        path from one of its keyframes to the nearest keyframe a factor ties to the shared frame (an accepted
+        closure's end, or the prior of the shared frame's robot); None while it is not placed. Far from those
+        keyframes its fused poses carry its odometry's drift (what this reports, honestly, for a user to weigh)."""
+        if not self.is_placed(agent) or not self._path_m.get(agent):
+            return None
+        free = self._free_path_m(agent)
+        return float(free.max()) if free.size and np.isfinite(free).all() else None
+
     def _free_path_m(self, agent: str) -> np.ndarray:
         """(K,) metres from each keyframe of placed ``agent`` to its nearest keyframe tied by a closure."""
         return free_path_m(np.asarray(self._path_m[agent]), self._pose_graph.closure_keyframes(agent))

@@ -75,6 +75,11 @@ def robot_summary(server: MapServer | None, session: RobotSession, dropped: dict
         "measured_drift_deg_per_100m": {
             a: round(float(np.degrees(d)) * 100.0, 2) for a in mine if (d := server.measured_drift(a)) is not None
         },
+        # the longest stretch of each placed agent's path resting on its own odometry, metres
+        # (``MapServer.path_from_closures_m``)
+        "path_from_closures_m": {
+            a: round(m, 1) for a in mine if (m := server.path_from_closures_m(a)) is not None
+        },
         "keyframes": sum(server.received(a) for a in mine) if server else 0,
         "done": session.done is not None,
         "went_stale": session.went_stale,

@@ -213,3 +213,22 @@ def test_an_accepted_last_look_that_does_not_place_says_if_it_agreed_or_was_outv
     assert "agrees with its earlier matches but is not a second, independent piece" in server.last_looks()[0]
     server._matches = [gone if m is last else m for m in server._matches]
     assert server.last_looks()[0].endswith("was accepted, but outvoted")
+
+
+def test_the_longest_stretch_on_odometry_alone_is_measured_along_the_path(messages) -> None:
+    """``path_from_closures_m``: the most metres of a placed robot's keyframe path (its odometry) from the nearest
+    keyframe a factor ties to the shared frame, recomputed here from the keyframe poses; None while unplaced."""
+    unplaced = _server(messages, independent=False)
+    assert not unplaced.is_placed("car2")
+    assert unplaced.path_from_closures_m("car2") is None
+    server = _server(messages, independent=True, decisive=True)
+    for robot in ("car1", "car2"):
+        xyz = np.stack([m.T_odom_kf[:3, 3] for m in messages[robot]])
+        path_m = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xyz, axis=0), axis=1))])
+        tied = server._pose_graph.closure_keyframes(robot)
+        assert tied.size > 0
+        expected = np.abs(path_m[:, None] - path_m[tied][None, :]).min(axis=1).max()
+        got = server.path_from_closures_m(robot)
+        assert got is not None and 0.0 <= got <= path_m[-1]
+        assert got == pytest.approx(expected, abs=1e-6)
+    assert 0 in server._pose_graph.closure_keyframes("car1")  # the shared frame's prior ties car1's first keyframe
