@@ -230,6 +230,9 @@ def judge_run(
             outcome = Outcome.NOT_PLACED if overlaps else Outcome.RIGHT
         if 0 < frac < 0.999 and placed.sum() >= 3:
             notes.append(f"{frac:.0%} of frames placed")
+        free_m = rep.get("path_from_closures_m")
+        if outcome is Outcome.WRONG and free_m is not None:  # placed by closures, then off on its own odometry?
+            notes.append(f"{free_m:.0f} m of its path on its own odometry, away from its closures")
         provisional = bool(rep.get("provisional")) and placed.sum() >= 3
         if provisional:
             notes.append("provisional: the run flagged this place as unconfirmed")

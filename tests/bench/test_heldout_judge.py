@@ -93,6 +93,22 @@ def test_judge_places_right_wrong_and_not_placed(tiny_scenario, tmp_path):
     assert [x.outcome for x in rgb] == ["right", "right", "right"]
 
 
+
+def test_a_wrong_robot_says_how_far_its_path_ran_on_its_own_odometry(tiny_scenario, tmp_path):
+    """A robot judged wrong gets the run's ``path_from_closures_m`` as a note (placed right at its closures, it may
+    have drifted away from them); a right one, and a run that did not record it, get none."""
+    metrics = _fake_run(tiny_scenario, tmp_path, {"car1": 0.0, "car2": 30.0, "uav": 0.5})
+    for rep, free_m in zip(metrics["robots"], (12.0, 212.4, 40.0), strict=True):
+        rep["path_from_closures_m"] = free_m
+    v = judge_run(tmp_path, tiny_scenario, ["car1", "car2", "uav"], InputMode.FILES, "airsim-like", 0, metrics)
+    assert [x.outcome for x in v] == ["right", "wrong", "right"]
+    assert "212 m of its path on its own odometry, away from its closures" in v[1].notes
+    assert not any("own odometry" in n for x in (v[0], v[2]) for n in x.notes)
+    del metrics["robots"][1]["path_from_closures_m"]
+    v = judge_run(tmp_path, tiny_scenario, ["car1", "car2", "uav"], InputMode.FILES, "airsim-like", 0, metrics)
+    assert v[1].outcome == "wrong" and not any("own odometry" in n for n in v[1].notes)
+
+
 def test_a_false_merge_the_run_flagged_as_provisional_is_counted_and_marked(tiny_scenario, tmp_path):
     metrics = _fake_run(tiny_scenario, tmp_path, {"car1": 0.0, "car2": 300.0, "uav": 250.0})
     metrics["robots"][1]["provisional"] = True  # the run said car2's place was unconfirmed
