@@ -202,9 +202,9 @@ def replay_one(recorded: Path, mode: InputMode, run_dir: Path, robots: list[str]
 
 
 def _replace_placement_facts(metrics: dict, server: MapServer) -> None:
-    """The recorded run's placement facts in its ``metrics`` (each robot's ``provisional`` flag and its waiting
-    and provisional lines among its warnings, the ``last_looks``) replaced by what the replayed ``server``
-    decided: the judge reads them, and stale lines would describe the recorded back end."""
+    """The recorded run's placement facts in its ``metrics`` (each robot's ``provisional`` flag, its waiting
+    and provisional lines among its warnings, its ``path_from_closures_m``, the ``last_looks``) replaced by what the
+    replayed ``server`` decided: the judge reads them, and stale lines would describe the recorded back end."""
     metrics["last_looks"] = server.last_looks()
     for rep in metrics.get("robots", []):
         mine = [a for a in server.agents if agent_robot(a)[0] == rep.get("name")]
@@ -213,6 +213,8 @@ def _replace_placement_facts(metrics: dict, server: MapServer) -> None:
         lines = [w for w in rep.get("warnings", []) if not str(w).startswith(stale)]
         rep["warnings"] = lines + [note for a in mine if (note := server.placement_note(a)) is not None]
         rep["provisional"] = any(server.placement(a).provisional for a in mine)
+        free = [m for a in mine if (m := server.path_from_closures_m(a)) is not None]
+        rep["path_from_closures_m"] = round(max(free), 1) if free else None
 
 
 def _match_truth(run_dir: Path, world: Path, mode: InputMode) -> dict:

@@ -113,9 +113,9 @@ def test_a_world_that_cannot_be_built_is_skipped_and_reported_not_fatal(tmp_path
 
 def test_a_replay_reports_its_own_placements_not_the_recorded_ones(tiny_scenario: Path, tmp_path: Path) -> None:
     """``bench heldout --replay-from`` runs the map server again on a recorded run's keyframes: the robots'
-    provisional flags, waiting lines and last looks in its ``metrics.json`` are the replayed server's (the
-    judge reads the flag). Recorded trusting single matches (car2 provisional after 30 frames), replayed with
-    the default (two independent matches): car2 waits, and says so."""
+    provisional flags, waiting lines, stretches on their own odometry and last looks in its ``metrics.json`` are the
+    replayed server's (the judge reads the flag). Recorded trusting single matches (car2 provisional after 30
+    frames), replayed with the default (two independent matches): car2 waits, and says so."""
     from shgm_slam.bench.heldout import replay_one
     from shgm_slam.config import OdometryKind, ShgmConfig
     from shgm_slam.runner import open_robots, run_slam
@@ -127,12 +127,12 @@ def test_a_replay_reports_its_own_placements_not_the_recorded_ones(tiny_scenario
     robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}:0-30"])
     run_slam(robots, cfg, recorded, journal=True)
     before = {r["name"]: r for r in json.loads((recorded / "metrics.json").read_text())["robots"]}
-    assert before["car2"]["provisional"]
+    assert before["car2"]["provisional"] and before["car2"]["path_from_closures_m"] is not None
     assert any(w.startswith("car2 is placed provisionally") for w in before["car2"]["warnings"])
 
     metrics = replay_one(recorded, InputMode.FILES, tmp_path / "replayed", ["car1", "car2"])
     car2 = next(r for r in metrics["robots"] if r["name"] == "car2")
-    assert not car2["provisional"]
+    assert not car2["provisional"] and car2["path_from_closures_m"] is None  # no longer placed: nothing rests on it
     assert not any("provisionally" in w for w in car2["warnings"])
     waiting = [w for w in car2["warnings"] if w.startswith("car2 is not placed in the shared frame")]
     assert len(waiting) == 1 and "(here: matches that found the same objects" in waiting[0]
