@@ -216,8 +216,7 @@ def evaluate(
         if front.ground_scale_on:
             rep.depth_scale_share = len(front.depth_scales) / max(processed[r], 1)
             rep.depth_scale = float(np.median(front.depth_scales)) if front.depth_scales else None
-        free = [m for s in with_kf if (m := server.path_from_closures_m(s.agent)) is not None]
-        rep.path_from_closures_m = round(max(free), 1) if free else None
+        rep.path_from_closures_m = server.longest_path_from_closures_m([s.agent for s in with_kf])
         drifts = [d for s in with_kf if (d := server.measured_drift(s.agent)) is not None]
         rep.measured_drift_deg_per_100m = float(np.degrees(max(drifts)) * 100.0) if drifts else None
         rep.segment_start_frames = [int(s.first_frame) for s in front.segments if s.first_frame >= 0]

@@ -213,8 +213,7 @@ def _replace_placement_facts(metrics: dict, server: MapServer) -> None:
         lines = [w for w in rep.get("warnings", []) if not str(w).startswith(stale)]
         rep["warnings"] = lines + [note for a in mine if (note := server.placement_note(a)) is not None]
         rep["provisional"] = any(server.placement(a).provisional for a in mine)
-        free = [m for a in mine if (m := server.path_from_closures_m(a)) is not None]
-        rep["path_from_closures_m"] = round(max(free), 1) if free else None
+        rep["path_from_closures_m"] = server.longest_path_from_closures_m(mine)
 
 
 def _match_truth(run_dir: Path, world: Path, mode: InputMode) -> dict:

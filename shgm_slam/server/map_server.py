@@ -371,6 +371,12 @@ class MapServer:
         free = self._free_path_m(agent)
         return float(free.max()) if free.size and np.isfinite(free).all() else None
 
+    def longest_path_from_closures_m(self, agents: list[str]) -> float | None:
+        """``path_from_closures_m``, the most over ``agents`` (a robot's trajectory segments), to 0.1 m; None when
+        none of them is placed."""
+        free = [m for a in agents if (m := self.path_from_closures_m(a)) is not None]
+        return round(max(free), 1) if free else None
+
     def _free_path_m(self, agent: str) -> np.ndarray:
         """(K,) metres from each keyframe of placed ``agent`` to its nearest keyframe tied by a closure."""
         return free_path_m(np.asarray(self._path_m[agent]), self._pose_graph.closure_keyframes(agent))

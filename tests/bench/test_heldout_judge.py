@@ -93,7 +93,6 @@ def test_judge_places_right_wrong_and_not_placed(tiny_scenario, tmp_path):
     assert [x.outcome for x in rgb] == ["right", "right", "right"]
 
 
-
 def test_a_wrong_robot_says_how_far_its_path_ran_on_its_own_odometry(tiny_scenario, tmp_path):
     """A robot judged wrong gets the run's ``path_from_closures_m`` as a note (placed right at its closures, it may
     have drifted away from them); a right one, and a run that did not record it, get none."""
