@@ -8,6 +8,7 @@ Cityscapes train ids (uint8, 255 = ignore).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -18,6 +19,13 @@ Poses = np.ndarray
 """(N, 4, 4) float64 stack of rigid transforms."""
 PointsXYZ = np.ndarray
 """(N, 3) float64/float32 points, frame given by the variable name."""
+
+
+class DepthOrigin(str, Enum):
+    """Where a sequence's depth comes from: it decides the odometry and whether the depth is rescaled."""
+
+    MEASURED = "measured"  # a sensor or a renderer: KISS-ICP on it, never rescaled
+    PREDICTED = "predicted"  # a network: visual odometry by default, scaled to the camera height above the road
 
 
 @dataclass(frozen=True)

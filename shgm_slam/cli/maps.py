@@ -181,25 +181,22 @@ def match(
 ) -> None:
     """Match two semantic graphs: T_a_b (B -> A), the inlier node pairs and the stage timings."""
 
+    from shgm_slam import api
     from shgm_slam.config import load_config
-    from shgm_slam.io.graph_json import read_graph
-    from shgm_slam.matching import match_graphs
-    from shgm_slam.matching.gravity import choose_dof
 
     cfg = load_config(config)
-    descriptor_cfg = cfg.descriptor.model_copy(update={"kind": descriptor}) if descriptor else cfg.descriptor
-    matching_cfg = cfg.matching.model_copy(update={"outlier_mode": mode}) if mode else cfg.matching
-    a = read_graph(graph_a, connectivity_m=cfg.graph.connectivity_m)
-    b = read_graph(graph_b, connectivity_m=cfg.graph.connectivity_m)
-    matching_cfg, dof_note = choose_dof(dof, a.positions_xyz, b.positions_xyz, matching_cfg)
-    result = match_graphs(a, b, descriptor_cfg, matching_cfg)
+    if descriptor:
+        cfg.descriptor = cfg.descriptor.model_copy(update={"kind": descriptor})
+    if mode:
+        cfg.matching = cfg.matching.model_copy(update={"outlier_mode": mode})
+    found = api.match(graph_a, graph_b, config=cfg, dof=dof)
+    result = found.result
     if json_output:
-        dof_fields = {"dof": 4 if matching_cfg.gravity_aligned else 6, "dof_note": dof_note}
-        if matching_cfg.gravity_aligned:
-            dof_fields["up_axis"] = list(matching_cfg.up_axis)
-        decisive = {"decisive": result.is_decisive(cfg.backend.min_closures_to_anchor)}
-        typer.echo(to_json_text({**result.to_json_dict(), **dof_fields, **decisive}, indent=None))
+        dof_fields = {"dof": 4 if found.gravity_aligned else 6, "dof_note": found.dof_note}
+        if found.gravity_aligned:
+            dof_fields["up_axis"] = list(found.up_axis)
+        typer.echo(to_json_text({**result.to_json_dict(), **dof_fields, "decisive": found.decisive}, indent=None))
         return
-    render_match(result, len(a), len(b), descriptor_cfg.kind, matching_cfg.outlier_mode, dof_note,
-                 matching_cfg.false_alarm_rate, cfg.backend.min_closures_to_anchor)
+    render_match(result, *found.nodes, cfg.descriptor.kind, cfg.matching.outlier_mode, found.dof_note,
+                 cfg.matching.false_alarm_rate, cfg.backend.min_closures_to_anchor)
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated
 
@@ -18,20 +20,28 @@ from shgm_slam.interrupts import INTERRUPTED_EXIT_CODE
 from shgm_slam.io.json_text import to_json_text
 
 
-def _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame: bool, fronts=None, jobs: int | None = None):
-    """``runner.run_slam`` over the opened robots with a progress bar of frames (all robots together) and ETA;
-    returns its summary."""
+@contextlib.contextmanager
+def _frame_progress(total: int) -> Iterator[Callable[[int, int], None]]:
+    """A progress callback for ``api.run``: a bar of frames (all robots together) with ETA, shown from the first
+    frame on (the checks before the run log without it) and gone when the block ends."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
-    from shgm_slam.robot.remote import default_jobs
-    from shgm_slam.runner import run_slam
+    bar = Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
+                   TimeRemainingColumn(), console=console, transient=True)  # fmt: skip
+    task = None
 
-    with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
-                  TimeRemainingColumn(), console=console, transient=True) as bar:
-        task = bar.add_task("frames", total=sum(len(s) for s in robots.values()))
-        return run_slam(robots, cfg, out_dir, viz=viz, gt_shared_frame=gt_shared_frame, fronts=fronts,
-                        progress=lambda done, total: bar.update(task, completed=done),
-                        jobs=default_jobs(len(robots), jobs))
+    def update(done: int, _total: int) -> None:
+        nonlocal task
+        if task is None:
+            bar.start()
+            task = bar.add_task("frames", total=total)
+        bar.update(task, completed=done)
+
+    try:
+        yield update
+    finally:
+        if task is not None:
+            bar.stop()
 
 
 @app.command("run")
@@ -102,10 +112,11 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
     """Open the robots, check every input that can refuse the run (``--rerun``, config, models, first frames)
     before ``--out`` is claimed (locked, ``--overwrite`` to reuse one with results), then run with SIGTERM/SIGHUP
     stopping it as Ctrl-C does; returns the run's summary."""
+    from shgm_slam import api
     from shgm_slam.errors import ConfigError
-    from shgm_slam.io.export import claimed_results_dir
-    from shgm_slam.runner import check_out_outside_sequences, open_robots, prepare_frontends
-    from shgm_slam.viz.rerun_logger import DEFAULT_CONNECT_URL, RerunMode, make_viz, viewer_address
+    from shgm_slam.robot.remote import default_jobs
+    from shgm_slam.runner import check_out_outside_sequences, open_robots
+    from shgm_slam.viz.rerun_logger import RerunMode
 
     robots = open_robots(robot_args)
     if out is not None:
@@ -114,16 +125,11 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
         mode = RerunMode(rerun_mode)
     except ValueError:
         raise ConfigError(f"--rerun {rerun_mode!r}: choose spawn, save, connect or off") from None
-    if mode is RerunMode.CONNECT:
-        viewer_address(rerun_url or DEFAULT_CONNECT_URL)  # a malformed URL is refused before any work
-    # everything that can refuse the run (config, models, first frames) before --out gets a file: a refused
-    # run must not leave files that make the next run with the same --out ask for --overwrite
-    fronts = prepare_frontends(robots, cfg)
-    with claimed_results_dir(out, overwrite=overwrite) as out_dir:  # locked: a second run on it is refused
-        viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=rerun_url,
-                       max_cloud_points=8000)
-        with stop_signals_as_interrupt():
-            return _run_with_progress(robots, cfg, out_dir, viz, gt_shared_frame, fronts, jobs)
+    # api.run checks everything that can refuse the run (config, models, first frames) before --out gets a
+    # file: a refused run must not leave files that make the next run with the same --out ask for --overwrite
+    with stop_signals_as_interrupt(), _frame_progress(sum(len(s) for s in robots.values())) as progress:
+        return api.run(robots, out, config=cfg, viewer=mode, viewer_url=rerun_url, gt_shared_frame=gt_shared_frame,
+                       overwrite=overwrite, jobs=default_jobs(len(robots), jobs), progress=progress)  # fmt: skip
 
 
 @app.command("server")

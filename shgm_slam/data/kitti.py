@@ -172,21 +172,33 @@ def read_times(path: Path) -> np.ndarray:
         raise DataError(f"{path} must hold one number per line: {e}") from e
     if times.ndim != 1:
         raise DataError(f"{path} must hold one number per line (got {times.shape[1]} columns)")
+    return check_times(times, str(path), "line")
+
+
+def check_times(times: np.ndarray, where: str, row: str = "frame") -> np.ndarray:
+    """(N,) float64 timestamps in seconds, checked: finite, strictly increasing, frames between
+    ``MIN_FRAME_INTERVAL_S`` and ``MAX_FRAME_INTERVAL_S`` apart (median). DataError otherwise, naming ``where``
+    and the offending ``row`` ("line" numbers count from 1, "frame" indices from 0)."""
+    times = np.asarray(times, dtype=np.float64)
+    first = 1 if row == "line" else 0
+    if times.ndim != 1:
+        raise DataError(f"{where}: timestamps must be one number per frame, not an array of shape {times.shape}")
     if not np.isfinite(times).all():
         k = int(np.flatnonzero(~np.isfinite(times))[0])
-        raise DataError(f"{path}: line {k + 1} holds {times[k]:g}; every line needs a finite timestamp in seconds")
+        raise DataError(f"{where}: {row} {k + first} holds {times[k]:g}; every {row} needs a finite timestamp in "
+                        "seconds")  # fmt: skip
     steps = np.diff(times)
     if (steps <= 0).any():
         k = int(np.flatnonzero(steps <= 0)[0])
         raise DataError(
-            f"{path}: timestamps must increase, but line {k + 2} ({times[k + 1]:g} s) is not after line {k + 1} "
-            f"({times[k]:g} s); fix the file (frames out of order or duplicated?)"
+            f"{where}: timestamps must increase, but {row} {k + 1 + first} ({times[k + 1]:g} s) is not after "
+            f"{row} {k + first} ({times[k]:g} s); frames out of order or duplicated?"
         )
     if steps.size:
         step = float(np.median(steps))
         if not MIN_FRAME_INTERVAL_S <= step <= MAX_FRAME_INTERVAL_S:
             raise DataError(
-                f"{path}: frames are {step:.3g} s apart (median), {1.0 / step:.3g} frames per second; timestamps "
+                f"{where}: frames are {step:.3g} s apart (median), {1.0 / step:.3g} frames per second; timestamps "
                 "must be in seconds (in milliseconds, microseconds or nanoseconds? divide by 1e3, 1e6 or 1e9)"
             )
     return times

@@ -52,6 +52,7 @@ from shgm_slam.perception.card import card_to_yaml
 from shgm_slam.perception.depth import DepthModel
 from shgm_slam.perception.onnx_model import OnnxModel
 from shgm_slam.perception.segmentation import SegmentationModel
+from shgm_slam.types import DepthOrigin
 
 MANIFEST = PERCEIVE_MANIFEST
 MANIFEST_FORMAT = "shgm-perceive/1"
@@ -116,7 +117,9 @@ def depth_model_of(sequence: object) -> dict | None:
 
     ``sequence`` is any reader with a ``root`` folder, or a view with a ``base`` one; a folder without
     ``perceive.json``, or one whose manifest names no depth model (labels only), gives None. A manifest
-    that cannot be read gives None too, with a warning: the depth is then treated as measured.
+    that cannot be read gives None too, with a warning: the depth is then treated as measured. A sequence
+    that says where its depth comes from (``depth_origin``, ``data.memory.ArraySequence``) is taken at its
+    word: predicted depth gives ``{"path": "predicted depth of <name>"}``, measured depth None.
 
     Returns:
         The manifest's model identity: ``path``, ``sha256``, ``card_sha256`` and (manifests written since
@@ -124,6 +127,10 @@ def depth_model_of(sequence: object) -> dict | None:
     """
     while getattr(sequence, "root", None) is None and getattr(sequence, "base", None) is not None:
         sequence = sequence.base  # type: ignore[attr-defined]
+    origin = getattr(sequence, "depth_origin", None)
+    if origin is not None:
+        predicted = DepthOrigin(origin) is DepthOrigin.PREDICTED
+        return {"path": f"predicted depth of {getattr(sequence, 'name', 'the sequence')}"} if predicted else None
     root = getattr(sequence, "root", None)
     if root is None or not (Path(root) / MANIFEST).is_file():
         return None

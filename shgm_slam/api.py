@@ -1,0 +1,242 @@
+"""shgm_slam from Python: the command line's jobs as functions, on sequence folders or on frames you hold.
+
+``run`` is ``shgm-slam run`` (robots in, a results folder and its ``RunSummary`` out), ``match`` is
+``shgm-slam match`` (two semantic graphs, gravity-aligned when both lie flat), ``read_fused`` reads a robot's
+fused trajectory back from a results folder and ``evaluate`` is ``shgm-slam eval``. Robots are any
+``types.Sequence``: a folder opened with ``open_sequence("path[:start-end]")``, or frames in memory
+(``data.memory.ArraySequence``). Errors are ``errors.ShgmError`` subclasses with a message that says what to
+fix (``ConfigError``, ``DataError``, ``ModelError``, ...); nothing here prints or exits.
+
+The command line calls these same functions, so a script gets the results ``shgm-slam`` would give.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from shgm_slam.config import Dof, ShgmConfig, load_config
+from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.types import GraphArrays, Sequence
+
+if TYPE_CHECKING:  # the viewer, the pose graph and the models load only when a run needs them
+    from shgm_slam.evaluation import EvaluationResult
+    from shgm_slam.matching.result import MatchResult
+    from shgm_slam.run_report import RunSummary
+    from shgm_slam.viz.rerun_logger import RerunMode
+
+
+@dataclass(frozen=True)
+class GraphMatch:
+    """What ``match`` found, and how it matched.
+
+    Attributes:
+        result: the matcher's result (``T_a_b`` maps B's frame into A's; None when not accepted, with ``reason``).
+        gravity_aligned: matched as yaw + translation about ``up_axis`` (4-DoF), else with any rotation (6-DoF).
+        up_axis: (3,) the vertical the match (and its chance model) used, in both graphs' frames.
+        dof_note: why that freedom was chosen (``matching.gravity.choose_dof``).
+        decisive: accepted, and alone as far beyond chance as the independent matches the running system needs
+            to place a robot (``backend.min_closures_to_anchor``).
+        nodes: the two graphs' node counts (A, B).
+    """
+
+    result: MatchResult
+    gravity_aligned: bool
+    up_axis: tuple[float, float, float]
+    dof_note: str
+    decisive: bool
+    nodes: tuple[int, int]
+
+
+@dataclass(frozen=True)
+class FusedTrajectory:
+    """A robot's trajectory in the shared frame (the first robot's first camera frame), as ``run`` wrote it.
+
+    Attributes:
+        robot: the robot's name.
+        timestamps_s: (N,) seconds of its placed frames.
+        T_shared_cam: (N, 4, 4) camera -> shared frame poses (KITTI camera axes: x right, y down, z forward).
+        provisional: its place rests on one piece of evidence that no independent match confirmed yet.
+    """
+
+    robot: str
+    timestamps_s: np.ndarray
+    T_shared_cam: np.ndarray
+    provisional: bool
+
+
+def config_of(config: ShgmConfig | Path | str | None) -> ShgmConfig:
+    """``config`` as an ``ShgmConfig``: itself, loaded from a YAML file, or the defaults (None).
+
+    Raises:
+        ConfigError: a file that is missing or holds unknown or invalid fields; another type.
+    """
+    if isinstance(config, ShgmConfig):
+        return config
+    if config is None or isinstance(config, str | Path):
+        return load_config(config)
+    raise ConfigError(f"config must be an ShgmConfig, a YAML file's path or None, not {type(config).__name__}")
+
+
+def checked_robots(robots: Mapping[str, Sequence]) -> dict[str, Sequence]:
+    """``robots`` as a dict, checked: at least one, valid names, each a non-empty ``types.Sequence``.
+
+    Raises:
+        ConfigError: no robots, or an invalid name.
+        DataError: a value that is not a sequence, or has no frames.
+    """
+    from shgm_slam.transport.keys import validate_robot_name
+
+    if not isinstance(robots, Mapping) or not robots:
+        raise ConfigError("no robots given: pass {name: sequence}, e.g. {'car1': open_sequence('data/car1')}")
+    for name, sequence in robots.items():
+        validate_robot_name(name)
+        if not isinstance(sequence, Sequence):
+            raise DataError(
+                f"robot {name!r}: {type(sequence).__name__} is not a sequence; open a folder with open_sequence() or "
+                "hold frames in an ArraySequence"
+            )
+        if len(sequence) == 0:
+            raise DataError(f"robot {name!r}: sequence {sequence.name} has zero frames")
+    return dict(robots)
+
+
+def run(
+    robots: Mapping[str, Sequence],
+    out: Path | str | None = None,
+    *,
+    config: ShgmConfig | Path | str | None = None,
+    viewer: RerunMode | None = None,
+    viewer_url: str | None = None,
+    gt_shared_frame: bool = True,
+    overwrite: bool = False,
+    jobs: int = 1,
+    progress: Callable[[int, int], None] | None = None,
+) -> RunSummary:
+    """Run the multi-robot system (``shgm-slam run``) and write the results folder.
+
+    Everything that can refuse the run (names, configuration, models, the first frames) is checked before
+    ``out`` is created; ``out`` is then locked for the run (a second run on it is refused) and refused when it
+    holds an earlier run's results unless ``overwrite``.
+
+    Args:
+        robots: robot name -> sequence, in order (the first robot's first camera frame is the shared frame).
+        out: results folder (created); None: ``results/<YYYYmmdd_HHMMSS>`` and ``results/latest``.
+        config: an ``ShgmConfig``, a YAML file, or None for the defaults.
+        viewer: where the Rerun recording goes (``viz.RerunMode``): None or ``OFF`` nowhere, ``SAVE``
+            ``out/run.rrd``, ``SPAWN`` a new viewer, ``CONNECT`` a running one at ``viewer_url`` (default: on
+            this machine).
+        viewer_url: the viewer's gRPC URL for ``"connect"``.
+        gt_shared_frame: the sequences' ground truths share one world frame (frame ranges of one sequence, the
+            simulator's robots): fused ATE is then measured in the shared frame.
+        overwrite: reuse an ``out`` that holds an earlier run's results (they are removed first).
+        jobs: worker processes for the robots' front ends (1: all in this process; a script that uses more needs
+            the ``if __name__ == "__main__":`` guard: workers are spawned).
+        progress: called with (frames done, frames total) after every frame, or None.
+
+    Returns:
+        The run's ``run_report.RunSummary`` (per-robot reports, matches, timings, ``out_dir``).
+
+    Raises:
+        ConfigError, DataError, ModelError: what refuses the run (the message says what to fix).
+        KeyboardInterrupt: stopped; ``out`` then holds every result up to the stop (``summary.interrupted`` is
+            set instead when the stop came between frames).
+    """
+    from shgm_slam.io.export import claimed_results_dir
+    from shgm_slam.runner import prepare_frontends, run_slam
+    from shgm_slam.viz.rerun_logger import DEFAULT_CONNECT_URL, RerunMode, make_viz, viewer_address
+
+    robots = checked_robots(robots)
+    cfg = config_of(config)
+    if not (isinstance(jobs, int) and jobs >= 1):
+        raise ConfigError(f"jobs {jobs!r}: give a whole number of worker processes, at least 1")
+    try:
+        mode = RerunMode.OFF if viewer is None else RerunMode(viewer)
+    except ValueError:
+        raise ConfigError(f"viewer {viewer!r}: choose one of {', '.join(m.value for m in RerunMode)}") from None
+    if mode is RerunMode.CONNECT:
+        viewer_address(viewer_url or DEFAULT_CONNECT_URL)  # a malformed URL is refused before any work
+    fronts = prepare_frontends(robots, cfg)
+    with claimed_results_dir(None if out is None else Path(out), overwrite=overwrite) as out_dir:
+        viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=viewer_url,
+                       max_cloud_points=8000)  # fmt: skip
+        return run_slam(robots, cfg, out_dir, viz=viz, progress=progress, gt_shared_frame=gt_shared_frame,
+                        fronts=fronts, jobs=jobs)  # fmt: skip
+
+
+def match(
+    graph_a: GraphArrays | Path | str,
+    graph_b: GraphArrays | Path | str,
+    *,
+    config: ShgmConfig | Path | str | None = None,
+    dof: Dof = Dof.AUTO,
+) -> GraphMatch:
+    """Localize graph B in graph A (``shgm-slam match``): ``T_a_b`` maps B's coordinates into A's frame.
+
+    Args:
+        graph_a, graph_b: ``GraphArrays`` or ``shgm-graph/1`` JSON files (``io.graph_json``).
+        config: an ``ShgmConfig`` (its descriptor, matching and graph stages), a YAML file, or None.
+        dof: ``Dof.AUTO`` matches gravity-aligned about the vertical both graphs lie flat along (maps, ground
+            robots), else as the configuration says; ``Dof.FOUR`` / ``Dof.SIX`` force it.
+
+    Raises:
+        DataError: an unreadable or malformed graph file. ConfigError: a bad configuration.
+    """
+    from shgm_slam.io.graph_json import read_graph
+    from shgm_slam.matching import match_graphs
+    from shgm_slam.matching.gravity import choose_dof
+
+    cfg = config_of(config)
+    a, b = (g if isinstance(g, GraphArrays) else read_graph(g, connectivity_m=cfg.graph.connectivity_m)
+            for g in (graph_a, graph_b))  # fmt: skip
+    matching_cfg, dof_note = choose_dof(Dof(dof), a.positions_xyz, b.positions_xyz, cfg.matching)
+    result = match_graphs(a, b, cfg.descriptor, matching_cfg)
+    return GraphMatch(result, bool(matching_cfg.gravity_aligned), tuple(matching_cfg.up_axis), dof_note,
+                      result.is_decisive(cfg.backend.min_closures_to_anchor), (len(a), len(b)))  # fmt: skip
+
+
+def read_fused(results_dir: Path | str, robot: str) -> FusedTrajectory | None:
+    """The fused trajectory ``run`` wrote for ``robot`` (``<robot>_fused_tum.txt``); None when it was not placed.
+
+    Raises:
+        DataError: ``results_dir`` is not a results folder, ``robot`` was not in its run, or the file was edited
+            after the run (its row count is not the one the run recorded).
+    """
+    from shgm_slam.evaluation import check_fused_rows, is_provisional, run_robot_order
+    from shgm_slam.io.trajectories import read_tum
+
+    root = Path(results_dir)
+    if not root.is_dir():
+        raise DataError(f"results folder {root} does not exist; point at the folder run() wrote")
+    names = run_robot_order(root)
+    if robot not in names:
+        raise DataError(f"{root} holds no robot {robot!r}; its run had {', '.join(names)}")
+    path = root / f"{robot}_fused_tum.txt"
+    if not path.is_file():
+        check_fused_rows(root, robot, 0)  # the run wrote one that is gone: an error, not "not placed"
+        return None
+    times, poses = read_tum(path)
+    check_fused_rows(root, robot, len(times))
+    return FusedTrajectory(robot, times, poses, is_provisional(path))
+
+
+def evaluate(
+    results_dir: Path | str, sequences: Mapping[str, Sequence] | None = None, *, gt_shared_frame: bool = True
+) -> EvaluationResult:
+    """Fused ATE of every robot of a results folder against ground truth (``shgm-slam eval``): in the shared
+    frame, per robot aligned, and all robots under one joint fit (``evaluation.evaluate_results``).
+
+    Args:
+        results_dir: the folder ``run`` wrote.
+        sequences: robot -> the sequence it ran on, for its ground truth; None: the ``<robot>_gt_tum.txt`` files
+            the run wrote.
+        gt_shared_frame: the sequences' ground truths share one world frame.
+    """
+    from shgm_slam.evaluation import evaluate_results
+
+    given = None if sequences is None else dict(sequences)
+    return evaluate_results(Path(results_dir), given, gt_shared_frame=gt_shared_frame)

@@ -1,0 +1,194 @@
+"""A sequence held in memory: your own frames (a camera driver, a ROS bag you decoded, a dataset with
+another layout) run through the same pipeline as a sequence folder.
+
+``ArraySequence`` takes the images and, optionally, depth, labels and ground-truth poses as arrays of N
+frames, or as any indexable of N arrays (a list, or an object with ``__len__`` and ``__getitem__`` that loads
+frame ``i`` when asked: nothing is read before the pipeline asks for it). It checks what it can at once
+(counts, timestamps, intrinsics, poses) and each frame when it is read (shape, dtype, image size), with
+errors that name the frame. Depth that is not finite or not positive becomes 0 (invalid), as in depth
+files. ``depth_origin`` says whether a sensor measured the depth (KISS-ICP odometry, never rescaled) or a
+network predicted it (as for a ``perceive`` folder: visual odometry, scaled to the camera height).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Protocol
+
+import numpy as np
+
+from shgm_slam.data.kitti import check_times
+from shgm_slam.errors import DataError
+from shgm_slam.types import DepthOrigin, Frame, Intrinsics
+
+POSE_TOLERANCE = 1e-2
+"""Largest max |RᵀR - I| of a ground-truth pose's rotation (and |last row - [0, 0, 0, 1]|)."""
+
+
+class FrameArrays(Protocol):
+    """N arrays, one per frame: a stacked (N, ...) array, a list, or a lazy loader."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, index: int) -> np.ndarray: ...
+
+
+class ArraySequence:
+    """A ``types.Sequence`` over frames held in memory (module docstring).
+
+    Args:
+        images_rgb: N images, each (H, W, 3) uint8 RGB or (H, W) uint8 grey (replicated to 3 channels).
+        intrinsics: the camera's pinhole intrinsics; ``width`` x ``height`` is every image's size.
+        timestamps_s: (N,) seconds, strictly increasing (frames 1 ms to 30 s apart, median).
+        depth_m: N (H, W) float depth maps in metres (0 or non-finite: invalid), or None.
+        label_ids: N (H, W) integer maps of Cityscapes train ids (0-18, 255 = ignore), or None.
+        T_world_cam: (N, 4, 4) ground-truth poses (camera -> world, KITTI camera axes), or None.
+        depth_origin: whether ``depth_m`` was measured or predicted by a network.
+        name: the sequence's name in logs and messages.
+
+    Raises:
+        DataError: counts that differ, bad timestamps, intrinsics or poses.
+    """
+
+    def __init__(
+        self,
+        images_rgb: FrameArrays,
+        intrinsics: Intrinsics,
+        timestamps_s: np.ndarray,
+        *,
+        depth_m: FrameArrays | None = None,
+        label_ids: FrameArrays | None = None,
+        T_world_cam: np.ndarray | None = None,
+        depth_origin: DepthOrigin = DepthOrigin.MEASURED,
+        name: str = "memory",
+    ) -> None:
+        self.name = name
+        self.intrinsics = _checked_intrinsics(intrinsics, name)
+        self.depth_origin = DepthOrigin(depth_origin)
+        n = len(images_rgb)
+        if n == 0:
+            raise DataError(f"sequence {name!r} has no images; give at least one frame")
+        for what, arrays in (("depth_m", depth_m), ("label_ids", label_ids)):
+            if arrays is not None and len(arrays) != n:
+                raise DataError(f"sequence {name!r}: {len(arrays)} {what} maps for {n} images; give one per image")
+        times = np.asarray(timestamps_s, dtype=np.float64)
+        if times.shape != (n,):
+            raise DataError(f"sequence {name!r}: timestamps_s has shape {times.shape} for {n} images; give (N,) "
+                            "seconds")  # fmt: skip
+        self._times = check_times(times, f"sequence {name!r}").copy()
+        self._times.flags.writeable = False
+        self._gt = None if T_world_cam is None else _checked_poses(T_world_cam, n, name)
+        self._images, self._depth, self._labels = images_rgb, depth_m, label_ids
+
+    def __setstate__(self, state: dict) -> None:
+        """Unpickled (a worker process of ``run --jobs``): the timestamps and poses read-only again."""
+        self.__dict__.update(state)
+        for array in (self._times, self._gt):
+            if array is not None:
+                array.flags.writeable = False
+
+    def __len__(self) -> int:
+        return int(self._times.shape[0])
+
+    def __iter__(self) -> Iterator[Frame]:
+        return (self[i] for i in range(len(self)))
+
+    def __getitem__(self, index: int) -> Frame:
+        """Frame ``index`` (negative indices count from the end), checked."""
+        n = len(self)
+        if not -n <= index < n:
+            raise IndexError(f"frame {index} out of range for {self.name} with {n} frames")
+        i = index % n
+        where = f"sequence {self.name!r} frame {i}"
+        return Frame(
+            index=i,
+            timestamp_s=float(self._times[i]),
+            intrinsics=self.intrinsics,
+            image_rgb=self._image(i, where),
+            depth_m=None if self._depth is None else self._depth_map(i, where),
+            label_ids=None if self._labels is None else self._label_map(i, where),
+            T_world_cam=None if self._gt is None else self._gt[i].copy(),
+            source_index=i,
+        )
+
+    @property
+    def timestamps_s(self) -> np.ndarray:
+        """(N,) seconds, read-only."""
+        return self._times
+
+    @property
+    def gt_poses(self) -> np.ndarray | None:
+        """(N, 4, 4) ground-truth ``T_world_cam`` (read-only), or None."""
+        return self._gt
+
+    @property
+    def has_depth(self) -> bool:
+        return self._depth is not None
+
+    @property
+    def has_labels(self) -> bool:
+        return self._labels is not None
+
+    def _map(self, arrays: FrameArrays, i: int, where: str, what: str) -> np.ndarray:
+        """Frame ``i`` of ``arrays`` as an array on the image grid (the first two axes)."""
+        array = np.asarray(arrays[i])
+        size = (self.intrinsics.height, self.intrinsics.width)
+        if array.ndim < 2 or array.shape[:2] != size:
+            raise DataError(
+                f"{where}: {what} has shape {array.shape}; expected {size[0]} x {size[1]} (the intrinsics' "
+                "height x width)"
+            )
+        return array
+
+    def _image(self, i: int, where: str) -> np.ndarray:
+        image = self._map(self._images, i, where, "the image")
+        if image.dtype != np.uint8 or not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3)):
+            raise DataError(f"{where}: the image is {image.dtype} {image.shape}; give (H, W, 3) uint8 RGB or (H, W) "
+                            "uint8 grey")  # fmt: skip
+        return np.repeat(image[:, :, None], 3, axis=2) if image.ndim == 2 else np.ascontiguousarray(image)
+
+    def _depth_map(self, i: int, where: str) -> np.ndarray:
+        depth = self._map(self._depth, i, where, "depth_m")
+        if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.floating):
+            raise DataError(f"{where}: depth_m is {depth.dtype} {depth.shape}; give (H, W) float metres")
+        depth = depth.astype(np.float32, copy=True)
+        depth[~(np.isfinite(depth) & (depth > 0))] = 0.0
+        return depth
+
+    def _label_map(self, i: int, where: str) -> np.ndarray:
+        labels = self._map(self._labels, i, where, "label_ids")
+        if labels.ndim != 2 or not np.issubdtype(labels.dtype, np.integer):
+            raise DataError(f"{where}: label_ids is {labels.dtype} {labels.shape}; give (H, W) integer train ids")
+        if labels.size and (labels.min() < 0 or labels.max() > 255):
+            raise DataError(f"{where}: label_ids hold values outside 0-255; give Cityscapes train ids (0-18, "
+                            "255 = ignore)")  # fmt: skip
+        return labels.astype(np.uint8)
+
+
+def _checked_intrinsics(intrinsics: Intrinsics, name: str) -> Intrinsics:
+    if not isinstance(intrinsics, Intrinsics):
+        raise DataError(f"sequence {name!r}: intrinsics must be an Intrinsics, not {type(intrinsics).__name__}")
+    focal = np.array([intrinsics.fx, intrinsics.fy], dtype=np.float64)
+    if not (np.isfinite(focal).all() and (focal > 0).all() and intrinsics.width > 0 and intrinsics.height > 0):
+        raise DataError(f"sequence {name!r}: intrinsics {intrinsics} need positive focal lengths and image size")
+    return intrinsics
+
+
+def _checked_poses(T_world_cam: np.ndarray, n: int, name: str) -> np.ndarray:
+    poses = np.asarray(T_world_cam, dtype=np.float64)
+    if poses.shape != (n, 4, 4):
+        raise DataError(f"sequence {name!r}: T_world_cam has shape {poses.shape}; give ({n}, 4, 4), one per image")
+    if not np.isfinite(poses).all():
+        k = int(np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)))[0])
+        raise DataError(f"sequence {name!r}: T_world_cam of frame {k} is not finite")
+    R = poses[:, :3, :3]
+    err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+    row = np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
+    bad = (err > POSE_TOLERANCE) | (np.linalg.det(R) <= 0.0) | (row > POSE_TOLERANCE)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise DataError(f"sequence {name!r}: T_world_cam of frame {k} is not a rigid transform (a rotation and a "
+                        "translation over the row 0 0 0 1)")  # fmt: skip
+    poses = poses.copy()
+    poses.flags.writeable = False
+    return poses

@@ -1,0 +1,157 @@
+"""Sequences held in memory (``data.memory.ArraySequence``): the same frames as a folder, checked."""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shgm_slam.data import SequenceWriter, open_sequence
+from shgm_slam.data.memory import ArraySequence
+from shgm_slam.errors import DataError
+from shgm_slam.perception.perceive import depth_model_of
+from shgm_slam.types import DepthOrigin, Intrinsics, Sequence
+from tests.data.conftest import INTRINSICS, make_frames
+
+
+def memory_of(frames, **kwargs) -> ArraySequence:
+    """An ArraySequence of ``make_frames`` frames (stacked arrays)."""
+    return ArraySequence(
+        np.stack([f.image_rgb for f in frames]),
+        INTRINSICS,
+        np.array([f.timestamp_s for f in frames]),
+        depth_m=np.stack([f.depth_m for f in frames]),
+        label_ids=np.stack([f.label_ids for f in frames]),
+        T_world_cam=np.stack([f.T_world_cam for f in frames]),
+        **kwargs,
+    )
+
+
+def test_frames_in_memory_are_the_frames_a_folder_gives(tmp_path: Path) -> None:
+    frames = make_frames(6)
+    with SequenceWriter(tmp_path / "seq", INTRINSICS) as writer:
+        for f in frames:
+            writer.write(f)
+    folder = open_sequence(tmp_path / "seq")
+    loaded = [folder[i] for i in range(len(folder))]  # depth rounded to 1/256 m by the PNGs, as the run reads it
+    memory = ArraySequence(
+        [f.image_rgb for f in loaded], folder.intrinsics, folder.timestamps_s,
+        depth_m=[f.depth_m for f in loaded], label_ids=[f.label_ids for f in loaded], T_world_cam=folder.gt_poses,
+    )  # fmt: skip
+    assert isinstance(memory, Sequence)
+    assert len(memory) == len(folder) and memory.has_depth and memory.has_labels
+    np.testing.assert_array_equal(memory.timestamps_s, folder.timestamps_s)
+    for a, b in zip(memory, loaded, strict=True):
+        assert (a.index, a.source_index, a.timestamp_s, a.intrinsics) == (b.index, b.source_index, b.timestamp_s,
+                                                                           b.intrinsics)  # fmt: skip
+        for field in ("image_rgb", "depth_m", "label_ids", "T_world_cam"):
+            x, y = getattr(a, field), getattr(b, field)
+            assert x.dtype == y.dtype and x.shape == y.shape, field
+            np.testing.assert_array_equal(x, y, err_msg=field)
+    assert depth_model_of(memory) is None  # measured depth: KISS-ICP, never rescaled
+
+
+def test_invalid_depth_becomes_zero_and_grey_images_get_three_channels() -> None:
+    frames = make_frames(3)  # depth holds NaN, inf and a negative value at (0, 0..2)
+    grey = [f.image_rgb[:, :, 0] for f in frames]
+    seq = ArraySequence(grey, INTRINSICS, [f.timestamp_s for f in frames], depth_m=[f.depth_m for f in frames])
+    frame = seq[-1]
+    assert frame.index == 2 and frame.label_ids is None and not seq.has_labels and seq.gt_poses is None
+    assert frame.image_rgb.shape == (INTRINSICS.height, INTRINSICS.width, 3)
+    np.testing.assert_array_equal(frame.image_rgb[:, :, 2], grey[2])
+    assert frame.depth_m.dtype == np.float32 and np.isfinite(frame.depth_m).all() and (frame.depth_m >= 0).all()
+    np.testing.assert_array_equal(frame.depth_m[0, :3], 0.0)
+    kept = np.isfinite(frames[2].depth_m) & (frames[2].depth_m > 0)
+    np.testing.assert_array_equal(frame.depth_m[kept], frames[2].depth_m[kept])
+    assert grey[2].shape == (INTRINSICS.height, INTRINSICS.width)  # the caller's arrays are left as they were
+
+
+def test_predicted_depth_is_said_so_and_a_view_keeps_it() -> None:
+    from shgm_slam.data import SequenceView
+
+    seq = memory_of(make_frames(4), depth_origin=DepthOrigin.PREDICTED, name="cam0")
+    assert depth_model_of(seq) == {"path": "predicted depth of cam0"}
+    assert depth_model_of(SequenceView(seq, 1, 3)) == {"path": "predicted depth of cam0"}
+
+
+def test_frames_are_loaded_only_when_asked_for() -> None:
+    frames = make_frames(5)
+    asked: list[int] = []
+
+    class Loader:
+        def __len__(self) -> int:
+            return len(frames)
+
+        def __getitem__(self, i: int) -> np.ndarray:
+            asked.append(i)
+            return frames[i].image_rgb
+
+    seq = ArraySequence(Loader(), INTRINSICS, [f.timestamp_s for f in frames])
+    assert asked == []
+    np.testing.assert_array_equal(seq[3].image_rgb, frames[3].image_rgb)
+    assert asked == [3]
+
+
+def test_it_pickles_for_worker_processes() -> None:
+    seq = memory_of(make_frames(3))
+    again = pickle.loads(pickle.dumps(seq))
+    np.testing.assert_array_equal(again[1].depth_m, seq[1].depth_m)
+    assert not again.timestamps_s.flags.writeable and not again.gt_poses.flags.writeable
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda k: k.update(depth_m=k["depth_m"][:2]), "2 depth_m maps for 3 images"),
+        (lambda k: k.update(label_ids=k["label_ids"][:1]), "1 label_ids maps for 3 images"),
+        (lambda k: k.update(timestamps_s=k["timestamps_s"][:2]), "timestamps_s has shape (2,) for 3 images"),
+        (lambda k: k.update(timestamps_s=k["timestamps_s"][::-1].copy()), "frame 1 (1000.1"),
+        (lambda k: k.update(timestamps_s=k["timestamps_s"] * 1e3), "timestamps must be in seconds"),
+        (lambda k: k["timestamps_s"].__setitem__(1, np.nan), "frame 1 holds nan"),
+        (lambda k: k.update(T_world_cam=k["T_world_cam"][:, :3]), "T_world_cam has shape (3, 3, 4)"),
+        (lambda k: k["T_world_cam"].__setitem__((2, 0, 0), 3.0), "T_world_cam of frame 2 is not a rigid"),
+        (lambda k: k["T_world_cam"].__setitem__((1, 3, 3), np.inf), "T_world_cam of frame 1 is not finite"),
+        (lambda k: k.update(images_rgb=[]), "has no images"),
+        (lambda k: k.update(intrinsics=Intrinsics(0.0, 50.0, 10.0, 10.0, 32, 24)), "positive focal lengths"),
+        (lambda k: k.update(intrinsics=(50.0, 50.0, 10.0, 10.0)), "must be an Intrinsics"),
+    ],
+)
+def test_what_cannot_be_a_sequence_is_refused_at_once(change, message: str) -> None:
+    frames = make_frames(3)
+    kwargs = {
+        "images_rgb": np.stack([f.image_rgb for f in frames]), "intrinsics": INTRINSICS,
+        "timestamps_s": np.array([1000.0, 1000.1, 1000.2]), "depth_m": np.stack([f.depth_m for f in frames]),
+        "label_ids": np.stack([f.label_ids for f in frames]), "T_world_cam": np.stack([f.T_world_cam for f in frames]),
+    }  # fmt: skip
+    change(kwargs)
+    with pytest.raises(DataError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        ArraySequence(**kwargs)
+
+
+@pytest.mark.parametrize(
+    ("field", "bad", "message"),
+    [
+        ("images_rgb", np.zeros((24, 32, 3), np.float32), "the image is float32"),
+        ("images_rgb", np.zeros((24, 31, 3), np.uint8), "expected 24 x 32"),
+        ("images_rgb", np.zeros((24, 32, 4), np.uint8), r"give \(H, W, 3\) uint8 RGB"),
+        ("depth_m", np.zeros((24, 32), np.uint16), "depth_m is uint16"),
+        ("depth_m", np.zeros((12, 32), np.float32), "depth_m has shape"),
+        ("label_ids", np.zeros((24, 32), np.float32), "label_ids is float32"),
+        ("label_ids", np.full((24, 32), 300, np.int32), "outside 0-255"),
+    ],
+)
+def test_a_bad_frame_is_refused_when_read_naming_the_frame(field: str, bad: np.ndarray, message: str) -> None:
+    frames = make_frames(3)
+    arrays = {
+        "images_rgb": [f.image_rgb for f in frames], "depth_m": [f.depth_m for f in frames],
+        "label_ids": [f.label_ids for f in frames],
+    }  # fmt: skip
+    arrays[field][1] = bad
+    seq = ArraySequence(arrays.pop("images_rgb"), INTRINSICS, [f.timestamp_s for f in frames], **arrays, name="cam")
+    seq[0]  # the others are fine
+    with pytest.raises(DataError, match="sequence 'cam' frame 1: .*" + message):
+        seq[1]
+    with pytest.raises(IndexError):
+        seq[3]

@@ -1,0 +1,157 @@
+"""shgm_slam from Python (``shgm_slam.api``): the command line's results, frames held in memory, clear errors."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import shgm_slam
+from shgm_slam import ArraySequence, open_sequence
+from shgm_slam.api import read_fused, run
+from shgm_slam.config import Dof, ShgmConfig
+from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.geometry.se3 import transform_points
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def in_memory(folder: Path) -> ArraySequence:
+    """Every frame of a sequence folder, loaded into arrays (as a user's own frames would come)."""
+    seq = open_sequence(folder)
+    frames = list(seq)
+    return ArraySequence(
+        np.stack([f.image_rgb for f in frames]), seq.intrinsics, seq.timestamps_s,
+        depth_m=np.stack([f.depth_m for f in frames]), label_ids=np.stack([f.label_ids for f in frames]),
+        T_world_cam=seq.gt_poses, name=folder.name,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def two_runs(tiny_scenario: Path, tmp_path_factory: pytest.TempPathFactory):
+    """car1 and car2 of the tiny world run once from their folders and once from memory, with defaults."""
+    tmp = tmp_path_factory.mktemp("api")
+    names = ("car1", "car2")
+    from_folders = run({n: open_sequence(tiny_scenario / n) for n in names}, tmp / "folders")
+    from_memory = run({n: in_memory(tiny_scenario / n) for n in names}, tmp / "memory")
+    return from_folders, from_memory
+
+
+def test_frames_in_memory_give_the_run_that_their_folders_give(two_runs) -> None:
+    folders, memory = two_runs
+    assert [r.name for r in memory.robots] == ["car1", "car2"]
+    for a, b in zip(folders.robots, memory.robots, strict=True):
+        assert (a.frames_processed, a.keyframes, a.nodes, a.localized) == (b.frames_processed, b.keyframes, b.nodes,
+                                                                           b.localized)  # fmt: skip
+    assert (folders.matches_tried, folders.closures_accepted) == (memory.matches_tried, memory.closures_accepted)
+    assert memory.robots[0].localized and memory.robots[0].ate_fused_m < 1.0  # the truth came along
+    compared = 0
+    for robot in ("car1", "car2"):
+        for kind in ("fused_tum", "odometry_tum", "fused_kitti"):
+            name = f"{robot}_{kind}.txt"
+            if (folders.out_dir / name).exists() or (memory.out_dir / name).exists():
+                assert (folders.out_dir / name).read_bytes() == (memory.out_dir / name).read_bytes(), name
+                compared += 1
+    assert compared >= 4  # both odometries and at least the reference's fused trajectory, byte for byte
+
+
+def test_read_fused_gives_what_the_run_wrote(two_runs) -> None:
+    _, memory = two_runs
+    for report in memory.robots:
+        fused = read_fused(memory.out_dir, report.name)
+        if not report.localized:
+            continue
+        assert fused is not None and fused.robot == report.name
+        n = report.fused_poses
+        assert fused.T_shared_cam.shape == (n, 4, 4) and fused.timestamps_s.shape == (n,)
+        assert fused.provisional == report.provisional
+        np.testing.assert_allclose(fused.T_shared_cam[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (n, 1)))
+    with pytest.raises(DataError, match="holds no robot 'uav'; its run had car1, car2"):
+        read_fused(memory.out_dir, "uav")
+
+
+def test_a_refused_run_leaves_no_folder_behind(tiny_scenario: Path, tmp_path: Path) -> None:
+    car1 = open_sequence(tiny_scenario / "car1")
+    with pytest.raises(ConfigError, match="robot name '1car' is invalid"):
+        run({"1car": car1}, tmp_path / "a")
+    with pytest.raises(ConfigError, match="no robots given"):
+        run({}, tmp_path / "b")
+    with pytest.raises(DataError, match="robot 'car1': list is not a sequence"):
+        run({"car1": [car1[0]]}, tmp_path / "c")
+    with pytest.raises(ConfigError, match="viewer 'window': choose one of"):
+        run({"car1": car1}, tmp_path / "d", viewer="window")
+    with pytest.raises(ConfigError, match="jobs 0"):
+        run({"car1": car1}, tmp_path / "e", jobs=0)
+    with pytest.raises(ConfigError, match="does not exist"):
+        run({"car1": car1}, tmp_path / "f", config=tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError, match="settings for robot\\(s\\) car9"):
+        run({"car1": car1}, tmp_path / "g", config=ShgmConfig.model_validate({"robots": {"car9": {}}}))
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.fixture(scope="module")
+def sparse_pairs():
+    from shgm_slam.bench.localization_sparse import SparseOptions, make_pairs
+    from shgm_slam.sim.city import CityParams, build_city
+
+    seed = 10  # a tuning seed of the sparse benchmark
+    return make_pairs(build_city(CityParams(), seed=seed), seed, SparseOptions(seeds=(seed,), pairs_per_seed=3), 10.0)
+
+
+def test_match_localizes_graph_files_as_the_command_line_does(sparse_pairs, tmp_path: Path) -> None:
+    from shgm_slam.api import match
+    from shgm_slam.io.graph_json import write_graph
+
+    placed = 0
+    for k, pair in enumerate(sparse_pairs):
+        a, b = write_graph(tmp_path / f"a{k}.json", pair.graph_a), write_graph(tmp_path / f"b{k}.json", pair.graph_b)
+        found = match(a, b)
+        again = match(pair.graph_a, pair.graph_b)
+        assert found.gravity_aligned and found.up_axis == again.up_axis  # map-like graphs lie flat along z
+        assert found.nodes == (len(pair.graph_a), len(pair.graph_b))
+        assert found.result.success == again.result.success
+        if not pair.overlapping:
+            assert not found.result.success, "a far-apart pair was accepted"
+        elif found.result.success:
+            placed += 1
+            centroid = pair.graph_b.positions_xyz.mean(axis=0)
+            truth = transform_points(pair.T_a_b, centroid)
+            err = np.linalg.norm(transform_points(found.result.T_a_b, centroid) - truth)
+            assert err < 2.0
+    assert placed >= 2
+    six = match(sparse_pairs[0].graph_a, sparse_pairs[0].graph_b, dof=Dof.SIX)
+    assert not six.gravity_aligned and six.up_axis == found.up_axis  # any rotation; the chance model keeps the up
+
+
+def test_the_package_exports_the_api_lazily() -> None:
+    assert {"run", "match", "read_fused", "evaluate", "ArraySequence", "open_sequence", "ShgmConfig"} <= set(
+        shgm_slam.__all__
+    )
+    assert shgm_slam.run is run
+    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
+        shgm_slam.nothing  # noqa: B018
+
+
+def readme_python_example() -> str:
+    """The README's *From Python* example (the python block after that heading)."""
+    text = (REPO_ROOT / "README.md").read_text()
+    section = text[text.index("### From Python"):]
+    found = re.search(r"```python\n(.*?)```", section, re.S)
+    assert found, "README: *From Python* has no python block"
+    return found.group(1)
+
+
+def test_the_readme_python_example_runs(tiny_scenario: Path, tmp_path: Path, monkeypatch, capsys) -> None:
+    """The example, run where ``make demo``'s world (``cache/airsim-like-seed0``) is the tiny world."""
+    (tmp_path / "cache").mkdir()
+    (tmp_path / "cache" / "airsim-like-seed0").symlink_to(tiny_scenario)
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {"__name__": "readme_example"}
+    exec(compile(readme_python_example(), "README.md", "exec"), namespace)
+    summary = namespace["summary"]
+    assert summary.out_dir == Path("results/from_python") and [r.name for r in summary.robots] == ["car1", "car2"]
+    assert summary.robots[0].localized and "car1" in namespace["placed"]
+    printed = capsys.readouterr().out
+    assert all(f"{name}: " in printed for name in namespace["placed"])
