@@ -57,6 +57,15 @@ def test_frames_in_memory_give_the_run_that_their_folders_give(two_runs) -> None
     assert compared >= 4  # both odometries and at least the reference's fused trajectory, byte for byte
 
 
+def test_frames_in_memory_travel_to_worker_processes(two_runs, tiny_scenario: Path, tmp_path: Path) -> None:
+    """``jobs=2``: the sequences are pickled into spawned workers; the results are those of one process."""
+    _, memory = two_runs
+    summary = run({n: in_memory(tiny_scenario / n) for n in ("car1", "car2")}, tmp_path / "jobs", jobs=2)
+    assert not summary.skipped_reasons
+    for name in ("car1_odometry_tum.txt", "car2_odometry_tum.txt", "car1_fused_tum.txt"):
+        assert (summary.out_dir / name).read_bytes() == (memory.out_dir / name).read_bytes(), name
+
+
 def test_read_fused_gives_what_the_run_wrote(two_runs) -> None:
     _, memory = two_runs
     for report in memory.robots:
