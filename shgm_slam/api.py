@@ -119,9 +119,9 @@ def run(
 ) -> RunSummary:
     """Run the multi-robot system (``shgm-slam run``) and write the results folder.
 
-    Everything that can refuse the run (names, configuration, models, the first frames) is checked before
-    ``out`` is created; ``out`` is then locked for the run (a second run on it is refused) and refused when it
-    holds an earlier run's results unless ``overwrite``.
+    Everything that can refuse the run (names, configuration, models, the first frames, an ``out`` inside a
+    robot's sequence folder) is checked before ``out`` is created; ``out`` is then locked for the run (a second
+    run on it is refused) and refused when it holds an earlier run's results unless ``overwrite``.
 
     Args:
         robots: robot name -> sequence, in order (the first robot's first camera frame is the shared frame).
@@ -147,7 +147,7 @@ def run(
             set instead when the stop came between frames).
     """
     from shgm_slam.io.export import claimed_results_dir
-    from shgm_slam.runner import prepare_frontends, run_slam
+    from shgm_slam.runner import check_out_outside_sequences, prepare_frontends, run_slam
     from shgm_slam.viz.rerun_logger import DEFAULT_CONNECT_URL, RerunMode, make_viz, viewer_address
 
     robots = checked_robots(robots)
@@ -160,6 +160,8 @@ def run(
         raise ConfigError(f"viewer {viewer!r}: choose one of {', '.join(m.value for m in RerunMode)}") from None
     if mode is RerunMode.CONNECT:
         viewer_address(viewer_url or DEFAULT_CONNECT_URL)  # a malformed URL is refused before any work
+    if out is not None:
+        check_out_outside_sequences(Path(out), robots)
     fronts = prepare_frontends(robots, cfg)
     with claimed_results_dir(None if out is None else Path(out), overwrite=overwrite) as out_dir:
         viz = make_viz(mode, robots=list(robots), save_path=out_dir / "run.rrd", connect_url=viewer_url,

@@ -18,7 +18,7 @@ from pathlib import Path
 from shgm_slam.backend.keys import MAX_AGENTS, segments_per_robot
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
-from shgm_slam.data.base import parse_sequence_spec
+from shgm_slam.data.base import sequence_root
 from shgm_slam.data.interleave import interleave
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.interrupts import stops_deferred
@@ -103,16 +103,17 @@ def open_robots(robot_args: list[str]) -> dict[str, Sequence]:
     return robots
 
 
-def check_out_outside_sequences(out: Path, robot_args: list[str]) -> None:
-    """Refuse a results folder that is a robot's sequence folder or lies inside one.
+def check_out_outside_sequences(out: Path, robots: dict[str, Sequence]) -> None:
+    """Refuse a results folder that is a robot's sequence folder or lies inside one (frames held in memory have
+    no folder).
 
     Raises:
-        ConfigError: ``out`` is (inside) the folder of a robot's ``NAME=PATH[:start-end]``: the results would
-            be written among the sequence's files (a ``graph_*.json`` or ``run.rrd`` in a sequence others read).
+        ConfigError: ``out`` is (inside) the folder of a robot's sequence: the results would be written among the
+            sequence's files (a ``graph_*.json`` or ``run.rrd`` in a sequence others read).
     """
-    for arg in robot_args:
-        name, spec = parse_robot_arg(arg)
-        check_outside_sequence(out, parse_sequence_spec(spec)[0], f"of robot {name!r} ")
+    for name, sequence in robots.items():
+        if (root := sequence_root(sequence)) is not None:
+            check_outside_sequence(out, root, f"of robot {name!r} ")
 
 
 def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConfig:

@@ -322,8 +322,10 @@ def test_results_inside_a_robots_sequence_folder_are_refused(tiny_scenario: Path
         assert res.exit_code == 2, res.output
         assert "is in the sequence folder of robot 'car1'" in " ".join(res.output.split())  # (wrapped lines)
     assert sorted(p.relative_to(seq) for p in seq.rglob("*")) == before  # nothing written into it
-    check_out_outside_sequences(tmp_path / "out", [f"car1={seq}:0-5"])  # beside it is fine
-    check_out_outside_sequences(tmp_path / "car10", [f"car1={seq}"])  # a name that only starts the same too
+    check_out_outside_sequences(tmp_path / "out", open_robots([f"car1={seq}:0-5"]))  # beside it is fine
+    check_out_outside_sequences(tmp_path / "car10", open_robots([f"car1={seq}"]))  # a name that only starts the same
+    with pytest.raises(ConfigError, match="is in the sequence folder of robot 'car1'"):  # a view of it too
+        check_out_outside_sequences(seq / "out", open_robots([f"car1={seq}:2-5"]))
 
 
 def test_bad_robot_arguments_give_clear_errors(tiny_scenario: Path, tmp_path: Path) -> None:

@@ -115,12 +115,10 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
     from shgm_slam import api
     from shgm_slam.errors import ConfigError
     from shgm_slam.robot.remote import default_jobs
-    from shgm_slam.runner import check_out_outside_sequences, open_robots
+    from shgm_slam.runner import open_robots
     from shgm_slam.viz.rerun_logger import RerunMode
 
     robots = open_robots(robot_args)
-    if out is not None:
-        check_out_outside_sequences(out, robot_args)
     try:
         mode = RerunMode(rerun_mode)
     except ValueError:

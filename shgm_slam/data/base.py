@@ -116,6 +116,14 @@ class SequenceView:
         return self.base.has_labels
 
 
+def sequence_root(sequence: object) -> Path | None:
+    """The folder a sequence reads its files from (through any ``SequenceView``), or None (frames in memory)."""
+    while getattr(sequence, "root", None) is None and getattr(sequence, "base", None) is not None:
+        sequence = sequence.base  # type: ignore[attr-defined]
+    root = getattr(sequence, "root", None)
+    return None if root is None else Path(root)
+
+
 def open_sequence(spec: str | Path, layout: SequenceLayout | None = None) -> Sequence:
     """Open ``path[:start-end]`` (see the module doc) with the detected (or given) layout's reader.
 

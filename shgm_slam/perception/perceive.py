@@ -40,7 +40,7 @@ import cv2
 import numpy as np
 import onnxruntime as ort
 
-from shgm_slam.data.base import open_sequence, parse_sequence_spec
+from shgm_slam.data.base import open_sequence, parse_sequence_spec, sequence_root
 from shgm_slam.data.kitti import IMAGE_SOURCES, frame_file
 from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, PERCEIVE_MANIFEST, encode_depth, read_perceive_manifest
 from shgm_slam.data.validate import check_sequence_start
@@ -125,13 +125,13 @@ def depth_model_of(sequence: object) -> dict | None:
         The manifest's model identity: ``path``, ``sha256``, ``card_sha256`` and (manifests written since
         it was added) ``input_wh``, the model's input size for this sequence's images.
     """
-    while getattr(sequence, "root", None) is None and getattr(sequence, "base", None) is not None:
+    while getattr(sequence, "base", None) is not None and getattr(sequence, "depth_origin", None) is None:
         sequence = sequence.base  # type: ignore[attr-defined]
     origin = getattr(sequence, "depth_origin", None)
     if origin is not None:
         predicted = DepthOrigin(origin) is DepthOrigin.PREDICTED
         return {"path": f"predicted depth of {getattr(sequence, 'name', 'the sequence')}"} if predicted else None
-    root = getattr(sequence, "root", None)
+    root = sequence_root(sequence)
     if root is None or not (Path(root) / MANIFEST).is_file():
         return None
     try:
