@@ -15,13 +15,13 @@ from __future__ import annotations
 
 import logging
 import warnings
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from shgm_slam.data.indexed import IndexedFrames
 from shgm_slam.errors import DataError
 from shgm_slam.io.trajectories import read_kitti_poses
 from shgm_slam.types import Frame, Intrinsics
@@ -226,7 +226,7 @@ def fit_count(values: np.ndarray, count: int, path: Path, allow_extra: bool) -> 
     return values[:count]
 
 
-class KittiSequence:
+class KittiSequence(IndexedFrames):
     """A KITTI odometry sequence folder (see the module doc for the layout and the count policy)."""
 
     allow_extra_rows = True
@@ -260,22 +260,6 @@ class KittiSequence:
             self._gt = T_world_cam0 @ T_cam0_cam
             self._gt.flags.writeable = False
 
-    def __len__(self) -> int:
-        return int(self._times.shape[0])
-
-    def __iter__(self) -> Iterator[Frame]:
-        return (self[i] for i in range(len(self)))
-
-    @property
-    def timestamps_s(self) -> np.ndarray:
-        """(N,) seconds, read-only."""
-        return self._times
-
-    @property
-    def gt_poses(self) -> np.ndarray | None:
-        """(N, 4, 4) ground-truth ``T_world_cam`` (read-only), or None."""
-        return self._gt
-
     @property
     def has_depth(self) -> bool:
         return False
@@ -283,12 +267,6 @@ class KittiSequence:
     @property
     def has_labels(self) -> bool:
         return False
-
-    def _index(self, index: int) -> int:
-        n = len(self)
-        if not -n <= index < n:
-            raise IndexError(f"frame {index} out of range for {self.name} with {n} frames")
-        return index % n
 
     def _check_size(self, image: np.ndarray, path: Path) -> None:
         wh = (image.shape[1], image.shape[0])

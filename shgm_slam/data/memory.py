@@ -12,11 +12,11 @@ network predicted it (as for a ``perceive`` folder: visual odometry, scaled to t
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Protocol
 
 import numpy as np
 
+from shgm_slam.data.indexed import IndexedFrames
 from shgm_slam.data.kitti import check_times
 from shgm_slam.errors import DataError
 from shgm_slam.types import DepthOrigin, Frame, Intrinsics
@@ -33,7 +33,7 @@ class FrameArrays(Protocol):
     def __getitem__(self, index: int) -> np.ndarray: ...
 
 
-class ArraySequence:
+class ArraySequence(IndexedFrames):
     """A ``types.Sequence`` over frames held in memory (module docstring).
 
     Args:
@@ -87,18 +87,9 @@ class ArraySequence:
             if array is not None:
                 array.flags.writeable = False
 
-    def __len__(self) -> int:
-        return int(self._times.shape[0])
-
-    def __iter__(self) -> Iterator[Frame]:
-        return (self[i] for i in range(len(self)))
-
     def __getitem__(self, index: int) -> Frame:
         """Frame ``index`` (negative indices count from the end), checked."""
-        n = len(self)
-        if not -n <= index < n:
-            raise IndexError(f"frame {index} out of range for {self.name} with {n} frames")
-        i = index % n
+        i = self._index(index)
         where = f"sequence {self.name!r} frame {i}"
         return Frame(
             index=i,
@@ -110,16 +101,6 @@ class ArraySequence:
             T_world_cam=None if self._gt is None else self._gt[i].copy(),
             source_index=i,
         )
-
-    @property
-    def timestamps_s(self) -> np.ndarray:
-        """(N,) seconds, read-only."""
-        return self._times
-
-    @property
-    def gt_poses(self) -> np.ndarray | None:
-        """(N, 4, 4) ground-truth ``T_world_cam`` (read-only), or None."""
-        return self._gt
 
     @property
     def has_depth(self) -> bool:

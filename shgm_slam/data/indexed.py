@@ -1,0 +1,42 @@
+"""What every stored sequence shares: frames by index (negative from the end), their times and ground truth."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from shgm_slam.types import Frame
+
+
+class IndexedFrames:
+    """The ``types.Sequence`` accessors over ``_times`` ((N,) seconds, read-only) and ``_gt`` ((N, 4, 4)
+    read-only ``T_world_cam`` or None) that a subclass sets; it gives ``name``, ``__getitem__``, ``has_depth``
+    and ``has_labels``."""
+
+    name: str
+    _times: np.ndarray
+    _gt: np.ndarray | None
+
+    def __len__(self) -> int:
+        return int(self._times.shape[0])
+
+    def __iter__(self) -> Iterator[Frame]:
+        return (self[i] for i in range(len(self)))  # type: ignore[index]
+
+    @property
+    def timestamps_s(self) -> np.ndarray:
+        """(N,) seconds, read-only."""
+        return self._times
+
+    @property
+    def gt_poses(self) -> np.ndarray | None:
+        """(N, 4, 4) ground-truth ``T_world_cam`` (read-only), or None."""
+        return self._gt
+
+    def _index(self, index: int) -> int:
+        """``index`` in 0..N-1 (negative indices count from the end); IndexError outside."""
+        n = len(self)
+        if not -n <= index < n:
+            raise IndexError(f"frame {index} out of range for {self.name} with {n} frames")
+        return index % n
