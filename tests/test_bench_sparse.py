@@ -138,23 +138,27 @@ def test_the_truth_is_judged_as_a_hypothesis_would_be(world):
 def test_wrong_claims_name_the_farthest():
     """A wrong claim a few metres off (the right street placed imprecisely) reads differently from an alias."""
 
-    def outcome(index, overlapping, success, err_m):
+    def outcome(index, overlapping, success, err_m, sigma_m=float("nan")):
         margin = 1.0 if overlapping else float("nan")
         return SparseOutcome(seed=1, index=index, overlapping=overlapping, dof=4, nodes=(40, 50), common=15,
                              success=success, correct=success and err_m < 2.0, trans_err_m=err_m, rot_err_deg=1.0,
-                             ms=5.0, cpu_ms=5.0, reason="", truth_margin_nats=margin)  # fmt: skip
+                             ms=5.0, cpu_ms=5.0, reason="", truth_margin_nats=margin, sigma_m=sigma_m)  # fmt: skip
 
     nan = float("nan")
-    results = SparseResults([outcome(0, True, True, 0.4), outcome(1, True, True, 3.8), outcome(2, True, True, 2.6),
-                             outcome(3, True, False, nan), outcome(4, False, False, nan)])  # fmt: skip
+    results = SparseResults([outcome(0, True, True, 0.4, 0.3), outcome(1, True, True, 3.8, 1.5),
+                             outcome(2, True, True, 2.6, 1.4), outcome(3, True, False, nan),
+                             outcome(4, False, False, nan)])  # fmt: skip
     s = results.summary()["4dof"]
     assert s["wrong_claims"] == 2 and s["worst_wrong_m"] == 3.8 and s["localized"] == 1
     assert s["median_error_m"] == 2.6  # of the three accepted overlapping pairs (0.4, 2.6, 3.8 m)
     assert "| 2 (<= 3.8 m) | 2.60 |" in sparse_markdown(results, (1,))
+    # the precision each accepted match predicted: 0.4 and 2.6 m within twice theirs, 3.8 m not (2 of 3)
+    assert s["within_2_sigma"] == pytest.approx(2 / 3)
+    assert "(`centroid_sigma_m`): 4dof 67 %." in sparse_markdown(results, (1,)).replace("\n", " ")
     # each wrong claim named, farthest first, so that it can be looked at; accepted negatives after them
     results.outcomes.append(outcome(5, False, True, nan))
-    assert "pair, matching, error at B's centroid): 1/1 4dof 3.8 m, 1/2 4dof 2.6 m, 1/5 4dof negative." in (
-        sparse_markdown(results, (1,)).replace("\n", " "))
+    assert ("the RMS error the match predicted there): 1/1 4dof 3.8 m (predicted 1.5 m), 1/2 4dof 2.6 m (predicted "
+            "1.4 m), 1/5 4dof negative.") in sparse_markdown(results, (1,)).replace("\n", " ")
     clean = SparseResults([outcome(0, True, True, 0.4)])
     assert "Wrong claims and" not in sparse_markdown(clean, (1,))
     assert clean.summary()["4dof"]["worst_wrong_m"] is None and "| 0 | 0.40 |" in sparse_markdown(clean, (1,))

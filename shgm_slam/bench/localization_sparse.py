@@ -168,6 +168,7 @@ class SparseOutcome:
     cpu_ms: float
     reason: str
     truth_margin_nats: float = float("nan")  # the true alignment's LLR beyond the match's threshold (overlapping)
+    sigma_m: float = float("nan")  # the error an accepted match predicts at B's centroid (``centroid_sigma_m``)
 
     def to_json(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) and np.isfinite(v) else v)
@@ -199,6 +200,7 @@ class SparseResults:
                 "wrong_claims": sum(o.success and not o.correct for o in pos),
                 "worst_wrong_m": max((o.trans_err_m for o in pos if o.success and not o.correct), default=None),
                 "median_error_m": _median_or_none([o.trans_err_m for o in pos if o.success]),
+                "within_2_sigma": _share([o.trans_err_m <= 2.0 * o.sigma_m for o in pos if o.success]),
                 "search_ceiling": sum(map(_within_ceiling, pos)),
                 "negatives": len(neg),
                 "negatives_accepted": sum(o.success for o in neg),
@@ -452,7 +454,8 @@ def _run_seed(seed: int, opt: SparseOptions, dcfg: DescriptorConfig, mcfg: Match
         correct, te, re = score(r, pair)
         results.outcomes.append(SparseOutcome(
             seed, pair.index, pair.overlapping, dof, (len(pair.graph_a), len(pair.graph_b)), pair.common,
-            bool(r.success), correct, te, re, ms, cpu_ms, r.reason, truth_margin_nats(r, pair, cfg)))  # fmt: skip
+            bool(r.success), correct, te, re, ms, cpu_ms, r.reason, truth_margin_nats(r, pair, cfg),
+            r.centroid_sigma_m))  # fmt: skip
 
 
 def sparse_markdown(results: SparseResults, seeds: tuple[int, ...]) -> str:
@@ -487,6 +490,11 @@ def sparse_markdown(results: SparseResults, seeds: tuple[int, ...]) -> str:
     if bins:
         lines += ["", "Localized by objects the two maps share (overlapping pairs; the search ceiling in brackets): "
                   + "; ".join(bins) + "."]
+    shares = [f"{key} {100 * s['within_2_sigma']:.0f} %" for key, s in summary.items()
+              if s["within_2_sigma"] is not None]  # fmt: skip
+    if shares:
+        lines += ["", "Predicted precision: accepted overlapping pairs whose error at B's centroid is within twice the "
+                  "RMS error their match predicts there (`centroid_sigma_m`): " + ", ".join(shares) + "."]
     lines += _claims_listed(results)
     return "\n".join(lines) + "\n"
 
@@ -499,9 +507,14 @@ def _claims_listed(results: SparseResults) -> list[str]:
     if not wrong:
         return []
     named = [f"{o.seed}/{o.index} {o.dof}dof " + (f"{o.trans_err_m:.1f} m" if o.overlapping else "negative")
-             for o in wrong]  # fmt: skip
-    return ["", "Wrong claims and accepted negatives (seed/pair, matching, error at B's centroid): " + ", ".join(named)
-            + "."]  # fmt: skip
+             + (f" (predicted {o.sigma_m:.1f} m)" if np.isfinite(o.sigma_m) else "") for o in wrong]  # fmt: skip
+    return ["", "Wrong claims and accepted negatives (seed/pair, matching, error at B's centroid, and the RMS error "
+            "the match predicted there): " + ", ".join(named) + "."]  # fmt: skip
+
+
+def _share(flags: list[bool]) -> float | None:
+    """The share of True in ``flags``, None when empty."""
+    return sum(flags) / len(flags) if flags else None
 
 
 def _metres(value: float | None) -> str:

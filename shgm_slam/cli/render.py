@@ -51,6 +51,9 @@ def render_match(
         t.add_row("T_a_b", f"translation {np.round(T[:3, 3], 2).tolist()} m, "
                            f"rotation {np.degrees(rotation_angle(T)):.1f} deg")  # fmt: skip
         t.add_row("", "\n".join("  ".join(f"{v:9.4f}" for v in row) for row in T))
+        if np.isfinite(result.centroid_sigma_m):
+            t.add_row("precision", f"{result.centroid_sigma_m:.2f} m RMS predicted at B's centroid (from the partners' "
+                                   "residuals and layout; covariance in --json)")  # fmt: skip
     t.add_row("ms", ", ".join(f"{k} {v:.2f}" for k, v in result.timings_ms.items()))
     console.print(t)
 

@@ -25,6 +25,7 @@ from shgm_slam.matching.labelled_tree import LabelledTree
 from shgm_slam.matching.pair_voting import pair_vote_hypotheses
 from shgm_slam.matching.polish import polish_alignment
 from shgm_slam.matching.pose import correspondence_weights, fit_pose, padded_correspondence_weights, spread_m
+from shgm_slam.matching.precision import alignment_covariance, predicted_error_m
 from shgm_slam.matching.ransac import ransac_alignment
 from shgm_slam.matching.result import MatchResult
 from shgm_slam.matching.verification import Verification, partner_pairs_stack, support_counts, verify_alignments
@@ -208,6 +209,14 @@ def match_graphs(
     reason = _rejection_reason(v, threshold, rmse, spread, cfg) or _ambiguity_reason(best, rival, b, threshold, cfg)
     if not reason and cfg.polish:  # the decision is made; only the accepted transform is refitted
         T = polish_alignment(T, a, b, tree_a, cfg.verification_radius_m, gravity_aligned=cfg.gravity_aligned, up=up)
+    covariance, centroid_sigma = None, math.nan
+    if not reason:  # how precisely the accepted alignment is known, from its partners (reported, not decided on)
+        placed_b = transform_points(T, b.positions_xyz[rows_b])
+        covariance = alignment_covariance(placed_b, a.positions_xyz[rows_a], gravity_aligned=cfg.gravity_aligned,
+                                          up=up)  # fmt: skip
+        if covariance is not None:
+            centroid = transform_points(T, b.positions_xyz.mean(axis=0, keepdims=True))[0]
+            centroid_sigma = predicted_error_m(covariance, centroid, gravity_aligned=cfg.gravity_aligned, up=up)
     lap("pose", t)
 
     pairs = np.stack([a.node_ids[rows_a], b.node_ids[rows_b]], axis=1).astype(np.int64)
@@ -232,6 +241,8 @@ def match_graphs(
         llr_threshold=threshold,
         rival_llr=-math.inf if rival is None else rival[1].llr,
         hypotheses=len(hypotheses),
+        covariance=covariance,
+        centroid_sigma_m=centroid_sigma,
     )
 
 

@@ -38,6 +38,11 @@ class MatchResult:
         llr_threshold: ``log(hypotheses searched / false_alarm_rate)``; success needs ``llr`` above it.
         rival_llr: ``llr`` of the rival hypothesis (-inf without one).
         hypotheses: alignment hypotheses generated (cliques, or 1 for RANSAC).
+        covariance: (K, K) covariance of an accepted ``T_a_b`` (``precision.alignment_covariance``: the left
+            perturbation in A's frame, (theta about the up axis, tx, ty, tz) gravity-aligned, else (wx, wy, wz,
+            tx, ty, tz); rad and metres), or None.
+        centroid_sigma_m: the RMS error that covariance predicts at B's node centroid (mapped into A), metres
+            (NaN without one): a small turn fitted on a short overlap moves B's far end most.
     """
 
     success: bool
@@ -60,6 +65,8 @@ class MatchResult:
     llr_threshold: float = math.inf
     rival_llr: float = -math.inf
     hypotheses: int = 0
+    covariance: np.ndarray | None = None
+    centroid_sigma_m: float = math.nan
 
     @staticmethod
     def failure(reason: str, candidates: int = 0, timings_ms: dict[str, float] | None = None) -> MatchResult:
@@ -106,6 +113,10 @@ class MatchResult:
                 "llr_threshold": _finite(self.llr_threshold),
                 "rival_llr": _finite(self.rival_llr),
                 "hypotheses": int(self.hypotheses),
+            },
+            "precision": {
+                "covariance": None if self.covariance is None else np.round(self.covariance, 9).tolist(),
+                "centroid_sigma_m": _finite(self.centroid_sigma_m),
             },
             "reason": self.reason,
         }
