@@ -26,7 +26,7 @@ def match_evidence(result: MatchResult, keyframe_b: int) -> MatchEvidence | None
     return MatchEvidence(
         np.asarray(result.T_a_b_hypothesis, dtype=np.float64), keyframe_b, float(result.llr),
         float(result.llr_threshold), int(result.support), float(result.expected_chance), int(result.overlap_a),
-        int(result.overlap_b), float(result.rival_llr),
+        int(result.overlap_b), float(result.rival_llr), float(result.centroid_sigma_m),
     )  # fmt: skip
 
 

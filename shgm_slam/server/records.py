@@ -31,6 +31,8 @@ class MatchEvidence:
         rival_llr: the ratio of the best verified alignment that places B elsewhere, nats (-inf: none was
             verified); an accepted match whose rival clears the threshold too leads it by log(1 / false alarm
             rate), so an accepted alias shows what it was weighed against.
+        centroid_sigma_m: an accepted match's predicted RMS error at the centroid of B's queried nodes, metres
+            (``MatchResult.centroid_sigma_m``; NaN when rejected, or in snapshots of versions before it).
     """
 
     T_a_b_hypothesis: np.ndarray
@@ -42,6 +44,7 @@ class MatchEvidence:
     overlap_a: int
     overlap_b: int
     rival_llr: float = -math.inf
+    centroid_sigma_m: float = math.nan
 
     def to_json_dict(self) -> dict:
         return {
@@ -54,6 +57,7 @@ class MatchEvidence:
             "overlap_a": self.overlap_a,
             "overlap_b": self.overlap_b,
             "rival_llr": finite_or_none(round(float(self.rival_llr), 3)),
+            "centroid_sigma_m": finite_or_none(round(float(self.centroid_sigma_m), 3)),
         }
 
 

@@ -91,7 +91,7 @@ def _match(m: MatchRecord) -> dict:
 def _evidence(e: MatchEvidence) -> dict:
     return {"T": _arr(e.T_a_b_hypothesis, "f8"), "kb": e.keyframe_b, "llr": e.llr, "thr": e.llr_threshold,
             "sup": e.support, "ch": e.expected_chance, "oa": e.overlap_a, "ob": e.overlap_b,
-            "rl": e.rival_llr}  # fmt: skip
+            "rl": e.rival_llr, "cs": e.centroid_sigma_m}  # fmt: skip
 
 
 def _closure(c: ClosureRecord) -> dict:
@@ -234,6 +234,7 @@ def _unevidence(d: dict) -> MatchEvidence:
         _typed(d["sup"], int, "evidence support"), float(_typed(d["ch"], num, "evidence expected_chance")),
         _typed(d["oa"], int, "evidence overlap_a"), _typed(d["ob"], int, "evidence overlap_b"),
         float(_typed(d.get("rl", -math.inf), num, "evidence rival_llr")),  # older snapshots: none recorded
+        float(_typed(d.get("cs", math.nan), num, "evidence centroid_sigma_m")),  # older snapshots: none recorded
     )  # fmt: skip
 
 

@@ -199,9 +199,18 @@ def test_match_evidence_survives_a_snapshot_and_older_snapshots_decode_without_i
         assert (a.evidence is None) == (b.evidence is None)
         if a.evidence is not None:
             np.testing.assert_array_equal(a.evidence.T_a_b_hypothesis, b.evidence.T_a_b_hypothesis)
-            assert replace(a.evidence, T_a_b_hypothesis=None) == replace(b.evidence, T_a_b_hypothesis=None)
+            # field by field, NaN equal to NaN (a rejected match predicts no precision)
+            np.testing.assert_equal(vars(replace(a.evidence, T_a_b_hypothesis=None)),
+                                    vars(replace(b.evidence, T_a_b_hypothesis=None)))  # fmt: skip
     older = {k: v for k, v in _match(records[0]).items() if k != "ev"}  # written before the record existed
     assert _unmatch(older).evidence is None
+    # an accepted match carries the precision it predicted; a snapshot written before that field reads NaN
+    accepted = [m for m in records if m.success]
+    assert accepted and all(0.0 < m.evidence.centroid_sigma_m < 10.0 for m in accepted)
+    assert all(np.isnan(m.evidence.centroid_sigma_m) for m in records if m.evidence is not None and not m.success)
+    before = _match(accepted[0])
+    before["ev"] = {k: v for k, v in before["ev"].items() if k != "cs"}
+    assert np.isnan(_unmatch(before).evidence.centroid_sigma_m)
 
 
 def test_an_accepted_matchs_rival_is_recorded_and_older_snapshots_read_none(uninterrupted) -> None:
