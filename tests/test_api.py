@@ -81,6 +81,23 @@ def test_read_fused_gives_what_the_run_wrote(two_runs) -> None:
         read_fused(memory.out_dir, "uav")
 
 
+def test_evaluate_agrees_with_the_run(two_runs, tiny_scenario: Path) -> None:
+    """``evaluate`` (``shgm-slam eval``) on the run's folder, from its ground-truth files or from the sequences: the
+    fused ATE the run reported for each placed robot."""
+    from shgm_slam.api import evaluate
+
+    _, memory = two_runs
+    from_files = evaluate(memory.out_dir)
+    from_sequences = evaluate(memory.out_dir, {n: open_sequence(tiny_scenario / n) for n in ("car1", "car2")})
+    for result in (from_files, from_sequences):
+        assert result.reference_robot == "car1"
+        by_name = {r.name: r for r in result.robots}
+        for report in memory.robots:
+            assert by_name[report.name].localized == report.localized
+            if report.localized:
+                assert by_name[report.name].ate_fused_m == pytest.approx(report.ate_fused_m, abs=0.01)
+
+
 def test_a_refused_run_leaves_no_folder_behind(tiny_scenario: Path, tmp_path: Path) -> None:
     car1 = open_sequence(tiny_scenario / "car1")
     with pytest.raises(ConfigError, match="robot name '1car' is invalid"):
