@@ -112,6 +112,9 @@ def test_a_refused_run_leaves_no_folder_behind(tiny_scenario: Path, tmp_path: Pa
         run({"car1": car1}, tmp_path / "e", jobs=0)
     with pytest.raises(ConfigError, match="does not exist"):
         run({"car1": car1}, tmp_path / "f", config=tmp_path / "missing.yaml")
+    images_only = ArraySequence([f.image_rgb for f in car1], car1.intrinsics, car1.timestamps_s)
+    with pytest.raises(DataError, match=r"robot 'car1': sequence in memory has no depth .* set perception.depth_model"):
+        run({"car1": images_only}, tmp_path / "h")
     with pytest.raises(ConfigError, match="settings for robot\\(s\\) car9"):
         run({"car1": car1}, tmp_path / "g", config=ShgmConfig.model_validate({"robots": {"car9": {}}}))
     assert not any(tmp_path.iterdir())

@@ -60,7 +60,7 @@ class ArraySequence(IndexedFrames):
         label_ids: FrameArrays | None = None,
         T_world_cam: np.ndarray | None = None,
         depth_origin: DepthOrigin = DepthOrigin.MEASURED,
-        name: str = "memory",
+        name: str = "in memory",
     ) -> None:
         self.name = name
         self.intrinsics = _checked_intrinsics(intrinsics, name)

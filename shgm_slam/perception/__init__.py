@@ -179,17 +179,19 @@ def make_perception(
         DataError: a modality has neither files nor a model (the message names it and the config key).
         ModelError: a configured model or its card is missing or does not fit.
     """
+    which = "the sequence"
     if isinstance(sequence_has_depth, Sequence):
+        which = f"sequence {sequence_has_depth.name}"
         sequence_has_depth, sequence_has_labels = sequence_has_depth.has_depth, sequence_has_depth.has_labels
     if cfg.depth_model is None and not sequence_has_depth:
         raise DataError(
-            "the sequence has no depth/ folder and no depth model is configured: set perception.depth_model "
-            "(an .onnx model with a YAML card next to it) or add depth PNGs"
+            f"{which} has no depth (no depth/ folder; in memory, no depth_m) and no depth model is configured: set "
+            "perception.depth_model (an .onnx model with a YAML card next to it) or add depth PNGs"
         )
     if cfg.seg_model is None and not sequence_has_labels:
         raise DataError(
-            "the sequence has no semantic/ folder and no segmentation model is configured: set "
-            "perception.seg_model (an .onnx model with a YAML card next to it) or add label PNGs"
+            f"{which} has no labels (no semantic/ folder; in memory, no label_ids) and no segmentation model is "
+            "configured: set perception.seg_model (an .onnx model with a YAML card next to it) or add label PNGs"
         )
     predicted = cfg.depth_model is not None or files_depth_predicted
     ground = GroundScale(cfg.camera_height_m) if predicted and cfg.camera_height_m is not None else None

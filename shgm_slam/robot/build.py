@@ -11,7 +11,7 @@ from pathlib import Path
 
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data.validate import check_sequence_start
-from shgm_slam.errors import ConfigError
+from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.odometry.sources import choose_odometry, make_odometry
 from shgm_slam.odometry.visual import depth_window_on_image
 from shgm_slam.perception import make_perception
@@ -46,7 +46,10 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig, *, max_segment
         log.info("%s: its depth files were predicted by %s (perceive.json): treated as predicted depth", name,
                  written_by.get("path", "a depth model"))  # fmt: skip
     predicted = rcfg.perception.depth_model is not None or written_by is not None
-    perception = make_perception(rcfg.perception, sequence, files_depth_predicted=written_by is not None)
+    try:
+        perception = make_perception(rcfg.perception, sequence, files_depth_predicted=written_by is not None)
+    except DataError as exc:  # which robot lacks its depth or labels
+        raise DataError(f"robot {name!r}: {exc}") from None
 
     def perceive(frame):
         out = perception.process(frame)

@@ -103,9 +103,9 @@ def test_onnx_perception_falls_back_per_modality(tmp_path: Path) -> None:
 
 def test_make_perception_from_config(tmp_path: Path) -> None:
     assert isinstance(make_perception(PerceptionConfig(), True, True), SequenceFilesSource)
-    with pytest.raises(DataError, match=r"no depth/ folder.*perception\.depth_model"):
+    with pytest.raises(DataError, match=r"no depth \(no depth/ folder.*perception\.depth_model"):
         make_perception(PerceptionConfig(), False, True)
-    with pytest.raises(DataError, match=r"no semantic/ folder.*perception\.seg_model"):
+    with pytest.raises(DataError, match=r"no labels \(no semantic/ folder.*perception\.seg_model"):
         make_perception(PerceptionConfig(), TinySequence(True, False))
     depth_path, seg_path = write_models(tmp_path)
     cfg = PerceptionConfig(depth_model=depth_path, seg_model=seg_path, threads=1)
