@@ -184,7 +184,10 @@ def log_matches(viz: Viz, server: MapServer, records) -> None:
             viz.log_matches(m.robot_a, m.robot_b, pa, pb, m.accepted, len(m.inliers))
         level = "INFO" if m.accepted or m.duplicate else "WARN"
         verdict = "accepted" if m.accepted else "already known" if m.duplicate else "rejected"
-        viz.log_text(f"{m.robot_a}<->{m.robot_b} ({m.query}): {len(m.inliers)} inliers, {verdict}: {m.reason}", level)
+        sigma = m.evidence.centroid_sigma_m if m.evidence is not None else float("nan")
+        precision = f" (±{sigma:.1f} m predicted at the centre of {m.robot_b}'s nodes)" if np.isfinite(sigma) else ""
+        viz.log_text(f"{m.robot_a}<->{m.robot_b} ({m.query}): {len(m.inliers)} inliers{precision}, {verdict}: "
+                     f"{m.reason}", level)  # fmt: skip
 
 
 def last_healthy_position(front: RobotFrontend, server: MapServer) -> np.ndarray | None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -666,3 +667,14 @@ def test_a_noisy_depth_sensor_is_measured_and_kiss_icp_sized_to_it(tiny_scenario
     assert f"depth_noise_rel: {report.depth_noise_rel}" in (tmp_path / "out" / "config.yaml").read_text()
     (clean_report,) = run_slam(clean, cfg, tmp_path / "clean").robots
     assert clean_report.depth_noise_rel == 0.0 and clean_report.voxel_size_m == 1.0
+
+
+def test_the_log_panel_gives_each_accepted_match_its_predicted_precision(early_stop) -> None:
+    """An accepted match's line in the viewer's log says how well it is known (``MatchResult.centroid_sigma_m``);
+    a rejected one claims none."""
+    _, _, viz = early_stop["full"]
+    lines = [text for text, _ in viz.texts if "<->" in text and " inliers" in text]
+    accepted = [t for t in lines if ", accepted:" in t]
+    assert accepted and all(re.search(r"inliers \(±\d+\.\d m predicted at the centre of car\d's nodes\)", t)
+                            for t in accepted)  # fmt: skip
+    assert all("predicted" not in t for t in lines if ", rejected:" in t)
