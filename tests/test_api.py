@@ -60,7 +60,10 @@ def test_frames_in_memory_give_the_run_that_their_folders_give(two_runs) -> None
 def test_frames_in_memory_travel_to_worker_processes(two_runs, tiny_scenario: Path, tmp_path: Path) -> None:
     """``jobs=2``: the sequences are pickled into spawned workers; the results are those of one process."""
     _, memory = two_runs
-    summary = run({n: in_memory(tiny_scenario / n) for n in ("car1", "car2")}, tmp_path / "jobs", jobs=2)
+    cfg = ShgmConfig()
+    before = cfg.model_dump()
+    summary = run({n: in_memory(tiny_scenario / n) for n in ("car1", "car2")}, tmp_path / "jobs", jobs=2, config=cfg)
+    assert cfg.model_dump() == before  # the caller's configuration is left as it was (derived values go elsewhere)
     assert not summary.skipped_reasons
     for name in ("car1_odometry_tum.txt", "car2_odometry_tum.txt", "car1_fused_tum.txt"):
         assert (summary.out_dir / name).read_bytes() == (memory.out_dir / name).read_bytes(), name
