@@ -69,6 +69,24 @@ def test_frames_in_memory_travel_to_worker_processes(two_runs, tiny_scenario: Pa
         assert (summary.out_dir / name).read_bytes() == (memory.out_dir / name).read_bytes(), name
 
 
+def test_predicted_depth_in_memory_is_treated_as_a_networks(tiny_scenario: Path) -> None:
+    """``DepthOrigin.PREDICTED``: as for a ``perceive`` folder, the visual odometry and depth scaled to the camera
+    height; measured depth (the default): KISS-ICP, never rescaled."""
+    from shgm_slam import DepthOrigin
+    from shgm_slam.config import OdometryKind
+    from shgm_slam.runner import prepare_frontends
+
+    seq = in_memory(tiny_scenario / "car1")
+    predicted = ArraySequence([f.image_rgb for f in seq], seq.intrinsics, seq.timestamps_s,
+                              depth_m=[f.depth_m for f in seq], label_ids=[f.label_ids for f in seq],
+                              depth_origin=DepthOrigin.PREDICTED)  # fmt: skip
+    fronts = prepare_frontends({"car1": predicted, "car2": seq}, ShgmConfig())
+    assert fronts["car1"].depth_predicted and fronts["car1"].ground_scale_on
+    assert fronts["car1"].odometry_choice.kind is OdometryKind.VISUAL
+    assert not fronts["car2"].depth_predicted and not fronts["car2"].ground_scale_on
+    assert fronts["car2"].odometry_choice.kind is OdometryKind.KISS_ICP
+
+
 def test_read_fused_gives_what_the_run_wrote(two_runs) -> None:
     _, memory = two_runs
     for report in memory.robots:
