@@ -67,6 +67,37 @@ def test_two_robots_are_fused_and_beat_odometry(drifting_run) -> None:
     assert np.isfinite(car1.ate_fused_joint_m) and np.isfinite(car2.ate_fused_joint_m)
 
 
+def test_the_fused_map_puts_the_objects_both_robots_matched_in_one_place(drifting_run) -> None:
+    """``shared_graph_<robot>.json``: each placed robot's graph in the shared frame, every node moved with the keyframe
+    it is anchored to. The accepted matches' partner objects then lie together in the fused map about as closely as
+    under each match's own alignment (centroid noise and the viewpoint's offset of a centroid: their floor), and
+    nowhere near as far apart as in the two robots' own odometry frames."""
+    from shgm_slam.io.graph_json import read_graph
+
+    summary, _, out = drifting_run
+    assert summary.robots[1].localized
+    shared = {name: read_graph(out / f"shared_graph_{name}.json") for name in ("car1", "car2")}
+    own = {name: read_graph(out / f"graph_{name}.json") for name in ("car1", "car2")}
+    for name in shared:
+        np.testing.assert_array_equal(shared[name].node_ids, own[name].node_ids)
+        np.testing.assert_array_equal(shared[name].label_ids, own[name].label_ids)
+    fused = {name: dict(zip(g.node_ids.tolist(), g.positions_xyz, strict=True)) for name, g in shared.items()}
+    odom = {name: dict(zip(g.node_ids.tolist(), g.positions_xyz, strict=True)) for name, g in own.items()}
+    gaps, floor, apart = [], [], []
+    for m in json.loads((out / "matches.json").read_text()):
+        if not m["accepted"] or m["robot_a"] == m["robot_b"]:
+            continue
+        T = np.array(m["T_a_b"])
+        for a, b in m["inliers"]:
+            pa, pb = odom[m["robot_a"]][a], odom[m["robot_b"]][b]
+            gaps.append(np.linalg.norm(fused[m["robot_a"]][a] - fused[m["robot_b"]][b]))
+            floor.append(np.linalg.norm(pa - (T[:3, :3] @ pb + T[:3, 3])))
+            apart.append(np.linalg.norm(pa - pb))
+    assert len(gaps) >= 10
+    assert np.median(gaps) < np.median(floor) + 0.5, (np.median(gaps), np.median(floor))
+    assert np.median(gaps) < 0.2 * np.median(apart)
+
+
 def test_results_folder_has_every_output(drifting_run) -> None:
     summary, robots, out = drifting_run
     for name, seq in robots.items():

@@ -5,6 +5,8 @@ Layout of ``--out DIR`` (default ``results/<time>/`` plus a ``latest`` symlink):
     <robot>_fused_tum.txt  <robot>_fused_kitti.txt   every localized robot in ONE shared frame (robot 0's)
     <robot>_odometry_tum.txt                          the robot's own odometry (its first camera frame)
     graph_<robot>.json                                shgm-graph/1, robot's odometry frame
+    shared_graph_<robot>.json                         the same graph in the shared frame, while the robot is placed
+                                                      (together: the fused semantic map)
     matches.json  pose_graph.g2o  config.yaml  metrics.json  run.rrd (when saving)
     server.json  journal.bin  snapshot-<records>.bin                 a map server's metrics and crash recovery
     incomplete.txt                                    only when the run ended with an error: why (the rest is
@@ -48,8 +50,8 @@ _held_locks: dict[Path, IO[str]] = {}
 
 RUN_OUTPUT_PATTERNS = (
     "*_fused_tum.txt", "*_fused_kitti.txt", "*_odometry_tum.txt", "*_gt_tum.txt", "*_gt_kitti.txt",
-    "graph_*.json", "matches.json", "pose_graph.g2o", "config.yaml", "metrics.json", "server.json",
-    "run.rrd", "server.rrd", "journal.bin", "snapshot-*.bin", "incomplete.txt",
+    "graph_*.json", "shared_graph_*.json", "matches.json", "pose_graph.g2o", "config.yaml", "metrics.json",
+    "server.json", "run.rrd", "server.rrd", "journal.bin", "snapshot-*.bin", "incomplete.txt",
 )
 """Files a run, demo or map server writes into its results folder (``--overwrite`` removes these, and
 their leftover ``.<name>.*`` temporary files, nothing else)."""
@@ -425,6 +427,15 @@ class ResultsWriter:
 
     def write_graph(self, robot: str, graph: GraphArrays) -> None:
         self._put(self.path(f"graph_{robot}.json"), lambda p: write_graph(p, graph))
+
+    def write_shared_graph(self, agent: str, graph: GraphArrays | None) -> None:
+        """``shared_graph_<agent>.json``: the agent's graph in the shared frame (``MapServer.shared_graph``); an
+        agent no longer placed loses the file an earlier checkpoint wrote."""
+        path = self.path(f"shared_graph_{agent}.json")
+        if graph is None:
+            self._drop(path)
+            return
+        self._put(path, lambda p: write_graph(p, graph))
 
     def write_json(self, name: str, data: object) -> None:
         text = to_json_text(data) + "\n"  # strict JSON: NaN (not measurable) as null

@@ -773,6 +773,21 @@ class MapServer:
         """``agent``'s mirrored semantic graph, in its odometry frame."""
         return self._graphs[agent].arrays()
 
+    def shared_graph(self, agent: str) -> GraphArrays | None:
+        """``agent``'s semantic graph in the shared frame, or None while it is not placed: each node moved with
+        the keyframe it is anchored to (``graph_anchors``; that keyframe's fused pose times its odometry pose's
+        inverse), so the loop and inter-robot closures that bent the trajectory bend the map alike. The fused map
+        is every placed agent's shared graph together."""
+        T_shared_kf = self.T_shared_kf(agent)
+        if T_shared_kf is None:
+            return None
+        graph = self.graph(agent)
+        T_odom_kf = self.keyframe_poses(agent)
+        correction = T_shared_kf @ np.linalg.inv(T_odom_kf)  # (K, 4, 4): odometry frame -> shared, per keyframe
+        at = correction[self.graph_anchors(agent)]
+        positions = np.einsum("nij,nj->ni", at[:, :3, :3], graph.positions_xyz) + at[:, :3, 3]
+        return GraphArrays(graph.node_ids, graph.label_ids, positions, graph.sizes, graph.edges)
+
     def keyframe_poses(self, agent: str) -> np.ndarray:
         """(K, 4, 4) ``T_odom_kf`` of ``agent``'s keyframes as received."""
         poses = self._T_odom_kf.get(agent, [])

@@ -633,6 +633,7 @@ class ServerNode:
             for a in server.agents:
                 if agent_robot(a)[0] == robot:
                     self.writer.write_graph(a, server.graph(a))
+                    self.writer.write_shared_graph(a, server.shared_graph(a))
         self.writer.write_matches(server.matches)
         self.writer.write_text("pose_graph.g2o", server.to_g2o())
         settings = self.robot_settings()

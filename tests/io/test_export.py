@@ -177,3 +177,21 @@ def test_a_stop_signal_mid_write_leaves_no_temporary(tmp_path, monkeypatch, in_c
     monkeypatch.undo()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.json", "c.json"]
     assert json.loads((tmp_path / "b.json").read_text())["checkpoint"] == 1
+
+
+def test_a_shared_graph_goes_when_its_robot_loses_its_place(tmp_path):
+    """``shared_graph_<agent>.json`` is written while the agent is placed and removed when a later checkpoint finds
+    it unplaced (a withdrawn closure), so the folder never shows a map the run no longer stands by; ``--overwrite``
+    counts it among a run's files."""
+    from shgm_slam.io.graph_json import read_graph
+    from shgm_slam.types import GraphArrays
+
+    graph = GraphArrays(np.array([4, 9]), np.array([5, 8]), np.array([[1.0, 2.0, 0.5], [10.0, 2.0, 0.4]]),
+                        np.ones(2), np.zeros((0, 2), dtype=np.int64))  # fmt: skip
+    w = ResultsWriter(tmp_path)
+    w.write_shared_graph("car2#1", graph)
+    written = read_graph(tmp_path / "shared_graph_car2#1.json")
+    np.testing.assert_allclose(written.positions_xyz, graph.positions_xyz)
+    assert tmp_path / "shared_graph_car2#1.json" in export.run_output_files(tmp_path)
+    w.write_shared_graph("car2#1", None)
+    assert not (tmp_path / "shared_graph_car2#1.json").exists()
