@@ -783,7 +783,7 @@ class MapServer:
             return None
         graph = self.graph(agent)
         T_odom_kf = self.keyframe_poses(agent)
-        correction = T_shared_kf @ np.linalg.inv(T_odom_kf)  # (K, 4, 4): odometry frame -> shared, per keyframe
+        correction = T_shared_kf @ se3.inverse(T_odom_kf)  # (K, 4, 4): odometry frame -> shared, per keyframe
         at = correction[self.graph_anchors(agent)]
         positions = np.einsum("nij,nj->ni", at[:, :3, :3], graph.positions_xyz) + at[:, :3, 3]
         return GraphArrays(graph.node_ids, graph.label_ids, positions, graph.sizes, graph.edges)
