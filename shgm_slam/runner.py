@@ -15,6 +15,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from shgm_slam.backend.keys import MAX_AGENTS, segments_per_robot
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
@@ -25,7 +27,7 @@ from shgm_slam.interrupts import stops_deferred
 from shgm_slam.io.export import ResultsWriter, check_outside_sequence
 from shgm_slam.odometry.stillness import ImageChange
 from shgm_slam.robot.build import make_frontend
-from shgm_slam.robot.frontend import RobotFrontend
+from shgm_slam.robot.frontend import FrameResult, RobotFrontend
 from shgm_slam.robot.node import RobotNode
 from shgm_slam.robot.remote import ParallelFrontends
 from shgm_slam.run_report import (
@@ -49,8 +51,10 @@ from shgm_slam.types import Sequence
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
 
 __all__ = [  # the pipeline's API
+    "FleetRun",
     "FrameFn",
     "ProgressFn",
+    "check_fleet",
     "check_out_outside_sequences",
     "effective_config",
     "fleet_backend",
@@ -149,7 +153,17 @@ def prepare_frontends(robots: dict[str, Sequence], cfg: ShgmConfig) -> dict[str,
         ConfigError, DataError, ModelError: what ``make_frontend`` raises; overrides for unknown robots; more
             robots than the pose graph holds (``MAX_AGENTS``).
     """
-    names = list(robots)
+    share = check_fleet(list(robots), cfg)
+    return {r: make_frontend(r, seq, cfg, max_segments=share) for r, seq in robots.items()}
+
+
+def check_fleet(names: list[str], cfg: ShgmConfig) -> int:
+    """Refuse a fleet the pose graph cannot hold or a config with settings for robots not in it; returns each
+    robot's share of the pose graph's agents (``segments_per_robot``: the trajectory segments it may start).
+
+    Raises:
+        ConfigError: more robots than ``MAX_AGENTS``; ``cfg.robots`` names a robot not in ``names``.
+    """
     if len(names) > MAX_AGENTS:
         raise ConfigError(
             f"{len(names)} robots: the pose graph holds at most {MAX_AGENTS} agents (robots and their trajectory "
@@ -163,8 +177,7 @@ def prepare_frontends(robots: dict[str, Sequence], cfg: ShgmConfig) -> dict[str,
         )
     # each robot's share of the pose graph's agents: a robot whose odometry keeps failing stops at its share
     # (a logged skip of its later frames) instead of ending the whole run when the agents run out
-    share = segments_per_robot(len(names))
-    return {r: make_frontend(r, seq, cfg, max_segments=share) for r, seq in robots.items()}
+    return segments_per_robot(len(names))
 
 
 def run_slam(
@@ -214,8 +227,18 @@ def run_slam(
             fronts = workers.enter_context(ParallelFrontends(
                 fronts, cfg, schedule, jobs, viewer_points=viz.max_cloud_points))
         try:
-            return _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame, write_every_keyframes,
-                        on_frame, journal)  # fmt: skip
+            fleet = FleetRun(robots, cfg, out_dir, fronts, viz=viz, gt_shared_frame=gt_shared_frame,
+                             write_every_keyframes=write_every_keyframes, journal=journal)  # fmt: skip
+            interrupted = False
+            try:
+                for robot, index in schedule:
+                    with stops_deferred():  # a stop lands between frames, never inside the server's or a robot's step
+                        fleet.step(robot, index, on_frame)
+                        if progress:
+                            progress(fleet.done, len(schedule))
+            except KeyboardInterrupt:
+                interrupted = True
+            return fleet.finish(interrupted=interrupted)
         except Exception as exc:  # re-raised: what was written so far must not pass for the run's results
             if Path(out_dir).is_dir():
                 ResultsWriter(out_dir).mark_failed(exc)
@@ -229,137 +252,176 @@ def run_slam(
             raise
 
 
-def _run(robots, cfg, out_dir, fronts, schedule, viz, progress, gt_shared_frame, write_every_keyframes, on_frame,
-         journal) -> RunSummary:  # fmt: skip
-    names = list(robots)
-    writer = ResultsWriter(out_dir)
-    writer.write_ground_truth(robots, gt_shared_frame)  # <robot>_gt_tum.txt, for evo and `shgm-slam eval`
-    cfg = fleet_backend(cfg, fronts)
-    # the same nodes as the distributed deployment, on the in-process bus (every message is encoded)
-    bus = InProcessBus()
-    server_node = ServerNode(
-        cfg, InProcessTransport(bus), out_dir, reference=names[0], expect=len(names), journal=journal,
-        write_every_keyframes=write_every_keyframes, stale_after_s=float("inf"),  # one process: never silent
-        order_keyframes=False,  # interleave() steps the robots in the server's keyframe order already
-    )  # fmt: skip
-    nodes = {r: RobotNode(f, InProcessTransport(bus)) for r, f in fronts.items()}
-    for node in nodes.values():
-        node.hello()
-    server_node.poll()
-    server = server_node.map
-    viz.setup({r: seq.intrinsics for r, seq in robots.items()})
-    view = RunView(viz)
-    writer.write_text("config.yaml", effective_config(cfg, {r: f.cfg for r, f in fronts.items()}).to_yaml())
-    total = sum(len(s) for s in robots.values())
-    timings = StageTimings()
-    skipped: list[str] = []
-    processed = dict.fromkeys(names, 0)
-    reached = dict.fromkeys(names, 0)  # frames whose turn came (the rest: not reached, the run interrupted)
-    image_change = {r: ImageChange() for r in names}
-    compute_ms = 0.0
-    t_start = time.perf_counter()
-    done = 0
-    interrupted = False
-    kf_total = 0
-    watch = PlacementWatch()
-    try:
-        for robot, index in schedule:
-            with stops_deferred():  # a stop lands between frames, never inside the server's or a robot's step
-                done += 1
-                reached[robot] += 1
-                t_step, cpu_step = time.perf_counter(), time.process_time()
-                try:
-                    res = nodes[robot].step(index)
-                except DataError as exc:
-                    skipped.append(f"{robot} frame {index}: {exc}")
-                    if not getattr(exc, "repeat", False):  # a lost worker costs every later frame: said once
-                        viz.log_text(f"{robot}: skipped frame {index}: {exc}", "WARN")
-                    if progress:
-                        progress(done, total)
-                    continue
-                processed[robot] += 1
-                if not fronts[robot].stopped:  # a stopped robot's dropped frames say nothing about its odometry
-                    image_change[robot].add(res.frame.image_rgb)
-                if res.failure is not None:
-                    then = "its later frames are dropped" if fronts[robot].stopped else (
-                        f"new trajectory segment {res.agent}")  # fmt: skip
-                    viz.log_odometry_failure(
-                        robot, f"{robot}: odometry diverged, {res.failure.describe()}; {then}",
-                        last_healthy_position(fronts[robot], server),
-                    )  # fmt: skip
-                t0 = time.perf_counter()
-                n_match, n_backend = len(server.timings_ms["match"]), len(server.timings_ms["backend"])
-                n_write, n_corr = len(server_node.timings_ms["write"]), len(server_node.timings_ms["correction"])
+class FleetRun:
+    """One run of the whole system, frame by frame: the robots' nodes and the map server on the in-process bus,
+    the viewer and the results folder. ``run_slam`` steps it through a recorded schedule; ``live.LiveRun`` through
+    frames as they arrive (the robots' sequences then grow between steps).
+
+    Args:
+        robots: robot name -> sequence (order matters: the first robot defines the shared frame).
+        cfg: the fleet configuration.
+        out_dir: results folder (written into at once: ground truth, ``config.yaml``).
+        fronts: the robots' front ends (``prepare_frontends``, or ``ParallelFrontends``' mirrors).
+        viz: viewer (``NullLogger`` when None).
+        gt_shared_frame, write_every_keyframes, journal: as for ``run_slam``.
+    """
+
+    def __init__(
+        self,
+        robots: dict[str, Sequence],
+        cfg: ShgmConfig,
+        out_dir: Path,
+        fronts: dict[str, RobotFrontend],
+        *,
+        viz: Viz | None = None,
+        gt_shared_frame: bool = True,
+        write_every_keyframes: int = 25,
+        journal: bool = False,
+    ) -> None:
+        names = list(robots)
+        self.robots, self.fronts, self.out_dir, self.gt_shared_frame = robots, fronts, Path(out_dir), gt_shared_frame
+        self.viz = viz = viz or NullLogger()
+        self.writer = ResultsWriter(out_dir)
+        self.writer.write_ground_truth(robots, gt_shared_frame)  # <robot>_gt_tum.txt, for evo and `shgm-slam eval`
+        cfg = fleet_backend(cfg, fronts)
+        # the same nodes as the distributed deployment, on the in-process bus (every message is encoded)
+        bus = InProcessBus()
+        self.server_node = ServerNode(
+            cfg, InProcessTransport(bus), out_dir, reference=names[0], expect=len(names), journal=journal,
+            write_every_keyframes=write_every_keyframes, stale_after_s=float("inf"),  # one process: never silent
+            order_keyframes=False,  # the frames come in the server's keyframe order already (``interleave``)
+        )  # fmt: skip
+        self.nodes = {r: RobotNode(f, InProcessTransport(bus)) for r, f in fronts.items()}
+        for node in self.nodes.values():
+            node.hello()
+        self.server_node.poll()
+        self.server = self.server_node.map
+        viz.setup({r: seq.intrinsics for r, seq in robots.items()})
+        self.view = RunView(viz)
+        self.writer.write_text("config.yaml", effective_config(cfg, {r: f.cfg for r, f in fronts.items()}).to_yaml())
+        self.timings = StageTimings()
+        self.skipped: list[str] = []
+        self.processed = dict.fromkeys(names, 0)
+        self.reached = dict.fromkeys(names, 0)  # frames whose turn came (the rest: not reached, the run interrupted)
+        self.image_change = {r: ImageChange() for r in names}
+        self.compute_ms = 0.0
+        self.t_start = time.perf_counter()
+        self.done = 0  # frames whose turn came, over all robots
+        self.kf_total = 0
+        self.watch = PlacementWatch()
+        self.finished = False
+
+    def step(self, robot: str, index: int, on_frame: FrameFn | None = None) -> FrameResult | None:
+        """Run frame ``index`` of ``robot`` through its node and the map server, log it and count it.
+
+        Returns:
+            The front end's result, or None when the frame was skipped (unreadable: logged and counted).
+        """
+        fronts, server, server_node, viz = self.fronts, self.server, self.server_node, self.viz
+        self.done += 1
+        self.reached[robot] += 1
+        t_step, cpu_step = time.perf_counter(), time.process_time()
+        try:
+            res = self.nodes[robot].step(index)
+        except DataError as exc:
+            self.skipped.append(f"{robot} frame {index}: {exc}")
+            if not getattr(exc, "repeat", False):  # a lost worker costs every later frame: said once
+                viz.log_text(f"{robot}: skipped frame {index}: {exc}", "WARN")
+            return None
+        self.processed[robot] += 1
+        if not fronts[robot].stopped:  # a stopped robot's dropped frames say nothing about its odometry
+            self.image_change[robot].add(res.frame.image_rgb)
+        if res.failure is not None:
+            then = "its later frames are dropped" if fronts[robot].stopped else f"new trajectory segment {res.agent}"
+            viz.log_odometry_failure(
+                robot, f"{robot}: odometry diverged, {res.failure.describe()}; {then}",
+                last_healthy_position(fronts[robot], server),
+            )  # fmt: skip
+        t0 = time.perf_counter()
+        n_match, n_backend = len(server.timings_ms["match"]), len(server.timings_ms["backend"])
+        n_write, n_corr = len(server_node.timings_ms["write"]), len(server_node.timings_ms["correction"])
+        records = server_node.poll()
+        res.timings_ms["server"] = (time.perf_counter() - t0) * 1e3
+        self.nodes[robot].poll()
+        self.timings.add(res.timings_ms)
+        step_compute = sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
+        self.compute_ms += step_compute
+        log_frame(viz, self.view, server, fronts[robot], res, records)
+        if records:
+            _log_placements(viz, self.watch, server)
+        self.kf_total += res.message is not None
+        if on_frame is not None:
+            match_ms = sum(server.timings_ms["match"][n_match:])
+            backend_ms = sum(server.timings_ms["backend"][n_backend:])
+            on_frame(FrameStats(
+                robot, index, res.message is not None, step_compute - res.timings_ms["server"],
+                sum(res.timings_ms.values()) - step_compute, match_ms, backend_ms, res.timings_ms["server"],
+                (time.perf_counter() - t_step) * 1e3, tuple(records), (time.process_time() - cpu_step) * 1e3,
+                sum(server_node.timings_ms["write"][n_write:]), sum(server_node.timings_ms["correction"][n_corr:]),
+            ))  # fmt: skip
+        return res
+
+    def T_shared_cam(self, robot: str, res: FrameResult) -> np.ndarray | None:
+        """(4, 4) where the camera of the frame ``res`` (just stepped) lies in the shared frame as the robot's node
+        knows it now (its segment's odometry frame placed by the map server's last correction), or None: the
+        segment is not placed, or the frame belongs to no segment."""
+        T_shared_odom = self.nodes[robot].T_shared_odom(res.agent)
+        if T_shared_odom is None or not np.isfinite(res.T_odom_cam).all():
+            return None
+        return T_shared_odom @ res.T_odom_cam
+
+    def finish(self, *, interrupted: bool = False) -> RunSummary:
+        """Every robot done: the final matching (none when ``interrupted``), the results folder, the evaluation
+        against ground truth where the sequences have it, and the summary (also in ``metrics.json``)."""
+        fronts, server, server_node, viz, robots = self.fronts, self.server, self.server_node, self.viz, self.robots
+        self.finished = True
+        if interrupted:  # no final matching: write what there is
+            server_node.expect = None
+        for node in self.nodes.values():
+            node.done()
+        records = []
+        try:
+            with stops_deferred():  # every robot done: the server matches whole graphs and writes the results
                 records = server_node.poll()
-                res.timings_ms["server"] = (time.perf_counter() - t0) * 1e3
-                nodes[robot].poll()
-                timings.add(res.timings_ms)
-                step_compute = sum(v for k, v in res.timings_ms.items() if k != "load" and not k.startswith("perc"))
-                compute_ms += step_compute
-                log_frame(viz, view, server, fronts[robot], res, records)
-                if records:
-                    _log_placements(viz, watch, server)
-                kf_total += res.message is not None
-                if on_frame is not None:
-                    match_ms = sum(server.timings_ms["match"][n_match:])
-                    backend_ms = sum(server.timings_ms["backend"][n_backend:])
-                    on_frame(FrameStats(
-                        robot, index, res.message is not None, step_compute - res.timings_ms["server"],
-                        sum(res.timings_ms.values()) - step_compute, match_ms, backend_ms, res.timings_ms["server"],
-                        (time.perf_counter() - t_step) * 1e3, tuple(records), (time.process_time() - cpu_step) * 1e3,
-                        sum(server_node.timings_ms["write"][n_write:]),
-                        sum(server_node.timings_ms["correction"][n_corr:]),
-                    ))  # fmt: skip
-                if progress:
-                    progress(done, total)
-    except KeyboardInterrupt:
-        interrupted = True
-    if interrupted:  # no final matching: write what there is
-        server_node.expect = None
-    for node in nodes.values():
-        node.done()
-    records = []
-    try:
-        with stops_deferred():  # every robot done: the server matches whole graphs and writes the results
-            records = server_node.poll()
-    except KeyboardInterrupt:  # stopped during the final matching: it ended, and the run says it was stopped
-        interrupted = True
-    if not server_node.finished:
-        server_node.finish(match=not interrupted)
-    log_matches(viz, server, records)
-    _log_placements(viz, watch, server)
-    if viz.enabled:
-        view.finish(server, fronts.values())  # the viewer ends on the final estimate, not the last keyframe's
-    for node in nodes.values():
-        node.poll()
-    reports, ate_joint_m = evaluate(fronts, server, robots, processed, gt_shared_frame, reached)
-    report_placement(reports, fronts, server)
-    report_degenerate(reports, fronts, image_change)
-    _say_warnings(reports, viz)
-    accepted = sum(m.accepted for m in server.matches)
-    summary = RunSummary(
-        out_dir=Path(out_dir),
-        robots=reports,
-        matches_tried=len(server.matches),
-        closures_accepted=accepted,
-        closures_rejected=sum(m.success and not m.accepted and not m.duplicate for m in server.matches),
-        pairs=pair_matches(server.matches),
-        timings_ms={
-            **timings.means(),
-            "match": server.mean_match_ms(),
-        },
-        per_keyframe_ms=compute_ms / max(kf_total, 1),
-        wall_s=time.perf_counter() - t_start,
-        interrupted=interrupted,
-        skipped_reasons=skipped,
-        last_looks=server.last_looks(),
-        ate_joint_m=ate_joint_m,
-    )
-    for line in filter(None, (p.never_met() for p in summary.pairs)):
-        viz.log_text(line, "WARN")  # the viewer's log panel says why two robots never met
-    writer.write_json("metrics.json", summary.to_json_dict())
-    viz.close()
-    return summary
+        except KeyboardInterrupt:  # stopped during the final matching: it ended, and the run says it was stopped
+            interrupted = True
+        if not server_node.finished:
+            server_node.finish(match=not interrupted)
+        log_matches(viz, server, records)
+        _log_placements(viz, self.watch, server)
+        if viz.enabled:
+            self.view.finish(server, fronts.values())  # the viewer ends on the final estimate, not the last keyframe's
+        for node in self.nodes.values():
+            node.poll()
+        self.writer.write_ground_truth(robots, self.gt_shared_frame)  # frames that arrived one by one: all of them
+        reports, ate_joint_m = evaluate(fronts, server, robots, self.processed, self.gt_shared_frame, self.reached)
+        report_placement(reports, fronts, server)
+        report_degenerate(reports, fronts, self.image_change)
+        _say_warnings(reports, viz)
+        accepted = sum(m.accepted for m in server.matches)
+        summary = RunSummary(
+            out_dir=self.out_dir,
+            robots=reports,
+            matches_tried=len(server.matches),
+            closures_accepted=accepted,
+            closures_rejected=sum(m.success and not m.accepted and not m.duplicate for m in server.matches),
+            pairs=pair_matches(server.matches),
+            timings_ms={
+                **self.timings.means(),
+                "match": server.mean_match_ms(),
+            },
+            per_keyframe_ms=self.compute_ms / max(self.kf_total, 1),
+            wall_s=time.perf_counter() - self.t_start,
+            interrupted=interrupted,
+            skipped_reasons=self.skipped,
+            last_looks=server.last_looks(),
+            ate_joint_m=ate_joint_m,
+        )
+        for line in filter(None, (p.never_met() for p in summary.pairs)):
+            viz.log_text(line, "WARN")  # the viewer's log panel says why two robots never met
+        self.writer.write_json("metrics.json", summary.to_json_dict())
+        viz.close()
+        return summary
 
 
 def replay_backend(recorded: Path, cfg: ShgmConfig, out_dir: Path, robots: list[str]) -> ServerNode:

@@ -365,7 +365,8 @@ def sample_scene_scale(
     """``measure_scene_scale`` on the first ``SAMPLE_FRAMES`` of frames ``0, SAMPLE_STEP, ...`` with valid depth
     whose labels show the ground (``fit_ground_plane(labelled_only=True)``), searched over the first
     ``SAMPLE_SPAN_FRAMES``; where none does (or frames have no labels), on the first ``SAMPLE_FRAMES`` with
-    valid depth among the first ``2 x SAMPLE_FRAMES`` tried, as the ground then cannot be told apart.
+    valid depth among the first ``2 x SAMPLE_FRAMES`` tried, as the ground then cannot be told apart
+    (``ScaleSampler``, offered the sequence's frames in order).
 
     Args:
         sequence: the robot's frames.
@@ -375,39 +376,71 @@ def sample_scene_scale(
     Returns:
         The scale (``frame_indices``: the frames measured), or None when no frame tried has valid depth.
     """
-    first: list[tuple[int, np.ndarray, np.ndarray | None]] = []  # the first frames with valid depth
-    grounded: list[tuple[int, np.ndarray, np.ndarray | None]] = []  # those whose labels show the ground
-    intrinsics = None
-    for index in range(0, min(len(sequence), SAMPLE_SPAN_FRAMES), SAMPLE_STEP):
+    sampler = ScaleSampler(perceive)
+    for index in range(min(len(sequence), SAMPLE_SPAN_FRAMES)):
+        if sampler.done:
+            break
+        if sampler.wants(index):
+            sampler.offer(index, sequence)
+    return sampler.result()
+
+
+class ScaleSampler:
+    """``sample_scene_scale`` one frame at a time, for frames that arrive one by one (``live``): offer each frame
+    it ``wants`` in order until it is ``done`` (or the frames end), then take its ``result``. The same frames
+    give the same scale as ``sample_scene_scale`` on the whole sequence.
+
+    Args:
+        perceive: frame -> ``(depth_m (H, W) metres, label_ids (H, W) or None)``; a ``DataError`` it raises
+            skips the frame.
+    """
+
+    def __init__(self, perceive: Callable[[Frame], tuple[np.ndarray, np.ndarray | None]]) -> None:
+        self._perceive = perceive
+        self._first: list[tuple[int, np.ndarray, np.ndarray | None]] = []  # the first frames with valid depth
+        self._grounded: list[tuple[int, np.ndarray, np.ndarray | None]] = []  # those whose labels show the ground
+        self._intrinsics: Intrinsics | None = None
+        self.done = False  # no later frame would change the result
+
+    def wants(self, index: int) -> bool:
+        """Whether frame ``index`` is one to offer (``offer``)."""
+        return not self.done and index % SAMPLE_STEP == 0 and index < SAMPLE_SPAN_FRAMES
+
+    def offer(self, index: int, sequence: Sequence) -> None:
+        """Measure frame ``index`` of ``sequence`` (one it ``wants``; unreadable frames are skipped)."""
+        first, grounded = self._first, self._grounded
         if index >= 2 * SAMPLE_FRAMES * SAMPLE_STEP and (len(first) < SAMPLE_FRAMES and not grounded):
-            break  # no valid depth early on: the first frames decide, as they would have
+            self.done = True  # no valid depth early on: the first frames decide, as they would have
+            return
+        self.done = index + SAMPLE_STEP >= SAMPLE_SPAN_FRAMES
         try:
             frame = sequence[index]
-            depth, label = perceive(frame)
+            depth, label = self._perceive(frame)
         except DataError:
-            continue
+            return
         depth = np.asarray(depth)
         if depth.ndim != 2 or not (np.isfinite(depth) & (depth > 0)).any():
-            continue
+            return
         K = frame.intrinsics
         if (K.width, K.height) != (depth.shape[1], depth.shape[0]):
             K = K.scaled(depth.shape[1], depth.shape[0])
-        if intrinsics is not None and K != intrinsics:
-            continue
-        intrinsics = intrinsics or K
+        if self._intrinsics is not None and K != self._intrinsics:
+            return
+        self._intrinsics = self._intrinsics or K
         label = None if label is None or np.shape(label) != depth.shape else label
         if len(first) < SAMPLE_FRAMES:
             first.append((index, depth, label))
         if label is None:  # no labels: the ground cannot be told apart; the first frames decide
-            if len(first) == SAMPLE_FRAMES:
-                break
-            continue
+            self.done = self.done or len(first) == SAMPLE_FRAMES
+            return
         if fit_ground_plane(depth, label, K, labelled_only=True) is not None:
             grounded.append((index, depth, label))
-            if len(grounded) == SAMPLE_FRAMES:
-                break
-    chosen = grounded or first
-    if not chosen:
-        return None
-    scale = measure_scene_scale([d for _, d, _ in chosen], [lab for _, _, lab in chosen], intrinsics)
-    return None if scale is None else replace(scale, frame_indices=tuple(i for i, _, _ in chosen))
+            self.done = self.done or len(grounded) == SAMPLE_FRAMES
+
+    def result(self) -> SceneScale | None:
+        """The scale measured on the frames offered so far (``sample_scene_scale``), or None (no valid depth)."""
+        chosen = self._grounded or self._first
+        if not chosen:
+            return None
+        scale = measure_scene_scale([d for _, d, _ in chosen], [lab for _, _, lab in chosen], self._intrinsics)
+        return None if scale is None else replace(scale, frame_indices=tuple(i for i, _, _ in chosen))

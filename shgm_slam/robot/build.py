@@ -7,30 +7,53 @@ importing the map server, the pose graph and the viewer (~100 MB less per worker
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data.validate import check_sequence_start
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.odometry.sources import choose_odometry, make_odometry
 from shgm_slam.odometry.visual import depth_window_on_image
-from shgm_slam.perception import make_perception
+from shgm_slam.perception import PerceptionSource, make_perception
 from shgm_slam.perception.perceive import depth_model_of
 from shgm_slam.robot.frontend import RobotFrontend
-from shgm_slam.scene_scale import resolve_robot_config, sample_scene_scale
-from shgm_slam.types import Sequence
+from shgm_slam.scene_scale import ScaleSampler, resolve_robot_config, sample_scene_scale
+from shgm_slam.types import Frame, Sequence
 
 log = logging.getLogger(__name__)
 
 
-def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig, *, max_segments: int | None = None) -> RobotFrontend:
-    """Build one robot's front end from the fleet config (with the robot's overrides merged in).
+@dataclass(frozen=True)
+class RobotPerception:
+    """A robot's configuration (the fleet's with its overrides) and perception source, before its front end.
 
-    A poses-file odometry path may contain ``{robot}``, replaced by the robot name, so every robot
-    reads its own file (e.g. ``orbslam_{robot}.txt``). Fields left None (extraction range, blob size,
-    odometry voxel, ...) are derived from the robot's first frames through its perception source
-    (``scene_scale``); the fleet values when none has usable depth (logged). The front end's ``cfg``
-    holds the resolved values. ``max_segments``: the trajectory segments it may start (``RobotFrontend``).
+    Attributes:
+        cfg: the robot's configuration (a poses file's ``{robot}`` replaced by its name).
+        perception: its perception source (models or the sequence's files).
+        written_by: the depth model a ``perceive`` folder's files came from (``perceive.json``), or None.
+        predicted: its depth comes from a network (a configured model, or files a model wrote).
+    """
+
+    cfg: ShgmConfig
+    perception: PerceptionSource
+    written_by: dict | None
+    predicted: bool
+
+    def perceive(self, frame: Frame) -> tuple[np.ndarray, np.ndarray | None]:
+        """Frame -> (depth_m (H, W) metres, label_ids (H, W) train ids or None)."""
+        out = self.perception.process(frame)
+        return out.depth_m, out.label_ids
+
+
+def robot_perception(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotPerception:
+    """The robot's configuration and perception source (the first half of ``make_frontend``).
+
+    Raises:
+        ConfigError: ground-truth odometry for a sequence without ground truth.
+        DataError, ModelError: a missing depth or label source, a model that cannot be loaded.
     """
     rcfg = cfg.for_robot(name)
     if rcfg.odometry.kind is OdometryKind.FILE and rcfg.odometry.poses_file is not None:
@@ -50,15 +73,37 @@ def make_frontend(name: str, sequence: Sequence, cfg: ShgmConfig, *, max_segment
         perception = make_perception(rcfg.perception, sequence, files_depth_predicted=written_by is not None)
     except DataError as exc:  # which robot lacks its depth or labels
         raise DataError(f"robot {name!r}: {exc}") from None
+    return RobotPerception(rcfg, perception, written_by, predicted)
 
-    def perceive(frame):
-        out = perception.process(frame)
-        return out.depth_m, out.label_ids
 
+def make_frontend(
+    name: str,
+    sequence: Sequence,
+    cfg: ShgmConfig,
+    *,
+    max_segments: int | None = None,
+    prepared: RobotPerception | None = None,
+    sampler: ScaleSampler | None = None,
+) -> RobotFrontend:
+    """Build one robot's front end from the fleet config (with the robot's overrides merged in).
+
+    A poses-file odometry path may contain ``{robot}``, replaced by the robot name, so every robot
+    reads its own file (e.g. ``orbslam_{robot}.txt``). Fields left None (extraction range, blob size,
+    odometry voxel, ...) are derived from the robot's first frames through its perception source
+    (``scene_scale``); the fleet values when none has usable depth (logged). The front end's ``cfg``
+    holds the resolved values. ``max_segments``: the trajectory segments it may start (``RobotFrontend``).
+    ``prepared`` and ``sampler``: its ``robot_perception`` and a ``ScaleSampler`` already offered its first frames
+    (frames that arrive one by one, ``live``); None: made and sampled here.
+
+    Raises:
+        ConfigError, DataError, ModelError: what ``robot_perception`` and ``check_sequence_start`` raise.
+    """
+    p = prepared or robot_perception(name, sequence, cfg)
+    rcfg, perception, written_by, predicted = p.cfg, p.perception, p.written_by, p.predicted
     # whole-sequence problems (every frame unreadable, no valid depth, a broken model) end here, not as skips
-    check_sequence_start(name, sequence, perceive, depth_model=rcfg.perception.depth_model,
+    check_sequence_start(name, sequence, p.perceive, depth_model=rcfg.perception.depth_model,
                          seg_model=rcfg.perception.seg_model)  # fmt: skip
-    scale = sample_scene_scale(sequence, perceive)
+    scale = sample_scene_scale(sequence, p.perceive) if sampler is None else sampler.result()
     if scale is None:
         log.warning("%s: no usable depth in the first frames; extraction and odometry use the fleet defaults", name)
     else:

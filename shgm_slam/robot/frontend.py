@@ -114,10 +114,12 @@ class RobotFrontend:
         self.health = (
             OdometryHealthMonitor(HealthLimits.from_config(cfg.odometry)) if cfg.odometry.health_check else None
         )
-        n = len(sequence)
-        self.T_odom_cam = np.full((n, 4, 4), np.nan)  # each frame in its own segment's odometry frame
-        self.frame_kf = np.full(n, -1, dtype=np.int64)  # last keyframe (of its segment) at or before each frame
-        self.frame_segment = np.full(n, -1, dtype=np.int64)  # segment of each frame (-1: none)
+        # per-frame rows (``T_odom_cam``, ``frame_kf``, ``frame_segment``), room for more than the sequence holds
+        # when its frames arrive one by one (``data.stream``)
+        self._T_odom_cam = np.full((0, 4, 4), np.nan)
+        self._frame_kf = np.full(0, -1, dtype=np.int64)
+        self._frame_segment = np.full(0, -1, dtype=np.int64)
+        self._fit_rows()
         self.segments: list[TrajectorySegment] = []
         self.failures: list[OdometryFailure] = []
         # the last trusted frame-to-frame motion before the last divergence (4, 4) and its frame's time, seconds
@@ -125,6 +127,32 @@ class RobotFrontend:
         self._steady = True  # the current segment has measured a step (a restarted one: not yet; ``process``)
         self.first_changed_row = 0  # the first row of the per-frame arrays the last ``process`` call changed
         self._new_segment(0)
+
+    @property
+    def T_odom_cam(self) -> np.ndarray:
+        """(N, 4, 4) each frame of the sequence in its own segment's odometry frame (NaN: in no segment)."""
+        return self._T_odom_cam[: len(self.sequence)]
+
+    @property
+    def frame_kf(self) -> np.ndarray:
+        """(N,) int64 the last keyframe (of its segment) at or before each frame (-1: none)."""
+        return self._frame_kf[: len(self.sequence)]
+
+    @property
+    def frame_segment(self) -> np.ndarray:
+        """(N,) int64 the segment of each frame (-1: none)."""
+        return self._frame_segment[: len(self.sequence)]
+
+    def _fit_rows(self) -> None:
+        """Room in the per-frame rows for every frame the sequence holds now (it grows when frames arrive one by
+        one: doubled, so that N frames cost O(N) copies)."""
+        n, held = len(self.sequence), self._T_odom_cam.shape[0]
+        if n <= held:
+            return
+        grow = max(n, 2 * held) - held
+        self._T_odom_cam = np.concatenate([self._T_odom_cam, np.full((grow, 4, 4), np.nan)])
+        self._frame_kf = np.concatenate([self._frame_kf, np.full(grow, -1, dtype=np.int64)])
+        self._frame_segment = np.concatenate([self._frame_segment, np.full(grow, -1, dtype=np.int64)])
 
     def release(self) -> None:
         """Free the models and the odometry once another process runs this robot (``robot.remote``): the
@@ -226,6 +254,7 @@ class RobotFrontend:
         """
         t0 = time.perf_counter()
         self.first_changed_row = index
+        self._fit_rows()
         frame = self.sequence[index]
         t_load = time.perf_counter()
         if self.stopped:
