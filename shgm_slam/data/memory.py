@@ -63,7 +63,7 @@ class ArraySequence(IndexedFrames):
         name: str = "in memory",
     ) -> None:
         self.name = name
-        self.intrinsics = _checked_intrinsics(intrinsics, name)
+        self.intrinsics = checked_intrinsics(intrinsics, name)
         self.depth_origin = DepthOrigin(depth_origin)
         n = len(images_rgb)
         if n == 0:
@@ -77,7 +77,7 @@ class ArraySequence(IndexedFrames):
                             "seconds")  # fmt: skip
         self._times = check_times(times, f"sequence {name!r}").copy()
         self._times.flags.writeable = False
-        self._gt = None if T_world_cam is None else _checked_poses(T_world_cam, n, name)
+        self._gt = None if T_world_cam is None else checked_poses(T_world_cam, n, name)
         self._images, self._depth, self._labels = images_rgb, depth_m, label_ids
 
     def __setstate__(self, state: dict) -> None:
@@ -146,7 +146,9 @@ class ArraySequence(IndexedFrames):
         return labels.astype(np.uint8)
 
 
-def _checked_intrinsics(intrinsics: Intrinsics, name: str) -> Intrinsics:
+def checked_intrinsics(intrinsics: Intrinsics, name: str) -> Intrinsics:
+    """``intrinsics``, refused (DataError naming sequence ``name``) unless an ``Intrinsics`` with positive finite
+    focal lengths and image size."""
     if not isinstance(intrinsics, Intrinsics):
         raise DataError(f"sequence {name!r}: intrinsics must be an Intrinsics, not {type(intrinsics).__name__}")
     focal = np.array([intrinsics.fx, intrinsics.fy], dtype=np.float64)
@@ -155,7 +157,9 @@ def _checked_intrinsics(intrinsics: Intrinsics, name: str) -> Intrinsics:
     return intrinsics
 
 
-def _checked_poses(T_world_cam: np.ndarray, n: int, name: str) -> np.ndarray:
+def checked_poses(T_world_cam: np.ndarray, n: int, name: str) -> np.ndarray:
+    """``T_world_cam`` as a read-only (n, 4, 4) float64 copy, refused (DataError naming sequence ``name`` and the
+    frame) unless every pose is finite and rigid within ``POSE_TOLERANCE``."""
     poses = np.asarray(T_world_cam, dtype=np.float64)
     if poses.shape != (n, 4, 4):
         raise DataError(f"sequence {name!r}: T_world_cam has shape {poses.shape}; give ({n}, 4, 4), one per image")

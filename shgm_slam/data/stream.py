@@ -1,0 +1,160 @@
+"""A sequence whose frames arrive one by one (a camera driver, a robot's live feed): ``live.LiveRun`` appends
+each frame as it comes, and the pipeline reads it like any other sequence.
+
+Every frame is checked when it is appended (image, depth and label shapes and types as ``ArraySequence`` checks
+them, a time later than the last frame's, a rigid ground-truth pose), so a bad frame is refused at the call that
+brought it, naming the robot and the frame. The first frame fixes what every later one carries (depth, labels,
+ground truth). A frame the pipeline has processed can be ``release``d: its arrays are dropped (a live run holds
+only the frames still to be processed) and reading it again is an error.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from shgm_slam.data.memory import ArraySequence, checked_intrinsics, checked_poses
+from shgm_slam.errors import DataError
+from shgm_slam.types import DepthOrigin, Frame, Intrinsics
+
+
+class FrameStream(ArraySequence):
+    """A ``types.Sequence`` that grows by ``append`` (module docstring).
+
+    Args:
+        intrinsics: the camera's pinhole intrinsics; ``width`` x ``height`` is every image's size.
+        depth_origin: whether the depth it will be given is measured (KISS-ICP) or predicted by a network.
+        name: the sequence's name in logs and messages (e.g. the robot's).
+
+    Raises:
+        DataError: intrinsics that are not an ``Intrinsics`` with positive focal lengths and size.
+    """
+
+    def __init__(
+        self, intrinsics: Intrinsics, *, depth_origin: DepthOrigin = DepthOrigin.MEASURED, name: str = "live"
+    ) -> None:
+        self.name = name
+        self.intrinsics = checked_intrinsics(intrinsics, name)
+        self.depth_origin = DepthOrigin(depth_origin)
+        self._n = 0
+        self._time_rows = np.zeros(64, dtype=np.float64)
+        self._gt_rows: np.ndarray | None = None
+        self._images: list[np.ndarray | None] = []
+        self._depth: list[np.ndarray | None] | None = None
+        self._labels: list[np.ndarray | None] | None = None
+        self._released = 0  # frames before this one have been released
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def _times(self) -> np.ndarray:  # type: ignore[override]
+        times = self._time_rows[: self._n]
+        times.flags.writeable = False
+        return times
+
+    @property
+    def _gt(self) -> np.ndarray | None:  # type: ignore[override]
+        if self._gt_rows is None:
+            return None
+        poses = self._gt_rows[: self._n]
+        poses.flags.writeable = False
+        return poses
+
+    def append(
+        self,
+        image_rgb: np.ndarray,
+        timestamp_s: float,
+        *,
+        depth_m: np.ndarray | None = None,
+        label_ids: np.ndarray | None = None,
+        T_world_cam: np.ndarray | None = None,
+    ) -> int:
+        """Add the next frame, checked; returns its index.
+
+        Args:
+            image_rgb: (H, W, 3) uint8 RGB or (H, W) uint8 grey.
+            timestamp_s: seconds, later than the last frame's.
+            depth_m: (H, W) float metres (0 or non-finite: invalid), or None.
+            label_ids: (H, W) integer Cityscapes train ids (0-18, 255 = ignore), or None.
+            T_world_cam: (4, 4) ground-truth camera -> world pose (KITTI camera axes), or None.
+
+        Raises:
+            DataError: a frame that differs from the first in what it carries, a time that is not finite or not
+                later than the last frame's, or an image, map or pose of the wrong shape, type or values.
+        """
+        i = self._n
+        where = f"sequence {self.name!r} frame {i}"
+        if i == 0:
+            self._depth = None if depth_m is None else []
+            self._labels = None if label_ids is None else []
+            self._gt_rows = None if T_world_cam is None else np.zeros((64, 4, 4))
+        for what, given, held in (("depth_m", depth_m, self._depth), ("label_ids", label_ids, self._labels),
+                                  ("T_world_cam", T_world_cam, self._gt_rows)):  # fmt: skip
+            if (given is None) != (held is None):
+                first = "had one" if held is not None else "had none"
+                raise DataError(f"{where}: {'no ' if given is None else ''}{what} given, but the first frame {first}; "
+                                f"give {what} with every frame or with none")  # fmt: skip
+        t = float(timestamp_s)
+        if not np.isfinite(t) or (i > 0 and t <= self._time_rows[i - 1]):
+            last = f" (the last frame's is {self._time_rows[i - 1]:.6f} s)" if i > 0 else ""
+            raise DataError(f"{where}: timestamp {timestamp_s!r} s is not a finite time later than the last "
+                            f"frame's{last}; give each frame's capture time in seconds, increasing")  # fmt: skip
+        pose = None if T_world_cam is None else checked_poses(np.asarray(T_world_cam)[None], 1, self.name)[0]
+        # the arrays as the pipeline will read them (checked, copied: the caller may reuse its buffers)
+        self._images.append(image_rgb)
+        if depth_m is not None:
+            self._depth.append(depth_m)  # type: ignore[union-attr]
+        if label_ids is not None:
+            self._labels.append(label_ids)  # type: ignore[union-attr]
+        try:
+            image = self._image(i, where)
+            depth = None if depth_m is None else self._depth_map(i, where)
+            labels = None if label_ids is None else self._label_map(i, where)
+        except DataError:
+            for held in (self._images, self._depth, self._labels):
+                if held is not None and len(held) > i:
+                    held.pop()
+            raise
+        self._images[i] = image if image is not image_rgb else image.copy()
+        if depth is not None:
+            self._depth[i] = depth  # type: ignore[index]
+        if labels is not None:
+            self._labels[i] = labels  # type: ignore[index]
+        if i == self._time_rows.shape[0]:
+            self._time_rows = np.concatenate([self._time_rows, np.zeros_like(self._time_rows)])
+            if self._gt_rows is not None:
+                self._gt_rows = np.concatenate([self._gt_rows, np.zeros_like(self._gt_rows)])
+        self._time_rows[i] = t
+        if pose is not None:
+            self._gt_rows[i] = pose  # type: ignore[index]
+        self._n = i + 1
+        return i
+
+    def release(self, index: int) -> None:
+        """Drop the arrays of frames up to ``index`` (included): they have been processed."""
+        for i in range(self._released, min(index + 1, self._n)):
+            self._images[i] = None
+            for held in (self._depth, self._labels):
+                if held is not None:
+                    held[i] = None
+        self._released = max(self._released, min(index + 1, self._n))
+
+    def __getitem__(self, index: int) -> Frame:
+        """Frame ``index`` (negative indices count from the end).
+
+        Raises:
+            IndexError: outside the frames appended so far. DataError: a frame already released.
+        """
+        i = self._index(index)
+        if self._images[i] is None:
+            raise DataError(f"sequence {self.name!r} frame {i} was processed and released; its arrays are gone")
+        return Frame(
+            index=i,
+            timestamp_s=float(self._time_rows[i]),
+            intrinsics=self.intrinsics,
+            image_rgb=self._images[i],
+            depth_m=None if self._depth is None else self._depth[i],
+            label_ids=None if self._labels is None else self._labels[i],
+            T_world_cam=None if self._gt_rows is None else self._gt_rows[i].copy(),
+            source_index=i,
+        )

@@ -1,0 +1,158 @@
+"""Frames fed one by one (``shgm_slam.live``): the results a recorded run gives, poses as frames come, clear errors."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shgm_slam import open_sequence
+from shgm_slam.api import run
+from shgm_slam.config import ShgmConfig
+from shgm_slam.data.interleave import interleave
+from shgm_slam.data.stream import FrameStream
+from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.live import LiveRun
+from shgm_slam.scene_scale import SAMPLE_SPAN_FRAMES
+from shgm_slam.types import Intrinsics
+
+NAMES = ("car1", "car2")
+
+
+def feed(live: LiveRun, sequences: dict, order: list[tuple[str, int]]) -> list:
+    """Every frame of ``order`` given to ``live`` as a camera would give it; the poses it returned, in order."""
+    poses = []
+    for robot, i in order:
+        f = sequences[robot][i]
+        poses += live.add_frame(robot, f.image_rgb, f.timestamp_s, depth_m=f.depth_m, label_ids=f.label_ids,
+                                T_world_cam=f.T_world_cam)  # fmt: skip
+    return poses
+
+
+@pytest.fixture(scope="module")
+def live_and_recorded(tiny_scenario: Path, tmp_path_factory: pytest.TempPathFactory):
+    """car1 and car2 of the tiny world: run from their folders, and fed frame by frame in the order the run takes."""
+    tmp = tmp_path_factory.mktemp("live")
+    sequences = {n: open_sequence(tiny_scenario / n) for n in NAMES}
+    recorded = run(sequences, tmp / "recorded")
+    order = list(interleave(sequences))
+    live = LiveRun({n: s.intrinsics for n, s in sequences.items()}, tmp / "live")
+    poses = feed(live, sequences, order)
+    return recorded, live, live.finish(), poses, order, sequences
+
+
+def test_frames_fed_one_by_one_give_the_recorded_runs_results(live_and_recorded) -> None:
+    recorded, _, summary, _, _, _ = live_and_recorded
+    assert (summary.matches_tried, summary.closures_accepted) == (recorded.matches_tried, recorded.closures_accepted)
+    assert summary.robots[1].localized and summary.robots[1].ate_fused_m < 2.0
+    compared = 0
+    for robot in NAMES:
+        for kind in ("fused_tum", "odometry_tum", "gt_tum"):
+            name = f"{robot}_{kind}.txt"
+            assert (recorded.out_dir / name).is_file() == (summary.out_dir / name).is_file(), name
+            if (summary.out_dir / name).is_file():
+                assert (recorded.out_dir / name).read_bytes() == (summary.out_dir / name).read_bytes(), name
+                compared += 1
+    assert compared == 6
+    assert (recorded.out_dir / "config.yaml").read_text() == (summary.out_dir / "config.yaml").read_text()
+
+
+def test_every_frame_gets_its_pose_once_in_order_and_placed_poses_are_the_fused_ones(live_and_recorded) -> None:
+    """Held frames come back at the call that starts the run; then each call returns its own frame. A pose the map
+    server had placed lies where the final fused trajectory puts it, within the corrections that came later."""
+    _, live, summary, poses, order, sequences = live_and_recorded
+    assert [(p.robot, p.index) for p in poses] == order
+    assert all(p.skipped is None for p in poses)
+    for robot in NAMES:
+        mine = [p for p in poses if p.robot == robot]
+        odo = np.loadtxt(summary.out_dir / f"{robot}_odometry_tum.txt")
+        T = np.stack([p.T_odom_cam for p in mine])
+        np.testing.assert_allclose(T[:, :3, 3], odo[:, 1:4], atol=1e-5)  # the poses returned are the written ones
+    placed = [p for p in poses if p.T_shared_cam is not None]
+    # the reference is placed from the map server's first correction on (they come at most every 0.5 s), for good
+    assert placed and placed[0].robot == "car1"
+    assert all(p.T_shared_cam is not None for p in poses if p.robot == "car1" and p.index >= placed[0].index)
+    fused = np.loadtxt(summary.out_dir / "car1_fused_tum.txt")
+    rows = {round(t, 6): xyz for t, xyz in zip(fused[:, 0], fused[:, 1:4], strict=True)}
+    errors = [np.linalg.norm(p.T_shared_cam[:3, 3] - rows[round(p.timestamp_s, 6)])
+              for p in placed if p.robot == "car1"]
+    assert max(errors) < 1.0  # where car1 was said to be live is where the final estimate puts it, within corrections
+    assert len(live.streams["car1"]._images) == len(sequences["car1"])
+    assert all(image is None for image in live.streams["car1"]._images)  # every frame run was released
+
+
+def test_the_run_starts_once_every_robot_has_sent_its_first_frames(tiny_scenario: Path, tmp_path: Path) -> None:
+    seq = open_sequence(tiny_scenario / "car1")
+    live = LiveRun({"car1": seq.intrinsics, "car2": seq.intrinsics}, tmp_path / "out")
+    got = feed(live, {"car1": seq}, [("car1", i) for i in range(min(len(seq), SAMPLE_SPAN_FRAMES) - 1)])
+    assert got == [] and live.warming == ("car2",) and not live.started
+    summary = live.finish()  # car2 never came: the run goes on without it
+    assert [r.name for r in summary.robots] == ["car1"] and summary.robots[0].localized
+    assert (summary.out_dir / "metrics.json").is_file()
+    with pytest.raises(ConfigError, match="finished"):
+        feed(live, {"car1": seq}, [("car1", 0)])
+
+
+def test_bad_frames_are_refused_at_the_call_that_brought_them(tiny_scenario: Path, tmp_path: Path) -> None:
+    seq = open_sequence(tiny_scenario / "car1")
+    f0, f1 = seq[0], seq[1]
+    with LiveRun({"car1": seq.intrinsics}, tmp_path / "out") as live:
+        live.add_frame("car1", f0.image_rgb, f0.timestamp_s, depth_m=f0.depth_m, label_ids=f0.label_ids)
+        with pytest.raises(DataError, match="later than the last"):
+            live.add_frame("car1", f1.image_rgb, f0.timestamp_s, depth_m=f1.depth_m, label_ids=f1.label_ids)
+        with pytest.raises(DataError, match="no depth_m given"):
+            live.add_frame("car1", f1.image_rgb, f1.timestamp_s, label_ids=f1.label_ids)
+        with pytest.raises(DataError, match="frame 1: depth_m has shape"):
+            live.add_frame("car1", f1.image_rgb, f1.timestamp_s, depth_m=f1.depth_m[:-1], label_ids=f1.label_ids)
+        with pytest.raises(ConfigError, match="no camera 'car3'"):
+            live.add_frame("car3", f1.image_rgb, f1.timestamp_s)
+        live.add_frame("car1", f1.image_rgb, f1.timestamp_s, depth_m=f1.depth_m, label_ids=f1.label_ids)
+        assert len(live.streams["car1"]) == 2  # the refused frames left nothing behind
+    assert (tmp_path / "out" / "metrics.json").is_file()  # leaving the block finished the run
+
+
+def test_refusals_before_any_frame(tmp_path: Path) -> None:
+    K = Intrinsics(100.0, 100.0, 64.0, 32.0, 128, 64)
+    with pytest.raises(ConfigError, match="no cameras"):
+        LiveRun({}, tmp_path / "a")
+    with pytest.raises(ConfigError, match="odometry 'file'"):
+        LiveRun({"car1": K}, tmp_path / "b",
+                config=ShgmConfig.model_validate({"odometry": {"kind": "file", "poses_file": "x.txt"}}))
+    with pytest.raises(DataError, match="intrinsics"):
+        LiveRun({"car1": "not intrinsics"}, tmp_path / "c")  # type: ignore[dict-item]
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_a_stream_drops_released_frames_and_says_so() -> None:
+    K = Intrinsics(100.0, 100.0, 4.0, 2.0, 8, 4)
+    stream = FrameStream(K, name="cam")
+    for i in range(3):
+        stream.append(np.full((4, 8), i, np.uint8), 0.1 * i, depth_m=np.full((4, 8), np.nan, np.float32))
+    assert len(stream) == 3 and stream.has_depth and not stream.has_labels and stream.gt_poses is None
+    assert stream[2].image_rgb.shape == (4, 8, 3) and (stream[2].depth_m == 0).all()  # grey replicated, NaN -> 0
+    np.testing.assert_allclose(stream.timestamps_s, [0.0, 0.1, 0.2])
+    stream.release(1)
+    with pytest.raises(DataError, match="frame 1 was processed and released"):
+        stream[1]
+    assert stream[2].image_rgb[0, 0, 0] == 2
+    with pytest.raises(DataError, match="not a finite time"):
+        stream.append(np.zeros((4, 8), np.uint8), float("nan"), depth_m=np.ones((4, 8), np.float32))
+
+
+def test_the_readme_live_example_runs(tiny_scenario: Path, tmp_path: Path, monkeypatch, capsys) -> None:
+    """The README's *Frames as cameras deliver them* example, where ``make demo``'s world is the tiny world."""
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = text[text.index("#### Frames as cameras deliver them"):]
+    found = re.search(r"```python\n(.*?)```", section, re.S)
+    assert found, "README: *Frames as cameras deliver them* has no python block"
+    (tmp_path / "cache").mkdir()
+    (tmp_path / "cache" / "airsim-like-seed0").symlink_to(tiny_scenario)
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {"__name__": "readme_live_example"}
+    exec(compile(found.group(1), "README.md", "exec"), namespace)
+    summary = namespace["summary"]
+    assert summary.out_dir == Path("results/live") and [r.name for r in summary.robots] == ["car1", "car2"]
+    assert "car1" in namespace["joined"] and (summary.out_dir / "metrics.json").is_file()
+    assert "car1 joined at frame" in capsys.readouterr().out
