@@ -246,6 +246,38 @@ def bench_distributed(
     console.print(f"wrote {lit(out / 'distributed.json')} and {lit(out / 'distributed.md')}")
 
 
+@bench_app.command("live")
+@handle_errors
+@stops_like_ctrl_c
+def bench_live(
+    out: Annotated[Path, results_folder("benchmark folder")] = Path("results/bench_live"),
+    robot: Annotated[
+        list[str] | None,
+        typer.Option("--robot", "-r", help="NAME=PATH[:start-end]; repeat per robot", show_default="the demo world"),
+    ] = None,
+    cache: Annotated[Path, typer.Option(help="the demo world is cached here")] = Path("cache"),
+    seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="demo world seed")] = 0,
+    config: Annotated[Path | None, typer.Option("--config", help="YAML config (see dump-config)")] = None,
+) -> None:
+    """The same robots run from their recorded sequences and fed frame by frame to a LiveRun, side by side: the
+    same results?, frames held before the run starts, each add_frame call's wall time against the recorded run's
+    per-frame step."""
+    from shgm_slam.bench.live import live_markdown, run_live_benchmark
+    from shgm_slam.config import load_config
+    from shgm_slam.demo import prepare_world
+    from shgm_slam.runner import open_robots
+
+    if not robot:
+        world, kinds = prepare_world(cache, seed, lambda folder: simulate_with_progress("airsim-like", folder, seed,
+                                                                                           cached=True))
+        robot = [f"{name}={world / name}" for name in kinds]
+    robots = open_robots(robot)
+    with console.status("starting") as status:
+        results = run_live_benchmark(robots, out, config=load_config(config), progress=lambda msg: status.update(msg))
+    print_report(live_markdown(results))
+    console.print(f"wrote {lit(out / 'live.json')} and {lit(out / 'live.md')}")
+
+
 @bench_app.command("heldout")
 @handle_errors
 @stops_like_ctrl_c
