@@ -6,8 +6,8 @@ Localization in Large Scale Environment", RA-L 2021, as an incremental SLAM plug
 From Python (``api``): ``run`` the multi-robot system on sequences (``open_sequence`` for folders,
 ``ArraySequence`` for frames in memory), ``match`` two semantic graphs, ``read_fused`` a robot's fused
 trajectory and ``evaluate`` a results folder; ``LiveRun`` (``live``) takes frames one by one as cameras
-deliver them. The names below load their modules when first used, so
-``import shgm_slam`` stays light.
+deliver them, ``LiveRobot`` one robot's frames for a map server over Zenoh. The names below load their
+modules when first used, so ``import shgm_slam`` stays light.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ _EXPORTS = {
     "GraphMatch": "shgm_slam.api",
     "LiveRun": "shgm_slam.live",
     "LivePose": "shgm_slam.live",
+    "LiveRobot": "shgm_slam.live",
     "ArraySequence": "shgm_slam.data.memory",
     "open_sequence": "shgm_slam.data.base",
     "read_graph": "shgm_slam.io.graph_json",

@@ -15,8 +15,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-
 from shgm_slam.backend.keys import MAX_AGENTS, segments_per_robot
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
@@ -360,15 +358,6 @@ class FleetRun:
                 sum(server_node.timings_ms["write"][n_write:]), sum(server_node.timings_ms["correction"][n_corr:]),
             ))  # fmt: skip
         return res
-
-    def T_shared_cam(self, robot: str, res: FrameResult) -> np.ndarray | None:
-        """(4, 4) where the camera of the frame ``res`` (just stepped) lies in the shared frame as the robot's node
-        knows it now (its segment's odometry frame placed by the map server's last correction), or None: the
-        segment is not placed, or the frame belongs to no segment."""
-        T_shared_odom = self.nodes[robot].T_shared_odom(res.agent)
-        if T_shared_odom is None or not np.isfinite(res.T_odom_cam).all():
-            return None
-        return T_shared_odom @ res.T_odom_cam
 
     def finish(self, *, interrupted: bool = False) -> RunSummary:
         """Every robot done: the final matching (none when ``interrupted``), the results folder, the evaluation

@@ -268,3 +268,33 @@ def test_a_robot_that_leaves_before_the_server_finishes_and_a_stopped_server_say
     assert "car1: connected (1 of 3 robots expected)" in said and "car1: sent its last keyframe" in said
     s = json.loads((tmp_path / "out" / "server.json").read_text())
     assert s["interrupted"] is True  # "finished": its results are written, after the stop
+
+
+def test_a_robot_fed_frame_by_frame_joins_the_fleet(tiny_scenario: Path, tmp_path: Path) -> None:
+    """``LiveRobot``: car2's frames given one by one in this process (as its camera would give them), car1 a
+    ``shgm-slam robot`` process: the server places car2 as for a recorded robot, and car2's own poses say so."""
+    from shgm_slam import open_sequence
+    from shgm_slam.config import ShgmConfig
+    from shgm_slam.live import LiveRobot
+
+    port = _free_port()
+    server = _server(tmp_path, port)
+    car1 = _robot("car1", tiny_scenario / "car1", port)
+    seq = open_sequence(tiny_scenario / "car2")
+    cfg = ShgmConfig.model_validate({"odometry": {"kind": "gt"}})
+    poses = []
+    with LiveRobot("car2", seq.intrinsics, config=cfg, connect=f"tcp/127.0.0.1:{port}", out=tmp_path / "car2",
+                   wait_s=90) as robot:  # fmt: skip
+        for f in seq:
+            poses += robot.add_frame(f.image_rgb, f.timestamp_s, depth_m=f.depth_m, label_ids=f.label_ids,
+                                     T_world_cam=f.T_world_cam)  # fmt: skip
+            robot.poll(timeout_s=0.01)
+        summary = robot.finish()
+    _wait(car1, "robot car1")
+    _wait(server, "server")
+    _check_results(tmp_path, tiny_scenario)
+    assert [p.index for p in poses] == list(range(len(seq)))
+    assert summary.acknowledged and summary.server_finished and summary.placed_agents == ["car2"]
+    assert summary.frames == summary.frames_processed == len(seq)
+    _, T = read_tum(tmp_path / "car2" / "car2_fused_tum.txt")
+    assert len(T) == len(seq)

@@ -114,15 +114,33 @@ def drive_robot(
         acknowledged = node.wait_acknowledged(wait_s, until_finished=not interrupted)
         if not node.all_acknowledged():
             log.warning("%s: the map server did not acknowledge every keyframe within %.0f s", name, wait_s)
+    if out_dir is not None:
+        write_robot_trajectories(out_dir, node)
+    return drive_summary(node, processed, acknowledged, time.perf_counter() - t_start, interrupted, skipped)
+
+
+def write_robot_trajectories(out_dir: Path, node: RobotNode) -> None:
+    """The robot's odometry and fused trajectories (``<robot>_odometry_tum.txt``, ``<robot>_fused_tum.txt``, ...) in
+    ``out_dir``, as its node holds them; the fused one flagged provisional where the server said so."""
+    front = node.front
     placed = [s.agent for s in front.segments if node.T_shared_odom(s.agent) is not None]
     provisional = [a for a in placed if a in node.provisional_agents]
-    if out_dir is not None:
-        why = "placed provisionally by the map server (no independent match confirms it yet): "
-        ResultsWriter(out_dir).write_trajectories(name, times, front.T_odom_cam, node.fused(),
-                                                  provisional=why + ", ".join(provisional) if provisional else None)
+    why = "placed provisionally by the map server (no independent match confirms it yet): "
+    times = np.asarray(front.sequence.timestamps_s, dtype=np.float64)
+    ResultsWriter(out_dir).write_trajectories(node.name, times, front.T_odom_cam, node.fused(),
+                                              provisional=why + ", ".join(provisional) if provisional else None)
+
+
+def drive_summary(
+    node: RobotNode, processed: int, acknowledged: bool, wall_s: float, interrupted: bool, skipped: list[str]
+) -> DriveSummary:
+    """What a robot process did, once its node has sent its last keyframe and waited for the server
+    (``acknowledged``: ``RobotNode.wait_acknowledged``'s answer)."""
+    front = node.front
+    placed = [s.agent for s in front.segments if node.T_shared_odom(s.agent) is not None]
     return DriveSummary(
-        name, node.session, len(sequence), processed, node.keyframes_sent, node.all_acknowledged(),
+        node.name, node.session, len(front.sequence), processed, node.keyframes_sent, node.all_acknowledged(),
         node.server_finished and acknowledged, placed, dict(node.bytes_sent), dict(node.bytes_received),
-        node.resent, time.perf_counter() - t_start, interrupted, skipped, provisional,
+        node.resent, wall_s, interrupted, skipped, [a for a in placed if a in node.provisional_agents],
         [s.agent for s in front.segments if s.agent in node.waiting_agents],
     )  # fmt: skip
