@@ -2,10 +2,12 @@
 folder) stepped by ``LiveRun.add_frame`` instead of a recorded sequence.
 
 Each robot's first frames set its data-derived settings (extraction range, blob size, odometry voxel: the camera's
-height above the ground and the depth it sees, ``scene_scale``), so frames are held until every robot has sent
+height above the ground and the depth it sees, ``scene_scale``), so a robot's frames are held until it has sent
 enough of them (``ScaleSampler``: five frames that show the ground, 0.5 s apart: 21 frames at 10 fps where the ground
-shows from the start, at most ``SAMPLE_SPAN_FRAMES``); the held frames are then
-run in the order they came, and from then on every ``add_frame`` runs its frame at once and returns its pose. Frames
+shows from the start, at most ``SAMPLE_SPAN_FRAMES``). The run starts once the first robot (the shared frame's)
+and every other robot that has sent frames are that far; a robot whose camera starts later joins the running system
+once its own first frames are in. Held frames run in the order they came, and from then on every ``add_frame`` of
+a running robot runs its frame at once and returns its pose. Frames
 given in the order ``run`` would take them (``data.interleave``: by time) give the same results as ``run`` on the
 recorded sequences, file for file, where the depth is measured (a network's depth, scaled to the camera height, is
 scaled from the frames seen so far, not from frames spread over the whole sequence). A frame the pipeline has run is
@@ -211,7 +213,9 @@ class LiveRun:
         self._viz = make_viz(mode, robots=list(cameras), save_path=self.out_dir / "run.rrd", connect_url=viewer_url,
                              max_cloud_points=8000)  # fmt: skip
         self._warmups = {r: Warmup(r, stream, cfg) for r, stream in self.streams.items()}
-        self._held: list[tuple[str, int]] = []  # frames that came before the run started, in order
+        self._predicted = [r for r in cameras if cfg.for_robot(r).perception.depth_model is not None
+                           or DepthOrigin(origins[r]) is DepthOrigin.PREDICTED]  # fmt: skip
+        self._held: list[tuple[str, int]] = []  # frames of robots that do not run yet, in the order they came
         self._fleet: FleetRun | None = None
         self._summary: RunSummary | None = None
         self._closed = False  # finished, or ended by an error: no more frames
@@ -220,12 +224,12 @@ class LiveRun:
 
     @property
     def started(self) -> bool:
-        """Every robot's first frames have come and the run has started (frames now run as they arrive)."""
+        """The run has started (the first robot's first frames and those of every robot that had sent any were in)."""
         return self._fleet is not None
 
     @property
     def warming(self) -> tuple[str, ...]:
-        """The robots whose first frames are still too few to set their settings (frames are held until none)."""
+        """The robots whose first frames are still too few to set their settings (their frames are held)."""
         return tuple(r for r, w in self._warmups.items() if not w.ready)
 
     def add_frame(
@@ -238,7 +242,8 @@ class LiveRun:
         label_ids: np.ndarray | None = None,
         T_world_cam: np.ndarray | None = None,
     ) -> list[LivePose]:
-        """Give the robot's next frame; run it (or hold it while robots are ``warming``).
+        """Give the robot's next frame; run it, or hold it while the robot (or, before the run starts, another robot
+        that has sent frames, or the first robot) is ``warming``.
 
         Args:
             robot: one of the cameras' names.
@@ -249,8 +254,8 @@ class LiveRun:
             T_world_cam: (4, 4) ground-truth pose, for the run's ATE (every frame or none), or None.
 
         Returns:
-            The frames this call ran, in order: this one once the run has started; none while it is held; every
-            held frame at the call that starts the run.
+            The frames this call ran, in the order they came: this one once its robot runs; none while it is held;
+            the held frames at the call that starts the run or lets a robot join it.
 
         Raises:
             ConfigError: an unknown robot, or the run has finished. DataError: a bad frame (nothing is changed:
@@ -262,18 +267,15 @@ class LiveRun:
         if stream is None:
             raise ConfigError(f"no camera {robot!r} in this run; its cameras are {', '.join(self.streams)}")
         index = stream.append(image_rgb, timestamp_s, depth_m=depth_m, label_ids=label_ids, T_world_cam=T_world_cam)
-        if self._fleet is not None:
+        if self._fleet is not None and robot in self._fleet.fronts:
             return [self._step(robot, index)]
         self._held.append((robot, index))
         with self._failing():
             self._warmups[robot].offer(index)
-            if self.warming:
-                return []
-            self._start()
-            return self._run_held()
+            return self._advance()
 
     def finish(self) -> RunSummary:
-        """End the run: hold nothing back (robots still warming start with the frames they sent), the final
+        """End the run: hold nothing back (robots still warming join with the frames they sent), the final
         whole-graph matching, the results folder and its summary (``metrics.json``). Robots that sent no frame are
         left out (a warning). Once finished, the run takes no more frames; ``finish`` again returns the summary.
 
@@ -284,10 +286,11 @@ class LiveRun:
             return self._summary
         self._check_open()
         with self._failing():
-            if self._fleet is None:
-                self._start()
-                self._run_held()
+            self._advance(final=True)
             assert self._fleet is not None
+            for r in self.streams.keys() - self._fleet.fronts.keys():
+                log.warning("%s: no frame was given; the run went on without it", r)
+                self._viz.log_text(f"{r}: no frame was given; the run went on without it", "WARN")
             self._summary = self._fleet.finish()
         self._release()
         return self._summary
@@ -318,23 +321,33 @@ class LiveRun:
             how = "finished" if self._summary is not None else f"ended with an error ({self.out_dir} is incomplete)"
             raise ConfigError(f"this live run has {how}; start a new LiveRun for more frames")
 
-    def _start(self) -> None:
-        """Every robot's front end, from its first frames, and the run (robots without frames left out)."""
+    def _advance(self, *, final: bool = False) -> list[LivePose]:
+        """Start the run once the first robot and every robot that has sent frames are warm (``final``: with what
+        they sent), let the robots that have warmed up since join it, and run the frames held for the robots that
+        run; returns their poses in the order the frames came."""
         from shgm_slam.runner import FleetRun
 
-        robots = {r: s for r, s in self.streams.items() if len(s)}
-        if not robots:
-            raise DataError(f"no frames were given to any of the cameras ({', '.join(self.streams)}); nothing to run")
-        for r in self.streams.keys() - robots.keys():
-            log.warning("%s: no frame was given; the run goes on without it", r)
-            self._viz.log_text(f"{r}: no frame was given; the run goes on without it", "WARN")
-        fronts = {r: self._warmups[r].frontend(self._share) for r in robots}
-        self._fleet = FleetRun(robots, self.cfg, self.out_dir, fronts, viz=self._viz,
-                               gt_shared_frame=self.gt_shared_frame)  # fmt: skip
-
-    def _run_held(self) -> list[LivePose]:
-        held, self._held = self._held, []
-        return [self._step(r, i) for r, i in held]
+        sent = [r for r, stream in self.streams.items() if len(stream)]
+        if self._fleet is None:
+            if not sent:
+                raise DataError(f"no frames were given to any of the cameras ({', '.join(self.streams)}); "
+                                "nothing to run")  # fmt: skip
+            reference = next(iter(self.streams))
+            if not final and not (reference in sent and all(self._warmups[r].ready for r in sent)):
+                return []
+            # at the end, a first camera that never sent a frame leaves the shared frame to the next one
+            robots = {r: self.streams[r] for r in (sent if final else self.streams)}
+            fronts = {r: self._warmups[r].frontend(self._share) for r in sent}
+            self._fleet = FleetRun(robots, self.cfg, self.out_dir, fronts, viz=self._viz,
+                                   gt_shared_frame=self.gt_shared_frame, predicted=self._predicted)  # fmt: skip
+        fleet = self._fleet
+        for r in sent:
+            if r not in fleet.fronts and r in fleet.robots and (final or self._warmups[r].ready):
+                fleet.add_robot(r, self._warmups[r].frontend(self._share))
+                log.info("%s: joined the running system (its first frames set its settings)", r)
+        now = [(r, i) for r, i in self._held if r in fleet.fronts]
+        self._held = [(r, i) for r, i in self._held if r not in fleet.fronts]
+        return [self._step(r, i) for r, i in now]
 
     def _step(self, robot: str, index: int) -> LivePose:
         from shgm_slam.interrupts import stops_deferred

@@ -118,10 +118,12 @@ def check_out_outside_sequences(out: Path, robots: dict[str, Sequence]) -> None:
             check_outside_sequence(out, root, f"of robot {name!r} ")
 
 
-def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend]) -> ShgmConfig:
+def fleet_backend(cfg: ShgmConfig, fronts: dict[str, RobotFrontend], predicted: list[str] | None = None) -> ShgmConfig:
     """``cfg`` with the back end's depth-dependent values (still None) set from where the fleet's depth comes
-    from (``BackendConfig.for_depth``: predicted when any robot's depth model predicts it)."""
-    predicted = [r for r, f in fronts.items() if f.depth_predicted]
+    from (``BackendConfig.for_depth``: predicted when any robot's depth model predicts it). ``predicted``: the
+    robots whose depth is predicted, when robots without a front end yet belong to the fleet (None: ``fronts``')."""
+    if predicted is None:
+        predicted = [r for r, f in fronts.items() if f.depth_predicted]
     backend = cfg.backend.for_depth(predicted_depth=bool(predicted))
     if predicted and backend != cfg.backend:
         log.info("odometry on predicted depth (%s): pose-graph odometry sigmas grow %.3f rad and %.0f %% per "
@@ -253,15 +255,19 @@ def run_slam(
 class FleetRun:
     """One run of the whole system, frame by frame: the robots' nodes and the map server on the in-process bus,
     the viewer and the results folder. ``run_slam`` steps it through a recorded schedule; ``live.LiveRun`` through
-    frames as they arrive (the robots' sequences then grow between steps).
+    frames as they arrive (the robots' sequences then grow between steps, and a robot without a front end yet
+    joins later: ``add_robot``).
 
     Args:
-        robots: robot name -> sequence (order matters: the first robot defines the shared frame).
+        robots: robot name -> sequence, every robot of the fleet (order matters: the first robot defines the shared
+            frame; it must have a front end from the start).
         cfg: the fleet configuration.
         out_dir: results folder (written into at once: ground truth, ``config.yaml``).
-        fronts: the robots' front ends (``prepare_frontends``, or ``ParallelFrontends``' mirrors).
+        fronts: the front ends of the robots that run from the start (``prepare_frontends``, or
+            ``ParallelFrontends``' mirrors).
         viz: viewer (``NullLogger`` when None).
         gt_shared_frame, write_every_keyframes, journal: as for ``run_slam``.
+        predicted: the robots whose depth is predicted (``fleet_backend``; None: those of ``fronts``).
     """
 
     def __init__(
@@ -275,13 +281,15 @@ class FleetRun:
         gt_shared_frame: bool = True,
         write_every_keyframes: int = 25,
         journal: bool = False,
+        predicted: list[str] | None = None,
     ) -> None:
         names = list(robots)
+        fronts = dict(fronts)
         self.robots, self.fronts, self.out_dir, self.gt_shared_frame = robots, fronts, Path(out_dir), gt_shared_frame
         self.viz = viz = viz or NullLogger()
         self.writer = ResultsWriter(out_dir)
-        self.writer.write_ground_truth(robots, gt_shared_frame)  # <robot>_gt_tum.txt, for evo and `shgm-slam eval`
-        cfg = fleet_backend(cfg, fronts)
+        self.writer.write_ground_truth(self.joined, gt_shared_frame)  # <robot>_gt_tum.txt, for evo and `shgm-slam eval`
+        self.cfg = cfg = fleet_backend(cfg, fronts, predicted)
         # the same nodes as the distributed deployment, on the in-process bus (every message is encoded)
         bus = InProcessBus()
         self.server_node = ServerNode(
@@ -289,6 +297,7 @@ class FleetRun:
             write_every_keyframes=write_every_keyframes, stale_after_s=float("inf"),  # one process: never silent
             order_keyframes=False,  # the frames come in the server's keyframe order already (``interleave``)
         )  # fmt: skip
+        self._bus = bus
         self.nodes = {r: RobotNode(f, InProcessTransport(bus)) for r, f in fronts.items()}
         for node in self.nodes.values():
             node.hello()
@@ -296,7 +305,7 @@ class FleetRun:
         self.server = self.server_node.map
         viz.setup({r: seq.intrinsics for r, seq in robots.items()})
         self.view = RunView(viz)
-        self.writer.write_text("config.yaml", effective_config(cfg, {r: f.cfg for r, f in fronts.items()}).to_yaml())
+        self._write_config()
         self.timings = StageTimings()
         self.skipped: list[str] = []
         self.processed = dict.fromkeys(names, 0)
@@ -308,6 +317,32 @@ class FleetRun:
         self.kf_total = 0
         self.watch = PlacementWatch()
         self.finished = False
+
+    @property
+    def joined(self) -> dict[str, Sequence]:
+        """The sequences of the robots that run (those with a front end), in the fleet's order."""
+        return {r: seq for r, seq in self.robots.items() if r in self.fronts}
+
+    def add_robot(self, robot: str, front: RobotFrontend) -> None:
+        """A robot of the fleet that had no front end yet joins the running system (its node says hello to the map
+        server; ``config.yaml`` gets its settings).
+
+        Raises:
+            ConfigError: ``robot`` is not in the fleet or runs already.
+        """
+        if robot not in self.robots or robot in self.fronts:
+            raise ConfigError(f"robot {robot!r} cannot join: it is not in this run, or runs already")
+        fronts = {**self.fronts, robot: front}
+        self.fronts = {r: fronts[r] for r in self.robots if r in fronts}  # in the fleet's order (reports, files)
+        self.nodes[robot] = node = RobotNode(front, InProcessTransport(self._bus))
+        node.hello()
+        self.server_node.poll()
+        self._write_config()
+
+    def _write_config(self) -> None:
+        """``config.yaml``: the fleet configuration with every running robot's derived values."""
+        fronts = {r: f.cfg for r, f in self.fronts.items()}
+        self.writer.write_text("config.yaml", effective_config(self.cfg, fronts).to_yaml())
 
     def step(self, robot: str, index: int, on_frame: FrameFn | None = None) -> FrameResult | None:
         """Run frame ``index`` of ``robot`` through its node and the map server, log it and count it.
@@ -362,7 +397,7 @@ class FleetRun:
     def finish(self, *, interrupted: bool = False) -> RunSummary:
         """Every robot done: the final matching (none when ``interrupted``), the results folder, the evaluation
         against ground truth where the sequences have it, and the summary (also in ``metrics.json``)."""
-        fronts, server, server_node, viz, robots = self.fronts, self.server, self.server_node, self.viz, self.robots
+        fronts, server, server_node, viz = self.fronts, self.server, self.server_node, self.viz
         self.finished = True
         if interrupted:  # no final matching: write what there is
             server_node.expect = None
@@ -382,8 +417,9 @@ class FleetRun:
             self.view.finish(server, fronts.values())  # the viewer ends on the final estimate, not the last keyframe's
         for node in self.nodes.values():
             node.poll()
-        self.writer.write_ground_truth(robots, self.gt_shared_frame)  # frames that arrived one by one: all of them
-        reports, ate_joint_m = evaluate(fronts, server, robots, self.processed, self.gt_shared_frame, self.reached)
+        joined = self.joined  # (robots that never joined: no report)
+        self.writer.write_ground_truth(joined, self.gt_shared_frame)  # frames that arrived one by one: all of them
+        reports, ate_joint_m = evaluate(fronts, server, joined, self.processed, self.gt_shared_frame, self.reached)
         report_placement(reports, fronts, server)
         report_degenerate(reports, fronts, self.image_change)
         _say_warnings(reports, viz)

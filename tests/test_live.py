@@ -15,7 +15,6 @@ from shgm_slam.data.interleave import interleave
 from shgm_slam.data.stream import FrameStream
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.live import LiveRun
-from shgm_slam.scene_scale import SAMPLE_SPAN_FRAMES
 from shgm_slam.types import Intrinsics
 
 NAMES = ("car1", "car2")
@@ -83,13 +82,36 @@ def test_every_frame_gets_its_pose_once_in_order_and_placed_poses_are_the_fused_
     assert all(image is None for image in live.streams["car1"]._images)  # every frame run was released
 
 
-def test_the_run_starts_once_every_robot_has_sent_its_first_frames(tiny_scenario: Path, tmp_path: Path) -> None:
+def test_a_camera_that_starts_late_joins_the_running_system(tiny_scenario: Path, tmp_path: Path) -> None:
+    """car1 drives on its own (the run starts once its first frames are in); car2's camera comes 40 frames later
+    and joins once its own first frames are in; the files list both in the fleet's order."""
+    sequences = {n: open_sequence(tiny_scenario / n) for n in NAMES}
+    live = LiveRun({n: s.intrinsics for n, s in sequences.items()}, tmp_path / "out")
+    alone = feed(live, sequences, [("car1", i) for i in range(40)])
+    assert live.started and live.warming == ("car2",)
+    assert [p.index for p in alone] == list(range(40))  # held until car1 was warm, then every frame at once
+    late = [("car1", i) for i in range(40, len(sequences["car1"]))]
+    late += [("car2", i) for i in range(len(sequences["car2"]))]
+    late.sort(key=lambda ri: (sequences[ri[0]].timestamps_s[ri[1]] + (5.0 if ri[0] == "car2" else 0.0), ri[0]))
+    poses = feed(live, sequences, late)
+    assert sorted((p.robot, p.index) for p in poses) == sorted(late)  # every frame once
+    first_car2 = next(k for k, p in enumerate(poses) if p.robot == "car2")
+    assert poses[first_car2].index == 0 and not live.warming
+    summary = live.finish()
+    assert [r.name for r in summary.robots] == ["car1", "car2"] and summary.robots[0].localized
+    assert (summary.out_dir / "car2_odometry_tum.txt").is_file() and (summary.out_dir / "car2_gt_tum.txt").is_file()
+    assert "car2" in (summary.out_dir / "config.yaml").read_text()
+
+
+def test_a_camera_that_never_sends_is_left_out(tiny_scenario: Path, tmp_path: Path, caplog) -> None:
     seq = open_sequence(tiny_scenario / "car1")
     live = LiveRun({"car1": seq.intrinsics, "car2": seq.intrinsics}, tmp_path / "out")
-    got = feed(live, {"car1": seq}, [("car1", i) for i in range(min(len(seq), SAMPLE_SPAN_FRAMES) - 1)])
-    assert got == [] and live.warming == ("car2",) and not live.started
-    summary = live.finish()  # car2 never came: the run goes on without it
+    got = feed(live, {"car1": seq}, [("car1", i) for i in range(len(seq))])
+    assert len(got) == len(seq) and live.warming == ("car2",)
+    with caplog.at_level("WARNING"):
+        summary = live.finish()
     assert [r.name for r in summary.robots] == ["car1"] and summary.robots[0].localized
+    assert "car2: no frame was given" in caplog.text
     assert (summary.out_dir / "metrics.json").is_file()
     with pytest.raises(ConfigError, match="finished"):
         feed(live, {"car1": seq}, [("car1", 0)])
