@@ -105,6 +105,24 @@ def checked_robots(robots: Mapping[str, Sequence]) -> dict[str, Sequence]:
     return dict(robots)
 
 
+def viewer_mode(viewer: RerunMode | str | None, viewer_url: str | None = None) -> RerunMode:
+    """``viewer`` as a ``RerunMode`` (None: ``OFF``); for ``CONNECT``, ``viewer_url`` (default: this machine's
+    viewer) checked before any work.
+
+    Raises:
+        ConfigError: an unknown mode, or a malformed URL.
+    """
+    from shgm_slam.viz.rerun_logger import DEFAULT_CONNECT_URL, RerunMode, viewer_address
+
+    try:
+        mode = RerunMode.OFF if viewer is None else RerunMode(viewer)
+    except ValueError:
+        raise ConfigError(f"viewer {viewer!r}: choose one of {', '.join(m.value for m in RerunMode)}") from None
+    if mode is RerunMode.CONNECT:
+        viewer_address(viewer_url or DEFAULT_CONNECT_URL)
+    return mode
+
+
 def run(
     robots: Mapping[str, Sequence],
     out: Path | str | None = None,
@@ -148,18 +166,13 @@ def run(
     """
     from shgm_slam.io.export import claimed_results_dir
     from shgm_slam.runner import check_out_outside_sequences, prepare_frontends, run_slam
-    from shgm_slam.viz.rerun_logger import DEFAULT_CONNECT_URL, RerunMode, make_viz, viewer_address
+    from shgm_slam.viz.rerun_logger import make_viz
 
     robots = checked_robots(robots)
     cfg = config_of(config)
     if not (isinstance(jobs, int) and jobs >= 1):
         raise ConfigError(f"jobs {jobs!r}: give a whole number of worker processes, at least 1")
-    try:
-        mode = RerunMode.OFF if viewer is None else RerunMode(viewer)
-    except ValueError:
-        raise ConfigError(f"viewer {viewer!r}: choose one of {', '.join(m.value for m in RerunMode)}") from None
-    if mode is RerunMode.CONNECT:
-        viewer_address(viewer_url or DEFAULT_CONNECT_URL)  # a malformed URL is refused before any work
+    mode = viewer_mode(viewer, viewer_url)
     if out is not None:
         check_out_outside_sequences(Path(out), robots)
     fronts = prepare_frontends(robots, cfg)

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from shgm_slam.api import config_of
+from shgm_slam.api import config_of, viewer_mode
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data.stream import FrameStream
 from shgm_slam.errors import ConfigError, DataError
@@ -190,7 +190,7 @@ class LiveRun:
         from shgm_slam.io.export import make_results_dir
         from shgm_slam.runner import check_fleet
         from shgm_slam.transport.keys import validate_robot_name
-        from shgm_slam.viz.rerun_logger import DEFAULT_CONNECT_URL, RerunMode, make_viz, viewer_address
+        from shgm_slam.viz.rerun_logger import make_viz
 
         if not isinstance(cameras, Mapping) or not cameras:
             raise ConfigError("no cameras given: pass {robot name: Intrinsics}, e.g. {'car1': Intrinsics(...)}")
@@ -202,12 +202,7 @@ class LiveRun:
         if set(origins) != set(cameras):
             raise ConfigError(f"depth_origin names robots {sorted(origins)}; give one for each of {list(cameras)}")
         self.streams = {r: FrameStream(K, depth_origin=origins[r], name=r) for r, K in cameras.items()}
-        try:
-            mode = RerunMode.OFF if viewer is None else RerunMode(viewer)
-        except ValueError:
-            raise ConfigError(f"viewer {viewer!r}: choose one of {', '.join(m.value for m in RerunMode)}") from None
-        if mode is RerunMode.CONNECT:
-            viewer_address(viewer_url or DEFAULT_CONNECT_URL)  # a malformed URL is refused before any work
+        mode = viewer_mode(viewer, viewer_url)
         self.gt_shared_frame = gt_shared_frame
         self.out_dir = make_results_dir(None if out is None else Path(out), overwrite=overwrite)
         self._viz = make_viz(mode, robots=list(cameras), save_path=self.out_dir / "run.rrd", connect_url=viewer_url,
@@ -525,11 +520,12 @@ class LiveRobot:
     def __exit__(
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        if self._summary is None and (kind is None or len(self.stream)):
-            if kind is None:
-                self.finish()
-            else:  # an error or a stop: the link goes; the server keeps what it holds and waits for the robot
-                self._transport.close()
+        if self._summary is not None:
+            return
+        if kind is None:
+            self.finish()
+        else:  # an error or a stop: the link goes; the server keeps what it holds and waits for the robot
+            self._transport.close()
 
     def _start(self) -> None:
         from shgm_slam.robot.node import RobotNode

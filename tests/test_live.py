@@ -178,3 +178,26 @@ def test_the_readme_live_example_runs(tiny_scenario: Path, tmp_path: Path, monke
     assert summary.out_dir == Path("results/live") and [r.name for r in summary.robots] == ["car1", "car2"]
     assert "car1" in namespace["joined"] and (summary.out_dir / "metrics.json").is_file()
     assert "car1 joined at frame" in capsys.readouterr().out
+
+
+def test_the_viewer_gets_the_live_run(tiny_scenario: Path, tmp_path: Path) -> None:
+    from shgm_slam.viz.rerun_logger import RerunMode
+
+    seq = open_sequence(tiny_scenario / "car1")
+    with LiveRun({"car1": seq.intrinsics}, tmp_path / "out", viewer=RerunMode.SAVE) as live:
+        feed(live, {"car1": seq}, [("car1", i) for i in range(30)])
+    assert (tmp_path / "out" / "run.rrd").stat().st_size > 10_000
+    with pytest.raises(ConfigError, match="viewer 'nowhere'"):
+        LiveRun({"car1": seq.intrinsics}, tmp_path / "other", viewer="nowhere")  # type: ignore[arg-type]
+
+
+def test_a_live_robot_refuses_a_bad_endpoint_and_a_poses_file(tmp_path: Path) -> None:
+    from shgm_slam.live import LiveRobot
+
+    K = Intrinsics(100.0, 100.0, 64.0, 32.0, 128, 64)
+    with pytest.raises(ConfigError):
+        LiveRobot("car1", K, connect="not an endpoint")
+    with pytest.raises(ConfigError, match="odometry 'file'"):
+        LiveRobot("car1", K, config=ShgmConfig.model_validate({"odometry": {"kind": "file", "poses_file": "x.txt"}}))
+    with pytest.raises(ConfigError):
+        LiveRobot("server", K)  # a reserved name
