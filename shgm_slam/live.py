@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -214,6 +215,7 @@ class LiveRun:
         self._fleet: FleetRun | None = None
         self._summary: RunSummary | None = None
         self._closed = False  # finished, or ended by an error: no more frames
+        self._lock = threading.RLock()  # cameras' threads may call at once: one frame at a time
 
     # --- feeding -------------------------------------------------------------------------------
 
@@ -257,17 +259,19 @@ class LiveRun:
                 fix it and give it again), or a robot's first frames cannot be used (no valid depth, ...).
             ModelError: a model whose output is unusable on the robot's first frames.
         """
-        self._check_open()
-        stream = self.streams.get(robot)
-        if stream is None:
-            raise ConfigError(f"no camera {robot!r} in this run; its cameras are {', '.join(self.streams)}")
-        index = stream.append(image_rgb, timestamp_s, depth_m=depth_m, label_ids=label_ids, T_world_cam=T_world_cam)
-        if self._fleet is not None and robot in self._fleet.fronts:
-            return [self._step(robot, index)]
-        self._held.append((robot, index))
-        with self._failing():
-            self._warmups[robot].offer(index)
-            return self._advance()
+        with self._lock:
+            self._check_open()
+            stream = self.streams.get(robot)
+            if stream is None:
+                raise ConfigError(f"no camera {robot!r} in this run; its cameras are {', '.join(self.streams)}")
+            index = stream.append(image_rgb, timestamp_s, depth_m=depth_m, label_ids=label_ids,
+                                  T_world_cam=T_world_cam)  # fmt: skip
+            if self._fleet is not None and robot in self._fleet.fronts:
+                return [self._step(robot, index)]
+            self._held.append((robot, index))
+            with self._failing():
+                self._warmups[robot].offer(index)
+                return self._advance()
 
     def finish(self) -> RunSummary:
         """End the run: hold nothing back (robots still warming join with the frames they sent), the final
@@ -277,6 +281,10 @@ class LiveRun:
         Raises:
             DataError: no robot sent a frame, or a robot's first frames cannot be used.
         """
+        with self._lock:
+            return self._finish()
+
+    def _finish(self) -> RunSummary:
         if self._summary is not None:
             return self._summary
         self._check_open()
@@ -303,9 +311,9 @@ class LiveRun:
         elif issubclass(kind, KeyboardInterrupt) and self._fleet is not None and not self._fleet.finished:
             from shgm_slam.interrupts import stops_deferred
 
-            with stops_deferred():  # stopped between frames: what there is, written (no final matching)
+            with self._lock, stops_deferred():  # stopped between frames: what there is, written (no final matching)
                 self._summary = self._fleet.finish(interrupted=True)
-            self._release()
+                self._release()
         else:
             self._mark_failed(exc)
 

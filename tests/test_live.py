@@ -201,3 +201,30 @@ def test_a_live_robot_refuses_a_bad_endpoint_and_a_poses_file(tmp_path: Path) ->
         LiveRobot("car1", K, config=ShgmConfig.model_validate({"odometry": {"kind": "file", "poses_file": "x.txt"}}))
     with pytest.raises(ConfigError):
         LiveRobot("server", K)  # a reserved name
+
+
+def test_cameras_on_their_own_threads_feed_one_run(tiny_scenario: Path, tmp_path: Path) -> None:
+    """Each camera's driver calls ``add_frame`` from its own thread: frames run one at a time, each once."""
+    import threading
+
+    sequences = {n: open_sequence(tiny_scenario / n) for n in NAMES}
+    live = LiveRun({n: s.intrinsics for n, s in sequences.items()}, tmp_path / "out")
+    poses: dict[str, list] = {n: [] for n in NAMES}
+    errors: list[BaseException] = []
+
+    def camera(name: str) -> None:
+        try:
+            poses[name] += feed(live, sequences, [(name, i) for i in range(len(sequences[name]))])
+        except BaseException as exc:  # reported below, not lost in the thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=camera, args=(n,)) for n in NAMES]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=300)
+    assert not errors and not any(t.is_alive() for t in threads)
+    returned = sorted((p.robot, p.index) for got in poses.values() for p in got)
+    assert returned == sorted((n, i) for n in NAMES for i in range(len(sequences[n])))
+    summary = live.finish()
+    assert [r.name for r in summary.robots] == list(NAMES) and summary.robots[0].localized
