@@ -228,3 +228,20 @@ def test_cameras_on_their_own_threads_feed_one_run(tiny_scenario: Path, tmp_path
     assert returned == sorted((n, i) for n in NAMES for i in range(len(sequences[n])))
     summary = live.finish()
     assert [r.name for r in summary.robots] == list(NAMES) and summary.robots[0].localized
+
+
+def test_predicted_depth_fed_one_by_one_gives_the_recorded_run(tiny_scenario: Path, tmp_path: Path) -> None:
+    """The demo models' depth is scaled to the camera height over a window of frames: the recorded run's checks of
+    frames across the sequence do not prime that window (it starts from the run's first frame), so frames fed one
+    by one give the recorded run's trajectory, byte for byte."""
+    models = Path(__file__).resolve().parents[1] / "models"
+    cfg = ShgmConfig.model_validate({"perception": {"depth_model": str(models / "demo_depth.onnx"),
+                                                    "seg_model": str(models / "demo_seg.onnx")}})  # fmt: skip
+    seq = open_sequence(tiny_scenario / "car1")
+    recorded = run({"car1": seq}, tmp_path / "recorded", config=cfg)
+    with LiveRun({"car1": seq.intrinsics}, tmp_path / "live", config=cfg) as live:
+        for f in seq:
+            live.add_frame("car1", f.image_rgb, f.timestamp_s, T_world_cam=f.T_world_cam)
+    name = "car1_odometry_tum.txt"
+    assert (recorded.out_dir / name).read_bytes() == (tmp_path / "live" / name).read_bytes()
+    assert recorded.robots[0].keyframes > 5

@@ -62,9 +62,12 @@ class PerceptionOutput:
 
 @runtime_checkable
 class PerceptionSource(Protocol):
-    """Anything that turns a frame into depth + labels."""
+    """Anything that turns a frame into depth + labels; ``reset`` forgets the frames it has seen (the depth scale
+    it keeps over a window of frames), so that what it was shown before a run does not reach into the run."""
 
     def process(self, frame: Frame) -> PerceptionOutput: ...
+
+    def reset(self) -> None: ...
 
 
 def _file_depth(frame: Frame) -> np.ndarray:
@@ -109,6 +112,11 @@ class SequenceFilesSource:
     def __init__(self, ground_scale: GroundScale | None = None) -> None:
         self.ground_scale = ground_scale
 
+    def reset(self) -> None:
+        """Forget the frames seen (``GroundScale.reset``)."""
+        if self.ground_scale is not None:
+            self.ground_scale.reset()
+
     def process(self, frame: Frame) -> PerceptionOutput:
         """The frame's own ``depth_m`` and ``label_ids``; DataError naming the missing modality."""
         labels = _file_labels(frame)
@@ -135,6 +143,11 @@ class OnnxPerception:
         self.depth_model = depth_model
         self.seg_model = seg_model
         self.ground_scale = ground_scale
+
+    def reset(self) -> None:
+        """Forget the frames seen (``GroundScale.reset``)."""
+        if self.ground_scale is not None:
+            self.ground_scale.reset()
 
     def process(self, frame: Frame) -> PerceptionOutput:
         """Run the configured models on ``frame.image_rgb``; timings keyed ``depth_*`` and ``seg_*``."""

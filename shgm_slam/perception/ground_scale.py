@@ -134,6 +134,12 @@ class GroundScale:
         self.rejected = 0
         self.rejected_height: float | None = None  # the last out-of-range height measured, depth units
 
+    def reset(self) -> None:
+        """Forget every frame seen (the window and the counts): a run starts from its own first frame."""
+        self._factors.clear()
+        self.frames = self.planes = self.rejected = 0
+        self.rejected_height = None
+
     def update(self, depth_m: np.ndarray, label_ids: np.ndarray, intrinsics: Intrinsics) -> float | None:
         """Measure this frame's road plane (if any) and return the current factor (or None)."""
         self.frames += 1

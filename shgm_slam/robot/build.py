@@ -103,7 +103,12 @@ def make_frontend(
     # whole-sequence problems (every frame unreadable, no valid depth, a broken model) end here, not as skips
     check_sequence_start(name, sequence, p.perceive, depth_model=rcfg.perception.depth_model,
                          seg_model=rcfg.perception.seg_model)  # fmt: skip
+    # the probes reach across the whole sequence: neither the scale sampled from the first frames nor the run
+    # starts from what they showed the perception (its depth-scale window), so both see only frames in order
+    # (and frames that arrive one by one, sampled as they came, give the same)
+    perception.reset()
     scale = sample_scene_scale(sequence, p.perceive) if sampler is None else sampler.result()
+    perception.reset()
     if scale is None:
         log.warning("%s: no usable depth in the first frames; extraction and odometry use the fleet defaults", name)
     else:

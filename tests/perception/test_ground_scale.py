@@ -63,6 +63,17 @@ def test_scaled_depth_gives_the_inverse_factor() -> None:
     assert (scale.frames, scale.planes, scale.rejected) == (3, 3, 0)
 
 
+def test_a_reset_scale_forgets_the_frames_it_was_shown() -> None:
+    """What it saw before a run (frames probed across the sequence) does not reach into the run's first frames."""
+    depth, labels = flat_road(1.65)
+    scale = GroundScale(1.65)
+    for _ in range(5):
+        scale.update(depth * 2.0, labels, INTR)  # probed frames, far along the sequence: another scale
+    scale.reset()
+    assert (scale.frames, scale.planes, scale.rejected) == (0, 0, 0)
+    assert scale.update(depth * 1.12, labels, INTR) == pytest.approx(1 / 1.12, rel=1e-6)  # its own frame alone
+
+
 def test_outliers_labelled_road_do_not_move_the_plane() -> None:
     depth, labels = flat_road(1.65)
     rng = np.random.default_rng(3)
