@@ -245,3 +245,25 @@ def test_predicted_depth_fed_one_by_one_gives_the_recorded_run(tiny_scenario: Pa
     name = "car1_odometry_tum.txt"
     assert (recorded.out_dir / name).read_bytes() == (tmp_path / "live" / name).read_bytes()
     assert recorded.robots[0].keyframes > 5
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"timestamp_s": None}, "not a finite time"),
+        ({"timestamp_s": "soon"}, "not a finite time"),
+        ({"T_world_cam": np.eye(3)}, r"give a \(4, 4\)"),
+        ({"T_world_cam": np.diag([2.0, 1.0, 1.0, 1.0])}, "not a rigid transform"),
+        ({"image_rgb": np.zeros((4, 8, 3), np.float32)}, "uint8"),
+        ({"label_ids": np.full((4, 8), 300, np.int32)}, "outside 0-255"),
+    ],
+)
+def test_a_malformed_frame_is_a_data_error_naming_it(change: dict, message: str) -> None:
+    stream = FrameStream(Intrinsics(100.0, 100.0, 4.0, 2.0, 8, 4), name="cam")
+    good = {"image_rgb": np.zeros((4, 8, 3), np.uint8), "timestamp_s": 0.0, "label_ids": np.zeros((4, 8), np.uint8),
+            "T_world_cam": np.eye(4)}  # fmt: skip
+    with pytest.raises(DataError, match=message):
+        stream.append(**{**good, **change})
+    assert len(stream) == 0
+    stream.append(**good)
+    assert len(stream) == 1 and stream.gt_poses.shape == (1, 4, 4)

@@ -94,12 +94,25 @@ class FrameStream(ArraySequence):
                 first = "had one" if held is not None else "had none"
                 raise DataError(f"{where}: {'no ' if given is None else ''}{what} given, but the first frame {first}; "
                                 f"give {what} with every frame or with none")  # fmt: skip
-        t = float(timestamp_s)
+        try:
+            t = float(timestamp_s)
+        except (TypeError, ValueError):
+            t = float("nan")
         if not np.isfinite(t) or (i > 0 and t <= self._time_rows[i - 1]):
             last = f" (the last frame's is {self._time_rows[i - 1]:.6f} s)" if i > 0 else ""
             raise DataError(f"{where}: timestamp {timestamp_s!r} s is not a finite time later than the last "
                             f"frame's{last}; give each frame's capture time in seconds, increasing")  # fmt: skip
-        pose = None if T_world_cam is None else checked_poses(np.asarray(T_world_cam)[None], 1, self.name)[0]
+        pose = None
+        if T_world_cam is not None:
+            given = np.asarray(T_world_cam)
+            if given.shape != (4, 4) or not np.issubdtype(given.dtype, np.number):
+                raise DataError(f"{where}: T_world_cam is {given.dtype} {given.shape}; give a (4, 4) camera -> world "
+                                "pose")  # fmt: skip
+            try:
+                pose = checked_poses(given[None], 1, self.name)[0]
+            except DataError:
+                raise DataError(f"{where}: T_world_cam is not finite or not a rigid transform (a rotation and a "
+                                "translation over the row 0 0 0 1)") from None
         # the arrays as the pipeline will read them (checked, copied: the caller may reuse its buffers)
         self._images.append(image_rgb)
         if depth_m is not None:
