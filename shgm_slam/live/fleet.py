@@ -1,0 +1,270 @@
+"""``LiveRun``: the whole system in one process, stepped by frames as cameras deliver them (``shgm_slam.live``)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from collections.abc import Mapping
+from pathlib import Path
+from types import TracebackType
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from shgm_slam.api import viewer_mode
+from shgm_slam.config import ShgmConfig
+from shgm_slam.data.stream import FrameStream
+from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.live.frames import LivePose, Warmup, live_config, pose_of
+from shgm_slam.types import DepthOrigin, Intrinsics
+
+if TYPE_CHECKING:  # the viewer, the pose graph and the models load only when a run starts
+    from shgm_slam.run_report import RunSummary
+    from shgm_slam.runner import FleetRun
+    from shgm_slam.viz.rerun_logger import RerunMode
+
+log = logging.getLogger(__name__)
+
+
+class LiveRun:
+    """The multi-robot system on frames that arrive one by one (module docstring).
+
+    Args:
+        cameras: robot name -> its camera's ``Intrinsics``, in order (the first robot's first camera frame is the
+            shared frame).
+        out: results folder (created now; written as the run goes, finished by ``finish``); None:
+            ``results/<YYYYmmdd_HHMMSS>`` and ``results/latest``.
+        config: an ``ShgmConfig``, a YAML file, or None for the defaults.
+        viewer: where the Rerun recording goes (``viz.RerunMode``; None: nowhere).
+        viewer_url: the viewer's gRPC URL for ``RerunMode.CONNECT``.
+        depth_origin: whether the depth you give is measured (a sensor, a renderer: KISS-ICP) or predicted by a
+            network (visual odometry, scaled to the camera height); one for all robots or one per robot.
+        gt_shared_frame: the ground-truth poses you give share one world frame (the fused ATE is then measured in
+            the shared frame).
+        overwrite: reuse an ``out`` that holds an earlier run's results.
+
+    Raises:
+        ConfigError: no cameras, an invalid robot name, a bad configuration or viewer, a poses-file odometry
+            (it needs the whole recorded sequence), a fleet the pose graph cannot hold.
+        DataError: intrinsics that are not valid; ``out`` holds results (without ``overwrite``) or is in use.
+    """
+
+    def __init__(
+        self,
+        cameras: Mapping[str, Intrinsics],
+        out: Path | str | None = None,
+        *,
+        config: ShgmConfig | Path | str | None = None,
+        viewer: RerunMode | None = None,
+        viewer_url: str | None = None,
+        depth_origin: DepthOrigin | Mapping[str, DepthOrigin] = DepthOrigin.MEASURED,
+        gt_shared_frame: bool = True,
+        overwrite: bool = False,
+    ) -> None:
+        from shgm_slam.io.export import make_results_dir
+        from shgm_slam.runner import check_fleet
+        from shgm_slam.transport.keys import validate_robot_name
+        from shgm_slam.viz.rerun_logger import make_viz
+
+        if not isinstance(cameras, Mapping) or not cameras:
+            raise ConfigError("no cameras given: pass {robot name: Intrinsics}, e.g. {'car1': Intrinsics(...)}")
+        for name in cameras:
+            validate_robot_name(name)
+        self.cfg = cfg = live_config(config, list(cameras))
+        self._share = check_fleet(list(cameras), cfg)
+        origins = depth_origin if isinstance(depth_origin, Mapping) else dict.fromkeys(cameras, depth_origin)
+        if set(origins) != set(cameras):
+            raise ConfigError(f"depth_origin names robots {sorted(origins)}; give one for each of {list(cameras)}")
+        self.streams = {r: FrameStream(K, depth_origin=origins[r], name=r) for r, K in cameras.items()}
+        mode = viewer_mode(viewer, viewer_url)
+        self.gt_shared_frame = gt_shared_frame
+        self.out_dir = make_results_dir(None if out is None else Path(out), overwrite=overwrite)
+        self._viz = make_viz(mode, robots=list(cameras), save_path=self.out_dir / "run.rrd", connect_url=viewer_url,
+                             max_cloud_points=8000)  # fmt: skip
+        self._warmups = {r: Warmup(r, stream, cfg) for r, stream in self.streams.items()}
+        self._predicted = [r for r in cameras if cfg.for_robot(r).perception.depth_model is not None
+                           or DepthOrigin(origins[r]) is DepthOrigin.PREDICTED]  # fmt: skip
+        self._held: list[tuple[str, int]] = []  # frames of robots that do not run yet, in the order they came
+        self._fleet: FleetRun | None = None
+        self._summary: RunSummary | None = None
+        self._closed = False  # finished, or ended by an error: no more frames
+        self._lock = threading.RLock()  # cameras' threads may call at once: one frame at a time
+
+    # --- feeding -------------------------------------------------------------------------------
+
+    @property
+    def started(self) -> bool:
+        """The run has started (the first robot's first frames and those of every robot that had sent any were in)."""
+        return self._fleet is not None
+
+    @property
+    def warming(self) -> tuple[str, ...]:
+        """The robots whose first frames are still too few to set their settings (their frames are held)."""
+        return tuple(r for r, w in self._warmups.items() if not w.ready)
+
+    def add_frame(
+        self,
+        robot: str,
+        image_rgb: np.ndarray,
+        timestamp_s: float,
+        *,
+        depth_m: np.ndarray | None = None,
+        label_ids: np.ndarray | None = None,
+        T_world_cam: np.ndarray | None = None,
+    ) -> list[LivePose]:
+        """Give the robot's next frame; run it, or hold it while the robot (or, before the run starts, another robot
+        that has sent frames, or the first robot) is ``warming``.
+
+        Args:
+            robot: one of the cameras' names.
+            image_rgb: (H, W, 3) uint8 RGB or (H, W) uint8 grey, the intrinsics' size.
+            timestamp_s: seconds, later than the robot's last frame.
+            depth_m: (H, W) float metres (0 or non-finite: invalid), or None when a depth model is configured.
+            label_ids: (H, W) integer Cityscapes train ids, or None when a segmentation model is configured.
+            T_world_cam: (4, 4) ground-truth pose, for the run's ATE (every frame or none), or None.
+
+        Returns:
+            The frames this call ran, in the order they came: this one once its robot runs; none while it is held;
+            the held frames at the call that starts the run or lets a robot join it.
+
+        Raises:
+            ConfigError: an unknown robot, or the run has finished. DataError: a bad frame (nothing is changed:
+                fix it and give it again), or a robot's first frames cannot be used (no valid depth, ...).
+            ModelError: a model whose output is unusable on the robot's first frames.
+        """
+        with self._lock:
+            self._check_open()
+            stream = self.streams.get(robot)
+            if stream is None:
+                raise ConfigError(f"no camera {robot!r} in this run; its cameras are {', '.join(self.streams)}")
+            index = stream.append(image_rgb, timestamp_s, depth_m=depth_m, label_ids=label_ids,
+                                  T_world_cam=T_world_cam)  # fmt: skip
+            if self._fleet is not None and robot in self._fleet.fronts:
+                return [self._step(robot, index)]
+            self._held.append((robot, index))
+            with self._failing():
+                self._warmups[robot].offer(index)
+                return self._advance()
+
+    def finish(self) -> RunSummary:
+        """End the run: hold nothing back (robots still warming join with the frames they sent), the final
+        whole-graph matching, the results folder and its summary (``metrics.json``). Robots that sent no frame are
+        left out (a warning). Once finished, the run takes no more frames; ``finish`` again returns the summary.
+
+        Raises:
+            DataError: no robot sent a frame, or a robot's first frames cannot be used.
+        """
+        with self._lock:
+            return self._finish()
+
+    def _finish(self) -> RunSummary:
+        if self._summary is not None:
+            return self._summary
+        self._check_open()
+        with self._failing():
+            self._advance(final=True)
+            assert self._fleet is not None
+            for r in self.streams.keys() - self._fleet.fronts.keys():
+                log.warning("%s: no frame was given; the run went on without it", r)
+                self._viz.log_text(f"{r}: no frame was given; the run went on without it", "WARN")
+            self._summary = self._fleet.finish()
+        self._release()
+        return self._summary
+
+    def __enter__(self) -> LiveRun:
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if self._closed:
+            return
+        if kind is None:
+            self.finish()
+        elif issubclass(kind, KeyboardInterrupt) and self._fleet is not None and not self._fleet.finished:
+            from shgm_slam.interrupts import stops_deferred
+
+            with self._lock, stops_deferred():  # stopped between frames: what there is, written (no final matching)
+                self._summary = self._fleet.finish(interrupted=True)
+                self._release()
+        else:
+            self._mark_failed(exc)
+
+    # --- inside ----------------------------------------------------------------------------------
+
+    def _check_open(self) -> None:
+        if self._closed:
+            how = "finished" if self._summary is not None else f"ended with an error ({self.out_dir} is incomplete)"
+            raise ConfigError(f"this live run has {how}; start a new LiveRun for more frames")
+
+    def _advance(self, *, final: bool = False) -> list[LivePose]:
+        """Start the run once the first robot and every robot that has sent frames are warm (``final``: with what
+        they sent), let the robots that have warmed up since join it, and run the frames held for the robots that
+        run; returns their poses in the order the frames came."""
+        from shgm_slam.runner import FleetRun
+
+        sent = [r for r, stream in self.streams.items() if len(stream)]
+        if self._fleet is None:
+            if not sent:
+                raise DataError(f"no frames were given to any of the cameras ({', '.join(self.streams)}); "
+                                "nothing to run")  # fmt: skip
+            reference = next(iter(self.streams))
+            if not final and not (reference in sent and all(self._warmups[r].ready for r in sent)):
+                return []
+            # at the end, a first camera that never sent a frame leaves the shared frame to the next one
+            robots = {r: self.streams[r] for r in (sent if final else self.streams)}
+            fronts = {r: self._warmups[r].frontend(self._share) for r in sent}
+            self._fleet = FleetRun(robots, self.cfg, self.out_dir, fronts, viz=self._viz,
+                                   gt_shared_frame=self.gt_shared_frame, predicted=self._predicted)  # fmt: skip
+        fleet = self._fleet
+        for r in sent:
+            if r not in fleet.fronts and r in fleet.robots and (final or self._warmups[r].ready):
+                fleet.add_robot(r, self._warmups[r].frontend(self._share))
+                log.info("%s: joined the running system (its first frames set its settings)", r)
+        now = [(r, i) for r, i in self._held if r in fleet.fronts]
+        self._held = [(r, i) for r, i in self._held if r not in fleet.fronts]
+        return [self._step(r, i) for r, i in now]
+
+    def _step(self, robot: str, index: int) -> LivePose:
+        from shgm_slam.interrupts import stops_deferred
+
+        assert self._fleet is not None
+        fleet = self._fleet
+        with self._failing(), stops_deferred():  # a stop lands between frames, never inside a step
+            skipped = len(fleet.skipped)
+            res = fleet.step(robot, index)
+        stream = self.streams[robot]
+        stream.release(index)
+        skipped_why = fleet.skipped[skipped] if res is None else None
+        return pose_of(robot, index, float(stream.timestamps_s[index]), res, fleet.nodes[robot], skipped_why)
+
+    @contextlib.contextmanager
+    def _failing(self):
+        """An error other than a bad frame ends the run: the folder is marked incomplete, the error goes on."""
+        try:
+            yield
+        except Exception as exc:
+            self._mark_failed(exc)
+            raise
+
+    def _mark_failed(self, exc: BaseException | None) -> None:
+        from shgm_slam.io.export import ResultsWriter
+
+        if self._closed:
+            return
+        if self.out_dir.is_dir() and isinstance(exc, Exception):
+            ResultsWriter(self.out_dir).mark_failed(exc)
+        elif self.out_dir.is_dir() and self._fleet is None:  # stopped before every robot's first frames came
+            with contextlib.suppress(DataError):
+                ResultsWriter(self.out_dir).mark_incomplete("stopped before every robot had sent its first frames")
+        self._release()
+
+    def _release(self) -> None:
+        """The run is over: the results folder's lock released, the viewer's stream closed."""
+        from shgm_slam.io.export import release_results_dir
+
+        self._closed = True
+        release_results_dir(self.out_dir)
+        if self._fleet is None or not self._fleet.finished:  # (a finished run closed it)
+            self._viz.close()
