@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 
 
 class LiveRun:
-    """The multi-robot system on frames that arrive one by one (module docstring).
+    """The multi-robot system on frames that arrive one by one (the ``shgm_slam.live`` package docstring).
 
     Args:
         cameras: robot name -> its camera's ``Intrinsics``, in order (the first robot's first camera frame is the
