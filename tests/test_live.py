@@ -267,3 +267,15 @@ def test_a_malformed_frame_is_a_data_error_naming_it(change: dict, message: str)
     assert len(stream) == 0
     stream.append(**good)
     assert len(stream) == 1 and stream.gt_poses.shape == (1, 4, 4)
+
+
+def test_a_camera_without_depth_or_model_ends_the_run_with_a_clear_error(tmp_path: Path) -> None:
+    """Frames without depth and no depth model: refused at the first frame, naming the robot and the fix; the
+    folder is marked incomplete and the run takes no more frames."""
+    K = Intrinsics(100.0, 100.0, 4.0, 2.0, 8, 4)
+    live = LiveRun({"car1": K}, tmp_path / "out")
+    with pytest.raises(DataError, match=r"robot 'car1'.*no depth.*perception\.depth_model"):
+        live.add_frame("car1", np.zeros((4, 8, 3), np.uint8), 0.0, label_ids=np.zeros((4, 8), np.uint8))
+    assert (tmp_path / "out" / "incomplete.txt").is_file()
+    with pytest.raises(ConfigError, match="ended with an error"):
+        live.add_frame("car1", np.zeros((4, 8, 3), np.uint8), 0.1, label_ids=np.zeros((4, 8), np.uint8))
