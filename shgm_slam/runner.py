@@ -289,6 +289,7 @@ class FleetRun:
         self.viz = viz = viz or NullLogger()
         self.writer = ResultsWriter(out_dir)
         self.writer.write_ground_truth(self.joined, gt_shared_frame)  # <robot>_gt_tum.txt, for evo and `shgm-slam eval`
+        self._gt_written = {r: len(seq) for r, seq in self.joined.items()}  # frames each ground-truth file holds
         self.cfg = cfg = fleet_backend(cfg, fronts, predicted)
         # the same nodes as the distributed deployment, on the in-process bus (every message is encoded)
         bus = InProcessBus()
@@ -418,7 +419,8 @@ class FleetRun:
         for node in self.nodes.values():
             node.poll()
         joined = self.joined  # (robots that never joined: no report)
-        self.writer.write_ground_truth(joined, self.gt_shared_frame)  # frames that arrived one by one: all of them
+        if {r: len(seq) for r, seq in joined.items()} != self._gt_written:  # frames came one by one
+            self.writer.write_ground_truth(joined, self.gt_shared_frame)
         reports, ate_joint_m = evaluate(fronts, server, joined, self.processed, self.gt_shared_frame, self.reached)
         report_placement(reports, fronts, server)
         report_degenerate(reports, fronts, self.image_change)

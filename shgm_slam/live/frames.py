@@ -16,7 +16,7 @@ from shgm_slam.errors import ConfigError
 
 if TYPE_CHECKING:  # the viewer, the pose graph and the models load only when a run starts
     from shgm_slam.robot.build import RobotPerception
-    from shgm_slam.robot.frontend import RobotFrontend
+    from shgm_slam.robot.frontend import FrameResult, RobotFrontend
     from shgm_slam.robot.node import RobotNode
     from shgm_slam.scene_scale import ScaleSampler
 
@@ -109,7 +109,9 @@ def live_config(config: ShgmConfig | Path | str | None, names: list[str]) -> Shg
     return cfg
 
 
-def pose_of(robot: str, index: int, timestamp_s: float, res, node: RobotNode | None, skipped: str | None) -> LivePose:
+def pose_of(
+    robot: str, index: int, timestamp_s: float, res: FrameResult | None, node: RobotNode | None, skipped: str | None
+) -> LivePose:
     """The ``LivePose`` of a frame: ``res`` its ``FrameResult`` (None: skipped, ``skipped`` says why), ``node`` the
     robot's node (where the server has placed its segments)."""
     if res is None:

@@ -101,7 +101,18 @@ def _apply_ground_scale(
     return depth_m * np.float32(factor), factor
 
 
-class SequenceFilesSource:
+class _GroundScaled:
+    """A perception source whose predicted depth may be scaled to the road (``ground_scale``, or None)."""
+
+    ground_scale: GroundScale | None
+
+    def reset(self) -> None:
+        """Forget the frames seen (``GroundScale.reset``)."""
+        if self.ground_scale is not None:
+            self.ground_scale.reset()
+
+
+class SequenceFilesSource(_GroundScaled):
     """Depth and labels straight from the sequence's ``depth/`` and ``semantic/`` files.
 
     Args:
@@ -112,11 +123,6 @@ class SequenceFilesSource:
     def __init__(self, ground_scale: GroundScale | None = None) -> None:
         self.ground_scale = ground_scale
 
-    def reset(self) -> None:
-        """Forget the frames seen (``GroundScale.reset``)."""
-        if self.ground_scale is not None:
-            self.ground_scale.reset()
-
     def process(self, frame: Frame) -> PerceptionOutput:
         """The frame's own ``depth_m`` and ``label_ids``; DataError naming the missing modality."""
         labels = _file_labels(frame)
@@ -124,7 +130,7 @@ class SequenceFilesSource:
         return PerceptionOutput(depth, labels, {}, factor)
 
 
-class OnnxPerception:
+class OnnxPerception(_GroundScaled):
     """Depth and/or labels from ONNX models; a modality without a model comes from the frame's files.
 
     Args:
@@ -143,11 +149,6 @@ class OnnxPerception:
         self.depth_model = depth_model
         self.seg_model = seg_model
         self.ground_scale = ground_scale
-
-    def reset(self) -> None:
-        """Forget the frames seen (``GroundScale.reset``)."""
-        if self.ground_scale is not None:
-            self.ground_scale.reset()
 
     def process(self, frame: Frame) -> PerceptionOutput:
         """Run the configured models on ``frame.image_rgb``; timings keyed ``depth_*`` and ``seg_*``."""
