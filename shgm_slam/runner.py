@@ -324,15 +324,23 @@ class FleetRun:
         """The sequences of the robots that run (those with a front end), in the fleet's order."""
         return {r: seq for r, seq in self.robots.items() if r in self.fronts}
 
-    def add_robot(self, robot: str, front: RobotFrontend) -> None:
-        """A robot of the fleet that had no front end yet joins the running system (its node says hello to the map
-        server; ``config.yaml`` gets its settings).
+    def add_robot(self, robot: str, front: RobotFrontend, sequence: Sequence | None = None) -> None:
+        """A robot that had no front end yet joins the running system (its node says hello to the map server;
+        ``config.yaml`` gets its settings): one of the fleet's robots, or, with its ``sequence``, a robot the
+        fleet did not have (it joins the fleet after the robots it had; the viewer gets its camera).
 
         Raises:
-            ConfigError: ``robot`` is not in the fleet or runs already.
+            ConfigError: ``robot`` runs already, is not in the fleet and no ``sequence`` is given, or is in the
+                fleet and a ``sequence`` is given.
         """
-        if robot not in self.robots or robot in self.fronts:
-            raise ConfigError(f"robot {robot!r} cannot join: it is not in this run, or runs already")
+        if robot in self.fronts or (robot in self.robots) == (sequence is not None):
+            raise ConfigError(f"robot {robot!r} cannot join: it runs already, or it is not in this run and has "
+                              "no sequence (or is in it and was given another)")  # fmt: skip
+        if sequence is not None:
+            self.robots = {**self.robots, robot: sequence}
+            self.processed[robot] = self.reached[robot] = 0
+            self.image_change[robot] = ImageChange()
+            self.viz.setup({robot: sequence.intrinsics})
         fronts = {**self.fronts, robot: front}
         self.fronts = {r: fronts[r] for r in self.robots if r in fronts}  # in the fleet's order (reports, files)
         self.nodes[robot] = node = RobotNode(front, InProcessTransport(self._bus))

@@ -15,7 +15,8 @@ from shgm_slam.data.interleave import interleave
 from shgm_slam.data.stream import FrameStream
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.live import LiveRun
-from shgm_slam.types import Intrinsics
+from shgm_slam.types import DepthOrigin, Intrinsics
+from shgm_slam.viz.rerun_logger import RerunMode
 
 NAMES = ("car1", "car2")
 
@@ -82,14 +83,14 @@ def test_every_frame_gets_its_pose_once_in_order_and_placed_poses_are_the_fused_
     assert all(image is None for image in live.streams["car1"]._images)  # every frame run was released
 
 
-def test_a_camera_that_starts_late_joins_the_running_system(tiny_scenario: Path, tmp_path: Path) -> None:
-    """car1 drives on its own (the run starts once its first frames are in); car2's camera comes 40 frames later
-    and joins once its own first frames are in; the files list both in the fleet's order."""
-    sequences = {n: open_sequence(tiny_scenario / n) for n in NAMES}
-    live = LiveRun({n: s.intrinsics for n, s in sequences.items()}, tmp_path / "out")
+def late_car2(sequences: dict, live: LiveRun, *, add_camera: bool) -> tuple[list, object]:
+    """car1 drives on its own for 40 frames; car2's camera (named at the start, or added then) comes 5 s late."""
     alone = feed(live, sequences, [("car1", i) for i in range(40)])
-    assert live.started and live.warming == ("car2",)
+    assert live.started and live.warming == (() if add_camera else ("car2",))
     assert [p.index for p in alone] == list(range(40))  # held until car1 was warm, then every frame at once
+    if add_camera:
+        live.add_camera("car2", sequences["car2"].intrinsics)
+        assert live.warming == ("car2",)
     late = [("car1", i) for i in range(40, len(sequences["car1"]))]
     late += [("car2", i) for i in range(len(sequences["car2"]))]
     late.sort(key=lambda ri: (sequences[ri[0]].timestamps_s[ri[1]] + (5.0 if ri[0] == "car2" else 0.0), ri[0]))
@@ -97,10 +98,51 @@ def test_a_camera_that_starts_late_joins_the_running_system(tiny_scenario: Path,
     assert sorted((p.robot, p.index) for p in poses) == sorted(late)  # every frame once
     first_car2 = next(k for k, p in enumerate(poses) if p.robot == "car2")
     assert poses[first_car2].index == 0 and not live.warming
-    summary = live.finish()
+    return poses, live.finish()
+
+
+def test_a_camera_that_starts_late_joins_the_running_system(tiny_scenario: Path, tmp_path: Path) -> None:
+    """car1 drives on its own (the run starts once its first frames are in); car2's camera comes 40 frames later
+    and joins once its own first frames are in; the files list both in the fleet's order. A camera added to the
+    run at that point (``add_camera``) gives the same files as one named at the start that sent late."""
+    sequences = {n: open_sequence(tiny_scenario / n) for n in NAMES}
+    named = LiveRun({n: s.intrinsics for n, s in sequences.items()}, tmp_path / "named")
+    _, summary = late_car2(sequences, named, add_camera=False)
     assert [r.name for r in summary.robots] == ["car1", "car2"] and summary.robots[0].localized
     assert (summary.out_dir / "car2_odometry_tum.txt").is_file() and (summary.out_dir / "car2_gt_tum.txt").is_file()
     assert "car2" in (summary.out_dir / "config.yaml").read_text()
+
+    added = LiveRun({"car1": sequences["car1"].intrinsics}, tmp_path / "added", viewer=RerunMode.SAVE)
+    _, later = late_car2(sequences, added, add_camera=True)
+    assert [r.name for r in later.robots] == ["car1", "car2"]
+    assert [r.localized for r in later.robots] == [r.localized for r in summary.robots]
+    for name in (f"{r}_{kind}.txt" for r in NAMES for kind in ("fused_tum", "odometry_tum", "gt_tum")):
+        assert (summary.out_dir / name).is_file() == (later.out_dir / name).is_file(), name
+        if (later.out_dir / name).is_file():
+            assert (summary.out_dir / name).read_bytes() == (later.out_dir / name).read_bytes(), name
+    assert (summary.out_dir / "config.yaml").read_text() == (later.out_dir / "config.yaml").read_text()
+    assert (later.out_dir / "run.rrd").stat().st_size > 0
+
+
+def test_add_camera_refuses_a_taken_name_bad_intrinsics_and_a_finished_run(tiny_scenario: Path, tmp_path: Path,
+                                                                            caplog) -> None:  # fmt: skip
+    seq = open_sequence(tiny_scenario / "car1")
+    live = LiveRun({"car1": seq.intrinsics}, tmp_path / "out")
+    with pytest.raises(ConfigError, match="in this run already"):
+        live.add_camera("car1", seq.intrinsics)
+    with pytest.raises(ConfigError, match="robot name"):
+        live.add_camera("car 2/x", seq.intrinsics)
+    with pytest.raises(DataError, match="intrinsics"):
+        live.add_camera("car2", "not intrinsics")  # type: ignore[arg-type]
+    assert list(live.streams) == ["car1"]  # the refusals added nothing
+    feed(live, {"car1": seq}, [("car1", i) for i in range(30)])
+    with caplog.at_level("WARNING"):
+        live.add_camera("uav", seq.intrinsics, depth_origin=DepthOrigin.PREDICTED)
+    assert "measured depth's odometry drift rates" in caplog.text
+    summary = live.finish()
+    assert [r.name for r in summary.robots] == ["car1"]  # the camera added never sent a frame: left out
+    with pytest.raises(ConfigError, match="finished"):
+        live.add_camera("car3", seq.intrinsics)
 
 
 def test_a_camera_that_never_sends_is_left_out(tiny_scenario: Path, tmp_path: Path, caplog) -> None:
@@ -181,8 +223,6 @@ def test_the_readme_live_example_runs(tiny_scenario: Path, tmp_path: Path, monke
 
 
 def test_the_viewer_gets_the_live_run(tiny_scenario: Path, tmp_path: Path) -> None:
-    from shgm_slam.viz.rerun_logger import RerunMode
-
     seq = open_sequence(tiny_scenario / "car1")
     with LiveRun({"car1": seq.intrinsics}, tmp_path / "out", viewer=RerunMode.SAVE) as live:
         feed(live, {"car1": seq}, [("car1", i) for i in range(30)])

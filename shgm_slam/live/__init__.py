@@ -5,8 +5,8 @@ Each robot's first frames set its data-derived settings (extraction range, blob 
 height above the ground and the depth it sees, ``scene_scale``), so a robot's frames are held until it has sent
 enough of them (``ScaleSampler``: five frames that show the ground, 0.5 s apart: 21 frames at 10 fps where the ground
 shows from the start, at most ``SAMPLE_SPAN_FRAMES``). The run starts once the first robot (the shared frame's)
-and every other robot that has sent frames are that far; a robot whose camera starts later joins the running system
-once its own first frames are in. Held frames run in the order they came, and from then on every ``add_frame`` of
+and every other robot that has sent frames are that far; a robot whose camera starts later (named at the start, or
+added with ``add_camera``) joins the running system once its own first frames are in. Held frames run in the order they came, and from then on every ``add_frame`` of
 a running robot runs its frame at once and returns its pose. Frames
 given in the order ``run`` would take them (``data.interleave``: by time) give the same results as ``run`` on the
 recorded sequences, file for file, where the depth is measured (a network's depth, scaled to the camera height, is

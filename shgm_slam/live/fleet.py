@@ -32,7 +32,7 @@ class LiveRun:
 
     Args:
         cameras: robot name -> its camera's ``Intrinsics``, in order (the first robot's first camera frame is the
-            shared frame).
+            shared frame); more can be added while the run goes (``add_camera``).
         out: results folder (created now; written as the run goes, finished by ``finish``); None:
             ``results/<YYYYmmdd_HHMMSS>`` and ``results/latest``.
         config: an ``ShgmConfig``, a YAML file, or None for the defaults.
@@ -83,8 +83,7 @@ class LiveRun:
         self._viz = make_viz(mode, robots=list(cameras), save_path=self.out_dir / "run.rrd", connect_url=viewer_url,
                              max_cloud_points=8000)  # fmt: skip
         self._warmups = {r: Warmup(r, stream, cfg) for r, stream in self.streams.items()}
-        self._predicted = [r for r in cameras if cfg.for_robot(r).perception.depth_model is not None
-                           or DepthOrigin(origins[r]) is DepthOrigin.PREDICTED]  # fmt: skip
+        self._predicted = [r for r in cameras if self._is_predicted(r, origins[r])]
         self._held: list[tuple[str, int]] = []  # frames of robots that do not run yet, in the order they came
         self._fleet: FleetRun | None = None
         self._summary: RunSummary | None = None
@@ -102,6 +101,53 @@ class LiveRun:
     def warming(self) -> tuple[str, ...]:
         """The robots whose first frames are still too few to set their settings (their frames are held)."""
         return tuple(r for r, w in self._warmups.items() if not w.ready)
+
+    def add_camera(
+        self, robot: str, intrinsics: Intrinsics, *, depth_origin: DepthOrigin = DepthOrigin.MEASURED
+    ) -> None:
+        """A camera that was not named when the run was made. Before the run starts it is one more robot the start
+        waits for once it sends frames; after, its robot joins the running system once its first frames have set
+        its settings, as a camera named at the start that sends late. Give its frames with ``add_frame``.
+
+        Args:
+            robot: its robot's name (not one of the run's cameras).
+            intrinsics: its camera.
+            depth_origin: whether the depth you will give is measured or predicted (``LiveRun``). A camera with
+                predicted depth that joins a run which started with measured depth alone leaves the pose graph's
+                odometry drift rates those of measured depth (a warning; set ``backend.odometry_drift_*`` in the
+                configuration, or name the camera when making the run).
+
+        Raises:
+            ConfigError: an invalid name or one the run has, the run has finished, a fleet the pose graph cannot
+                hold. DataError: intrinsics that are not valid.
+        """
+        from shgm_slam.runner import check_fleet
+        from shgm_slam.transport.keys import validate_robot_name
+
+        with self._lock:
+            self._check_open()
+            validate_robot_name(robot)
+            if robot in self.streams:
+                raise ConfigError(f"camera {robot!r} is in this run already; give every camera its own name")
+            share = check_fleet([*self.streams, robot], self.cfg)
+            stream = FrameStream(intrinsics, depth_origin=depth_origin, name=robot)
+            self._share = share  # the newcomer's share of the pose graph (the map server tells the others theirs)
+            self.streams[robot] = stream
+            self._warmups[robot] = Warmup(robot, stream, self.cfg)
+            if self._is_predicted(robot, depth_origin):
+                if self._fleet is not None and not self._predicted:
+                    log.warning("%s: its depth is predicted, but the run started with measured depth alone: the "
+                                "pose graph keeps measured depth's odometry drift rates (set "
+                                "backend.odometry_drift_rot_rad_per_m and _trans_per_m in the configuration, or "
+                                "name the camera when making the run)", robot)  # fmt: skip
+                self._predicted.append(robot)
+            log.info("%s: camera added to the live run", robot)
+
+    def _is_predicted(self, robot: str, depth_origin: DepthOrigin) -> bool:
+        """Whether ``robot``'s depth is predicted: a depth model configured for it, or depth given as predicted."""
+        return self.cfg.for_robot(robot).perception.depth_model is not None or (
+            DepthOrigin(depth_origin) is DepthOrigin.PREDICTED
+        )
 
     def add_frame(
         self,
@@ -219,8 +265,9 @@ class LiveRun:
                                    gt_shared_frame=self.gt_shared_frame, predicted=self._predicted)  # fmt: skip
         fleet = self._fleet
         for r in sent:
-            if r not in fleet.fronts and r in fleet.robots and (final or self._warmups[r].ready):
-                fleet.add_robot(r, self._warmups[r].frontend(self._share))
+            if r not in fleet.fronts and (final or self._warmups[r].ready):
+                newcomer = None if r in fleet.robots else self.streams[r]  # (a camera added after the start)
+                fleet.add_robot(r, self._warmups[r].frontend(self._share), newcomer)
                 log.info("%s: joined the running system (its first frames set its settings)", r)
         now = [(r, i) for r, i in self._held if r in fleet.fronts]
         self._held = [(r, i) for r, i in self._held if r not in fleet.fronts]
