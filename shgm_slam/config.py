@@ -249,9 +249,10 @@ class Dof(str, Enum):
 
 
 class OdometryKind(str, Enum):
-    """Where each frame's pose comes from. AUTO: VISUAL when a depth model predicts the depth (ICP alone on
-    predicted depth stalls, the hybrid was not clearly better; ``odometry.sources.choose_odometry``),
-    KISS_ICP when the depth comes from files (a sensor or the simulator)."""
+    """Where each frame's pose comes from. AUTO: GIVEN when the frames come with the robot's own odometry, else
+    VISUAL when a depth model predicts the depth (ICP alone on predicted depth stalls, the hybrid was not clearly
+    better; ``odometry.sources.choose_odometry``), KISS_ICP when the depth comes from files (a sensor or the
+    simulator)."""
 
     AUTO = "auto"
     KISS_ICP = "kiss-icp"
@@ -259,6 +260,7 @@ class OdometryKind(str, Enum):
     FILE = "file"
     VISUAL = "visual"  # depth-assisted monocular visual odometry (KLT + PnP), for predicted depth
     HYBRID = "hybrid"  # KISS-ICP on trusted pseudo-LiDAR, seeded and held along the track by VISUAL
+    GIVEN = "given"  # the robot's own odometry, given with each frame (``ArraySequence``/``add_frame`` T_odom_cam)
 
 
 class OdometryConfig(_Stage):

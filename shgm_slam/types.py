@@ -78,6 +78,8 @@ class Frame:
         label_ids: (H, W) uint8 Cityscapes train ids; None when the sequence has no labels.
         T_world_cam: (4, 4) ground-truth pose, or None when the sequence has no ground truth.
         source_index: index of the frame in the underlying files (before frame-range slicing).
+        T_odom_cam: (4, 4) the robot's own odometry's pose (camera -> its odometry frame, metres), given with the
+            frame (``OdometryKind.GIVEN``), or None.
     """
 
     index: int
@@ -88,6 +90,7 @@ class Frame:
     label_ids: np.ndarray | None = None
     T_world_cam: np.ndarray | None = None
     source_index: int = -1
+    T_odom_cam: np.ndarray | None = None
 
 
 @runtime_checkable

@@ -294,6 +294,8 @@ def test_predicted_depth_fed_one_by_one_gives_the_recorded_run(tiny_scenario: Pa
         ({"timestamp_s": "soon"}, "not a finite time"),
         ({"T_world_cam": np.eye(3)}, r"give a \(4, 4\)"),
         ({"T_world_cam": np.diag([2.0, 1.0, 1.0, 1.0])}, "not a rigid transform"),
+        ({"T_odom_cam": np.full((4, 4), np.nan)}, "frame 0: T_odom_cam is not finite"),
+        ({"T_odom_cam": np.zeros(16)}, r"T_odom_cam is float64 \(16,\); give a \(4, 4\) camera -> odometry"),
         ({"image_rgb": np.zeros((4, 8, 3), np.float32)}, "uint8"),
         ({"label_ids": np.full((4, 8), 300, np.int32)}, "outside 0-255"),
     ],
@@ -306,7 +308,37 @@ def test_a_malformed_frame_is_a_data_error_naming_it(change: dict, message: str)
         stream.append(**{**good, **change})
     assert len(stream) == 0
     stream.append(**good)
-    assert len(stream) == 1 and stream.gt_poses.shape == (1, 4, 4)
+    assert len(stream) == 1 and stream.gt_poses.shape == (1, 4, 4) and stream.odometry_poses is None
+    with pytest.raises(DataError, match="T_odom_cam given, but the first frame had none"):
+        stream.append(**{**good, "timestamp_s": 0.1, "T_odom_cam": np.eye(4)})
+
+
+def test_a_robots_own_odometry_given_with_its_frames_is_run_as_its_odometry(tiny_scenario: Path, tmp_path: Path,
+                                                                            caplog) -> None:  # fmt: skip
+    """car2's frames come with its own odometry (here its ground truth moved into another frame): with the default
+    configuration the robot runs it (``auto`` chooses ``given``), and the files are those of a recorded run on
+    ground-truth odometry; asked for ``given`` without it, the run ends with a clear error."""
+    sequences = {n: open_sequence(tiny_scenario / n) for n in NAMES}
+    gt = ShgmConfig.model_validate({"robots": {"car2": {"odometry": {"kind": "gt"}}}})
+    recorded = run(sequences, tmp_path / "recorded", config=gt)
+    T_elsewhere = np.eye(4)
+    T_elsewhere[:3, 3] = [100.0, -20.0, 3.0]  # the robot's odometry frame is not the world's
+    with caplog.at_level("INFO"), LiveRun({n: s.intrinsics for n, s in sequences.items()}, tmp_path / "live") as live:
+        for robot, i in interleave(sequences):
+            f = sequences[robot][i]
+            own = T_elsewhere @ f.T_world_cam if robot == "car2" else None
+            live.add_frame(robot, f.image_rgb, f.timestamp_s, depth_m=f.depth_m, label_ids=f.label_ids,
+                           T_world_cam=f.T_world_cam, T_odom_cam=own)  # fmt: skip
+    assert "car2: odometry given (auto: the frames come with the robot's own odometry" in caplog.text
+    for name in ("car1_odometry_tum.txt", "car2_odometry_tum.txt", "car2_fused_tum.txt", "car2_gt_tum.txt"):
+        assert (recorded.out_dir / name).read_bytes() == (tmp_path / "live" / name).read_bytes(), name
+
+    f = sequences["car1"][0]
+    given = ShgmConfig.model_validate({"odometry": {"kind": "given"}})
+    live = LiveRun({"car1": f.intrinsics}, tmp_path / "refused", config=given)
+    with pytest.raises(ConfigError, match=r"robot 'car1': odometry 'given' runs the robot's own odometry"):
+        live.add_frame("car1", f.image_rgb, f.timestamp_s, depth_m=f.depth_m, label_ids=f.label_ids)
+    assert (tmp_path / "refused" / "incomplete.txt").is_file()
 
 
 def test_a_camera_without_depth_or_model_ends_the_run_with_a_clear_error(tmp_path: Path) -> None:

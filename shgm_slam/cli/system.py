@@ -89,7 +89,8 @@ def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_
     ``--depth-model`` and ``--seg-model`` applied over it; an ``--odometry`` that is neither is a ``ConfigError``."""
     from shgm_slam.errors import ConfigError
 
-    kinds = {k.value: k for k in OdometryKind if k is not OdometryKind.FILE}
+    # (a poses file is given by its path; sequence folders carry no odometry of the robot's own to be GIVEN)
+    kinds = {k.value: k for k in OdometryKind if k not in (OdometryKind.FILE, OdometryKind.GIVEN)}
     if odometry is None:
         pass
     elif odometry in kinds:

@@ -108,6 +108,12 @@ class SequenceView:
         return None if gt is None else gt[self.start : self.end]
 
     @property
+    def odometry_poses(self) -> np.ndarray | None:
+        """The base sequence's own odometry poses in this range (``IndexedFrames.odometry_poses``), or None."""
+        odom = getattr(self.base, "odometry_poses", None)
+        return None if odom is None else odom[self.start : self.end]
+
+    @property
     def has_depth(self) -> bool:
         return self.base.has_depth
 

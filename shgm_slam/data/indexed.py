@@ -11,12 +11,14 @@ from shgm_slam.types import Frame
 
 class IndexedFrames:
     """The ``types.Sequence`` accessors over ``_times`` ((N,) seconds, read-only) and ``_gt`` ((N, 4, 4)
-    read-only ``T_world_cam`` or None) that a subclass sets; it gives ``name``, ``__getitem__``, ``has_depth``
-    and ``has_labels``."""
+    read-only ``T_world_cam`` or None) that a subclass sets, and ``odometry_poses`` over ``_odom`` (the robot's own
+    odometry given with the frames, or None); the subclass gives ``name``, ``__getitem__``, ``has_depth`` and
+    ``has_labels``."""
 
     name: str
     _times: np.ndarray
     _gt: np.ndarray | None
+    _odom: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self._times.shape[0])
@@ -33,6 +35,12 @@ class IndexedFrames:
     def gt_poses(self) -> np.ndarray | None:
         """(N, 4, 4) ground-truth ``T_world_cam`` (read-only), or None."""
         return self._gt
+
+    @property
+    def odometry_poses(self) -> np.ndarray | None:
+        """(N, 4, 4) ``T_odom_cam`` of the robot's own odometry, given with the frames (read-only), or None
+        (``odometry.sources.given_odometry``)."""
+        return self._odom
 
     def _index(self, index: int) -> int:
         """``index`` in 0..N-1 (negative indices count from the end); IndexError outside."""

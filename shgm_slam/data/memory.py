@@ -1,13 +1,14 @@
 """A sequence held in memory: your own frames (a camera driver, a ROS bag you decoded, a dataset with
 another layout) run through the same pipeline as a sequence folder.
 
-``ArraySequence`` takes the images and, optionally, depth, labels and ground-truth poses as arrays of N
-frames, or as any indexable of N arrays (a list, or an object with ``__len__`` and ``__getitem__`` that loads
-frame ``i`` when asked: nothing is read before the pipeline asks for it). It checks what it can at once
-(counts, timestamps, intrinsics, poses) and each frame when it is read (shape, dtype, image size), with
-errors that name the frame. Depth that is not finite or not positive becomes 0 (invalid), as in depth
-files. ``depth_origin`` says whether a sensor measured the depth (KISS-ICP odometry, never rescaled) or a
-network predicted it (as for a ``perceive`` folder: visual odometry, scaled to the camera height).
+``ArraySequence`` takes the images and, optionally, depth, labels, ground-truth poses and the robot's own odometry
+(``T_odom_cam``, run instead of the system's odometry) as arrays of N frames, or as any indexable of N arrays (a
+list, or an object with ``__len__`` and ``__getitem__`` that loads frame ``i`` when asked: nothing is read before
+the pipeline asks for it). It checks what it can at once (counts, timestamps, intrinsics, poses) and each frame when
+it is read (shape, dtype, image size), with errors that name the frame. Depth that is not finite or not positive
+becomes 0 (invalid), as in depth files. ``depth_origin`` says whether a sensor measured the depth (KISS-ICP
+odometry, never rescaled) or a network predicted it (as for a ``perceive`` folder: visual odometry, scaled to the
+camera height).
 """
 
 from __future__ import annotations
@@ -43,6 +44,8 @@ class ArraySequence(IndexedFrames):
         depth_m: N (H, W) float depth maps in metres (0 or non-finite: invalid), or None.
         label_ids: N (H, W) integer maps of Cityscapes train ids (0-18, 255 = ignore), or None.
         T_world_cam: (N, 4, 4) ground-truth poses (camera -> world, KITTI camera axes), or None.
+        T_odom_cam: (N, 4, 4) the robot's own odometry (camera -> its odometry frame), run as the odometry
+            (``OdometryKind.GIVEN``, which ``auto`` chooses when it is given), or None.
         depth_origin: whether ``depth_m`` was measured or predicted by a network.
         name: the sequence's name in logs and messages.
 
@@ -59,6 +62,7 @@ class ArraySequence(IndexedFrames):
         depth_m: FrameArrays | None = None,
         label_ids: FrameArrays | None = None,
         T_world_cam: np.ndarray | None = None,
+        T_odom_cam: np.ndarray | None = None,
         depth_origin: DepthOrigin = DepthOrigin.MEASURED,
         name: str = "in memory",
     ) -> None:
@@ -78,12 +82,13 @@ class ArraySequence(IndexedFrames):
         self._times = check_times(times, f"sequence {name!r}").copy()
         self._times.flags.writeable = False
         self._gt = None if T_world_cam is None else checked_poses(T_world_cam, n, name)
+        self._odom = None if T_odom_cam is None else checked_poses(T_odom_cam, n, name, "T_odom_cam")
         self._images, self._depth, self._labels = images_rgb, depth_m, label_ids
 
     def __setstate__(self, state: dict) -> None:
         """Unpickled (a worker process of ``run --jobs``): the timestamps and poses read-only again."""
         self.__dict__.update(state)
-        for array in (self._times, self._gt):
+        for array in (self._times, self._gt, self._odom):
             if array is not None:
                 array.flags.writeable = False
 
@@ -100,6 +105,7 @@ class ArraySequence(IndexedFrames):
             label_ids=None if self._labels is None else self._label_map(i, where),
             T_world_cam=None if self._gt is None else self._gt[i].copy(),
             source_index=i,
+            T_odom_cam=None if self._odom is None else self._odom[i].copy(),
         )
 
     @property
@@ -157,22 +163,23 @@ def checked_intrinsics(intrinsics: Intrinsics, name: str) -> Intrinsics:
     return intrinsics
 
 
-def checked_poses(T_world_cam: np.ndarray, n: int, name: str) -> np.ndarray:
-    """``T_world_cam`` as a read-only (n, 4, 4) float64 copy, refused (DataError naming sequence ``name`` and the
-    frame) unless every pose is finite and rigid within ``POSE_TOLERANCE``."""
+def checked_poses(T_world_cam: np.ndarray, n: int, name: str, what: str = "T_world_cam") -> np.ndarray:
+    """``T_world_cam`` (or other poses, called ``what`` in messages) as a read-only (n, 4, 4) float64 copy, refused
+    (DataError naming sequence ``name`` and the frame) unless every pose is finite and rigid within
+    ``POSE_TOLERANCE``."""
     poses = np.asarray(T_world_cam, dtype=np.float64)
     if poses.shape != (n, 4, 4):
-        raise DataError(f"sequence {name!r}: T_world_cam has shape {poses.shape}; give ({n}, 4, 4), one per image")
+        raise DataError(f"sequence {name!r}: {what} has shape {poses.shape}; give ({n}, 4, 4), one per image")
     if not np.isfinite(poses).all():
         k = int(np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)))[0])
-        raise DataError(f"sequence {name!r}: T_world_cam of frame {k} is not finite")
+        raise DataError(f"sequence {name!r}: {what} of frame {k} is not finite")
     R = poses[:, :3, :3]
     err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
     row = np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1)
     bad = (err > POSE_TOLERANCE) | (np.linalg.det(R) <= 0.0) | (row > POSE_TOLERANCE)
     if bad.any():
         k = int(np.argmax(bad))
-        raise DataError(f"sequence {name!r}: T_world_cam of frame {k} is not a rigid transform (a rotation and a "
+        raise DataError(f"sequence {name!r}: {what} of frame {k} is not a rigid transform (a rotation and a "
                         "translation over the row 0 0 0 1)")  # fmt: skip
     poses = poses.copy()
     poses.flags.writeable = False

@@ -4,8 +4,8 @@ each frame as it comes, and the pipeline reads it like any other sequence.
 Every frame is checked when it is appended (image, depth and label shapes and types as ``ArraySequence`` checks
 them, a time later than the last frame's, a rigid ground-truth pose), so a bad frame is refused at the call that
 brought it, naming the robot and the frame. The first frame fixes what every later one carries (depth, labels,
-ground truth). A frame the pipeline has processed can be ``release``d: its arrays are dropped (a live run holds
-only the frames still to be processed) and reading it again is an error.
+ground truth, the robot's own odometry). A frame the pipeline has processed can be ``release``d: its arrays are
+dropped (a live run holds only the frames still to be processed) and reading it again is an error.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ class FrameStream(ArraySequence):
         self._n = 0
         self._time_rows = np.zeros(64, dtype=np.float64)
         self._gt_rows: np.ndarray | None = None
+        self._odom_rows: np.ndarray | None = None
         self._images: list[np.ndarray | None] = []
         self._depth: list[np.ndarray | None] | None = None
         self._labels: list[np.ndarray | None] | None = None
@@ -54,9 +55,17 @@ class FrameStream(ArraySequence):
 
     @property
     def _gt(self) -> np.ndarray | None:  # type: ignore[override]
-        if self._gt_rows is None:
+        return self._rows(self._gt_rows)
+
+    @property
+    def _odom(self) -> np.ndarray | None:  # type: ignore[override]
+        return self._rows(self._odom_rows)
+
+    def _rows(self, rows: np.ndarray | None) -> np.ndarray | None:
+        """The appended frames' rows of ``rows`` (read-only), or None."""
+        if rows is None:
             return None
-        poses = self._gt_rows[: self._n]
+        poses = rows[: self._n]
         poses.flags.writeable = False
         return poses
 
@@ -68,6 +77,7 @@ class FrameStream(ArraySequence):
         depth_m: np.ndarray | None = None,
         label_ids: np.ndarray | None = None,
         T_world_cam: np.ndarray | None = None,
+        T_odom_cam: np.ndarray | None = None,
     ) -> int:
         """Add the next frame, checked; returns its index.
 
@@ -77,6 +87,7 @@ class FrameStream(ArraySequence):
             depth_m: (H, W) float metres (0 or non-finite: invalid), or None.
             label_ids: (H, W) integer Cityscapes train ids (0-18, 255 = ignore), or None.
             T_world_cam: (4, 4) ground-truth camera -> world pose (KITTI camera axes), or None.
+            T_odom_cam: (4, 4) the robot's own odometry's camera -> odometry-frame pose, or None.
 
         Raises:
             DataError: a frame that differs from the first in what it carries, a time that is not finite or not
@@ -88,8 +99,10 @@ class FrameStream(ArraySequence):
             self._depth = None if depth_m is None else []
             self._labels = None if label_ids is None else []
             self._gt_rows = None if T_world_cam is None else np.zeros((64, 4, 4))
+            self._odom_rows = None if T_odom_cam is None else np.zeros((64, 4, 4))
         for what, given, held in (("depth_m", depth_m, self._depth), ("label_ids", label_ids, self._labels),
-                                  ("T_world_cam", T_world_cam, self._gt_rows)):  # fmt: skip
+                                  ("T_world_cam", T_world_cam, self._gt_rows),
+                                  ("T_odom_cam", T_odom_cam, self._odom_rows)):  # fmt: skip
             if (given is None) != (held is None):
                 first = "had one" if held is not None else "had none"
                 raise DataError(f"{where}: {'no ' if given is None else ''}{what} given, but the first frame {first}; "
@@ -102,17 +115,8 @@ class FrameStream(ArraySequence):
             last = f" (the last frame's is {self._time_rows[i - 1]:.6f} s)" if i > 0 else ""
             raise DataError(f"{where}: timestamp {timestamp_s!r} s is not a finite time later than the last "
                             f"frame's{last}; give each frame's capture time in seconds, increasing")  # fmt: skip
-        pose = None
-        if T_world_cam is not None:
-            given = np.asarray(T_world_cam)
-            if given.shape != (4, 4) or not np.issubdtype(given.dtype, np.number):
-                raise DataError(f"{where}: T_world_cam is {given.dtype} {given.shape}; give a (4, 4) camera -> world "
-                                "pose")  # fmt: skip
-            try:
-                pose = checked_poses(given[None], 1, self.name)[0]
-            except DataError:
-                raise DataError(f"{where}: T_world_cam is not finite or not a rigid transform (a rotation and a "
-                                "translation over the row 0 0 0 1)") from None
+        pose = None if T_world_cam is None else _checked_pose(T_world_cam, "T_world_cam", "world", where)
+        odom = None if T_odom_cam is None else _checked_pose(T_odom_cam, "T_odom_cam", "odometry frame", where)
         # the arrays as the pipeline will read them (checked, copied: the caller may reuse its buffers)
         self._images.append(image_rgb)
         if depth_m is not None:
@@ -137,9 +141,13 @@ class FrameStream(ArraySequence):
             self._time_rows = np.concatenate([self._time_rows, np.zeros_like(self._time_rows)])
             if self._gt_rows is not None:
                 self._gt_rows = np.concatenate([self._gt_rows, np.zeros_like(self._gt_rows)])
+            if self._odom_rows is not None:
+                self._odom_rows = np.concatenate([self._odom_rows, np.zeros_like(self._odom_rows)])
         self._time_rows[i] = t
         if pose is not None:
             self._gt_rows[i] = pose  # type: ignore[index]
+        if odom is not None:
+            self._odom_rows[i] = odom  # type: ignore[index]
         self._n = i + 1
         return i
 
@@ -170,4 +178,18 @@ class FrameStream(ArraySequence):
             label_ids=None if self._labels is None else self._labels[i],
             T_world_cam=None if self._gt_rows is None else self._gt_rows[i].copy(),
             source_index=i,
+            T_odom_cam=None if self._odom_rows is None else self._odom_rows[i].copy(),
         )
+
+
+def _checked_pose(T: np.ndarray, what: str, to: str, where: str) -> np.ndarray:
+    """One frame's (4, 4) camera -> ``to`` pose ``T`` as float64, refused (DataError at ``where``) unless it is a
+    finite rigid transform."""
+    given = np.asarray(T)
+    if given.shape != (4, 4) or not np.issubdtype(given.dtype, np.number):
+        raise DataError(f"{where}: {what} is {given.dtype} {given.shape}; give a (4, 4) camera -> {to} pose")
+    try:
+        return checked_poses(given[None], 1, where, what)[0]
+    except DataError:
+        raise DataError(f"{where}: {what} is not finite or not a rigid transform (a rotation and a translation over "
+                        "the row 0 0 0 1)") from None  # fmt: skip

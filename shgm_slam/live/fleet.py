@@ -158,6 +158,7 @@ class LiveRun:
         depth_m: np.ndarray | None = None,
         label_ids: np.ndarray | None = None,
         T_world_cam: np.ndarray | None = None,
+        T_odom_cam: np.ndarray | None = None,
     ) -> list[LivePose]:
         """Give the robot's next frame; run it, or hold it while the robot (or, before the run starts, another robot
         that has sent frames, or the first robot) is ``warming``.
@@ -169,6 +170,8 @@ class LiveRun:
             depth_m: (H, W) float metres (0 or non-finite: invalid), or None when a depth model is configured.
             label_ids: (H, W) integer Cityscapes train ids, or None when a segmentation model is configured.
             T_world_cam: (4, 4) ground-truth pose, for the run's ATE (every frame or none), or None.
+            T_odom_cam: (4, 4) the robot's own odometry's pose (camera -> its odometry frame, metres; every frame
+                or none), which the robot then runs as its odometry (``OdometryKind.GIVEN``), or None.
 
         Returns:
             The frames this call ran, in the order they came: this one once its robot runs; none while it is held;
@@ -185,7 +188,7 @@ class LiveRun:
             if stream is None:
                 raise ConfigError(f"no camera {robot!r} in this run; its cameras are {', '.join(self.streams)}")
             index = stream.append(image_rgb, timestamp_s, depth_m=depth_m, label_ids=label_ids,
-                                  T_world_cam=T_world_cam)  # fmt: skip
+                                  T_world_cam=T_world_cam, T_odom_cam=T_odom_cam)  # fmt: skip
             if self._fleet is not None and robot in self._fleet.fronts:
                 return [self._step(robot, index)]
             self._held.append((robot, index))

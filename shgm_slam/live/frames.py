@@ -103,8 +103,9 @@ def live_config(config: ShgmConfig | Path | str | None, names: list[str]) -> Shg
     cfg = config_of(config)
     if any(cfg.for_robot(r).odometry.kind is OdometryKind.FILE for r in names):
         raise ConfigError(
-            "odometry 'file' reads a recorded sequence's poses file, which frames fed one by one do not have; "
-            "use auto, kiss-icp, visual, hybrid or gt"
+            "odometry 'file' reads a recorded sequence's poses file, which frames fed one by one do not have; give "
+            "your odometry's pose with each frame instead (add_frame(..., T_odom_cam=...), run as odometry "
+            "'given', which 'auto' chooses), or use auto, kiss-icp, visual, hybrid or gt"
         )
     return cfg
 

@@ -88,6 +88,7 @@ class LiveRobot:
         depth_m: np.ndarray | None = None,
         label_ids: np.ndarray | None = None,
         T_world_cam: np.ndarray | None = None,
+        T_odom_cam: np.ndarray | None = None,
     ) -> list[LivePose]:
         """Give the robot's next frame (arguments as ``LiveRun.add_frame``); returns the frames this call ran.
 
@@ -99,7 +100,7 @@ class LiveRobot:
         if self._summary is not None:
             raise ConfigError(f"robot {self.name!r} has finished; start a new LiveRobot for more frames")
         index = self.stream.append(image_rgb, timestamp_s, depth_m=depth_m, label_ids=label_ids,
-                                   T_world_cam=T_world_cam)  # fmt: skip
+                                   T_world_cam=T_world_cam, T_odom_cam=T_odom_cam)  # fmt: skip
         if self._node is not None:
             return [self._step(index)]
         self._held.append(index)

@@ -162,7 +162,8 @@ class KissIcpSource:
 
 
 class GroundTruthSource:
-    """Ground-truth poses re-expressed relative to the first frame seen (odometry frame = its camera)."""
+    """Ground-truth poses re-expressed relative to the first frame seen (odometry frame = its camera; after a
+    ``reset``, the first frame seen since)."""
 
     def __init__(self) -> None:
         self._T_cam0_world: np.ndarray | None = None
@@ -170,19 +171,37 @@ class GroundTruthSource:
     def reset(self, motion: np.ndarray | None = None) -> None:
         self._T_cam0_world = None
 
-    def update(
-        self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
-        label_ids: np.ndarray | None = None,
-    ) -> OdometryEstimate:
+    def _pose(self, frame: Frame) -> np.ndarray:
+        """(4, 4) the frame's pose in the frame the source reads (here the world's)."""
         if frame.T_world_cam is None:
             raise DataError(
                 f"frame {frame.index} has no ground-truth pose: the sequence has no poses.txt "
                 "(or poses/<seq>.txt); use odometry kind 'kiss-icp' or 'file'"
             )
-        T_world_cam = np.asarray(frame.T_world_cam, dtype=np.float64)
+        return np.asarray(frame.T_world_cam, dtype=np.float64)
+
+    def update(
+        self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
+        label_ids: np.ndarray | None = None,
+    ) -> OdometryEstimate:
+        T_world_cam = self._pose(frame)
         if self._T_cam0_world is None:
             self._T_cam0_world = inverse(T_world_cam)
         return OdometryEstimate(self._T_cam0_world @ T_world_cam, True)
+
+
+class GivenOdometrySource(GroundTruthSource):
+    """The robot's own odometry, given with each frame (``Frame.T_odom_cam``: a VIO, wheel odometry, another
+    SLAM system), re-expressed relative to the first frame seen as the ground truth is. Its steps are checked
+    like any odometry's (``odometry.health``): a jump the robot cannot make starts a new trajectory segment."""
+
+    def _pose(self, frame: Frame) -> np.ndarray:
+        if frame.T_odom_cam is None:
+            raise DataError(
+                f"frame {frame.index} has no odometry pose of the robot's own (T_odom_cam); give one with every "
+                "frame, or use odometry kind 'auto'"
+            )
+        return np.asarray(frame.T_odom_cam, dtype=np.float64)
 
 
 class PoseFileSource:
@@ -386,6 +405,7 @@ def _file(cfg: OdometryConfig, num_frames: int, timestamps_s: np.ndarray | None 
 ODOMETRY_SOURCES: dict[OdometryKind, Callable[[OdometryConfig, int], OdometrySource]] = {
     OdometryKind.KISS_ICP: _kiss,
     OdometryKind.GT: lambda cfg, num_frames: GroundTruthSource(),
+    OdometryKind.GIVEN: lambda cfg, num_frames: GivenOdometrySource(),
     OdometryKind.FILE: _file,
     OdometryKind.VISUAL: _visual,
     OdometryKind.HYBRID: _hybrid,
@@ -413,8 +433,18 @@ AUTO_MODEL_REASON = (
 )
 
 
-def choose_odometry(kind: OdometryKind | str, depth_from_model: bool) -> OdometryChoice:
-    """``kind`` with AUTO resolved, and why: VISUAL for model-predicted depth, KISS_ICP for depth files.
+AUTO_GIVEN_REASON = "auto: the frames come with the robot's own odometry (T_odom_cam), which it runs"
+
+
+def given_odometry(sequence: object) -> bool:
+    """Whether ``sequence`` carries the robot's own odometry with its frames (``odometry_poses``, as
+    ``ArraySequence(T_odom_cam=...)`` and ``FrameStream`` give it; a sequence without the attribute has none)."""
+    return getattr(sequence, "odometry_poses", None) is not None
+
+
+def choose_odometry(kind: OdometryKind | str, depth_from_model: bool, odometry_given: bool = False) -> OdometryChoice:
+    """``kind`` with AUTO resolved, and why: GIVEN where the frames come with the robot's own odometry
+    (``odometry_given``), else VISUAL for model-predicted depth, KISS_ICP for depth files.
 
     The choice for predicted depth follows ``shgm-slam bench depth-quality`` and the RGB held-out runs (README,
     "What depth quality your model needs"): KISS-ICP alone, its voxel and spacing filter following the
@@ -426,6 +456,8 @@ def choose_odometry(kind: OdometryKind | str, depth_from_model: bool) -> Odometr
     kind = OdometryKind(kind)
     if kind is not OdometryKind.AUTO:
         return OdometryChoice(kind, "set in the configuration")
+    if odometry_given:
+        return OdometryChoice(OdometryKind.GIVEN, AUTO_GIVEN_REASON)
     if depth_from_model:
         return OdometryChoice(OdometryKind.VISUAL, AUTO_MODEL_REASON)
     return OdometryChoice(OdometryKind.KISS_ICP, AUTO_FILES_REASON)

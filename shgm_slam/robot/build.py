@@ -15,7 +15,7 @@ import numpy as np
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.data.validate import check_sequence_start
 from shgm_slam.errors import ConfigError, DataError
-from shgm_slam.odometry.sources import choose_odometry, make_odometry
+from shgm_slam.odometry.sources import choose_odometry, given_odometry, make_odometry
 from shgm_slam.odometry.visual import depth_window_on_image
 from shgm_slam.perception import PerceptionSource, make_perception
 from shgm_slam.perception.perceive import depth_model_of
@@ -63,6 +63,12 @@ def robot_perception(name: str, sequence: Sequence, cfg: ShgmConfig) -> RobotPer
         raise ConfigError(
             f"robot {name!r}: --odometry gt needs ground-truth poses (poses.txt, or <root>/poses/<seq>.txt for "
             "KITTI), and its sequence has none; use --odometry auto"
+        )
+    if rcfg.odometry.kind is OdometryKind.GIVEN and not given_odometry(sequence):
+        raise ConfigError(
+            f"robot {name!r}: odometry 'given' runs the robot's own odometry given with its frames "
+            "(ArraySequence(T_odom_cam=...), LiveRun.add_frame(..., T_odom_cam=...)), and its frames come without "
+            "it; for a sequence folder give a poses file (--odometry PATH), or use odometry 'auto'"
         )
     written_by = depth_model_of(sequence) if rcfg.perception.depth_model is None else None
     if written_by is not None:
@@ -121,7 +127,7 @@ def make_frontend(
     rcfg = resolve_robot_config(rcfg, scale)
     rcfg = _window_on_image(name, rcfg, sequence, perception, written_by)
     rcfg = _road_at_camera_height(rcfg, perception)
-    choice = choose_odometry(rcfg.odometry.kind, depth_from_model=predicted)
+    choice = choose_odometry(rcfg.odometry.kind, depth_from_model=predicted, odometry_given=given_odometry(sequence))
     log.info("%s: odometry %s (%s)", name, choice.kind.value, choice.reason)
     odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence),
                              timestamps_s=sequence.timestamps_s)  # fmt: skip

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from shgm_slam.data import SequenceWriter, open_sequence
+from shgm_slam.data.base import SequenceView
 from shgm_slam.data.memory import ArraySequence
 from shgm_slam.errors import DataError
 from shgm_slam.perception.perceive import depth_model_of
@@ -101,6 +102,20 @@ def test_it_pickles_for_worker_processes() -> None:
     assert not again.timestamps_s.flags.writeable and not again.gt_poses.flags.writeable
 
 
+def test_the_robots_own_odometry_rides_with_its_frames_through_views_and_pickles() -> None:
+    frames = make_frames(4)
+    own = np.stack([f.T_world_cam for f in frames])
+    own[:, :3, 3] *= 0.5  # (not the ground truth)
+    seq = ArraySequence(np.stack([f.image_rgb for f in frames]), INTRINSICS, np.arange(4) * 0.1 + 1000.0,
+                        T_odom_cam=own)  # fmt: skip
+    assert seq.gt_poses is None and not seq.odometry_poses.flags.writeable
+    np.testing.assert_array_equal(seq[2].T_odom_cam, own[2])
+    view = SequenceView(pickle.loads(pickle.dumps(seq)), 1, 3)
+    np.testing.assert_array_equal(view.odometry_poses, own[1:3])
+    np.testing.assert_array_equal(view[0].T_odom_cam, own[1])
+    assert memory_of(frames).odometry_poses is None and memory_of(frames)[0].T_odom_cam is None
+
+
 @pytest.mark.parametrize(
     ("change", "message"),
     [
@@ -113,6 +128,8 @@ def test_it_pickles_for_worker_processes() -> None:
         (lambda k: k.update(T_world_cam=k["T_world_cam"][:, :3]), "T_world_cam has shape (3, 3, 4)"),
         (lambda k: k["T_world_cam"].__setitem__((2, 0, 0), 3.0), "T_world_cam of frame 2 is not a rigid"),
         (lambda k: k["T_world_cam"].__setitem__((1, 3, 3), np.inf), "T_world_cam of frame 1 is not finite"),
+        (lambda k: k.update(T_odom_cam=k["T_world_cam"][:2]), "T_odom_cam has shape (2, 4, 4)"),
+        (lambda k: k.update(T_odom_cam=k["T_world_cam"] * 2.0), "T_odom_cam of frame 0 is not a rigid"),
         (lambda k: k.update(images_rgb=[]), "has no images"),
         (lambda k: k.update(intrinsics=Intrinsics(0.0, 50.0, 10.0, 10.0, 32, 24)), "positive focal lengths"),
         (lambda k: k.update(intrinsics=(50.0, 50.0, 10.0, 10.0)), "must be an Intrinsics"),

@@ -11,6 +11,7 @@ from shgm_slam.geometry.se3 import inverse, make_pose, pose_error, rot_y, so3_ex
 from shgm_slam.io.trajectories import write_kitti_poses, write_tum
 from shgm_slam.odometry.clouds import depth_to_cloud
 from shgm_slam.odometry.sources import (
+    GivenOdometrySource,
     GroundTruthSource,
     KissIcpSource,
     OdometrySource,
@@ -45,6 +46,24 @@ def test_ground_truth_source_is_relative_to_the_first_frame():
 def test_ground_truth_source_without_poses_raises():
     with pytest.raises(DataError, match="no ground-truth pose"):
         GroundTruthSource().update(_frames(None, 1)[0], np.zeros((0, 3)))
+
+
+def test_given_odometry_is_the_robots_own_relative_to_the_first_frame_and_to_the_first_after_a_reset():
+    """The robot's own odometry (``Frame.T_odom_cam``) runs, not the ground truth the frames also carry; after a
+    reset (an odometry failure) the new segment starts at the next frame."""
+    truth, own = _poses(6, seed=1), _poses(6, seed=2)
+    frames = [Frame(i, 0.1 * i, INTR, T_world_cam=truth[i], T_odom_cam=own[i]) for i in range(6)]
+    src = make_odometry(OdometryConfig(kind=OdometryKind.GIVEN), 6)
+    assert isinstance(src, GivenOdometrySource) and isinstance(src, OdometrySource)
+    est = np.stack([src.update(f, np.zeros((0, 3))).T_odom_cam for f in frames[:4]])
+    np.testing.assert_allclose(est, inverse(own[0]) @ own[:4], atol=1e-9)
+    src.reset()
+    after = src.update(frames[4], np.zeros((0, 3))).T_odom_cam
+    np.testing.assert_allclose(after, np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(src.update(frames[5], np.zeros((0, 3))).T_odom_cam, inverse(own[4]) @ own[5],
+                               atol=1e-9)  # fmt: skip
+    with pytest.raises(DataError, match="no odometry pose of the robot's own"):
+        GivenOdometrySource().update(_frames(truth, 1)[0], np.zeros((0, 3)))
 
 
 @pytest.mark.parametrize("fmt", ["kitti", "tum"])

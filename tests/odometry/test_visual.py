@@ -224,6 +224,12 @@ def test_auto_picks_by_where_the_depth_comes_from_and_says_why(kind, from_model,
     assert choice.reason.startswith("auto: ") == (OdometryKind(kind) is OdometryKind.AUTO)
 
 
+@pytest.mark.parametrize("from_model", [True, False])
+def test_auto_runs_the_robots_own_odometry_where_the_frames_bring_it(from_model):
+    assert choose_odometry(OdometryKind.AUTO, from_model, odometry_given=True).kind is OdometryKind.GIVEN
+    assert choose_odometry(OdometryKind.KISS_ICP, from_model, odometry_given=True).kind is OdometryKind.KISS_ICP
+
+
 def test_a_motion_prior_replaces_the_constant_velocity_prediction_when_pnp_fails(corridor):
     """A blank frame keeps the given prior step exactly (not the last measured motion)."""
     vo = DepthVisualOdometry(depth_window_px=1)
