@@ -162,8 +162,14 @@ class KissIcpSource:
 
 
 class GroundTruthSource:
-    """Ground-truth poses re-expressed relative to the first frame seen (odometry frame = its camera; after a
-    ``reset``, the first frame seen since)."""
+    """Ground-truth poses (``Frame.T_world_cam``) re-expressed relative to the first frame seen (odometry frame =
+    its camera; after a ``reset``, the first frame seen since)."""
+
+    FIELD = "T_world_cam"
+    """The frame's pose this source reads."""
+    MISSING = ("has no ground-truth pose: the sequence has no poses.txt (or poses/<seq>.txt); use odometry kind "
+               "'kiss-icp' or 'file'")  # fmt: skip
+    """What a frame without it is told (after "frame N")."""
 
     def __init__(self) -> None:
         self._T_cam0_world: np.ndarray | None = None
@@ -171,20 +177,14 @@ class GroundTruthSource:
     def reset(self, motion: np.ndarray | None = None) -> None:
         self._T_cam0_world = None
 
-    def _pose(self, frame: Frame) -> np.ndarray:
-        """(4, 4) the frame's pose in the frame the source reads (here the world's)."""
-        if frame.T_world_cam is None:
-            raise DataError(
-                f"frame {frame.index} has no ground-truth pose: the sequence has no poses.txt "
-                "(or poses/<seq>.txt); use odometry kind 'kiss-icp' or 'file'"
-            )
-        return np.asarray(frame.T_world_cam, dtype=np.float64)
-
     def update(
         self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
         label_ids: np.ndarray | None = None,
     ) -> OdometryEstimate:
-        T_world_cam = self._pose(frame)
+        given = getattr(frame, self.FIELD)
+        if given is None:
+            raise DataError(f"frame {frame.index} {self.MISSING}")
+        T_world_cam = np.asarray(given, dtype=np.float64)
         if self._T_cam0_world is None:
             self._T_cam0_world = inverse(T_world_cam)
         return OdometryEstimate(self._T_cam0_world @ T_world_cam, True)
@@ -195,13 +195,9 @@ class GivenOdometrySource(GroundTruthSource):
     SLAM system), re-expressed relative to the first frame seen as the ground truth is. Its steps are checked
     like any odometry's (``odometry.health``): a jump the robot cannot make starts a new trajectory segment."""
 
-    def _pose(self, frame: Frame) -> np.ndarray:
-        if frame.T_odom_cam is None:
-            raise DataError(
-                f"frame {frame.index} has no odometry pose of the robot's own (T_odom_cam); give one with every "
-                "frame, or use odometry kind 'auto'"
-            )
-        return np.asarray(frame.T_odom_cam, dtype=np.float64)
+    FIELD = "T_odom_cam"
+    MISSING = ("has no odometry pose of the robot's own (T_odom_cam); give one with every frame, or use odometry "
+               "kind 'auto'")  # fmt: skip
 
 
 class PoseFileSource:
