@@ -753,9 +753,8 @@ def load_config(path: Path | str | None) -> ShgmConfig:
         hint = ""
         if first["type"] == "extra_forbidden":
             hint = _unknown_key_hint(str(first["loc"][-1]), _fields_at(first["loc"][:-1]))
-        raise ConfigError(
-            f"config file {path}: {where}: {first['msg']}{hint} ({exc.error_count()} error(s))"
-        ) from None
+        where = f"{where}: " if where else ""  # a whole-config check (robots' overrides) names its own place
+        raise ConfigError(f"config file {path}: {where}{first['msg']}{hint} ({exc.error_count()} error(s))") from None
 
 
 def _unknown_key_hint(key: str, known: list[str]) -> str:

@@ -98,6 +98,16 @@ def test_a_zero_up_axis_is_refused(tmp_path):
         load_config(path)
 
 
+def test_a_bad_robot_override_names_its_place_once(tmp_path: Path) -> None:
+    """A robot's override is checked by a whole-config validator, whose location is empty: the message read
+    "config file c.yaml: : Value error, robots.car1...". It names the robot's field once, after the file."""
+    path = tmp_path / "c.yaml"
+    path.write_text("robots:\n  car1:\n    odometry:\n      voxel_size_m: -3\n")
+    with pytest.raises(ConfigError, match=r"c\.yaml: Value error, robots\.car1\.odometry\.voxel_size_m: Input") as info:
+        load_config(path)
+    assert ": :" not in str(info.value)
+
+
 def test_an_integer_of_thousands_of_digits_or_deep_nesting_is_said_in_our_words(tmp_path):
     huge = tmp_path / "huge.yaml"
     huge.write_text("graph:\n  connectivity_m: " + "9" * 5000 + "\n")

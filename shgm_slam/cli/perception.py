@@ -13,6 +13,10 @@ from shgm_slam.cli.render import console, lit
 from shgm_slam.cli.signals import stop_signals_as_interrupt
 from shgm_slam.interrupts import INTERRUPTED_EXIT_CODE
 
+CONSTANT_OUTPUT_SPAN = 1e-6
+"""Largest spread of ``check-model``'s valid output values, relative to their largest (at least 1), that is still
+one value: a (1, 1) depth output resized to the image spans ~2e-7 of it in float32 and passed as a depth map."""
+
 
 @app.command("check-model")
 @handle_errors
@@ -60,7 +64,8 @@ def check_model_command(
         what = "depth (all non-finite or <= 0)" if not report.label_fractions else "label (all ignore, 255)"
         raise ModelError(f"{model}: valid output 0 %: every {what} on {report.image_source}; check the card "
                          "(output kind, scale, classes) and the model")
-    if report.value_min == report.value_max:  # `run` refuses such a model: so does its check
+    span = report.value_max - report.value_min  # resampling a 1x1 output leaves float noise, not an image
+    if span <= CONSTANT_OUTPUT_SPAN * max(abs(report.value_max), 1.0):  # `run` refuses such a model: so does its check
         from shgm_slam.errors import ModelError
 
         what = f"{report.value_min:.3g} m" if not report.label_fractions else f"train id {report.value_min:.0f}"

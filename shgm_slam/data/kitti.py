@@ -119,36 +119,43 @@ MAX_PIXEL_ASPECT = 2.0
 """Most ``fx / fy`` (or ``fy / fx``) of a real camera: pixels are square, anamorphic lenses stretch up to 2x."""
 
 
+def pinhole_problem(fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> str | None:
+    """Why pinhole intrinsics (pixels) cannot be a ``width`` x ``height`` camera's, or None when they can: a focal
+    length that is not positive (zero, or negative: a mirrored map) or not finite, a field of view outside
+    ``MIN_FOV_DEG``-``MAX_FOV_DEG``, pixels stretched beyond ``MAX_PIXEL_ASPECT``, or a principal point outside
+    the image. Shared by calib files (``check_projection``) and intrinsics given in memory."""
+    if not (fx > 0 and fy > 0 and np.isfinite([fx, fy]).all()):
+        return f"focal lengths must be positive (a negative one mirrors the map), got fx={fx:g}, fy={fy:g}"
+    fov_deg = np.degrees(2.0 * np.arctan2([width / 2.0, height / 2.0], [fx, fy]))
+    if not (MIN_FOV_DEG <= fov_deg.min() and fov_deg.max() <= MAX_FOV_DEG):
+        return (f"focal lengths fx={fx:g}, fy={fy:g} px give a {fov_deg[0]:.3g} x {fov_deg[1]:.3g} degree field of "
+                f"view on a {width}x{height} image (a camera has {MIN_FOV_DEG:g}-{MAX_FOV_DEG:g}): wrong units, or a "
+                "calib for another resolution?")  # fmt: skip
+    if max(fx, fy) > MAX_PIXEL_ASPECT * min(fx, fy):
+        return (f"focal lengths fx={fx:g}, fy={fy:g} px differ {max(fx, fy) / min(fx, fy):.3g}-fold (a camera's "
+                f"pixels are square, at most {MAX_PIXEL_ASPECT:g}x stretched): a mistyped calib?")  # fmt: skip
+    if not (0 <= cx < width and 0 <= cy < height):
+        return (f"principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image; is the calib for another "
+                "camera or resolution?")  # fmt: skip
+    return None
+
+
 def check_projection(P: np.ndarray, width: int, height: int, calib_path: Path, key: str) -> None:
     """Sanity of a (3, 4) projection for a ``width`` x ``height`` image.
 
     Raises:
-        DataError: a focal length that is not positive (zero, or negative: a mirrored map), a field of view
-            outside ``MIN_FOV_DEG``-``MAX_FOV_DEG`` or pixels stretched beyond ``MAX_PIXEL_ASPECT``, a skewed or
-            non-pinhole matrix, or a principal point outside the image.
+        DataError: what ``pinhole_problem`` finds in its focal lengths and principal point, or a skewed or
+            non-pinhole matrix.
     """
     fx, fy, cx, cy = P[0, 0], P[1, 1], P[0, 2], P[1, 2]
     where = f"{calib_path} {key}"
-    if not (fx > 0 and fy > 0):
-        raise DataError(f"{where}: focal lengths must be positive (a negative one mirrors the map), got fx={fx:g}, "
-                        f"fy={fy:g}")
-    fov_deg = np.degrees(2.0 * np.arctan2([width / 2.0, height / 2.0], [fx, fy]))
-    if not (MIN_FOV_DEG <= fov_deg.min() and fov_deg.max() <= MAX_FOV_DEG):
-        raise DataError(f"{where}: focal lengths fx={fx:g}, fy={fy:g} px give a {fov_deg[0]:.3g} x {fov_deg[1]:.3g} "
-                        f"degree field of view on a {width}x{height} image (a camera has {MIN_FOV_DEG:g}-"
-                        f"{MAX_FOV_DEG:g}): wrong units, or a calib for another resolution?")
-    if max(fx, fy) > MAX_PIXEL_ASPECT * min(fx, fy):
-        raise DataError(f"{where}: focal lengths fx={fx:g}, fy={fy:g} px differ {max(fx, fy) / min(fx, fy):.3g}-fold "
-                        f"(a camera's pixels are square, at most {MAX_PIXEL_ASPECT:g}x stretched): a mistyped calib?")
-    skewed = abs(P[0, 1]) > 1e-6 * fx or abs(P[1, 0]) > 1e-6 * fx
+    skewed = abs(P[0, 1]) > 1e-6 * abs(fx) or abs(P[1, 0]) > 1e-6 * abs(fx)
     if skewed or abs(P[2, 0]) > 1e-9 or abs(P[2, 1]) > 1e-9 or abs(P[2, 2] - 1.0) > 1e-6:
         rows = "; ".join(" ".join(f"{v:g}" for v in row) for row in P[:, :3])
         raise DataError(f"{where}: expected a pinhole projection 'fx 0 cx tx 0 fy cy ty 0 0 1 tz', got [{rows}]")
-    if not (0 <= cx < width and 0 <= cy < height):
-        raise DataError(
-            f"{where}: principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image; "
-            "is the calib for another camera or resolution?"
-        )
+    problem = pinhole_problem(fx, fy, cx, cy, width, height)
+    if problem is not None:
+        raise DataError(f"{where}: {problem}")
 
 
 MIN_FRAME_INTERVAL_S = 1e-3

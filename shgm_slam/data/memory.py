@@ -18,7 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from shgm_slam.data.indexed import IndexedFrames
-from shgm_slam.data.kitti import check_times
+from shgm_slam.data.kitti import check_times, pinhole_problem
 from shgm_slam.errors import DataError
 from shgm_slam.types import DepthOrigin, Frame, Intrinsics
 
@@ -154,12 +154,19 @@ class ArraySequence(IndexedFrames):
 
 def checked_intrinsics(intrinsics: Intrinsics, name: str) -> Intrinsics:
     """``intrinsics``, refused (DataError naming sequence ``name``) unless an ``Intrinsics`` with positive finite
-    focal lengths and image size."""
+    focal lengths and image size that a camera can have (``kitti.pinhole_problem``, as for a calib file: a field of
+    view of 1-170 degrees, pixels at most 2x stretched, the principal point inside the image)."""
     if not isinstance(intrinsics, Intrinsics):
         raise DataError(f"sequence {name!r}: intrinsics must be an Intrinsics, not {type(intrinsics).__name__}")
     focal = np.array([intrinsics.fx, intrinsics.fy], dtype=np.float64)
     if not (np.isfinite(focal).all() and (focal > 0).all() and intrinsics.width > 0 and intrinsics.height > 0):
         raise DataError(f"sequence {name!r}: intrinsics {intrinsics} need positive focal lengths and image size")
+    k = intrinsics
+    if not np.isfinite([k.cx, k.cy]).all():
+        raise DataError(f"sequence {name!r}: intrinsics {intrinsics} need a finite principal point (cx, cy)")
+    problem = pinhole_problem(k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+    if problem is not None:
+        raise DataError(f"sequence {name!r}: intrinsics {intrinsics}: {problem}")
     return intrinsics
 
 

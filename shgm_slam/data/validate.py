@@ -10,7 +10,10 @@ sequence through the robot's perception and raises one clear error when none of 
   files, ModelError naming the depth model;
 - no probed label is a Cityscapes train id (0-18; all 255 = ignore, or garbage): DataError / ModelError;
 - a model's output is constant over every probed frame (one depth value; one class, ignore (255) aside):
-  ModelError, as ``shgm-slam check-model`` says.
+  ModelError, as ``shgm-slam check-model`` says;
+- depth files that hold one value in every valid pixel of every probed frame (a sensor's saturation value or a
+  placeholder written for every pixel): DataError. Such a "scene" is a sphere around the camera; KISS-ICP slid
+  through it with no warning (65535 everywhere: a car's odometry 68 m off its path).
 
 A single bad frame is not an error here (the run skips it with a reason); only a sequence none of whose
 probed frames is usable is. Pure apart from reading frames through the ``Sequence`` protocol.
@@ -60,7 +63,8 @@ def check_sequence_start(
             their outputs' problems are ModelErrors naming them.
 
     Raises:
-        DataError: no probed frame can be read, or the depth / label files hold nothing usable.
+        DataError: no probed frame can be read, or the depth / label files hold nothing usable (depth files:
+            also one value everywhere).
         ModelError: a model's output has no valid value or is constant on every probed frame.
     """
     indices = probe_indices(len(sequence))
@@ -92,9 +96,10 @@ def check_sequence_start(
             f"{where}: depth has no valid pixel (all 0 or non-finite); depth/ needs uint16 PNGs of "
             "metres x 256 with 0 = invalid"
         )
+    values = np.concatenate([d[v] for d, v in zip(depths, valid, strict=True)])
+    constant_depth = values.size > 1 and values.min() == values.max()
     if depth_model is not None:
-        values = np.concatenate([d[v] for d, v in zip(depths, valid, strict=True)])
-        if values.size > 1 and values.min() == values.max():
+        if constant_depth:
             raise ModelError(
                 f"depth model {depth_model}: constant output ({values[0]:.3g} m everywhere) on {where}; "
                 "check the model and its card (output kind, scale, clamp range) with shgm-slam check-model"
@@ -120,6 +125,12 @@ def check_sequence_start(
                 f"wherever not ignore) on {where}; a graph of one class cannot be matched: check the model and "
                 "its card (classes: one per class the model outputs) with shgm-slam check-model"
             )
+    if constant_depth and depth_model is None:  # after the labels: their errors say more about such files
+        raise DataError(
+            f"{where}: depth is {values[0]:.6g} m in every valid pixel of every frame (a sensor's saturated or "
+            "placeholder value, never a measured scene); depth/ needs uint16 PNGs of metres x 256 with 0 = invalid: "
+            "re-export it, or remove depth/ and set a depth model"
+        )
 
 
 def _check_label_space(labels: list[np.ndarray], where: str) -> None:

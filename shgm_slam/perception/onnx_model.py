@@ -10,6 +10,7 @@ inputs and outputs, turns RGB images into the input tensor (resize / pad / crop 
 
 from __future__ import annotations
 
+import re
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -132,8 +133,34 @@ def open_session(
         raise ModelError(_explain_load_error(model_path, str(exc))) from None
 
 
+_ORT_PREFIX = re.compile(r"^\s*\[ONNXRuntimeError\]\s*:\s*\d+\s*:\s*\w+\s*:\s*")
+"""The ``[ONNXRuntimeError] : 1 : FAIL : `` head of onnxruntime's messages."""
+_ORT_SOURCE = re.compile(r"^/\S+:\d+ .*?\) (?=[A-Z])")
+"""The ``/onnxruntime_src/...h:46 void f(...) `` source location and C++ signature some messages start with."""
+_UNKNOWN_OP = re.compile(
+    r"(?:Fatal error: (?P<custom>\S+?)\(-?\d+\) is not a registered function/op)"
+    r"|(?:No Op registered for (?P<op>\S+) with domain_version of (?P<version>\d+))"
+)
+_MISSING_DOMAIN = re.compile(r"No opset import for domain '(?P<domain>[^']*)'")
+
+
 def _explain_load_error(model_path: Path, message: str) -> str:
-    detail = message.split(") ")[-1].strip() if ") " in message else message.strip()
+    """One line on why onnxruntime refused ``model_path`` (its ``message``), with what to do about it."""
+    detail = " ".join(_ORT_SOURCE.sub("", _ORT_PREFIX.sub("", message.strip())).split())
+    if (unknown := _UNKNOWN_OP.search(message)) is not None:
+        if unknown["custom"]:
+            op, why = unknown["custom"], "a custom operator of another runtime"
+        else:
+            op, why = unknown["op"], f"not an ONNX operator of opset {unknown['version']}, which the model imports"
+        return (
+            f"model {model_path} uses the operator {op}, which onnxruntime {ort.__version__} does not implement "
+            f"({why}): re-export it with standard ONNX operators of opset <= {MAX_OPSET_HINT}"
+        )
+    if (missing := _MISSING_DOMAIN.search(message)) is not None:
+        return (
+            f"model {model_path} is invalid: a node uses the operator domain '{missing['domain']}', which the "
+            "model does not import (opset_imports): re-export it with standard ONNX operators only"
+        )
     fix = (
         f"re-export it with ir_version <= {MAX_IR_VERSION_HINT} and opset <= {MAX_OPSET_HINT} "
         f"(onnx: helper.make_model(..., ir_version={MAX_IR_VERSION_HINT}, opset_imports=[make_opsetid('', "
@@ -421,7 +448,14 @@ class OnnxModel:
                     f"{self.where} failed on an input of shape {list(chunk.shape)} ({str(exc)[-300:]}): "
                     "check input.size / input.multiple_of / input.layout in the card"
                 ) from None
-            outs.append(np.asarray(out))
+            out = np.asarray(out)
+            if out.ndim == 0 or out.shape[0] != chunk.shape[0]:
+                raise ModelError(
+                    f"{self.where}: output '{self.output_spec.name}' has shape {list(out.shape)} for a batch of "
+                    f"{chunk.shape[0]} image(s); its first axis must hold one result per image: export the model "
+                    "with the same batch axis on its input and output"
+                )
+            outs.append(out)
         out = outs[0] if len(outs) == 1 else np.concatenate(outs)
         self.last_output_shape = tuple(out.shape)
         return out[:n]

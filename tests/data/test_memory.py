@@ -133,6 +133,13 @@ def test_the_robots_own_odometry_rides_with_its_frames_through_views_and_pickles
         (lambda k: k.update(images_rgb=[]), "has no images"),
         (lambda k: k.update(intrinsics=Intrinsics(0.0, 50.0, 10.0, 10.0, 32, 24)), "positive focal lengths"),
         (lambda k: k.update(intrinsics=(50.0, 50.0, 10.0, 10.0)), "must be an Intrinsics"),
+        # what a calib.txt is refused for, in memory too (a LiveRun's cameras included): before, a principal point
+        # a million pixels off the image, or a focal length in other units, ran and back-projected garbage
+        (lambda k: k.update(intrinsics=Intrinsics(50.0, 50.0, 1e6, 10.0, 32, 24)), "principal point (1e"),
+        (lambda k: k.update(intrinsics=Intrinsics(50.0, 50.0, 10.0, -3.0, 32, 24)), "lies outside the 32x24 image"),
+        (lambda k: k.update(intrinsics=Intrinsics(50.0, 50.0, 10.0, np.nan, 32, 24)), "finite principal point"),
+        (lambda k: k.update(intrinsics=Intrinsics(5e4, 5e4, 10.0, 10.0, 32, 24)), "degree field of view"),
+        (lambda k: k.update(intrinsics=Intrinsics(50.0, 500.0, 10.0, 10.0, 32, 24)), "differ 10-fold"),
     ],
 )
 def test_what_cannot_be_a_sequence_is_refused_at_once(change, message: str) -> None:

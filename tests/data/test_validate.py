@@ -96,7 +96,8 @@ def test_model_outputs_nan_or_constant_are_model_errors(seq_dir: Path):
 
     with pytest.raises(ModelError, match="constant output"):
         check_sequence_start("car", seq, flat_depth, depth_model="d.onnx")
-    check_sequence_start("car", seq, flat_depth)  # a constant depth file is not a model's fault
+    with pytest.raises(DataError, match=r"depth is 80 m in every valid pixel of every frame"):
+        check_sequence_start("car", seq, flat_depth)  # a constant depth file is not a model's fault: the data's
 
     def one_class(frame):
         return frame.depth_m, np.full(frame.label_ids.shape, 2, np.uint8)
@@ -111,6 +112,20 @@ def test_model_outputs_nan_or_constant_are_model_errors(seq_dir: Path):
 
     with pytest.raises(ModelError, match=r"constant output \(train id 0, road, wherever not ignore\).*one class"):
         check_sequence_start("car", seq, one_class_and_ignore, seg_model="s.onnx")  # as check-model refuses it
+
+
+def test_depth_files_of_one_value_are_one_error(tmp_path: Path):
+    """Every depth PNG 65535 (a sensor's saturation value): a run went on with KISS-ICP sliding through a sphere of
+    256 m around the camera, a car's odometry 68 m off, exit 0 and no warning. A few invalid pixels (0) change
+    nothing; one frame of real depth among them passes."""
+    frames = make_frames(6)
+    for f in frames:
+        f.depth_m = np.where(f.depth_m > 0, 65535 / 256, 0.0).astype(np.float32)
+    seq = open_sequence(write_frames(tmp_path / "s", frames))
+    with pytest.raises(DataError, match=r"robot 'car'.*depth is 255\.996 m in every valid pixel.*saturated"):
+        check_sequence_start("car", seq, files)
+    frames[2] = make_frames(3)[2]
+    check_sequence_start("car", open_sequence(write_frames(tmp_path / "t", frames)), files)
 
 
 def test_run_on_all_zero_depth_exits_2_before_any_frame(tmp_path: Path):

@@ -7,6 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from onnx import TensorProto, helper, numpy_helper
 from typer.testing import CliRunner
 
 from shgm_slam.cli import app
@@ -92,6 +93,28 @@ def test_render_preview_panels() -> None:
     assert panel.shape == (20, 3 * 64, 3)
     assert (panel[0, 64] == 0).all()  # invalid depth (0 m) is black
     assert (panel[:, 128:] == 0).all()  # ignore labels are black
+
+
+def test_cli_check_model_refuses_a_one_pixel_depth_output(tmp_path: Path) -> None:
+    """A depth output of (N, 1, 1, 1), resized to the image: one value, give or take float32 noise (~2e-7 of it),
+    which the exact min == max test let through (exit 0, a depth "map" of one distance)."""
+    value = helper.make_tensor_value_info
+    path = tmp_path / "pool.onnx"
+    graph = helper.make_graph(
+        [helper.make_node("GlobalAveragePool", ["x"], ["p"]), helper.make_node("ReduceMean", ["p"], ["m"], axes=[1]),
+         helper.make_node("Abs", ["m"], ["a"]), helper.make_node("Add", ["a", "five"], ["out"])],
+        "pool", [value("x", TensorProto.FLOAT, ["N", 3, 48, 160])], [value("out", TensorProto.FLOAT, ["N", 1, 1, 1])],
+        [numpy_helper.from_array(np.array([5.0], np.float32), "five")],
+    )  # fmt: skip
+    path.write_bytes(helper.make_model(graph, ir_version=10, opset_imports=[helper.make_opsetid("", 17)])
+                     .SerializeToString())  # fmt: skip
+    write_card(tmp_path / "pool.yaml", {"task": "depth", "input": {"size": [160, 48]}, "output": {"kind": "metric"}})
+    report = check_model(path, None, None, None, runs=1, threads=1)
+    assert report.value_max - report.value_min < 1e-5 * report.value_max  # one value, give or take float noise
+    result = CliRunner().invoke(app, ["check-model", str(path), "--runs", "1", "--threads", "1"],
+                                env={"COLUMNS": "1000"})  # fmt: skip
+    assert result.exit_code == 2, result.output
+    assert "constant output" in " ".join(result.output.split())
 
 
 def test_cli_check_model_smoke(tmp_path: Path, depth_model: Path) -> None:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from onnx import TensorProto
+from onnx import TensorProto, helper
 
 from shgm_slam.errors import DataError, ModelError
 from shgm_slam.perception.card import ResizeMode, parse_card
@@ -15,7 +15,7 @@ from shgm_slam.perception.depth import DepthModel
 from shgm_slam.perception.onnx_model import measure_overhead, open_session
 from shgm_slam.perception.resize import any_size_target, plan_resize
 from shgm_slam.perception.segmentation import SegmentationModel
-from tests.perception.onnx_builders import channel_model, coordinate_image, rank3_model, write_card
+from tests.perception.onnx_builders import channel_model, coordinate_image, rank3_model, save_model, write_card
 
 _ids = itertools.count()
 
@@ -215,6 +215,49 @@ def test_too_new_ir_and_opset_name_the_fix(tmp_path: Path) -> None:
     path = channel_model(tmp_path / "newop.onnx", ir_version=10, opset=28)
     with pytest.raises(ModelError, match=r"opset .*re-export it with ir_version <= 10 and opset <= 21"):
         open_session(path)
+
+
+def _unknown_op_model(path: Path, domain: str, import_domain: bool) -> Path:
+    """(N, 3, H, W) -> an operator onnxruntime does not have, in ``domain`` (imported or not)."""
+    value = helper.make_tensor_value_info
+    graph = helper.make_graph([helper.make_node("FooBarOp", ["x"], ["out"], domain=domain)], "test",
+                              [value("x", TensorProto.FLOAT, ["N", 3, "H", "W"])],
+                              [value("out", TensorProto.FLOAT, ["N", 1, "H", "W"])])  # fmt: skip
+    imports = [helper.make_opsetid("", 17)] + [helper.make_opsetid(domain, 1)] * (bool(domain) and import_domain)
+    path.write_bytes(helper.make_model(graph, ir_version=10, opset_imports=imports).SerializeToString())
+    return path
+
+
+@pytest.mark.parametrize(
+    ("domain", "import_domain", "needle"),
+    [
+        ("com.example", True, r"operator com\.example:FooBarOp, which onnxruntime .* does not implement \(a custom"),
+        ("", True, r"operator FooBarOp, which onnxruntime .* \(not an ONNX operator of opset 17"),
+        ("com.example", False, r"invalid: a node uses the operator domain 'com\.example', which the model does not"),
+    ],
+)
+def test_unknown_operators_are_named_not_called_a_newer_opset(
+    tmp_path: Path, domain: str, import_domain: bool, needle: str
+) -> None:
+    """onnxruntime's text was cut at the operator's ``(-1) ``, dropping its name, and a custom domain without an
+    opset import was called "an opset newer than onnxruntime reads", whose fix (an older opset) cannot help."""
+    path = _unknown_op_model(tmp_path / "op.onnx", domain, import_domain)
+    with pytest.raises(ModelError, match=needle) as info:
+        open_session(path)
+    assert "is newer than" not in str(info.value)
+
+
+def test_output_without_the_batch_axis_is_a_model_error(tmp_path: Path) -> None:
+    """A model whose output batch is fixed at 1 (here: averaged over the batch) while its input batch is dynamic
+    ended ``perceive`` (batches of 8) with a ValueError from zip() deep inside the depth adapter."""
+    value = helper.make_tensor_value_info
+    path = save_model(tmp_path / "b1.onnx", [helper.make_node("ReduceMean", ["x"], ["out"], axes=[0, 1], keepdims=1)],
+                      [value("x", TensorProto.FLOAT, ["N", 3, "H", "W"])],
+                      [value("out", TensorProto.FLOAT, [1, 1, "H", "W"])])  # fmt: skip
+    model = DepthModel(path, parse_card({"task": "depth", "input": {"size": [20, 15], "scale": 1}}), threads=1)
+    assert model.predict(constant_image((10, 20, 30))).shape == (30, 40)  # one image: one output, as it should
+    with pytest.raises(ModelError, match=r"shape \[1, 1, 15, 20\] for a batch of 3 image\(s\).*same batch axis"):
+        model.predict_batch([constant_image((v, 0, 0)) for v in (10, 20, 30)])
 
 
 def test_missing_and_corrupt_model_files(tmp_path: Path) -> None:
