@@ -313,6 +313,24 @@ def test_a_malformed_frame_is_a_data_error_naming_it(change: dict, message: str)
         stream.append(**{**good, "timestamp_s": 0.1, "T_odom_cam": np.eye(4)})
 
 
+@pytest.mark.parametrize("scale", [1e3, 1e9, 1e-4])
+def test_times_not_in_seconds_are_refused_once_a_few_frames_show_it(scale: float) -> None:
+    stream = FrameStream(Intrinsics(100.0, 100.0, 4.0, 2.0, 8, 4), name="cam")
+    image = np.zeros((4, 8, 3), np.uint8)
+    for k in range(3):
+        stream.append(image, 0.1 * k * scale)
+    with pytest.raises(DataError, match=r"frame 3: frames are .* apart \(median\).*must be in seconds"):
+        stream.append(image, 0.3 * scale)
+    assert len(stream) == 3
+
+
+def test_a_camera_that_pauses_once_is_not_taken_for_wrong_units() -> None:
+    stream = FrameStream(Intrinsics(100.0, 100.0, 4.0, 2.0, 8, 4), name="cam")
+    for t in (0.0, 0.1, 90.0, 90.1, 90.2, 600.0, 600.1):
+        stream.append(np.zeros((4, 8, 3), np.uint8), t)
+    assert len(stream) == 7
+
+
 def test_a_robots_own_odometry_given_with_its_frames_is_run_as_its_odometry(tiny_scenario: Path, tmp_path: Path,
                                                                             caplog) -> None:  # fmt: skip
     """car2's frames come with its own odometry (here its ground truth moved into another frame): with the default

@@ -12,9 +12,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from shgm_slam.data.kitti import check_times
 from shgm_slam.data.memory import ArraySequence, checked_intrinsics, checked_poses
 from shgm_slam.errors import DataError
 from shgm_slam.types import DepthOrigin, Frame, Intrinsics
+
+UNITS_FROM_FRAMES = (3, 10)
+"""Frames 3 to 10 are refused unless the median interval so far is a camera's (``kitti.check_times``: 1 ms to
+30 s, as for a recorded sequence): times in milliseconds or nanoseconds are refused before they mislead the
+odometry's checks of speed, and the median lets one pause of the camera pass."""
 
 
 class FrameStream(ArraySequence):
@@ -115,6 +121,8 @@ class FrameStream(ArraySequence):
             last = f" (the last frame's is {self._time_rows[i - 1]:.6f} s)" if i > 0 else ""
             raise DataError(f"{where}: timestamp {timestamp_s!r} s is not a finite time later than the last "
                             f"frame's{last}; give each frame's capture time in seconds, increasing")  # fmt: skip
+        if UNITS_FROM_FRAMES[0] <= i <= UNITS_FROM_FRAMES[1]:  # seconds, as a recorded sequence's times must be
+            check_times(np.append(self._time_rows[:i], t), where)
         pose = None if T_world_cam is None else _checked_pose(T_world_cam, "T_world_cam", "world", where)
         odom = None if T_odom_cam is None else _checked_pose(T_odom_cam, "T_odom_cam", "odometry frame", where)
         # the arrays as the pipeline will read them (checked, copied: the caller may reuse its buffers)
