@@ -98,11 +98,18 @@ def check_sequence_start(
         )
     values = np.concatenate([d[v] for d, v in zip(depths, valid, strict=True)])
     constant_depth = values.size > 1 and values.min() == values.max()
+    flat_frames = values.size > 1 and all(_one_value(d[v]) for d, v in zip(depths, valid, strict=True))
     if depth_model is not None:
         if constant_depth:
             raise ModelError(
                 f"depth model {depth_model}: constant output ({values[0]:.3g} m everywhere) on {where}; "
                 "check the model and its card (output kind, scale, clamp range) with shgm-slam check-model"
+            )
+        if flat_frames:
+            raise ModelError(
+                f"depth model {depth_model}: one value in each frame ({values.min():.3g}-{values.max():.3g} m "
+                f"across frames, a 1x1 output resized to the image?) on {where}; check the model and its card "
+                "(output name and size) with shgm-slam check-model"
             )
     if labels:
         known = [lab[lab < NUM_CLASSES] for lab in labels]  # train ids 0-18
@@ -125,12 +132,26 @@ def check_sequence_start(
                 f"wherever not ignore) on {where}; a graph of one class cannot be matched: check the model and "
                 "its card (classes: one per class the model outputs) with shgm-slam check-model"
             )
-    if constant_depth and depth_model is None:  # after the labels: their errors say more about such files
+    if flat_frames and depth_model is None:  # after the labels: their errors say more about such files
+        what = f"{values[0]:.6g} m" if constant_depth else f"one value ({values.min():.6g}-{values.max():.6g} m)"
         raise DataError(
-            f"{where}: depth is {values[0]:.6g} m in every valid pixel of every frame (a sensor's saturated or "
-            "placeholder value, never a measured scene); depth/ needs uint16 PNGs of metres x 256 with 0 = invalid: "
-            "re-export it, or remove depth/ and set a depth model"
+            f"{where}: depth is {what} in every valid pixel of each frame (a sensor's saturated or placeholder "
+            "value, never a measured scene); depth/ needs uint16 PNGs of metres x 256 with 0 = invalid: re-export "
+            "it, or remove depth/ and set a depth model"
         )
+
+
+ONE_VALUE_SPAN = 1e-6
+"""A frame's valid depths spanning at most this fraction of their largest are one value (a 1x1 output resized to the
+image in float32 spans ~2e-7 of it)."""
+
+
+def _one_value(depth_m: np.ndarray) -> bool:
+    """(K,) valid depths, metres, of one frame: one value within float noise (``ONE_VALUE_SPAN``); an empty frame
+    says nothing against the others (True)."""
+    if depth_m.size == 0:
+        return True
+    return float(depth_m.max() - depth_m.min()) <= ONE_VALUE_SPAN * max(float(np.abs(depth_m).max()), 1.0)
 
 
 def _check_label_space(labels: list[np.ndarray], where: str) -> None:

@@ -96,8 +96,18 @@ def test_model_outputs_nan_or_constant_are_model_errors(seq_dir: Path):
 
     with pytest.raises(ModelError, match="constant output"):
         check_sequence_start("car", seq, flat_depth, depth_model="d.onnx")
-    with pytest.raises(DataError, match=r"depth is 80 m in every valid pixel of every frame"):
+    with pytest.raises(DataError, match=r"depth is 80 m in every valid pixel of each frame"):
         check_sequence_start("car", seq, flat_depth)  # a constant depth file is not a model's fault: the data's
+
+    def flat_per_frame(frame):  # a 1x1 output resized to the image: one value per frame, float noise aside
+        value = np.float32(5.0 + frame.index)
+        return np.full(frame.depth_m.shape, value) * (1 + 1e-7 * np.arange(frame.depth_m.size).reshape(
+            frame.depth_m.shape) / frame.depth_m.size).astype(np.float32), frame.label_ids  # fmt: skip
+
+    with pytest.raises(ModelError, match=r"one value in each frame \(5-.* m across frames, a 1x1 output"):
+        check_sequence_start("car", seq, flat_per_frame, depth_model="d.onnx")
+    with pytest.raises(DataError, match=r"depth is one value \(5-.* m\) in every valid pixel of each frame"):
+        check_sequence_start("car", seq, flat_per_frame)
 
     def one_class(frame):
         return frame.depth_m, np.full(frame.label_ids.shape, 2, np.uint8)
