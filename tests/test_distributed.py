@@ -296,5 +296,8 @@ def test_a_robot_fed_frame_by_frame_joins_the_fleet(tiny_scenario: Path, tmp_pat
     assert [p.index for p in poses] == list(range(len(seq)))
     assert summary.acknowledged and summary.server_finished and summary.placed_agents == ["car2"]
     assert summary.frames == summary.frames_processed == len(seq)
-    _, T = read_tum(tmp_path / "car2" / "car2_fused_tum.txt")
+    times, T = read_tum(tmp_path / "car2" / "car2_fused_tum.txt")
     assert len(T) == len(seq)
+    now_times, T_now = robot.trajectory()  # the written fused trajectory is the robot's estimate at its end
+    np.testing.assert_allclose(now_times, times, atol=1e-6)
+    np.testing.assert_allclose(T_now[:, :3, 3], T[:, :3, 3], atol=1e-4)

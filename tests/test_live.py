@@ -40,11 +40,12 @@ def live_and_recorded(tiny_scenario: Path, tmp_path_factory: pytest.TempPathFact
     order = list(interleave(sequences))
     live = LiveRun({n: s.intrinsics for n, s in sequences.items()}, tmp / "live")
     poses = feed(live, sequences, order)
-    return recorded, live, live.finish(), poses, order, sequences
+    before_finish = {n: live.trajectory(n) for n in NAMES}
+    return recorded, live, live.finish(), poses, order, sequences, before_finish
 
 
 def test_frames_fed_one_by_one_give_the_recorded_runs_results(live_and_recorded) -> None:
-    recorded, _, summary, _, _, _ = live_and_recorded
+    recorded, _, summary, _, _, _, _ = live_and_recorded
     assert (summary.matches_tried, summary.closures_accepted) == (recorded.matches_tried, recorded.closures_accepted)
     assert summary.robots[1].localized and summary.robots[1].ate_fused_m < 2.0
     compared = 0
@@ -62,7 +63,7 @@ def test_frames_fed_one_by_one_give_the_recorded_runs_results(live_and_recorded)
 def test_every_frame_gets_its_pose_once_in_order_and_placed_poses_are_the_fused_ones(live_and_recorded) -> None:
     """Held frames come back at the call that starts the run; then each call returns its own frame. A pose the map
     server had placed lies where the final fused trajectory puts it, within the corrections that came later."""
-    _, live, summary, poses, order, sequences = live_and_recorded
+    _, live, summary, poses, order, sequences, _ = live_and_recorded
     assert [(p.robot, p.index) for p in poses] == order
     assert all(p.skipped is None for p in poses)
     for robot in NAMES:
@@ -99,6 +100,26 @@ def late_car2(sequences: dict, live: LiveRun, *, add_camera: bool) -> tuple[list
     first_car2 = next(k for k, p in enumerate(poses) if p.robot == "car2")
     assert poses[first_car2].index == 0 and not live.warming
     return poses, live.finish()
+
+
+def test_the_current_trajectory_is_the_fused_one_the_folder_gets(live_and_recorded) -> None:
+    """``trajectory``: before ``finish``, every frame run in the shared frame within what the final matching
+    corrected; after, the written fused trajectory itself."""
+    _, live, summary, _, _, sequences, before_finish = live_and_recorded
+    for robot in NAMES:
+        fused = np.loadtxt(summary.out_dir / f"{robot}_fused_tum.txt")
+        times, T_shared_cam = live.trajectory(robot)
+        assert len(times) == len(sequences[robot]) and T_shared_cam.shape == (len(times), 4, 4)
+        np.testing.assert_allclose(times, fused[:, 0], atol=1e-6)
+        np.testing.assert_allclose(T_shared_cam[:, :3, 3], fused[:, 1:4], atol=1e-4)
+        if before_finish[robot] is None:  # (placed by the final whole-graph matching)
+            assert robot != "car1"  # the shared frame's robot is placed from the server's first correction on
+            continue
+        times_then, T_then = before_finish[robot]
+        assert len(times_then) == len(times)
+        assert np.nanmax(np.linalg.norm(T_then[:, :3, 3] - T_shared_cam[:, :3, 3], axis=1)) < 2.0
+    with pytest.raises(ConfigError, match="no camera 'car3'"):
+        live.trajectory("car3")
 
 
 def test_a_camera_that_starts_late_joins_the_running_system(tiny_scenario: Path, tmp_path: Path) -> None:

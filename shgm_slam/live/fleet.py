@@ -102,6 +102,31 @@ class LiveRun:
         """The robots whose first frames are still too few to set their settings (their frames are held)."""
         return tuple(r for r, w in self._warmups.items() if not w.ready)
 
+    def trajectory(self, robot: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """The run's current estimate of every frame ``robot`` has run, in the shared frame: what the results
+        folder's fused trajectory would say now. Earlier frames move as later closures correct the estimate
+        (``LivePose.T_shared_cam`` is the estimate at the frame's own call); after ``finish``, the final one.
+
+        Returns:
+            ``(timestamps_s (N,), T_shared_cam (N, 4, 4))`` with NaN rows for frames of trajectory segments not
+            placed (or in none), or None while the robot does not run yet or none of its segments is placed.
+
+        Raises:
+            ConfigError: ``robot`` is not one of the run's cameras.
+        """
+        from shgm_slam.run_report import fused_poses
+
+        with self._lock:
+            if robot not in self.streams:
+                raise ConfigError(f"no camera {robot!r} in this run; its cameras are {', '.join(self.streams)}")
+            fleet = self._fleet
+            if fleet is None or robot not in fleet.fronts:
+                return None
+            T_shared_cam = fused_poses(fleet.fronts[robot], fleet.server)
+            if T_shared_cam is None:
+                return None
+            return self.streams[robot].timestamps_s[: len(T_shared_cam)].copy(), T_shared_cam
+
     def add_camera(
         self, robot: str, intrinsics: Intrinsics, *, depth_origin: DepthOrigin = DepthOrigin.MEASURED
     ) -> None:

@@ -111,6 +111,15 @@ class LiveRobot:
         held, self._held = self._held, []
         return [self._step(i) for i in held]
 
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Every frame the robot has run in the shared frame as the server's latest corrections place it
+        (``LiveRun.trajectory``): ``(timestamps_s (N,), T_shared_cam (N, 4, 4))``, NaN rows for frames of segments
+        not placed; None before it runs or while no segment is placed."""
+        fused = None if self._node is None else self._node.fused()
+        if fused is None:
+            return None
+        return self.stream.timestamps_s[: len(fused)].copy(), fused
+
     def poll(self, timeout_s: float = 0.0) -> None:
         """Keep the link to the server alive between frames: the heartbeat, corrections, re-sends (at most
         ``timeout_s`` waiting for a message)."""
