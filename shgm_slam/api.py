@@ -199,15 +199,19 @@ def match(
             robots), else as the configuration says; ``Dof.FOUR`` / ``Dof.SIX`` force it.
 
     Raises:
-        DataError: an unreadable or malformed graph file. ConfigError: a bad configuration.
+        DataError: an unreadable or malformed graph file. GraphError: ``GraphArrays`` that do not hold a graph
+            (``matching.matcher.check_graph``). ConfigError: a bad configuration.
     """
     from shgm_slam.io.graph_json import read_graph
     from shgm_slam.matching import match_graphs
     from shgm_slam.matching.gravity import choose_dof
+    from shgm_slam.matching.matcher import check_graph
 
     cfg = config_of(config)
     a, b = (g if isinstance(g, GraphArrays) else read_graph(g, connectivity_m=cfg.graph.connectivity_m)
             for g in (graph_a, graph_b))  # fmt: skip
+    check_graph(a, "A")  # (the vertical is read from the positions first)
+    check_graph(b, "B")
     matching_cfg, dof_note = choose_dof(Dof(dof), a.positions_xyz, b.positions_xyz, cfg.matching)
     result = match_graphs(a, b, cfg.descriptor, matching_cfg)
     return GraphMatch(result, bool(matching_cfg.gravity_aligned), tuple(matching_cfg.up_axis), dof_note,

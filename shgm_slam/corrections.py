@@ -45,6 +45,8 @@ class FusedView:
                 odom.pop(agent, None)
                 continue
             held = poses.get(agent, np.zeros((0, 4, 4)))[: c.num_keyframes]
+            if c.num_keyframes > len(held) + len(c.kf_indices):  # some keyframe would be left without a pose
+                return False  # (checked before allocating: a peer's count may be 2^31)
             if c.T_move is not None:
                 held = c.T_move @ held
             new = np.full((c.num_keyframes, 4, 4), np.nan)

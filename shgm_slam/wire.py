@@ -6,10 +6,11 @@ schema fixes (the count N follows from the byte length, and must agree across co
 
 - poses: the top 3 rows of a 4x4 pose, (3, 4) float64 (the bottom row [0, 0, 0, 1] is implied);
 - node states (``GraphUpdate.new_nodes`` / ``updated_nodes``) column-wise: ids int64, labels uint8
-  (Cityscapes train ids 0..18, 255 = ignore), anchor keyframes int32, positions (N, 3) float32
+  (Cityscapes train ids 0..18: a node is an object of a class), anchor keyframes int32 (at most the keyframe's
+  own index, which is also the graph update's ``kf_id``), positions (N, 3) float32
   (metres in a keyframe camera frame: float32 keeps ~0.1 mm at 1 km), sizes float32 (pixel counts,
   exact below 2^24), observation counts uint16 (saturated at 65535 when encoding);
-- ``up_odom`` (3,) float64 or nil (the keyframe's own ground normal; version 1 sent a running mean); per
+- ``up_odom`` (3,) float64 unit vector or nil (the keyframe's own ground normal; version 1 sent a running mean); per
   agent of a ``CorrectionMessage``: ``T_shared_odom`` one pose or nil, the keyframe count, keyframe
   indices int32 and their poses (M, 3, 4) float64, ``T_move`` one pose or nil;
 - ``RobotTrajectory``: timestamps float64, segments int32, poses (N, 3, 4) float64 (a frame in no
@@ -35,6 +36,7 @@ import numpy as np
 
 from shgm_slam.errors import ProtocolError
 from shgm_slam.graph.semantic_graph import GraphUpdate, NodeState
+from shgm_slam.labels import NUM_CLASSES
 from shgm_slam.messages import (
     AgentCorrection,
     CorrectionMessage,
@@ -60,11 +62,22 @@ MAX_PAYLOAD_BYTES = 16 * 1024 * 1024
 MAX_AGENTS = 4096
 """Most entries of any per-agent / per-robot map or list in a message."""
 
+MAX_NODES = 4096
+"""Most node states in each of a keyframe's new and updated nodes: an image holds at most ``1 / min_blob_fraction``
+objects (some 120 by default, 700 at 100 m range); a map server fed tens of thousands at once ran out of memory."""
+
 MAX_TEXT_CHARS = 1024
 """Longest free-text string (a refusal reason)."""
 
 ROTATION_TOL = 1e-5
 """Largest |R^T R - I| entry accepted for the rotation part of a pose."""
+
+MAX_TRANSLATION_M = 1e8
+"""Largest |translation| entry of a pose, and |coordinate| of a node position, accepted (metres): 100,000 km, far
+beyond any robot's odometry, yet small enough that distances between such values stay finite."""
+
+UNIT_TOL = 1e-3
+"""Largest | |up| - 1 | accepted for a keyframe's ground normal ``up_odom`` (a unit vector)."""
 
 _I32_MAX = 2**31 - 1
 _U16_MAX = 2**16 - 1
@@ -196,6 +209,10 @@ def _check_poses34(P: np.ndarray, what: str, allow_nan_rows: bool = False) -> No
             raise WireError(f"{what} [{int(np.argmax(bad))}] is partly NaN/inf (need finite or all-NaN)")
     elif not finite.all():
         raise WireError(f"{what} [{int(np.argmin(finite))}] has NaN or infinite entries")
+    far = np.abs(P[finite, :, 3]).max(axis=1, initial=0.0) > MAX_TRANSLATION_M
+    if far.any():
+        raise WireError(f"{what} [{int(np.flatnonzero(finite)[np.argmax(far)])}] translation is beyond "
+                        f"{MAX_TRANSLATION_M:.0e} m (need metres of a robot's odometry)")  # fmt: skip
     R = P[finite, :, :3]
     if R.shape[0] == 0:
         return
@@ -236,6 +253,30 @@ def _unpack_poses(raw: bytes, n: int, what: str, allow_nan_rows: bool = False) -
     if allow_nan_rows:
         T[np.isnan(P).all(axis=(1, 2))] = np.nan
     return T
+
+
+def _up(value: Any) -> np.ndarray:
+    """A keyframe's ground normal ``up_odom``: a finite (3,) unit vector (within ``UNIT_TOL``)."""
+    u = np.asarray(value, dtype=np.float64)
+    if u.shape != (3,) or not np.isfinite(u).all():
+        raise WireError(f"keyframe up_odom must be a finite (3,) vector, got shape {u.shape}")
+    norm = float(np.sqrt(np.sum(u * u)))
+    if abs(norm - 1.0) > UNIT_TOL:
+        raise WireError(f"keyframe up_odom must be a unit vector (the ground normal), its length is {norm:.3g}")
+    return u
+
+
+def _check_update_indices(kf_index: int, update: GraphUpdate) -> None:
+    """A keyframe's graph update is that keyframe's (``kf_id == kf_index``), and its nodes are anchored to it or to
+    an earlier keyframe of the agent: what the map server relies on to apply it (robots send them in order)."""
+    if update.kf_id != kf_index:
+        raise WireError(f"keyframe {kf_index} carries the graph update of keyframe {update.kf_id}; they must agree")
+    late = [s for s in (*update.new_nodes, *update.updated_nodes) if s.anchor_kf > kf_index]
+    if late:
+        raise WireError(
+            f"keyframe {kf_index}: node {late[0].node_id} is anchored to keyframe {late[0].anchor_kf}, after it "
+            "(nodes are anchored to the keyframe that first saw them)"
+        )
 
 
 # --- decoding helpers -------------------------------------------------------------------------------
@@ -285,6 +326,8 @@ class _Fields:
 
 def _node_columns(nodes: tuple[NodeState, ...], what: str) -> dict[str, bytes]:
     n = len(nodes)
+    if n > MAX_NODES:
+        raise WireError(f"{what}: {n} node states, at most {MAX_NODES} per keyframe allowed")
     if n == 0:
         return {k: b"" for k in _NODE_BYTES}
     try:
@@ -298,14 +341,17 @@ def _node_columns(nodes: tuple[NodeState, ...], what: str) -> dict[str, bytes]:
         raise WireError(f"{what}: node states are not numeric ({exc})") from None
     if any(not (-(2**63) <= int(i) < 2**63) for i in ids):
         raise WireError(f"{what}: node ids must fit in int64")
-    if ((labels < 0) | (labels > 255)).any():
-        raise WireError(f"{what}: label ids must be 0..255, got {labels.min()}..{labels.max()}")
+    if ((labels < 0) | (labels >= NUM_CLASSES)).any():
+        raise WireError(f"{what}: label ids must be Cityscapes train ids 0..{NUM_CLASSES - 1}, got "
+                        f"{labels.min()}..{labels.max()}")  # fmt: skip
     if ((anchors < 0) | (anchors > _I32_MAX)).any():
         raise WireError(f"{what}: anchor keyframes must be 0..{_I32_MAX}")
     with np.errstate(over="ignore"):  # too large for float32 -> inf, refused just below
         pos32, sizes32 = pos.astype("<f4"), sizes.astype("<f4")
     if not (np.isfinite(pos32).all() and np.isfinite(sizes32).all()) or (sizes32 < 0).any():
         raise WireError(f"{what}: node positions and sizes must be finite float32 values (sizes >= 0)")
+    if (np.abs(pos32) > MAX_TRANSLATION_M).any():
+        raise WireError(f"{what}: node positions must be within {MAX_TRANSLATION_M:.0e} m")
     return {
         "i": np.array(ids.astype(np.int64), dtype="<i8").tobytes(),
         "l": labels.astype("u1").tobytes(),
@@ -320,18 +366,24 @@ def _node_states(value: Any, what: str) -> tuple[NodeState, ...]:
     f = _Fields(value, what, tuple(_NODE_BYTES))
     raw_ids = f.raw("i", _NODE_BYTES["i"])
     n = len(raw_ids) // _NODE_BYTES["i"]
+    if n > MAX_NODES:
+        raise WireError(f"{what}: {n} node states, at most {MAX_NODES} per keyframe allowed")
     cols = {k: f.raw(k, b, n) for k, b in _NODE_BYTES.items()}
     ids = np.frombuffer(cols["i"], "<i8").tolist()
-    labels = np.frombuffer(cols["l"], "u1").tolist()
+    labels_arr = np.frombuffer(cols["l"], "u1")
     anchors = np.frombuffer(cols["a"], "<i4")
     pos = np.frombuffer(cols["p"], "<f4").reshape(n, 3)
     sizes = np.frombuffer(cols["z"], "<f4")
     nobs = np.frombuffer(cols["o"], "<u2").tolist()
+    if (labels_arr >= NUM_CLASSES).any():
+        raise WireError(f"{what}: label ids must be Cityscapes train ids 0..{NUM_CLASSES - 1}, got {labels_arr.max()}")
     if (anchors < 0).any():
         raise WireError(f"{what}: anchor keyframes must be >= 0")
     if not (np.isfinite(pos).all() and np.isfinite(sizes).all()) or (sizes < 0).any():
         raise WireError(f"{what}: node positions and sizes must be finite (sizes >= 0)")
-    pos_list, size_list, anchor_list = pos.tolist(), sizes.tolist(), anchors.tolist()
+    if (np.abs(pos) > MAX_TRANSLATION_M).any():
+        raise WireError(f"{what}: node positions must be within {MAX_TRANSLATION_M:.0e} m")
+    labels, pos_list, size_list, anchor_list = labels_arr.tolist(), pos.tolist(), sizes.tolist(), anchors.tolist()
     return tuple(
         NodeState(ids[i], labels[i], anchor_list[i], tuple(pos_list[i]), size_list[i], nobs[i]) for i in range(n)
     )
@@ -437,13 +489,8 @@ def _encode_fields(msg: Message) -> dict[str, Any]:
         g = msg.graph_update
         T = np.asarray(msg.T_odom_kf, dtype=np.float64)
         T_world = np.asarray(g.T_world_kf, dtype=np.float64)
-        up = None
-        if msg.up_odom is not None:
-            u = np.asarray(msg.up_odom, dtype=np.float64)
-            if u.shape != (3,) or not np.isfinite(u).all():
-                raise WireError(f"keyframe up_odom must be a finite (3,) vector, got shape {u.shape}")
-            up = u.astype("<f8").tobytes()
-        return {
+        up = None if msg.up_odom is None else _up(msg.up_odom).astype("<f8").tobytes()
+        fields = {
             "k": MessageKind.KEYFRAME, "r": _agent(msg.robot, "keyframe robot"),
             "s": _session(msg.session, "keyframe session"), "i": _int(msg.kf_index, "keyframe kf_index"),
             "f": _int(msg.frame_index, "keyframe frame_index"), "t": _float(msg.timestamp_s, "keyframe timestamp_s"),
@@ -452,6 +499,8 @@ def _encode_fields(msg: Message) -> dict[str, Any]:
             "gT": None if np.array_equal(T, T_world) else _pack_poses(T_world[None], "graph update T_world_kf"),
             "gn": _node_columns(g.new_nodes, "new nodes"), "gu": _node_columns(g.updated_nodes, "updated nodes"),
         }  # fmt: skip
+        _check_update_indices(fields["i"], g)  # (after the node states were checked)
+        return fields
     if isinstance(msg, DoneMessage):
         robot = _robot(msg.robot, "done robot")
         return {"k": MessageKind.DONE, "r": robot, "s": _session(msg.session, "done session"),
@@ -530,11 +579,10 @@ def _decode_fields(kind: MessageKind, f: _Fields) -> Message:
         raw_world = f.raw("gT", _POSE_BYTES, 1, nullable=True)
         T_world = T.copy() if raw_world is None else _unpack_poses(raw_world, 1, "graph update T_world_kf")[0]
         raw_up = f.raw("u", 8, 3, nullable=True)
-        up = None if raw_up is None else np.frombuffer(raw_up, "<f8").astype(np.float64)
-        if up is not None and not np.isfinite(up).all():
-            raise WireError("keyframe up_odom must be finite")
+        up = None if raw_up is None else _up(np.frombuffer(raw_up, "<f8").astype(np.float64))
         update = GraphUpdate(_int(d["gk"], "graph update kf_id"), T_world,
                              _node_states(d["gn"], "new nodes"), _node_states(d["gu"], "updated nodes"))  # fmt: skip
+        _check_update_indices(_int(d["i"], "keyframe kf_index"), update)
         return KeyframeMessage(
             _agent(d["r"], "keyframe robot"), _int(d["i"], "keyframe kf_index"), _int(d["f"], "keyframe frame_index"),
             _float(d["t"], "keyframe timestamp_s"), T, update, up, _session(d["s"], "keyframe session"),

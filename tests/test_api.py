@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
@@ -12,8 +13,10 @@ import shgm_slam
 from shgm_slam import ArraySequence, open_sequence
 from shgm_slam.api import read_fused, run
 from shgm_slam.config import Dof, ShgmConfig
-from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.errors import ConfigError, DataError, GraphError
 from shgm_slam.geometry.se3 import transform_points
+from shgm_slam.graph.semantic_graph import edges_within_radius
+from shgm_slam.types import GraphArrays
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -205,3 +208,33 @@ def test_the_readme_python_example_runs(tiny_scenario: Path, tmp_path: Path, mon
     assert summary.robots[0].localized and "car1" in namespace["placed"]
     printed = capsys.readouterr().out
     assert all(f"{name}: " in printed for name in namespace["placed"])
+
+
+def _street_graph(n: int = 40) -> GraphArrays:
+    rng = np.random.default_rng(2)
+    p = rng.uniform(0, 60, (n, 3)) * [1.0, 0.05, 1.0]
+    return GraphArrays(np.arange(n, dtype=np.int64), rng.choice([2, 5, 7, 13], n).astype(np.int64), p,
+                       np.full(n, 100.0), edges_within_radius(p, 20.0))  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda g: {"positions_xyz": np.where(np.arange(40)[:, None] == 3, np.nan, g.positions_xyz)},
+         r"non-finite node positions \(row 3\)"),  # was numpy's LinAlgError from the vertical's eigenvectors
+        (lambda g: {"positions_xyz": np.full_like(g.positions_xyz, np.inf)}, "non-finite node positions"),
+        (lambda g: {"node_ids": np.zeros(40, np.int64)}, "node ids repeat"),  # was matched, inliers ambiguous
+        (lambda g: {"label_ids": g.label_ids + 0.5}, "label ids must be integers"),  # was truncated silently
+        (lambda g: {"edges": np.array([[-3, 2]])}, "references row -3"),  # named row 2
+        (lambda g: {"edges": np.array([1, 2, 3])}, r"\(E, 2\) array"),  # was numpy's reshape error
+        (lambda g: {"sizes": g.sizes.tolist()}, "must be numpy arrays"),  # was AttributeError
+    ],
+)  # fmt: skip
+def test_match_refuses_graph_arrays_that_hold_no_graph(change, message) -> None:
+    good = _street_graph()
+    bad = dataclasses.replace(good, **change(good))
+    with pytest.raises(GraphError, match=message):
+        shgm_slam.match(good, bad)
+    with pytest.raises(GraphError, match=message.replace("graph B", "graph A")):
+        shgm_slam.match(bad, good)
+    assert shgm_slam.match(good, good).result.success  # the good graph itself matches

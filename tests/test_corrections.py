@@ -7,7 +7,7 @@ import numpy as np
 
 from shgm_slam.corrections import FusedView, rigid_motion
 from shgm_slam.geometry.se3 import make_pose, rotation_angle, so3_exp
-from shgm_slam.messages import CorrectionMessage
+from shgm_slam.messages import AgentCorrection, CorrectionMessage
 from shgm_slam.wire import decode, encode
 
 TOL_M, TOL_RAD = 0.05, 0.005
@@ -95,6 +95,16 @@ def test_a_delta_that_leaves_a_keyframe_without_a_pose_is_refused() -> None:
     holey = type(c)(c.T_shared_odom, c.num_keyframes, c.kf_indices[1:], c.T_shared_kf[1:])  # keyframe 3 missing
     assert not robot.apply(CorrectionMessage("car1", "s", {}, msg.seq, False, {"car1": holey}))
     assert robot.seq == 1 and len(robot.T_shared_kf["car1"]) == 3
+
+
+def test_a_keyframe_count_no_pose_covers_is_refused_without_allocating_it() -> None:
+    """A correction (from any publisher on the robot's key) claiming 2^31 - 1 keyframes: before, the robot
+    allocated a (2^31 - 1, 4, 4) array and died of a MemoryError; now it is refused (the robot asks for a full one)."""
+    P = trajectory(np.random.default_rng(4), 2)
+    bomb = AgentCorrection(P[0], 2**31 - 1, np.arange(2), P)
+    robot = FusedView()
+    assert not robot.apply(decode(encode(CorrectionMessage("car1", "s", {}, 1, True, {"car1": bomb}))))
+    assert robot.seq == 0 and not robot.T_shared_kf
 
 
 def test_a_rigid_move_is_sent_as_one_motion_and_what_it_leaves() -> None:

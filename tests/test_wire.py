@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import msgpack
 import numpy as np
@@ -52,7 +53,7 @@ def graph_updates() -> list[GraphUpdate]:
 def random_update(n: int, seed: int = 0) -> GraphUpdate:
     rng = np.random.default_rng(seed)
     nodes = tuple(
-        NodeState(int(rng.integers(0, 10**6)), int(rng.integers(0, 19)), int(rng.integers(0, 500)),
+        NodeState(int(rng.integers(0, 10**6)), int(rng.integers(0, 19)), int(rng.integers(0, 8)),
                   tuple(rng.uniform(-50, 50, 3).tolist()), float(rng.integers(10, 10**5)), int(rng.integers(1, 40)))
         for _ in range(n)
     )  # fmt: skip
@@ -78,7 +79,7 @@ def all_messages() -> list:
         HelloMessage("car1", "0123456789abcdef", 4541, settings_digest="93453205442ead31"),
         *[keyframe(u) for u in updates],
         keyframe(updates[0], up=False, robot="car1"),
-        KeyframeMessage("r", 0, 0, 0.0, pose(3), updates[1], None, ""),  # graph pose differs from the keyframe pose
+        KeyframeMessage("r", 1, 1, 0.0, pose(3), updates[1], None, ""),  # graph pose differs from the keyframe pose
         DoneMessage("car1", "s1", {"car1": 10, "car1#1": 0}, traj),
         DoneMessage("car1", "s1", {}, None),
         DoneMessage("car1", "s1", {"car1": 2}, None,
@@ -459,4 +460,73 @@ def test_correction_indices_and_unplaced_agents_are_checked():
     d = _envelope(good)
     d["F"] = 1
     with pytest.raises(WireError, match="full must be true or false"):
+        decode(_pack(d))
+
+
+def _with_update(msg: KeyframeMessage, **changes) -> KeyframeMessage:
+    return replace(msg, graph_update=replace(msg.graph_update, **changes))
+
+
+def test_keyframes_the_map_server_cannot_apply_are_refused_both_ways():
+    """Decodable before, and each one stopped ``shgm-slam server`` with a stack trace (a GraphError or BackendError
+    from deep in the map) or wrote garbage: a label no class has, a graph update of another keyframe, a node anchored
+    to a keyframe after its own, a zero ground normal, a translation of 1e300 m."""
+    msg = keyframe(graph_updates()[1])  # keyframe 1: a new node anchored to it, merged ones anchored to keyframe 0
+    node = msg.graph_update.new_nodes[0]
+    far = msg.T_odom_kf.copy()
+    far[0, 3] = 1e300
+    for bad, what in [
+        (_with_update(msg, new_nodes=(replace(node, label_id=19),)), "label ids must be Cityscapes train ids 0..18"),
+        (_with_update(msg, new_nodes=(replace(node, label_id=255),)), "label ids must be Cityscapes train ids 0..18"),
+        (_with_update(msg, kf_id=0), "keyframe 1 carries the graph update of keyframe 0"),
+        (_with_update(msg, new_nodes=(replace(node, anchor_kf=7),)), "anchored to keyframe 7, after it"),
+        (replace(msg, up_odom=np.zeros(3)), "unit vector"),
+        (replace(msg, up_odom=np.array([0.0, -2.0, 0.0])), "unit vector"),
+        (replace(msg, T_odom_kf=far, graph_update=replace(msg.graph_update, T_world_kf=far)), "beyond 1e\\+08 m"),
+        (_with_update(msg, new_nodes=(replace(node, position_kf=(1e30, 0.0, 0.0)),)), "within 1e\\+08 m"),
+    ]:
+        with pytest.raises(WireError, match=what):
+            encode(bad)
+    # the same values written straight into a valid payload's bytes: decode refuses them
+    d = _envelope(msg)
+    d["gn"]["l"] = bytes([255]) * len(d["gn"]["l"])
+    with pytest.raises(WireError, match="label ids"):
+        decode(_pack(d))
+    d = _envelope(msg)
+    d["gk"] = 0
+    with pytest.raises(WireError, match="graph update of keyframe 0"):
+        decode(_pack(d))
+    d = _envelope(msg)
+    d["gn"]["a"] = np.full(len(d["gn"]["a"]) // 4, 9, "<i4").tobytes()
+    with pytest.raises(WireError, match="anchored to keyframe 9"):
+        decode(_pack(d))
+    d = _envelope(msg)
+    d["u"] = np.zeros(3, "<f8").tobytes()
+    with pytest.raises(WireError, match="unit vector"):
+        decode(_pack(d))
+    d = _envelope(msg)
+    P = np.frombuffer(d["T"], "<f8").copy()
+    P[3] = -1e300
+    d["T"] = P.tobytes()
+    with pytest.raises(WireError, match="translation is beyond"):
+        decode(_pack(d))
+    d = _envelope(msg)
+    p = np.frombuffer(d["gn"]["p"], "<f4").copy()
+    p[0] = 3e38
+    d["gn"]["p"] = p.tobytes()
+    with pytest.raises(WireError, match="node positions must be within"):
+        decode(_pack(d))
+
+
+def test_a_keyframe_of_more_nodes_than_an_image_can_hold_is_refused():
+    """Half a million node states fit in 16 MB; the map server fed 20,000 in one place ran out of memory."""
+    from shgm_slam.wire import MAX_NODES
+
+    nodes = tuple(NodeState(i, 13, 0, (float(i % 50), 0.0, 5.0), 10.0, 1) for i in range(MAX_NODES + 1))
+    with pytest.raises(WireError, match=f"at most {MAX_NODES} per keyframe"):
+        encode(keyframe(GraphUpdate(0, np.eye(4), nodes, ())))
+    d = _envelope(keyframe(GraphUpdate(0, np.eye(4), nodes[:MAX_NODES], ())))
+    for k, width in [("i", 8), ("l", 1), ("a", 4), ("p", 12), ("z", 4), ("o", 2)]:
+        d["gn"][k] += d["gn"][k][:width]  # one more node in every column
+    with pytest.raises(WireError, match=f"{MAX_NODES + 1} node states"):
         decode(_pack(d))

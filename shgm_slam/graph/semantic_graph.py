@@ -32,6 +32,7 @@ from shgm_slam.types import GraphArrays
 _CELL_BITS = 21  # cell coordinates packed into one int64 key: +-2^20 cells per axis
 _CELL_OFFSETS = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing="ij"), -1).reshape(-1, 3)
 _NOT_IN_GRID = -1
+_PAIR_CHUNK = 1 << 18  # node pairs whose distance ``_pairs_near`` measures at once (bounds its memory: ~10 MB)
 
 
 def _cell_keys(cells: np.ndarray) -> np.ndarray:
@@ -593,9 +594,14 @@ class SemanticGraph:
     def _pairs_near(self, rows: np.ndarray, points_world: np.ndarray) -> list[int]:
         """Edge keys between ``rows`` (at ``points_world``) and grid nodes closer than the connectivity."""
         cand = self._candidate_rows(points_world)
-        d = np.linalg.norm(points_world[:, None, :] - self._pos_world[cand][None], axis=2)
-        ii, jj = np.nonzero((d < self.connectivity_m) & (rows[:, None] != cand[None]))
-        return _edge_keys(rows[ii], cand[jj])
+        p_cand = self._pos_world[cand]
+        step = max(1, _PAIR_CHUNK // max(1, cand.size))  # rows per chunk: many nodes in one place stay in memory
+        keys: list[int] = []
+        for i in range(0, rows.size, step):
+            d = np.linalg.norm(points_world[i : i + step, None, :] - p_cand[None], axis=2)
+            ii, jj = np.nonzero((d < self.connectivity_m) & (rows[i : i + step, None] != cand[None]))
+            keys += _edge_keys(rows[i + ii], cand[jj])
+        return keys
 
     def _refresh_rows(self, rows: np.ndarray) -> None:
         """Move the changed ``rows`` to their new world positions: grid cells and incident edges.

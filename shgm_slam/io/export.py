@@ -309,7 +309,7 @@ def _remove(path: Path) -> None:
 
 
 def _valid_rows(poses: np.ndarray) -> np.ndarray:
-    return np.isfinite(poses.reshape(len(poses), -1)).all(axis=1)
+    return np.isfinite(poses.reshape(len(poses), 16)).all(axis=1)
 
 
 class ResultsWriter:

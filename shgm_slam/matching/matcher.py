@@ -82,11 +82,50 @@ def searched_hypotheses(num_hypotheses: int, cfg: MatchingConfig) -> int:
     return cfg.ransac_iterations if cfg.outlier_mode is OutlierMode.RANSAC else max(num_hypotheses, 1)
 
 
+def check_graph(graph: GraphArrays, name: str) -> None:
+    """Refuse a ``GraphArrays`` that matching cannot read (a caller's own arrays are checked here, before any use).
+
+    Raises:
+        GraphError: not numpy arrays, lengths or shapes that disagree, node ids that repeat (results name nodes
+            by id), labels that are not integers, non-finite positions, negative or non-finite sizes, edges that
+            are not (E, 2) integer row indices into the nodes.
+    """
+    fields = ("node_ids", "label_ids", "positions_xyz", "sizes", "edges")
+    loose = [f for f in fields if not isinstance(getattr(graph, f, None), np.ndarray)]
+    if loose:
+        raise GraphError(f"graph {name}: {', '.join(loose)} must be numpy arrays (np.asarray them), "
+                         f"got {', '.join(type(getattr(graph, f, None)).__name__ for f in loose)}")  # fmt: skip
+    n = graph.node_ids.shape[0] if graph.node_ids.ndim == 1 else -1
+    if n < 0 or graph.positions_xyz.shape != (n, 3) or graph.label_ids.shape != (n,) or graph.sizes.shape != (n,):
+        raise GraphError(
+            f"graph {name}: node arrays disagree (ids {graph.node_ids.shape}, labels {graph.label_ids.shape}, "
+            f"positions {graph.positions_xyz.shape}, sizes {graph.sizes.shape}; need (N,), (N,), (N, 3), (N,))"
+        )
+    for what, a in (("node ids", graph.node_ids), ("label ids", graph.label_ids), ("edges", graph.edges)):
+        if a.size and not np.issubdtype(a.dtype, np.integer):
+            raise GraphError(f"graph {name}: {what} must be integers, got {a.dtype}")
+    if np.unique(graph.node_ids).size != n:
+        raise GraphError(f"graph {name}: node ids repeat; give every node its own id (matches name nodes by id)")
+    if not np.all(np.isfinite(graph.positions_xyz)):
+        row = int(np.argmin(np.isfinite(graph.positions_xyz).all(axis=1)))
+        raise GraphError(f"graph {name} has non-finite node positions (row {row})")
+    if np.any(~np.isfinite(graph.sizes)) or np.any(graph.sizes < 0):
+        raise GraphError(f"graph {name} has negative or non-finite node sizes")
+    e = graph.edges
+    if e.size and (e.ndim != 2 or e.shape[1] != 2):
+        raise GraphError(f"graph {name}: edges must be an (E, 2) array of row indices, got shape {e.shape}")
+    if e.size and (e.min() < 0 or e.max() >= n):
+        bad = int(e.min()) if e.min() < 0 else int(e.max())
+        raise GraphError(f"graph {name}: an edge references row {bad}, outside the {n} nodes (edges are row "
+                         "indices into the node arrays, not node ids)")  # fmt: skip
+
+
 def unusable_reason(graph: GraphArrays, name: str) -> str:
     """Why ``graph`` cannot be matched ('' when it can): too few nodes or no edges.
 
     Raises:
-        GraphError: the arrays are inconsistent (lengths, non-finite positions, negative sizes).
+        GraphError: the arrays are inconsistent (lengths, non-finite positions, negative sizes; a caller's own
+            arrays get all of ``check_graph`` first).
     """
     n = len(graph)
     if graph.positions_xyz.shape != (n, 3) or graph.label_ids.shape != (n,) or graph.sizes.shape != (n,):

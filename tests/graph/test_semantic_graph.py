@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import tracemalloc
 from dataclasses import replace
 
 import numpy as np
@@ -112,6 +113,28 @@ def test_edges_equal_brute_force_incrementally_and_after_pose_updates():
     a = g.arrays()
     np.testing.assert_array_equal(a.edges, brute_force_edges(a.positions_xyz, 8.0))
     np.testing.assert_array_equal(edges_within_radius(a.positions_xyz, 8.0), a.edges)
+
+
+def test_many_nodes_in_one_place_get_exact_edges_in_bounded_chunks(monkeypatch):
+    """Thousands of nodes in one keyframe, all near each other (what a peer may send the map server): the
+    distance matrix is measured in chunks (20,000 such nodes needed ~10 GB at once and killed the server)."""
+    from shgm_slam.graph import semantic_graph
+
+    monkeypatch.setattr(semantic_graph, "_PAIR_CHUNK", 1000, raising=False)  # many chunks on a small graph
+    rng = np.random.default_rng(8)
+    p = rng.uniform(-10, 10, (600, 3))
+    nodes = tuple(NodeState(i, 13, 0, tuple(x), 10.0, 1) for i, x in enumerate(p.tolist()))
+    g = SemanticGraph(merge_radius_m=0.0, connectivity_m=5.0)
+    tracemalloc.start()
+    g.apply_update(GraphUpdate(0, np.eye(4), nodes, ()))
+    peak_bytes = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak_bytes < 4e6  # all 600 x 600 distances at once: 8.6 MB of differences alone
+    moved = tuple(replace(s, position_kf=tuple(np.add(s.position_kf, 1.0))) for s in nodes[:300])
+    g.apply_update(GraphUpdate(1, np.eye(4), (), moved))
+    a = g.arrays()
+    np.testing.assert_array_equal(a.edges, brute_force_edges(a.positions_xyz, 5.0))
+    assert a.num_edges > 1000
 
 
 def test_new_nodes_are_farther_than_merge_radius_from_existing_same_label_nodes():

@@ -195,3 +195,11 @@ def test_a_shared_graph_goes_when_its_robot_loses_its_place(tmp_path):
     assert tmp_path / "shared_graph_car2#1.json" in export.run_output_files(tmp_path)
     w.write_shared_graph("car2#1", None)
     assert not (tmp_path / "shared_graph_car2#1.json").exists()
+
+
+def test_a_trajectory_of_no_frames_writes_empty_files(tmp_path):
+    """A robot's done message may carry a trajectory of no frames (decodable); writing it stopped the map server
+    with numpy's 'cannot reshape array of size 0'."""
+    w = ResultsWriter(tmp_path)
+    w.write_trajectories("car", np.zeros(0), np.zeros((0, 4, 4)), np.zeros((0, 4, 4)))
+    assert (tmp_path / "car_odometry_tum.txt").exists() and (tmp_path / "car_fused_tum.txt").exists()
