@@ -207,7 +207,9 @@ def test_refusals_before_any_frame(tmp_path: Path) -> None:
                 config=ShgmConfig.model_validate({"odometry": {"kind": "file", "poses_file": "x.txt"}}))
     with pytest.raises(DataError, match="intrinsics"):
         LiveRun({"car1": "not intrinsics"}, tmp_path / "c")  # type: ignore[dict-item]
-    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+    with pytest.raises(ConfigError, match=r"settings for robot\(s\) uav .*name such a camera when making the LiveRun"):
+        LiveRun({"car1": K}, tmp_path / "d", config=ShgmConfig.model_validate({"robots": {"uav": {}}}))
+    assert not any((tmp_path / d).exists() for d in "abcd")
 
 
 def test_a_stream_drops_released_frames_and_says_so() -> None:

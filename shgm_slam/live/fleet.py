@@ -72,6 +72,12 @@ class LiveRun:
         for name in cameras:
             validate_robot_name(name)
         self.cfg = cfg = live_config(config, list(cameras))
+        unknown = sorted(set(cfg.robots) - set(cameras))
+        if unknown:  # (check_fleet refuses them too; here the fix that a camera added later needs)
+            raise ConfigError(f"the config has settings for robot(s) {', '.join(unknown)} that are not among the "
+                              f"cameras ({', '.join(cameras)}); fix the names under 'robots:', or name such a camera "
+                              "when making the LiveRun (one that never sends a frame is left out) instead of adding "
+                              "it later")  # fmt: skip
         self._share = check_fleet(list(cameras), cfg)
         origins = depth_origin if isinstance(depth_origin, Mapping) else dict.fromkeys(cameras, depth_origin)
         if set(origins) != set(cameras):
@@ -132,7 +138,8 @@ class LiveRun:
     ) -> None:
         """A camera that was not named when the run was made. Before the run starts it is one more robot the start
         waits for once it sends frames; after, its robot joins the running system once its first frames have set
-        its settings, as a camera named at the start that sends late. Give its frames with ``add_frame``.
+        its settings, as a camera named at the start that sends late. Give its frames with ``add_frame``. (A camera
+        with settings of its own under the configuration's ``robots:`` is named when the run is made.)
 
         Args:
             robot: its robot's name (not one of the run's cameras).
