@@ -222,15 +222,18 @@ def read_fused(results_dir: Path | str, robot: str) -> FusedTrajectory | None:
     """The fused trajectory ``run`` wrote for ``robot`` (``<robot>_fused_tum.txt``); None when it was not placed.
 
     Raises:
-        DataError: ``results_dir`` is not a results folder, ``robot`` was not in its run, or the file was edited
-            after the run (its row count is not the one the run recorded).
+        DataError: ``results_dir`` is not a results folder or holds no finished run's results (its run ended with
+            an error, was killed or is still running: a checkpoint, ``evaluation.check_results_finished``),
+            ``robot`` was not in its run, or the file was edited after the run (its row count is not the one the
+            run recorded).
     """
-    from shgm_slam.evaluation import check_fused_rows, is_provisional, run_robot_order
+    from shgm_slam.evaluation import check_fused_rows, check_results_finished, is_provisional, run_robot_order
     from shgm_slam.io.trajectories import read_tum
 
     root = Path(results_dir)
     if not root.is_dir():
         raise DataError(f"results folder {root} does not exist; point at the folder run() wrote")
+    check_results_finished(root)
     names = run_robot_order(root)
     if robot not in names:
         raise DataError(f"{root} holds no robot {robot!r}; its run had {', '.join(names)}")

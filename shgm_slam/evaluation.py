@@ -141,6 +141,54 @@ def run_was_interrupted(results_dir: Path) -> bool:
         return False
 
 
+def check_results_finished(results_dir: Path) -> None:
+    """Refuse a results folder that does not hold a finished run's results: one whose run ended with an error
+    (``incomplete.txt``), one another process is writing now (its lock file), a checkpoint whose run never
+    finished (no ``metrics.json`` and ``server.json`` says the map server had not finished: the run was killed,
+    e.g. SIGKILL or out of memory, where nothing could mark it), or a run's folder without its ``metrics.json``
+    (killed while writing it, or deleted: the fused trajectories cannot be checked against it). A map server's
+    folder (``journal.bin``) has no ``metrics.json``; folders of runs stopped by Ctrl-C / SIGTERM pass: their
+    results are what the run reached (``metrics.json`` says ``interrupted``).
+
+    Raises:
+        DataError: the folder is one of those, saying why and what to do.
+    """
+    from shgm_slam.io.export import INCOMPLETE_FILE, RERUN_ADVICE, results_dir_writer
+
+    root = Path(results_dir)
+    if (root / INCOMPLETE_FILE).is_file():
+        raise DataError(
+            f"{root} holds no results: its run ended with an error ({root / INCOMPLETE_FILE} says why and what to "
+            "do)"
+        )
+    writer = results_dir_writer(root)
+    if writer is not None:
+        raise DataError(
+            f"{root} is being written by another shgm-slam process (pid {writer}): its files are a checkpoint, "
+            "not results yet; wait for that run to finish"
+        )
+    server_json = root / "server.json"
+    if (root / "metrics.json").is_file() or not server_json.is_file():
+        return
+    try:
+        finished = json.loads(server_json.read_text()).get("finished")
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return  # unreadable: nothing it says (what else is wrong with the folder is said where it is read)
+    journal = (root / "journal.bin").is_file()  # a map server's folder (it keeps its journal; a run does not)
+    if finished is False:
+        advice = ("start the map server on this folder again: it resumes from its journal (journal.bin)" if journal
+                  else RERUN_ADVICE)  # fmt: skip
+        raise DataError(
+            f"{root} holds no results: its run never finished (no metrics.json, and {server_json.name} says the "
+            f"map server had not finished: killed, or still running); its files are a checkpoint; {advice}"
+        )
+    if not journal:  # a run's folder: metrics.json is the last file it writes
+        raise DataError(
+            f"{root} has no metrics.json, the last file a run writes: the run was killed while writing its results, "
+            f"or the file was deleted since; {RERUN_ADVICE}"
+        )
+
+
 def check_fused_rows(results_dir: Path, robot: str, rows: int) -> None:
     """Refuse a fused trajectory file whose row count differs from what the run wrote (``metrics.json``'s
     ``fused_poses``; nothing to check in folders written before it was recorded).
@@ -262,20 +310,17 @@ def evaluate_results(
         write_gt: with ``sequences``, also write ``<robot>_gt_tum.txt`` / ``_kitti.txt`` into the folder.
 
     Raises:
-        DataError: not a results folder (or one of a run that failed), unknown robot names, a sequence with
+        DataError: not a results folder (or one of a run that failed, was killed or is still running:
+            ``check_results_finished``), unknown robot names, a sequence with
             another frame count than the run's, or no ground truth anywhere.
     """
-    from shgm_slam.io.export import INCOMPLETE_FILE, ResultsWriter
+    from shgm_slam.io.export import ResultsWriter
 
     root = Path(results_dir)
     if not root.is_dir():
         what = "is a file, not a folder" if root.exists() else "does not exist"
         raise DataError(f"results folder {root} {what}; pass the --out folder of `run` or `demo`")
-    if (root / INCOMPLETE_FILE).is_file():
-        raise DataError(
-            f"{root} holds no results: its run ended with an error ({root / INCOMPLETE_FILE} says why and what to "
-            "do)"
-        )
+    check_results_finished(root)
     order = run_robot_order(root)
     result = EvaluationResult(root, order[0], "", interrupted=run_was_interrupted(root))
     not_reached, frames = run_robot_counts(root, "frames_not_reached"), run_robot_counts(root)

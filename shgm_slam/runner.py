@@ -226,6 +226,7 @@ def run_slam(
         if jobs > 1 and len(robots) > 1:
             fronts = workers.enter_context(ParallelFrontends(
                 fronts, cfg, schedule, jobs, viewer_points=viz.max_cloud_points))
+        fleet: FleetRun | None = None
         try:
             fleet = FleetRun(robots, cfg, out_dir, fronts, viz=viz, gt_shared_frame=gt_shared_frame,
                              write_every_keyframes=write_every_keyframes, journal=journal)  # fmt: skip
@@ -243,12 +244,13 @@ def run_slam(
             if Path(out_dir).is_dir():
                 ResultsWriter(out_dir).mark_failed(exc)
             raise
-        except KeyboardInterrupt:  # a second stop while the results were written (the first one is kept)
+        except KeyboardInterrupt:  # a stop while the run started, or while the results were written (a second one,
+            # or the first after the final matching): what is there is a checkpoint, not the results
+            when = "while the run was starting" if fleet is None else "while its results were being written"
             if Path(out_dir).is_dir():
                 with contextlib.suppress(DataError):
-                    ResultsWriter(out_dir).mark_incomplete("stopped again while its results were being written")
-                log.warning("stopped while writing the results: %s holds a checkpoint, marked by incomplete.txt",
-                            out_dir)  # fmt: skip
+                    ResultsWriter(out_dir).mark_incomplete(f"stopped {when}")
+                log.warning("stopped %s: %s holds a checkpoint, marked by incomplete.txt", when, out_dir)
             raise
 
 

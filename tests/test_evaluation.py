@@ -231,3 +231,49 @@ def test_eval_that_measures_nothing_fails(world, tmp_path):
         res = CliRunner().invoke(app, ["eval", str(tmp_path), *extra], env={"COLUMNS": "120"})
         assert res.exit_code == 2
         assert "no ATE was measured" in " ".join(res.output.split())
+
+
+_HOLD = """
+import sys
+from pathlib import Path
+from shgm_slam.io.export import _lock_results_dir
+_lock_results_dir(Path(sys.argv[1]))  # as a run writing the folder holds it
+print("held", flush=True)
+sys.stdin.read()
+"""
+
+
+def test_a_checkpoint_of_a_run_that_never_finished_is_refused(world, tmp_path):
+    """A run killed mid-run (SIGKILL, out of memory: nothing can mark the folder) left its last checkpoint, no
+    metrics.json and no incomplete.txt, and ``eval`` printed its ATE as the run's; so did ``eval`` on a folder
+    a run was still writing."""
+    import subprocess
+    import sys
+
+    from shgm_slam.api import read_fused
+
+    robots = _results(world, tmp_path)
+    (tmp_path / "metrics.json").unlink()
+    (tmp_path / "server.json").write_text(json.dumps({"reference": "car1", "finished": False}))
+    for read in (lambda: evaluate_results(tmp_path), lambda: evaluate_results(tmp_path, robots),
+                 lambda: read_fused(tmp_path, "car1")):  # fmt: skip
+        with pytest.raises(DataError, match=r"its run never finished .* checkpoint; run it again with --overwrite"):
+            read()
+    (tmp_path / "journal.bin").write_bytes(b"j")  # a map server's folder: it resumes
+    with pytest.raises(DataError, match="start the map server on this folder again"):
+        evaluate_results(tmp_path)
+    (tmp_path / "server.json").write_text(json.dumps({"reference": "car1", "finished": True}))
+    assert len(evaluate_results(tmp_path, robots).robots) == 2  # a server that finished writes no metrics.json
+    (tmp_path / "journal.bin").unlink()  # a run's folder whose metrics.json is gone: its rows cannot be checked
+    with pytest.raises(DataError, match=r"has no metrics\.json, the last file a run writes"):
+        evaluate_results(tmp_path, robots)
+    (tmp_path / "journal.bin").write_bytes(b"j")
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(tmp_path)], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(DataError, match=rf"being written by another shgm-slam process \(pid {holder.pid}\)"):
+            evaluate_results(tmp_path)
+    finally:
+        holder.communicate("")
+    assert len(evaluate_results(tmp_path, robots).robots) == 2

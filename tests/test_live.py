@@ -392,3 +392,58 @@ def test_a_camera_without_depth_or_model_ends_the_run_with_a_clear_error(tmp_pat
     assert (tmp_path / "out" / "incomplete.txt").is_file()
     with pytest.raises(ConfigError, match="ended with an error"):
         live.add_frame("car1", np.zeros((4, 8, 3), np.uint8), 0.1, label_ids=np.zeros((4, 8), np.uint8))
+
+
+def test_a_stop_or_an_error_while_the_results_are_written_marks_the_folder(tiny_scenario: Path, tmp_path: Path,
+                                                                            monkeypatch) -> None:  # fmt: skip
+    """A Ctrl-C that landed while ``finish`` (or leaving the ``with`` block) wrote the results left a folder without
+    metrics.json and without incomplete.txt (``eval`` measured the checkpoint as the run's results) and its lock
+    held; so did an error (a full disk) in the finish that a Ctrl-C inside the block started."""
+    from shgm_slam.api import read_fused
+    from shgm_slam.io.export import LOCK_FILE, ResultsWriter
+
+    seq = open_sequence(tiny_scenario / "car1")
+    real = ResultsWriter.write_json
+
+    def failing_at_metrics(error: BaseException):
+        def write_json(self, name, data, **kwargs):
+            if name == "metrics.json":
+                raise error
+            return real(self, name, data, **kwargs)
+
+        return write_json
+
+    stopped = LiveRun({"car1": seq.intrinsics}, tmp_path / "stopped")
+    feed(stopped, {"car1": seq}, [("car1", i) for i in range(24)])
+    monkeypatch.setattr(ResultsWriter, "write_json", failing_at_metrics(KeyboardInterrupt()))
+    with pytest.raises(KeyboardInterrupt):
+        stopped.finish()
+    monkeypatch.setattr(ResultsWriter, "write_json", real)
+    marker = tmp_path / "stopped" / "incomplete.txt"
+    assert "stopped while its results were being written" in marker.read_text()
+    assert not (tmp_path / "stopped" / LOCK_FILE).exists()
+    with pytest.raises(ConfigError, match="ended with an error"):
+        stopped.finish()
+    with pytest.raises(DataError, match="holds no results"):
+        read_fused(tmp_path / "stopped", "car1")
+
+    with pytest.raises(DataError, match="No space left"):
+        with LiveRun({"car1": seq.intrinsics}, tmp_path / "full") as live:
+            feed(live, {"car1": seq}, [("car1", i) for i in range(24)])
+            monkeypatch.setattr(ResultsWriter, "write_json", failing_at_metrics(DataError("No space left on device")))
+            raise KeyboardInterrupt
+    assert "No space left" in (tmp_path / "full" / "incomplete.txt").read_text()
+    assert not (tmp_path / "full" / LOCK_FILE).exists()
+
+
+def test_a_live_run_refused_for_its_viewer_leaves_its_folder_free(tmp_path: Path, monkeypatch) -> None:
+    """A LiveRun whose viewer could not start (no display to spawn one on) kept its folder locked: the next LiveRun
+    on it in the same process was refused as "in use"."""
+    from shgm_slam.viz import rerun_logger
+
+    monkeypatch.setattr(rerun_logger, "_has_display", lambda: False)
+    K = Intrinsics(100.0, 100.0, 16.0, 8.0, 32, 16)
+    with pytest.raises(ConfigError, match="needs a display"):
+        LiveRun({"car1": K}, tmp_path / "out", viewer=RerunMode.SPAWN)
+    live = LiveRun({"car1": K}, tmp_path / "out")
+    assert live.out_dir == tmp_path / "out"

@@ -211,7 +211,7 @@ def test_a_second_stop_while_writing_marks_the_folder_incomplete(tiny_scenario: 
     robots = open_robots([f"car1={tiny_scenario / 'car1'}:0-20", f"car2={tiny_scenario / 'car2'}:0-20"])
     with pytest.raises(KeyboardInterrupt):
         run_slam(robots, cfg, tmp_path / "out")
-    assert "stopped again while its results were being written" in (tmp_path / "out" / "incomplete.txt").read_text()
+    assert "stopped while its results were being written" in (tmp_path / "out" / "incomplete.txt").read_text()
     with pytest.raises(DataError, match="holds no results"):
         evaluate_results(tmp_path / "out")
 
@@ -709,3 +709,20 @@ def test_the_log_panel_gives_each_accepted_match_its_predicted_precision(early_s
     assert accepted and all(re.search(r"inliers \(±\d+\.\d m predicted at the centre of car\d's nodes\)", t)
                             for t in accepted)  # fmt: skip
     assert all("predicted" not in t for t in lines if ", rejected:" in t)
+
+
+def test_a_stop_while_the_run_starts_says_so(tiny_scenario: Path, tmp_path: Path, monkeypatch) -> None:
+    """A Ctrl-C while the run set itself up (the ground truth and config.yaml written) was marked "stopped again
+    while its results were being written", a second stop that never was."""
+    from shgm_slam.runner import FleetRun
+
+    def stopped(self, *args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(FleetRun, "_write_config", stopped)
+    cfg = ShgmConfig()
+    cfg.odometry.kind = OdometryKind.GT
+    robots = open_robots([f"car1={tiny_scenario / 'car1'}:0-20"])
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(robots, cfg, tmp_path / "out")
+    assert "stopped while the run was starting" in (tmp_path / "out" / "incomplete.txt").read_text()

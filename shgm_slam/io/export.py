@@ -83,7 +83,8 @@ def run_output_files(folder: Path) -> list[Path]:
 def make_results_dir(
     out: Path | None, base: Path = Path("results"), *, overwrite: bool = False, resume_file: str | None = None
 ) -> Path:
-    """Create the results folder: ``out`` if given, else ``base/<YYYYmmdd_HHMMSS>`` plus ``base/latest``.
+    """Create the results folder: ``out`` if given, else a new ``base/<YYYYmmdd_HHMMSS>`` (``_2``, ``_3``, ... when
+    a run of the same second took that name, in this process or another) plus ``base/latest``.
 
     The folder is locked for this process (``LOCK_FILE``; until ``release_results_dir`` or the process ends):
     a second run or map server on the same folder is refused instead of mixing its files into it.
@@ -94,12 +95,10 @@ def make_results_dir(
 
     Raises:
         DataError: ``out`` is a file, cannot be created, is in use by another process, holds an earlier run's
-            files (without ``overwrite``), or one of those cannot be removed.
+            files (without ``overwrite``) or a folder where a run writes a file (``metrics.json/``: the run would
+            fail at its first checkpoint or its end, ``overwrite`` or not), or one of those cannot be removed.
     """
-    if out is not None:
-        path = Path(out)
-    else:
-        path = base / datetime.now().strftime("%Y%m%d_%H%M%S")
+    path = Path(out) if out is not None else _new_timed_dir(base)
     if path.exists() and not path.is_dir():
         raise DataError(f"results folder {path} is a file; choose a folder for --out")
     try:
@@ -114,11 +113,44 @@ def make_results_dir(
             release_results_dir(path)
             raise
     if out is None:
-        latest = base / "latest"
-        if latest.is_symlink() or latest.exists():
-            latest.unlink()
-        latest.symlink_to(path.name)
+        _point_latest(base, path)
     return path
+
+
+def _new_timed_dir(base: Path) -> Path:
+    """Create and return ``base/<YYYYmmdd_HHMMSS>`` for a run without ``--out``; when that folder exists (another
+    run of the same second, in this process or another), ``<YYYYmmdd_HHMMSS>_2``, ``_3``, ...: two runs never
+    share one (the second used to write into the first's folder, unchecked).
+
+    Raises:
+        DataError: the folder cannot be created.
+    """
+    stamp = datetime.now().strftime("%Y%m%d_%H%M%S")
+    for n in range(1, 1000):
+        path = base / (stamp if n == 1 else f"{stamp}_{n}")
+        try:
+            path.mkdir(parents=True)  # atomic: exactly one run creates it
+            return path
+        except FileExistsError:
+            continue
+        except OSError as exc:
+            raise DataError(f"cannot create results folder {path}: {exc.strerror or exc}; pass --out") from None
+    raise DataError(f"cannot create a new results folder in {base}: {base / stamp} and 998 more are taken; pass --out")
+
+
+def _point_latest(base: Path, path: Path) -> None:
+    """Point the ``base/latest`` symlink at ``path`` (atomically replaced); a warning when it cannot be (a
+    folder of that name, no permission): the run goes on in ``path``."""
+    latest, tmp = base / "latest", base / f".latest.{os.getpid()}"
+    try:
+        tmp.unlink(missing_ok=True)
+        tmp.symlink_to(path.name)
+        os.replace(tmp, latest)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        log.warning("cannot point %s at %s: %s; the results are in %s", latest, path.name, exc.strerror or exc,
+                    path)  # fmt: skip
 
 
 @contextlib.contextmanager
@@ -132,10 +164,16 @@ def claimed_results_dir(out: Path | None, **options) -> Iterator[Path]:
 
 
 def _lock_results_dir(path: Path) -> None:
-    """Hold ``path``'s ``LOCK_FILE`` for this process (again: nothing to do). Raises DataError when another
-    process holds it (naming its pid) or the file cannot be created."""
+    """Hold ``path``'s ``LOCK_FILE`` for this process. Raises DataError when another process holds it (naming its
+    pid), this process holds it already (a run or ``LiveRun`` in it has not finished: two in one process mixed
+    their files, the second with ``overwrite`` removing the first's), or the file cannot be created."""
     key = path.resolve()
-    if fcntl is None or key in _held_locks:
+    if key in _held_locks:
+        raise DataError(
+            f"results folder {path} is in use by a run of this process that has not finished (a LiveRun not "
+            "finished yet?); finish it first, or choose another --out"
+        )
+    if fcntl is None:
         return
     try:
         fh = open(path / LOCK_FILE, "a+")
@@ -156,6 +194,25 @@ def _lock_results_dir(path: Path) -> None:
     fh.write(f"{os.getpid()}\n")
     fh.flush()
     _held_locks[key] = fh
+
+
+def results_dir_writer(path: Path) -> str | None:
+    """The pid of another process that holds the results folder ``path`` now (``LOCK_FILE``: a ``run``, ``demo``
+    or map server still writing it), else None (free, held by this process, or locks not supported)."""
+    path = Path(path)
+    if fcntl is None or path.resolve() in _held_locks:
+        return None
+    try:
+        fh = open(path / LOCK_FILE)
+    except OSError:
+        return None  # no lock file: nobody writes the folder (a writer creates it before its first file)
+    with fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError:
+            return fh.read().strip() or "unknown"
+        fcntl.flock(fh, fcntl.LOCK_UN)
+    return None
 
 
 def check_writable_dir(path: Path) -> Path:
@@ -214,8 +271,15 @@ def _claim_results_dir(path: Path, *, overwrite: bool, resume_file: str | None) 
         )
     try:
         ours = run_output_files(path)
+        blocking = sorted(p for pattern in RUN_OUTPUT_PATTERNS for p in path.glob(pattern)
+                          if p.is_dir() and not p.is_symlink())  # fmt: skip
     except OSError as exc:
         raise DataError(f"cannot read results folder {path}: {exc.strerror}") from None
+    if blocking:  # a results file cannot replace it: the run would fail at its first checkpoint, or at its end
+        raise DataError(
+            f"results folder {path} holds a folder named {blocking[0].name}, where a run writes that file; move "
+            "it away or choose another --out"
+        )
     if not ours:
         return  # empty, or only other files (logs, notes): nothing to mix with
     if overwrite:

@@ -62,7 +62,7 @@ class LiveRun:
         gt_shared_frame: bool = True,
         overwrite: bool = False,
     ) -> None:
-        from shgm_slam.io.export import make_results_dir
+        from shgm_slam.io.export import make_results_dir, release_results_dir
         from shgm_slam.runner import check_fleet
         from shgm_slam.transport.keys import validate_robot_name
         from shgm_slam.viz.rerun_logger import make_viz
@@ -86,8 +86,12 @@ class LiveRun:
         mode = viewer_mode(viewer, viewer_url)
         self.gt_shared_frame = gt_shared_frame
         self.out_dir = make_results_dir(None if out is None else Path(out), overwrite=overwrite)
-        self._viz = make_viz(mode, robots=list(cameras), save_path=self.out_dir / "run.rrd", connect_url=viewer_url,
-                             max_cloud_points=8000)  # fmt: skip
+        try:
+            self._viz = make_viz(mode, robots=list(cameras), save_path=self.out_dir / "run.rrd",
+                                 connect_url=viewer_url, max_cloud_points=8000)  # fmt: skip
+        except BaseException:  # refused (no display to spawn a viewer on, ...): the folder is free for the next try
+            release_results_dir(self.out_dir)
+            raise
         self._warmups = {r: Warmup(r, stream, cfg) for r, stream in self.streams.items()}
         self._predicted = [r for r in cameras if self._is_predicted(r, origins[r])]
         self._held: list[tuple[str, int]] = []  # frames of robots that do not run yet, in the order they came
@@ -249,7 +253,11 @@ class LiveRun:
             for r in self.streams.keys() - self._fleet.fronts.keys():
                 log.warning("%s: no frame was given; the run went on without it", r)
                 self._viz.log_text(f"{r}: no frame was given; the run went on without it", "WARN")
-            self._summary = self._fleet.finish()
+            try:
+                self._summary = self._fleet.finish()
+            except KeyboardInterrupt as stop:  # stopped while the results were written: a checkpoint, marked
+                self._mark_failed(stop)
+                raise
         self._release()
         return self._summary
 
@@ -266,8 +274,8 @@ class LiveRun:
         elif issubclass(kind, KeyboardInterrupt) and self._fleet is not None and not self._fleet.finished:
             from shgm_slam.interrupts import stops_deferred
 
-            with self._lock, stops_deferred():  # stopped between frames: what there is, written (no final matching)
-                self._summary = self._fleet.finish(interrupted=True)
+            with self._lock, stops_deferred(), self._failing():  # stopped between frames: what there is, written
+                self._summary = self._fleet.finish(interrupted=True)  # (no final matching; an error marks it)
                 self._release()
         else:
             self._mark_failed(exc)
@@ -331,15 +339,20 @@ class LiveRun:
             raise
 
     def _mark_failed(self, exc: BaseException | None) -> None:
+        """The run ends without its results: ``incomplete.txt`` says why (the error ``exc``, or a stop before the
+        run started or while its results were written), and the folder is released."""
         from shgm_slam.io.export import ResultsWriter
 
         if self._closed:
             return
         if self.out_dir.is_dir() and isinstance(exc, Exception):
             ResultsWriter(self.out_dir).mark_failed(exc)
-        elif self.out_dir.is_dir() and self._fleet is None:  # stopped before every robot's first frames came
+        elif self.out_dir.is_dir() and (self._fleet is None or self._fleet.finished):
+            # stopped before every robot's first frames came, or while the results were written (no metrics.json)
+            why = "before every robot had sent its first frames" if self._fleet is None else (
+                "while its results were being written")  # fmt: skip
             with contextlib.suppress(DataError):
-                ResultsWriter(self.out_dir).mark_incomplete("stopped before every robot had sent its first frames")
+                ResultsWriter(self.out_dir).mark_incomplete(f"stopped {why}")
         self._release()
 
     def _release(self) -> None:

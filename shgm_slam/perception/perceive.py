@@ -23,6 +23,7 @@ model's batch axis is fixed); sessions use CUDA when onnxruntime-gpu is installe
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -45,6 +46,7 @@ from shgm_slam.data.kitti import IMAGE_SOURCES, frame_file
 from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, PERCEIVE_MANIFEST, encode_depth, read_perceive_manifest
 from shgm_slam.data.validate import check_sequence_start
 from shgm_slam.errors import ConfigError, DataError, ModelError
+from shgm_slam.io.export import LOCK_FILE
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.io.trajectories import format_kitti_pose
 from shgm_slam.labels import IGNORE_ID, NUM_CLASSES
@@ -257,7 +259,7 @@ def _check_out(out: Path, source_root: Path, manifest: dict, overwrite: bool) ->
         raise DataError(f"--out {out} is a file; choose a folder")
     if out.resolve() == source_root.resolve():
         raise DataError(f"--out {out} is the source sequence itself; choose a new folder (the source is not changed)")
-    if not out.is_dir() or not any(out.iterdir()):
+    if not out.is_dir() or not any(p.name != LOCK_FILE for p in out.iterdir()):  # (the lock: this process's)
         return
     previous_path = out / MANIFEST
     if not previous_path.is_file():
@@ -388,8 +390,65 @@ def perceive(
         ConfigError: no model, or a batch size below 1.
         ModelError: a model or its card is missing or does not fit, or its output on the first frames is
             useless (no valid value, or constant); CUDA asked for but absent.
-        DataError: the sequence cannot be read, or ``out`` is the source or holds other data.
+        DataError: the sequence cannot be read, or ``out`` is the source or holds other data, or another
+            shgm-slam process is writing it (two jobs on one folder, one with ``overwrite``, removed each other's
+            files or left PNGs of two models under one manifest).
     """
+    from shgm_slam.io.export import release_results_dir
+
+    out = Path(out)
+    created = _hold_out(out)
+    try:
+        return _perceive(spec, out, depth_model=depth_model, seg_model=seg_model, batch_size=batch_size,
+                         threads=threads, provider=provider, images=images, overwrite=overwrite,
+                         progress=progress)  # fmt: skip
+    finally:
+        release_results_dir(out)
+        if created:  # refused before writing anything (a model, the sequence): no empty folder left behind
+            with contextlib.suppress(OSError):
+                out.rmdir()
+
+
+def _hold_out(out: Path) -> bool:
+    """Create ``out`` if needed and lock it for this process (``io.export.LOCK_FILE``, as a run locks its results
+    folder): a second ``perceive`` on it is refused while this one writes. Returns whether ``out`` was created.
+
+    Raises:
+        DataError: ``out`` is a file or cannot be created, or another shgm-slam process holds it (naming its pid).
+    """
+    from shgm_slam.io.export import _lock_results_dir
+
+    if out.exists() and not out.is_dir():
+        raise DataError(f"--out {out} is a file; choose a folder")
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DataError(f"cannot write {out}: {exc.strerror or exc}; choose a writable --out with free space") from None
+    try:
+        _lock_results_dir(out)
+    except DataError:
+        if created:
+            with contextlib.suppress(OSError):
+                out.rmdir()
+        raise
+    return created
+
+
+def _perceive(
+    spec: str | Path,
+    out: Path,
+    *,
+    depth_model: Path | str | None,
+    seg_model: Path | str | None,
+    batch_size: int,
+    threads: int,
+    provider: Provider,
+    images: ImageMode,
+    overwrite: bool,
+    progress: ProgressFn | None,
+) -> PerceiveResult:
+    """``perceive`` into ``out``, which this process holds."""
     t_start = time.perf_counter()
     if batch_size < 1:
         raise ConfigError(f"--batch-size {batch_size}: use 1 or more")
@@ -407,7 +466,6 @@ def perceive(
     _check_outputs(sequence, depth, seg)
     providers = {name: m.providers for name, m in (("depth", depth), ("segmentation", seg)) if m is not None}
     notes = check_providers(provider, providers, ort.get_available_providers())
-    out = Path(out)
     image_wh = (sequence.intrinsics.width, sequence.intrinsics.height)
     manifest = {
         "format": MANIFEST_FORMAT, "source": str(root.absolute()), "start": start, "end": end, "frames": n,

@@ -304,7 +304,8 @@ def _work(members: list[tuple[str, Sequence, ShgmConfig]], cfg: ShgmConfig, sche
     ``DataError``), ``("log", LogRecord)``, ``("error", robot, text)`` (anything else: that robot's front end
     stops; robot None: the whole worker stops), ``("end",)``.
     """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a Ctrl-C stops the orchestrator, which ends the workers
+    for sig in WORKER_IGNORED_SIGNALS:  # a Ctrl-C or a hangup stops the orchestrator, which ends the workers
+        signal.signal(sig, signal.SIG_IGN)
     sender = _Sender(conn)
     root = logging.getLogger()
     root.handlers[:] = [logging.NullHandler()]  # nothing to stderr while it builds the front ends again
@@ -349,24 +350,34 @@ def _work(members: list[tuple[str, Sequence, ShgmConfig]], cfg: ShgmConfig, sche
         sender.close()
 
 
+WORKER_IGNORED_SIGNALS = tuple(s for s in (signal.SIGINT, getattr(signal, "SIGHUP", None)) if s is not None)
+"""Signals a worker ignores: a terminal sends them to the whole process group (Ctrl-C; a hangup when it closes),
+and the orchestrator, which takes them as a stop, ends its workers itself. (SIGTERM is left as it is: it is how
+workers are ended, also by ``multiprocessing`` at exit.)"""
+
+
 def _start_without_sigint(proc: multiprocessing.process.BaseProcess) -> None:
-    """Start ``proc`` ignoring SIGINT from its first instruction (``_work`` keeps it so).
+    """Start ``proc`` ignoring SIGINT (and SIGHUP: ``WORKER_IGNORED_SIGNALS``) from its first instruction
+    (``_work`` keeps them so).
 
     A terminal's Ctrl-C goes to the whole process group: a worker still importing its modules died of it with a
-    traceback, and the run reported its robots' front ends as failed. An ignored signal stays ignored through
-    fork and exec (a blocked mask does not survive multiprocessing's spawn), so SIGINT is ignored here while
-    the process starts; it is also blocked meanwhile, so that a Ctrl-C in that moment stays pending and reaches
-    this process once its handler is back. Off the main thread (no handler can be set there) it just starts."""
+    traceback, and the run reported its robots' front ends as failed (a hangup, the terminal closed, killed
+    running workers the same way: "its worker process died (exit code -1)", its frames counted as skipped). An
+    ignored signal stays ignored through fork and exec (a blocked mask does not survive multiprocessing's spawn),
+    so they are ignored here while the process starts; they are also blocked meanwhile, so that a Ctrl-C in that
+    moment stays pending and reaches this process once its handler is back. Off the main thread (no handler can be
+    set there) it just starts."""
     if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
         proc.start()
         return
-    previous_mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    previous_mask = signal.pthread_sigmask(signal.SIG_BLOCK, set(WORKER_IGNORED_SIGNALS))
     try:
-        previous_handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        previous = {sig: signal.signal(sig, signal.SIG_IGN) for sig in WORKER_IGNORED_SIGNALS}
         try:
             proc.start()
         finally:
-            signal.signal(signal.SIGINT, previous_handler)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous_mask)
 

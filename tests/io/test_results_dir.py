@@ -58,9 +58,9 @@ def test_a_server_journal_resumes_the_folder_and_overwrite_starts_fresh(tmp_path
     _earlier_run(tmp_path / "out")
     (tmp_path / "out" / "journal.bin").write_bytes(b"j")
     (tmp_path / "out" / "snapshot-000000120.bin").write_bytes(b"s")
-    make_results_dir(tmp_path / "out", resume_file="journal.bin")  # a restart keeps everything
-    assert (tmp_path / "out" / "journal.bin").is_file() and (tmp_path / "out" / "metrics.json").is_file()
-    assert (tmp_path / "out" / "snapshot-000000120.bin").is_file()
+    with claimed_results_dir(tmp_path / "out", resume_file="journal.bin"):  # a restart keeps everything
+        assert (tmp_path / "out" / "journal.bin").is_file() and (tmp_path / "out" / "metrics.json").is_file()
+        assert (tmp_path / "out" / "snapshot-000000120.bin").is_file()
     make_results_dir(tmp_path / "out", overwrite=True, resume_file="journal.bin")
     assert not (tmp_path / "out" / "journal.bin").exists()
     assert not (tmp_path / "out" / "snapshot-000000120.bin").exists()
@@ -70,7 +70,8 @@ def test_a_server_that_stopped_before_any_robot_is_resumed(tmp_path):
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "config.yaml").write_text("x")
     (tmp_path / "out" / "server.rrd").write_bytes(b"x")
-    make_results_dir(tmp_path / "out", resume_file="journal.bin")
+    with claimed_results_dir(tmp_path / "out", resume_file="journal.bin"):
+        pass
     with pytest.raises(DataError, match="earlier run"):
         make_results_dir(tmp_path / "out")  # but run does not mix into it
 
@@ -111,9 +112,16 @@ def test_a_folder_another_process_writes_is_refused_then_free_again(tmp_path):
     assert not (out / LOCK_FILE).exists()
 
 
-def test_the_same_process_may_claim_its_folder_again(tmp_path):
+def test_a_folder_a_run_of_this_process_writes_is_refused_too(tmp_path):
+    """Two runs of one process on one folder (two ``LiveRun``s, a script's threads) were both let in, the second
+    with ``overwrite`` removing the first's files while it wrote: their files mixed."""
     with claimed_results_dir(tmp_path / "out"):
-        assert make_results_dir(tmp_path / "out") == tmp_path / "out"
+        for overwrite in (False, True):
+            with pytest.raises(DataError, match="in use by a run of this process that has not finished"):
+                make_results_dir(tmp_path / "out", overwrite=overwrite)
+        assert (tmp_path / "out" / LOCK_FILE).is_file()  # the refusal left the first run's lock alone
+    with claimed_results_dir(tmp_path / "out") as again:  # free again once it finished
+        assert again == tmp_path / "out"
 
 
 def test_a_robots_out_is_checked_before_its_first_frame(tmp_path, tiny_scenario):
@@ -141,3 +149,40 @@ def test_a_sequence_folder_is_never_a_results_folder(tmp_path) -> None:
         with pytest.raises(DataError, match="holds a sequence"):
             make_results_dir(seq, overwrite=overwrite)
     assert sorted(p.name for p in seq.iterdir()) == ["calib.txt", "times.txt"]  # no lock left behind
+
+
+@pytest.mark.parametrize("name", ["metrics.json", "car2_fused_tum.txt"])
+def test_a_folder_where_a_results_file_goes_is_refused_before_the_run(tmp_path, name):
+    """A folder named like a results file (``metrics.json/``) let the run go on to its end (or first checkpoint)
+    and then fail with "cannot write ... Is a directory", every result lost, ``--overwrite`` no help."""
+    (tmp_path / "out" / name).mkdir(parents=True)
+    for overwrite in (False, True):
+        with pytest.raises(DataError, match=rf"holds a folder named {name}, where a run writes that file"):
+            make_results_dir(tmp_path / "out", overwrite=overwrite)
+    assert [p.name for p in (tmp_path / "out").iterdir()] == [name]  # the user's folder kept, no lock left
+
+
+def test_runs_without_out_in_the_same_second_get_folders_of_their_own(tmp_path, monkeypatch):
+    """Two runs without --out in one second (two ``LiveRun``s of a script, a run after a short one) wrote into
+    one ``results/<time>`` folder, the second's files mixed into the first's, unchecked."""
+    from datetime import datetime
+
+    from shgm_slam.io import export
+
+    class Frozen(datetime):
+        @classmethod
+        def now(cls, tz=None):
+            return datetime(2026, 1, 2, 3, 4, 5)
+
+    monkeypatch.setattr(export, "datetime", Frozen)
+    first, second = make_results_dir(None, tmp_path), make_results_dir(None, tmp_path)
+    assert (first.name, second.name) == ("20260102_030405", "20260102_030405_2")
+    assert (tmp_path / "latest").resolve() == second.resolve()
+
+
+def test_a_latest_that_is_a_folder_is_a_warning(tmp_path, caplog):
+    (tmp_path / "latest").mkdir()
+    with caplog.at_level("WARNING"):
+        path = make_results_dir(None, tmp_path)
+    assert path.is_dir() and "cannot point" in caplog.text and (tmp_path / "latest").is_dir()
+    assert not list(tmp_path.glob(".latest.*"))

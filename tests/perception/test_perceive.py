@@ -170,6 +170,43 @@ def test_clear_errors(sim_seq, models, tmp_path):
     assert _run(f"{sim_seq}:0-3", tmp_path / "b", models, overwrite=True).computed == 3
 
 
+_HOLD = """
+import sys
+from pathlib import Path
+from shgm_slam.io.export import _lock_results_dir
+_lock_results_dir(Path(sys.argv[1]))  # as a perceive job writing the folder holds it
+print("held", flush=True)
+sys.stdin.read()
+"""
+
+
+def test_a_folder_another_job_writes_is_refused_and_kept(sim_seq, models, tmp_path):
+    """Two perceive jobs on one --out (the second with --overwrite and another model) removed each other's
+    depth/ mid-run ("cannot write ...: No such file or directory; free space ...") or left PNGs of two models under
+    one manifest; the second is now refused, nothing of the first touched. A job refused before writing (a missing
+    model) leaves no empty folder behind."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "p"
+    _run(f"{sim_seq}:0-2", out, models)
+    before = {f: f.read_bytes() for f in sorted((out / "depth").iterdir())}
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              text=True)  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(DataError, match=rf"in use by another shgm-slam process \(pid {holder.pid}\)"):
+            _run(f"{sim_seq}:0-3", out, models, overwrite=True)
+        assert {f: f.read_bytes() for f in sorted((out / "depth").iterdir())} == before
+    finally:
+        holder.communicate("")
+    assert _run(f"{sim_seq}:0-2", out, models).reused == 2  # the lock went with its holder
+    assert not (out / ".shgm-slam.lock").exists()
+    with pytest.raises(ModelError, match="does not exist"):
+        perceive(sim_seq, tmp_path / "new", depth_model=tmp_path / "missing.onnx")
+    assert not (tmp_path / "new").exists()
+
+
 @pytest.mark.parametrize("fails", ["mkdir", "symlink", "write_bytes"])
 def test_an_unwritable_or_full_out_is_one_clear_error(sim_seq, models, tmp_path, monkeypatch, fails):
     """A read-only --out (as a user without root meets it) or a full disk while the folder is laid out:

@@ -208,10 +208,13 @@ def test_a_sequence_that_cannot_go_to_a_worker_is_a_clear_error(tiny_scenario: P
 
 
 def _report_sigint_state(conn) -> None:
-    """A worker's first act: is SIGINT ignored (a Ctrl-C during its imports cannot have killed it)?"""
+    """A worker's first act: are SIGINT and SIGHUP ignored (a Ctrl-C or a hangup during its imports cannot have
+    killed it)?"""
     import signal
 
-    conn.send(signal.getsignal(signal.SIGINT) is signal.SIG_IGN)
+    from shgm_slam.robot.remote import WORKER_IGNORED_SIGNALS
+
+    conn.send(all(signal.getsignal(s) is signal.SIG_IGN for s in WORKER_IGNORED_SIGNALS))
     conn.close()
 
 
@@ -236,6 +239,7 @@ def test_a_worker_starts_with_ctrl_c_ignored_and_the_orchestrator_keeps_it() -> 
     finally:
         signal.signal(signal.SIGINT, previous)
     assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    assert signal.SIGHUP not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
 
 
 class _Unmeasured:
