@@ -162,8 +162,17 @@ def check_fleet(names: list[str], cfg: ShgmConfig) -> int:
     robot's share of the pose graph's agents (``segments_per_robot``: the trajectory segments it may start).
 
     Raises:
-        ConfigError: more robots than ``MAX_AGENTS``; ``cfg.robots`` names a robot not in ``names``.
+        ConfigError: more robots than ``MAX_AGENTS``; two names that differ only in case (their files, such as
+            ``<robot>_fused_tum.txt``, are one file on a case-insensitive file system: macOS, Windows);
+            ``cfg.robots`` names a robot not in ``names``.
     """
+    seen: dict[str, str] = {}
+    for name in names:
+        other = seen.setdefault(name.casefold(), name)
+        if other != name:
+            raise ConfigError(f"robots {other!r} and {name!r} differ only in case: their result files (such as "
+                              f"{name}_fused_tum.txt) would be one file on a case-insensitive file system (macOS, "
+                              "Windows); give them names that differ in more than case")  # fmt: skip
     if len(names) > MAX_AGENTS:
         raise ConfigError(
             f"{len(names)} robots: the pose graph holds at most {MAX_AGENTS} agents (robots and their trajectory "

@@ -447,3 +447,49 @@ def test_a_live_run_refused_for_its_viewer_leaves_its_folder_free(tmp_path: Path
         LiveRun({"car1": K}, tmp_path / "out", viewer=RerunMode.SPAWN)
     live = LiveRun({"car1": K}, tmp_path / "out")
     assert live.out_dir == tmp_path / "out"
+
+
+def test_add_camera_refuses_a_name_that_differs_only_in_case(tiny_scenario: Path, tmp_path: Path) -> None:
+    """``car1`` and ``CAR1`` were taken as two robots, whose files (``car1_fused_tum.txt``, ...) are one file on
+    macOS or Windows; refused when the camera is added or named, nothing added."""
+    K = open_sequence(tiny_scenario / "car1").intrinsics
+    live = LiveRun({"car1": K}, tmp_path / "out")
+    with pytest.raises(ConfigError, match="'car1' and 'CAR1' differ only in case"):
+        live.add_camera("CAR1", K)
+    assert list(live.streams) == ["car1"]
+    with pytest.raises(ConfigError, match="differ only in case"):
+        LiveRun({"uav": K, "UAV": K}, tmp_path / "named")
+
+
+def test_add_camera_refuses_a_camera_the_pose_graph_has_no_agent_left_for(tiny_scenario: Path, tmp_path: Path,
+                                                                          monkeypatch) -> None:  # fmt: skip
+    """A robot alone may start all of the pose graph's agents as trajectory segments (its odometry failing);
+    a camera added then was accepted and its first keyframe refused by the map server, a ProtocolError that ended
+    the whole run. It is refused at ``add_camera`` (here with a pose graph of 4 agents) and the run goes on."""
+    import shgm_slam.backend.keys as keys
+
+    seq = open_sequence(tiny_scenario / "car1")
+    live = LiveRun({"car1": seq.intrinsics}, tmp_path / "out")
+    for i in range(len(seq)):
+        f, T_odom_cam = seq[i], np.eye(4)
+        T_odom_cam[0, 3] = 50.0 * (i // 3) + 0.5 * i  # a 50 m jump every third frame: a new segment each
+        give = dict(depth_m=f.depth_m, label_ids=f.label_ids, T_odom_cam=T_odom_cam)
+        live.add_frame("car1", f.image_rgb, f.timestamp_s, **give)
+    monkeypatch.setattr(keys, "MAX_AGENTS", 4)
+    with pytest.raises(ConfigError, match=r"camera 'car2' cannot be added: .* at most 4 agents .* started \d+ \(car1"):
+        live.add_camera("car2", seq.intrinsics)
+    assert list(live.streams) == ["car1"]
+    assert [r.name for r in live.finish().robots] == ["car1"]
+
+
+def test_a_robots_own_odometry_not_in_metres_is_refused_at_its_frame() -> None:
+    K = Intrinsics(100.0, 100.0, 4.0, 2.0, 8, 4)
+    stream = FrameStream(K, name="cam")
+    T_odom_cam = np.eye(4)
+    for i in range(3):
+        T_odom_cam[0, 3] = 1000.0 * i  # 1 m a frame, in millimetres
+        stream.append(np.zeros((4, 8), np.uint8), 0.1 * i, depth_m=np.ones((4, 8), np.float32), T_odom_cam=T_odom_cam)
+    T_odom_cam[0, 3] = 3000.0
+    with pytest.raises(DataError, match=r"'cam' frame 3: T_odom_cam moves at 1e\+04 m/s .*in millimetres"):
+        stream.append(np.zeros((4, 8), np.uint8), 0.3, depth_m=np.ones((4, 8), np.float32), T_odom_cam=T_odom_cam)
+    assert len(stream) == 3

@@ -20,10 +20,19 @@ import numpy as np
 from shgm_slam.data.indexed import IndexedFrames
 from shgm_slam.data.kitti import check_times, pinhole_problem
 from shgm_slam.errors import DataError
+from shgm_slam.geometry.se3 import project_to_so3
 from shgm_slam.types import DepthOrigin, Frame, Intrinsics
 
 POSE_TOLERANCE = 1e-2
 """Largest max |RᵀR - I| of a ground-truth pose's rotation (and |last row - [0, 0, 0, 1]|)."""
+POSE_REPAIR_ABOVE = 1e-6
+"""Poses whose rotation is farther than this from orthonormal (within ``POSE_TOLERANCE``) are re-orthonormalized
+(``project_to_so3``), as a poses file's rows are (``io.trajectories``): the pipeline's messages carry rotations
+orthonormal within 1e-5 (``wire``), and a pose 1e-3 off ended the run there."""
+MAX_ODOMETRY_SPEED_MPS = 200.0
+"""A robot's own odometry (``T_odom_cam``) whose median speed between frames is above this (720 km/h) is refused:
+its translations are not in metres (millimetres give 1000x the speed, and every step would be cut as an odometry
+failure)."""
 
 
 class FrameArrays(Protocol):
@@ -83,6 +92,8 @@ class ArraySequence(IndexedFrames):
         self._times.flags.writeable = False
         self._gt = None if T_world_cam is None else checked_poses(T_world_cam, n, name)
         self._odom = None if T_odom_cam is None else checked_poses(T_odom_cam, n, name, "T_odom_cam")
+        if self._odom is not None:
+            check_odometry_units(self._odom, self._times, f"sequence {name!r}")
         self._images, self._depth, self._labels = images_rgb, depth_m, label_ids
 
     def __setstate__(self, state: dict) -> None:
@@ -189,5 +200,22 @@ def checked_poses(T_world_cam: np.ndarray, n: int, name: str, what: str = "T_wor
         raise DataError(f"sequence {name!r}: {what} of frame {k} is not a rigid transform (a rotation and a "
                         "translation over the row 0 0 0 1)")  # fmt: skip
     poses = poses.copy()
+    repair = err > POSE_REPAIR_ABOVE
+    if repair.any():  # (within the tolerance: rounding, a float32 pipeline) the nearest rotation
+        poses[repair, :3, :3] = project_to_so3(poses[repair, :3, :3])
+    poses[:, 3] = [0.0, 0.0, 0.0, 1.0]
     poses.flags.writeable = False
     return poses
+
+
+def check_odometry_units(T_odom_cam: np.ndarray, timestamps_s: np.ndarray, where: str) -> None:
+    """Refuse (DataError at ``where``) a robot's own odometry, (N, 4, 4) ``T_odom_cam`` at (N,) ``timestamps_s``,
+    whose median speed between frames is above ``MAX_ODOMETRY_SPEED_MPS``: translations not in metres."""
+    if len(T_odom_cam) < 2:
+        return
+    steps_m = np.linalg.norm(np.diff(T_odom_cam[:, :3, 3], axis=0), axis=1)
+    speed_mps = float(np.median(steps_m / np.diff(timestamps_s)))
+    if speed_mps > MAX_ODOMETRY_SPEED_MPS:
+        raise DataError(f"{where}: T_odom_cam moves at {speed_mps:.3g} m/s between frames (median), faster than any "
+                        f"robot ({MAX_ODOMETRY_SPEED_MPS:g} m/s); give its translations in metres (in millimetres or "
+                        "centimetres? divide them by 1000 or 100)")  # fmt: skip

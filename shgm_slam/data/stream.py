@@ -13,14 +13,15 @@ from __future__ import annotations
 import numpy as np
 
 from shgm_slam.data.kitti import check_times
-from shgm_slam.data.memory import ArraySequence, checked_intrinsics, checked_poses
+from shgm_slam.data.memory import ArraySequence, check_odometry_units, checked_intrinsics, checked_poses
 from shgm_slam.errors import DataError
 from shgm_slam.types import DepthOrigin, Frame, Intrinsics
 
 UNITS_FROM_FRAMES = (3, 10)
 """Frames 3 to 10 are refused unless the median interval so far is a camera's (``kitti.check_times``: 1 ms to
 30 s, as for a recorded sequence): times in milliseconds or nanoseconds are refused before they mislead the
-odometry's checks of speed, and the median lets one pause of the camera pass."""
+odometry's checks of speed, and the median lets one pause of the camera pass. The robot's own odometry
+(``T_odom_cam``) is checked for metres over the same frames (``memory.check_odometry_units``)."""
 
 
 class FrameStream(ArraySequence):
@@ -125,6 +126,9 @@ class FrameStream(ArraySequence):
             check_times(np.append(self._time_rows[:i], t), where)
         pose = None if T_world_cam is None else _checked_pose(T_world_cam, "T_world_cam", "world", where)
         odom = None if T_odom_cam is None else _checked_pose(T_odom_cam, "T_odom_cam", "odometry frame", where)
+        if odom is not None and UNITS_FROM_FRAMES[0] <= i <= UNITS_FROM_FRAMES[1]:  # metres, from the same frames
+            check_odometry_units(np.concatenate([self._odom_rows[:i], odom[None]]), np.append(self._time_rows[:i], t),
+                                 where)  # fmt: skip
         # the arrays as the pipeline will read them (checked, copied: the caller may reuse its buffers)
         self._images.append(image_rgb)
         if depth_m is not None:

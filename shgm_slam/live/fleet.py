@@ -154,8 +154,9 @@ class LiveRun:
                 configuration, or name the camera when making the run).
 
         Raises:
-            ConfigError: an invalid name or one the run has, the run has finished, a fleet the pose graph cannot
-                hold. DataError: intrinsics that are not valid.
+            ConfigError: an invalid name or one the run has (or one that differs from it only in case), the run
+                has finished, a fleet the pose graph cannot hold (with the segments its robots have started).
+                DataError: intrinsics that are not valid.
         """
         from shgm_slam.runner import check_fleet
         from shgm_slam.transport.keys import validate_robot_name
@@ -166,6 +167,7 @@ class LiveRun:
             if robot in self.streams:
                 raise ConfigError(f"camera {robot!r} is in this run already; give every camera its own name")
             share = check_fleet([*self.streams, robot], self.cfg)
+            self._check_room(robot)
             stream = FrameStream(intrinsics, depth_origin=depth_origin, name=robot)
             self._share = share  # the newcomer's share of the pose graph (the map server tells the others theirs)
             self.streams[robot] = stream
@@ -178,6 +180,24 @@ class LiveRun:
                                 "name the camera when making the run)", robot)  # fmt: skip
                 self._predicted.append(robot)
             log.info("%s: camera added to the live run", robot)
+
+    def _check_room(self, robot: str) -> None:
+        """Refuse (ConfigError) camera ``robot`` when the pose graph has no agent left for it: the running robots'
+        trajectory segments (a robot alone may have started up to all ``MAX_AGENTS`` after odometry failures) and
+        one for each camera that has not joined yet, this one included. (The map server refused such a robot's
+        first keyframe, which ended the whole run.)"""
+        from shgm_slam.backend.keys import MAX_AGENTS
+
+        fronts = {} if self._fleet is None else self._fleet.fronts
+        in_use = {r: len(front.segments) for r, front in fronts.items()}
+        waiting = [r for r in self.streams if r not in fronts]
+        if sum(in_use.values()) + len(waiting) + 1 > MAX_AGENTS:
+            used = ", ".join(f"{r}: {n}" for r, n in in_use.items())
+            raise ConfigError(f"camera {robot!r} cannot be added: the pose graph holds at most {MAX_AGENTS} agents "
+                              f"(robots and their trajectory segments after odometry failures), and the running "
+                              f"robots have started {sum(in_use.values())} ({used}) with {len(waiting)} more "
+                              "camera(s) still to join; name every camera when making the LiveRun (each then gets "
+                              "its share of the pose graph), or fix the odometry that keeps failing")  # fmt: skip
 
     def _is_predicted(self, robot: str, depth_origin: DepthOrigin) -> bool:
         """Whether ``robot``'s depth is predicted: a depth model configured for it, or depth given as predicted."""

@@ -179,3 +179,31 @@ def test_a_bad_frame_is_refused_when_read_naming_the_frame(field: str, bad: np.n
         seq[1]
     with pytest.raises(IndexError):
         seq[3]
+
+
+def test_a_pose_slightly_off_a_rotation_is_made_one() -> None:
+    """Poses within the tolerance but 1e-3 off orthonormal (rounding, a float32 pipeline) were kept as given, and
+    a robot's own odometry so given ended the run where the first keyframe was encoded (the wire takes 1e-5); they
+    are re-orthonormalized as a poses file's rows are."""
+    frames = make_frames(3)
+    own = np.stack([f.T_world_cam for f in frames])
+    own[:, :3, 3] *= 0.01
+    own[:, :3, :3] = own[:, :3, :3] @ (np.eye(3) + np.diag([1e-3, 0.0, 0.0]))
+    seq = ArraySequence(np.stack([f.image_rgb for f in frames]), INTRINSICS, np.arange(3) * 0.1, T_odom_cam=own)
+    R = seq[1].T_odom_cam[:3, :3]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(R, own[1, :3, :3], atol=2e-3)  # the nearest rotation
+    np.testing.assert_array_equal(seq[1].T_odom_cam[:3, 3], own[1, :3, 3])
+
+
+def test_odometry_not_in_metres_is_refused_at_once() -> None:
+    """Odometry in millimetres cut every step as an odometry failure (10 km/s) until the robot had used its share
+    of the pose graph; it is refused when the sequence is made, naming the fix."""
+    frames = make_frames(4)
+    own = np.tile(np.eye(4), (4, 1, 1))
+    own[:, 0, 3] = np.arange(4) * 1.5  # 15 m/s
+    images, times = np.stack([f.image_rgb for f in frames]), np.arange(4) * 0.1
+    ArraySequence(images, INTRINSICS, times, T_odom_cam=own)
+    own[:, :3, 3] *= 1000.0
+    with pytest.raises(DataError, match=r"sequence 'in memory': T_odom_cam moves at 1.5e\+04 m/s .*in millimetres"):
+        ArraySequence(images, INTRINSICS, times, T_odom_cam=own)
