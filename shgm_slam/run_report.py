@@ -327,7 +327,8 @@ def report_degenerate(
                 "extraction.labels, the depth range and the blob size)"
             )
         if rep.frames_processed:
-            still = stillness_warning(*odometry_motion(front.T_odom_cam, front.frame_segment), image_change[rep.name])
+            still = stillness_warning(*odometry_motion(front.T_odom_cam, front.frame_segment), image_change[rep.name],
+                                      given=rep.odometry == OdometryKind.GIVEN.value)  # fmt: skip
             if still is not None:
                 rep.warnings.append(still)
                 rep.localized = False  # a trajectory known to be invalid is never "fused"

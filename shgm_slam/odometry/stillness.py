@@ -64,13 +64,18 @@ def odometry_motion(T_odom_cam: np.ndarray, frame_segment: np.ndarray) -> tuple[
     return path, float(np.degrees(np.arccos(cos)).sum())
 
 
-def stillness_warning(path_m: float, rotation_deg: float, images: ImageChange) -> str | None:
-    """A warning when the odometry did not move although the images did, else None."""
+def stillness_warning(
+    path_m: float, rotation_deg: float, images: ImageChange, *, given: bool = False
+) -> str | None:
+    """A warning when the odometry did not move although the images did, else None; ``given``: the odometry was the
+    robot's own, given with its frames (the hint then points at those poses, not at the depth)."""
     moved_images = images.changed >= MIN_CHANGED_PAIRS and images.changed >= MIN_CHANGED_FRACTION * images.pairs
     if not moved_images or path_m >= STILL_PATH_M or rotation_deg >= STILL_ROTATION_DEG:
         return None
+    check = ("check the T_odom_cam given with the frames: the robot's own odometry, which the run used as given"
+             if given else "check the depth: valid pixels, scale, a model card's depth kind; odometry.voxel_size; "
+             "or --odometry")  # fmt: skip
     return (
         f"odometry did not move ({path_m:.2f} m, {rotation_deg:.1f} deg in all) while the images changed in "
-        f"{images.changed} of {images.pairs} consecutive frames: its trajectory is invalid (check the depth: "
-        "valid pixels, scale, a model card's depth kind; odometry.voxel_size; or --odometry)"
+        f"{images.changed} of {images.pairs} consecutive frames: its trajectory is invalid ({check})"
     )

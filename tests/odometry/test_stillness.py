@@ -41,6 +41,8 @@ def test_still_odometry_with_moving_images_warns_only_then():
     for image in _images(10, True):
         moving.add(image)
     assert "did not move" in stillness_warning(0.0, 0.0, moving)
+    assert "check the depth" in stillness_warning(0.0, 0.0, moving)
+    assert "check the T_odom_cam given" in stillness_warning(0.0, 0.0, moving, given=True)
     assert stillness_warning(5.0, 0.0, moving) is None
     still = ImageChange()
     for image in _images(10, False):
