@@ -166,6 +166,19 @@ def test_add_camera_refuses_a_taken_name_bad_intrinsics_and_a_finished_run(tiny_
         live.add_camera("car3", seq.intrinsics)
 
 
+def test_frames_held_for_a_first_camera_that_never_sends_are_said_once_and_run_at_finish(
+    tiny_scenario: Path, tmp_path: Path, caplog
+) -> None:
+    seq = open_sequence(tiny_scenario / "car2")
+    live = LiveRun({"car1": seq.intrinsics, "car2": seq.intrinsics}, tmp_path / "out")
+    with caplog.at_level("WARNING"):
+        got = feed(live, {"car2": seq}, [("car2", i) for i in range(len(seq))])
+    assert got == [] and not live.started
+    assert caplog.text.count("the run starts with the first camera, car1") == 1
+    summary = live.finish()  # car2 becomes the shared frame's robot
+    assert [r.name for r in summary.robots] == ["car2"] and summary.robots[0].localized
+
+
 def test_a_camera_that_never_sends_is_left_out(tiny_scenario: Path, tmp_path: Path, caplog) -> None:
     seq = open_sequence(tiny_scenario / "car1")
     live = LiveRun({"car1": seq.intrinsics, "car2": seq.intrinsics}, tmp_path / "out")

@@ -95,6 +95,7 @@ class LiveRun:
         self._warmups = {r: Warmup(r, stream, cfg) for r, stream in self.streams.items()}
         self._predicted = [r for r in cameras if self._is_predicted(r, origins[r])]
         self._held: list[tuple[str, int]] = []  # frames of robots that do not run yet, in the order they came
+        self._said_waiting = False  # the warning that the run waits for the first camera was given
         self._fleet: FleetRun | None = None
         self._summary: RunSummary | None = None
         self._closed = False  # finished, or ended by an error: no more frames
@@ -320,6 +321,13 @@ class LiveRun:
                                 "nothing to run")  # fmt: skip
             reference = next(iter(self.streams))
             if not final and not (reference in sent and all(self._warmups[r].ready for r in sent)):
+                if reference not in sent and all(self._warmups[r].ready for r in sent) and not self._said_waiting:
+                    self._said_waiting = True  # (once: every later frame is held the same way)
+                    why = (f"{', '.join(sent)} ready, but the run starts with the first camera, {reference} (the "
+                           f"shared frame), which has sent no frame: their frames are held ({len(self._held)} so "
+                           "far) until it does, or until finish() starts the run without it")  # fmt: skip
+                    log.warning(why)
+                    self._viz.log_text(why, "WARN")
                 return []
             # at the end, a first camera that never sent a frame leaves the shared frame to the next one
             robots = {r: self.streams[r] for r in (sent if final else self.streams)}
