@@ -11,6 +11,7 @@ import difflib
 import hashlib
 import json
 import math
+import re
 from enum import Enum
 from pathlib import Path
 from typing import Any, ClassVar
@@ -753,6 +754,10 @@ def load_config(path: Path | str | None) -> ShgmConfig:
         hint = ""
         if first["type"] == "extra_forbidden":
             hint = _unknown_key_hint(str(first["loc"][-1]), _fields_at(first["loc"][:-1]))
+        elif first["type"] == "enum":  # a misspelt choice (kiss_icp): say what was read and the nearest one
+            choices = re.findall(r"'([^']*)'", first.get("ctx", {}).get("expected", ""))
+            close = difflib.get_close_matches(str(first["input"]), choices, n=1)
+            hint = f", got {first['input']!r}" + (f"; did you mean {close[0]!r}?" if close else "")
         where = f"{where}: " if where else ""  # a whole-config check (robots' overrides) names its own place
         raise ConfigError(f"config file {path}: {where}{first['msg']}{hint} ({exc.error_count()} error(s))") from None
 

@@ -30,6 +30,7 @@ from shgm_slam.runner import open_robots, run_slam
         ("keyframes:\n  distance_m: [3\n", r"not valid YAML: line \d+, column \d+: expected ',' or ']'"),
         ("matching: {topk: 3}", r"matching\.topk: Extra inputs are not permitted; did you mean top_k\?"),
         ("robots: {uav: {graph: {merge_radius_m: 3}}}", "known here: extraction, odometry, keyframes, perception"),
+        ("odometry: {kind: kiss_icp}", r"odometry\.kind: .*, got 'kiss_icp'; did you mean 'kiss-icp'\?"),
     ],
 )
 def test_settings_that_make_a_run_do_nothing_are_refused(tmp_path: Path, yaml_text: str, culprit: str) -> None:

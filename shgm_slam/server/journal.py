@@ -4,7 +4,9 @@ Each record is ``[u32 length][u32 crc32][payload]`` (little-endian), the payload
 wire bytes exactly as received. A server killed at any moment and started again on the same results
 folder replays the journal through a fresh map server: the mirrored graphs, the pose graph and the
 match log come back as they were (matching is deterministic given the message order). A record cut
-short by the kill (or corrupted) ends the replay; the file is truncated there so appends stay valid.
+short by the kill (or garbled, or zero-filled, as the last in the file) ends the replay; the file is truncated
+there so appends stay valid. A corrupt record with records after it is refused, the file left as it is:
+truncating there would drop every record after it.
 
 ``chain`` is a running CRC-32 over the records' CRCs: a snapshot stores the record count and chain it
 covers, so a restarted server can tell that the snapshot belongs to this very journal.
@@ -55,7 +57,11 @@ class Journal:
 
     def replay(self) -> Iterator[bytes]:
         """Yield every intact record's payload in order; truncate a torn or corrupt tail. While a payload
-        is yielded, ``records`` and ``chain`` count it and every record before it."""
+        is yielded, ``records`` and ``chain`` count it and every record before it.
+
+        Raises:
+            DataError: a corrupt record that is not the tail (see ``_check_tail``).
+        """
         if not self.path.exists():
             return
         good_end = 0
@@ -69,7 +75,10 @@ class Journal:
                     break
                 length, crc = _HEADER.unpack(head)
                 payload = f.read(length) if length <= MAX_RECORD_BYTES else b""
-                if len(payload) != length or zlib.crc32(payload) != crc:
+                # zeros to the end of the file read as empty records: a tail the filesystem left zero-filled
+                zeros = length == 0 and crc == 0 and self._zeros_from(f, good_end)
+                if zeros or len(payload) != length or zlib.crc32(payload) != crc:
+                    self._check_tail(f, good_end, length)
                     log.warning("journal %s: record at byte %d is cut short or corrupt; replay ends there",
                                 self.path, good_end)  # fmt: skip
                     break
@@ -79,6 +88,38 @@ class Journal:
         if good_end < self.path.stat().st_size:
             with open(self.path, "r+b") as f:
                 f.truncate(good_end)
+
+    def _check_tail(self, f, start: int, length: int) -> None:
+        """Refuse a bad record at byte ``start`` that is not the journal's tail: a kill cuts only the last record
+        (or leaves it zero-filled), so intact-looking bytes after it mean the journal was damaged, and cutting it
+        there would throw away every record after it.
+
+        Raises:
+            DataError: bytes other than zeros follow the bad record (the file is left as it is).
+        """
+        size = self.path.stat().st_size
+        if length <= MAX_RECORD_BYTES and start + _HEADER.size + length >= size:
+            return  # the last record, cut short or garbled by the kill
+        if not self._zeros_from(f, start):
+            raise DataError(
+                f"journal {self.path}: record {self.records} at byte {start} is corrupt and {size - start} bytes "
+                f"of records follow it (not a record cut short by a kill); the journal is left as it is. Restore "
+                f"it from a backup, or cut it there to resume from the {self.records} records before it "
+                f"(truncate -s {start} {self.path}; the later ones are lost), or start afresh with --overwrite"
+            )
+
+    @staticmethod
+    def _zeros_from(f, start: int) -> bool:
+        """Whether the open file ``f`` holds only zero bytes from ``start`` to its end (its position is kept)."""
+        pos = f.tell()
+        f.seek(start)
+        try:
+            while chunk := f.read(1 << 20):
+                if chunk.count(0) != len(chunk):
+                    return False
+            return True
+        finally:
+            f.seek(pos)
 
     def append(self, payload: bytes) -> None:
         """Append one record (flushed to the OS before returning).

@@ -34,7 +34,7 @@ from shgm_slam.agents import agent_robot
 from shgm_slam.backend.keys import MAX_AGENTS, segments_per_robot
 from shgm_slam.config import ShgmConfig
 from shgm_slam.corrections import FusedView
-from shgm_slam.errors import DataError, ShgmError
+from shgm_slam.errors import ConfigError, DataError, ShgmError
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.messages import (
     CorrectionMessage,
@@ -262,7 +262,7 @@ class ServerNode:
         return robot, self._keyframe(rs, msg, payload, live=live)
 
     def _hello(self, msg: HelloMessage, payload: bytes, now: float, *, live: bool) -> str | None:
-        if not self._same_settings(msg):
+        if not self._same_settings(msg, live=live):
             return None
         rs = self.robots.get(msg.robot)
         new_session = rs is None or rs.session != msg.session
@@ -299,12 +299,24 @@ class ServerNode:
             rs.corrected_version = -1
         return msg.robot
 
-    def _same_settings(self, msg: HelloMessage) -> bool:
+    def _same_settings(self, msg: HelloMessage, *, live: bool = True) -> bool:
         """Whether the robot's front end runs on this server's settings for it (``front_end_digest``); else it
-        is refused, once per session (its process stops with the reason). A hello without a digest passes."""
+        is refused, once per session (its process stops with the reason). A hello without a digest passes.
+
+        Raises:
+            ConfigError: a hello replayed from the journal (``live`` False) differs: the server was restarted
+                with another ``--config`` than the one it ran with, and refusing every robot would resume on
+                an empty map.
+        """
         ours = self.cfg.front_end_digest(msg.robot)
         if msg.settings_digest in ("", ours):
             return True
+        if not live:
+            raise ConfigError(
+                f"the journal in {self.writer.root} holds {msg.robot}'s keyframes made with other front-end "
+                "settings (extraction, graph, keyframes, odometry) than this --config gives it: restart the server "
+                "with the --config it ran with, or pass --overwrite to start afresh with this one"
+            )
         reason = (f"its front-end settings (extraction, graph, keyframes, odometry; digest {msg.settings_digest}) "
                   f"differ from the map server's for it (digest {ours}): start every robot with the server's "
                   "--config file (settings of one robot go under `robots: <name>:` in it)")  # fmt: skip

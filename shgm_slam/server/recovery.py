@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from shgm_slam.errors import DataError
 from shgm_slam.server.journal import Journal
 from shgm_slam.server.snapshot import SnapshotStore
 from shgm_slam.server.snapshot_codec import ServerSnapshot
@@ -56,6 +57,10 @@ def recover(
         reference: the ``--reference`` robot, if one was given.
         restore: loads a snapshot into the server (raises ``ShgmError`` on inconsistent content).
         replay: applies one journal record (payload, index) to the server.
+
+    Raises:
+        DataError: the journal is corrupt before its tail (``Journal.replay``), or empty or missing while the
+            folder holds snapshots (it was lost: starting afresh would overwrite the earlier run's results).
     """
     t0 = time.perf_counter()
     payloads: list[bytes] = []
@@ -73,6 +78,13 @@ def recover(
             return f"its shared frame is {snap.reference}'s, not --reference {reference}'s"
         return None
 
+    if store is not None and not payloads and (found := store.paths()):
+        # snapshots are written only after journal records: the journal that made them was emptied or removed
+        raise DataError(
+            f"{journal.path} is {'empty' if journal.path.exists() else 'missing'} but {store.folder} holds "
+            f"{', '.join(p.name for p in found)} of an earlier run: its journal was lost, and starting afresh would "
+            "overwrite that run's results; restore the journal from a backup, or pass --overwrite to start afresh"
+        )
     start = 0
     if store is not None and payloads:
         snap = store.restore_newest(usable, restore)

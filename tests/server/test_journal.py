@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
+from shgm_slam.errors import DataError
 from shgm_slam.server.journal import Journal
 
 
@@ -31,16 +34,44 @@ def test_torn_tail_is_dropped_and_appends_continue_cleanly(tmp_path: Path) -> No
     assert list(Journal(path).replay()) == [b"one", b"two", b"four"]
 
 
-def test_corrupt_record_ends_the_replay(tmp_path: Path) -> None:
+def test_corrupt_last_record_ends_the_replay(tmp_path: Path) -> None:
     path = tmp_path / "journal.bin"
     j = Journal(path)
     for p in (b"alpha", b"beta", b"gamma"):
         j.append(p)
     j.close()
     data = bytearray(path.read_bytes())
-    data[8 + 5 + 8 + 1] ^= 0xFF  # a byte of "beta"
+    data[-2] ^= 0xFF  # a byte of "gamma", the last record
     path.write_bytes(bytes(data))
-    assert list(Journal(path).replay()) == [b"alpha"]
+    assert list(Journal(path).replay()) == [b"alpha", b"beta"]
+
+
+def test_corrupt_record_with_records_after_it_is_refused_and_kept(tmp_path: Path) -> None:
+    path = tmp_path / "journal.bin"
+    j = Journal(path)
+    for p in (b"alpha", b"beta", b"gamma"):
+        j.append(p)
+    j.close()
+    data = bytearray(path.read_bytes())
+    data[8 + 5 + 8 + 1] ^= 0xFF  # a byte of "beta": "gamma" after it must not be thrown away
+    path.write_bytes(bytes(data))
+    with pytest.raises(DataError, match=r"record 1 at byte 13 is corrupt.*truncate -s 13"):
+        list(Journal(path).replay())
+    assert path.read_bytes() == bytes(data)
+
+
+def test_zero_filled_tail_is_dropped_not_replayed_as_empty_records(tmp_path: Path) -> None:
+    path = tmp_path / "journal.bin"
+    j = Journal(path)
+    for p in (b"one", b"two"):
+        j.append(p)
+    j.close()
+    whole = path.read_bytes()
+    path.write_bytes(whole + bytes(4096))  # a crash can leave the file's tail zero-filled
+    j2 = Journal(path)
+    assert list(j2.replay()) == [b"one", b"two"]
+    assert j2.records == 2
+    assert path.read_bytes() == whole
 
 
 def test_missing_journal_replays_nothing(tmp_path: Path) -> None:

@@ -13,7 +13,7 @@ import pytest
 
 from shgm_slam.agents import segment_agent
 from shgm_slam.config import OdometryKind, load_config
-from shgm_slam.errors import ProtocolError
+from shgm_slam.errors import ConfigError, ProtocolError
 from shgm_slam.messages import RobotState
 from shgm_slam.robot.node import RobotNode
 from shgm_slam.runner import make_frontend
@@ -162,6 +162,24 @@ def test_a_robot_on_other_front_end_settings_is_refused_with_the_fix(robots, cfg
     own = cfg.model_copy(deep=True)
     own.odometry.kind, own.odometry.icp_threads = OdometryKind.KISS_ICP, 1
     assert own.front_end_digest("car2") == cfg.front_end_digest("car2")
+
+
+def test_a_restart_with_other_front_end_settings_is_refused_not_resumed_empty(robots, cfg, tmp_path: Path) -> None:
+    """The journal's hellos carry the digest of the settings the robots ran with: a server restarted on the
+    folder with another --config used to refuse each replayed hello and resume on an empty map."""
+    clock, bus = FakeClock(), InProcessBus()
+    first = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=2, clock=clock)
+    nodes = fresh(robots, cfg, bus, clock)
+    drive(first, nodes, {r: range(3) for r in nodes}, clock)
+    first.transport.close()  # killed
+    journal = (tmp_path / "journal.bin").read_bytes()
+    other = cfg.model_copy(deep=True)
+    other.keyframes.distance_m = 2 * cfg.keyframes.distance_m
+    with pytest.raises(ConfigError, match=r"other front-end settings.*--config it ran with.*--overwrite"):
+        ServerNode(other, InProcessTransport(InProcessBus()), tmp_path, expect=2, clock=clock)
+    assert (tmp_path / "journal.bin").read_bytes() == journal  # kept for a restart with the right --config
+    second = ServerNode(cfg, InProcessTransport(InProcessBus()), tmp_path, expect=2, clock=clock)
+    assert set(second.robots) == {"car1", "car2"}
 
 
 def test_the_servers_config_records_each_robots_derived_values(uninterrupted: ServerNode, robots) -> None:
