@@ -34,12 +34,18 @@ def test_torn_tail_is_dropped_and_appends_continue_cleanly(tmp_path: Path) -> No
     assert list(Journal(path).replay()) == [b"one", b"two", b"four"]
 
 
-def test_corrupt_last_record_ends_the_replay(tmp_path: Path) -> None:
+def written_journal(tmp_path: Path, payloads: tuple[bytes, ...]) -> Path:
+    """A journal holding ``payloads``, closed; its path."""
     path = tmp_path / "journal.bin"
     j = Journal(path)
-    for p in (b"alpha", b"beta", b"gamma"):
+    for p in payloads:
         j.append(p)
     j.close()
+    return path
+
+
+def test_corrupt_last_record_ends_the_replay(tmp_path: Path) -> None:
+    path = written_journal(tmp_path, (b"alpha", b"beta", b"gamma"))
     data = bytearray(path.read_bytes())
     data[-2] ^= 0xFF  # a byte of "gamma", the last record
     path.write_bytes(bytes(data))
@@ -47,11 +53,7 @@ def test_corrupt_last_record_ends_the_replay(tmp_path: Path) -> None:
 
 
 def test_corrupt_record_with_records_after_it_is_refused_and_kept(tmp_path: Path) -> None:
-    path = tmp_path / "journal.bin"
-    j = Journal(path)
-    for p in (b"alpha", b"beta", b"gamma"):
-        j.append(p)
-    j.close()
+    path = written_journal(tmp_path, (b"alpha", b"beta", b"gamma"))
     data = bytearray(path.read_bytes())
     data[8 + 5 + 8 + 1] ^= 0xFF  # a byte of "beta": "gamma" after it must not be thrown away
     path.write_bytes(bytes(data))
