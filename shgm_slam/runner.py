@@ -157,9 +157,10 @@ def prepare_frontends(robots: dict[str, Sequence], cfg: ShgmConfig) -> dict[str,
     return {r: make_frontend(r, seq, cfg, max_segments=share) for r, seq in robots.items()}
 
 
-def check_fleet(names: list[str], cfg: ShgmConfig) -> int:
-    """Refuse a fleet the pose graph cannot hold or a config with settings for robots not in it; returns each
-    robot's share of the pose graph's agents (``segments_per_robot``: the trajectory segments it may start).
+def check_fleet(names: list[str], cfg: ShgmConfig, unknown_fix: str = "fix the names under 'robots:'") -> int:
+    """Refuse a fleet the pose graph cannot hold or a config with settings for robots not in it (``unknown_fix``:
+    what the message tells the user to do); returns each robot's share of the pose graph's agents
+    (``segments_per_robot``: the trajectory segments it may start).
 
     Raises:
         ConfigError: more robots than ``MAX_AGENTS``; two names that differ only in case (their files, such as
@@ -182,7 +183,7 @@ def check_fleet(names: list[str], cfg: ShgmConfig) -> int:
     if unknown:
         raise ConfigError(
             f"the config has settings for robot(s) {', '.join(unknown)} that are not in this run "
-            f"({', '.join(names)}); fix the names under 'robots:'"
+            f"({', '.join(names)}); {unknown_fix}"
         )
     # each robot's share of the pose graph's agents: a robot whose odometry keeps failing stops at its share
     # (a logged skip of its later frames) instead of ending the whole run when the agents run out

@@ -122,13 +122,12 @@ class FrameStream(ArraySequence):
             last = f" (the last frame's is {self._time_rows[i - 1]:.6f} s)" if i > 0 else ""
             raise DataError(f"{where}: timestamp {timestamp_s!r} s is not a finite time later than the last "
                             f"frame's{last}; give each frame's capture time in seconds, increasing")  # fmt: skip
-        if UNITS_FROM_FRAMES[0] <= i <= UNITS_FROM_FRAMES[1]:  # seconds, as a recorded sequence's times must be
-            check_times(np.append(self._time_rows[:i], t), where)
         pose = None if T_world_cam is None else _checked_pose(T_world_cam, "T_world_cam", "world", where)
         odom = None if T_odom_cam is None else _checked_pose(T_odom_cam, "T_odom_cam", "odometry frame", where)
-        if odom is not None and UNITS_FROM_FRAMES[0] <= i <= UNITS_FROM_FRAMES[1]:  # metres, from the same frames
-            check_odometry_units(np.concatenate([self._odom_rows[:i], odom[None]]), np.append(self._time_rows[:i], t),
-                                 where)  # fmt: skip
+        if UNITS_FROM_FRAMES[0] <= i <= UNITS_FROM_FRAMES[1]:  # seconds (as a recorded sequence's times) and metres
+            times = check_times(np.append(self._time_rows[:i], t), where)
+            if odom is not None:
+                check_odometry_units(np.concatenate([self._odom_rows[:i], odom[None]]), times, where)
         # the arrays as the pipeline will read them (checked, copied: the caller may reuse its buffers)
         self._images.append(image_rgb)
         if depth_m is not None:

@@ -72,13 +72,9 @@ class LiveRun:
         for name in cameras:
             validate_robot_name(name)
         self.cfg = cfg = live_config(config, list(cameras))
-        unknown = sorted(set(cfg.robots) - set(cameras))
-        if unknown:  # (check_fleet refuses them too; here the fix that a camera added later needs)
-            raise ConfigError(f"the config has settings for robot(s) {', '.join(unknown)} that are not among the "
-                              f"cameras ({', '.join(cameras)}); fix the names under 'robots:', or name such a camera "
-                              "when making the LiveRun (one that never sends a frame is left out) instead of adding "
-                              "it later")  # fmt: skip
-        self._share = check_fleet(list(cameras), cfg)
+        self._share = check_fleet(list(cameras), cfg, "fix the names under 'robots:', or name such a camera when "
+                                  "making the LiveRun (one that never sends a frame is left out) instead of adding "
+                                  "it later")  # fmt: skip
         origins = depth_origin if isinstance(depth_origin, Mapping) else dict.fromkeys(cameras, depth_origin)
         if set(origins) != set(cameras):
             raise ConfigError(f"depth_origin names robots {sorted(origins)}; give one for each of {list(cameras)}")
