@@ -495,6 +495,39 @@ def test_add_camera_refuses_a_camera_the_pose_graph_has_no_agent_left_for(tiny_s
     assert [r.name for r in live.finish().robots] == ["car1"]
 
 
+def test_a_camera_added_keeps_its_agents_while_the_running_robot_keeps_failing(tiny_scenario: Path, tmp_path: Path,
+                                                                                monkeypatch) -> None:  # fmt: skip
+    """The running robots kept the share of the pose graph they had before a camera was added, so one whose
+    odometry kept failing could start every agent left before the newcomer's first keyframe, which the map server
+    then refused, ending the whole run. Adding the camera shares the pose graph anew at once (here 16 agents: 8
+    each): the failing robot stops at its share and the newcomer runs."""
+    import shgm_slam.backend.keys as keys
+    import shgm_slam.server.node as server_node
+
+    for module in (keys, server_node):
+        monkeypatch.setattr(module, "MAX_AGENTS", 16)
+    car1, car2 = open_sequence(tiny_scenario / "car1"), open_sequence(tiny_scenario / "car2")
+    live = LiveRun({"car1": car1.intrinsics}, tmp_path / "out")
+
+    def give_car1(frames: range) -> None:
+        for i in frames:
+            f, T_odom_cam = car1[i], np.eye(4)
+            T_odom_cam[0, 3] = 50.0 * (i // 3) + 0.5 * i  # a 50 m jump every third frame: a new segment each
+            live.add_frame("car1", f.image_rgb, f.timestamp_s, depth_m=f.depth_m, label_ids=f.label_ids,
+                           T_odom_cam=T_odom_cam)  # fmt: skip
+
+    give_car1(range(21))  # (the first 20 frames set its settings, then it runs them)
+    assert live.started and 1 < len(live._fleet.fronts["car1"].segments) < 8
+    live.add_camera("car2", car2.intrinsics)
+    give_car1(range(21, len(car1)))
+    assert len(live._fleet.fronts["car1"].segments) == 8  # its share, not the 16 it was allowed alone
+    for i in range(len(car2)):
+        f = car2[i]
+        live.add_frame("car2", f.image_rgb, f.timestamp_s, depth_m=f.depth_m, label_ids=f.label_ids)
+    reports = {r.name: r for r in live.finish().robots}
+    assert reports["car2"].segments >= 1 and reports["car1"].segments == 8
+
+
 def test_a_robots_own_odometry_not_in_metres_is_refused_at_its_frame() -> None:
     K = Intrinsics(100.0, 100.0, 4.0, 2.0, 8, 4)
     stream = FrameStream(K, name="cam")

@@ -168,6 +168,10 @@ class LiveRun:
             stream = FrameStream(intrinsics, depth_origin=depth_origin, name=robot)
             self._share = share  # the newcomer's share of the pose graph (the map server tells the others theirs)
             self.streams[robot] = stream
+            if self._fleet is not None:  # the running robots start no more segments than the newcomer leaves them
+                self._fleet.server_node.expect_robots(len(self.streams))
+                for node in self._fleet.nodes.values():
+                    node.poll()
             self._warmups[robot] = Warmup(robot, stream, self.cfg)
             if self._is_predicted(robot, depth_origin):
                 if self._fleet is not None and not self._predicted:

@@ -358,6 +358,13 @@ class ServerNode:
             self._refuse(f"hello of {rs.name} (session {pending[0]}): {reason}")
             self._broadcast_status()
 
+    def expect_robots(self, count: int) -> None:
+        """A robot that has not connected will (a camera added to a live run): the map server waits for ``count``
+        robots (``expect``, never fewer than before) and shares the pose graph among them, and the robots hear
+        their smaller share at once (``segments_allowed``), so the running ones leave the newcomer its agents."""
+        self.expect = max(self.expect or 0, count)
+        self._broadcast_status()
+
     def segments_allowed(self) -> int:
         """Trajectory segments each robot may start (the robot and its segments after odometry failures): its
         share of the pose graph's ``MAX_AGENTS`` among the fleet, the ``expect`` robots (or more, once more have

@@ -329,6 +329,23 @@ def test_segments_beyond_a_robots_share_are_dropped_and_the_robot_told(robots, c
     assert set(summary["robots"]["car1"]["dropped_segments"]) == {"car1#2", "car1#3"}
 
 
+def test_a_robot_expected_later_shrinks_every_robots_share_at_once(robots, cfg, tmp_path: Path) -> None:
+    """A camera added to a live run: the map server waits for one more robot and tells the running ones their
+    smaller share of the pose graph before their next keyframe; it never waits for fewer than before."""
+    clock, bus = FakeClock(), InProcessBus()
+    server = ServerNode(cfg, InProcessTransport(bus), tmp_path, expect=13, clock=clock, order_keyframes=False)
+    node, _ = _segment_keyframes(robots, cfg, clock, bus, "car1", 1)
+    server.poll()
+    server._broadcast_status()
+    node.poll()
+    assert node.front.max_segments == 4
+    server.expect_robots(26)
+    node.poll()
+    assert server.expect == 26 and node.front.max_segments == 2
+    server.expect_robots(2)
+    assert server.expect == 26 and server.segments_allowed() == 2
+
+
 def test_a_robot_that_finds_the_pose_graph_full_is_refused(robots, cfg, tmp_path: Path, monkeypatch) -> None:
     monkeypatch.setattr("shgm_slam.server.node.MAX_AGENTS", 3)  # the pose graph's 52 agents, reached sooner
     clock, bus = FakeClock(), InProcessBus()
