@@ -209,6 +209,18 @@ def _pack(d: dict) -> bytes:
     return msgpack.packb(d, use_bin_type=True)
 
 
+def _refused_with(msg, path: tuple, value, what: str) -> None:
+    """``msg``'s valid payload with the field at ``path`` (keys into the envelope) set to ``value``, or to what
+    ``value`` makes of the field's bytes when callable: decoding it raises a WireError matching ``what``."""
+    d = _envelope(msg)
+    parent = d
+    for k in path[:-1]:
+        parent = parent[k]
+    parent[path[-1]] = value(parent[path[-1]]) if callable(value) else value
+    with pytest.raises(WireError, match=what):
+        decode(_pack(d))
+
+
 def test_unknown_version_names_both_versions():
     d = _envelope(HelloMessage("car1", "s", 1))
     d["v"] = 99
@@ -449,18 +461,9 @@ def test_correction_indices_and_unplaced_agents_are_checked():
         with pytest.raises(WireError, match=what):
             encode(CorrectionMessage("car1", "", {}, 1, False, {"car1": c}))
     good = CorrectionMessage("car1", "", {}, 1, False, {"car1": AgentCorrection(pose(0), 3, np.arange(3), T)})
-    d = _envelope(good)
-    d["A"]["car1"]["i"] = np.array([0, 5, 6], "<i4").tobytes()
-    with pytest.raises(WireError, match=r"increase within 0\.\.2"):
-        decode(_pack(d))
-    d = _envelope(good)
-    d["A"]["car1"]["o"] = None
-    with pytest.raises(WireError, match="not placed"):
-        decode(_pack(d))
-    d = _envelope(good)
-    d["F"] = 1
-    with pytest.raises(WireError, match="full must be true or false"):
-        decode(_pack(d))
+    _refused_with(good, ("A", "car1", "i"), np.array([0, 5, 6], "<i4").tobytes(), r"increase within 0\.\.2")
+    _refused_with(good, ("A", "car1", "o"), None, "not placed")
+    _refused_with(good, ("F",), 1, "full must be true or false")
 
 
 def _with_update(msg: KeyframeMessage, **changes) -> KeyframeMessage:
@@ -488,34 +491,20 @@ def test_keyframes_the_map_server_cannot_apply_are_refused_both_ways():
         with pytest.raises(WireError, match=what):
             encode(bad)
     # the same values written straight into a valid payload's bytes: decode refuses them
-    d = _envelope(msg)
-    d["gn"]["l"] = bytes([255]) * len(d["gn"]["l"])
-    with pytest.raises(WireError, match="label ids"):
-        decode(_pack(d))
-    d = _envelope(msg)
-    d["gk"] = 0
-    with pytest.raises(WireError, match="graph update of keyframe 0"):
-        decode(_pack(d))
-    d = _envelope(msg)
-    d["gn"]["a"] = np.full(len(d["gn"]["a"]) // 4, 9, "<i4").tobytes()
-    with pytest.raises(WireError, match="anchored to keyframe 9"):
-        decode(_pack(d))
-    d = _envelope(msg)
-    d["u"] = np.zeros(3, "<f8").tobytes()
-    with pytest.raises(WireError, match="unit vector"):
-        decode(_pack(d))
-    d = _envelope(msg)
-    P = np.frombuffer(d["T"], "<f8").copy()
-    P[3] = -1e300
-    d["T"] = P.tobytes()
-    with pytest.raises(WireError, match="translation is beyond"):
-        decode(_pack(d))
-    d = _envelope(msg)
-    p = np.frombuffer(d["gn"]["p"], "<f4").copy()
-    p[0] = 3e38
-    d["gn"]["p"] = p.tobytes()
-    with pytest.raises(WireError, match="node positions must be within"):
-        decode(_pack(d))
+
+    def edited(dtype: str, i: int, v: float):
+        def edit(raw: bytes) -> bytes:
+            a = np.frombuffer(raw, dtype).copy()
+            a[i] = v
+            return a.tobytes()
+        return edit
+
+    _refused_with(msg, ("gn", "l"), lambda raw: bytes([255]) * len(raw), "label ids")
+    _refused_with(msg, ("gk",), 0, "graph update of keyframe 0")
+    _refused_with(msg, ("gn", "a"), lambda raw: np.full(len(raw) // 4, 9, "<i4").tobytes(), "anchored to keyframe 9")
+    _refused_with(msg, ("u",), np.zeros(3, "<f8").tobytes(), "unit vector")
+    _refused_with(msg, ("T",), edited("<f8", 3, -1e300), "translation is beyond")
+    _refused_with(msg, ("gn", "p"), edited("<f4", 0, 3e38), "node positions must be within")
 
 
 def test_a_keyframe_of_more_nodes_than_an_image_can_hold_is_refused():
