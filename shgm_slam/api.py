@@ -12,6 +12,9 @@ The command line calls these same functions, so a script gets the results ``shgm
 
 from __future__ import annotations
 
+import inspect
+import operator
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from shgm_slam.config import Dof, ShgmConfig, load_config
-from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.errors import ConfigError, DataError, GraphError
 from shgm_slam.types import GraphArrays, Sequence
 
 if TYPE_CHECKING:  # the viewer, the pose graph and the models load only when a run needs them
@@ -69,17 +72,29 @@ class FusedTrajectory:
     provisional: bool
 
 
-def config_of(config: ShgmConfig | Path | str | None) -> ShgmConfig:
-    """``config`` as an ``ShgmConfig``: itself, loaded from a YAML file, or the defaults (None).
+def config_of(config: ShgmConfig | Mapping | Path | str | None) -> ShgmConfig:
+    """``config`` as an ``ShgmConfig``: itself, validated from a mapping of stages (what the YAML file holds, e.g.
+    ``{"matching": {"top_k": 3}}``), loaded from a YAML file, or the defaults (None).
 
     Raises:
-        ConfigError: a file that is missing or holds unknown or invalid fields; another type.
+        ConfigError: a file that is missing, a file or mapping that holds unknown or invalid fields; another type.
     """
+    from pydantic import ValidationError
+
     if isinstance(config, ShgmConfig):
         return config
     if config is None or isinstance(config, str | Path):
         return load_config(config)
-    raise ConfigError(f"config must be an ShgmConfig, a YAML file's path or None, not {type(config).__name__}")
+    if isinstance(config, Mapping):
+        try:
+            return ShgmConfig.model_validate(dict(config))
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            where = ".".join(str(p) for p in first["loc"]) or "config"
+            raise ConfigError(f"config {where}: {first['msg']} ({exc.error_count()} error(s)); `shgm-slam "
+                              "dump-config` shows every stage and field") from None  # fmt: skip
+    raise ConfigError(f"config must be an ShgmConfig, a mapping of stages, a YAML file's path or None, not "
+                      f"{type(config).__name__}")  # fmt: skip
 
 
 def checked_robots(robots: Mapping[str, Sequence]) -> dict[str, Sequence]:
@@ -91,7 +106,10 @@ def checked_robots(robots: Mapping[str, Sequence]) -> dict[str, Sequence]:
     """
     from shgm_slam.transport.keys import validate_robot_name
 
-    if not isinstance(robots, Mapping) or not robots:
+    if not isinstance(robots, Mapping):
+        raise ConfigError(f"robots must be a mapping {{name: sequence}}, not {type(robots).__name__}; e.g. "
+                          "{'car1': open_sequence('data/car1')} (dict(pairs) of (name, sequence) pairs)")  # fmt: skip
+    if not robots:
         raise ConfigError("no robots given: pass {name: sequence}, e.g. {'car1': open_sequence('data/car1')}")
     for name, sequence in robots.items():
         validate_robot_name(name)
@@ -123,11 +141,41 @@ def viewer_mode(viewer: RerunMode | str | None, viewer_url: str | None = None) -
     return mode
 
 
+def worker_count(jobs: object) -> int:
+    """``jobs`` as an int (a numpy integer too), refused (ConfigError) unless a whole number of at least 1."""
+    try:
+        count = operator.index(jobs)  # type: ignore[arg-type]
+    except TypeError:
+        count = 0
+    if isinstance(jobs, bool) or count < 1:
+        raise ConfigError(f"jobs {jobs!r}: give a whole number of worker processes, at least 1")
+    return count
+
+
+def check_progress(progress: object) -> None:
+    """Refuse (ConfigError) a ``progress`` that is not None nor callable with (frames done, frames total): it was
+    first called after the first frame, and the run ended there with a TypeError and an incomplete results folder.
+    """
+    if progress is None:
+        return
+    if not callable(progress):
+        raise ConfigError(f"progress must be a function of (frames done, frames total), not {type(progress).__name__}")
+    try:
+        signature = inspect.signature(progress)
+    except (TypeError, ValueError):  # a builtin without a signature: taken as it is
+        return
+    try:
+        signature.bind(0, 0)
+    except TypeError as exc:
+        raise ConfigError(f"progress {getattr(progress, '__name__', progress)!r} cannot be called with (frames done, "
+                          f"frames total): {exc}; give a function of two arguments") from None  # fmt: skip
+
+
 def run(
     robots: Mapping[str, Sequence],
     out: Path | str | None = None,
     *,
-    config: ShgmConfig | Path | str | None = None,
+    config: ShgmConfig | Mapping | Path | str | None = None,
     viewer: RerunMode | None = None,
     viewer_url: str | None = None,
     gt_shared_frame: bool = True,
@@ -144,7 +192,8 @@ def run(
     Args:
         robots: robot name -> sequence, in order (the first robot's first camera frame is the shared frame).
         out: results folder (created); None: ``results/<YYYYmmdd_HHMMSS>`` and ``results/latest``.
-        config: an ``ShgmConfig``, a YAML file, or None for the defaults.
+        config: an ``ShgmConfig``, a mapping of stages as a YAML file holds them, a YAML file, or None for the
+            defaults.
         viewer: where the Rerun recording goes (``viz.RerunMode``): None or ``OFF`` nowhere, ``SAVE``
             ``out/run.rrd``, ``SPAWN`` a new viewer, ``CONNECT`` a running one at ``viewer_url`` (default: on
             this machine).
@@ -170,8 +219,8 @@ def run(
 
     robots = checked_robots(robots)
     cfg = config_of(config)
-    if not (isinstance(jobs, int) and jobs >= 1):
-        raise ConfigError(f"jobs {jobs!r}: give a whole number of worker processes, at least 1")
+    jobs = worker_count(jobs)
+    check_progress(progress)
     mode = viewer_mode(viewer, viewer_url)
     if out is not None:
         check_out_outside_sequences(Path(out), robots)
@@ -183,36 +232,83 @@ def run(
                         fronts=fronts, jobs=jobs)  # fmt: skip
 
 
+def dof_of(dof: Dof | str | int) -> Dof:
+    """``dof`` as a ``Dof``: itself, its value ("auto", "4", "6") or the number 4 or 6.
+
+    Raises:
+        ConfigError: anything else (Python's ValueError before).
+    """
+    if isinstance(dof, Dof):
+        return dof
+    try:
+        return Dof(str(dof).strip().lower())
+    except ValueError:
+        raise ConfigError(f"dof {dof!r}: choose Dof.AUTO ('auto'), Dof.FOUR (4: yaw about the vertical) or Dof.SIX "
+                          "(6: any rotation)") from None  # fmt: skip
+
+
+def graph_of(graph: object, name: str, connectivity_m: float) -> GraphArrays:
+    """``graph`` (``GraphArrays`` or a graph file's path) as ``GraphArrays``, its coordinates checked where
+    ``matching.matcher.check_graph`` does not: numbers (an object or bool array reached ``np.isfinite``'s TypeError)
+    within ``io.graph_json.MAX_COORDINATE_M`` of the origin, as a file's must be (1e200 m ended in numpy's
+    "Eigenvalues did not converge").
+
+    Raises:
+        GraphError: another type (a decoded document: ``io.graph_json.graph_from_dict`` reads it), an unreadable
+            file, coordinates that are no numbers or too far out.
+    """
+    from shgm_slam.io.graph_json import FORMAT_TAG, MAX_COORDINATE_M, read_graph
+    from shgm_slam.matching.matcher import check_graph
+
+    if isinstance(graph, str | os.PathLike):
+        return read_graph(graph, connectivity_m=connectivity_m)
+    if not isinstance(graph, GraphArrays):
+        raise GraphError(f"graph {name}: give GraphArrays or a {FORMAT_TAG} file's path, not {type(graph).__name__} "
+                         "(a decoded document: shgm_slam.io.graph_json.graph_from_dict(doc))")  # fmt: skip
+    for what in ("positions_xyz", "sizes"):
+        values = getattr(graph, what)
+        if isinstance(values, np.ndarray) and values.size and not _real(values.dtype):
+            raise GraphError(f"graph {name}: {what} must be numbers, got {values.dtype} (np.asarray(..., float) them)")
+    check_graph(graph, name)
+    if len(graph) and (far := float(np.abs(graph.positions_xyz).max())) > MAX_COORDINATE_M:
+        raise GraphError(f"graph {name}: a node lies {far:.3g} m from the origin, beyond the {MAX_COORDINATE_M:g} m "
+                         "a match computes with; give positions in metres in a local frame")  # fmt: skip
+    return graph
+
+
+def _real(dtype: np.dtype) -> bool:
+    return np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)
+
+
 def match(
     graph_a: GraphArrays | Path | str,
     graph_b: GraphArrays | Path | str,
     *,
-    config: ShgmConfig | Path | str | None = None,
-    dof: Dof = Dof.AUTO,
+    config: ShgmConfig | Mapping | Path | str | None = None,
+    dof: Dof | str | int = Dof.AUTO,
 ) -> GraphMatch:
     """Localize graph B in graph A (``shgm-slam match``): ``T_a_b`` maps B's coordinates into A's frame.
 
     Args:
         graph_a, graph_b: ``GraphArrays`` or ``shgm-graph/1`` JSON files (``io.graph_json``).
-        config: an ``ShgmConfig`` (its descriptor, matching and graph stages), a YAML file, or None.
+        config: an ``ShgmConfig`` (its descriptor, matching and graph stages), a mapping of stages, a YAML file,
+            or None.
         dof: ``Dof.AUTO`` matches gravity-aligned about the vertical both graphs lie flat along (maps, ground
-            robots), else as the configuration says; ``Dof.FOUR`` / ``Dof.SIX`` force it.
+            robots), else as the configuration says; ``Dof.FOUR`` / ``Dof.SIX`` (or 4 / 6) force it.
 
     Raises:
-        DataError: an unreadable or malformed graph file. GraphError: ``GraphArrays`` that do not hold a graph
-            (``matching.matcher.check_graph``). ConfigError: a bad configuration.
+        GraphError: an unreadable or malformed graph file, ``GraphArrays`` that do not hold a graph
+            (``matching.matcher.check_graph``, ``graph_of``), another type. ConfigError: a bad configuration or
+            ``dof``.
     """
-    from shgm_slam.io.graph_json import read_graph
     from shgm_slam.matching import match_graphs
     from shgm_slam.matching.gravity import choose_dof
-    from shgm_slam.matching.matcher import check_graph
 
     cfg = config_of(config)
-    a, b = (g if isinstance(g, GraphArrays) else read_graph(g, connectivity_m=cfg.graph.connectivity_m)
-            for g in (graph_a, graph_b))  # fmt: skip
-    check_graph(a, "A")  # (the vertical is read from the positions first)
-    check_graph(b, "B")
-    matching_cfg, dof_note = choose_dof(Dof(dof), a.positions_xyz, b.positions_xyz, cfg.matching)
+    freedom = dof_of(dof)
+    a = graph_of(graph_a, "A", cfg.graph.connectivity_m)  # (checked before the vertical is read from the positions)
+    b = graph_of(graph_b, "B", cfg.graph.connectivity_m)
+    matching_cfg, dof_note = choose_dof(freedom, a.positions_xyz, b.positions_xyz, cfg.matching)
     result = match_graphs(a, b, cfg.descriptor, matching_cfg)
     return GraphMatch(result, bool(matching_cfg.gravity_aligned), tuple(matching_cfg.up_axis), dof_note,
                       result.is_decisive(cfg.backend.min_closures_to_anchor), (len(a), len(b)))  # fmt: skip
@@ -230,7 +326,9 @@ def read_fused(results_dir: Path | str, robot: str) -> FusedTrajectory | None:
     from shgm_slam.evaluation import check_fused_rows, check_results_finished, is_provisional, run_robot_order
     from shgm_slam.io.trajectories import read_tum
 
-    root = Path(results_dir)
+    root = results_path(results_dir)
+    if root.is_file():
+        raise DataError(f"results folder {root} is a file, not a folder; point at the folder run() wrote")
     if not root.is_dir():
         raise DataError(f"results folder {root} does not exist; point at the folder run() wrote")
     check_results_finished(root)
@@ -254,11 +352,50 @@ def evaluate(
 
     Args:
         results_dir: the folder ``run`` wrote.
-        sequences: robot -> the sequence it ran on, for its ground truth; None: the ``<robot>_gt_tum.txt`` files
-            the run wrote.
+        sequences: robot -> the sequence it ran on (or its ``path[:start-end]``, opened with ``open_sequence``),
+            for its ground truth; None: the ``<robot>_gt_tum.txt`` files the run wrote.
         gt_shared_frame: the sequences' ground truths share one world frame.
+
+    Raises:
+        DataError: not a finished run's results folder; ``sequences`` that are no mapping of sequences, or whose
+            ground truth differs from what the run wrote (``evaluation.evaluate_results``).
     """
     from shgm_slam.evaluation import evaluate_results
 
-    given = None if sequences is None else dict(sequences)
-    return evaluate_results(Path(results_dir), given, gt_shared_frame=gt_shared_frame)
+    return evaluate_results(results_path(results_dir), ground_truth_sequences(sequences),
+                            gt_shared_frame=gt_shared_frame)  # fmt: skip
+
+
+def results_path(results_dir: object) -> Path:
+    """``results_dir`` as a Path; DataError for what is no path (``Path(None)``'s TypeError before)."""
+    if not isinstance(results_dir, str | os.PathLike):
+        raise DataError(f"results folder {results_dir!r} is no path; give the folder run() wrote (summary.out_dir)")
+    return Path(results_dir)
+
+
+def ground_truth_sequences(sequences: Mapping[str, Sequence | Path | str] | None) -> dict[str, Sequence] | None:
+    """``evaluate``'s ``sequences`` as a dict of sequences: paths (``path[:start-end]``) opened, the rest checked.
+    A path given as a string was taken for a sequence of as many frames as it has characters ("its sequence has 29
+    frames but the run had 60"), a ``Path`` or a list ended in Python's TypeError or ValueError.
+
+    Raises:
+        DataError: no mapping (nor pairs), a value that is neither a sequence nor a path, a path that opens no sequence.
+    """
+    from shgm_slam.data.base import open_sequence
+
+    if sequences is None:
+        return None
+    try:
+        pairs = dict(sequences)  # (a list of (robot, sequence) pairs too)
+    except (TypeError, ValueError):
+        raise DataError(f"sequences must be a mapping {{robot: sequence or path}}, not {type(sequences).__name__}; "
+                        "e.g. {'car1': open_sequence('data/car1')}") from None  # fmt: skip
+    opened: dict[str, Sequence] = {}
+    for name, sequence in pairs.items():
+        if isinstance(sequence, str | os.PathLike):
+            sequence = open_sequence(sequence)
+        elif not isinstance(sequence, Sequence):
+            raise DataError(f"sequences[{name!r}]: {type(sequence).__name__} is not a sequence; give the sequence "
+                            "the robot ran on (open_sequence(), an ArraySequence) or its path[:start-end]")  # fmt: skip
+        opened[name] = sequence
+    return opened

@@ -122,6 +122,29 @@ def test_evaluate_agrees_with_the_run(two_runs, tiny_scenario: Path) -> None:
                 assert by_name[report.name].ate_fused_m == pytest.approx(report.ate_fused_m, abs=0.01)
 
 
+def test_evaluate_opens_paths_and_refuses_what_is_no_sequence(two_runs, tiny_scenario: Path) -> None:
+    """Ground truth named by path, as ``eval --gt`` takes it: a string was taken for a sequence of as many frames as
+    it has characters ("its sequence has 29 frames but the run had ..."), a ``Path`` or a list of sequences ended
+    in Python's TypeError or ValueError."""
+    from shgm_slam.api import evaluate
+
+    _, memory = two_runs
+    opened = evaluate(memory.out_dir, {n: open_sequence(tiny_scenario / n) for n in ("car1", "car2")})
+    by_path = evaluate(memory.out_dir, {"car1": str(tiny_scenario / "car1"), "car2": tiny_scenario / "car2"})
+    assert by_path.gt_source == "sequences"
+    for a, b in zip(opened.robots, by_path.robots, strict=True):
+        assert a.name == b.name and a.evaluated_poses == b.evaluated_poses
+        np.testing.assert_equal(a.ate_fused_m, b.ate_fused_m)
+    with pytest.raises(DataError, match=r"sequences\['car1'\]: int is not a sequence; give the sequence"):
+        evaluate(memory.out_dir, {"car1": 8})
+    with pytest.raises(DataError, match=r"sequences must be a mapping .*not list"):
+        evaluate(memory.out_dir, [open_sequence(tiny_scenario / "car1")])
+    with pytest.raises(DataError, match="results folder None is no path"):
+        evaluate(None)
+    with pytest.raises(DataError, match=r"metrics\.json is a file, not a folder"):
+        read_fused(memory.out_dir / "metrics.json", "car1")  # said "does not exist"
+
+
 def test_a_refused_run_leaves_no_folder_behind(tiny_scenario: Path, tmp_path: Path) -> None:
     car1 = open_sequence(tiny_scenario / "car1")
     with pytest.raises(ConfigError, match="robot name '1car' is invalid"):
@@ -141,6 +164,22 @@ def test_a_refused_run_leaves_no_folder_behind(tiny_scenario: Path, tmp_path: Pa
         run({"car1": images_only}, tmp_path / "h")
     with pytest.raises(ConfigError, match="settings for robot\\(s\\) car9"):
         run({"car1": car1}, tmp_path / "g", config=ShgmConfig.model_validate({"robots": {"car9": {}}}))
+    # a progress function of other arguments ran until after the first frame: a TypeError, the folder incomplete
+    with pytest.raises(ConfigError, match=r"progress '<lambda>' cannot be called with \(frames done, frames total\)"):
+        run({"car1": car1}, tmp_path / "i", progress=lambda fraction: None)
+    with pytest.raises(ConfigError, match=r"progress must be a function of .*not str"):
+        run({"car1": car1}, tmp_path / "j", progress="bar")
+    with pytest.raises(ConfigError, match=r"robots must be a mapping \{name: sequence\}, not list"):  # "no robots"
+        run([("car1", car1)], tmp_path / "k")
+    # a configuration as a mapping of stages is validated as a YAML file is (it was refused as "not dict")
+    with pytest.raises(ConfigError, match=r"config matching\.bogus: Extra inputs are not permitted"):
+        run({"car1": car1}, tmp_path / "l", config={"matching": {"bogus": 1}})
+    # numpy integers are whole numbers of jobs ("jobs np.int64(2): give a whole number" before), and a mapping is a
+    # configuration: both taken, so the run is refused by the next check, its viewer
+    with pytest.raises(ConfigError, match="viewer 'window'"):
+        run({"car1": car1}, tmp_path / "m", config={"matching": {"top_k": 3}}, jobs=np.int64(2), viewer="window")
+    with pytest.raises(ConfigError, match="jobs True"):
+        run({"car1": car1}, tmp_path / "n", jobs=True)
     assert not any(tmp_path.iterdir())
 
 
@@ -228,6 +267,9 @@ def _street_graph(n: int = 40) -> GraphArrays:
         (lambda g: {"edges": np.array([[-3, 2]])}, "references row -3"),  # named row 2
         (lambda g: {"edges": np.array([1, 2, 3])}, r"\(E, 2\) array"),  # was numpy's reshape error
         (lambda g: {"sizes": g.sizes.tolist()}, "must be numpy arrays"),  # was AttributeError
+        (lambda g: {"positions_xyz": g.positions_xyz.astype(object)}, "positions_xyz must be numbers, got object"),
+        # ^ was np.isfinite's TypeError; v was numpy's "Eigenvalues did not converge" (LinAlgError)
+        (lambda g: {"positions_xyz": g.positions_xyz * 1e200}, "graph B: a node lies .* m from the origin, beyond"),
     ],
 )  # fmt: skip
 def test_match_refuses_graph_arrays_that_hold_no_graph(change, message) -> None:
@@ -238,3 +280,19 @@ def test_match_refuses_graph_arrays_that_hold_no_graph(change, message) -> None:
     with pytest.raises(GraphError, match=message.replace("graph B", "graph A")):
         shgm_slam.match(bad, good)
     assert shgm_slam.match(good, good).result.success  # the good graph itself matches
+
+
+def test_match_takes_dof_as_a_number_and_refuses_what_is_no_graph() -> None:
+    """``dof=4`` / ``6`` (the command line's ``--dof 4``) and a configuration as a mapping are taken; an unknown dof
+    and a graph that is neither ``GraphArrays`` nor a path are refused naming what to give (Python's ValueError
+    and pathlib's TypeError before)."""
+    good = _street_graph()
+    assert shgm_slam.match(good, good, dof=4).gravity_aligned
+    assert not shgm_slam.match(good, good, dof=np.int64(6)).gravity_aligned
+    assert shgm_slam.match(good, good, dof="AUTO", config={"matching": {"top_k": 3}}).result.success
+    with pytest.raises(ConfigError, match=r"dof 5: choose Dof\.AUTO"):
+        shgm_slam.match(good, good, dof=5)
+    with pytest.raises(GraphError, match="graph A: give GraphArrays or a shgm-graph/1 file's path, not dict"):
+        shgm_slam.match({"format": "shgm-graph/1", "classes": [], "nodes": []}, good)
+    with pytest.raises(GraphError, match=r"graph B: give GraphArrays .*not NoneType"):
+        shgm_slam.match(good, None)

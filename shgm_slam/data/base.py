@@ -8,6 +8,7 @@ exclusive: ``data/08:0-1500`` (frames 0..1499), ``data/08:100-`` (frame 100 to t
 
 from __future__ import annotations
 
+import os
 import re
 from collections.abc import Iterator
 from enum import Enum
@@ -17,7 +18,7 @@ import numpy as np
 
 from shgm_slam.data.kitti import KittiSequence
 from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, ShgmSequence
-from shgm_slam.errors import DataError
+from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.types import Frame, Intrinsics, Sequence
 
 _RANGE = re.compile(r"^(\d*)-(\d*)$")
@@ -130,15 +131,36 @@ def sequence_root(sequence: object) -> Path | None:
     return None if root is None else Path(root)
 
 
+def layout_of(layout: SequenceLayout | str | None) -> SequenceLayout | None:
+    """``layout`` as a ``SequenceLayout`` (its value in any case, e.g. "KITTI", is taken), or None (detect it).
+
+    Raises:
+        ConfigError: none of the layouts.
+    """
+    if layout is None or isinstance(layout, SequenceLayout):
+        return layout
+    try:
+        return SequenceLayout(str(layout).strip().lower())
+    except ValueError:
+        choices = ", ".join(repr(m.value) for m in SequenceLayout)
+        raise ConfigError(f"sequence layout {layout!r} is none of {choices}; or leave it out to detect it") from None
+
+
 def open_sequence(spec: str | Path, layout: SequenceLayout | None = None) -> Sequence:
     """Open ``path[:start-end]`` (see the module doc) with the detected (or given) layout's reader.
 
     Returns the whole sequence, or a ``SequenceView`` of it when a range is given.
+
+    Raises:
+        DataError: a spec that is no path (Python's AttributeError before), a missing folder, a bad range or
+            sequence. ConfigError: a ``layout`` that is none of ``SequenceLayout`` (a KeyError before).
     """
-    root, start, end = parse_sequence_spec(spec)
+    if not isinstance(spec, str | os.PathLike):
+        raise DataError(f"sequence spec {spec!r} is no path; give 'path[:start-end]' (a str) or a Path")
+    root, start, end = parse_sequence_spec(spec if isinstance(spec, str) else Path(spec))
     if not root.is_dir():
         raise DataError(f"sequence folder {root} does not exist; check the path (spec '{spec}')")
-    sequence: Sequence = SEQUENCE_READERS[layout or detect_layout(root)](root)
+    sequence: Sequence = SEQUENCE_READERS[layout_of(layout) or detect_layout(root)](root)
     if start == 0 and end is None:
         return sequence
     return SequenceView(sequence, start, len(sequence) if end is None else end)

@@ -13,6 +13,7 @@ camera height).
 
 from __future__ import annotations
 
+import numbers
 from typing import Protocol
 
 import numpy as np
@@ -30,9 +31,9 @@ POSE_REPAIR_ABOVE = 1e-6
 (``project_to_so3``), as a poses file's rows are (``io.trajectories``): the pipeline's messages carry rotations
 orthonormal within 1e-5 (``wire``), and a pose 1e-3 off ended the run there."""
 MAX_ODOMETRY_SPEED_MPS = 200.0
-"""A robot's own odometry (``T_odom_cam``) whose median speed between frames is above this (720 km/h) is refused:
-its translations are not in metres (millimetres give 1000x the speed, and every step would be cut as an odometry
-failure)."""
+"""A robot's own odometry (``T_odom_cam``) or ground truth (``T_world_cam``) whose median speed between frames is
+above this (720 km/h) is refused: its translations are not in metres (millimetres give 1000x the speed; every
+odometry step would be cut as a failure, the ground truth's ATE would be kilometres)."""
 
 
 class FrameArrays(Protocol):
@@ -77,20 +78,24 @@ class ArraySequence(IndexedFrames):
     ) -> None:
         self.name = name
         self.intrinsics = checked_intrinsics(intrinsics, name)
-        self.depth_origin = DepthOrigin(depth_origin)
+        self.depth_origin = checked_depth_origin(depth_origin, name)
+        for what, arrays in (("images_rgb", images_rgb), ("depth_m", depth_m), ("label_ids", label_ids)):
+            check_indexable(arrays, what, name)
         n = len(images_rgb)
         if n == 0:
             raise DataError(f"sequence {name!r} has no images; give at least one frame")
         for what, arrays in (("depth_m", depth_m), ("label_ids", label_ids)):
             if arrays is not None and len(arrays) != n:
                 raise DataError(f"sequence {name!r}: {len(arrays)} {what} maps for {n} images; give one per image")
-        times = np.asarray(timestamps_s, dtype=np.float64)
+        times = checked_numbers(timestamps_s, "timestamps_s", name)
         if times.shape != (n,):
             raise DataError(f"sequence {name!r}: timestamps_s has shape {times.shape} for {n} images; give (N,) "
                             "seconds")  # fmt: skip
         self._times = check_times(times, f"sequence {name!r}").copy()
         self._times.flags.writeable = False
         self._gt = None if T_world_cam is None else checked_poses(T_world_cam, n, name)
+        if self._gt is not None:
+            check_odometry_units(self._gt, self._times, f"sequence {name!r}", "T_world_cam")
         self._odom = None if T_odom_cam is None else checked_poses(T_odom_cam, n, name, "T_odom_cam")
         if self._odom is not None:
             check_odometry_units(self._odom, self._times, f"sequence {name!r}")
@@ -164,11 +169,14 @@ class ArraySequence(IndexedFrames):
 
 
 def checked_intrinsics(intrinsics: Intrinsics, name: str) -> Intrinsics:
-    """``intrinsics``, refused (DataError naming sequence ``name``) unless an ``Intrinsics`` with positive finite
-    focal lengths and image size that a camera can have (``kitti.pinhole_problem``, as for a calib file: a field of
-    view of 1-170 degrees, pixels at most 2x stretched, the principal point inside the image)."""
+    """``intrinsics`` with plain Python numbers (float pixels, int width and height; numpy scalars and whole-number
+    floats such as 640.0 are converted), refused (DataError naming sequence ``name``) unless an ``Intrinsics`` of
+    numbers with positive finite focal lengths and image size that a camera can have (``kitti.pinhole_problem``, as
+    for a calib file: a field of view of 1-170 degrees, pixels at most 2x stretched, the principal point inside the
+    image)."""
     if not isinstance(intrinsics, Intrinsics):
         raise DataError(f"sequence {name!r}: intrinsics must be an Intrinsics, not {type(intrinsics).__name__}")
+    intrinsics = plain_intrinsics(intrinsics, name)
     focal = np.array([intrinsics.fx, intrinsics.fy], dtype=np.float64)
     if not (np.isfinite(focal).all() and (focal > 0).all() and intrinsics.width > 0 and intrinsics.height > 0):
         raise DataError(f"sequence {name!r}: intrinsics {intrinsics} need positive focal lengths and image size")
@@ -179,6 +187,56 @@ def checked_intrinsics(intrinsics: Intrinsics, name: str) -> Intrinsics:
     if problem is not None:
         raise DataError(f"sequence {name!r}: intrinsics {intrinsics}: {problem}")
     return intrinsics
+
+
+def plain_intrinsics(intrinsics: Intrinsics, name: str) -> Intrinsics:
+    """``intrinsics`` with Python floats (fx, fy, cx, cy) and ints (width, height), or a DataError naming sequence
+    ``name`` for a field that is no real number or a size that is no whole number of pixels (a float width reached
+    numpy's array constructors deep inside a run, after its results folder was made)."""
+    values = {}
+    for field in ("fx", "fy", "cx", "cy", "width", "height"):
+        value = getattr(intrinsics, field)
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise DataError(f"sequence {name!r}: intrinsics {field} is {type(value).__name__} {value!r}; give a number "
+                            "(pixels)")  # fmt: skip
+        values[field] = float(value)
+    for field in ("width", "height"):
+        if not (np.isfinite(values[field]) and values[field].is_integer()):
+            raise DataError(f"sequence {name!r}: intrinsics {field} {values[field]:g} is not a whole number of "
+                            "pixels; give the image size in pixels")  # fmt: skip
+        values[field] = int(values[field])
+    return Intrinsics(**values)
+
+
+def checked_depth_origin(depth_origin: DepthOrigin | str, name: str) -> DepthOrigin:
+    """``depth_origin`` as a ``DepthOrigin`` (its value, e.g. "predicted", is taken too); DataError otherwise."""
+    try:
+        return DepthOrigin(depth_origin)
+    except ValueError:
+        choices = ", ".join(repr(d.value) for d in DepthOrigin)
+        raise DataError(f"sequence {name!r}: depth_origin {depth_origin!r} is none of {choices}; give "
+                        "DepthOrigin.MEASURED (a sensor) or DepthOrigin.PREDICTED (a network)") from None  # fmt: skip
+
+
+def check_indexable(arrays: object, what: str, name: str) -> None:
+    """DataError naming sequence ``name`` unless ``arrays`` is None or has ``len`` and ``[i]`` (``FrameArrays``):
+    a generator or iterator can be read only once and in order, and gave Python's "has no len()"."""
+    if arrays is not None and not (hasattr(arrays, "__len__") and hasattr(arrays, "__getitem__")):
+        raise DataError(f"sequence {name!r}: {what} ({type(arrays).__name__}) cannot be read by frame index; "
+                        "give an (N, ...) array, a list (list(...) of it), or an object with __len__ and "
+                        "__getitem__ that loads frame i")  # fmt: skip
+
+
+def checked_numbers(values: object, what: str, name: str) -> np.ndarray:
+    """``values`` (an array, a list or any iterable, e.g. a generator) as a float64 array; DataError naming sequence
+    ``name`` when they are not numbers."""
+    if not hasattr(values, "__len__") and hasattr(values, "__iter__"):
+        values = list(values)  # type: ignore[call-overload]
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"sequence {name!r}: {what} holds values that are not numbers (got {type(values).__name__}); "
+                        "give (N,) seconds") from None  # fmt: skip
 
 
 def checked_poses(T_world_cam: np.ndarray, n: int, name: str, what: str = "T_world_cam") -> np.ndarray:
@@ -208,14 +266,18 @@ def checked_poses(T_world_cam: np.ndarray, n: int, name: str, what: str = "T_wor
     return poses
 
 
-def check_odometry_units(T_odom_cam: np.ndarray, timestamps_s: np.ndarray, where: str) -> None:
-    """Refuse (DataError at ``where``) a robot's own odometry, (N, 4, 4) ``T_odom_cam`` at (N,) ``timestamps_s``,
-    whose median speed between frames is above ``MAX_ODOMETRY_SPEED_MPS``: translations not in metres."""
+def check_odometry_units(
+    T_odom_cam: np.ndarray, timestamps_s: np.ndarray, where: str, what: str = "T_odom_cam"
+) -> None:
+    """Refuse (DataError at ``where``) poses, (N, 4, 4) ``T_odom_cam`` (a robot's own odometry) or ground truth
+    (called ``what`` in messages) at (N,) ``timestamps_s``, whose median speed between frames is above
+    ``MAX_ODOMETRY_SPEED_MPS``: translations not in metres (ground truth in millimetres gave an ATE of 16 km
+    without a word)."""
     if len(T_odom_cam) < 2:
         return
     steps_m = np.linalg.norm(np.diff(T_odom_cam[:, :3, 3], axis=0), axis=1)
     speed_mps = float(np.median(steps_m / np.diff(timestamps_s)))
     if speed_mps > MAX_ODOMETRY_SPEED_MPS:
-        raise DataError(f"{where}: T_odom_cam moves at {speed_mps:.3g} m/s between frames (median), faster than any "
+        raise DataError(f"{where}: {what} moves at {speed_mps:.3g} m/s between frames (median), faster than any "
                         f"robot ({MAX_ODOMETRY_SPEED_MPS:g} m/s); give its translations in metres (in millimetres or "
                         "centimetres? divide them by 1000 or 100)")  # fmt: skip

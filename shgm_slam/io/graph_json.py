@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -224,8 +225,12 @@ def read_graph(path: Path | str, *, connectivity_m: float = 10.0) -> GraphArrays
         connectivity_m: builds edges (nodes closer than this, metres) when the file has none.
 
     Raises:
-        GraphError: the file is missing, not JSON, or not a valid ``shgm-graph/1`` graph (message says why).
+        GraphError: the file is missing, not JSON, or not a valid ``shgm-graph/1`` graph (message says why); a
+            ``path`` that is no path (a decoded document: ``graph_from_dict``; pathlib's TypeError before).
     """
+    if not isinstance(path, str | os.PathLike):
+        raise GraphError(f"graph file {_short(path)} is no path; give the file's path (a decoded {FORMAT_TAG} "
+                         "document: graph_from_dict(doc))")  # fmt: skip
     path = Path(path)
     try:
         if path.exists():

@@ -17,7 +17,7 @@ from shgm_slam.data import (
     open_sequence,
     parse_sequence_spec,
 )
-from shgm_slam.errors import DataError
+from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.types import Frame, Sequence
 
 
@@ -82,6 +82,15 @@ def test_open_ended_ranges(seq_dir: Path) -> None:
 def test_ranges_beyond_the_sequence(seq_dir: Path, rng: str) -> None:
     with pytest.raises(DataError, match="does not fit seq with 8 frames"):
         open_sequence(f"{seq_dir}:{rng}")
+
+
+def test_a_layout_by_name_is_taken_and_what_is_none_refused(seq_dir: Path) -> None:
+    """A layout named in capitals was a KeyError of the reader registry, a spec that is no path an AttributeError."""
+    assert type(open_sequence(seq_dir, "KITTI")) is KittiSequence
+    with pytest.raises(ConfigError, match="sequence layout 'euroc' is none of 'kitti', 'shgm'"):
+        open_sequence(seq_dir, "euroc")
+    with pytest.raises(DataError, match="sequence spec 8 is no path"):
+        open_sequence(8)
 
 
 def test_missing_folder(tmp_path: Path) -> None:

@@ -14,7 +14,17 @@ from shgm_slam.data.memory import ArraySequence
 from shgm_slam.errors import DataError
 from shgm_slam.perception.perceive import depth_model_of
 from shgm_slam.types import DepthOrigin, Intrinsics, Sequence
-from tests.data.conftest import INTRINSICS, make_frames
+from tests.data import conftest
+from tests.data.conftest import INTRINSICS
+
+
+def make_frames(n: int, seed: int = 0):
+    """``conftest.make_frames`` with ground truth at a car's speed (~20 m/s): its random poses lie ~35 m apart at
+    10 fps, a speed an ``ArraySequence`` refuses as ground truth not in metres."""
+    frames = conftest.make_frames(n, seed)
+    for f in frames:
+        f.T_world_cam[:3, 3] /= 20.0
+    return frames
 
 
 def memory_of(frames, **kwargs) -> ArraySequence:
@@ -140,6 +150,18 @@ def test_the_robots_own_odometry_rides_with_its_frames_through_views_and_pickles
         (lambda k: k.update(intrinsics=Intrinsics(50.0, 50.0, 10.0, np.nan, 32, 24)), "finite principal point"),
         (lambda k: k.update(intrinsics=Intrinsics(5e4, 5e4, 10.0, 10.0, 32, 24)), "degree field of view"),
         (lambda k: k.update(intrinsics=Intrinsics(50.0, 500.0, 10.0, 10.0, 32, 24)), "differ 10-fold"),
+        # fields that are no numbers, or a size that is no whole number of pixels: a float width ran until numpy's
+        # array constructors refused it deep inside the run (TypeError), its results folder left incomplete
+        (lambda k: k.update(intrinsics=Intrinsics(50.0, 50.0, 10.0, 10.0, 32.5, 24)), "width 32.5 is not a whole"),
+        (lambda k: k.update(intrinsics=Intrinsics("50", 50.0, 10.0, 10.0, 32, 24)), "intrinsics fx is str '50'"),
+        (lambda k: k.update(intrinsics=Intrinsics(50.0, 50.0, 10.0, 10.0, 32, None)), "height is NoneType"),
+        # ground truth in millimetres (a motion-capture system's) gave an ATE of 16 km without a word
+        (lambda k: k["T_world_cam"][:, :3, 3].__imul__(1000.0), "T_world_cam moves at .*in millimetres"),
+        # Python's ValueError and TypeError before
+        (lambda k: k.update(depth_origin="network"), "depth_origin 'network' is none of 'measured', 'predicted'"),
+        (lambda k: k.update(images_rgb=iter(k["images_rgb"])), "images_rgb (iterator) cannot be read by frame"),
+        (lambda k: k.update(depth_m=(d for d in k["depth_m"])), "depth_m (generator) cannot be read by frame"),
+        (lambda k: k.update(timestamps_s=[object()] * 3), "timestamps_s holds values that are not numbers"),
     ],
 )
 def test_what_cannot_be_a_sequence_is_refused_at_once(change, message: str) -> None:
@@ -152,6 +174,18 @@ def test_what_cannot_be_a_sequence_is_refused_at_once(change, message: str) -> N
     change(kwargs)
     with pytest.raises(DataError, match=message.replace("(", r"\(").replace(")", r"\)")):
         ArraySequence(**kwargs)
+
+
+def test_intrinsics_of_numpy_scalars_or_whole_floats_become_plain_numbers() -> None:
+    """A camera driver's numpy scalars and a width of 32.0 are taken, as Python floats and ints (a float width
+    reached numpy's array constructors inside the run); timestamps may come from a generator."""
+    frames = make_frames(3)
+    given = Intrinsics(np.float32(50.0), np.float64(52.0), np.float32(15.5), 11.25, 32.0, np.int64(24))
+    seq = ArraySequence([f.image_rgb for f in frames], given, (f.timestamp_s for f in frames))
+    assert seq.intrinsics == INTRINSICS
+    fields = [getattr(seq.intrinsics, n) for n in ("fx", "fy", "cx", "cy", "width", "height")]
+    assert [type(v) for v in fields] == [float] * 4 + [int] * 2
+    assert seq[2].image_rgb.shape == (24, 32, 3) and len(seq) == 3
 
 
 @pytest.mark.parametrize(

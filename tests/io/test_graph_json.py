@@ -135,6 +135,8 @@ def test_unreadable_files(tmp_path):
     (tmp_path / "junk.json").write_text("{not json")
     with pytest.raises(GraphError, match="not JSON"):
         read_graph(tmp_path / "junk.json")
+    with pytest.raises(GraphError, match=r"graph file \{'format': 'shgm-graph/1'\} is no path; .*graph_from_dict"):
+        read_graph({"format": "shgm-graph/1"})  # a decoded document: pathlib's TypeError before
 
 
 def test_graph_files_too_large_to_match_or_not_files_are_refused(tmp_path, monkeypatch):
