@@ -21,7 +21,8 @@ UNITS_FROM_FRAMES = (3, 10)
 """Frames 3 to 10 are refused unless the median interval so far is a camera's (``kitti.check_times``: 1 ms to
 30 s, as for a recorded sequence): times in milliseconds or nanoseconds are refused before they mislead the
 odometry's checks of speed, and the median lets one pause of the camera pass. The robot's own odometry
-(``T_odom_cam``) is checked for metres over the same frames (``memory.check_odometry_units``)."""
+(``T_odom_cam``) and the ground truth (``T_world_cam``) are checked for metres over the same frames
+(``memory.check_odometry_units``: ground truth in millimetres made the run's ATE kilometres)."""
 
 
 class FrameStream(ArraySequence):
@@ -126,8 +127,9 @@ class FrameStream(ArraySequence):
         odom = None if T_odom_cam is None else _checked_pose(T_odom_cam, "T_odom_cam", "odometry frame", where)
         if UNITS_FROM_FRAMES[0] <= i <= UNITS_FROM_FRAMES[1]:  # seconds (as a recorded sequence's times) and metres
             times = check_times(np.append(self._time_rows[:i], t), where)
-            if odom is not None:
-                check_odometry_units(np.concatenate([self._odom_rows[:i], odom[None]]), times, where)
+            for what, rows, T in (("T_odom_cam", self._odom_rows, odom), ("T_world_cam", self._gt_rows, pose)):
+                if T is not None:
+                    check_odometry_units(np.concatenate([rows[:i], T[None]]), times, where, what)  # type: ignore[index]
         # the arrays as the pipeline will read them (checked, copied: the caller may reuse its buffers)
         self._images.append(image_rgb)
         if depth_m is not None:
