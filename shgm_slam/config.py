@@ -697,8 +697,26 @@ class ShgmConfig(_Stage):
         return self.model_copy(update={"robots": robots})
 
     def to_yaml(self) -> str:
-        """The config as YAML text (enums and paths as plain strings)."""
-        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+        """The config as YAML text (enums as plain strings, file paths made absolute: ``PATH_FIELDS``, also in
+        the robots' overrides). A relative path is read from the working directory, so a results folder's
+        ``config.yaml`` given back with ``--config`` from another folder named no such model or poses file."""
+        data = self.model_dump(mode="json")
+        for stages in (data, *(data["robots"] or {}).values()):
+            _absolute_paths(stages)
+        return yaml.safe_dump(data, sort_keys=False)
+
+
+PATH_FIELDS = (("perception", "depth_model"), ("perception", "seg_model"), ("odometry", "poses_file"))
+"""(stage, field) of the config's file paths, relative to the working directory when read."""
+
+
+def _absolute_paths(stages: dict[str, Any]) -> None:
+    """Make the ``PATH_FIELDS`` in a dumped config (or one robot's overrides), ``{stage: {field: value}}``,
+    absolute in place (from the working directory; symlinks and ``{robot}`` kept as written)."""
+    for stage, name in PATH_FIELDS:
+        fields = stages.get(stage)
+        if isinstance(fields, dict) and isinstance(fields.get(name), str):
+            fields[name] = str(Path(fields[name]).absolute())
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):

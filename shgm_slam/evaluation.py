@@ -98,7 +98,11 @@ def open_ground_truth(args: list[str]) -> dict[str, Sequence]:
 
 
 def run_robot_order(results_dir: Path) -> list[str]:
-    """Robot names in run order from ``metrics.json``, else from the ``*_odometry_tum.txt`` files (sorted)."""
+    """Robot names in run order from ``metrics.json``, else (a map server's folder) from the
+    ``*_odometry_tum.txt`` files: the server's reference robot first (``server_reference``: its odometry frame is
+    the shared frame), the others by name. Sorted alone, a server whose ``--reference`` (or first robot to
+    connect) was not first by name had its ground truth moved into another robot's frame: the reference itself
+    84 m off."""
     metrics = results_dir / "metrics.json"
     if metrics.is_file():
         try:
@@ -120,7 +124,18 @@ def run_robot_order(results_dir: Path) -> list[str]:
         raise DataError(
             f"{results_dir} has no metrics.json and no <robot>_odometry_tum.txt: point at the folder `run` wrote"
         )
-    return names
+    reference = server_reference(results_dir)  # first even without a file of its own: it defines the frame
+    return names if reference is None else [reference, *(n for n in names if n != reference)]
+
+
+def server_reference(results_dir: Path) -> str | None:
+    """The robot whose odometry frame is a map server's shared frame (``server.json``'s ``reference``), or None
+    (no such file or field, or it cannot be read)."""
+    try:
+        reference = json.loads((results_dir / "server.json").read_text()).get("reference")
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return None
+    return reference if isinstance(reference, str) else None
 
 
 def run_robot_counts(results_dir: Path, key: str = "frames") -> dict[str, int]:
@@ -378,7 +393,12 @@ def evaluate_results(
                 check_fused_rows(root, r, count)
             provisional = count > 0 and is_provisional(fused)
             result.robots.append(RobotEvaluation(r, count, 0, note="no ground truth given", provisional=provisional))
+    segments, placed = run_robot_counts(root, "segments"), run_robot_counts(root, "segments_placed")
     for rep in result.robots:
+        if rep.fused_poses and rep.name in placed and placed[rep.name] < segments.get(rep.name, 0):
+            part = (f"{placed[rep.name]} of its {segments[rep.name]} trajectory segments placed: the frames of the "
+                    "others are not in its fused trajectory (not localized)")  # fmt: skip
+            rep.note = f"{rep.note}; {part}" if rep.note else part
         if not_reached.get(rep.name):
             cut = f"interrupted: {not_reached[rep.name]} of its {frames.get(rep.name)} frames were not run"
             rep.note = f"{rep.note}; {cut}" if rep.note else cut

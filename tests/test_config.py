@@ -162,3 +162,25 @@ def test_robot_values_merge_into_overrides_and_reload(tmp_path: Path) -> None:
     assert loaded.for_robot("uav").extraction.min_depth_m == 2.0  # its own override kept
     assert loaded.for_robot("car1").odometry.voxel_size_m == 1.5
     assert loaded.for_robot("car2").model_dump(exclude={"robots"}) == ShgmConfig().model_dump(exclude={"robots"})
+
+
+def test_a_written_config_names_the_same_files_from_any_working_folder(tmp_path: Path, monkeypatch) -> None:
+    """A results folder's config.yaml kept the run's relative model and poses paths: given back with --config from
+    another folder, the run was refused ("model file models/demo_depth.onnx does not exist")."""
+    monkeypatch.chdir(tmp_path)
+    cfg = ShgmConfig.model_validate({
+        "perception": {"depth_model": "models/d.onnx", "seg_model": "models/s.onnx"},
+        "odometry": {"kind": "file", "poses_file": "poses/{robot}.txt"},
+        "robots": {"uav": {"perception": {"depth_model": "models/uav.onnx"}}},
+    })  # fmt: skip
+    path = tmp_path / "config.yaml"
+    path.write_text(cfg.with_robot_values({"uav": {"odometry": {"voxel_size_m": 2.0}}}).to_yaml())
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    loaded = load_config(path)
+    assert loaded.perception.depth_model == tmp_path / "models" / "d.onnx"
+    assert loaded.perception.seg_model == tmp_path / "models" / "s.onnx"
+    assert loaded.odometry.poses_file == tmp_path / "poses" / "{robot}.txt"  # {robot} still replaced per robot
+    assert loaded.for_robot("uav").perception.depth_model == tmp_path / "models" / "uav.onnx"
+    assert loaded.for_robot("uav").odometry.voxel_size_m == 2.0

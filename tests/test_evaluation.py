@@ -277,3 +277,34 @@ def test_a_checkpoint_of_a_run_that_never_finished_is_refused(world, tmp_path):
     finally:
         holder.communicate("")
     assert len(evaluate_results(tmp_path, robots).robots) == 2
+
+
+def test_a_map_servers_folder_is_evaluated_in_its_reference_robots_frame(world, tmp_path):
+    """A map server's folder has no metrics.json; its robots were taken by name, so a server whose reference
+    (``--reference car2``, or the first robot to connect) was not first by name had the ground truth moved into
+    car1's frame: car2, the reference itself, 84 m off, and those files written for evo."""
+    robots = {"car2": open_sequence(f"{world / 'car2'}:3-"), "car1": open_sequence(world / "car1")}
+    gt = shared_frame_ground_truth(robots)  # car2's first camera: the server's shared frame
+    writer = ResultsWriter(tmp_path)
+    for r, seq in robots.items():
+        writer.write_trajectories(r, seq.timestamps_s, se3.inverse(gt[r][0]) @ gt[r], gt[r])
+    (tmp_path / "server.json").write_text(json.dumps({"reference": "car2", "finished": True}))
+    (tmp_path / "journal.bin").write_bytes(b"")
+    for result in (evaluate_results(tmp_path, dict(reversed(robots.items()))), evaluate_results(tmp_path)):
+        assert result.reference_robot == "car2" and [r.name for r in result.robots] == ["car2", "car1"]
+        assert all(r.ate_fused_m < 1e-6 for r in result.robots)
+    _, truth = read_tum(tmp_path / "car1_gt_tum.txt")
+    np.testing.assert_allclose(truth[:, :3, 3], gt["car1"][:, :3, 3], atol=1e-6)  # what evo_ape compares with
+
+
+def test_a_robot_with_a_trajectory_segment_not_placed_is_said_so(world, tmp_path):
+    """A robot whose second trajectory segment was never placed has a fused file of its first segment's frames
+    only (``metrics.json``: localized false, 1 of 2 segments placed); ``eval`` showed it as "9/9" poses with no
+    word that its later frames are missing."""
+    robots = _results(world, tmp_path)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    for r in metrics["robots"]:
+        r.update(segments=2 if r["name"] == "car2" else 1, segments_placed=1)
+    (tmp_path / "metrics.json").write_text(json.dumps(metrics))
+    rows = {r.name: r.note for r in evaluate_results(tmp_path, robots).robots}
+    assert "1 of its 2 trajectory segments placed" in rows["car2"] and rows["car1"] == ""
