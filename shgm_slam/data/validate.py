@@ -9,6 +9,8 @@ sequence through the robot's perception and raises one clear error when none of 
 - depth is (H, W) on the image grid but no probed pixel is valid (finite and > 0): DataError for depth
   files, ModelError naming the depth model;
 - no probed label is a Cityscapes train id (0-18; all 255 = ignore, or garbage): DataError / ModelError;
+- depth whose median over the probed frames is beyond ``MAX_MEDIAN_DEPTH_M`` (not metres: millimetres):
+  DataError, or ModelError naming the depth model;
 - a model's output is constant over every probed frame (one depth value; one class, ignore (255) aside):
   ModelError, as ``shgm-slam check-model`` says;
 - depth files that hold one value in every valid pixel of every probed frame (a sensor's saturation value or a
@@ -97,6 +99,7 @@ def check_sequence_start(
             "metres x 256 with 0 = invalid"
         )
     values = np.concatenate([d[v] for d, v in zip(depths, valid, strict=True)])
+    _check_depth_units(values, where, depth_model)
     constant_depth = values.size > 1 and values.min() == values.max()
     flat_frames = values.size > 1 and all(_one_value(d[v]) for d, v in zip(depths, valid, strict=True))
     if depth_model is not None:
@@ -139,6 +142,25 @@ def check_sequence_start(
             "value, never a measured scene); depth/ needs uint16 PNGs of metres x 256 with 0 = invalid: re-export "
             "it, or remove depth/ and set a depth model"
         )
+
+
+MAX_MEDIAN_DEPTH_M = 2000.0
+"""Probed frames whose valid depths have a median beyond this are refused: depth not in metres (a street in
+millimetres is 5,000-50,000 "m"; a UAV at 115 m sees its ground at 120-250 m). Such depth ran to the end with an
+odometry that did not move and no graph nodes (everything beyond the extraction range)."""
+
+
+def _check_depth_units(depth_m: np.ndarray, where: str, depth_model: Path | str | None) -> None:
+    """Raise when (K,) valid depths ``depth_m`` of the probed frames have a median beyond ``MAX_MEDIAN_DEPTH_M``:
+    a ModelError naming ``depth_model`` (its card's scale), else a DataError (depth given in other units)."""
+    median_m = float(np.median(depth_m))
+    if median_m <= MAX_MEDIAN_DEPTH_M:
+        return
+    seen = f"median valid depth {median_m:.4g} m on {where}, farther than any camera's scene ({MAX_MEDIAN_DEPTH_M:g} m)"
+    if depth_model is not None:
+        raise ModelError(f"depth model {depth_model}: {seen}; check the card's output kind and scale with "
+                         "shgm-slam check-model")  # fmt: skip
+    raise DataError(f"{seen}: depth must be in metres (in millimetres? divide it by 1000)")
 
 
 ONE_VALUE_SPAN = 1e-6

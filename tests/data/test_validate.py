@@ -124,6 +124,27 @@ def test_model_outputs_nan_or_constant_are_model_errors(seq_dir: Path):
         check_sequence_start("car", seq, one_class_and_ignore, seg_model="s.onnx")  # as check-model refuses it
 
 
+def test_depth_in_millimetres_is_one_error(seq_dir: Path):
+    """Float depth in millimetres (given in memory or by a model) ran to the end: an odometry that did not move and
+    no graph nodes, every object beyond the extraction range."""
+    seq = open_sequence(seq_dir)
+
+    def millimetres(frame):
+        return frame.depth_m * 1000.0, frame.label_ids
+
+    with pytest.raises(DataError, match=r"median valid depth .* m on robot 'car'.*in millimetres\? divide it by 1000"):
+        check_sequence_start("car", seq, millimetres)
+    with pytest.raises(ModelError, match=r"depth model d.onnx: median valid depth .*scale"):
+        check_sequence_start("car", seq, millimetres, depth_model="d.onnx")
+
+    def far_sky(frame):  # a renderer's far plane for the sky: far, but not most of the image
+        depth = frame.depth_m.copy()
+        depth[: depth.shape[0] // 3] = 1e4
+        return depth, frame.label_ids
+
+    check_sequence_start("car", seq, far_sky)
+
+
 def test_depth_files_of_one_value_are_one_error(tmp_path: Path):
     """Every depth PNG 65535 (a sensor's saturation value): a run went on with KISS-ICP sliding through a sphere of
     256 m around the camera, a car's odometry 68 m off, exit 0 and no warning. A few invalid pixels (0) change
