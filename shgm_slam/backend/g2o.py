@@ -29,11 +29,13 @@ def g2o_edge(k1: int, k2: int, T: np.ndarray, info_rot_trans: np.ndarray) -> str
     return f"EDGE_SE3:QUAT {k1} {k2} " + g2o_pose(pose3(T)) + " " + " ".join(f"{v:.6g}" for v in upper)
 
 
-def g2o_text(values: gtsam.Values, edges: Iterable[tuple[int, int, np.ndarray, np.ndarray]]) -> str:
-    """g2o text of a graph: a VERTEX_SE3:QUAT line per Pose3 in ``values`` (sorted by key), then an
-    EDGE_SE3:QUAT line per ``(key_1, key_2, T (4, 4), information (6, 6) in gtsam order [rot, trans])``
-    in the order given."""
-    lines = []
+def g2o_text(
+    values: gtsam.Values, edges: Iterable[tuple[int, int, np.ndarray, np.ndarray]], comments: Iterable[str] = ()
+) -> str:
+    """g2o text of a graph: a ``# `` line per comment (g2o and ``gtsam.readG2o`` skip them), a VERTEX_SE3:QUAT
+    line per Pose3 in ``values`` (sorted by key), then an EDGE_SE3:QUAT line per ``(key_1, key_2, T (4, 4),
+    information (6, 6) in gtsam order [rot, trans])`` in the order given."""
+    lines = [f"# {c}" for c in comments]
     for k in sorted(values.keys()):
         lines.append(f"VERTEX_SE3:QUAT {k} " + g2o_pose(values.atPose3(k)))
     for k1, k2, T, info in edges:

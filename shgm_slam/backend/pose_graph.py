@@ -658,9 +658,10 @@ class MultiRobotPoseGraph:
     def to_g2o(self) -> str:
         """The current graph as g2o text: VERTEX_SE3:QUAT (estimates) and EDGE_SE3:QUAT lines.
 
-        Vertex ids are the gtsam keys (``gtsam.readG2o`` restores ``a0, b3, ...``); edges are the
-        odometry factors and the closures in the graph, information matrices in g2o order
-        [trans, rot]. Robust kernels, robot 0's prior and the attitude factors are not part of the format.
+        Vertex ids are the gtsam keys (``gtsam.readG2o`` restores ``a0, b3, ...``), of the anchored agents only;
+        a first comment line names each key letter's agent (``# agents (gtsam symbol letter): a=car1 b=car2
+        c=car2#1``). Edges are the odometry factors and the closures in the graph, information matrices in g2o
+        order [trans, rot]. Robust kernels, robot 0's prior and the attitude factors are not part of the format.
         """
         edges = []
         for name, r in self._robots.items():
@@ -674,7 +675,8 @@ class MultiRobotPoseGraph:
             if c.in_graph:
                 k_a, k_b = self.keys.key(c.robot_a, c.kf_a), self.keys.key(c.robot_b, c.kf_b)
                 edges.append((k_a, k_b, c.T_a_b, self._information[c.closure_id]))
-        return g2o.g2o_text(self._values(), edges)
+        letters = " ".join(f"{ROBOT_LETTERS[self.keys.index(n)]}={n}" for n, r in self._robots.items() if r.anchored)
+        return g2o.g2o_text(self._values(), edges, [f"agents (gtsam symbol letter): {letters}"])
 
     def write_g2o(self, path: Path | str) -> None:
         """Write ``to_g2o()`` to ``path`` (creating the parent folder)."""

@@ -401,6 +401,8 @@ def test_agent_added_at_run_time_is_placed_by_closures_to_its_own_robots_earlier
     assert gtsam.Symbol(pg.keys.key("a#1", 0)).string() == "c0"
     assert "c0" in {gtsam.Symbol(int(line.split()[1])).string() for line in pg.to_g2o().splitlines()
                     if line.startswith("VERTEX")}  # fmt: skip
+    # the file says which agent each key letter is (nothing in the results folder did)
+    assert pg.to_g2o().splitlines()[0] == "# agents (gtsam symbol letter): a=a b=b c=a#1"
 
 
 def test_closure_keyframes_and_independent_evidence_between_robots():
