@@ -211,6 +211,27 @@ def check_times(times: np.ndarray, where: str, row: str = "frame") -> np.ndarray
     return times
 
 
+MAX_POSE_SPEED_MPS = 200.0
+"""A robot's own odometry (``T_odom_cam``) or ground truth (``T_world_cam``, a poses file) whose median speed
+between frames is above this (720 km/h) is refused: its translations are not in metres (millimetres give 1000x the
+speed; every odometry step would be cut as a failure, the ground truth's ATE would be kilometres)."""
+
+
+def check_pose_units(T_x_cam: np.ndarray, timestamps_s: np.ndarray, where: str, what: str = "T_odom_cam") -> None:
+    """Refuse (DataError at ``where``) poses (N, 4, 4) ``T_x_cam`` (a robot's own odometry ``T_odom_cam``, ground
+    truth ``T_world_cam``, a poses file; called ``what`` in messages) at (N,) ``timestamps_s``, whose median speed
+    between frames is above ``MAX_POSE_SPEED_MPS``: translations not in metres (ground truth in millimetres gave
+    an ATE of 16 km without a word)."""
+    if len(T_x_cam) < 2:
+        return
+    steps_m = np.linalg.norm(np.diff(T_x_cam[:, :3, 3], axis=0), axis=1)
+    speed_mps = float(np.median(steps_m / np.diff(timestamps_s)))
+    if speed_mps > MAX_POSE_SPEED_MPS:
+        raise DataError(f"{where}: {what} moves at {speed_mps:.3g} m/s between frames (median), faster than any "
+                        f"robot ({MAX_POSE_SPEED_MPS:g} m/s); give its translations in metres (in millimetres or "
+                        "centimetres? divide them by 1000 or 100)")  # fmt: skip
+
+
 def find_gt_file(root: Path) -> Path | None:
     """``root/poses.txt``, else ``<kitti>/poses/<seq>.txt`` when ``root`` is ``<kitti>/sequences/<seq>``."""
     if (root / "poses.txt").is_file():
@@ -264,6 +285,7 @@ class KittiSequence(IndexedFrames):
             T_cam0_cam = np.eye(4)
             T_cam0_cam[:3, 3] = -np.linalg.solve(P[:, :3], P[:, 3])  # P = K [I | t], t = p_cam of cam0 origin
             T_world_cam0 = fit_count(read_kitti_poses(gt_file), count, gt_file, self.allow_extra_rows)
+            check_pose_units(T_world_cam0, self._times, str(gt_file), "the ground truth")
             self._gt = T_world_cam0 @ T_cam0_cam
             self._gt.flags.writeable = False
 

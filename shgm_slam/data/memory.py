@@ -19,7 +19,7 @@ from typing import Protocol
 import numpy as np
 
 from shgm_slam.data.indexed import IndexedFrames
-from shgm_slam.data.kitti import check_times, pinhole_problem
+from shgm_slam.data.kitti import check_pose_units, check_times, pinhole_problem
 from shgm_slam.errors import DataError
 from shgm_slam.geometry.se3 import project_to_so3
 from shgm_slam.types import DepthOrigin, Frame, Intrinsics
@@ -30,12 +30,6 @@ POSE_REPAIR_ABOVE = 1e-6
 """Poses whose rotation is farther than this from orthonormal (within ``POSE_TOLERANCE``) are re-orthonormalized
 (``project_to_so3``), as a poses file's rows are (``io.trajectories``): the pipeline's messages carry rotations
 orthonormal within 1e-5 (``wire``), and a pose 1e-3 off ended the run there."""
-MAX_ODOMETRY_SPEED_MPS = 200.0
-"""A robot's own odometry (``T_odom_cam``) or ground truth (``T_world_cam``) whose median speed between frames is
-above this (720 km/h) is refused: its translations are not in metres (millimetres give 1000x the speed; every
-odometry step would be cut as a failure, the ground truth's ATE would be kilometres)."""
-
-
 class FrameArrays(Protocol):
     """N arrays, one per frame: a stacked (N, ...) array, a list, or a lazy loader."""
 
@@ -95,10 +89,10 @@ class ArraySequence(IndexedFrames):
         self._times.flags.writeable = False
         self._gt = None if T_world_cam is None else checked_poses(T_world_cam, n, name)
         if self._gt is not None:
-            check_odometry_units(self._gt, self._times, f"sequence {name!r}", "T_world_cam")
+            check_pose_units(self._gt, self._times, f"sequence {name!r}", "T_world_cam")
         self._odom = None if T_odom_cam is None else checked_poses(T_odom_cam, n, name, "T_odom_cam")
         if self._odom is not None:
-            check_odometry_units(self._odom, self._times, f"sequence {name!r}")
+            check_pose_units(self._odom, self._times, f"sequence {name!r}")
         self._images, self._depth, self._labels = images_rgb, depth_m, label_ids
 
     def __setstate__(self, state: dict) -> None:
@@ -266,18 +260,3 @@ def checked_poses(T_world_cam: np.ndarray, n: int, name: str, what: str = "T_wor
     return poses
 
 
-def check_odometry_units(
-    T_odom_cam: np.ndarray, timestamps_s: np.ndarray, where: str, what: str = "T_odom_cam"
-) -> None:
-    """Refuse (DataError at ``where``) poses, (N, 4, 4) ``T_odom_cam`` (a robot's own odometry) or ground truth
-    (called ``what`` in messages) at (N,) ``timestamps_s``, whose median speed between frames is above
-    ``MAX_ODOMETRY_SPEED_MPS``: translations not in metres (ground truth in millimetres gave an ATE of 16 km
-    without a word)."""
-    if len(T_odom_cam) < 2:
-        return
-    steps_m = np.linalg.norm(np.diff(T_odom_cam[:, :3, 3], axis=0), axis=1)
-    speed_mps = float(np.median(steps_m / np.diff(timestamps_s)))
-    if speed_mps > MAX_ODOMETRY_SPEED_MPS:
-        raise DataError(f"{where}: {what} moves at {speed_mps:.3g} m/s between frames (median), faster than any "
-                        f"robot ({MAX_ODOMETRY_SPEED_MPS:g} m/s); give its translations in metres (in millimetres or "
-                        "centimetres? divide them by 1000 or 100)")  # fmt: skip

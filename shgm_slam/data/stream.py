@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from shgm_slam.data.kitti import check_times
-from shgm_slam.data.memory import ArraySequence, check_odometry_units, checked_intrinsics, checked_poses
+from shgm_slam.data.kitti import check_pose_units, check_times
+from shgm_slam.data.memory import ArraySequence, checked_intrinsics, checked_poses
 from shgm_slam.errors import DataError
 from shgm_slam.types import DepthOrigin, Frame, Intrinsics
 
@@ -22,7 +22,7 @@ UNITS_FROM_FRAMES = (3, 10)
 30 s, as for a recorded sequence): times in milliseconds or nanoseconds are refused before they mislead the
 odometry's checks of speed, and the median lets one pause of the camera pass. The robot's own odometry
 (``T_odom_cam``) and the ground truth (``T_world_cam``) are checked for metres over the same frames
-(``memory.check_odometry_units``: ground truth in millimetres made the run's ATE kilometres)."""
+(``kitti.check_pose_units``: ground truth in millimetres made the run's ATE kilometres)."""
 
 
 class FrameStream(ArraySequence):
@@ -129,7 +129,7 @@ class FrameStream(ArraySequence):
             times = check_times(np.append(self._time_rows[:i], t), where)
             for what, rows, T in (("T_odom_cam", self._odom_rows, odom), ("T_world_cam", self._gt_rows, pose)):
                 if T is not None:
-                    check_odometry_units(np.concatenate([rows[:i], T[None]]), times, where, what)  # type: ignore[index]
+                    check_pose_units(np.concatenate([rows[:i], T[None]]), times, where, what)  # type: ignore[index]
         # the arrays as the pipeline will read them (checked, copied: the caller may reuse its buffers)
         self._images.append(image_rgb)
         if depth_m is not None:

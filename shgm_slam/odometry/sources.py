@@ -221,6 +221,11 @@ class PoseFileSource:
                 f"poses file {self.path} has {poses.shape[0]} poses but the sequence has {num_frames} "
                 "frames; give one pose per frame (for a frame range, cut the file to the same range)"
             )
+        if timestamps_s is not None:
+            from shgm_slam.data.kitti import check_pose_units
+
+            times = np.asarray(timestamps_s, dtype=np.float64)
+            check_pose_units(poses, times, f"poses file {self.path}", "the trajectory")
         self.T_odom_cam = inverse(poses[0]) @ poses  # (N, 4, 4)
         self._T_cam0_file: np.ndarray | None = None  # after ``reset``: the file pose of the new first frame
 

@@ -25,7 +25,7 @@ def make_frames(n: int, seed: int = 0, with_pose: bool = True) -> list[Frame]:
         depth[0, 0], depth[0, 1], depth[0, 2] = np.nan, np.inf, -3.0
         labels = rng.integers(0, 19, (h, w), dtype=np.uint8)
         labels[1, :4] = 255
-        pose = make_pose(so3_exp(rng.normal(size=3)), rng.normal(size=3) * 10) if with_pose else None
+        pose = make_pose(so3_exp(rng.normal(size=3)), rng.normal(size=3) * 0.5) if with_pose else None  # ~10 m/s
         frames.append(
             Frame(
                 index=i,

@@ -92,6 +92,13 @@ def _synthetic_kitti(root: Path, P2: np.ndarray, n: int = 3) -> np.ndarray:
     return poses
 
 
+def _poses_times(root: Path, factor: float) -> None:
+    """The folder's poses.txt with its translations multiplied by ``factor`` (other units)."""
+    poses = read_kitti_poses(root / "poses.txt")
+    poses[:, :3, 3] *= factor
+    write_kitti_poses(root / "poses.txt", poses)
+
+
 def test_image_2_preferred_and_gt_moved_to_camera_2(tmp_path: Path) -> None:
     K = np.array([[7.0, 0, 4], [0, 7, 3], [0, 0, 1]])  # a 60-degree view of 8x6 px
     t_cam2_cam0 = np.array([0.06, 0.001, 0.005])  # cam0's origin seen from camera 2
@@ -135,6 +142,8 @@ def test_image_0_uses_p0(tmp_path: Path) -> None:
         # a 10 Hz camera's times in microseconds (read as 28 hours apart) and a step of 1 us
         (lambda r: (r / "times.txt").write_text("".join(f"{1e5 * i}\n" for i in range(3))), "1e+05 s apart"),
         (lambda r: (r / "times.txt").write_text("".join(f"{1e-6 * i}\n" for i in range(3))), "must be in seconds"),
+        # ground truth in millimetres: the fused ATE came out in kilometres, without a word
+        (lambda r: _poses_times(r, 1000.0), "poses.txt: the ground truth moves at 5.2e+04 m/s"),
     ],
 )
 def test_bad_kitti_folder_names_the_problem(tmp_path: Path, damage, culprit: str) -> None:

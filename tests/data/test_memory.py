@@ -14,17 +14,7 @@ from shgm_slam.data.memory import ArraySequence
 from shgm_slam.errors import DataError
 from shgm_slam.perception.perceive import depth_model_of
 from shgm_slam.types import DepthOrigin, Intrinsics, Sequence
-from tests.data import conftest
-from tests.data.conftest import INTRINSICS
-
-
-def make_frames(n: int, seed: int = 0):
-    """``conftest.make_frames`` with ground truth at a car's speed (~20 m/s): its random poses lie ~35 m apart at
-    10 fps, a speed an ``ArraySequence`` refuses as ground truth not in metres."""
-    frames = conftest.make_frames(n, seed)
-    for f in frames:
-        f.T_world_cam[:3, 3] /= 20.0
-    return frames
+from tests.data.conftest import INTRINSICS, make_frames
 
 
 def memory_of(frames, **kwargs) -> ArraySequence:

@@ -25,7 +25,7 @@ INTR = Intrinsics(100.0, 100.0, 31.5, 23.5, 64, 48)
 
 def _poses(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    return make_pose(so3_exp(rng.normal(0, 0.5, (n, 3))), rng.normal(0, 10, (n, 3)))
+    return make_pose(so3_exp(rng.normal(0, 0.5, (n, 3))), rng.normal(0, 1.0, (n, 3)))
 
 
 def _frames(poses: np.ndarray | None, n: int) -> list[Frame]:
@@ -95,6 +95,10 @@ def test_tum_rows_are_matched_to_the_frames_by_timestamp(tmp_path):
     np.testing.assert_allclose(est, inverse(poses[3]) @ poses[3:6], atol=1e-6)  # a frame range of the file
     write_tum(path, 1000.0 + np.arange(8) * 0.1, poses)  # the same count, another clock: refused
     with pytest.raises(DataError, match=r"no row at the time of frame 0 \(0\.000000 s; nearest row 1000\.000000 s\)"):
+        PoseFileSource(path, 8, np.arange(8) * 0.1)
+    poses[:, :3, 3] *= 1000.0  # in millimetres: every step would be cut as an odometry failure
+    write_tum(path, np.arange(8) * 0.1, poses)
+    with pytest.raises(DataError, match=r"poses file .*tum\.txt: the trajectory moves at .* m/s .*in millimetres"):
         PoseFileSource(path, 8, np.arange(8) * 0.1)
 
 
