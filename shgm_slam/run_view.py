@@ -8,10 +8,14 @@ Trajectories are drawn in stretches of ``TRAJECTORY_CHUNK_FRAMES`` frames and gr
 nodes anchored to ``GRAPH_CHUNK_KEYFRAMES`` consecutive keyframes (``Viz.log_trajectories`` /
 ``log_graph`` with a chunk index). At a keyframe only the trajectory stretches since the previous
 keyframe and the graph parts its nodes touched (with their neighbours) are re-sent, so the cost per
-keyframe does not grow with the distance driven. When the pose graph changes in a way that can move old
-keyframes (a closure enters or leaves, a robot is placed: ``MapServer.corrections``), or the robot starts
-a new trajectory segment, everything of that robot is sent once more. Between such changes the parts
-already sent are not moved with the small updates every new keyframe brings (centimetres to decimetres).
+keyframe does not grow with the distance driven. Fused positions and graph nodes ride on their keyframe's
+correction (graph nodes as in ``shared_graph_<robot>.json``); the grey odometry line starts at the fused pose
+of the segment's first keyframe (for the reference robot: its odometry file) and shows the drift from there.
+When the pose graph changes in a way that can move old keyframes (a closure enters or leaves, a robot is
+placed or loses its place: ``MapServer.corrections``), or the robot starts a new trajectory segment,
+everything of that robot is sent once more (cleared first when it lost its place or segment). Between such
+changes the parts already sent are not moved with the small updates every new keyframe brings (centimetres to
+decimetres).
 At the end of the run (``finish``), after the final matching and convergence, every robot's whole
 trajectory and graph are sent once more: the viewer ends on the results written to disk.
 """
@@ -67,6 +71,44 @@ def fused_positions(front: RobotFrontend, server: MapServer, frames: np.ndarray)
     return out
 
 
+def anchored_positions(server: MapServer, agent: str, anchors: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """(N, 3) positions of ``agent``'s nodes, given in its odometry frame (``positions`` (N, 3), metres) with the
+    keyframe each is anchored to (``anchors`` (N,)), where the viewer draws them: in the shared frame, each moved
+    with its keyframe's correction as ``MapServer.shared_graph`` moves it (the fused map of
+    ``shared_graph_<robot>.json``: closures that bent the trajectory bend the map alike), or unchanged, in the
+    agent's own odometry frame, while it is not placed."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if not len(positions) or not server.is_placed(agent):
+        return positions
+    kfs, inverse = np.unique(np.asarray(anchors, dtype=np.int64), return_inverse=True)
+    correction = (server.T_shared_kf_at(agent, kfs) @ se3.inverse(server.keyframe_poses(agent)[kfs]))[inverse]
+    return np.einsum("nij,nj->ni", correction[:, :3, :3], positions) + correction[:, :3, 3]
+
+
+def node_positions(server: MapServer, agent: str, node_ids: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """``anchored_positions`` of ``agent``'s nodes ``node_ids`` ((N,)) at ``positions`` ((N, 3), its odometry
+    frame): where the viewer draws them. Nodes the server's graph does not hold move with its latest keyframe."""
+    graph_ids = server.graph(agent).node_ids
+    anchors = np.full(len(node_ids), max(server.received(agent) - 1, 0), dtype=np.int64)
+    if len(graph_ids):
+        order = np.argsort(graph_ids)
+        at = order[np.minimum(np.searchsorted(graph_ids, node_ids, sorter=order), len(order) - 1)]
+        found = graph_ids[at] == node_ids
+        anchors[found] = server.graph_anchors(agent)[at[found]]
+    return anchored_positions(server, agent, anchors, positions)
+
+
+def odometry_start(server: MapServer, front: RobotFrontend) -> np.ndarray | None:
+    """(4, 4) where the viewer draws ``front``'s current segment's odometry frame: the odometry line starts at the
+    fused pose of the segment's first keyframe (for the reference robot its odometry frame, the shared frame: the
+    line is ``<robot>_odometry_tum.txt``) and drifts from the fused line from there on; None while not placed."""
+    seg = front.segment
+    if not seg.num_keyframes or not server.received(seg.agent):
+        return None
+    T_shared_kf0 = server.T_shared_kf_at(seg.agent, np.zeros(1, dtype=np.int64))
+    return None if T_shared_kf0 is None else T_shared_kf0[0] @ se3.inverse(seg.kf_poses[0])
+
+
 class RunView:
     """Sends each robot's trajectory and graph to a viewer in changed chunks (module docstring)."""
 
@@ -80,7 +122,7 @@ class RunView:
         r, agent = res.robot, res.agent or res.robot
         st = self._robots.setdefault(r, _RobotState())
         placed = server.is_placed(agent)
-        if st.agent != agent:
+        if st.agent != agent or (st.placed and not placed):  # a new segment, or the fused line is wrong now
             self.viz.clear_map(r)
         full = st.agent != agent or st.corrections != server.corrections or st.placed != placed
         st.agent, st.corrections, st.placed = agent, server.corrections, placed
@@ -94,8 +136,11 @@ class RunView:
         """Send each robot's whole trajectory (up to its last frame with a pose) and graph once more, at its
         last frame's time: after the final matching and convergence, the state the results files hold."""
         for front in fronts:
-            if front.name not in self._robots:
+            st = self._robots.get(front.name)
+            if st is None:
                 continue
+            if st.agent != front.segment.agent or (st.placed and not server.is_placed(front.segment.agent)):
+                self.viz.clear_map(front.name)  # lost its place at the end: no fused line of a former estimate
             posed = np.flatnonzero(front.frame_segment == front.segment.index)
             if not posed.size:
                 continue
@@ -105,14 +150,14 @@ class RunView:
             self._graph(server, front.name, front.segment.agent, None)
 
     def _trajectory(self, server: MapServer, front: RobotFrontend, since: int, upto: int) -> None:
-        T_shared_odom = server.T_shared_odom(front.segment.agent)
+        T_shared_start = odometry_start(server, front)
         for c in range(since // TRAJECTORY_CHUNK_FRAMES, upto // TRAJECTORY_CHUNK_FRAMES + 1):
             lo = c * TRAJECTORY_CHUNK_FRAMES
             frames = np.arange(lo, min(lo + TRAJECTORY_CHUNK_FRAMES + 1, upto + 1))  # +1: stretches join up
             mine = frames[front.frame_segment[frames] == front.segment.index]
             odo_xyz = front.T_odom_cam[mine, :3, 3]
-            if T_shared_odom is not None:
-                odo_xyz = se3.transform_points(T_shared_odom, odo_xyz)
+            if T_shared_start is not None:
+                odo_xyz = se3.transform_points(T_shared_start, odo_xyz)
             fused = fused_positions(front, server, frames)
             fused = fused[np.isfinite(fused).all(axis=1)]
             self.viz.log_trajectories(front.name, odo_xyz, fused if len(fused) else None, chunk=c)
@@ -122,10 +167,8 @@ class RunView:
         graph = server.graph(agent)
         if not len(graph):
             return
-        T_shared_odom = server.T_shared_odom(agent)
-        if T_shared_odom is not None:
-            graph = graph.transformed(T_shared_odom)
-        chunk_of = server.graph_anchors(agent) // GRAPH_CHUNK_KEYFRAMES
+        anchors = server.graph_anchors(agent)
+        chunk_of = anchors // GRAPH_CHUNK_KEYFRAMES
         if update is None:
             dirty = np.unique(chunk_of)
         else:
@@ -139,8 +182,9 @@ class RunView:
         for c in dirty.tolist():
             edges = graph.edges[edge_chunk == c]
             rows = np.union1d(np.flatnonzero(chunk_of == c), edges.reshape(-1))
-            part = GraphArrays(graph.node_ids[rows], graph.label_ids[rows], graph.positions_xyz[rows],
-                               graph.sizes[rows], np.searchsorted(rows, edges))  # fmt: skip
+            xyz = anchored_positions(server, agent, anchors[rows], graph.positions_xyz[rows])
+            part = GraphArrays(graph.node_ids[rows], graph.label_ids[rows], xyz, graph.sizes[rows],
+                               np.searchsorted(rows, edges))  # fmt: skip
             self.viz.log_graph(robot, part, chunk=c, drawn=chunk_of[rows] == c)
             self.points_sent += len(rows)
 
@@ -173,15 +217,17 @@ def log_frame(viz: Viz, view: RunView, server: MapServer, front: RobotFrontend, 
 
 
 def log_matches(viz: Viz, server: MapServer, records) -> None:
-    """Each successful match of ``records`` (``MatchRecord``s): its inliers in the shared frame when both robots
-    are placed, and a line in the viewer's log panel (INFO accepted or already known, WARN rejected)."""
+    """Each successful match of ``records`` (``MatchRecord``s): lines between its inlier nodes where the viewer
+    draws each robot's graph (``node_positions``: the shared frame when placed, else the robot's own odometry
+    frame, so the matches of robots not placed yet show too), and a line in the viewer's log panel (INFO accepted
+    or already known, WARN rejected)."""
     for m in records:
         if not m.success:
             continue
-        if server.is_placed(m.robot_a) and server.is_placed(m.robot_b):
-            pa = se3.transform_points(server.T_shared_odom(m.robot_a), m.inlier_positions_a)
-            pb = se3.transform_points(server.T_shared_odom(m.robot_b), m.inlier_positions_b)
-            viz.log_matches(m.robot_a, m.robot_b, pa, pb, m.accepted, len(m.inliers))
+        pairs = np.asarray(m.inliers, dtype=np.int64).reshape(-1, 2)  # node ids of robot_a, robot_b
+        pa = node_positions(server, m.robot_a, pairs[:, 0], m.inlier_positions_a)
+        pb = node_positions(server, m.robot_b, pairs[:, 1], m.inlier_positions_b)
+        viz.log_matches(m.robot_a, m.robot_b, pa, pb, m.accepted, len(m.inliers))
         level = "INFO" if m.accepted or m.duplicate else "WARN"
         verdict = "accepted" if m.accepted else "already known" if m.duplicate else "rejected"
         sigma = m.evidence.centroid_sigma_m if m.evidence is not None else float("nan")

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.run_report import fused_poses
@@ -55,6 +56,12 @@ def test_stretches_draw_the_whole_trajectory_and_graph(tiny_scenario: Path, tmp_
     placed_in_run: set[str] = set()
     original_finish = RunView.finish
 
+    original_keyframe = RunView.keyframe
+
+    def spy_keyframe(self, server, front, res):
+        viz.server = server
+        original_keyframe(self, server, front, res)
+
     def spy_finish(self, server, fronts):
         captured["before_finish"] = dict(viz.fused)  # what the keyframes drew
         original_finish(self, server, fronts)
@@ -98,3 +105,107 @@ def test_stretches_draw_the_whole_trajectory_and_graph(tiny_scenario: Path, tmp_
 
 def test_default_stretch_is_a_few_hundred_frames():
     assert 50 <= TRAJECTORY_CHUNK_FRAMES <= 1000
+
+
+class FinalViz(ChunkViz):
+    """``ChunkViz`` that also keeps the odometry stretches, the graph nodes' positions and every match drawn."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.odometry: dict[tuple[str, int], np.ndarray] = {}
+        self.node_xyz: dict[tuple[str, int], dict[int, np.ndarray]] = {}
+        self.matches: list[tuple] = []  # (robot_a, robot_b, positions_a, positions_b, accepted, each one's map then)
+        self.server = None  # the run's map server, once it exists
+
+    def log_trajectories(self, robot, odometry_xyz, fused_xyz, chunk=0):
+        super().log_trajectories(robot, odometry_xyz, fused_xyz, chunk)
+        self.odometry[(robot, chunk)] = odometry_xyz
+
+    def log_graph(self, robot, graph, chunk=0, drawn=None):
+        super().log_graph(robot, graph, chunk, drawn)
+        rows = np.arange(len(graph)) if drawn is None else np.flatnonzero(drawn)
+        self.node_xyz[(robot, chunk)] = dict(zip(graph.node_ids[rows].tolist(), graph.positions_xyz[rows], strict=True))
+
+    def clear_map(self, robot):
+        super().clear_map(robot)
+        for store in (self.odometry, self.node_xyz):
+            for key in [k for k in store if k[0] == robot]:
+                del store[key]
+
+    def log_matches(self, robot_a, robot_b, positions_a, positions_b, accepted, num_inliers=None, score=None):
+        maps = {r: self.server.graph(r) if self.server.shared_graph(r) is None else self.server.shared_graph(r)
+                for r in (robot_a, robot_b)}  # fmt: skip
+        self.matches.append((robot_a, robot_b, positions_a, positions_b, accepted, maps))
+
+
+@pytest.fixture(scope="module")
+def odometry_run(tiny_scenario: Path, tmp_path_factory):
+    """A run of car1 and car2 with their own (drifting) odometry, drawn by a ``FinalViz``: (viz, view, server,
+    fronts) as the run ended."""
+    captured = {}
+    original_finish = RunView.finish
+
+    original_keyframe = RunView.keyframe
+
+    def spy_keyframe(self, server, front, res):
+        viz.server = server
+        original_keyframe(self, server, front, res)
+
+    def spy_finish(self, server, fronts):
+        fronts = list(fronts)
+        captured.update(view=self, server=server, fronts={f.name: f for f in fronts})
+        original_finish(self, server, fronts)
+
+    viz = FinalViz()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(RunView, "finish", spy_finish)
+        mp.setattr(RunView, "keyframe", spy_keyframe)
+        robots = open_robots([f"car1={tiny_scenario / 'car1'}", f"car2={tiny_scenario / 'car2'}"])
+        run_slam(robots, ShgmConfig(), tmp_path_factory.mktemp("odometry_run"), viz=viz)
+    return viz, captured["view"], captured["server"], captured["fronts"]
+
+
+def test_the_viewer_ends_on_the_fused_map_and_the_reference_odometry(odometry_run) -> None:
+    """The graph was drawn moved by the latest keyframe's correction as one rigid body, not each node with its
+    keyframe's as the fused map (``shared_graph_<robot>.json``): decimetres off after 100 m of drift. The
+    reference robot's odometry line, in the shared frame = its odometry frame, was moved the same way, off its
+    odometry file."""
+    viz, _, server, fronts = odometry_run
+    for name, front in fronts.items():
+        agent = front.segment.agent
+        drawn = {i: xyz for k, part in viz.node_xyz.items() if k[0] == name for i, xyz in part.items()}
+        shared = server.shared_graph(agent)
+        expected = server.graph(agent) if shared is None else shared
+        assert sorted(drawn) == sorted(expected.node_ids.tolist())
+        xyz = np.stack([drawn[i] for i in expected.node_ids.tolist()])
+        assert np.abs(xyz - expected.positions_xyz).max() < 1e-4, name
+    reference = fronts[server.reference]
+    odometry = np.concatenate([viz.odometry[k] for k in sorted(k for k in viz.odometry if k[0] == reference.name)])
+    posed = np.flatnonzero(reference.frame_segment == reference.segment.index)
+    truth = reference.T_odom_cam[posed, :3, 3]  # <robot>_odometry_tum.txt
+    d = np.linalg.norm(truth[:, None, :] - odometry[None, :, :], axis=2).min(axis=1)
+    assert d.max() < 1e-4, d.max()
+
+
+def test_matches_are_drawn_on_the_map(odometry_run) -> None:
+    """Matches of robots not placed were never drawn (the airsim-like world's first 200 frames: 11 accepted, none
+    in the viewer), and those of placed robots were moved by the latest correction as one rigid body: each end of
+    a match's line is a node of that robot's map as the server held it then (the fused map, ``shared_graph``,
+    when placed; else its graph in its own odometry frame)."""
+    viz, _, server, _ = odometry_run
+    assert len(viz.matches) == sum(m.success for m in server.matches)
+    assert any(m[4] for m in viz.matches)
+    for a, b, pa, pb, _, maps in viz.matches:
+        for agent, ends in ((a, pa), (b, pb)):
+            d = np.linalg.norm(ends[:, None, :] - maps[agent].positions_xyz[None, :, :], axis=2).min(axis=1)
+            assert d.max() < 1e-4, (agent, d.max())
+
+
+def test_a_robot_that_lost_its_place_keeps_no_fused_line(odometry_run, monkeypatch) -> None:
+    """A robot placed during the run and not at its end kept the fused line of its former estimate."""
+    viz, view, server, fronts = odometry_run
+    placed = [f.name for f in fronts.values() if view._robots[f.name].placed]
+    assert placed and any(k[0] in placed for k in viz.fused)
+    monkeypatch.setattr(server, "is_placed", lambda agent: False)
+    view.finish(server, fronts.values())
+    assert not [k for k in viz.fused if k[0] in placed]

@@ -536,10 +536,10 @@ class RerunLogger:
                 radii=rr.components.Radius.ui_points(1.5),
                 labels=label if pa.shape[0] else None,
             ),
-            rr.AnyValues(
+            rr.AnyValues(  # an unknown count or score is left out (not -1 or NaN)
                 accepted=bool(accepted),
-                num_inliers=-1 if num_inliers is None else int(num_inliers),
-                score=np.nan if score is None else float(score),
+                num_inliers=None if num_inliers is None else int(num_inliers),
+                score=None if score is None else float(score),
             ),
         )
 

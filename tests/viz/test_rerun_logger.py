@@ -189,6 +189,32 @@ def test_text_and_series(recording):
     assert values == [[10.0], [11.0], [12.0]]  # one value per frame, robots do not collide
 
 
+def _floats(array) -> np.ndarray:
+    """Every floating-point value inside a pyarrow array (lists and structs flattened)."""
+    import pyarrow as pa
+
+    t = array.type
+    if pa.types.is_list(t) or pa.types.is_large_list(t) or pa.types.is_fixed_size_list(t):
+        return _floats(array.flatten())
+    if pa.types.is_struct(t):
+        return np.concatenate([_floats(array.field(i)) for i in range(t.num_fields)] or [np.zeros(0)])
+    if pa.types.is_floating(t):
+        return array.to_numpy(zero_copy_only=False).astype(np.float64)
+    return np.zeros(0)
+
+
+def test_no_logged_value_is_nan_or_infinite(recording):
+    """A match without a score was stored with score NaN (and an unknown inlier count as -1)."""
+    entities, _, _ = recording
+    for entity, batches in entities.items():
+        for rb in batches:
+            for name in rb.schema.names:
+                values = _floats(rb.column(name))
+                assert np.isfinite(values).all(), (entity, name)
+    rejected = entities["/world/matches/robot_b__robot_a/rejected"]
+    assert not any(_column(rejected, "score")) and _column(rejected, "num_inliers") == [[1]]  # no score: none stored
+
+
 def test_depth_is_stored_as_millimetres_with_invalid_zero(recording):
     depth_m = np.array([[0.0, 1.25, np.nan, np.inf, -1.0, 65.5, 70.0]], dtype=np.float32)
     assert depth_to_mm_u16(depth_m).tolist() == [[0, 1250, 0, 0, 0, 65500, 0]]
