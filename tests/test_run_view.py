@@ -56,12 +56,6 @@ def test_stretches_draw_the_whole_trajectory_and_graph(tiny_scenario: Path, tmp_
     placed_in_run: set[str] = set()
     original_finish = RunView.finish
 
-    original_keyframe = RunView.keyframe
-
-    def spy_keyframe(self, server, front, res):
-        viz.server = server
-        original_keyframe(self, server, front, res)
-
     def spy_finish(self, server, fronts):
         captured["before_finish"] = dict(viz.fused)  # what the keyframes drew
         original_finish(self, server, fronts)
