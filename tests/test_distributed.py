@@ -112,6 +112,16 @@ def _wait_for_keyframes(out: Path, server: subprocess.Popen, robot: str, nbytes:
     pytest.fail(f"no keyframes of {robot} arrived in 60 s")
 
 
+def _wait_for_server(out: Path, server: subprocess.Popen) -> None:
+    """Until the server listens and has subscribed (it writes ``config.yaml`` then), bounded: a robot with a short
+    ``--wait`` started next to it gives up before a server that starts slowly (a loaded machine) is there."""
+    deadline = time.monotonic() + TIMEOUT_S
+    while not (out / "config.yaml").is_file():
+        assert server.poll() is None, server.communicate()[0][-3000:]
+        assert time.monotonic() < deadline, f"the server did not start within {TIMEOUT_S} s"
+        time.sleep(0.1)
+
+
 def test_robot_killed_mid_run_and_restarted_resumes(tiny_scenario: Path, tmp_path: Path) -> None:
     port = _free_port()
     server = _server(tmp_path, port)
@@ -255,8 +265,9 @@ def test_a_robot_that_leaves_before_the_server_finishes_and_a_stopped_server_say
     the stopped server's folder looked like a finished run's."""
     port = _free_port()
     server = _server(tmp_path / "out", port, expect=3)
+    _wait_for_server(tmp_path / "out", server)  # --wait counts from the robot's last frame, not the server's start
     p = subprocess.run([*CLI, "robot", f"car1={tiny_scenario / 'car1'}:0-8", "--connect", f"tcp/127.0.0.1:{port}",
-                        "--odometry", "gt", "--wait", "3", "--out", str(tmp_path / "car1")],
+                        "--odometry", "gt", "--wait", "5", "--out", str(tmp_path / "car1")],
                        capture_output=True, text=True, timeout=TIMEOUT_S)  # fmt: skip
     assert p.returncode == 4, p.stdout + p.stderr
     assert "had not finished" in " ".join(p.stdout.split())

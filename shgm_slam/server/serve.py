@@ -65,6 +65,12 @@ class ServerView:
         self._states: dict[str, str] = {}
         self._placements = PlacementWatch()
 
+    def _tell(self, node: ServerNode, name: str, state: RobotState) -> None:
+        """Log robot ``name``'s new ``state`` to the viewer and say it (``say``)."""
+        self.viz.log_text(f"{name}: {state.value}", "WARN" if state is RobotState.STALE else "INFO")
+        if self.say is not None:
+            self.say(_state_line(name, state, len(node.robots), node.expect))
+
     def update(self, node: ServerNode, records: list[MatchRecord]) -> None:
         server = node.map
         if server is None:
@@ -72,10 +78,12 @@ class ServerView:
         now = time.monotonic()
         for name, rs in node.robots.items():
             if self._states.get(name) != rs.state.value:
+                if name not in self._states and rs.state is not RobotState.ACTIVE:
+                    # it connected and got further (done) within one poll: its hello and its done came in one
+                    # batch, so it was never seen active; it did connect, and is said to have
+                    self._tell(node, name, RobotState.ACTIVE)
                 self._states[name] = rs.state.value
-                self.viz.log_text(f"{name}: {rs.state.value}", "WARN" if rs.state is RobotState.STALE else "INFO")
-                if self.say is not None:
-                    self.say(_state_line(name, rs.state, len(node.robots), node.expect))
+                self._tell(node, name, rs.state)
             if now - self._last.get(name, -np.inf) < self.every_s:
                 continue
             self._last[name] = now
