@@ -72,8 +72,8 @@ def test_every_frame_gets_its_pose_once_in_order_and_placed_poses_are_the_fused_
         T = np.stack([p.T_odom_cam for p in mine])
         np.testing.assert_allclose(T[:, :3, 3], odo[:, 1:4], atol=1e-5)  # the poses returned are the written ones
     placed = [p for p in poses if p.T_shared_cam is not None]
-    # the reference is placed from the map server's first correction on (they come at most every 0.5 s), for good
-    assert placed and placed[0].robot == "car1"
+    # the reference is placed from its first frame on, for good (before, from the first match's correction on)
+    assert placed and placed[0].robot == "car1" and placed[0].index == 0
     assert all(p.T_shared_cam is not None for p in poses if p.robot == "car1" and p.index >= placed[0].index)
     fused = np.loadtxt(summary.out_dir / "car1_fused_tum.txt")
     rows = {round(t, 6): xyz for t, xyz in zip(fused[:, 0], fused[:, 1:4], strict=True)}
