@@ -294,3 +294,30 @@ def test_bench_out_that_is_a_file_is_refused_before_any_work(tmp_path):
     # bench simulate writes one JSON file: running it again over that file is not refused
     res = runner.invoke(app, ["bench", "simulate", "-o", str(afile), "--short-frames", "0"], env={"COLUMNS": "200"})
     assert res.exit_code == 2 and "is a file" not in res.output and "short-frames" in res.output
+
+
+@pytest.mark.parametrize("args", [["--rerun", "save"], ["--rerun", "bogus"]])
+def test_demo_refuses_its_out_or_rerun_before_rendering_the_world(tmp_path, monkeypatch, args):
+    """The world takes 1-2 minutes to render; a demo the run would refuse is refused before it, not after."""
+    from shgm_slam import demo
+
+    rendered = []
+
+    def render(*a, **k):
+        rendered.append(a)
+        raise AssertionError("the world was rendered before the refusal")
+
+    monkeypatch.setattr(demo, "prepare_world", render)
+    out = tmp_path / "out"
+    out.mkdir()
+    if args[1] == "save":  # an earlier run's results, no --overwrite
+        (out / "metrics.json").write_text("{}")
+    else:  # an empty folder is fine: only --rerun is wrong
+        out.rmdir()
+    res = runner.invoke(app, ["demo", "--out", str(out), "--cache", str(tmp_path / "cache"), *args],
+                        env={"COLUMNS": "200"})  # fmt: skip
+    assert res.exit_code == 2, (res.output, res.exception)
+    assert not rendered
+    assert ("--overwrite" in res.output) if args[1] == "save" else ("choose spawn, save, connect or off" in res.output)
+    if args[1] == "save":
+        assert sorted(p.name for p in out.iterdir()) == ["metrics.json"]  # untouched, no lock file left

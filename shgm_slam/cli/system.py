@@ -114,21 +114,43 @@ def _run_command(robot_args, cfg, out, rerun_mode: str, rerun_url, gt_shared_fra
     before ``--out`` is claimed (locked, ``--overwrite`` to reuse one with results), then run with SIGTERM/SIGHUP
     stopping it as Ctrl-C does; returns the run's summary."""
     from shgm_slam import api
-    from shgm_slam.errors import ConfigError
     from shgm_slam.robot.remote import default_jobs
     from shgm_slam.runner import open_robots
-    from shgm_slam.viz.rerun_logger import RerunMode
 
     robots = open_robots(robot_args)
-    try:
-        mode = RerunMode(rerun_mode)
-    except ValueError:
-        raise ConfigError(f"--rerun {rerun_mode!r}: choose spawn, save, connect or off") from None
+    mode = _rerun_mode(rerun_mode)
     # api.run checks everything that can refuse the run (config, models, first frames) before --out gets a
     # file: a refused run must not leave files that make the next run with the same --out ask for --overwrite
     with stop_signals_as_interrupt(), _frame_progress(sum(len(s) for s in robots.values())) as progress:
         return api.run(robots, out, config=cfg, viewer=mode, viewer_url=rerun_url, gt_shared_frame=gt_shared_frame,
                        overwrite=overwrite, jobs=default_jobs(len(robots), jobs), progress=progress)  # fmt: skip
+
+
+def _rerun_mode(rerun_mode: str):
+    """``--rerun``'s value as a ``RerunMode``; ConfigError naming the choices for any other."""
+    from shgm_slam.errors import ConfigError
+    from shgm_slam.viz.rerun_logger import RerunMode
+
+    try:
+        return RerunMode(rerun_mode)
+    except ValueError:
+        raise ConfigError(f"--rerun {rerun_mode!r}: choose spawn, save, connect or off") from None
+
+
+def _check_demo_out(out: Path, overwrite: bool) -> None:
+    """Refuse an existing ``--out`` that the demo's run would refuse (an earlier run's results without
+    ``--overwrite``, a file, a sequence, a folder another process is writing) before the world is rendered: the run
+    itself checks it only after the render (1-2 minutes on 2 cores). Nothing in ``out`` is changed here.
+
+    Raises:
+        DataError: as ``io.export.make_results_dir`` does for such a folder.
+    """
+    from shgm_slam.io.export import claimed_results_dir
+
+    if not out.exists() or (overwrite and out.is_dir()):
+        return  # a new folder; or --overwrite, whose removal of the old results waits for the run
+    with claimed_results_dir(out):  # refuses, or locks and releases it at once
+        pass
 
 
 @app.command("server")
@@ -286,6 +308,8 @@ def demo(
         simulate_with_progress("airsim-like", folder, seed, cached=True)
 
     cfg = demo_config(rgb_only=rgb_only)  # before the world is rendered: missing demo models fail at once
+    _rerun_mode(rerun)  # so do a bad --rerun and an --out the run would refuse
+    _check_demo_out(out, overwrite)
     world, kinds = prepare_world(cache, seed, simulate_world)
     console.print(f"world: [bold]{lit(world)}[/] robots: {lit(', '.join(f'{r} ({k})' for r, k in kinds.items()))}")
     summary = _run_command([f"{r}={world / r}" for r in kinds], cfg, out, rerun, None, True, overwrite, jobs)
