@@ -32,6 +32,7 @@ from shgm_slam.geometry import se3
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.types import GraphArrays
+from shgm_slam.viz.map_positions import anchored_positions, node_positions, odometry_start
 from shgm_slam.viz.rerun_logger import Viz
 
 TRAJECTORY_CHUNK_FRAMES = 200
@@ -69,44 +70,6 @@ def fused_positions(front: RobotFrontend, server: MapServer, frames: np.ndarray)
         out[rows] = np.einsum("nij,nj->ni", correction[:, :3, :3], front.T_odom_cam[frames[rows], :3, 3])
         out[rows] += correction[:, :3, 3]
     return out
-
-
-def anchored_positions(server: MapServer, agent: str, anchors: np.ndarray, positions: np.ndarray) -> np.ndarray:
-    """(N, 3) positions of ``agent``'s nodes, given in its odometry frame (``positions`` (N, 3), metres) with the
-    keyframe each is anchored to (``anchors`` (N,)), where the viewer draws them: in the shared frame, each moved
-    with its keyframe's correction as ``MapServer.shared_graph`` moves it (the fused map of
-    ``shared_graph_<robot>.json``: closures that bent the trajectory bend the map alike), or unchanged, in the
-    agent's own odometry frame, while it is not placed."""
-    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    if not len(positions) or not server.is_placed(agent):
-        return positions
-    kfs, inverse = np.unique(np.asarray(anchors, dtype=np.int64), return_inverse=True)
-    correction = (server.T_shared_kf_at(agent, kfs) @ se3.inverse(server.keyframe_poses(agent)[kfs]))[inverse]
-    return np.einsum("nij,nj->ni", correction[:, :3, :3], positions) + correction[:, :3, 3]
-
-
-def node_positions(server: MapServer, agent: str, node_ids: np.ndarray, positions: np.ndarray) -> np.ndarray:
-    """``anchored_positions`` of ``agent``'s nodes ``node_ids`` ((N,)) at ``positions`` ((N, 3), its odometry
-    frame): where the viewer draws them. Nodes the server's graph does not hold move with its latest keyframe."""
-    graph_ids = server.graph(agent).node_ids
-    anchors = np.full(len(node_ids), max(server.received(agent) - 1, 0), dtype=np.int64)
-    if len(graph_ids):
-        order = np.argsort(graph_ids)
-        at = order[np.minimum(np.searchsorted(graph_ids, node_ids, sorter=order), len(order) - 1)]
-        found = graph_ids[at] == node_ids
-        anchors[found] = server.graph_anchors(agent)[at[found]]
-    return anchored_positions(server, agent, anchors, positions)
-
-
-def odometry_start(server: MapServer, front: RobotFrontend) -> np.ndarray | None:
-    """(4, 4) where the viewer draws ``front``'s current segment's odometry frame: the odometry line starts at the
-    fused pose of the segment's first keyframe (for the reference robot its odometry frame, the shared frame: the
-    line is ``<robot>_odometry_tum.txt``) and drifts from the fused line from there on; None while not placed."""
-    seg = front.segment
-    if not seg.num_keyframes or not server.received(seg.agent):
-        return None
-    T_shared_kf0 = server.T_shared_kf_at(seg.agent, np.zeros(1, dtype=np.int64))
-    return None if T_shared_kf0 is None else T_shared_kf0[0] @ se3.inverse(seg.kf_poses[0])
 
 
 class RunView:
@@ -150,7 +113,8 @@ class RunView:
             self._graph(server, front.name, front.segment.agent, None)
 
     def _trajectory(self, server: MapServer, front: RobotFrontend, since: int, upto: int) -> None:
-        T_shared_start = odometry_start(server, front)
+        seg = front.segment
+        T_shared_start = odometry_start(server, seg.agent, seg.kf_poses[0]) if seg.num_keyframes else None
         for c in range(since // TRAJECTORY_CHUNK_FRAMES, upto // TRAJECTORY_CHUNK_FRAMES + 1):
             lo = c * TRAJECTORY_CHUNK_FRAMES
             frames = np.arange(lo, min(lo + TRAJECTORY_CHUNK_FRAMES + 1, upto + 1))  # +1: stretches join up

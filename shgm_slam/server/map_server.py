@@ -778,15 +778,26 @@ class MapServer:
         the keyframe it is anchored to (``graph_anchors``; that keyframe's fused pose times its odometry pose's
         inverse), so the loop and inter-robot closures that bent the trajectory bend the map alike. The fused map
         is every placed agent's shared graph together."""
-        T_shared_kf = self.T_shared_kf(agent)
-        if T_shared_kf is None:
-            return None
         graph = self.graph(agent)
-        T_odom_kf = self.keyframe_poses(agent)
-        correction = T_shared_kf @ se3.inverse(T_odom_kf)  # (K, 4, 4): odometry frame -> shared, per keyframe
-        at = correction[self.graph_anchors(agent)]
-        positions = np.einsum("nij,nj->ni", at[:, :3, :3], graph.positions_xyz) + at[:, :3, 3]
+        positions = self.shared_positions(agent, self.graph_anchors(agent), graph.positions_xyz)
+        if positions is None:
+            return None
         return GraphArrays(graph.node_ids, graph.label_ids, positions, graph.sizes, graph.edges)
+
+    def shared_positions(self, agent: str, anchors: np.ndarray, positions_xyz: np.ndarray) -> np.ndarray | None:
+        """(N, 3) points of ``agent`` in the shared frame, or None while it is not placed: ``positions_xyz`` (N, 3),
+        metres in its odometry frame, each moved with the correction of the keyframe it is anchored to (``anchors``
+        (N,) keyframe indices; that keyframe's fused pose times its odometry pose's inverse), as ``shared_graph``
+        moves the graph's nodes."""
+        positions_xyz = np.asarray(positions_xyz, dtype=np.float64).reshape(-1, 3)
+        if not self.is_placed(agent):
+            return None
+        if not len(positions_xyz):
+            return positions_xyz
+        kfs, inverse = np.unique(np.asarray(anchors, dtype=np.int64), return_inverse=True)
+        correction = self.T_shared_kf_at(agent, kfs) @ se3.inverse(self.keyframe_poses(agent)[kfs])  # odom -> shared
+        at = correction[inverse]
+        return np.einsum("nij,nj->ni", at[:, :3, :3], positions_xyz) + at[:, :3, 3]
 
     def keyframe_poses(self, agent: str) -> np.ndarray:
         """(K, 4, 4) ``T_odom_kf`` of ``agent``'s keyframes as received."""

@@ -25,6 +25,7 @@ from shgm_slam.server.node import ServerNode
 from shgm_slam.server.placement import PlacementWatch
 from shgm_slam.server.records import MatchRecord
 from shgm_slam.transport.factory import NodeRole, make_transport
+from shgm_slam.viz.map_positions import node_positions, odometry_start
 from shgm_slam.viz.rerun_logger import NullLogger, Viz
 
 log = logging.getLogger(__name__)
@@ -97,20 +98,22 @@ class ServerView:
             fused_xyz = np.concatenate([T[:, :3, 3] for T in fused if T is not None]) if any(
                 T is not None for T in fused) else None  # fmt: skip
             last = agents[-1]
-            T_shared_odom = server.T_shared_odom(last)
-            odo_xyz = server.keyframe_poses(last)[:, :3, 3]
-            if T_shared_odom is not None:
-                odo_xyz = se3.transform_points(T_shared_odom, odo_xyz)
+            T_odom_kf = server.keyframe_poses(last)
+            T_shared_start = odometry_start(server, last, T_odom_kf[0])
+            odo_xyz = T_odom_kf[:, :3, 3]
+            if T_shared_start is not None:  # from its fused start (the reference: its odometry file)
+                odo_xyz = se3.transform_points(T_shared_start, odo_xyz)
             self.viz.log_trajectories(name, odo_xyz, fused_xyz)
-            graph = server.graph(last)
-            self.viz.log_graph(name, graph.transformed(T_shared_odom) if T_shared_odom is not None else graph)
+            shared = server.shared_graph(last)  # the fused map, as shared_graph_<agent>.json
+            self.viz.log_graph(name, server.graph(last) if shared is None else shared)
         if records:  # agents placed provisionally, confirmed or outvoted
             for level, text in self._placements.changes(server):
                 self.viz.log_text(text, level)
-        for m in records:
-            if m.success and server.is_placed(m.robot_a) and server.is_placed(m.robot_b):
-                pa = se3.transform_points(server.T_shared_odom(m.robot_a), m.inlier_positions_a)
-                pb = se3.transform_points(server.T_shared_odom(m.robot_b), m.inlier_positions_b)
+        for m in records:  # drawn where each robot's map is drawn (placed or not)
+            if m.success:
+                pairs = np.asarray(m.inliers, dtype=np.int64).reshape(-1, 2)  # node ids of robot_a, robot_b
+                pa = node_positions(server, m.robot_a, pairs[:, 0], m.inlier_positions_a)
+                pb = node_positions(server, m.robot_b, pairs[:, 1], m.inlier_positions_b)
                 self.viz.log_matches(m.robot_a, m.robot_b, pa, pb, m.accepted, len(m.inliers))
 
 

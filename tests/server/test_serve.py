@@ -39,6 +39,28 @@ def test_view_streams_graphs_trajectories_and_states(uninterrupted) -> None:
     assert [c[0] for c in viz.calls].count("log_text") == len(texts)  # states are logged once, not every update
 
 
+def test_the_view_draws_the_fused_map_and_every_match_where_the_maps_are(uninterrupted) -> None:
+    """``shgm-slam server``'s recording drew each graph moved by the latest correction as one rigid body (not the
+    fused map of ``shared_graph_<agent>.json``), and drew a match only when both robots were placed."""
+    import numpy as np
+
+    viz = RecordingViz()
+    server = uninterrupted.map
+    ServerView(viz, every_s=0.0).update(uninterrupted, server.matches)
+    for robot, graph in [c[1] for c in viz.calls if c[0] == "log_graph"]:
+        expected = server.shared_graph(robot)
+        assert expected is not None and np.abs(graph.positions_xyz - expected.positions_xyz).max() < 1e-9, robot
+    drawn = [c[1] for c in viz.calls if c[0] == "log_matches"]
+    assert len(drawn) == sum(m.success for m in server.matches)
+    maps = {r: server.shared_graph(r).positions_xyz for r in server.agents}
+    for a, b, pa, pb, *_ in drawn:  # each end of a line on a node of that robot's map
+        for agent, ends in ((a, pa), (b, pb)):
+            assert np.linalg.norm(ends[:, None] - maps[agent][None], axis=2).min(axis=1).max() < 1e-6
+    reference = server.agents[0]
+    odometry = [c[1][1] for c in viz.calls if c[0] == "log_trajectories" and c[1][0] == reference][0]
+    np.testing.assert_allclose(odometry, server.keyframe_poses(reference)[:, :3, 3], atol=1e-5)  # its own frame
+
+
 def test_a_server_that_stops_with_an_error_marks_its_folder_and_a_resumed_one_clears_it(cfg, tmp_path, monkeypatch):
     """An unexpected error in the server loop leaves ``incomplete.txt`` (``eval`` refuses the folder); a server
     restarted on the folder (it resumes from the journal) removes the mark once it finishes."""
