@@ -57,7 +57,7 @@ def test_the_view_draws_the_fused_map_and_every_match_where_the_maps_are(uninter
         for agent, ends in ((a, pa), (b, pb)):
             assert np.linalg.norm(ends[:, None] - maps[agent][None], axis=2).min(axis=1).max() < 1e-6
     reference = server.agents[0]
-    odometry = [c[1][1] for c in viz.calls if c[0] == "log_trajectories" and c[1][0] == reference][0]
+    odometry = next(c[1][1] for c in viz.calls if c[0] == "log_trajectories" and c[1][0] == reference)
     np.testing.assert_allclose(odometry, server.keyframe_poses(reference)[:, :3, 3], atol=1e-5)  # its own frame
 
 
