@@ -47,7 +47,7 @@ from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.demo import demo_model_paths
 from shgm_slam.environment import environment
-from shgm_slam.errors import ConfigError, SimulationError
+from shgm_slam.errors import ConfigError, DataError, SimulationError
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.robot.remote import default_jobs
 from shgm_slam.runner import open_robots, replay_backend
@@ -247,6 +247,11 @@ def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, pr
         if options.replay_from is not None:
             progress(f"replaying {scenario} seed {seed} ({mode.value})")
             recorded = Path(options.replay_from) / "runs" / run_dir.name
+            if not recorded.is_dir():
+                held = sorted(p.name for p in recorded.parent.glob("*"))
+                raise DataError(f"--replay-from {options.replay_from} has no run {run_dir.name} (its runs/ holds "
+                                f"{len(held)}: {', '.join(held[:4]) or 'none'}{', ...' if len(held) > 4 else ''}); "
+                                "give the recorded benchmark's --seeds, --scenario and --mode")  # fmt: skip
             metrics = replay_one(recorded, mode, run_dir, _robots_of(world))
         else:
             progress(f"running {scenario} seed {seed} ({mode.value})")

@@ -9,6 +9,7 @@ import pytest
 
 from shgm_slam.bench.heldout import REPORT_SEEDS, TUNING_SEEDS, world_folder
 from shgm_slam.bench.heldout_judge import InputMode
+from shgm_slam.errors import DataError
 
 
 def test_tuning_and_report_seeds_are_disjoint():
@@ -189,4 +190,20 @@ def test_a_benchmark_stopped_before_any_world_finished_says_so(tiny_scenario, tm
     options = heldout.HeldoutOptions(scenarios=("airsim-like",), seeds=(1,), modes=(InputMode.FILES,),
                                      max_frames=12, cache=tmp_path / "cache")  # fmt: skip
     with pytest.raises(KeyboardInterrupt):
+        heldout.run_heldout_benchmark(tmp_path / "out", options)
+
+
+def test_a_replay_of_runs_the_recorded_benchmark_does_not_hold_says_what_it_holds(tiny_scenario, tmp_path, monkeypatch):
+    """``--replay-from`` with other seeds than the recorded benchmark's said "<folder> holds no journal.bin" of a
+    folder that does not exist."""
+    import shgm_slam.bench.heldout as heldout
+
+    monkeypatch.setattr(heldout, "ensure_world", lambda *args, **kwargs: tiny_scenario)
+    recorded = tmp_path / "recorded"
+    for name in ("airsim-like-s10-files", "airsim-like-s11-files"):
+        (recorded / "runs" / name).mkdir(parents=True)
+    options = heldout.HeldoutOptions(scenarios=("airsim-like",), seeds=(12,), modes=(InputMode.FILES,),
+                                     cache=tmp_path / "cache", replay_from=recorded)  # fmt: skip
+    with pytest.raises(DataError, match=r"has no run airsim-like-s12-files \(its runs/ holds 2: airsim-like-s10-files, "
+                                        r"airsim-like-s11-files\); give the recorded benchmark's --seeds"):
         heldout.run_heldout_benchmark(tmp_path / "out", options)
