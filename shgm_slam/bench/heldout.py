@@ -108,6 +108,9 @@ class HeldoutOptions:
     replay_from: Path | None = None
     """An earlier benchmark folder: run only the map server again on each run's recorded keyframes
     (``runner.replay_backend``), for matching and back-end changes; worlds are not rendered or run."""
+    kitti_root: Path | None = None
+    """KITTI folder with ``poses/`` for the kitti-paths worlds (None: ``sim.kitti_paths.DEFAULT_KITTI_ROOT``, the
+    checkout's ``../shared/data/kitti``)."""
     front_end_jobs: int | None = 1
     """Worker processes for each run's robot front ends (``run_slam(jobs=...)``; None: one per robot up to the
     cores, ``remote.default_jobs``): the same results, sooner when the worlds run one at a time."""
@@ -137,15 +140,17 @@ def _uav_altitude(scenario: str, uav_altitude_m: tuple[float, float] | None) -> 
 def ensure_world(
     cache: Path, scenario: str, seed: int, resolution: tuple[int, int], progress: Progress, supersample: int = 1,
     uav_altitude_m: tuple[float, float] | None = None, corruption: CorruptionLevels | None = None,
+    kitti_root: Path | None = None,
 ) -> Path:  # fmt: skip
-    """Render the world once (cached); returns its folder."""
+    """Render the world once (cached; ``kitti_root``: the KITTI poses of kitti-paths worlds); returns its folder."""
     folder = world_folder(cache, scenario, seed, resolution, supersample, uav_altitude_m, corruption)
     if not (folder / "scenario.json").is_file():
         progress(f"rendering {scenario} seed {seed} into {folder}")
         pair = KITTI_DRIVE_PAIRS[seed % len(KITTI_DRIVE_PAIRS)] if scenario == "kitti-paths" else None
         simulate_cached(scenario, folder, seed=seed, resolution=resolution, kitti_robots=pair,
                         supersample=supersample, uav_altitude_m=_uav_altitude(scenario, uav_altitude_m),
-                        max_depth_m=MAX_DEPTH_M, corruption=corruption)  # fmt: skip
+                        max_depth_m=MAX_DEPTH_M, corruption=corruption,
+                        **({} if kitti_root is None else {"kitti_root": kitti_root}))  # fmt: skip
     return folder
 
 
@@ -228,7 +233,7 @@ def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, pr
     city's roofs): the other worlds' runs and the summary are kept, and the report lists the world skipped."""
     try:
         world = ensure_world(options.cache, scenario, seed, options.resolution, progress, options.supersample,
-                             options.uav_altitude_m, options.corruption)
+                             options.uav_altitude_m, options.corruption, options.kitti_root)
     except SimulationError as exc:
         progress(f"skipping {scenario} seed {seed}: {exc}")
         return [{"scenario": scenario, "seed": seed, "skipped": str(exc)}]
@@ -269,6 +274,24 @@ def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, pr
         cached.write_text(to_json_text({**done, "asked": run_options(options)}) + "\n")
         done_runs.append(done)
     return done_runs
+
+
+def check_kitti_poses(options: HeldoutOptions) -> None:
+    """Refuse (DataError, ConfigError: ``sim.kitti_paths.read_sequence_poses``) before any world is run when a
+    kitti-paths world still to render lacks its KITTI ground truth; before, the benchmark ran every other world
+    first and then stopped there."""
+    from shgm_slam.sim.kitti_paths import DEFAULT_KITTI_ROOT, read_sequence_poses
+
+    if "kitti-paths" not in options.scenarios or options.replay_from is not None:
+        return
+    sequences = set()
+    for seed in options.seeds:
+        folder = world_folder(options.cache, "kitti-paths", seed, options.resolution, options.supersample,
+                              options.uav_altitude_m, options.corruption)  # fmt: skip
+        if not (folder / "scenario.json").is_file():
+            sequences.update(d.split(":")[0] for d in KITTI_DRIVE_PAIRS[seed % len(KITTI_DRIVE_PAIRS)])
+    for seq in sorted(sequences):
+        read_sequence_poses(options.kitti_root or DEFAULT_KITTI_ROOT, seq)
 
 
 def run_options(options: HeldoutOptions) -> dict:
@@ -332,6 +355,7 @@ def run_heldout_benchmark(
     progress = progress or _quiet
     out = Path(out)
     check_resumable(out, options)
+    check_kitti_poses(options)
     t0 = time.perf_counter()
     worlds = [(sc, seed) for sc in options.scenarios for seed in options.seeds]
     runs_by_world: list[list[dict]] = []

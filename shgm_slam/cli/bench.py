@@ -309,6 +309,7 @@ def bench_heldout(
         typer.Option(help="an earlier benchmark folder: run only the map server again on its recorded keyframes "
                      "(matching and back-end changes; no rendering, perception or odometry)"),
     ] = None,
+    kitti_root: Annotated[Path | None, typer.Option(help="KITTI folder with poses/ (kitti-paths worlds)")] = None,
 ) -> None:
     """The system with the default configuration on many unseen worlds: placed right, false merges,
     not placed, odometry failures (ground truth and detected), accepted matches and placements judged
@@ -336,7 +337,7 @@ def bench_heldout(
                                      max_frames=max_frames, cache=cache, replay_from=replay_from, resolution=size,
                                      supersample=supersample, uav_altitude_m=altitude,
                                      corruption=CorruptionLevels.from_levels(depth_noise, label_noise),
-                                     front_end_jobs=None if jobs == 1 else 1)  # fmt: skip
+                                     kitti_root=kitti_root, front_end_jobs=None if jobs == 1 else 1)  # fmt: skip
     if replay_from is not None and not (replay_from / "runs").is_dir():
         raise ConfigError(f"--replay-from {replay_from}: no runs/ folder there (a `bench heldout` results folder)")
     with console.status("starting") as status:

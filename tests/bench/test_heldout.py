@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -207,3 +208,21 @@ def test_a_replay_of_runs_the_recorded_benchmark_does_not_hold_says_what_it_hold
     with pytest.raises(DataError, match=r"has no run airsim-like-s12-files \(its runs/ holds 2: airsim-like-s10-files, "
                                         r"airsim-like-s11-files\); give the recorded benchmark's --seeds"):
         heldout.run_heldout_benchmark(tmp_path / "out", options)
+
+
+def test_kitti_paths_worlds_without_kitti_poses_are_refused_before_any_world_runs(tmp_path, monkeypatch):
+    """Without KITTI ground truth the benchmark ran every other world (30 runs, 40 minutes) and then stopped at the
+    first kitti-paths world with an error that named a ``--kitti-root`` option the command did not have."""
+    import shgm_slam.bench.heldout as heldout
+
+    ran = []
+    monkeypatch.setattr(heldout, "ensure_world", lambda *args, **kwargs: ran.append(args) or tmp_path)
+    options = heldout.HeldoutOptions(scenarios=("airsim-like", "kitti-paths"), seeds=(1,), modes=(InputMode.FILES,),
+                                     cache=tmp_path / "cache", kitti_root=tmp_path / "no-kitti")  # fmt: skip
+    with pytest.raises(DataError, match=r"needs KITTI ground truth .*no-kitti/poses.*--kitti-root"):
+        heldout.run_heldout_benchmark(tmp_path / "out", options)
+    assert ran == []
+    (tmp_path / "kitti" / "poses").mkdir(parents=True)
+    for seq in heldout.KITTI_DRIVE_PAIRS[1]:
+        (tmp_path / "kitti" / "poses" / f"{seq.split(':')[0]}.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    heldout.check_kitti_poses(replace(options, kitti_root=tmp_path / "kitti"))  # seed 1's drives are there
