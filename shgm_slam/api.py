@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from shgm_slam.config import Dof, ShgmConfig, load_config
+from shgm_slam.config import Dof, ShgmConfig, config_from_mapping, load_config
 from shgm_slam.errors import ConfigError, DataError, GraphError
 from shgm_slam.types import GraphArrays, Sequence
 
@@ -79,20 +79,12 @@ def config_of(config: ShgmConfig | Mapping | Path | str | None) -> ShgmConfig:
     Raises:
         ConfigError: a file that is missing, a file or mapping that holds unknown or invalid fields; another type.
     """
-    from pydantic import ValidationError
-
     if isinstance(config, ShgmConfig):
         return config
     if config is None or isinstance(config, str | Path):
         return load_config(config)
     if isinstance(config, Mapping):
-        try:
-            return ShgmConfig.model_validate(dict(config))
-        except ValidationError as exc:
-            first = exc.errors()[0]
-            where = ".".join(str(p) for p in first["loc"]) or "config"
-            raise ConfigError(f"config {where}: {first['msg']} ({exc.error_count()} error(s)); `shgm-slam "
-                              "dump-config` shows every stage and field") from None  # fmt: skip
+        return config_from_mapping(dict(config), "config mapping")  # as a YAML file's are refused (near misses)
     raise ConfigError(f"config must be an ShgmConfig, a mapping of stages, a YAML file's path or None, not "
                       f"{type(config).__name__}")  # fmt: skip
 

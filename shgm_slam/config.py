@@ -764,6 +764,16 @@ def load_config(path: Path | str | None) -> ShgmConfig:
         raise ConfigError(f"config file {path} cannot be read: {parse_failure(exc)}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"config file {path} must hold a mapping of stages, got {type(data).__name__}")
+    return config_from_mapping(data, f"config file {path}")
+
+
+def config_from_mapping(data: dict, source: str) -> ShgmConfig:
+    """``data``, a mapping of stages (what a YAML config file holds), as an ``ShgmConfig``.
+
+    Raises:
+        ConfigError: unknown or invalid fields, the first named with its place, after ``source`` (e.g. "config
+            file PATH"), and a near miss for a misspelt key or choice.
+    """
     try:
         return ShgmConfig.model_validate(data)
     except ValidationError as exc:
@@ -777,7 +787,7 @@ def load_config(path: Path | str | None) -> ShgmConfig:
             close = difflib.get_close_matches(str(first["input"]), choices, n=1)
             hint = f", got {first['input']!r}" + (f"; did you mean {close[0]!r}?" if close else "")
         where = f"{where}: " if where else ""  # a whole-config check (robots' overrides) names its own place
-        raise ConfigError(f"config file {path}: {where}{first['msg']}{hint} ({exc.error_count()} error(s))") from None
+        raise ConfigError(f"{source}: {where}{first['msg']}{hint} ({exc.error_count()} error(s))") from None
 
 
 def _unknown_key_hint(key: str, known: list[str]) -> str:

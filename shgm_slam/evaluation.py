@@ -135,7 +135,15 @@ def server_reference(results_dir: Path) -> str | None:
         reference = json.loads((results_dir / "server.json").read_text()).get("reference")
     except (OSError, ValueError, AttributeError, RecursionError):
         return None
-    return reference if isinstance(reference, str) else None
+    if not isinstance(reference, str):
+        return None
+    from shgm_slam.transport.keys import validate_robot_name
+
+    try:
+        validate_robot_name(reference)  # it names files: no path in it
+    except ConfigError:
+        return None
+    return reference
 
 
 def run_robot_counts(results_dir: Path, key: str = "frames") -> dict[str, int]:

@@ -172,8 +172,10 @@ def test_a_refused_run_leaves_no_folder_behind(tiny_scenario: Path, tmp_path: Pa
     with pytest.raises(ConfigError, match=r"robots must be a mapping \{name: sequence\}, not list"):  # "no robots"
         run([("car1", car1)], tmp_path / "k")
     # a configuration as a mapping of stages is validated as a YAML file is (it was refused as "not dict")
-    with pytest.raises(ConfigError, match=r"config matching\.bogus: Extra inputs are not permitted"):
+    with pytest.raises(ConfigError, match=r"config mapping: matching\.bogus: Extra inputs are not permitted"):
         run({"car1": car1}, tmp_path / "l", config={"matching": {"bogus": 1}})
+    with pytest.raises(ConfigError, match=r"config mapping: matching\.top_kk: .*did you mean top_k\?"):  # as a file
+        run({"car1": car1}, tmp_path / "l", config={"matching": {"top_kk": 3}})
     # numpy integers are whole numbers of jobs ("jobs np.int64(2): give a whole number" before), and a mapping is a
     # configuration: both taken, so the run is refused by the next check, its viewer
     with pytest.raises(ConfigError, match="viewer 'window'"):

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from shgm_slam.cli import app
 from shgm_slam.data import open_sequence
 from shgm_slam.errors import ConfigError, DataError
-from shgm_slam.evaluation import associate, evaluate_results, open_ground_truth
+from shgm_slam.evaluation import associate, evaluate_results, open_ground_truth, run_robot_order
 from shgm_slam.geometry import se3
 from shgm_slam.io.export import ResultsWriter
 from shgm_slam.io.trajectories import read_kitti_poses, read_tum, write_tum
@@ -295,6 +295,8 @@ def test_a_map_servers_folder_is_evaluated_in_its_reference_robots_frame(world, 
         assert all(r.ate_fused_m < 1e-6 for r in result.robots)
     _, truth = read_tum(tmp_path / "car1_gt_tum.txt")
     np.testing.assert_allclose(truth[:, :3, 3], gt["car1"][:, :3, 3], atol=1e-6)  # what evo_ape compares with
+    (tmp_path / "server.json").write_text(json.dumps({"reference": "../car2", "finished": True}))
+    assert run_robot_order(tmp_path) == ["car1", "car2"]  # a reference that is no robot name names no file
 
 
 def test_a_robot_with_a_trajectory_segment_not_placed_is_said_so(world, tmp_path):

@@ -147,13 +147,17 @@ def check_sequence_start(
 MAX_MEDIAN_DEPTH_M = 2000.0
 """Probed frames whose valid depths have a median beyond this are refused: depth not in metres (a street in
 millimetres is 5,000-50,000 "m"; a UAV at 115 m sees its ground at 120-250 m). Such depth ran to the end with an
-odometry that did not move and no graph nodes (everything beyond the extraction range)."""
+odometry that did not move and no graph nodes (everything beyond the extraction range). The pixels at the largest
+probed value are left out of the median: a sensor's or renderer's one value for the sky (1e4 m, 65504 m) may be most
+of a frame that looks at the horizon."""
 
 
 def _check_depth_units(depth_m: np.ndarray, where: str, depth_model: Path | str | None) -> None:
-    """Raise when (K,) valid depths ``depth_m`` of the probed frames have a median beyond ``MAX_MEDIAN_DEPTH_M``:
-    a ModelError naming ``depth_model`` (its card's scale), else a DataError (depth given in other units)."""
-    median_m = float(np.median(depth_m))
+    """Raise when (K,) valid depths ``depth_m`` of the probed frames, those at their largest value (the sky) left
+    out, have a median beyond ``MAX_MEDIAN_DEPTH_M``: a ModelError naming ``depth_model`` (its card's scale), else
+    a DataError (depth given in other units)."""
+    scene_m = depth_m[depth_m < depth_m.max()]
+    median_m = float(np.median(scene_m if scene_m.size else depth_m))
     if median_m <= MAX_MEDIAN_DEPTH_M:
         return
     seen = f"median valid depth {median_m:.4g} m on {where}, farther than any camera's scene ({MAX_MEDIAN_DEPTH_M:g} m)"

@@ -788,14 +788,18 @@ class MapServer:
         """(N, 3) points of ``agent`` in the shared frame, or None while it is not placed: ``positions_xyz`` (N, 3),
         metres in its odometry frame, each moved with the correction of the keyframe it is anchored to (``anchors``
         (N,) keyframe indices; that keyframe's fused pose times its odometry pose's inverse), as ``shared_graph``
-        moves the graph's nodes."""
+        moves the graph's nodes. Reads only the anchored keyframes' poses: the viewer calls it per chunk and
+        keyframe, so its cost must not grow with the keyframes held."""
         positions_xyz = np.asarray(positions_xyz, dtype=np.float64).reshape(-1, 3)
         if not self.is_placed(agent):
             return None
         if not len(positions_xyz):
             return positions_xyz
         kfs, inverse = np.unique(np.asarray(anchors, dtype=np.int64), return_inverse=True)
-        correction = self.T_shared_kf_at(agent, kfs) @ se3.inverse(self.keyframe_poses(agent)[kfs])  # odom -> shared
+        T_shared_kf = self.T_shared_kf_at(agent, kfs)  # (BackendError for keyframes it does not hold)
+        poses = self._T_odom_kf[agent]
+        T_odom_kf = np.stack([poses[k] for k in kfs.tolist()])  # (not ``keyframe_poses``: it stacks all K)
+        correction = T_shared_kf @ se3.inverse(T_odom_kf)  # odometry frame -> shared, per keyframe
         at = correction[inverse]
         return np.einsum("nij,nj->ni", at[:, :3, :3], positions_xyz) + at[:, :3, 3]
 

@@ -469,8 +469,8 @@ class ServerNode:
 
     def _send_correction(self, robot: str, now: float, *, force: bool = False) -> None:
         """Acknowledge ``robot``'s keyframes; when matching moved fused poses (at most every
-        ``correction_every_s``), an agent of it is placed that it has not heard of (the reference robot's first
-        keyframe) or ``force``, also send what moved beyond ``server.correction_tolerance_*``
+        ``correction_every_s``), an agent of it is placed that it has not heard of (any agent, at once: the reference
+        robot at its first keyframe) or ``force``, also send what moved beyond ``server.correction_tolerance_*``
         since the robot last got it (everything after a (re)connect or a resync request, and when
         ``force``: the final correction leaves the robot with exactly the server's poses)."""
         rs = self.robots.get(robot)
@@ -482,8 +482,8 @@ class ServerNode:
         due = force or (
             rs.corrected_version != self._pose_version
             and now - self._last_correction_s.get(robot, -np.inf) >= self.correction_every_s
-        ) or any(server.is_placed(a) and a not in rs.view.T_shared_odom for a in agents)  # (the reference: its first
-        # keyframe; before, it heard it was placed only after the first match anywhere: its first frames had no pose)
+        ) or any(server.is_placed(a) and a not in rs.view.T_shared_odom for a in agents)  # placed, unheard of (the
+        # reference at its first keyframe: before, it heard so only after the first match anywhere)
         seq, full, changes = 0, False, {}
         if due:
             full = force or rs.view.seq == 0

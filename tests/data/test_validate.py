@@ -144,6 +144,15 @@ def test_depth_in_millimetres_is_one_error(seq_dir: Path):
 
     check_sequence_start("car", seq, far_sky)
 
+    def mostly_sky(frame, scale=1.0):  # a camera at the horizon: a sky value over most of each frame
+        depth = frame.depth_m * scale
+        depth[: 3 * depth.shape[0] // 4] = 1e4
+        return depth, frame.label_ids
+
+    check_sequence_start("car", seq, mostly_sky)  # refused as "median valid depth 1e+04 m" before
+    with pytest.raises(DataError, match=r"median valid depth .* m on robot 'car'.*in millimetres\? divide it by 1000"):
+        check_sequence_start("car", seq, lambda frame: mostly_sky(frame, 1000.0))  # the ground still in millimetres
+
 
 def test_depth_files_of_one_value_are_one_error(tmp_path: Path):
     """Every depth PNG 65535 (a sensor's saturation value): a run went on with KISS-ICP sliding through a sphere of
