@@ -240,16 +240,13 @@ def dof_of(dof: Dof | str | int) -> Dof:
 
 
 def graph_of(graph: object, name: str, connectivity_m: float) -> GraphArrays:
-    """``graph`` (``GraphArrays`` or a graph file's path) as ``GraphArrays``, its coordinates checked where
-    ``matching.matcher.check_graph`` does not: numbers (an object or bool array reached ``np.isfinite``'s TypeError)
-    within ``io.graph_json.MAX_COORDINATE_M`` of the origin, as a file's must be (1e200 m ended in numpy's
-    "Eigenvalues did not converge").
+    """``graph`` (``GraphArrays`` or a graph file's path) as checked ``GraphArrays`` (``matching.matcher.check_graph``).
 
     Raises:
         GraphError: another type (a decoded document: ``io.graph_json.graph_from_dict`` reads it), an unreadable
-            file, coordinates that are no numbers or too far out.
+            file, arrays that hold no graph.
     """
-    from shgm_slam.io.graph_json import FORMAT_TAG, MAX_COORDINATE_M, read_graph
+    from shgm_slam.io.graph_json import FORMAT_TAG, read_graph
     from shgm_slam.matching.matcher import check_graph
 
     if isinstance(graph, str | os.PathLike):
@@ -257,19 +254,8 @@ def graph_of(graph: object, name: str, connectivity_m: float) -> GraphArrays:
     if not isinstance(graph, GraphArrays):
         raise GraphError(f"graph {name}: give GraphArrays or a {FORMAT_TAG} file's path, not {type(graph).__name__} "
                          "(a decoded document: shgm_slam.io.graph_json.graph_from_dict(doc))")  # fmt: skip
-    for what in ("positions_xyz", "sizes"):
-        values = getattr(graph, what)
-        if isinstance(values, np.ndarray) and values.size and not _real(values.dtype):
-            raise GraphError(f"graph {name}: {what} must be numbers, got {values.dtype} (np.asarray(..., float) them)")
     check_graph(graph, name)
-    if len(graph) and (far := float(np.abs(graph.positions_xyz).max())) > MAX_COORDINATE_M:
-        raise GraphError(f"graph {name}: a node lies {far:.3g} m from the origin, beyond the {MAX_COORDINATE_M:g} m "
-                         "a match computes with; give positions in metres in a local frame")  # fmt: skip
     return graph
-
-
-def _real(dtype: np.dtype) -> bool:
-    return np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating)
 
 
 def match(

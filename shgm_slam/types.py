@@ -121,6 +121,11 @@ class Sequence(Protocol):
     def has_labels(self) -> bool: ...
 
 
+MAX_COORDINATE_M = 1e9
+"""Graph node coordinates beyond this (metres) are refused (graph files, ``GraphArrays`` given to a match): distances
+and fits would overflow to inf."""
+
+
 @dataclass
 class GraphArrays:
     """Array view of a semantic graph, what descriptors and matching consume.

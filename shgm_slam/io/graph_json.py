@@ -24,11 +24,9 @@ from shgm_slam.errors import GraphError, parse_failure
 from shgm_slam.graph.semantic_graph import edges_within_radius
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.labels import CITYSCAPES_CLASSES, MAP_CLASS_NAMES
-from shgm_slam.types import GraphArrays
+from shgm_slam.types import MAX_COORDINATE_M, GraphArrays
 
 FORMAT_TAG = "shgm-graph/1"
-MAX_COORDINATE_M = 1e9
-"""Node coordinates beyond this (metres) are refused: distances and fits would overflow to inf."""
 MAX_NODES = 10_000
 """Most nodes a graph file may hold: the whole-overlap verification of a match holds arrays of (shifts x nodes)
 booleans (a 20 000-node graph against a 100-node one peaked at 3.1 GB, a 50 000-node one asked 5.3 GB for one

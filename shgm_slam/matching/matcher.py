@@ -29,7 +29,7 @@ from shgm_slam.matching.precision import alignment_covariance, predicted_error_m
 from shgm_slam.matching.ransac import ransac_alignment
 from shgm_slam.matching.result import MatchResult
 from shgm_slam.matching.verification import Verification, partner_pairs_stack, support_counts, verify_alignments
-from shgm_slam.types import GraphArrays
+from shgm_slam.types import MAX_COORDINATE_M, GraphArrays
 
 MIN_NODES = 3
 """Graphs with fewer nodes cannot determine a rigid transform."""
@@ -87,14 +87,20 @@ def check_graph(graph: GraphArrays, name: str) -> None:
 
     Raises:
         GraphError: not numpy arrays, lengths or shapes that disagree, node ids that repeat (results name nodes
-            by id), labels that are not integers, non-finite positions, negative or non-finite sizes, edges that
-            are not (E, 2) integer row indices into the nodes.
+            by id), labels that are not integers, positions or sizes that are not numbers (an object or bool array
+            reached ``np.isfinite``'s TypeError), non-finite positions or positions beyond ``MAX_COORDINATE_M`` of
+            the origin (1e200 m ended in numpy's "Eigenvalues did not converge"), negative or non-finite sizes,
+            edges that are not (E, 2) integer row indices into the nodes.
     """
     fields = ("node_ids", "label_ids", "positions_xyz", "sizes", "edges")
     loose = [f for f in fields if not isinstance(getattr(graph, f, None), np.ndarray)]
     if loose:
         raise GraphError(f"graph {name}: {', '.join(loose)} must be numpy arrays (np.asarray them), "
                          f"got {', '.join(type(getattr(graph, f, None)).__name__ for f in loose)}")  # fmt: skip
+    for what in ("positions_xyz", "sizes"):
+        values = getattr(graph, what)
+        if values.size and not (np.issubdtype(values.dtype, np.integer) or np.issubdtype(values.dtype, np.floating)):
+            raise GraphError(f"graph {name}: {what} must be numbers, got {values.dtype} (np.asarray(..., float) them)")
     n = graph.node_ids.shape[0] if graph.node_ids.ndim == 1 else -1
     if n < 0 or graph.positions_xyz.shape != (n, 3) or graph.label_ids.shape != (n,) or graph.sizes.shape != (n,):
         raise GraphError(
@@ -109,6 +115,9 @@ def check_graph(graph: GraphArrays, name: str) -> None:
     if not np.all(np.isfinite(graph.positions_xyz)):
         row = int(np.argmin(np.isfinite(graph.positions_xyz).all(axis=1)))
         raise GraphError(f"graph {name} has non-finite node positions (row {row})")
+    if n and (far := float(np.abs(graph.positions_xyz).max())) > MAX_COORDINATE_M:
+        raise GraphError(f"graph {name}: a node lies {far:.3g} m from the origin, beyond the {MAX_COORDINATE_M:g} m "
+                         "a match computes with; give positions in metres in a local frame")  # fmt: skip
     if np.any(~np.isfinite(graph.sizes)) or np.any(graph.sizes < 0):
         raise GraphError(f"graph {name} has negative or non-finite node sizes")
     e = graph.edges
