@@ -180,9 +180,11 @@ def render_summary(summary) -> None:
             )
         for text in r.warnings:  # degenerate data (also in metrics.json and the viewer's log)
             console.print(f"[yellow]{lit(r.name)}: warning:[/] {lit(text)}")
+    rest = summary.matches_tried - summary.closures_accepted - summary.closures_rejected
     console.print(
-        f"inter-robot matches tried {summary.matches_tried}, closures accepted "
-        f"[green]{summary.closures_accepted}[/], rejected [yellow]{summary.closures_rejected}[/]"
+        f"graph matches tried {summary.matches_tried} (between robots and loop closures): accepted "
+        f"[green]{summary.closures_accepted}[/], rejected by the verification [yellow]{summary.closures_rejected}[/], "
+        f"{rest} with no alignment found or only closures already held"
     )
     for line in filter(None, (p.never_met() for p in summary.pairs)):
         console.print(f"[yellow]{lit(line)}[/]")
