@@ -70,6 +70,15 @@ surfaces) is 0 there, and their runs stay exactly as without the measurement."""
 FAR_GROUND_MARGIN = 1.1
 """Odometry range: this many times the range of the farthest ground in view (at least the fleet's)."""
 
+OBSERVED_RANGE_FACTOR = 1.5
+"""Odometry range: at most ``FAR_GROUND_MARGIN`` x this many times the farthest range the measured frames' depth
+holds. A very wide camera (150 deg) tilted down has every corner ray meet the ground, one of them kilometres away
+(4 km for the airsim-like UAV at 320x96): a ``max_range_m`` that far holds no more points (the depth ends long
+before) but scales KISS-ICP's adaptive threshold with every rotation, and the UAV's odometry failed on every frame
+(17 segments, then stopped). Capped at 1.5 x its farthest depth (765 m there) it ran without a failure (2 x: 5
+failures). At the tuned 82 deg the farthest depth is the farthest ground (109 vs 108 m): the cap binds only when
+the frames show less than two thirds of the ground's range, far from any camera here."""
+
 FALLBACK_NEAR_PERCENTILE = 5.0
 """Without a ground plane the nearest ground's depth is this percentile of the valid depths."""
 
@@ -92,6 +101,8 @@ class SceneScale:
         depth_noise_rel: the depth's random error relative to the depth (``relative_depth_noise``, median
             over the frames; 0 when not measured): 0 for perfect renders, ~0.05 for 5 % sensor noise.
         frame_indices: the sequence's frames measured (``sample_scene_scale``; empty when not known).
+        farthest_depth_range_m: the largest Euclidean range of any valid depth pixel of the frames, metres
+            (inf when not measured).
     """
 
     frames: int
@@ -103,6 +114,7 @@ class SceneScale:
     image_px: tuple[int, int] = (0, 0)
     depth_noise_rel: float = 0.0
     frame_indices: tuple[int, ...] = ()
+    farthest_depth_range_m: float = float("inf")
 
     @property
     def horizon_in_view(self) -> bool:
@@ -252,11 +264,13 @@ def measure_scene_scale(
     image_px = (int(valid[0].shape[1]), int(valid[0].shape[0]))
     p5, p50, p95 = (float(x) for x in np.percentile(pooled, [5.0, 50.0, 95.0]))
     noise = float(np.median([relative_depth_noise(d, lab) for d, lab in zip(valid, label_ids, strict=True)]))
+    farthest = farthest_range_m(valid, intrinsics)
     planes = [fit_ground_plane(d, lab, intrinsics) for d, lab in zip(valid, label_ids, strict=True)]
     planes = [p for p in planes if p is not None]
     if not planes:
         near = float(np.percentile(pooled, FALLBACK_NEAR_PERCENTILE))
-        return SceneScale(len(valid), None, None, near, float("inf"), (p5, p50, p95), image_px, noise)
+        return SceneScale(len(valid), None, None, near, float("inf"), (p5, p50, p95), image_px, noise,
+                          farthest_depth_range_m=farthest)
     normal = np.sum([n for n, _ in planes], axis=0)
     normal /= np.linalg.norm(normal)
     height = float(np.median([h for _, h in planes]))
@@ -264,7 +278,24 @@ def measure_scene_scale(
     if not np.isfinite(near):  # looking up, away from the ground: the depths still tell the scale
         near = float(np.percentile(pooled, FALLBACK_NEAR_PERCENTILE))
     pitch = float(np.degrees(np.arcsin(np.clip(-normal[2], -1.0, 1.0))))
-    return SceneScale(len(valid), height, pitch, near, far, (p5, p50, p95), image_px, noise)
+    return SceneScale(len(valid), height, pitch, near, far, (p5, p50, p95), image_px, noise,
+                      farthest_depth_range_m=farthest)
+
+
+def farthest_range_m(depths_m: list[np.ndarray], intrinsics: Intrinsics) -> float:
+    """The largest Euclidean range of a valid pixel over (H, W) z-depth maps (metres; 0 or non-finite invalid)
+    with ``intrinsics``, metres; inf when the maps' size differs from the intrinsics' (not measured)."""
+    if any(d.shape != (intrinsics.height, intrinsics.width) for d in depths_m):
+        return float("inf")
+    u = (np.arange(intrinsics.width) - intrinsics.cx) / intrinsics.fx
+    v = (np.arange(intrinsics.height) - intrinsics.cy) / intrinsics.fy
+    ray_norm = np.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2)  # (H, W) range per metre of z-depth
+    farthest = 0.0
+    for d in depths_m:
+        with np.errstate(invalid="ignore"):
+            r = np.where(np.isfinite(d) & (d > 0), d * ray_norm, 0.0)
+        farthest = max(farthest, float(r.max()))
+    return farthest
 
 
 def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool]]:
@@ -284,7 +315,8 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
     * ``depth_noise_rel``: the measured noise to 0.1 % (``relative_depth_noise``, ``NOISE_DECIMALS``; the spacing
       filter's allowance);
     * ``shuffle_points`` and ``visual_ground_attitude``: the horizon is out of view;
-    * ``max_range_m = max(100, 1.1 x farthest ground range)`` (100 when the horizon is in view);
+    * ``max_range_m = max(100, 1.1 x min(farthest ground range, 1.5 x farthest depth range))`` (100 when the
+      horizon is in view; ``OBSERVED_RANGE_FACTOR``: a very wide camera's corner meets the ground kilometres away);
     * ``cloud_stride = round(sqrt(W x H / CLOUD_TARGET_POINTS))``, at least 1: the pseudo-LiDAR cloud keeps
       about as many points whatever the image size (640x192 -> 2, 320x96 -> 1, KITTI's 1242x375 -> 4).
     """
@@ -294,11 +326,12 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
     max_depth_m = _rounded(max(ex["max_depth_m"], NEAR_GROUND_FACTOR * scale.nearest_ground_depth_m))
     ratio = max_depth_m / ex["max_depth_m"]
     out_ex = {"max_depth_m": max_depth_m, "min_blob_fraction": ex["min_blob_fraction"] / ratio**BLOB_RANGE_EXPONENT}
-    far = scale.farthest_ground_range_m
+    far = min(scale.farthest_ground_range_m, OBSERVED_RANGE_FACTOR * scale.farthest_depth_range_m)
     out_od = {
         "voxel_size_m": max(od["voxel_size_m"], VOXEL_PER_MEDIAN_DEPTH * scale.depth_percentiles_m[1],
                             NOISE_VOXEL_SIGMAS * scale.depth_noise_rel * scale.depth_percentiles_m[1]),
-        "max_range_m": max(od["max_range_m"], FAR_GROUND_MARGIN * far) if np.isfinite(far) else od["max_range_m"],
+        "max_range_m": max(od["max_range_m"], FAR_GROUND_MARGIN * far) if not scale.horizon_in_view
+        else od["max_range_m"],
         "shuffle_points": not scale.horizon_in_view,
         "visual_ground_attitude": not scale.horizon_in_view,
         "visual_max_depth_m": od["visual_max_depth_m"] * ratio,

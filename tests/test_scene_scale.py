@@ -306,3 +306,31 @@ def test_results_config_holds_each_robots_resolved_values(tmp_path: Path):
     # re-running with the saved file reproduces the values: nothing is left to derive
     for robot in (car, uav):
         assert resolve_robot_config(robot, None) == robot
+
+
+def test_very_wide_camera_keeps_the_odometry_range_near_its_depth():
+    """A 150 deg camera 50 m up, 50 deg down: every corner ray meets the ground, the top ones ~3.7 km away, but the
+    depth (rendered to 200 m of z) ends far sooner; KISS-ICP's range (its adaptive threshold grows with it) stayed
+    at 1.1 x 3.7 km and the airsim-like UAV's odometry failed on every frame."""
+    wide = Intrinsics(42.87, 42.87, 159.5, 47.5, 320, 96)  # 150 deg horizontal
+    t = np.radians(50.0)
+    down = pixel_rays(wide) @ np.array([0.0, -np.cos(t), -np.sin(t)])
+    depth = np.where(down < -1e-9, -50.0 / np.minimum(down, -1e-9), 0.0)
+    depth = np.where(depth <= 200.0, depth, 0.0).astype(np.float32)
+    labels = np.where(depth > 0, Label.ROAD, Label.SKY).astype(np.uint8)
+    s = measure_scene_scale([depth] * 3, [labels] * 3, wide)
+    assert s.camera_height_m == pytest.approx(50.0, rel=0.01)
+    assert s.farthest_ground_range_m > 3000.0  # every corner meets the ground
+    u = (np.arange(320) - wide.cx) / wide.fx
+    v = (np.arange(96) - wide.cy) / wide.fy
+    ranges = depth * np.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2)
+    assert s.farthest_depth_range_m == pytest.approx(ranges.max())
+    max_range = derived_values(s)["odometry"]["max_range_m"]
+    assert s.farthest_depth_range_m < max_range <= 1.1 * 1.5 * s.farthest_depth_range_m * 1.01
+
+
+def test_farthest_depth_leaves_the_tuned_uav_range_as_it_was():
+    """At 82 deg the UAV's farthest depth is its farthest ground: max_range_m is 1.1 x that ground's range."""
+    s = scale_of(50.0, 50.0)
+    assert s.farthest_depth_range_m == pytest.approx(s.farthest_ground_range_m, rel=0.05)
+    assert derived_values(s)["odometry"]["max_range_m"] == pytest.approx(1.1 * s.farthest_ground_range_m, rel=0.01)
