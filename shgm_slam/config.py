@@ -287,7 +287,8 @@ class OdometryConfig(_Stage):
     min_range_m: float = Field(0.5, ge=0)
     max_range_m: float | None = Field(
         None, gt=0, description="outdoor scenes need far points to constrain forward motion; None: 100, or "
-        "1.1 x the range of the farthest ground in view when the horizon is out of view and that is farther"
+        "1.1 x the range of the farthest ground in view when the horizon is out of view and that is farther "
+        "(at most 1.5 x the farthest range the first frames' depth holds: a very wide lens)"
     )
     cloud_stride: int | None = Field(
         None, ge=1, description="back-project every n-th pixel; None: derived from the image size (about "
