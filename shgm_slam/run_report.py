@@ -26,6 +26,7 @@ from shgm_slam.perception.ground_scale import USUAL_FACTOR, usual_factor
 from shgm_slam.robot.frontend import RobotFrontend
 from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.records import MatchRecord, PairMatches
+from shgm_slam.types import Intrinsics
 
 
 @dataclass
@@ -292,6 +293,26 @@ def report_placement(reports: list[RobotReport], fronts: dict[str, RobotFrontend
                 rep.warnings.append(note)
 
 
+MIN_CAMERA_PIXELS = 320 * 96 // 4
+"""Cameras with fewer pixels than this get a warning: the defaults were chosen on 320x96 and larger images; at 80x24
+and 64x48 the demo world's robots ran but none but the first was placed, with nothing naming the camera."""
+MIN_CAMERA_HFOV_DEG = 20.0
+"""Cameras whose horizontal field of view is narrower than this get a warning: at 10 degrees the demo world's cars
+saw too few objects to build a graph (the defaults were chosen at 60-90 degrees)."""
+
+
+def camera_warning(intrinsics: Intrinsics) -> str | None:
+    """A warning when ``intrinsics`` describe a camera far smaller or narrower than the defaults were chosen on
+    (``MIN_CAMERA_PIXELS``, ``MIN_CAMERA_HFOV_DEG``), else None."""
+    hfov_deg = float(np.degrees(2.0 * np.arctan2(intrinsics.width / 2.0, intrinsics.fx)))
+    small = intrinsics.width * intrinsics.height < MIN_CAMERA_PIXELS
+    if not small and hfov_deg >= MIN_CAMERA_HFOV_DEG:
+        return None
+    what = f"{intrinsics.width}x{intrinsics.height} pixels" if small else f"a {hfov_deg:.0f}-degree field of view"
+    return (f"camera of {what}: the defaults were chosen on 320x96 or larger images of 60-90 degrees; expect few "
+            "graph objects and weak odometry, so a robot that is not placed may owe it to the camera")
+
+
 def report_degenerate(
     reports: list[RobotReport], fronts: dict[str, RobotFrontend], image_change: dict[str, ImageChange]
 ) -> None:
@@ -299,6 +320,9 @@ def report_degenerate(
     viewer's log panel)."""
     for rep in reports:
         front = fronts[rep.name]
+        camera = camera_warning(front.sequence.intrinsics)
+        if camera is not None:
+            rep.warnings.append(camera)
         if rep.frames_skipped:
             rep.warnings.append(f"{rep.frames_skipped} of {rep.frames} frames skipped (reasons in 'skipped')")
         if rep.frames_not_reached:

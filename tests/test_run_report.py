@@ -8,12 +8,15 @@ import pytest
 
 from shgm_slam.config import ShgmConfig
 from shgm_slam.run_report import RobotReport, report_degenerate
+from shgm_slam.types import Intrinsics
+
+TUNED_CAMERA = Intrinsics(184.0, 184.0, 160.0, 48.0, 320, 96)  # 82 degrees, as the simulator renders
 
 
-def _front(camera_height_m: float) -> SimpleNamespace:
+def _front(camera_height_m: float, intrinsics: Intrinsics = TUNED_CAMERA) -> SimpleNamespace:
     cfg = ShgmConfig()
     cfg.perception.camera_height_m = camera_height_m
-    return SimpleNamespace(cfg=cfg, stopped=False, failures=[])
+    return SimpleNamespace(cfg=cfg, stopped=False, failures=[], sequence=SimpleNamespace(intrinsics=intrinsics))
 
 
 @pytest.mark.parametrize(("scale", "warned"), [(0.45, True), (2.2, True), (0.9, False), (1.3, False), (None, False)])
@@ -28,3 +31,16 @@ def test_a_depth_scale_far_from_one_is_a_warning(scale: float | None, warned: bo
     if warned:
         assert f"x{scale:.2f}" in said[0] and "1.2 m below the camera" in said[0]
         assert "perception.camera_height_m" in said[0]
+
+
+def test_a_camera_far_smaller_or_narrower_than_the_tuned_ones_is_named():
+    """At 80x24 or 64x48 pixels, or a 10-degree view, the demo world's robots ran and none but the first was placed,
+    with nothing naming the camera as the reason."""
+    from shgm_slam.run_report import camera_warning
+
+    assert camera_warning(TUNED_CAMERA) is None
+    assert camera_warning(Intrinsics(718.9, 718.9, 607.2, 185.2, 1241, 376)) is None  # KITTI
+    assert "a 10-degree field of view" in camera_warning(Intrinsics(1829.0, 1829.0, 160.0, 48.0, 320, 96))
+    rep = RobotReport("tiny", frames=0, frames_processed=0, frames_skipped=0, keyframes=0, nodes=0, localized=False)
+    report_degenerate([rep], {"tiny": _front(1.6, Intrinsics(46.0, 46.0, 40.0, 12.0, 80, 24))}, {})
+    assert len(rep.warnings) == 1 and rep.warnings[0].startswith("camera of 80x24 pixels: the defaults were chosen")
