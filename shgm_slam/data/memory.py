@@ -30,6 +30,8 @@ POSE_REPAIR_ABOVE = 1e-6
 """Poses whose rotation is farther than this from orthonormal (within ``POSE_TOLERANCE``) are re-orthonormalized
 (``project_to_so3``), as a poses file's rows are (``io.trajectories``): the pipeline's messages carry rotations
 orthonormal within 1e-5 (``wire``), and a pose 1e-3 off ended the run there."""
+
+
 class FrameArrays(Protocol):
     """N arrays, one per frame: a stacked (N, ...) array, a list, or a lazy loader."""
 
