@@ -10,16 +10,14 @@ from __future__ import annotations
 
 import os
 import re
-from collections.abc import Iterator
 from enum import Enum
 from pathlib import Path
 
-import numpy as np
-
 from shgm_slam.data.kitti import KittiSequence
 from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, ShgmSequence
+from shgm_slam.data.view import SequenceView
 from shgm_slam.errors import ConfigError, DataError
-from shgm_slam.types import Frame, Intrinsics, Sequence
+from shgm_slam.types import Sequence
 
 _RANGE = re.compile(r"^(\d*)-(\d*)$")
 
@@ -68,59 +66,6 @@ def detect_layout(root: Path) -> SequenceLayout:
     """SHGM when ``root`` has ``depth/`` or ``semantic/``, else KITTI."""
     ours = (root / DEPTH_DIR).is_dir() or (root / LABEL_DIR).is_dir()
     return SequenceLayout.SHGM if ours else SequenceLayout.KITTI
-
-
-class SequenceView:
-    """Frames ``start`` (inclusive) to ``end`` (exclusive) of another sequence, re-indexed from 0."""
-
-    def __init__(self, base: Sequence, start: int, end: int) -> None:
-        n = len(base)
-        if not 0 <= start < end <= n:
-            raise DataError(
-                f"frame range {start}-{end} does not fit {base.name} with {n} frames; "
-                f"use 0 <= start < end <= {n}"
-            )
-        self.base, self.start, self.end = base, start, end
-        self.name = f"{base.name}:{start}-{end}"
-        self.intrinsics: Intrinsics = base.intrinsics
-
-    def __len__(self) -> int:
-        return self.end - self.start
-
-    def __iter__(self) -> Iterator[Frame]:
-        return (self[i] for i in range(len(self)))
-
-    def __getitem__(self, index: int) -> Frame:
-        n = len(self)
-        if not -n <= index < n:
-            raise IndexError(f"frame {index} out of range for {self.name} with {n} frames")
-        i = index % n
-        frame = self.base[self.start + i]
-        frame.index = i
-        return frame
-
-    @property
-    def timestamps_s(self) -> np.ndarray:
-        return self.base.timestamps_s[self.start : self.end]
-
-    @property
-    def gt_poses(self) -> np.ndarray | None:
-        gt = self.base.gt_poses
-        return None if gt is None else gt[self.start : self.end]
-
-    @property
-    def odometry_poses(self) -> np.ndarray | None:
-        """The base sequence's own odometry poses in this range (``IndexedFrames.odometry_poses``), or None."""
-        odom = getattr(self.base, "odometry_poses", None)
-        return None if odom is None else odom[self.start : self.end]
-
-    @property
-    def has_depth(self) -> bool:
-        return self.base.has_depth
-
-    @property
-    def has_labels(self) -> bool:
-        return self.base.has_labels
 
 
 def sequence_root(sequence: object) -> Path | None:

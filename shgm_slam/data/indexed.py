@@ -1,4 +1,5 @@
-"""What every stored sequence shares: frames by index (negative from the end), their times and ground truth."""
+"""What every stored sequence shares: frames by index (negative from the end) or by range (``seq[a:b]``, a
+``SequenceView``), their times and ground truth."""
 
 from __future__ import annotations
 
@@ -6,14 +7,15 @@ from collections.abc import Iterator
 
 import numpy as np
 
+from shgm_slam.data.view import SequenceView, sliced
 from shgm_slam.types import Frame
 
 
 class IndexedFrames:
     """The ``types.Sequence`` accessors over ``_times`` ((N,) seconds, read-only) and ``_gt`` ((N, 4, 4)
     read-only ``T_world_cam`` or None) that a subclass sets, and ``odometry_poses`` over ``_odom`` (the robot's own
-    odometry given with the frames, or None); the subclass gives ``name``, ``__getitem__``, ``has_depth`` and
-    ``has_labels``."""
+    odometry given with the frames, or None); the subclass gives ``name``, ``_frame`` (one frame by its index in
+    0..N-1), ``has_depth`` and ``has_labels``."""
 
     name: str
     _times: np.ndarray
@@ -24,7 +26,22 @@ class IndexedFrames:
         return int(self._times.shape[0])
 
     def __iter__(self) -> Iterator[Frame]:
-        return (self[i] for i in range(len(self)))  # type: ignore[index]
+        return (self._frame(i) for i in range(len(self)))
+
+    def __getitem__(self, index: int | slice) -> Frame | SequenceView:
+        """Frame ``index`` (negative indices count from the end), or the frames of a slice as a ``SequenceView``
+        re-indexed from 0 (``seq[100:200]``: frames 100..199; step 1 only).
+
+        Raises:
+            IndexError: an index outside the frames. DataError: a slice with another step or no frame.
+        """
+        if isinstance(index, slice):
+            return sliced(self, index)  # type: ignore[arg-type]
+        return self._frame(self._index(index))
+
+    def _frame(self, i: int) -> Frame:
+        """Frame ``i`` in 0..N-1 (the subclass reads or builds it)."""
+        raise NotImplementedError
 
     @property
     def timestamps_s(self) -> np.ndarray:

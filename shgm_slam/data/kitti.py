@@ -8,7 +8,7 @@ Frame counts: the images define the frames and must be named ``000000.png``, ``0
 gaps. ``times.txt`` (and poses when present) must have at least one row per image. KITTI downloads
 are often partial (the shared sequence 07 holds the first 160 images but 1101 times and poses), so
 extra trailing rows are accepted with a logged warning and ignored; fewer rows are a ``DataError``.
-Frames load lazily in ``__getitem__``; only the small index arrays are kept.
+Frames load lazily when indexed; only the small index arrays are kept.
 """
 
 from __future__ import annotations
@@ -316,9 +316,8 @@ class KittiSequence(IndexedFrames):
             self._check_size(image, path)
         return image
 
-    def __getitem__(self, index: int) -> Frame:
-        """Frame ``index`` (negative indices count from the end), loaded from disk now."""
-        i = self._index(index)
+    def _frame(self, i: int) -> Frame:
+        """Frame ``i`` (0..N-1), loaded from disk now."""
         return Frame(
             index=i,
             timestamp_s=float(self._times[i]),

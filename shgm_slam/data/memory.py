@@ -104,9 +104,8 @@ class ArraySequence(IndexedFrames):
             if array is not None:
                 array.flags.writeable = False
 
-    def __getitem__(self, index: int) -> Frame:
-        """Frame ``index`` (negative indices count from the end), checked."""
-        i = self._index(index)
+    def _frame(self, i: int) -> Frame:
+        """Frame ``i`` (0..N-1), checked."""
         where = f"sequence {self.name!r} frame {i}"
         return Frame(
             index=i,

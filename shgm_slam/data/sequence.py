@@ -99,8 +99,8 @@ class ShgmSequence(KittiSequence):
         self._check_size(image, path)
         return image
 
-    def __getitem__(self, index: int) -> Frame:
-        frame = super().__getitem__(index)
+    def _frame(self, i: int) -> Frame:
+        frame = super()._frame(i)
         i = frame.source_index
         if self._depth_dir is not None:
             depth = self._read_single_channel(self._depth_dir, i, np.uint16, "depth (metres x 256)")

@@ -173,13 +173,12 @@ class FrameStream(ArraySequence):
                     held[i] = None
         self._released = max(self._released, min(index + 1, self._n))
 
-    def __getitem__(self, index: int) -> Frame:
-        """Frame ``index`` (negative indices count from the end).
+    def _frame(self, i: int) -> Frame:
+        """Frame ``i`` of those appended so far (``seq[i]``: IndexError outside them).
 
         Raises:
-            IndexError: outside the frames appended so far. DataError: a frame already released.
+            DataError: a frame already released.
         """
-        i = self._index(index)
         if self._images[i] is None:
             raise DataError(f"sequence {self.name!r} frame {i} was processed and released; its arrays are gone")
         return Frame(

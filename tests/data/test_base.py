@@ -106,3 +106,25 @@ def test_indexing_protocol(seq_dir: Path) -> None:
     with pytest.raises(IndexError):
         seq[8]
     assert seq.timestamps_s.flags.writeable is False
+
+
+def test_a_slice_of_a_sequence_is_the_view_its_frame_range_gives(seq_dir: Path) -> None:
+    full = open_sequence(seq_dir)
+    view = full[2:6]
+    assert isinstance(view, SequenceView) and view.name == "seq:2-6"
+    assert [f.source_index for f in view] == [f.source_index for f in open_sequence(f"{seq_dir}:2-6")]
+    assert [f.index for f in view] == [0, 1, 2, 3]
+    np.testing.assert_array_equal(view.gt_poses, full.gt_poses[2:6])
+    assert [f.source_index for f in full[-3:]] == [5, 6, 7]  # Python's rules: from the end, clipped
+    assert len(full[:100]) == len(full)
+    inner = view[1:3]  # a view of a view is a range of the same folder, not a chain
+    assert inner.base is full and inner.name == "seq:3-5"
+    assert [f.source_index for f in inner] == [3, 4]
+
+
+@pytest.mark.parametrize(("key", "message"), [(slice(0, 6, 2), "consecutive frames"), (slice(5, 2), "no frame")])
+def test_slices_that_take_no_run_are_refused(seq_dir: Path, key: slice, message: str) -> None:
+    with pytest.raises(DataError, match=message):
+        open_sequence(seq_dir)[key]
+    with pytest.raises(DataError, match=message):
+        open_sequence(f"{seq_dir}:1-7")[key]

@@ -231,3 +231,11 @@ def test_odometry_not_in_metres_is_refused_at_once() -> None:
     own[:, :3, 3] *= 1000.0
     with pytest.raises(DataError, match=r"sequence 'in memory': T_odom_cam moves at 1.5e\+04 m/s .*in millimetres"):
         ArraySequence(images, INTRINSICS, times, T_odom_cam=own)
+
+
+def test_frames_in_memory_slice_like_a_folder() -> None:
+    seq = memory_of(make_frames(6))
+    view = seq[1:4]
+    assert isinstance(view, SequenceView) and len(view) == 3
+    assert [f.source_index for f in view] == [1, 2, 3] and view[0].index == 0
+    np.testing.assert_array_equal(view.timestamps_s, seq.timestamps_s[1:4])
