@@ -227,6 +227,15 @@ def check_fused_rows(results_dir: Path, robot: str, rows: int) -> None:
         )
 
 
+SAME_SEQUENCE = "give the sequence and frame range the run had for it (its --robot NAME=PATH[:start-end])"
+"""How ground truth for evaluation is made to fit the run (the end of its errors)."""
+
+
+def _given(robot: str) -> str:
+    """How an error names the ground truth given for ``robot``, from the CLI or from Python."""
+    return f"the ground truth given for {robot} (eval --gt {robot}=..., or evaluate's sequences)"
+
+
 def check_frame_counts(results_dir: Path, sequences: dict[str, Sequence]) -> None:
     """Refuse ground-truth sequences whose frame count differs from the one the run recorded.
 
@@ -240,8 +249,8 @@ def check_frame_counts(results_dir: Path, sequences: dict[str, Sequence]) -> Non
     for name, seq in sequences.items():
         if name in counts and len(seq) != counts[name]:
             raise DataError(
-                f"--gt {name}: its sequence has {len(seq)} frames but the run had {counts[name]} for {name} "
-                f"({results_dir / 'metrics.json'}); pass the same NAME=PATH[:start-end] as the run's --robot"
+                f"{_given(name)}: its sequence has {len(seq)} frames but the run had {counts[name]} for {name} "
+                f"({results_dir / 'metrics.json'}); {SAME_SEQUENCE}"
             )
         odometry = results_dir / f"{name}_odometry_tum.txt"
         if odometry.is_file():  # the same count from another range: the run's frame times are not the sequence's
@@ -249,9 +258,8 @@ def check_frame_counts(results_dir: Path, sequences: dict[str, Sequence]) -> Non
             t_seq = np.asarray(seq.timestamps_s, dtype=np.float64)
             if len(associate(t_run, t_seq)[0]) < len(t_run):
                 raise DataError(
-                    f"--gt {name}: the run's frame times ({t_run[0]:.3f}-{t_run[-1]:.3f} s, {odometry.name}) are not "
-                    f"this sequence's ({t_seq[0]:.3f}-{t_seq[-1]:.3f} s); pass the same NAME=PATH[:start-end] as "
-                    "the run's --robot"
+                    f"{_given(name)}: the run's frame times ({t_run[0]:.3f}-{t_run[-1]:.3f} s, {odometry.name}) are "
+                    f"not this sequence's ({t_seq[0]:.3f}-{t_seq[-1]:.3f} s); {SAME_SEQUENCE}"
                 )
 
 
@@ -310,7 +318,7 @@ def _check_against_written_truth(root: Path, truth: dict[str, tuple[np.ndarray, 
         if not apart <= GT_AGREEMENT_M:
             how = f"positions up to {apart:.2f} m apart" if same_times else "other frame times"
             raise DataError(
-                f"--gt {robot}: its ground truth differs from {path} that the run wrote ({how}); check the "
+                f"{_given(robot)}: its ground truth differs from {path} that the run wrote ({how}); check the "
                 "sequence and frame range, or delete that file to replace it"
             )
 
@@ -352,10 +360,12 @@ def evaluate_results(
     if sequences:
         unknown = sorted(set(sequences) - set(order))
         if unknown:
-            raise DataError(f"--gt names robot(s) {', '.join(unknown)} that are not in {root} ({', '.join(order)})")
+            raise DataError(f"ground truth given (eval --gt, evaluate's sequences) for robot(s) {', '.join(unknown)} "
+                            f"that are not in {root} ({', '.join(order)})")
         if order[0] not in sequences:
             raise DataError(
-                f"--gt must include {order[0]}: the first robot of the run defines the shared frame"
+                f"the ground truth given (eval --gt, evaluate's sequences) must include {order[0]}: the first robot "
+                "of the run defines the shared frame"
             )
         check_frame_counts(root, sequences)
         ordered = {r: sequences[r] for r in order if r in sequences}
