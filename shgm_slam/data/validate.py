@@ -9,7 +9,8 @@ sequence through the robot's perception and raises one clear error when none of 
 - depth is (H, W) on the image grid but no probed pixel is valid (finite and > 0): DataError for depth
   files, ModelError naming the depth model;
 - no probed label is a Cityscapes train id (0-18; all 255 = ignore, or garbage): DataError / ModelError;
-- depth whose median over the probed frames is beyond ``MAX_MEDIAN_DEPTH_M`` (not metres: millimetres):
+- depth whose median over the probed frames is beyond ``MAX_MEDIAN_DEPTH_M`` and whose nearest tenth is beyond
+  ``MAX_NEAR_DEPTH_M`` (not metres: millimetres):
   DataError, or ModelError naming the depth model;
 - a model's output is constant over every probed frame (one depth value; one class, ignore (255) aside):
   ModelError, as ``shgm-slam check-model`` says;
@@ -152,13 +153,24 @@ probed value are left out of the median: a sensor's or renderer's one value for 
 of a frame that looks at the horizon."""
 
 
+MAX_NEAR_DEPTH_M = 200.0
+"""...unless the nearest tenth of those depths (``NEAR_DEPTH_QUANTILE``) lies within this: a scene whose median is
+far only because a varying sky (a network's, a renderer's per-pixel far values) covers most of the frame still has
+its ground and objects near (a car's road at 4-20 m, a UAV's at its altitude), while a street in millimetres has
+its nearest tenth at thousands of "metres"."""
+
+NEAR_DEPTH_QUANTILE = 0.1
+"""Quantile of the probed valid depths read as the scene's near part (``MAX_NEAR_DEPTH_M``)."""
+
+
 def _check_depth_units(depth_m: np.ndarray, where: str, depth_model: Path | str | None) -> None:
     """Raise when (K,) valid depths ``depth_m`` of the probed frames, those at their largest value (the sky) left
-    out, have a median beyond ``MAX_MEDIAN_DEPTH_M``: a ModelError naming ``depth_model`` (its card's scale), else
-    a DataError (depth given in other units)."""
+    out, have a median beyond ``MAX_MEDIAN_DEPTH_M`` and their nearest tenth beyond ``MAX_NEAR_DEPTH_M``: a
+    ModelError naming ``depth_model`` (its card's scale), else a DataError (depth given in other units)."""
     scene_m = depth_m[depth_m < depth_m.max()]
-    median_m = float(np.median(scene_m if scene_m.size else depth_m))
-    if median_m <= MAX_MEDIAN_DEPTH_M:
+    scene_m = scene_m if scene_m.size else depth_m
+    median_m = float(np.median(scene_m))
+    if median_m <= MAX_MEDIAN_DEPTH_M or float(np.quantile(scene_m, NEAR_DEPTH_QUANTILE)) <= MAX_NEAR_DEPTH_M:
         return
     seen = f"median valid depth {median_m:.4g} m on {where}, farther than any camera's scene ({MAX_MEDIAN_DEPTH_M:g} m)"
     if depth_model is not None:

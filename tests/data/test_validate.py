@@ -153,6 +153,16 @@ def test_depth_in_millimetres_is_one_error(seq_dir: Path):
     with pytest.raises(DataError, match=r"median valid depth .* m on robot 'car'.*in millimetres\? divide it by 1000"):
         check_sequence_start("car", seq, lambda frame: mostly_sky(frame, 1000.0))  # the ground still in millimetres
 
+    def varying_sky(frame, scale=1.0):  # a network's sky: far values that vary from pixel to pixel, most of the frame
+        depth = frame.depth_m * scale
+        rows = 3 * depth.shape[0] // 4
+        depth[:rows] = np.random.default_rng(frame.index).uniform(3e3, 3e4, size=depth[:rows].shape)
+        return depth, frame.label_ids
+
+    check_sequence_start("car", seq, varying_sky)  # refused as "median valid depth 1.6e+04 m" before
+    with pytest.raises(DataError, match=r"median valid depth .* m on robot 'car'.*in millimetres\? divide it by 1000"):
+        check_sequence_start("car", seq, lambda frame: varying_sky(frame, 1000.0))
+
 
 def test_depth_files_of_one_value_are_one_error(tmp_path: Path):
     """Every depth PNG 65535 (a sensor's saturation value): a run went on with KISS-ICP sliding through a sphere of
