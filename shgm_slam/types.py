@@ -125,6 +125,23 @@ MAX_COORDINATE_M = 1e9
 """Graph node coordinates beyond this (metres) are refused (graph files, ``GraphArrays`` given to a match): distances
 and fits would overflow to inf."""
 
+MIN_GRAPH_EXTENT_M = 1.0
+"""A graph of three or more nodes that spans less than this, metres, along every axis is refused (graph files,
+``GraphArrays`` given to a match): objects of a street lie metres apart, so its positions are in other units
+(latitude and longitude in degrees span ~0.002 over 200 m), which would match nothing, or anything, without a word."""
+
+
+def extent_problem(positions_xyz: np.ndarray) -> str | None:
+    """Why (N, 3) graph node positions cannot be metres (``MIN_GRAPH_EXTENT_M``), or None."""
+    if positions_xyz.shape[0] < 3:
+        return None
+    extent = float(np.ptp(positions_xyz, axis=0).max())
+    if extent >= MIN_GRAPH_EXTENT_M:
+        return None
+    return (f"its {positions_xyz.shape[0]} nodes span only {extent:.3g} along every axis, where a street's objects "
+            "lie metres apart: positions must be metres in a local frame (latitude and longitude? project them to "
+            "UTM or a local east-north-up frame first)")  # fmt: skip
+
 
 @dataclass
 class GraphArrays:

@@ -272,6 +272,8 @@ def _street_graph(n: int = 40) -> GraphArrays:
         (lambda g: {"positions_xyz": g.positions_xyz.astype(object)}, "positions_xyz must be numbers, got object"),
         # ^ was np.isfinite's TypeError; v was numpy's "Eigenvalues did not converge" (LinAlgError)
         (lambda g: {"positions_xyz": g.positions_xyz * 1e200}, "graph B: a node lies .* m from the origin, beyond"),
+        (lambda g: {"positions_xyz": g.positions_xyz / 111000 + [48.1, 11.5, 0]},  # degrees
+         "graph B: its 40 nodes span only .*latitude and longitude"),  # was "no consistent hypothesis"
     ],
 )  # fmt: skip
 def test_match_refuses_graph_arrays_that_hold_no_graph(change, message) -> None:
@@ -298,3 +300,19 @@ def test_match_takes_dof_as_a_number_and_refuses_what_is_no_graph() -> None:
         shgm_slam.match({"format": "shgm-graph/1", "classes": [], "nodes": []}, good)
     with pytest.raises(GraphError, match=r"graph B: give GraphArrays .*not NoneType"):
         shgm_slam.match(good, None)
+
+
+def test_map_files_without_heights_match(tmp_path) -> None:
+    """Two map layers of [x, y] positions (no heights; refused before) are read at height 0 and matched about
+    their common vertical."""
+    import json
+
+    g = _street_graph()
+    for name, shift in (("a", (0.0, 0.0)), ("b", (-7.0, 4.0))):
+        nodes = [{"id": int(i), "label": int(lab), "position": [float(x + shift[0]), float(z + shift[1])]}
+                 for i, lab, (x, _, z) in zip(g.node_ids, g.label_ids, g.positions_xyz, strict=True)]  # fmt: skip
+        doc = {"format": "shgm-graph/1", "classes": list(shgm_slam.labels.CITYSCAPES_CLASSES), "nodes": nodes}
+        (tmp_path / f"{name}.json").write_text(json.dumps(doc))
+    m = shgm_slam.match(tmp_path / "a.json", tmp_path / "b.json")
+    assert m.result.success and m.gravity_aligned
+    np.testing.assert_allclose(m.result.T_a_b[:3, 3], [7.0, -4.0, 0.0], atol=1e-6)

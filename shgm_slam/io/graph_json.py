@@ -24,7 +24,7 @@ from shgm_slam.errors import GraphError, parse_failure
 from shgm_slam.graph.semantic_graph import edges_within_radius
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.labels import CITYSCAPES_CLASSES, MAP_CLASS_NAMES
-from shgm_slam.types import MAX_COORDINATE_M, GraphArrays
+from shgm_slam.types import MAX_COORDINATE_M, GraphArrays, extent_problem
 
 FORMAT_TAG = "shgm-graph/1"
 MAX_NODES = 10_000
@@ -123,6 +123,7 @@ def graph_from_dict(
     label_idx = np.zeros(n, np.int64)
     positions = np.zeros((n, 3))
     sizes = np.ones(n)
+    dims: set[int] = set()
     for k, node in enumerate(nodes):
         if not isinstance(node, dict) or not {"id", "label", "position"} <= node.keys():
             raise fail(f'node #{k} needs "id", "label" and "position" fields, got {_short(node)}')
@@ -131,14 +132,22 @@ def graph_from_dict(
             raise fail(f"node #{k}: id must be an integer within +-2^63, got {_short(nid)}")
         if isinstance(lab, bool) or not isinstance(lab, int) or not 0 <= lab < len(classes):
             raise fail(f"node {nid}: label {_short(lab)} is not an index into the {len(classes)} classes")
-        if not (isinstance(pos, list) and len(pos) == 3 and all(_is_finite_number(v) for v in pos)):
-            raise fail(f"node {nid}: position must be three finite numbers, got {_short(pos)}")
+        if not (isinstance(pos, list) and len(pos) in (2, 3) and all(_is_finite_number(v) for v in pos)):
+            raise fail(f"node {nid}: position must be [x, y, z] or [x, y] (a map without heights), finite numbers, "
+                       f"got {_short(pos)}")
+        dims.add(len(pos))
+        if len(dims) > 1:
+            raise fail(f"node {nid}: position {_short(pos)} has {len(pos)} coordinates where earlier nodes have "
+                       f"{5 - len(pos)}; give every node [x, y, z], or every node [x, y]")
+        pos = pos if len(pos) == 3 else [*pos, 0.0]
         if any(abs(v) > MAX_COORDINATE_M for v in pos):
             raise fail(f"node {nid}: position {_short(pos)} is farther than {MAX_COORDINATE_M:g} m from the origin")
         if not _is_finite_number(size) or not 0 < size < MAX_SIZE:
             raise fail(f"node {nid}: size must be a positive finite number, got {_short(size)}")
         node_ids[k], label_idx[k], positions[k], sizes[k] = nid, lab, pos, size
 
+    if (problem := extent_problem(positions)) is not None:
+        raise fail(problem)
     uniq, counts = np.unique(node_ids, return_counts=True)
     if (counts > 1).any():
         raise fail(f"duplicate node ids {uniq[counts > 1].tolist()[:10]}; node ids must be unique")

@@ -29,7 +29,7 @@ from shgm_slam.matching.precision import alignment_covariance, predicted_error_m
 from shgm_slam.matching.ransac import ransac_alignment
 from shgm_slam.matching.result import MatchResult
 from shgm_slam.matching.verification import Verification, partner_pairs_stack, support_counts, verify_alignments
-from shgm_slam.types import MAX_COORDINATE_M, GraphArrays
+from shgm_slam.types import MAX_COORDINATE_M, GraphArrays, extent_problem
 
 MIN_NODES = 3
 """Graphs with fewer nodes cannot determine a rigid transform."""
@@ -89,7 +89,8 @@ def check_graph(graph: GraphArrays, name: str) -> None:
         GraphError: not numpy arrays, lengths or shapes that disagree, node ids that repeat (results name nodes
             by id), labels that are not integers, positions or sizes that are not numbers (an object or bool array
             reached ``np.isfinite``'s TypeError), non-finite positions or positions beyond ``MAX_COORDINATE_M`` of
-            the origin (1e200 m ended in numpy's "Eigenvalues did not converge"), negative or non-finite sizes,
+            the origin (1e200 m ended in numpy's "Eigenvalues did not converge"), positions that cannot be metres
+            (``types.extent_problem``: degrees of latitude and longitude), negative or non-finite sizes,
             edges that are not (E, 2) integer row indices into the nodes.
     """
     fields = ("node_ids", "label_ids", "positions_xyz", "sizes", "edges")
@@ -118,6 +119,8 @@ def check_graph(graph: GraphArrays, name: str) -> None:
     if n and (far := float(np.abs(graph.positions_xyz).max())) > MAX_COORDINATE_M:
         raise GraphError(f"graph {name}: a node lies {far:.3g} m from the origin, beyond the {MAX_COORDINATE_M:g} m "
                          "a match computes with; give positions in metres in a local frame")  # fmt: skip
+    if (problem := extent_problem(graph.positions_xyz)) is not None:
+        raise GraphError(f"graph {name}: {problem}")
     if np.any(~np.isfinite(graph.sizes)) or np.any(graph.sizes < 0):
         raise GraphError(f"graph {name} has negative or non-finite node sizes")
     e = graph.edges
@@ -144,6 +147,8 @@ def unusable_reason(graph: GraphArrays, name: str) -> str:
         )
     if not np.all(np.isfinite(graph.positions_xyz)):
         raise GraphError(f"graph {name} has non-finite node positions")
+    if (problem := extent_problem(graph.positions_xyz)) is not None:
+        raise GraphError(f"graph {name}: {problem}")
     if np.any(~np.isfinite(graph.sizes)) or np.any(graph.sizes < 0):
         raise GraphError(f"graph {name} has negative or non-finite node sizes")
     if n < MIN_NODES:

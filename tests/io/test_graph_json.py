@@ -105,7 +105,11 @@ def _doc(**changes):
         (_doc(nodes=[{"id": 1, "label": 0, "position": [0, 0, 0]},
                      {"id": 1, "label": 1, "position": [1, 0, 0]}]), "duplicate node ids"),
         (_doc(nodes=[{"id": 1, "label": 0, "position": [0, float("nan"), 0]}], edges=[]), "finite"),
-        (_doc(nodes=[{"id": 1, "label": 0, "position": [0, 0]}], edges=[]), "three finite"),
+        (_doc(nodes=[{"id": 1, "label": 0, "position": [0]}], edges=[]), r"\[x, y, z\] or \[x, y\]"),
+        (_doc(nodes=[{"id": 1, "label": 0, "position": [0, 0, 0]}, {"id": 2, "label": 1, "position": [9, 0]}],
+              edges=[]), "2 coordinates where earlier nodes have 3"),
+        (_doc(nodes=[{"id": i, "label": 0, "position": [48.1 + i * 1e-4, 11.5, 0]} for i in range(3)], edges=[]),
+         "span only 0.0002 .*latitude and longitude"),
         (_doc(nodes=[{"id": 1, "label": 2, "position": [0, 0, 0]}], edges=[]), "not an index"),
         (_doc(nodes=[{"id": 1, "label": -1, "position": [0, 0, 0]}], edges=[]), "not an index"),
         (_doc(nodes=[{"id": 1, "label": 0, "position": [0, 0, 0], "size": -3}], edges=[]), "size"),
@@ -161,3 +165,10 @@ def test_an_integer_of_thousands_of_digits_is_said_in_our_words(tmp_path):
     with pytest.raises(GraphError, match="holds an integer of 50000 digits") as info:
         read_graph(path)
     assert "set_int_max_str_digits" not in str(info.value)
+
+
+def test_a_map_without_heights_is_read_at_height_zero():
+    """Map layers often hold no heights; [x, y] positions used to be refused ("three finite numbers")."""
+    g = graph_from_dict(_doc(nodes=[{"id": 1, "label": 0, "position": [3.5, -2]},
+                                    {"id": 2, "label": 1, "position": [7, 1.25]}]))  # fmt: skip
+    np.testing.assert_array_equal(g.positions_xyz, [[3.5, -2, 0], [7, 1.25, 0]])
