@@ -47,6 +47,16 @@ _TRAIN_ID_OF_ANY_NAME = {**{_canonical(n): i for n, i in MAP_CLASS_NAMES.items()
 Cityscapes names)."""
 
 
+def train_id_of_class(name: str) -> int:
+    """The Cityscapes train id a graph file's class name stands for (``_TRAIN_ID_OF_ANY_NAME``; a plural such as
+    "traffic lights" or "street lamps" as its singular), or -1 for none."""
+    key = _canonical(name)
+    found = _TRAIN_ID_OF_ANY_NAME.get(key, -1)
+    if found < 0 and key.endswith("s"):
+        found = _TRAIN_ID_OF_ANY_NAME.get(key[:-1], -1)
+    return found
+
+
 def graph_to_dict(graph: GraphArrays, classes: Sequence[str] = CITYSCAPES_CLASSES) -> dict[str, Any]:
     """The ``shgm-graph/1`` document of a graph.
 
@@ -152,7 +162,7 @@ def graph_from_dict(
     if (counts > 1).any():
         raise fail(f"duplicate node ids {uniq[counts > 1].tolist()[:10]}; node ids must be unique")
 
-    class_train_ids = np.array([_TRAIN_ID_OF_ANY_NAME.get(_canonical(c), -1) for c in classes], dtype=np.int64)
+    class_train_ids = np.array([train_id_of_class(c) for c in classes], dtype=np.int64)
     label_ids = class_train_ids[label_idx] if n else np.zeros(0, np.int64)
     if (label_ids < 0).any():
         unknown = sorted({classes[i] for i in label_idx[label_ids < 0].tolist()})

@@ -172,3 +172,11 @@ def test_a_map_without_heights_is_read_at_height_zero():
     g = graph_from_dict(_doc(nodes=[{"id": 1, "label": 0, "position": [3.5, -2]},
                                     {"id": 2, "label": 1, "position": [7, 1.25]}]))  # fmt: skip
     np.testing.assert_array_equal(g.positions_xyz, [[3.5, -2, 0], [7, 1.25, 0]])
+
+
+def test_plural_class_names_are_read_as_their_singular():
+    """A map layer named "traffic lights" or "street lamps" was an unknown class (the whole file refused)."""
+    g = graph_from_dict(_doc(classes=["Traffic_Lights", "street lamps"]))
+    np.testing.assert_array_equal(g.label_ids, [Label.TRAFFIC_LIGHT, Label.POLE])
+    with pytest.raises(GraphError, match="spaceships"):
+        graph_from_dict(_doc(classes=["building", "spaceships"]))
