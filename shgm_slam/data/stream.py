@@ -2,10 +2,11 @@
 each frame as it comes, and the pipeline reads it like any other sequence.
 
 Every frame is checked when it is appended (image, depth and label shapes and types as ``ArraySequence`` checks
-them, a time later than the last frame's, a rigid ground-truth pose), so a bad frame is refused at the call that
-brought it, naming the robot and the frame. The first frame fixes what every later one carries (depth, labels,
-ground truth, the robot's own odometry). A frame the pipeline has processed can be ``release``d: its arrays are
-dropped (a live run holds only the frames still to be processed) and reading it again is an error.
+them, labels that are train ids, a time later than the last frame's, a rigid ground-truth pose), so a bad frame is
+refused at the call that brought it, naming the robot and the frame. The arrays are copied: the caller may reuse
+its buffers. The first frame fixes what every later one carries (depth, labels, ground truth, the robot's own
+odometry). A frame the pipeline has processed can be ``release``d: its arrays are dropped (a live run holds only
+the frames still to be processed) and reading it again is an error.
 """
 
 from __future__ import annotations
@@ -13,8 +14,9 @@ from __future__ import annotations
 import numpy as np
 
 from shgm_slam.data.kitti import check_pose_units, check_times
-from shgm_slam.data.memory import ArraySequence, checked_intrinsics, checked_poses
+from shgm_slam.data.memory import ArraySequence, checked_depth_origin, checked_intrinsics, checked_poses
 from shgm_slam.errors import DataError
+from shgm_slam.labels import IGNORE_ID, NUM_CLASSES
 from shgm_slam.types import DepthOrigin, Frame, Intrinsics
 
 UNITS_FROM_FRAMES = (3, 10)
@@ -23,6 +25,12 @@ UNITS_FROM_FRAMES = (3, 10)
 odometry's checks of speed, and the median lets one pause of the camera pass. The robot's own odometry
 (``T_odom_cam``) and the ground truth (``T_world_cam``) are checked for metres over the same frames
 (``kitti.check_pose_units``: ground truth in millimetres made the run's ATE kilometres)."""
+
+MAX_FOREIGN_LABEL_SHARE = 0.01
+"""A frame whose label_ids hold more than this share of pixels that are neither a Cityscapes train id (0-18) nor
+ignore (255) is refused: it is in another label space (Cityscapes' full ids 0-33, another dataset's classes), whose
+values in 0-18 are the wrong classes too (``data.validate`` probes a recorded sequence's first frames the same
+way; a live robot's later frames were taken unchecked)."""
 
 
 class FrameStream(ArraySequence):
@@ -34,7 +42,8 @@ class FrameStream(ArraySequence):
         name: the sequence's name in logs and messages (e.g. the robot's).
 
     Raises:
-        DataError: intrinsics that are not an ``Intrinsics`` with positive focal lengths and size.
+        DataError: intrinsics that are not an ``Intrinsics`` with positive focal lengths and size; a
+            ``depth_origin`` that is no ``DepthOrigin``.
     """
 
     def __init__(
@@ -42,7 +51,7 @@ class FrameStream(ArraySequence):
     ) -> None:
         self.name = name
         self.intrinsics = checked_intrinsics(intrinsics, name)
-        self.depth_origin = DepthOrigin(depth_origin)
+        self.depth_origin = checked_depth_origin(depth_origin, name)
         self._n = 0
         self._time_rows = np.zeros(64, dtype=np.float64)
         self._gt_rows: np.ndarray | None = None
@@ -93,7 +102,8 @@ class FrameStream(ArraySequence):
             image_rgb: (H, W, 3) uint8 RGB or (H, W) uint8 grey.
             timestamp_s: seconds, later than the last frame's.
             depth_m: (H, W) float metres (0 or non-finite: invalid), or None.
-            label_ids: (H, W) integer Cityscapes train ids (0-18, 255 = ignore), or None.
+            label_ids: (H, W) integer Cityscapes train ids (0-18, 255 = ignore; at most
+                ``MAX_FOREIGN_LABEL_SHARE`` of the pixels other values), or None.
             T_world_cam: (4, 4) ground-truth camera -> world pose (KITTI camera axes), or None.
             T_odom_cam: (4, 4) the robot's own odometry's camera -> odometry-frame pose, or None.
 
@@ -103,6 +113,9 @@ class FrameStream(ArraySequence):
         """
         i = self._n
         where = f"sequence {self.name!r} frame {i}"
+        for held in (self._images, self._depth, self._labels):  # what an append stopped midway (a Ctrl-C) left
+            if held is not None:
+                del held[i:]
         if i == 0:
             self._depth = None if depth_m is None else []
             self._labels = None if label_ids is None else []
@@ -126,26 +139,25 @@ class FrameStream(ArraySequence):
         pose = None if T_world_cam is None else _checked_pose(T_world_cam, "T_world_cam", "world", where)
         odom = None if T_odom_cam is None else _checked_pose(T_odom_cam, "T_odom_cam", "odometry frame", where)
         if UNITS_FROM_FRAMES[0] <= i <= UNITS_FROM_FRAMES[1]:  # seconds (as a recorded sequence's times) and metres
-            times = check_times(np.append(self._time_rows[:i], t), where)
-            for what, rows, T in (("T_odom_cam", self._odom_rows, odom), ("T_world_cam", self._gt_rows, pose)):
-                if T is not None:
-                    check_pose_units(np.concatenate([rows[:i], T[None]]), times, where, what)  # type: ignore[index]
+            self._check_units(i, t, pose, odom, where)
         # the arrays as the pipeline will read them (checked, copied: the caller may reuse its buffers)
-        self._images.append(image_rgb)
+        given = _as_array(image_rgb, "the image", where)
+        self._images.append(given)
         if depth_m is not None:
-            self._depth.append(depth_m)  # type: ignore[union-attr]
+            self._depth.append(_as_array(depth_m, "depth_m", where))  # type: ignore[union-attr]
         if label_ids is not None:
-            self._labels.append(label_ids)  # type: ignore[union-attr]
+            self._labels.append(_as_array(label_ids, "label_ids", where))  # type: ignore[union-attr]
         try:
             image = self._image(i, where)
             depth = None if depth_m is None else self._depth_map(i, where)
-            labels = None if label_ids is None else self._label_map(i, where)
+            labels = None if label_ids is None else _checked_label_space(self._label_map(i, where), where)
         except DataError:
             for held in (self._images, self._depth, self._labels):
                 if held is not None and len(held) > i:
                     held.pop()
             raise
-        self._images[i] = image if image is not image_rgb else image.copy()
+        # (the caller's array, or the view of its buffer a memmap or an ``__array__`` object gave, is copied)
+        self._images[i] = image if image is not given else image.copy()
         if depth is not None:
             self._depth[i] = depth  # type: ignore[index]
         if labels is not None:
@@ -163,6 +175,22 @@ class FrameStream(ArraySequence):
             self._odom_rows[i] = odom  # type: ignore[index]
         self._n = i + 1
         return i
+
+    def _check_units(
+        self, i: int, t: float, pose: np.ndarray | None, odom: np.ndarray | None, where: str
+    ) -> None:
+        """Frame ``i`` (time ``t``, seconds; poses or None) refused unless the times so far are in seconds and
+        the poses in metres (``UNITS_FROM_FRAMES``). The median over the frames so far passes a single wrong
+        value, so a refusal means the earlier frames were in those units too: the message says to start anew."""
+        try:
+            times = check_times(np.append(self._time_rows[:i], t), where)
+            for what, rows, T in (("T_odom_cam", self._odom_rows, odom), ("T_world_cam", self._gt_rows, pose)):
+                if T is not None:
+                    check_pose_units(np.concatenate([rows[:i], T[None]]), times, where, what)  # type: ignore[index]
+        except DataError as exc:
+            raise DataError(f"{exc}; frames 0 to {i - 1} were taken in those units and cannot be taken back: start "
+                            "this camera anew (a new LiveRun or LiveRobot) with every frame in seconds and "
+                            "metres") from None  # fmt: skip
 
     def release(self, index: int) -> None:
         """Drop the arrays of frames up to ``index`` (included): they have been processed."""
@@ -192,6 +220,30 @@ class FrameStream(ArraySequence):
             source_index=i,
             T_odom_cam=None if self._odom_rows is None else self._odom_rows[i].copy(),
         )
+
+
+def _as_array(given: object, what: str, where: str) -> np.ndarray:
+    """``given`` (an array, an object with ``__array__``, nested lists) as a numpy array, a view where it can be;
+    DataError at ``where`` when it cannot be one (ragged lists)."""
+    try:
+        return np.asarray(given)
+    except (TypeError, ValueError) as exc:
+        raise DataError(f"{where}: {what} ({type(given).__name__}) cannot be read as an array ({exc}); give a numpy "
+                        "array of the image's height x width") from None  # fmt: skip
+
+
+def _checked_label_space(labels: np.ndarray, where: str) -> np.ndarray:
+    """(H, W) uint8 ``labels``, refused (DataError at ``where``) when more than ``MAX_FOREIGN_LABEL_SHARE`` of its
+    pixels are neither a train id nor ignore."""
+    foreign = (labels >= NUM_CLASSES) & (labels != IGNORE_ID)
+    share = float(foreign.mean()) if labels.size else 0.0
+    if share > MAX_FOREIGN_LABEL_SHARE:
+        values = np.unique(labels[foreign])
+        shown = ", ".join(map(str, values[:8])) + (", ..." if values.size > 8 else "")
+        raise DataError(f"{where}: {100 * share:.0f} % of label_ids are {shown}, no Cityscapes train id (0-18, "
+                        "255 = ignore); give train ids (Cityscapes label ids 0-33? map them id -> trainId, "
+                        "cityscapesscripts' labels.py; another dataset's classes: map them to these)")  # fmt: skip
+    return labels
 
 
 def _checked_pose(T: np.ndarray, what: str, to: str, where: str) -> np.ndarray:

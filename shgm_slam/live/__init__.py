@@ -14,7 +14,9 @@ camera height, is scaled from the frames seen so far, not from frames spread ove
 pipeline has run is dropped (the robot's ``FrameStream`` holds only what is still to be run).
 
 ``finish`` ends the run (the final whole-graph matching, the results folder, the summary); leaving a ``with`` block
-finishes it too, as stopped (no final matching) on a Ctrl-C, and marks the folder incomplete on any other error.
+finishes it too, as stopped (no final matching) on a Ctrl-C or ``sys.exit``; an error raised in the block writes
+every keyframe so far into the folder as a checkpoint and marks it incomplete. A Ctrl-C between the held frames a
+call runs leaves the rest held, run in order at the robot's next frame or ``finish``.
 
 ``LiveRobot`` is one robot fed the same way in its own process, for a map server elsewhere (``shgm-slam server``,
 Eclipse Zenoh): ``shgm-slam robot`` on a camera that is driving now.

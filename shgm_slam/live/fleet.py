@@ -246,11 +246,13 @@ class LiveRun:
                 raise ConfigError(f"no camera {robot!r} in this run; its cameras are {', '.join(self.streams)}")
             index = stream.append(image_rgb, timestamp_s, depth_m=depth_m, label_ids=label_ids,
                                   T_world_cam=T_world_cam, T_odom_cam=T_odom_cam)  # fmt: skip
-            if self._fleet is not None and robot in self._fleet.fronts:
+            running = self._fleet is not None and robot in self._fleet.fronts
+            if running and all(r != robot for r, _ in self._held):
                 return [self._step(robot, index)]
-            self._held.append((robot, index))
+            self._held.append((robot, index))  # (a running robot's: behind frames a Ctrl-C left held)
             with self._failing():
-                self._warmups[robot].offer(index)
+                if not running:
+                    self._warmups[robot].offer(index)
                 return self._advance()
 
     def finish(self) -> RunSummary:
@@ -292,16 +294,35 @@ class LiveRun:
             return
         if kind is None:
             self.finish()
-        elif issubclass(kind, KeyboardInterrupt) and self._fleet is not None and not self._fleet.finished:
+        elif self._fleet is None or self._fleet.finished:
+            self._mark_failed(exc)
+        elif not issubclass(kind, Exception):  # a Ctrl-C, sys.exit (a SIGTERM handler's), a generator closed
             from shgm_slam.interrupts import stops_deferred
 
             with self._lock, stops_deferred(), self._failing():  # stopped between frames: what there is, written
                 self._summary = self._fleet.finish(interrupted=True)  # (no final matching; an error marks it)
                 self._release()
-        else:
-            self._mark_failed(exc)
+        else:  # your code's error (the run is sound): every keyframe so far into the checkpoint, then marked
+            with self._lock:
+                try:
+                    self._write_checkpoint()
+                finally:
+                    self._mark_failed(exc)
 
     # --- inside ----------------------------------------------------------------------------------
+
+    def _write_checkpoint(self) -> None:
+        """The running map server's results so far into the folder (as its periodic checkpoints are written): an
+        error in the caller's code would otherwise lose the keyframes since the last one, which cannot be fed
+        again (frames are dropped once run). A folder that cannot be written keeps its last checkpoint."""
+        from shgm_slam.interrupts import stops_deferred
+
+        assert self._fleet is not None
+        try:
+            with stops_deferred():
+                self._fleet.server_node.write_results()
+        except DataError as exc:
+            log.warning("%s: cannot write the results so far: %s", self.out_dir, exc)
 
     def _check_open(self) -> None:
         if self._closed:
@@ -341,21 +362,23 @@ class LiveRun:
                 fleet.add_robot(r, self._warmups[r].frontend(self._share), newcomer)
                 log.info("%s: joined the running system (its first frames set its settings)", r)
         now = [(r, i) for r, i in self._held if r in fleet.fronts]
-        self._held = [(r, i) for r, i in self._held if r not in fleet.fronts]
-        return [self._step(r, i) for r, i in now]
+        return [self._step(r, i, held=True) for r, i in now]
 
-    def _step(self, robot: str, index: int) -> LivePose:
+    def _step(self, robot: str, index: int, *, held: bool = False) -> LivePose:
+        """Run frame ``index`` of ``robot`` (``held``: one of ``_held``, which it leaves as it runs: a Ctrl-C
+        between held frames leaves the rest held, to run in order at the robot's next frame or ``finish``)."""
         from shgm_slam.interrupts import stops_deferred
 
         assert self._fleet is not None
-        fleet = self._fleet
+        fleet, stream = self._fleet, self.streams[robot]
         with self._failing(), stops_deferred():  # a stop lands between frames, never inside a step
+            if held:
+                self._held.remove((robot, index))
             skipped = len(fleet.skipped)
             res = fleet.step(robot, index)
-        stream = self.streams[robot]
-        stream.release(index)
-        skipped_why = fleet.skipped[skipped] if res is None else None
-        return pose_of(robot, index, float(stream.timestamps_s[index]), res, fleet.nodes[robot], skipped_why)
+            stream.release(index)
+            skipped_why = fleet.skipped[skipped] if res is None else None
+            return pose_of(robot, index, float(stream.timestamps_s[index]), res, fleet.nodes[robot], skipped_why)
 
     @contextlib.contextmanager
     def _failing(self):

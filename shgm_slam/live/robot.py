@@ -30,7 +30,9 @@ class LiveRobot:
     frames set its settings (``Warmup``), then each ``add_frame`` runs its frame, sends its keyframe and applies the
     server's corrections. Between frames, ``poll`` keeps the link alive (the server takes a robot silent for long as
     gone). ``finish`` tells the server the robot is done and waits (at most ``wait_s``) until it holds every
-    keyframe and has finished.
+    keyframe and has finished. Leaving a ``with`` block finishes it too: on a Ctrl-C (or ``sys.exit``) as
+    ``shgm-slam robot`` does (the frames run so far are sent as done and written, without waiting for the server
+    to finish); on an error the link is closed (the server keeps what it holds) and the robot takes no more frames.
 
     Args:
         name: the robot's name (unique in the fleet).
@@ -74,6 +76,7 @@ class LiveRobot:
         self._skipped: list[str] = []
         self._t_start = time.perf_counter()
         self._summary: DriveSummary | None = None
+        self._ended: str | None = None  # why the link was closed without a summary (an error, a failed finish)
 
     @property
     def started(self) -> bool:
@@ -93,23 +96,23 @@ class LiveRobot:
         """Give the robot's next frame (arguments as ``LiveRun.add_frame``); returns the frames this call ran.
 
         Raises:
-            ConfigError: the robot has finished. DataError: a bad frame (nothing changed), or its first frames
-                cannot be used. ModelError: a model's output is unusable on its first frames. ProtocolError: the
-                server refused this robot (its name is taken by a live process).
+            ConfigError: the robot has finished, or its link was closed (an error left its ``with`` block, or
+                ``finish`` failed). DataError: a bad frame (nothing changed), or its first frames cannot be used.
+                ModelError: a model's output is unusable on its first frames. ProtocolError: the server refused
+                this robot (its name is taken by a live process).
         """
-        if self._summary is not None:
-            raise ConfigError(f"robot {self.name!r} has finished; start a new LiveRobot for more frames")
+        self._check_open()
         index = self.stream.append(image_rgb, timestamp_s, depth_m=depth_m, label_ids=label_ids,
                                    T_world_cam=T_world_cam, T_odom_cam=T_odom_cam)  # fmt: skip
-        if self._node is not None:
+        if self._node is not None and not self._held:
             return [self._step(index)]
-        self._held.append(index)
-        self._warmup.offer(index)
-        if not self._warmup.ready:
-            return []
-        self._start()
-        held, self._held = self._held, []
-        return [self._step(i) for i in held]
+        self._held.append(index)  # (a running robot's: behind frames a Ctrl-C left held)
+        if self._node is None:
+            self._warmup.offer(index)
+            if not self._warmup.ready:
+                return []
+            self._start()
+        return self._run_held()
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Every frame the robot has run in the shared frame as the server's latest corrections place it
@@ -132,30 +135,39 @@ class LiveRobot:
         most ``wait_s``); its trajectories are written to ``out``. Finishing again returns the summary.
 
         Raises:
-            DataError: no frame was given, or its first frames cannot be used.
+            DataError: no frame was given, or its first frames cannot be used (the link is then closed).
+            ConfigError: the link was closed before (an error left the ``with`` block, or ``finish`` failed).
         """
-        from shgm_slam.robot.drive import drive_summary, write_robot_trajectories
-
         if self._summary is not None:
             return self._summary
+        self._check_open()
+        return self._finish(interrupted=False)
+
+    def _finish(self, *, interrupted: bool) -> DriveSummary:
+        """``finish``; ``interrupted`` (a stop left the ``with`` block): the frames still held are not run and the
+        server is not waited for to finish, as ``shgm-slam robot`` does on a Ctrl-C."""
+        from shgm_slam.robot.drive import drive_summary, write_robot_trajectories
+
         try:
             if self._node is None:
                 if not len(self.stream):
                     raise DataError(f"robot {self.name!r}: no frame was given; nothing to send the map server")
                 self._start()
-                held, self._held = self._held, []
-                for i in held:
-                    self._step(i)
+            if not interrupted:
+                self._run_held()
             node = self._node
             node.done()
-            acknowledged = node.wait_acknowledged(self.wait_s, until_finished=True)
+            acknowledged = node.wait_acknowledged(self.wait_s, until_finished=not interrupted)
             if not node.all_acknowledged():
                 log.warning("%s: the map server did not acknowledge every keyframe within %.0f s", self.name,
                             self.wait_s)  # fmt: skip
             if self.out_dir is not None:
                 write_robot_trajectories(self.out_dir, node)
             self._summary = drive_summary(node, self._processed, acknowledged, time.perf_counter() - self._t_start,
-                                          False, self._skipped)  # fmt: skip
+                                          interrupted, self._skipped)  # fmt: skip
+        except BaseException as exc:
+            self._ended = f"finish failed ({type(exc).__name__}: {exc})"
+            raise
         finally:
             self._transport.close()
         return self._summary
@@ -166,12 +178,23 @@ class LiveRobot:
     def __exit__(
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        if self._summary is not None:
+        if self._summary is not None or self._ended is not None:
             return
         if kind is None:
             self.finish()
-        else:  # an error or a stop: the link goes; the server keeps what it holds and waits for the robot
+        elif not issubclass(kind, Exception) and self._node is not None:  # a Ctrl-C, sys.exit: as shgm-slam robot
+            self._finish(interrupted=True)  # (the frames run so far sent as done, its trajectories written)
+        else:  # an error: the link goes; the server keeps what it holds and waits for the robot
+            self._ended = f"its with block was left by {kind.__name__}: {exc}"
             self._transport.close()
+
+    def _check_open(self) -> None:
+        """ConfigError once the robot has finished or its link was closed."""
+        if self._summary is not None:
+            raise ConfigError(f"robot {self.name!r} has finished; start a new LiveRobot for more frames")
+        if self._ended is not None:
+            raise ConfigError(f"robot {self.name!r}: its link to the map server was closed: {self._ended}; start a "
+                              "new LiveRobot for more frames")  # fmt: skip
 
     def _start(self) -> None:
         from shgm_slam.robot.node import RobotNode
@@ -179,13 +202,20 @@ class LiveRobot:
         self._node = RobotNode(self._warmup.frontend(), self._transport)
         self._node.hello()
 
-    def _step(self, index: int) -> LivePose:
+    def _run_held(self) -> list[LivePose]:
+        """Run the frames held so far, in order; each leaves ``_held`` as it runs (a Ctrl-C between them leaves the
+        rest held, to run at the next frame or ``finish``)."""
+        return [self._step(i, held=True) for i in list(self._held)]
+
+    def _step(self, index: int, *, held: bool = False) -> LivePose:
         from shgm_slam.interrupts import stops_deferred
 
         node = self._node
         assert node is not None
         res, skipped = None, None
         with stops_deferred():  # a stop lands between frames, never inside the robot's step
+            if held:
+                self._held.remove(index)
             try:
                 res = node.step(index)
                 self._processed += 1
@@ -194,5 +224,5 @@ class LiveRobot:
                 self._skipped.append(skipped)
                 log.warning("%s: skipped frame %d: %s", self.name, index, exc)
             node.poll()
-        self.stream.release(index)
-        return pose_of(self.name, index, float(self.stream.timestamps_s[index]), res, node, skipped)
+            self.stream.release(index)
+            return pose_of(self.name, index, float(self.stream.timestamps_s[index]), res, node, skipped)
