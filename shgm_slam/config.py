@@ -393,6 +393,10 @@ class OdometryConfig(_Stage):
     max_coast_s: float = Field(
         0.5, gt=0, description="health: longest stretch of predicted poses (no depth, ICP/PnP failed)"
     )
+    max_frame_gap_s: float = Field(
+        1.0, gt=0, description="health: frames farther apart than this (and than 5 times the usual interval) start "
+        "a new trajectory segment: the motion between them was not observed (a paused camera, dropped frames)"
+    )
     max_threshold_m: float = Field(15.0, gt=0, description="health: KISS-ICP adaptive threshold limit")
     max_image_rotation_deg: float = Field(
         5.0, gt=0, description="health: largest disagreement of a step's yaw with image motion (KISS-ICP)"

@@ -23,6 +23,11 @@ source's own diagnostics (``OdometryEstimate``):
 - **coasting**: the source predicted instead of measured (no depth, too few points, a cloud in too few
   of KISS-ICP's voxels such as one surface close up, ICP or PnP failed) for more than ``max_coast_s`` since
   the last measured pose,
+- **frame gap**: a frame that comes more than ``max_frame_gap_s`` after the last one (and more than
+  ``GAP_INTERVAL_FACTOR`` times the usual interval, so that slow cameras pass): the motion between them was not
+  observed (a paused camera, dropped frames), and an odometry that registers across it may report any of the
+  places the robot could have reached as where it is (a live robot paused 300 s with ten frames dropped ran on
+  as one segment, 12 m off). The frame starts a new segment, which matching places again (onset: that frame),
 - **registration threshold**: KISS-ICP's adaptive threshold (its running estimate of the motion
   model's error, metres) above ``max_threshold_m``; a safety net only: on healthy starts it reaches
   8 m (the first frames accelerate from a zero-velocity prior),
@@ -62,6 +67,12 @@ SPEED_NOISE_FACTOR = 20.0
 frame. The visual odometry's RGB tuning drives (synthia-like and airsim-like 10-13, 16 cars, demo models):
 median 0.06-0.11 m/s per frame, 99th percentile 1.0-1.7 m/s (12-19 times the median), the stalls of the road
 alias 8-11 m/s."""
+GAP_INTERVAL_FACTOR = 5.0
+"""A frame gap (module docstring) is also this many times the median interval of the frames so far."""
+GAP_MIN_INTERVALS = 3
+"""Frame intervals seen before a gap can be told from the camera's own rate (a camera at 0.5 Hz is no gap)."""
+GAP_INTERVALS = 50
+"""How many of the latest frame intervals give the usual one (kept across segments: a property of the camera)."""
 SPEED_NOISE_SAMPLES = 20
 SPEED_NOISE_WINDOW = 200
 """The speed check starts once this many filtered speed changes measured the noise (2 s at 10 Hz) and keeps
@@ -76,6 +87,7 @@ class FailureReason(str, Enum):
     SPEED_CHANGE = "speed-change"
     TURN_RATE = "turn-rate"
     COASTING = "coasting"
+    FRAME_GAP = "frame-gap"
     REGISTRATION_THRESHOLD = "registration-threshold"
     IMAGE_ROTATION = "image-rotation"
     NON_FINITE = "non-finite"
@@ -94,6 +106,7 @@ class HealthLimits:
         step_noise_m: per-step position noise of a healthy odometry, m (acceleration slack).
         step_noise_deg: per-step rotation noise of a healthy odometry, degrees (turn-rate slack).
         max_coast_s: longest run of predicted (not measured) poses, seconds.
+        max_frame_gap_s: longest time between two frames that the odometry may bridge, seconds.
         max_threshold_m: largest acceptable registration threshold (KISS-ICP), m.
         max_image_rotation_deg: largest acceptable disagreement with image rotation, degrees.
     """
@@ -105,6 +118,7 @@ class HealthLimits:
     step_noise_m: float
     step_noise_deg: float
     max_coast_s: float
+    max_frame_gap_s: float
     max_threshold_m: float
     max_image_rotation_deg: float
 
@@ -136,6 +150,8 @@ class OdometryHealthMonitor:
 
     def __init__(self, limits: HealthLimits) -> None:
         self.limits = limits
+        self._last_time_s: float | None = None  # the last frame checked (any segment), seconds
+        self._intervals: deque[float] = deque(maxlen=GAP_INTERVALS)  # the latest frame intervals, seconds
         self.reset()
 
     def reset(self) -> None:
@@ -176,6 +192,9 @@ class OdometryHealthMonitor:
                 docstring): only the non-finite, coasting and threshold checks apply.
         """
         lim = self.limits
+        gap = self._check_gap(frame_index, timestamp_s)
+        if gap is not None:
+            return gap
         T = np.asarray(T_odom_cam, dtype=np.float64)
         if not np.isfinite(T).all():
             return OdometryFailure(FailureReason.NON_FINITE, frame_index, frame_index, "non-finite pose")
@@ -220,6 +239,24 @@ class OdometryHealthMonitor:
                 f"(limit {lim.max_image_rotation_deg} deg)",
             )  # fmt: skip
         return failure
+
+    def _check_gap(self, frame_index: int, t: float) -> OdometryFailure | None:
+        """The frame gap check (module docstring) of a frame at ``t`` seconds; a frame checked again (after a
+        re-initialisation) is no gap."""
+        last, self._last_time_s = self._last_time_s, t
+        if last is None or not t > last:
+            return None
+        dt = t - last
+        known = len(self._intervals) >= GAP_MIN_INTERVALS
+        usual = float(np.median(self._intervals)) if known else 0.0
+        self._intervals.append(dt)
+        limit = max(self.limits.max_frame_gap_s, GAP_INTERVAL_FACTOR * usual)
+        if not known or dt <= limit:
+            return None
+        return OdometryFailure(
+            FailureReason.FRAME_GAP, frame_index, frame_index,
+            f"{dt:.2f} s since the last frame (limit {limit:.2f} s): the motion in between was not observed",
+        )  # fmt: skip
 
     def _check_motion(self, frame_index: int, t: float, T: np.ndarray) -> OdometryFailure | None:
         lim = self.limits

@@ -251,3 +251,29 @@ def test_sources_reinitialise_into_a_new_odometry_frame(tmp_path) -> None:
     before = visual.odometry
     visual.reset()
     assert visual.odometry is not before
+
+
+def test_a_gap_in_time_starts_a_new_segment_at_the_frame_after_it() -> None:
+    """A paused camera or dropped frames: the motion across the gap was never observed. A live robot paused 300 s
+    with ten frames dropped ran on as one segment, 12 m off, with no failure said."""
+    poses = drive(np.full(40, 8.0), np.zeros(40), 0.1)
+    times = np.arange(41) * 0.1
+    times[25:] += 3.0  # 3.1 s between frames 24 and 25; the poses (registered across it) look smooth
+    mon = OdometryHealthMonitor(LIMITS)
+    failures = [mon.check(i, t, T) for i, (t, T) in enumerate(zip(times, poses, strict=True))]
+    found = [f for f in failures if f is not None]
+    assert [(f.reason, f.onset_frame) for f in found] == [(FailureReason.FRAME_GAP, 25)]
+    assert "3.10 s since the last frame" in found[0].describe()
+    assert mon.check(25, times[25], poses[25]) is None  # the same frame checked again (a new segment's first): no gap
+
+
+@pytest.mark.parametrize("interval_s", [0.05, 0.5, 2.0])
+def test_a_camera_s_own_rate_is_no_gap(interval_s: float) -> None:
+    """Slow cameras (a frame every 2 s) and a frame dropped now and then pass; the gap is judged against the
+    camera's usual interval too."""
+    n = 30
+    times = np.arange(n + 1) * interval_s
+    times[15:] += interval_s  # one frame dropped: twice the interval
+    poses = drive(np.full(n, 1.0), np.zeros(n), interval_s)
+    mon = OdometryHealthMonitor(LIMITS)
+    assert all(mon.check(i, t, T) is None for i, (t, T) in enumerate(zip(times, poses, strict=True)))

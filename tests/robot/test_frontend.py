@@ -81,3 +81,19 @@ def test_a_restarted_odometry_continues_the_last_trusted_motion(
         assert np.linalg.norm(front.odometry.motions[0][:3, 3]) > 1.0  # the car was moving
     else:
         assert front.odometry.motions == [None]
+
+
+def test_a_gap_in_the_frame_times_starts_a_new_segment(tiny_scenario: Path, tmp_path: Path) -> None:
+    """car1's frames 20 on come 5 s later (a paused camera): its odometry, which registers across the gap as if
+    no time had passed, is not trusted across it; frame 20 begins a new trajectory segment."""
+    import shutil
+
+    folder = shutil.copytree(tiny_scenario / "car1", tmp_path / "car1")
+    times = np.loadtxt(folder / "times.txt")
+    times[20:] += 5.0
+    np.savetxt(folder / "times.txt", times, fmt="%.6f")
+    front = make_frontend("car1", open_sequence(str(folder)), ShgmConfig())
+    for i in range(30):
+        front.process(i)
+    assert [(f.reason.value, f.onset_frame) for f in front.failures] == [("frame-gap", 20)]
+    assert len(front.segments) == 2 and front.segments[1].first_frame == 20
