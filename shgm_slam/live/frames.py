@@ -35,6 +35,9 @@ class LivePose:
         keyframe: the frame became a keyframe (its objects went into the semantic graph).
         agent: the trajectory segment it belongs to (``car1``, ``car1~1`` after a failure); "" when skipped.
         skipped: why the frame was skipped (unreadable depth, a model error on it), else None.
+        measured: the odometry measured this frame's pose; False where it only predicted it from the last motion
+            (no usable depth or too few points, registration or tracking failed: the health check ends such a
+            stretch after ``odometry.max_coast_s``), and for a skipped frame.
     """
 
     robot: str
@@ -45,6 +48,7 @@ class LivePose:
     keyframe: bool
     agent: str
     skipped: str | None = None
+    measured: bool = False
 
 
 class Warmup:
@@ -120,4 +124,6 @@ def pose_of(
     T_shared_odom = None if node is None else node.T_shared_odom(res.agent)
     placed = T_shared_odom is not None and np.isfinite(res.T_odom_cam).all()
     T_shared_cam = T_shared_odom @ res.T_odom_cam if placed else None
-    return LivePose(robot, index, timestamp_s, res.T_odom_cam.copy(), T_shared_cam, res.message is not None, res.agent)
+    measured = res.odometry_ok and bool(np.isfinite(res.T_odom_cam).all())
+    return LivePose(robot, index, timestamp_s, res.T_odom_cam.copy(), T_shared_cam, res.message is not None, res.agent,
+                    measured=measured)  # fmt: skip

@@ -270,3 +270,18 @@ def test_a_live_robot_stopped_in_its_with_block_writes_what_it_ran(tiny_scenario
     assert summary.interrupted and summary.frames_processed == 30
     times = np.loadtxt(tmp_path / "car2" / "car2_odometry_tum.txt")[:, 0]
     np.testing.assert_allclose(times, seq.timestamps_s[:30], atol=1e-6)
+
+
+def test_a_pose_the_odometry_only_predicted_says_so(tiny_scenario: Path, tmp_path: Path) -> None:
+    """A frame with no valid depth got a pose extrapolated from the last motion, returned like a measured one
+    (``skipped`` None, nothing logged): ``measured`` now tells them apart."""
+    seq = open_sequence(str(tiny_scenario / "car1"))
+    with LiveRun({"car1": seq.intrinsics}, tmp_path / "out") as live:
+        poses = give(live, seq, range(25))
+        f = seq[25]
+        poses += live.add_frame("car1", f.image_rgb, f.timestamp_s, depth_m=np.zeros_like(f.depth_m),
+                                label_ids=f.label_ids)  # fmt: skip
+        poses += give(live, seq, range(26, 28))
+    by_index = {p.index: p for p in poses}
+    assert not by_index[25].measured and by_index[25].skipped is None and np.isfinite(by_index[25].T_odom_cam).all()
+    assert by_index[24].measured and by_index[27].measured
