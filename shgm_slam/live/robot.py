@@ -13,7 +13,7 @@ import numpy as np
 
 from shgm_slam.config import ShgmConfig
 from shgm_slam.data.stream import FrameStream
-from shgm_slam.errors import ConfigError, DataError
+from shgm_slam.errors import ConfigError, DataError, ShgmError
 from shgm_slam.live.frames import LivePose, Warmup, live_config, pose_of
 from shgm_slam.types import DepthOrigin, Intrinsics
 
@@ -108,10 +108,18 @@ class LiveRobot:
             return [self._step(index)]
         self._held.append(index)  # (a running robot's: behind frames a Ctrl-C left held)
         if self._node is None:
-            self._warmup.offer(index)
-            if not self._warmup.ready:
-                return []
-            self._start()
+            try:
+                self._warmup.offer(index)
+                if not self._warmup.ready:
+                    return []
+                self._start()
+            except ShgmError as exc:
+                # its first frames cannot be used, a model's output is unusable, the server refused its name: each
+                # later frame would be held and refused again, so the robot takes no more frames
+                self._node, self._ended = None, f"it could not start ({exc})"
+                self._held.clear()
+                self._transport.close()
+                raise
         return self._run_held()
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -197,6 +205,7 @@ class LiveRobot:
                               "new LiveRobot for more frames")  # fmt: skip
 
     def _start(self) -> None:
+        """Make the robot's front end from its first frames and say hello to the server."""
         from shgm_slam.robot.node import RobotNode
 
         self._node = RobotNode(self._warmup.frontend(), self._transport)

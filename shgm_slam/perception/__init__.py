@@ -200,12 +200,13 @@ def make_perception(
     if cfg.depth_model is None and not sequence_has_depth:
         raise DataError(
             f"{which} has no depth (no depth/ folder; in memory, no depth_m) and no depth model is configured: set "
-            "perception.depth_model (an .onnx model with a YAML card next to it) or add depth PNGs"
+            "perception.depth_model (an .onnx model with a YAML card next to it) or give depth (depth/ PNGs; depth_m)"
         )
     if cfg.seg_model is None and not sequence_has_labels:
         raise DataError(
             f"{which} has no labels (no semantic/ folder; in memory, no label_ids) and no segmentation model is "
-            "configured: set perception.seg_model (an .onnx model with a YAML card next to it) or add label PNGs"
+            "configured: set perception.seg_model (an .onnx model with a YAML card next to it) or give labels "
+            "(semantic/ PNGs; label_ids)"
         )
     predicted = cfg.depth_model is not None or files_depth_predicted
     ground = GroundScale(cfg.camera_height_m) if predicted and cfg.camera_height_m is not None else None

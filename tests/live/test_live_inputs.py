@@ -285,3 +285,14 @@ def test_a_pose_the_odometry_only_predicted_says_so(tiny_scenario: Path, tmp_pat
     by_index = {p.index: p for p in poses}
     assert not by_index[25].measured and by_index[25].skipped is None and np.isfinite(by_index[25].T_odom_cam).all()
     assert by_index[24].measured and by_index[27].measured
+
+
+def test_a_live_robot_that_cannot_start_takes_no_more_frames() -> None:
+    """Frames without depth and no depth model: the first frame is refused naming the fix. The robot then held every
+    later frame and refused it again, the same error each call, its held frames growing; now it is closed."""
+    robot = LiveRobot("car1", K, connect=free_endpoint())
+    with pytest.raises(DataError, match=r"no depth.*perception\.depth_model"):
+        robot.add_frame(np.zeros((4, 8, 3), np.uint8), 0.0, label_ids=np.zeros((4, 8), np.uint8))
+    with pytest.raises(ConfigError, match=r"robot 'car1'.*could not start \(.*no depth.*start a new LiveRobot"):
+        robot.add_frame(np.zeros((4, 8, 3), np.uint8), 0.1, label_ids=np.zeros((4, 8), np.uint8))
+    assert len(robot.stream) == 1
