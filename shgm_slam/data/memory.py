@@ -148,7 +148,11 @@ class ArraySequence(IndexedFrames):
     def _depth_map(self, i: int, where: str) -> np.ndarray:
         depth = self._map(self._depth, i, where, "depth_m")
         if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.floating):
-            raise DataError(f"{where}: depth_m is {depth.dtype} {depth.shape}; give (H, W) float metres")
+            hint = ""
+            if depth.ndim == 2 and np.issubdtype(depth.dtype, np.integer):  # a depth sensor's or PNG's integers
+                hint = (" (millimetres, as depth cameras give them? depth / 1000.0; KITTI-style metres x 256 PNGs? "
+                        "depth / 256.0)")  # fmt: skip
+            raise DataError(f"{where}: depth_m is {depth.dtype} {depth.shape}; give (H, W) float metres{hint}")
         depth = depth.astype(np.float32, copy=True)
         depth[~(np.isfinite(depth) & (depth > 0))] = 0.0
         return depth

@@ -184,7 +184,7 @@ def test_intrinsics_of_numpy_scalars_or_whole_floats_become_plain_numbers() -> N
         ("images_rgb", np.zeros((24, 32, 3), np.float32), "the image is float32"),
         ("images_rgb", np.zeros((24, 31, 3), np.uint8), "expected 24 x 32"),
         ("images_rgb", np.zeros((24, 32, 4), np.uint8), r"give \(H, W, 3\) uint8 RGB"),
-        ("depth_m", np.zeros((24, 32), np.uint16), "depth_m is uint16"),
+        ("depth_m", np.zeros((24, 32), np.uint16), r"depth_m is uint16 .*millimetres.*depth / 1000\.0"),
         ("depth_m", np.zeros((12, 32), np.float32), "depth_m has shape"),
         ("label_ids", np.zeros((24, 32), np.float32), "label_ids is float32"),
         ("label_ids", np.full((24, 32), 300, np.int32), "outside 0-255"),
