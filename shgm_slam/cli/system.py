@@ -273,13 +273,26 @@ def robot_command(
                       + "; the map server keeps its keyframes: start the same command again to go on")  # fmt: skip
         raise typer.Exit(INTERRUPTED_EXIT_CODE)
     if not s.acknowledged:
-        console.print("[red]the map server did not acknowledge every keyframe (is it running? see --connect)[/red]")
+        console.print(_unacknowledged_text(s, connect, wait, out))
         raise typer.Exit(3)
     if not s.server_finished:
         console.print(f"[yellow]the map server had not finished after --wait {wait:g} s[/] (waiting for more "
                       "robots, --expect?): this robot's place may still change; the server's results folder "
                       "holds the final trajectories")  # fmt: skip
         raise typer.Exit(4)
+
+
+def _unacknowledged_text(s, connect: str | None, wait: float, out: Path | None) -> str:
+    """What ``robot`` says when the map server did not acknowledge every keyframe (``DriveSummary`` ``s``): that no
+    server ever answered at ``connect``, or that the one it had stopped or was lost, with what to do."""
+    kept = f"; this robot's own trajectories are in {lit(out)}" if out else ""
+    if not any(s.bytes_received.values()):
+        endpoint = lit(connect or "tcp/127.0.0.1:7447")
+        return (f"[red]no map server answered at {endpoint}[/red] (is it running there? see --connect): it holds none "
+                f"of this robot's keyframes{kept}")  # fmt: skip
+    return (f"[red]the map server did not acknowledge every keyframe within --wait {wait:g} s[/red]: it stopped or "
+            f"could not be reached (see the lines above); start it again on its --out (it resumes) and this robot "
+            f"again to send the rest{kept}")  # fmt: skip
 
 
 @app.command("demo")

@@ -14,7 +14,9 @@ code path). The node
   (``fused``);
 - after its last frame sends a ``DoneMessage`` with its per-frame odometry, re-sends it until the
   server's status says the robot is done (a done sent while the server still held a restarted robot's
-  hello back is ignored, so it must come again), and waits (bounded) until the server holds every keyframe.
+  hello back is ignored, so it must come again), and waits (bounded) until the server holds every keyframe;
+- says (a log warning) when no map server has answered for ``SERVER_SILENT_S``, when the one it had goes silent
+  and when it finishes without all of this robot's keyframes, and goes on keeping them for a server that resumes.
 """
 
 from __future__ import annotations
@@ -49,6 +51,10 @@ log = logging.getLogger(__name__)
 
 HEARTBEAT_S = 0.5
 """A robot says hello this often (its heartbeat)."""
+
+SERVER_SILENT_S = 10.0
+"""A robot that has heard no map server for this long (none has answered since it started, or the one it had went
+silent) says so, once until it hears one again; it goes on and keeps what the server has not acknowledged."""
 
 DONE_RESEND_MAX_S = 30.0
 """Until the server's status says it holds a robot's done, the robot re-sends it after ``resend_after_s``,
@@ -103,6 +109,10 @@ class RobotNode:
         self._done_held = False  # the server's latest status says it holds the done (this robot is DONE)
         self.server_session: str | None = None
         self.server_finished = False
+        self._server_heard_s = self.clock()  # when the map server last spoke (from the start: none yet)
+        self._silence_said = False  # its silence was said (``_check_server_silence``) and it has not spoken since
+        self._unfinished_said: str | None = None  # the server session said to have finished without this robot
+        self._server_keyframes: int | None = None  # of this robot's keyframes, those in the server's map (status)
         self.provisional_agents: tuple[str, ...] = ()  # its agents the server placed provisionally (status)
         self.waiting_agents: tuple[str, ...] = ()  # its unplaced agents with too few independent matches (status)
         self.bytes_sent: dict[str, int] = {"hello": 0, "keyframe": 0, "done": 0}
@@ -209,11 +219,13 @@ class RobotNode:
             elif isinstance(msg, StatusMessage):
                 self.bytes_received["status"] += len(payload)
                 self._status(msg)
+        self._check_server_silence()
         self._resend_stalled()
 
     def _correction(self, msg: CorrectionMessage) -> None:
         if msg.session not in ("", self.session):
             return
+        self._server_heard_s = self.clock()  # (said to be back, if it was silent, with its next status)
         self._server_answered = True
         now = self.clock()
         for agent, n in msg.received.items():
@@ -236,6 +248,7 @@ class RobotNode:
         refusal = msg.refused.get(self.name)
         if refusal is not None and refusal.startswith(self.session + ":"):
             raise ProtocolError(f"the map server refused robot {self.name!r}: {refusal.partition(':')[2].strip()}")
+        self._server_spoke(msg.server_session)
         if msg.server_session != self.server_session:
             if self.server_session is not None:
                 log.warning("%s: the map server restarted; resuming with it", self.name)
@@ -249,11 +262,41 @@ class RobotNode:
         self.server_finished = msg.finished
         mine = msg.robots.get(self.name)
         self._done_held = mine is not None and mine.state is RobotState.DONE
+        self._server_keyframes = mine.keyframes if mine is not None else None
+        if msg.finished and not self._done_held and self._unfinished_said != msg.server_session:
+            self._unfinished_said = msg.server_session
+            log.warning("%s: the map server finished before this robot was done (it was stopped?): its results hold "
+                        "%d of the %d keyframes this robot made so far; start it again on the same --out (it resumes) "
+                        "and this robot sends it the rest", self.name, mine.keyframes if mine is not None else 0,
+                        self.keyframes_sent)  # fmt: skip
         self.provisional_agents = mine.provisional_agents if mine is not None else ()
         self.waiting_agents = mine.waiting_agents if mine is not None else ()
         if mine is not None and mine.segments_allowed and mine.segments_allowed != self.front.max_segments:
             log.info("%s: the map server allows it %d trajectory segments", self.name, mine.segments_allowed)
             self.front.max_segments = mine.segments_allowed  # its share of the pose graph: stop at the last one
+
+    def _server_spoke(self, server_session: str) -> None:
+        """A status of map server ``server_session`` arrived: it is not silent. After a silence was said, say that a
+        server answers (one other than the server heard before is said to have restarted, in ``_status``)."""
+        if self._silence_said and self.server_session in (None, server_session):
+            log.warning("%s: the map server answers %s", self.name,
+                        "now" if self.server_session is None else "again")  # fmt: skip
+        self._server_heard_s, self._silence_said = self.clock(), False
+
+    def _check_server_silence(self) -> None:
+        """Say once (``SERVER_SILENT_S``) that no map server has answered since this robot started, or that the one
+        it had went silent; not once the server said it finished (it then leaves)."""
+        silent_s = self.clock() - self._server_heard_s
+        if self._silence_said or self.server_finished or silent_s < SERVER_SILENT_S:
+            return
+        self._silence_said = True
+        if self.server_session is None:
+            log.warning("%s: no map server has answered in %.0f s (is it running? does --connect name its endpoint?); "
+                        "this robot goes on and sends its keyframes once one answers", self.name, silent_s)  # fmt: skip
+        else:
+            log.warning("%s: the map server has been silent for %.0f s (stopped, or the link is down?); this robot "
+                        "goes on and keeps its keyframes until it answers again (a server started again on the same "
+                        "--out resumes)", self.name, silent_s)  # fmt: skip
 
     def _resend_stalled(self) -> None:
         now = self.clock()
@@ -296,7 +339,22 @@ class RobotNode:
             self.poll(timeout_s=0.1)
             if self.all_acknowledged() and (self.server_finished or not until_finished):
                 return True
+        if until_finished:
+            self._say_unjournaled()
         return False
+
+    def _say_unjournaled(self) -> None:
+        """Leaving before the server finished: say when keyframes it acknowledged are not in its map yet. It
+        acknowledges a keyframe when it queues it for its turn in the time order over all robots, and journals it
+        only when it takes it into the map: a server killed meanwhile loses it (the robot must be started again)."""
+        made = sum(len(sent) for a, sent in self._payloads.items() if self._allowed(a))
+        held = self._server_keyframes
+        if held is None or held >= made or not self.all_acknowledged():
+            return
+        log.warning("%s: %d of its %d keyframes wait in the map server's memory for their turn (keyframes are taken in "
+                    "time order over all robots) and are not in its journal yet: were the server killed before it "
+                    "takes them, start this robot again to send them (a longer --wait stays until they are in)",
+                    self.name, made - held, made)  # fmt: skip
 
     def fused(self) -> np.ndarray | None:
         """(N, 4, 4) this robot's frames in the shared frame from the latest corrections (NaN for frames

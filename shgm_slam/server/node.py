@@ -16,7 +16,8 @@ next to its robots, ``shgm-slam server`` drives one over Eclipse Zenoh. The node
   killed server started again on the same results folder loads the newest snapshot, replays the journal
   records after it and continues (``recovery``);
 - finishes by itself once ``expect`` robots have connected and each has sent its last keyframe: whole
-  graphs are matched once more, the results folder is written and every robot gets its final correction.
+  graphs are matched once more, the results folder is written and every robot gets its final correction;
+  after that nothing changes its results: a robot process it does not hold is refused (it stops with the reason).
 """
 
 from __future__ import annotations
@@ -75,6 +76,16 @@ session has been silent this long the newcomer is a restart and takes over (robo
 CONNECT_WAIT_S = 30.0
 """With ``expect``, keyframes wait (in the server's time order, ``ordering``) at most this long after the
 server started for the expected robots that have not connected yet."""
+
+
+def finished_reason(interrupted: bool) -> str:
+    """Why a map server that has finished refuses a robot process it does not hold, and what to do
+    (``interrupted``: it was stopped before every expected robot was done)."""
+    if interrupted:
+        return ("the map server was stopped and has written its results; start it again on the same --out (it "
+                "resumes from its journal), then this robot")
+    return ("the map server has finished (every robot it expected was done) and written its results; run this "
+            "robot with a new map server (another --out)")
 
 
 class ServerNode:
@@ -237,6 +248,8 @@ class ServerNode:
             return None, []
         if live:
             self.traffic.add(kind, len(payload), robot)
+        if self.finished:
+            return self._after_finish(msg, robot), []
         now = self.clock()
         if isinstance(msg, HelloMessage):
             return self._hello(msg, payload, now, live=live), []
@@ -260,6 +273,23 @@ class ServerNode:
             rs.state = RobotState.DONE  # it sent its last keyframe (the status tells it the done arrived)
             return robot, []
         return robot, self._keyframe(rs, msg, payload, live=live)
+
+    def _after_finish(self, msg: HelloMessage | KeyframeMessage | DoneMessage, robot: str) -> str | None:
+        """A message that came after the server finished (it lingers so every robot gets its final correction): its
+        results are written, so nothing changes them, its summary or its journal any more. The current process of a
+        robot it holds is answered (its keyframes held: a robot that was still sending learns what the results
+        lack); a robot process it does not hold (a newcomer, or one started again) is refused with what to do, so
+        it stops instead of being acknowledged into results that no longer take it in."""
+        rs = self.robots.get(robot)
+        if rs is not None and rs.session == msg.session:
+            return robot
+        if isinstance(msg, HelloMessage):
+            reason = finished_reason(self.interrupted)
+            if self._refused.get(robot) != f"{msg.session}: {reason}":
+                self._refused[robot] = f"{msg.session}: {reason}"
+                self._refuse(f"hello of {robot} (session {msg.session}): {reason}")
+                self._broadcast_status()
+        return None
 
     def _hello(self, msg: HelloMessage, payload: bytes, now: float, *, live: bool) -> str | None:
         if not self._same_settings(msg, live=live):
@@ -549,7 +579,22 @@ class ServerNode:
                      report.seconds, report.snapshot_records, report.replayed,
                      ", ".join(f"{r} {sum(self._map().received(a) for a in rs.kf_frames)} keyframes"
                                for r, rs in self.robots.items()))  # fmt: skip
+            self._say_missing_keyframes()
         return report
+
+    def _say_missing_keyframes(self) -> None:
+        """After recovery: name each robot that had sent its last keyframe but whose keyframes the journal lacks.
+        Keyframes waiting for their turn in the time order (``ordering``) are acknowledged before they are
+        journaled, so a robot that left (``robot --wait`` over) with some still waiting lost them with the server;
+        it must be started again to send them (the server waits for them and never finishes by itself before)."""
+        for name, rs in self.robots.items():
+            if rs.done is None or rs.complete(self._map(), dropped=self._dropped):
+                continue
+            made = sum(n for a, n in rs.done.keyframes.items() if a not in self._dropped)
+            held = sum(self._map().received(a) for a in rs.done.keyframes if a not in self._dropped)
+            log.warning("%s: the journal holds %d of the %d keyframes it sent (the others were waiting for their turn "
+                        "when the server stopped); start robot %s again (its same command) to send them", name, held,
+                        made, name)  # fmt: skip
 
     def _replay(self, payload: bytes, index: int) -> None:
         """Apply journal record ``index`` (only accepted messages, each from its own robot)."""

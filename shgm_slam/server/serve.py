@@ -8,6 +8,7 @@ SIGTERM (then whole graphs are matched once more and the results written all the
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections.abc import Callable
@@ -18,6 +19,7 @@ import numpy as np
 
 from shgm_slam.agents import agent_robot
 from shgm_slam.config import ShgmConfig
+from shgm_slam.errors import DataError
 from shgm_slam.geometry import se3
 from shgm_slam.interrupts import stops_deferred
 from shgm_slam.messages import RobotState
@@ -48,7 +50,9 @@ def _state_line(name: str, state: RobotState, robots: int, expect: int | None) -
     """``car1: connected (1 of 3 robots expected)``, ``car1: silent (stale)``, ``car1: done`` ..."""
     text = {RobotState.ACTIVE: "connected", RobotState.STALE: "silent (stale; kept, it resumes when it returns)",
             RobotState.DONE: "sent its last keyframe"}[state]  # fmt: skip
-    if state is RobotState.ACTIVE and expect:
+    if state is RobotState.ACTIVE and expect and robots > expect:  # (it waits for every robot that connected)
+        text += f" ({robots} robots, {expect} expected: the server waits for all {robots})"
+    elif state is RobotState.ACTIVE and expect:
         text += f" ({robots} of {expect} robots expected)"
     return f"{name}: {text}"
 
@@ -64,6 +68,7 @@ class ServerView:
         self.say = say  # robots joining, going stale, coming back and done, as lines (the command line prints them)
         self._last: dict[str, float] = {}
         self._states: dict[str, str] = {}
+        self._sessions: dict[str, str] = {}  # robot -> the process (session) last seen
         self._placements = PlacementWatch()
 
     def _tell(self, node: ServerNode, name: str, state: RobotState) -> None:
@@ -72,12 +77,29 @@ class ServerView:
         if self.say is not None:
             self.say(_state_line(name, state, len(node.robots), node.expect))
 
+    def recovered(self, node: ServerNode) -> None:
+        """Take the robots a restarted server recovered from its journal as they stand, said once as recovered
+        (they used to be said to connect, though none had yet); what changes later is said as it happens."""
+        for name, rs in node.robots.items():
+            self._states[name], self._sessions[name] = rs.state.value, rs.session
+            held = sum(node.map.received(a) for a in rs.kf_frames) if node.map is not None else 0
+            line = f"{name}: recovered from the journal ({held} keyframes{'; it had sent its last' if rs.done else ''})"
+            self.viz.log_text(line, "INFO")
+            if self.say is not None:
+                self.say(line)
+
     def update(self, node: ServerNode, records: list[MatchRecord]) -> None:
         server = node.map
         if server is None:
             return
         now = time.monotonic()
         for name, rs in node.robots.items():
+            if self._sessions.setdefault(name, rs.session) != rs.session:  # killed and started again
+                self._sessions[name] = rs.session
+                line = f"{name}: started again (a new process); it goes on from the keyframes the server holds"
+                self.viz.log_text(line, "INFO")
+                if self.say is not None:
+                    self.say(line)
             if self._states.get(name) != rs.state.value:
                 if name not in self._states and rs.state is not RobotState.ACTIVE:
                     # it connected and got further (done) within one poll: its hello and its done came in one
@@ -149,7 +171,9 @@ def serve(
 
     Raises:
         TransportError, ConfigError: the endpoint cannot be listened on.
+        DataError: ``out_dir`` holds a map server run that finished (``refuse_finished_folder``).
     """
+    refuse_finished_folder(out_dir)
     viz = viz or NullLogger()
     viz.setup({})
     t0 = time.perf_counter()
@@ -166,6 +190,8 @@ def serve(
         if started is not None:
             started(resumed)
         view = ServerView(viz, say=say)
+        if resumed:
+            view.recovered(node)
         try:
             while not node.finished:
                 with stops_deferred():  # a stop lands between messages, never inside one
@@ -175,14 +201,62 @@ def serve(
             interrupted = True
             node.interrupted = True  # server.json says so: the folder is not a finished run's
             log.warning("stopping: matching whole graphs once more and writing the results")
-            records = node.finish()
-            view.update(node, records)
+            _finish_stopped(node, view)
         except Exception as exc:  # re-raised: the folder's files are a checkpoint, not the results
             node.writer.mark_failed(exc, RESUME_ADVICE)  # eval refuses the folder until a server finishes it
             raise
-        linger_until = time.monotonic() + LINGER_S
-        while time.monotonic() < linger_until:
-            node.poll(timeout_s=0.1)
+        summary = node.summary()  # as server.json says it (what comes while it lingers changes nothing)
+        if not _linger(node, LINGER_S) and not interrupted:
+            raise KeyboardInterrupt  # a stop after the results were written ends the command as before (130)
     viz.close()
-    return ServeSummary(Path(out_dir), node.summary(), interrupted, time.perf_counter() - t0)
+    return ServeSummary(Path(out_dir), summary, interrupted, time.perf_counter() - t0)
+
+
+def _finish_stopped(node: ServerNode, view: ServerView) -> None:
+    """Finish a server stopped by Ctrl-C / SIGTERM: match whole graphs once more and write the results. A second
+    stop meanwhile (an impatient Ctrl-C) waits until they are written, then only cuts short the linger (it used
+    to end the process in the middle of the final matching, with the folder a checkpoint and one word said)."""
+    try:
+        with stops_deferred():
+            records = node.finish()
+    except KeyboardInterrupt:
+        log.warning("stopped again: the results are written; not waiting for the robots' final corrections")
+        return
+    view.update(node, records)
+
+
+def _linger(node: ServerNode, seconds: float) -> bool:
+    """Keep answering for ``seconds`` after finishing, so every robot gets its final correction; False when a stop
+    (Ctrl-C / SIGTERM) cut it short."""
+    until = time.monotonic() + seconds
+    try:
+        while time.monotonic() < until:
+            with stops_deferred():
+                node.poll(timeout_s=0.1)
+    except KeyboardInterrupt:
+        return False
+    return True
+
+
+def refuse_finished_folder(out_dir: Path) -> None:
+    """Refuse a results folder whose map server finished (``server.json``: finished, not interrupted). Its journal
+    would be replayed into a server that finishes at once (every expected robot done: robots of a new run then
+    find no server), or, without ``expect``, that takes new robots of the same names for the old ones started
+    again and ignores their keyframes up to the number the old ones sent. A stopped server's folder
+    (``interrupted``) is resumed as before.
+
+    Raises:
+        DataError: naming the folder and what to do.
+    """
+    path = Path(out_dir) / "server.json"
+    try:
+        said = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError):
+        return  # none (a new folder or a killed server's), or unreadable: the journal is what is resumed
+    if isinstance(said, dict) and said.get("finished") is True and not said.get("interrupted"):
+        raise DataError(
+            f"results folder {out_dir} holds a map server run that finished ({path.name}: every expected robot was "
+            "done); a server started on it would replay that run, not start a new one: choose another --out, or "
+            "pass --overwrite to replace it"
+        )
 

@@ -76,7 +76,8 @@ class TransportMode(Enum):
 
 
 def parse_endpoints(spec: str | Sequence[str] | None) -> list[str]:
-    """Endpoints from ``"tcp/h:p"``, ``"tcp/h:p,tcp/h2:p2"`` or a list; ConfigError if malformed."""
+    """Endpoints from ``"tcp/h:p"``, ``"tcp/h:p,tcp/h2:p2"`` or a list ([] for None or an empty list); ConfigError
+    if malformed, or for a string that names none (``""`` is not the default endpoint, which None stands for)."""
     if spec is None:
         return []
     items = spec.split(",") if isinstance(spec, str) else list(spec)
@@ -98,6 +99,8 @@ def parse_endpoints(spec: str | Sequence[str] | None) -> list[str]:
                     f"for example {DEFAULT_ENDPOINT!r}"
                 )
         endpoints.append(endpoint)
+    if not endpoints and isinstance(spec, str):  # ("--connect ''" from an unset variable meant the default one)
+        raise ConfigError(f"no endpoint given ({spec!r}); give one in Zenoh syntax, for example {DEFAULT_ENDPOINT!r}")
     return endpoints
 
 
