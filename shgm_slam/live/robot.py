@@ -31,8 +31,9 @@ class LiveRobot:
     server's corrections. Between frames, ``poll`` keeps the link alive (the server takes a robot silent for long as
     gone). ``finish`` tells the server the robot is done and waits (at most ``wait_s``) until it holds every
     keyframe and has finished. Leaving a ``with`` block finishes it too: on a Ctrl-C (or ``sys.exit``) as
-    ``shgm-slam robot`` does (the frames run so far are sent as done and written, without waiting for the server
-    to finish); on an error the link is closed (the server keeps what it holds) and the robot takes no more frames.
+    ``shgm-slam robot`` does (its trajectories so far written; the server, not told the robot is done, keeps it and
+    a robot of its name started again resumes it); on an error the link is closed (the server keeps what it holds)
+    and the robot takes no more frames.
 
     Args:
         name: the robot's name (unique in the fleet).
@@ -164,7 +165,8 @@ class LiveRobot:
             if not interrupted:
                 self._run_held()
             node = self._node
-            node.done()
+            if not interrupted:  # a stopped robot is not done: the server keeps it and a robot of its name resumes
+                node.done()
             acknowledged = node.wait_acknowledged(self.wait_s, until_finished=not interrupted)
             if not node.all_acknowledged():
                 log.warning("%s: the map server did not acknowledge every keyframe within %.0f s", self.name,
@@ -191,7 +193,7 @@ class LiveRobot:
         if kind is None:
             self.finish()
         elif not issubclass(kind, Exception) and self._node is not None:  # a Ctrl-C, sys.exit: as shgm-slam robot
-            self._finish(interrupted=True)  # (the frames run so far sent as done, its trajectories written)
+            self._finish(interrupted=True)  # (its trajectories so far written; not done on the server)
         else:  # an error: the link goes; the server keeps what it holds and waits for the robot
             self._ended = f"its with block was left by {kind.__name__}: {exc}"
             self._transport.close()

@@ -110,7 +110,8 @@ def drive_robot(
                     progress(i + 1, len(sequence))
         except KeyboardInterrupt:
             interrupted = True
-        node.done()
+        if not interrupted:  # a stopped robot is not done: the server keeps it (stale) and the same command resumes
+            node.done()
         acknowledged = node.wait_acknowledged(wait_s, until_finished=not interrupted)
         if not node.all_acknowledged():
             log.warning("%s: the map server did not acknowledge every keyframe within %.0f s", name, wait_s)

@@ -248,8 +248,8 @@ def test_a_live_robot_whose_link_closed_takes_no_more_frames(tmp_path: Path) -> 
 
 def test_a_live_robot_stopped_in_its_with_block_writes_what_it_ran(tiny_scenario: Path, tmp_path: Path,
                                                                    monkeypatch) -> None:  # fmt: skip
-    """A Ctrl-C in a ``LiveRobot``'s block closed its link without a word to the server and wrote nothing to
-    ``out`` (``shgm-slam robot`` tells the server it is done and writes its trajectories); a Ctrl-C between its held
+    """A Ctrl-C in a ``LiveRobot``'s block closed its link and wrote nothing to ``out`` (``shgm-slam robot`` writes
+    its trajectories and leaves the server holding it, not done); a Ctrl-C between its held
     frames dropped the rest. Here the stop lands in the 5th held frame; the robot is fed on, then stopped."""
     from shgm_slam.robot.node import RobotNode
 
@@ -263,11 +263,14 @@ def test_a_live_robot_stopped_in_its_with_block_writes_what_it_ran(tiny_scenario
                 for given in range(len(seq)):
                     give(robot, seq, [given])
             monkeypatch.undo()
+            done_calls: list[str] = []
+            monkeypatch.setattr(RobotNode, "done", lambda self: done_calls.append(self.name))
             poses = give(robot, seq, range(given + 1, 30))
             assert [p.index for p in poses] == list(range(5, 30))
             raise KeyboardInterrupt
     summary = robot.finish()
     assert summary.interrupted and summary.frames_processed == 30
+    assert done_calls == []  # not done on the server: it keeps the robot, and one of its name resumes it
     times = np.loadtxt(tmp_path / "car2" / "car2_odometry_tum.txt")[:, 0]
     np.testing.assert_allclose(times, seq.timestamps_s[:30], atol=1e-6)
 
