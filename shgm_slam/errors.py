@@ -37,6 +37,10 @@ class BackendError(ShgmError):
     """The pose graph back end failed (for example an indeterminate system)."""
 
 
+class RunError(ShgmError):
+    """A run did not go as its results would claim (a robot's front end lost mid-run), so what measures it stops."""
+
+
 class ProtocolError(ShgmError):
     """A message from a peer is malformed, of another protocol version, or from a clashing robot."""
 

@@ -101,6 +101,9 @@ class RobotReport:
     # nearest one a factor ties to the shared frame (a closure's end; the prior for the first robot), the most over
     # its placed segments (``MapServer.path_from_closures_m``); None when no segment is placed
     path_from_closures_m: float | None = None
+    # why its front end was lost mid-run (its worker process died, or failed on an error: a fault of the program or
+    # the machine, not of the data); its later frames were skipped. None: it ran to its end
+    front_end_lost: str | None = None
 
 
 @dataclass
@@ -120,6 +123,11 @@ class RunSummary:
     pairs: list[PairMatches] = field(default_factory=list)  # how the matches between each two robots went
     last_looks: list[str] = field(default_factory=list)  # ``MapServer.last_looks``: what each last look found
     ate_joint_m: float = float("nan")  # all placed robots' fused poses under one joint SE(3) fit, RMSE, metres
+
+    @property
+    def front_ends_lost(self) -> list[str]:
+        """Why each robot whose front end was lost mid-run lost it (``RobotReport.front_end_lost``)."""
+        return [r.front_end_lost for r in self.robots if r.front_end_lost]
 
     def to_json_dict(self) -> dict:
         return {

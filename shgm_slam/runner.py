@@ -27,7 +27,7 @@ from shgm_slam.odometry.stillness import ImageChange
 from shgm_slam.robot.build import make_frontend
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
 from shgm_slam.robot.node import RobotNode
-from shgm_slam.robot.remote import ParallelFrontends
+from shgm_slam.robot.remote import FrontendLostError, ParallelFrontends
 from shgm_slam.run_report import (
     FrameStats,
     RobotReport,
@@ -321,6 +321,7 @@ class FleetRun:
         self._write_config()
         self.timings = StageTimings()
         self.skipped: list[str] = []
+        self.lost: dict[str, str] = {}  # robot -> why its front end was lost (``FrontendLostError``)
         self.processed = dict.fromkeys(names, 0)
         self.reached = dict.fromkeys(names, 0)  # frames whose turn came (the rest: not reached, the run interrupted)
         self.image_change = {r: ImageChange() for r in names}
@@ -379,6 +380,8 @@ class FleetRun:
             res = self.nodes[robot].step(index)
         except DataError as exc:
             self.skipped.append(f"{robot} frame {index}: {exc}")
+            if isinstance(exc, FrontendLostError) and not exc.repeat:
+                self.lost[robot] = f"at frame {index}: {exc}"
             if not getattr(exc, "repeat", False):  # a lost worker costs every later frame: said once
                 viz.log_text(f"{robot}: skipped frame {index}: {exc}", "WARN")
             return None
@@ -444,6 +447,8 @@ class FleetRun:
         reports, ate_joint_m = evaluate(fronts, server, joined, self.processed, self.gt_shared_frame, self.reached)
         report_placement(reports, fronts, server)
         report_degenerate(reports, fronts, self.image_change)
+        for rep in reports:
+            rep.front_end_lost = self.lost.get(rep.name)
         _say_warnings(reports, viz)
         accepted = sum(m.accepted for m in server.matches)
         summary = RunSummary(

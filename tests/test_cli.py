@@ -321,3 +321,23 @@ def test_demo_refuses_its_out_or_rerun_before_rendering_the_world(tmp_path, monk
     assert ("--overwrite" in res.output) if args[1] == "save" else ("choose spawn, save, connect or off" in res.output)
     if args[1] == "save":
         assert sorted(p.name for p in out.iterdir()) == ["metrics.json"]  # untouched, no lock file left
+
+
+def test_a_run_that_lost_a_robot_s_front_end_exits_1_saying_so(capsys) -> None:
+    """A robot whose front end failed in its worker process: the run writes its results and used to exit 0, its
+    robot's frames "skipped" among unreadable ones; now it says so in red and exits 1 (130 when stopped)."""
+    from types import SimpleNamespace
+
+    import typer
+
+    from shgm_slam.cli.system import FRONT_END_LOST_EXIT_CODE, _exit_for
+
+    lost = SimpleNamespace(interrupted=False, front_ends_lost=["at frame 3: car2: its front end failed (a bug)"])
+    with pytest.raises(typer.Exit) as info:
+        _exit_for(lost)
+    assert info.value.exit_code == FRONT_END_LOST_EXIT_CODE == 1
+    assert "front end was lost at frame 3: car2" in " ".join(capsys.readouterr().out.split())
+    with pytest.raises(typer.Exit) as info:
+        _exit_for(SimpleNamespace(interrupted=True, front_ends_lost=lost.front_ends_lost))
+    assert info.value.exit_code == 130
+    _exit_for(SimpleNamespace(interrupted=False, front_ends_lost=[]))  # a whole run: exit 0

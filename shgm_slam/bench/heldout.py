@@ -47,7 +47,7 @@ from shgm_slam.config import ShgmConfig
 from shgm_slam.data import open_sequence
 from shgm_slam.demo import demo_model_paths
 from shgm_slam.environment import environment
-from shgm_slam.errors import ConfigError, DataError, SimulationError
+from shgm_slam.errors import ConfigError, DataError, RunError, SimulationError
 from shgm_slam.io.json_text import to_json_text
 from shgm_slam.robot.remote import default_jobs
 from shgm_slam.runner import open_robots, replay_backend
@@ -176,11 +176,18 @@ def run_one(world: Path, mode: InputMode, run_dir: Path, max_frames: int | None,
 
     Raises:
         RunStopped: the run was stopped (Ctrl-C): it is neither judged nor cached, so a resume runs it again.
+        RunError: a robot's front end was lost mid-run (its worker died or failed on an error): its robot would
+            count as not placed, a fault of the program or the machine judged as the system's verdict. Neither
+            judged nor cached: the benchmark stops, and once the fault is fixed a resume runs it again.
     """
     names = _robots_of(world)
     cut = f":0-{max_frames}" if max_frames else ""
     robots = open_robots([f"{r}={world / r}{cut}" for r in names])
     summary = run_to_end(robots, heldout_config(mode), run_dir, journal=True, jobs=default_jobs(len(robots), jobs))
+    if summary.front_ends_lost:
+        raise RunError(f"{run_dir.name}: a robot's front end was lost {summary.front_ends_lost[0]}; the run is "
+                           "not judged (its robots would count as not placed): fix the fault, then run the same "
+                           "benchmark again to resume")  # fmt: skip
     return json.loads(json.dumps(summary.to_json_dict(), default=float))
 
 

@@ -80,8 +80,24 @@ def run(
     cfg = _apply_run_options(load_config(config), odometry, depth_model, seg_model)
     summary = _run_command(robot, cfg, out, rerun, rerun_url, gt_shared_frame, overwrite, jobs)
     render_summary(summary)
+    _exit_for(summary)
+
+
+FRONT_END_LOST_EXIT_CODE = 1
+"""``run`` and ``demo`` exit with this when a robot's front end was lost mid-run (``RobotReport.front_end_lost``):
+the results are written, but hold that robot only up to where it was lost."""
+
+
+def _exit_for(summary) -> None:
+    """End a finished ``run`` or ``demo`` with its exit code: 130 when it was stopped, ``FRONT_END_LOST_EXIT_CODE``
+    when a robot's front end was lost (said in red first), else 0."""
     if summary.interrupted:
         raise typer.Exit(INTERRUPTED_EXIT_CODE)
+    for why in summary.front_ends_lost:
+        console.print(f"[red]a robot's front end was lost {lit(why)}[/]: the results hold that robot only up to "
+                      "there; run again (--jobs 1 shows the error where it happens)")  # fmt: skip
+    if summary.front_ends_lost:
+        raise typer.Exit(FRONT_END_LOST_EXIT_CODE)
 
 
 def _apply_run_options(cfg, odometry: str | None, depth_model: Path | None, seg_model: Path | None):
@@ -331,6 +347,7 @@ def demo(
         console.print(f"open the recording with: [bold]{lit(viewer_command())} {lit(out / 'run.rrd')}[/]")
     console.print(f"evaluate against ground truth: [bold]shgm-slam eval {lit(out)}[/] or "
                   f"[bold]evo_ape tum {lit(out / 'car2_gt_tum.txt')} {lit(out / 'car2_fused_tum.txt')}[/]")
+    _exit_for(summary)
 
 
 def viewer_command() -> str:

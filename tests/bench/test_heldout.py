@@ -226,3 +226,29 @@ def test_kitti_paths_worlds_without_kitti_poses_are_refused_before_any_world_run
     for seq in heldout.KITTI_DRIVE_PAIRS[1]:
         (tmp_path / "kitti" / "poses" / f"{seq.split(':')[0]}.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
     heldout.check_kitti_poses(replace(options, kitti_root=tmp_path / "kitti"))  # seed 1's drives are there
+
+
+def test_a_run_that_lost_a_robot_s_front_end_is_refused_not_judged(tiny_scenario, tmp_path, monkeypatch):
+    """A front end that failed in its worker process (a bug, or code changed under a running benchmark) skipped all
+    of its robot's frames, and the benchmark judged the run: 10 robot-worlds "not placed", the reference "not
+    within", a table that measured the fault instead of the system. Now the benchmark stops naming it, caches
+    nothing for that run, and the same command resumes once the fault is fixed."""
+    import shgm_slam.bench.heldout as heldout
+    import shgm_slam.bench.stopping as stopping
+    from shgm_slam.errors import RunError
+
+    monkeypatch.setattr(heldout, "ensure_world", lambda *args, **kwargs: tiny_scenario)
+    real_run = stopping.run_slam
+
+    def lost_car2(robots, cfg, out, **kwargs):
+        summary = real_run(robots, cfg, out, **kwargs)
+        summary.robots[1].front_end_lost = "at frame 0: car2: its front end failed in its worker process (a bug)"
+        return summary
+
+    monkeypatch.setattr(stopping, "run_slam", lost_car2)
+    options = heldout.HeldoutOptions(scenarios=("airsim-like",), seeds=(1,), modes=(InputMode.FILES,),
+                                     max_frames=12, cache=tmp_path / "cache")  # fmt: skip
+    with pytest.raises(RunError, match=r"airsim-like-s1-files: a robot's front end was lost at frame 0: car2: .*"
+                                       r"not judged.*resume"):  # fmt: skip
+        heldout.run_heldout_benchmark(tmp_path / "out", options)
+    assert not (tmp_path / "out" / "runs" / "airsim-like-s1-files" / "verdicts.json").exists()

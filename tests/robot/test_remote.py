@@ -195,6 +195,10 @@ def test_a_dead_worker_costs_its_robots_remaining_frames_only(tiny_scenario: Pat
         t, _ = read_tum(out / "car2_odometry_tum.txt")
         assert len(t) == done  # what it did before it died is kept
         assert json.loads((out / "metrics.json").read_text())["robots"][1]["frames_processed"] == done
+        # said as a fault of its own, not as skipped data: the command exits 1, a benchmark refuses the run
+        assert summary.front_ends_lost == [car2.front_end_lost] and said in car2.front_end_lost
+        assert car2.front_end_lost.startswith(f"at frame {done}: car2:")
+        assert all(r.front_end_lost is None for r in reports.values())
 
 
 def test_a_sequence_that_cannot_go_to_a_worker_is_a_clear_error(tiny_scenario: Path, tmp_path: Path) -> None:
