@@ -42,3 +42,15 @@ def tiny_scenario(tmp_path_factory: pytest.TempPathFactory) -> Path:
     options = dict(TINY_SCENARIO)
     simulate(options.pop("scenario"), out, **options)
     return out
+
+
+@pytest.fixture
+def python_ctrl_c():
+    """Ctrl-C raises KeyboardInterrupt through Python's own handler for the test, whatever an earlier test's
+    libraries (a Rerun or Zenoh runtime registers native signal handlers) or pytest-xdist's workers (which ignore
+    SIGINT) left installed; put back after."""
+    import signal
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)

@@ -106,7 +106,8 @@ def test_plain_and_rgb_only_demos_write_separate_results(monkeypatch, tmp_path):
 
     outs = []
     monkeypatch.setattr(demo, "prepare_world", lambda cache, seed, fn: (tmp_path, {"car1": "car"}))
-    monkeypatch.setattr(system, "_run_command", lambda robots, cfg, out, *a: outs.append(out) or SimpleNamespace())
+    monkeypatch.setattr(system, "_run_command", lambda robots, cfg, out, *a: outs.append(out) or SimpleNamespace(
+        interrupted=False, front_ends_lost=[]))
     monkeypatch.setattr(system, "render_summary", lambda summary: None)
     for args in ([], ["--rgb-only"], ["--out", str(tmp_path / "mine")]):
         res = CliRunner().invoke(cli.app, ["demo", "--rerun", "off", *args])
@@ -136,7 +137,7 @@ def test_a_demo_whose_first_render_was_interrupted_renders_again(monkeypatch, tm
         (out / "scenario.json").write_text('{"robots": [{"name": "car1", "kind": "car"}]}')
 
     monkeypatch.setattr("shgm_slam.sim.cache.simulate", fake_simulate)
-    monkeypatch.setattr(system, "_run_command", lambda *a: SimpleNamespace())
+    monkeypatch.setattr(system, "_run_command", lambda *a: SimpleNamespace(interrupted=False, front_ends_lost=[]))
     monkeypatch.setattr(system, "render_summary", lambda summary: None)
     res = CliRunner().invoke(cli.app, ["demo", "--rerun", "off", "--cache", str(tmp_path / "cache"),
                                        "--out", str(tmp_path / "out")])  # fmt: skip

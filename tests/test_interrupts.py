@@ -13,15 +13,6 @@ import pytest
 from shgm_slam.interrupts import INTERRUPTED_EXIT_CODE, STOP_SIGNALS, stops_deferred
 
 
-@pytest.fixture
-def python_ctrl_c():
-    """Ctrl-C raises KeyboardInterrupt through Python's own handler for the test, whatever an earlier test's
-    libraries (a Rerun or Zenoh runtime registers native signal handlers) left installed; put back after."""
-    before = signal.signal(signal.SIGINT, signal.default_int_handler)
-    yield
-    signal.signal(signal.SIGINT, before)
-
-
 def test_a_ctrl_c_inside_the_block_lets_it_finish_and_then_interrupts(python_ctrl_c) -> None:
     steps = []
     with pytest.raises(KeyboardInterrupt):

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import shutil
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -267,6 +268,10 @@ def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, pr
             metrics = replay_one(recorded, mode, run_dir, _robots_of(world))
         else:
             progress(f"running {scenario} seed {seed} ({mode.value})")
+            if run_dir.exists():
+                # a run that was stopped, or finished but not judged, runs again from the start: a finished run's
+                # journal would recover a map server that finishes before the robots say hello, and refuses them
+                shutil.rmtree(run_dir)
             metrics = run_one(world, mode, run_dir, options.max_frames, options.front_end_jobs)
         verdicts = judge_run(run_dir, world, _robots_of(world), mode, scenario, seed, metrics)
         done = {

@@ -36,7 +36,8 @@ def give(live: LiveRun | LiveRobot, seq, frames, robot: str = "car1") -> list:
 
 
 def stop_at_call(monkeypatch, cls: type, method: str, call: int) -> None:
-    """A Ctrl-C (SIGINT) that arrives while the ``call``-th call of ``cls.method`` runs (a held frame's step)."""
+    """A Ctrl-C (SIGINT) that arrives while the ``call``-th call of ``cls.method`` runs (a held frame's step); the
+    test takes the ``python_ctrl_c`` fixture, so that the signal raises KeyboardInterrupt here."""
     real, calls = getattr(cls, method), [0]
 
     def step(self, *args, **kwargs):
@@ -155,7 +156,7 @@ def test_units_refused_at_the_fourth_frame_say_the_camera_must_start_anew(what: 
 
 
 def test_a_stop_between_held_frames_leaves_the_rest_to_run_in_order(tiny_scenario: Path, tmp_path: Path,
-                                                                   monkeypatch) -> None:  # fmt: skip
+                                                                   monkeypatch, python_ctrl_c) -> None:  # fmt: skip
     """A Ctrl-C while the call that starts the run ran the held frames dropped the frames after the one it stopped:
     caught and fed on, the robot's later frames ran in their place, and the files paired their poses with the
     earlier frames' times (31 of 47 rows). They stay held and run, in order, at the next frame."""
@@ -247,7 +248,7 @@ def test_a_live_robot_whose_link_closed_takes_no_more_frames(tmp_path: Path) -> 
 
 
 def test_a_live_robot_stopped_in_its_with_block_writes_what_it_ran(tiny_scenario: Path, tmp_path: Path,
-                                                                   monkeypatch) -> None:  # fmt: skip
+                                                                   monkeypatch, python_ctrl_c) -> None:  # fmt: skip
     """A Ctrl-C in a ``LiveRobot``'s block closed its link and wrote nothing to ``out`` (``shgm-slam robot`` writes
     its trajectories and leaves the server holding it, not done); a Ctrl-C between its held
     frames dropped the rest. Here the stop lands in the 5th held frame; the robot is fed on, then stopped."""

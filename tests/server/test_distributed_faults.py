@@ -297,7 +297,11 @@ def test_ctrl_c_on_the_server_while_robots_run_writes_its_results_and_the_robots
     server = subprocess.Popen([*CLI, "server", "--out", str(out), "--expect", "2", "--listen",
                                f"tcp/127.0.0.1:{port}", "--reference", "car1", "--rerun", "off"],
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)  # fmt: skip
-    robots = [subprocess.Popen([*CLI, "robot", f"{r}={tiny_scenario / r}:0-32", "--connect", f"tcp/127.0.0.1:{port}",
+    deadline = time.monotonic() + TIMEOUT_S  # robots paced in real time must not finish before the server listens
+    while not (out / "config.yaml").is_file():  # (it writes it once it listens and has subscribed)
+        assert server.poll() is None and time.monotonic() < deadline, "the server did not start"
+        time.sleep(0.1)
+    robots = [subprocess.Popen([*CLI, "robot", f"{r}={tiny_scenario / r}", "--connect", f"tcp/127.0.0.1:{port}",
                                 "--odometry", "gt", "--realtime", "--wait", "2"],
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
               for r in ("car1", "car2")]  # fmt: skip
