@@ -56,6 +56,23 @@ def test_pairs_are_sparse_map_like_and_deterministic(world):
             assert gap > NEGATIVE_GAP_M - 2 * 40.0  # lanes are apart; objects lie within 40 m of them
 
 
+def test_maps_without_heights_are_the_same_pairs_at_height_zero(world):
+    """``--no-heights`` (map layers of [x, y] positions): the same pairs, every node on one level plane of each map's
+    frame, and the truth still lays B's shared objects onto A's."""
+    opt = SparseOptions(seeds=(SEED,), pairs_per_seed=2)
+    flat_opt = SparseOptions(seeds=(SEED,), pairs_per_seed=2, heights=False)
+    for p, q in zip(make_pairs(world, SEED, opt, 10.0), make_pairs(world, SEED, flat_opt, 10.0), strict=True):
+        np.testing.assert_array_equal(p.graph_a.label_ids, q.graph_a.label_ids)
+        np.testing.assert_allclose(p.graph_a.positions_xyz[:, :2], q.graph_a.positions_xyz[:, :2], atol=1e-9)
+        np.testing.assert_allclose(p.T_a_b, q.T_a_b)
+        for g in (q.graph_a, q.graph_b):
+            assert np.ptp(g.positions_xyz[:, 2]) < 1e-9  # one height (each frame is moved up or down as a whole)
+        assert np.ptp(p.graph_a.positions_xyz[:, 2]) > 1.0  # with heights, objects stand at their heights
+        pb = transform_points(q.T_a_b, q.graph_b.positions_xyz)
+        assert abs(pb[:, 2].mean() - q.graph_a.positions_xyz[:, 2].mean()) < 1e-9
+    assert "no heights" in flat_opt.conditions_note() and flat_opt.conditions()["heights"] is False
+
+
 def test_true_transform_maps_shared_objects_onto_each_other(world):
     """Under the true T_a_b, B's nodes land near same-label nodes of A (noise + confusions only)."""
     pair = make_pairs(world, SEED, SparseOptions(seeds=(SEED,), pairs_per_seed=1), 10.0)[0]

@@ -84,6 +84,8 @@ class SparseOptions:
         confusion_rate: fraction of a robot's nodes relabelled with a confusable class.
         share_range_m: street length two overlapping drives share.
         full_rotation: also run every pair with a random 3D rotation (6-DoF matching).
+        heights: the maps hold their objects' heights; False: every node at height 0 in the world frame, as a map
+            layer without heights is read (graph files of ``[x, y]`` positions); the pairs are the same otherwise.
     """
 
     seeds: tuple[int, ...] = TUNING_SEEDS
@@ -93,6 +95,7 @@ class SparseOptions:
     confusion_rate: float = 0.05
     share_range_m: tuple[float, float] = (50.0, 300.0)
     full_rotation: bool = True
+    heights: bool = True
 
     def __post_init__(self) -> None:
         for name, (low, high, _, _) in MAP_CONDITIONS.items():
@@ -104,16 +107,18 @@ class SparseOptions:
 
     def conditions(self) -> dict[str, float | list[float]]:
         """How the maps are made (miss rate, centroid noise, confusions, shared street), for the JSON report."""
-        return {name: (list(v) if isinstance(v := getattr(self, name), tuple) else v) for name in MAP_CONDITIONS}
+        shown = {name: (list(v) if isinstance(v := getattr(self, name), tuple) else v) for name in MAP_CONDITIONS}
+        return {**shown, "heights": self.heights}
 
     def conditions_note(self) -> str:
         """'' for the specified map conditions, else each one that differs, e.g. 'centroid noise 1.5-2.5 m
         (specified: 0.5-2 m)'."""
         spec = SparseOptions()
-        return ", ".join(
+        notes = [
             f"{what} {_shown(getattr(self, name), unit)} (specified: {_shown(getattr(spec, name), unit)})"
             for name, (_, _, what, unit) in MAP_CONDITIONS.items() if getattr(self, name) != getattr(spec, name)
-        )  # fmt: skip
+        ]  # fmt: skip
+        return ", ".join(notes + ([] if self.heights else ["no heights (every node at height 0)"]))
 
 
 MAP_CONDITIONS: dict[str, tuple[float, float, str, str]] = {
@@ -358,11 +363,20 @@ def _draw_pair(world, rng, labels, centres, opt: SparseOptions, connectivity_m: 
     common = int(np.intersect1d(rows_a, rows_b).size)
     if overlapping and common < MIN_COMMON:
         return None
+    if not opt.heights:  # map layers without heights: every node at height 0 (the world's ground)
+        ga, gb = _flat(ga), _flat(gb)
     # A's frame: world moved by a random transform too, so nothing is near the origin by construction
     T_a_world = random_transform(rng, False)
     T_b_world = random_transform(rng, False)
     return SparsePair(-1, -1, overlapping, ga.transformed(T_a_world), gb.transformed(T_b_world),
                       T_a_world @ true_transform(T_b_world), common, parallel)  # fmt: skip
+
+
+def _flat(graph: GraphArrays) -> GraphArrays:
+    """``graph`` (world frame, z up) with every node at height 0."""
+    positions_xyz = graph.positions_xyz.copy()
+    positions_xyz[:, 2] = 0.0
+    return GraphArrays(graph.node_ids, graph.label_ids, positions_xyz, graph.sizes, graph.edges)
 
 
 def _parallel(lane_a: np.ndarray, lane_b: np.ndarray) -> bool:

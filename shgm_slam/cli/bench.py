@@ -109,10 +109,13 @@ def bench_sparse(
                          show_default="0.05", help="share of each robot's nodes given a confusable class")] = None,
     share_m: Annotated[NumberRange | None, _condition("--share-m", "street two overlapping drives share, "
                        "metres, drawn per pair from A-B (10..1000)", "50-300")] = None,
+    heights: Annotated[bool, typer.Option(help="--no-heights: every node at height 0, as a map layer without "
+                                               "heights is read")] = True,
 ) -> None:
     """Sparse, map-like localization (no rendering): map classes only, 30-60 % missed, 0.5-2 m noise,
     label confusions, drives sharing 50-300 m, far-apart negatives; localized / wrong / negatives / ms.
-    --miss, --noise-m, --confusion and --share-m make the maps unlike that, to see how it degrades."""
+    --miss, --noise-m, --confusion and --share-m make the maps unlike that, to see how it degrades; --no-heights
+    drops the objects' heights."""
 
     from shgm_slam.bench.localization_sparse import SparseOptions, run_sparse_benchmark, sparse_markdown
     from shgm_slam.bench.report import write_report
@@ -123,7 +126,8 @@ def bench_sparse(
     seed_list = parse_seeds(seeds)
     given = {"miss_range": miss, "noise_range_m": noise_m, "confusion_rate": confusion, "share_range_m": share_m}
     conditions = {k: v.as_tuple() if isinstance(v, NumberRange) else v for k, v in given.items() if v is not None}
-    options = SparseOptions(seeds=seed_list, pairs_per_seed=pairs, full_rotation=full_rotation, **conditions)
+    options = SparseOptions(seeds=seed_list, pairs_per_seed=pairs, full_rotation=full_rotation, heights=heights,
+                            **conditions)
     with console.status("starting") as status:
         results = run_sparse_benchmark(options, cfg.descriptor, cfg.matching, cfg.graph,
                                        progress=lambda msg: status.update(msg))
