@@ -8,7 +8,7 @@ Layout of ``--out DIR`` (default ``results/<time>/`` plus a ``latest`` symlink):
     shared_graph_<robot>.json                         the same graph in the shared frame, while the robot is placed
                                                       (together: the fused semantic map)
     matches.json  pose_graph.g2o  config.yaml  metrics.json  run.rrd (when saving)
-    server.json  journal.bin  snapshot-<records>.bin                 a map server's metrics and crash recovery
+    server.json  journal.bin  snapshot-<records>.bin  queued.bin    a map server's metrics and crash recovery
     incomplete.txt                                    only when the run ended with an error: why (the rest is
                                                       its last checkpoint, not results; ``eval`` refuses it)
 
@@ -51,7 +51,7 @@ _held_locks: dict[Path, IO[str]] = {}
 RUN_OUTPUT_PATTERNS = (
     "*_fused_tum.txt", "*_fused_kitti.txt", "*_odometry_tum.txt", "*_gt_tum.txt", "*_gt_kitti.txt",
     "graph_*.json", "shared_graph_*.json", "matches.json", "pose_graph.g2o", "config.yaml", "metrics.json",
-    "server.json", "run.rrd", "server.rrd", "journal.bin", "snapshot-*.bin", "incomplete.txt",
+    "server.json", "run.rrd", "server.rrd", "journal.bin", "snapshot-*.bin", "queued.bin", "incomplete.txt",
 )
 """Files a run, demo or map server writes into its results folder (``--overwrite`` removes these, and
 their leftover ``.<name>.*`` temporary files, nothing else)."""

@@ -112,7 +112,6 @@ class RobotNode:
         self._server_heard_s = self.clock()  # when the map server last spoke (from the start: none yet)
         self._silence_said = False  # its silence was said (``_check_server_silence``) and it has not spoken since
         self._unfinished_said: str | None = None  # the server session said to have finished without this robot
-        self._server_keyframes: int | None = None  # of this robot's keyframes, those in the server's map (status)
         self.provisional_agents: tuple[str, ...] = ()  # its agents the server placed provisionally (status)
         self.waiting_agents: tuple[str, ...] = ()  # its unplaced agents with too few independent matches (status)
         self.bytes_sent: dict[str, int] = {"hello": 0, "keyframe": 0, "done": 0}
@@ -262,7 +261,6 @@ class RobotNode:
         self.server_finished = msg.finished
         mine = msg.robots.get(self.name)
         self._done_held = mine is not None and mine.state is RobotState.DONE
-        self._server_keyframes = mine.keyframes if mine is not None else None
         if msg.finished and not self._done_held and self._unfinished_said != msg.server_session:
             self._unfinished_said = msg.server_session
             log.warning("%s: the map server finished before this robot was done (it was stopped?): its results hold "
@@ -339,22 +337,7 @@ class RobotNode:
             self.poll(timeout_s=0.1)
             if self.all_acknowledged() and (self.server_finished or not until_finished):
                 return True
-        if until_finished:
-            self._say_unjournaled()
         return False
-
-    def _say_unjournaled(self) -> None:
-        """Leaving before the server finished: say when keyframes it acknowledged are not in its map yet. It
-        acknowledges a keyframe when it queues it for its turn in the time order over all robots, and journals it
-        only when it takes it into the map: a server killed meanwhile loses it (the robot must be started again)."""
-        made = sum(len(sent) for a, sent in self._payloads.items() if self._allowed(a))
-        held = self._server_keyframes
-        if held is None or held >= made or not self.all_acknowledged():
-            return
-        log.warning("%s: %d of its %d keyframes wait in the map server's memory for their turn (keyframes are taken in "
-                    "time order over all robots) and are not in its journal yet: were the server killed before it "
-                    "takes them, start this robot again to send them (a longer --wait stays until they are in)",
-                    self.name, made - held, made)  # fmt: skip
 
     def fused(self) -> np.ndarray | None:
         """(N, 4, 4) this robot's frames in the shared frame from the latest corrections (NaN for frames

@@ -141,6 +141,21 @@ class Journal:
             raise DataError(f"cannot append to the journal {self.path}: {exc.strerror}") from None
         self._count(crc)
 
+    def clear(self) -> None:
+        """Empty the file (its records are no longer needed): the next append starts it afresh.
+
+        Raises:
+            DataError: the file cannot be written.
+        """
+        self.close()
+        try:
+            if self.path.exists():
+                with open(self.path, "wb"):
+                    pass
+        except OSError as exc:
+            raise DataError(f"cannot empty {self.path}: {exc.strerror}") from None
+        self.records, self.chain = 0, 0
+
     def close(self) -> None:
         if self._file is not None:
             try:

@@ -14,7 +14,9 @@ next to its robots, ``shgm-slam server`` drives one over Eclipse Zenoh. The node
 - marks robots that went silent stale (kept; they resume when they come back);
 - appends every accepted message to a journal and writes a snapshot of its state every so often, so a
   killed server started again on the same results folder loads the newest snapshot, replays the journal
-  records after it and continues (``recovery``);
+  records after it and continues (``recovery``); keyframes waiting in the time order (acknowledged to their robot,
+  not in the map yet, so not in the journal) are kept in ``queued.bin`` until the queue empties, and a restarted
+  server queues them again: a robot that left with keyframes still waiting loses none;
 - finishes by itself once ``expect`` robots have connected and each has sent its last keyframe: whole
   graphs are matched once more, the results folder is written and every robot gets its final correction;
   after that nothing changes its results: a robot process it does not hold is refused (it stops with the reason).
@@ -72,6 +74,10 @@ CLASH_WINDOW_S = 2.5
 if the current session speaks again it is a name clash and the newcomer is refused; once the current
 session has been silent this long the newcomer is a restart and takes over (robots say hello every
 ``robot.node.HEARTBEAT_S``)."""
+
+QUEUED_FILE = "queued.bin"
+"""Keyframes waiting for their turn in the time order (journal records, ``server.journal``), kept until the queue
+empties: acknowledged to their robot before the map takes them (and the journal records them)."""
 
 CONNECT_WAIT_S = 30.0
 """With ``expect``, keyframes wait (in the server's time order, ``ordering``) at most this long after the
@@ -143,6 +149,8 @@ class ServerNode:
         self.connect_wait_s = connect_wait_s
         self.order_keyframes = order_keyframes
         self._order = KeyframeOrder()  # keyframes that arrived, waiting for their turn
+        self._hellos: dict[str, bytes] = {}  # robot -> its latest live hello (payload)
+        self._hellos_kept: set[tuple[str, str]] = set()  # (robot, session) whose hello ``queued.bin`` holds
         self.session = uuid.uuid4().hex[:16]
         self.map: MapServer | None = None
         self.robots: dict[str, RobotSession] = {}
@@ -163,6 +171,7 @@ class ServerNode:
         for key in (ALL_HELLO, ALL_KEYFRAMES, ALL_DONE):
             transport.subscribe(key, self._inbox)
         self.journal = Journal(Path(out_dir) / "journal.bin") if journal else None
+        self.queued = Journal(Path(out_dir) / QUEUED_FILE) if journal and order_keyframes else None
         every = cfg.server.snapshot_every_messages
         self.snapshots = SnapshotStore(out_dir, keep=cfg.server.snapshots_kept) if journal and every else None
         self.recovery = self._recover() if self.journal is not None else RecoveryReport()
@@ -220,8 +229,9 @@ class ServerNode:
         for robot in self.robots:
             self._send_correction(robot, self.clock(), force=True)
         self._broadcast_status()
-        if self.journal is not None:
-            self.journal.close()
+        for log_file in (self.journal, self.queued):
+            if log_file is not None:
+                log_file.close()
         return records
 
     # --- messages ------------------------------------------------------------------------------
@@ -318,6 +328,8 @@ class ServerNode:
             log.info("%s connected (session %s)%s", msg.robot, msg.session, ref)
         self._refused.pop(msg.robot, None)
         rs.start_s = msg.start_s
+        if live:
+            self._hellos[msg.robot] = payload  # (its first frame's time, for the keyframes ``queued.bin`` keeps)
         if live and msg.progress_s is not None and msg.server_session == self.session:  # (not a dead server's)
             rs.progress_s = max(msg.progress_s, rs.progress_s or 0.0)
         self._heard(rs, now)
@@ -436,14 +448,45 @@ class ServerNode:
         """Agents whose keyframes were dropped (no room in the pose graph) -> why."""
         return dict(self._dropped)
 
-    def _offer(self, rs: RobotSession, msg: KeyframeMessage, payload: bytes) -> None:
-        """Queue a live keyframe for its turn in the time order (``ordering``); re-sent ones are ignored."""
+    def _offer(self, rs: RobotSession, msg: KeyframeMessage, payload: bytes, *, kept: bool = False) -> None:
+        """Queue a live keyframe for its turn in the time order (``ordering``); re-sent ones are ignored. The
+        keyframe is kept in ``queued.bin`` before its robot hears it is held (``kept``: it is there already)."""
         if msg.kf_index != self._map().received(msg.robot) + self._order.held(msg.robot):
             return  # a re-sent duplicate, or a gap after a lost message (the correction asks again)
         assert rs.start_s is not None
+        if self.queued is not None and not kept:
+            hello = self._hellos.get(rs.name)
+            if (rs.name, rs.session) not in self._hellos_kept and hello is not None:
+                # the robot's hello first: a snapshot does not keep its first frame's time, which orders them
+                self.queued.append(hello)
+                self._hellos_kept.add((rs.name, rs.session))
+            self.queued.append(payload)
         rank = 0 if rs.name == self.reference else 1
         self._order.offer(msg, payload, rs.start_s, rank)
         rs.progress_s = max(msg.timestamp_s - rs.start_s, rs.progress_s or 0.0)
+
+    def _queue_kept(self) -> int:
+        """After recovery: queue again the keyframes ``queued.bin`` holds that the map has not taken (those of a
+        robot's current process; the rest the map holds, or a restarted robot sends again). Returns how many."""
+        before = len(self._order)
+        for index, payload in enumerate(self.queued.replay() if self.queued is not None else ()):
+            try:
+                msg = decode(payload)
+            except ShgmError as exc:
+                log.warning("%s record %d unreadable (%s); skipped", QUEUED_FILE, index, exc)
+                continue
+            if isinstance(msg, HelloMessage):
+                rs = self.robots.get(msg.robot)
+                if rs is not None and rs.session == msg.session and rs.start_s is None:
+                    rs.start_s = msg.start_s
+                continue
+            if not isinstance(msg, KeyframeMessage):
+                continue
+            rs = self.robots.get(agent_robot(msg.robot)[0])
+            if rs is None or rs.session != msg.session or rs.start_s is None or not self._admitted(rs, msg.robot):
+                continue
+            self._offer(rs, msg, payload, kept=True)
+        return len(self._order) - before
 
     def _release(self, now: float, *, flush: bool = False) -> list[MatchRecord]:
         """Hand the map server every queued keyframe whose turn has come (all of them with ``flush``)."""
@@ -466,6 +509,9 @@ class ServerNode:
         for held in self._order.release(progress):
             rs = self.robots[agent_robot(held.msg.robot)[0]]
             records += self._keyframe(rs, held.msg, held.payload, live=True)
+        if not len(self._order) and self.queued is not None and self.queued.records:
+            self.queued.clear()  # every keyframe it kept is in the map, so in the journal
+            self._hellos_kept.clear()
         return records
 
     def _keyframe(self, rs: RobotSession, msg: KeyframeMessage, payload: bytes, *, live: bool) -> list[MatchRecord]:
@@ -579,22 +625,23 @@ class ServerNode:
                      report.seconds, report.snapshot_records, report.replayed,
                      ", ".join(f"{r} {sum(self._map().received(a) for a in rs.kf_frames)} keyframes"
                                for r, rs in self.robots.items()))  # fmt: skip
+            if queued := self._queue_kept():
+                log.info("queued again %d keyframes that were waiting for their turn (%s)", queued, QUEUED_FILE)
             self._say_missing_keyframes()
         return report
 
     def _say_missing_keyframes(self) -> None:
-        """After recovery: name each robot that had sent its last keyframe but whose keyframes the journal lacks.
-        Keyframes waiting for their turn in the time order (``ordering``) are acknowledged before they are
-        journaled, so a robot that left (``robot --wait`` over) with some still waiting lost them with the server;
-        it must be started again to send them (the server waits for them and never finishes by itself before)."""
+        """After recovery: name each robot that had sent its last keyframe but whose keyframes neither the journal
+        nor ``queued.bin`` holds (a folder of an earlier version, or one whose ``queued.bin`` was lost): it must be
+        started again to send them (the server waits for them and never finishes by itself before)."""
         for name, rs in self.robots.items():
-            if rs.done is None or rs.complete(self._map(), dropped=self._dropped):
+            if rs.done is None or rs.complete(self._map(), self._order.held, dropped=self._dropped):
                 continue
             made = sum(n for a, n in rs.done.keyframes.items() if a not in self._dropped)
-            held = sum(self._map().received(a) for a in rs.done.keyframes if a not in self._dropped)
-            log.warning("%s: the journal holds %d of the %d keyframes it sent (the others were waiting for their turn "
-                        "when the server stopped); start robot %s again (its same command) to send them", name, held,
-                        made, name)  # fmt: skip
+            held = sum(self._map().received(a) + self._order.held(a) for a in rs.done.keyframes
+                       if a not in self._dropped)  # fmt: skip
+            log.warning("%s: the journal and %s hold %d of the %d keyframes it sent; start robot %s again (its same "
+                        "command) to send them", name, QUEUED_FILE, held, made, name)  # fmt: skip
 
     def _replay(self, payload: bytes, index: int) -> None:
         """Apply journal record ``index`` (only accepted messages, each from its own robot)."""
