@@ -26,6 +26,8 @@ put the ArgMax inside the graph (``kind: label_map``): a 19-class argmax over 12
 
 from __future__ import annotations
 
+import difflib
+import re
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -86,8 +88,8 @@ class ColorOrder(_CaseInsensitiveEnum):
 
 
 class InputDtype(_CaseInsensitiveEnum):
-    FLOAT32 = "float32"
-    UINT8 = "uint8"
+    FLOAT32 = "float32"  # normalized floats; a float16 or double input gets them cast to its type
+    UINT8 = "uint8"  # raw pixels
 
 
 class DepthKind(_CaseInsensitiveEnum):
@@ -308,7 +310,7 @@ def parse_card(data: Any, where: str = "model card") -> DepthCard | Segmentation
     try:
         return _CARD_ADAPTER.validate_python(data)
     except ValidationError as exc:
-        first = exc.errors()[0]
+        first = _first_error(exc)
         tags = {t.value for t in TaskKind}
         field = ".".join(str(p) for p in first["loc"][1:] if str(p) not in tags) or "task"
         if first["type"] == "union_tag_invalid":
@@ -316,9 +318,42 @@ def parse_card(data: Any, where: str = "model card") -> DepthCard | Segmentation
                 f"{where}: field 'task' must be 'depth' or 'segmentation', got {data['task']!r}"
             ) from None
         raise ModelError(
-            f"{where}: field '{field}': {first['msg']} ({exc.error_count()} error(s); "
+            f"{where}: field '{field}': {first['msg']}{_hint(first, data['task'])} ({exc.error_count()} error(s); "
             "the card format is documented in shgm_slam/perception/card.py)"
         ) from None
+
+
+def _first_error(exc: ValidationError) -> Any:
+    """pydantic's first error; for a field of several types (``classes``: a list or a label space name, whose
+    errors are located at ``classes.tuple[str, ...]``) one error on the field itself that names both."""
+    first = exc.errors()[0]
+    if not first["loc"] or "[" not in str(first["loc"][-1]):
+        return first
+    field = first["loc"][:-1]
+    names = [e for e in exc.errors() if e["type"] == "enum" and e["loc"][:-1] == field]
+    if not names:
+        return {**first, "loc": field}
+    return {**names[0], "loc": field, "msg": f"Input should be a list of class names, or {names[0]['ctx']['expected']}"}
+
+
+def _hint(error: Any, task: Any) -> str:
+    """'; did you mean X?' for a misspelt field or choice (``error``: pydantic's first error), else the fields
+    allowed there for an unknown field; '' otherwise."""
+    if error["type"] == "enum":
+        choices = re.findall(r"'([^']*)'", error.get("ctx", {}).get("expected", ""))
+        by_lower = {c.lower(): c for c in choices}
+        close = difflib.get_close_matches(str(error["input"]).lower(), list(by_lower), n=1)
+        return f", got {error['input']!r}" + (f"; did you mean {by_lower[close[0]]!r}?" if close else "")
+    if error["type"] != "extra_forbidden":
+        return ""
+    part: Any = DepthCard if task == TaskKind.DEPTH.value else SegmentationCard
+    for name in error["loc"][1:-1]:  # the section (input, output) holding the unknown field
+        part = part.model_fields[name].annotation if name in part.model_fields else None
+        if not (isinstance(part, type) and issubclass(part, BaseModel)):
+            return ""
+    known = [k for k in part.model_fields if k != "task"]
+    close = difflib.get_close_matches(str(error["loc"][-1]), known, n=1)
+    return f"; did you mean {close[0]}?" if close else f"; known here: {', '.join(known)}"
 
 
 def load_card(model_path: Path | str, card_path: Path | str | None = None) -> DepthCard | SegmentationCard:

@@ -43,10 +43,10 @@ class DepthModel(OnnxModel):
 
     def _check_output(self, output: TensorSpec) -> None:
         shape = output.shape
-        if len(shape) not in (3, 4):
+        if len(shape) not in (2, 3, 4):  # (H, W): a model without an output batch axis, fed one image per call
             raise ModelError(
                 f"{self.where}: depth output '{output.name}' has rank {len(shape)} (shape {list(shape)}); "
-                "expected (N, H, W), (N, 1, H, W) or (N, H, W, 1): set output.name to the depth output"
+                "expected (N, H, W), (N, 1, H, W), (N, H, W, 1) or (H, W): set output.name to the depth output"
             )
         if len(shape) == 4 and all(isinstance(shape[a], int) and shape[a] != 1 for a in (1, 3)):
             raise ModelError(
@@ -55,7 +55,8 @@ class DepthModel(OnnxModel):
             )
         if output.type not in _FLOAT_TYPES:
             raise ModelError(
-                f"{self.where}: depth output '{output.name}' is {output.type}; expected a float tensor"
+                f"{self.where}: depth output '{output.name}' is {output.type}; expected a float tensor: set "
+                "output.name to the depth output, or export the depth as float"
             )
 
     @property

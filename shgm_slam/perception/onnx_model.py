@@ -10,6 +10,7 @@ inputs and outputs, turns RGB images into the input tensor (resize / pad / crop 
 
 from __future__ import annotations
 
+import logging
 import re
 import time
 from collections.abc import Sequence
@@ -47,6 +48,10 @@ _INPUT_TYPES = {
     InputDtype.FLOAT32: ("tensor(float)", np.float32),
     InputDtype.UINT8: ("tensor(uint8)", np.uint8),
 }
+_FLOAT_INPUTS = {"tensor(float)": np.float32, "tensor(float16)": np.float16, "tensor(double)": np.float64}
+"""Float input types a ``dtype: float32`` card feeds: the normalized image is cast to the model's own type."""
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -122,7 +127,7 @@ def open_session(
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     so.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    so.log_severity_level = 3
+    so.log_severity_level = 4  # fatal only: a failing run raises, and onnxruntime's own log line would precede ours
     for name, value in (free_dims or {}).items():
         so.add_free_dimension_override_by_name(name, int(value))
     try:
@@ -142,6 +147,16 @@ _UNKNOWN_OP = re.compile(
     r"|(?:No Op registered for (?P<op>\S+) with domain_version of (?P<version>\d+))"
 )
 _MISSING_DOMAIN = re.compile(r"No opset import for domain '(?P<domain>[^']*)'")
+_OPSET_LIMIT = re.compile(r"Opset (?P<opset>\d+) is under development.*?till opset (?P<limit>\d+)", re.S)
+_EXTERNAL_DATA = re.compile(r'External data path does not exist: "?(?P<path>[^"\n]+)"?')
+_ORT_SOURCE_ANYWHERE = re.compile(r"/\S+\.(?:h|cc|cpp):\d+ [^()]*\([^)]*\) ")
+"""A ``/onnxruntime_src/...h:91 void f(...) `` source location and C++ signature inside a message."""
+
+
+def _explain_run_error(message: str) -> str:
+    """onnxruntime's message on a failed ``session.run`` without its prefix and C++ source locations (one line)."""
+    detail = _ORT_SOURCE_ANYWHERE.sub("", _ORT_PREFIX.sub("", message.strip()))
+    return " ".join(detail.replace("Status Message: ", "").split())[:300]
 
 
 def _explain_load_error(model_path: Path, message: str) -> str:
@@ -169,8 +184,15 @@ def _explain_load_error(model_path: Path, message: str) -> str:
     newer = f"is newer than onnxruntime {ort.__version__} reads"
     if "IR version" in message:
         return f"model {model_path}: its ONNX IR version {newer} ({detail}): {fix}"
+    if (opset := _OPSET_LIMIT.search(message)) is not None:
+        return f"model {model_path}: its opset {opset['opset']} {newer} (up to {opset['limit']}): {fix}"
     if "opset" in message.lower():
         return f"model {model_path}: its opset {newer} ({detail[-90:]}): {fix}"
+    if (data := _EXTERNAL_DATA.search(message)) is not None:
+        return (
+            f"model {model_path} keeps its weights in the file {data['path']}, which does not exist: put the weights "
+            "file the export wrote beside the model, under that name"
+        )
     if "protobuf" in message.lower():
         return f"model {model_path} is not a valid ONNX file (protobuf parsing failed): re-export it"
     return f"model {model_path} cannot be loaded by onnxruntime {ort.__version__}: {detail[:300]}"
@@ -243,7 +265,17 @@ class OnnxModel:
         self.providers: list[str] = session.get_providers()
         batch = self.input_spec.shape[0]
         self.batch_size: int | None = batch if isinstance(batch, int) and batch > 0 else None
+        self._output_batched = len(self.output_spec.shape) != 2
+        if not self._output_batched:  # an (H, W) map: one image per session call
+            if self.batch_size not in (None, 1):
+                raise ModelError(
+                    f"{self.where}: output '{self.output_spec.name}' (shape {list(self.output_spec.shape)}) has no "
+                    f"batch axis but input '{self.input_spec.name}' takes a batch of {self.batch_size}: export the "
+                    "model with a batch axis on its output"
+                )
+            self.batch_size = 1
         self._input_dtype = _INPUT_TYPES[card.input.dtype][1]
+        self._feed_dtype = _FLOAT_INPUTS.get(self.input_spec.type, self._input_dtype)
         self._prepare_normalization()
         self.last_timings = PerceptionTimings()
         self.last_input_shape: tuple[int, ...] = ()
@@ -253,21 +285,17 @@ class OnnxModel:
     def _select_input(self, session: ort.InferenceSession) -> TensorSpec:
         inputs = [TensorSpec.of(i) for i in session.get_inputs()]
         spec = self.card.input
-        if spec.name is not None:
-            found = [i for i in inputs if i.name == spec.name]
-            if not found:
-                raise ModelError(
-                    f"{self.where}: card input.name '{spec.name}' is not an input of the model "
-                    f"(inputs: {', '.join(i.name for i in inputs)})"
-                )
-            tensor = found[0]
-        elif len(inputs) == 1:
-            tensor = inputs[0]
-        else:
+        names = ", ".join(i.name for i in inputs)
+        if spec.name is not None and spec.name not in {i.name for i in inputs}:
             raise ModelError(
-                f"{self.where} has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}): set "
-                "input.name in the card (the adapter feeds one image tensor)"
+                f"{self.where}: card input.name '{spec.name}' is not an input of the model (inputs: {names})"
             )
+        if len(inputs) > 1:  # inputs with defaults (initializers) are not listed: these all need a value
+            raise ModelError(
+                f"{self.where} needs {len(inputs)} inputs ({names}) but the adapter feeds one, the image: export the "
+                "model with the image as its only input (the others as constants, or with default values)"
+            )
+        tensor = inputs[0]
         if len(tensor.shape) != 4:
             raise ModelError(
                 f"{self.where}: input '{tensor.name}' has rank {len(tensor.shape)} (shape "
@@ -295,10 +323,16 @@ class OnnxModel:
                 f"({spec.layout.value}, shape {list(tensor.shape)}); {hint}"
             )
         want_type = _INPUT_TYPES[spec.dtype][0]
-        if tensor.type != want_type:
+        fits = tensor.type in _FLOAT_INPUTS if spec.dtype is InputDtype.FLOAT32 else tensor.type == want_type
+        if not fits:
+            fix = (
+                "fix input.dtype in the card (float32 for float, float16 and double inputs; uint8)"
+                if tensor.type in (*_FLOAT_INPUTS, "tensor(uint8)")
+                else "the adapter feeds float or uint8 images: export the model with such an input"
+            )
             raise ModelError(
                 f"{self.where}: input '{tensor.name}' is {tensor.type} but the card says input.dtype "
-                f"{spec.dtype.value} ({want_type}): fix input.dtype in the card (float32 or uint8)"
+                f"{spec.dtype.value} ({want_type}): {fix}"
             )
         return tensor
 
@@ -393,7 +427,7 @@ class OnnxModel:
             )
             plans.append(plan)
             self._fill(blob[i], image, plan, nchw)
-        return blob, plans
+        return blob.astype(self._feed_dtype, copy=False), plans
 
     def _fill(self, out: np.ndarray, image: np.ndarray, plan: ResizePlan, nchw: bool) -> None:
         """Write one image into its (3, Ht, Wt) / (Ht, Wt, 3) slot of the input tensor."""
@@ -432,7 +466,8 @@ class OnnxModel:
 
     # --- inference ----------------------------------------------------------------------------------
     def _infer(self, blob: np.ndarray) -> np.ndarray:
-        """Run the session on ``blob``, in chunks when the model's batch axis is fixed."""
+        """Run the session on ``blob``, in chunks when the model's batch axis is fixed (or is dynamic in name only:
+        a model that fails on a batch but runs one image is then fed one image per call)."""
         n = blob.shape[0]
         step = self.batch_size or n
         outs = []
@@ -440,15 +475,16 @@ class OnnxModel:
             chunk = blob[start : start + step]
             if chunk.shape[0] < step:  # fixed batch axis: pad the last chunk with copies
                 chunk = np.concatenate([chunk, np.repeat(chunk[-1:], step - chunk.shape[0], axis=0)])
-            self.last_input_shape = tuple(chunk.shape)
             try:
-                (out,) = self.session.run([self.output_spec.name], {self.input_spec.name: chunk})
-            except Exception as exc:  # onnxruntime's own exception classes
-                raise ModelError(
-                    f"{self.where} failed on an input of shape {list(chunk.shape)} ({str(exc)[-300:]}): "
-                    "check input.size / input.multiple_of / input.layout in the card"
-                ) from None
-            out = np.asarray(out)
+                out = self._run_session(chunk)
+            except ModelError:
+                if self.batch_size is not None or chunk.shape[0] == 1:
+                    raise
+                self._run_session(chunk[:1])  # one image fails too: that error
+                log.warning("%s fails on a batch of %d images but runs one image: fed one image per call from now on",
+                            self.where, chunk.shape[0])  # fmt: skip
+                self.batch_size = 1
+                return self._infer(blob)
             if out.ndim == 0 or out.shape[0] != chunk.shape[0]:
                 raise ModelError(
                     f"{self.where}: output '{self.output_spec.name}' has shape {list(out.shape)} for a batch of "
@@ -459,6 +495,23 @@ class OnnxModel:
         out = outs[0] if len(outs) == 1 else np.concatenate(outs)
         self.last_output_shape = tuple(out.shape)
         return out[:n]
+
+    def _run_session(self, chunk: np.ndarray) -> np.ndarray:
+        """The output of one session call on ``chunk`` (with a batch axis added to an (H, W) output).
+
+        Raises:
+            ModelError: onnxruntime failed (its message in one line, with what to check in the card).
+        """
+        self.last_input_shape = tuple(chunk.shape)
+        try:
+            (out,) = self.session.run([self.output_spec.name], {self.input_spec.name: chunk})
+        except Exception as exc:  # onnxruntime's own exception classes
+            raise ModelError(
+                f"{self.where} failed on an input of shape {list(chunk.shape)} ({_explain_run_error(str(exc))}): "
+                "check input.size / input.multiple_of / input.layout in the card"
+            ) from None
+        out = np.asarray(out)
+        return out[None] if not self._output_batched and out.ndim == 2 else out
 
     def _run(self, images: Sequence[Any]) -> tuple[np.ndarray, list[ResizePlan], float, float]:
         """Validate, preprocess and infer; returns raw output, plans, preprocess and inference ms."""

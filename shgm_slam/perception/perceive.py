@@ -339,6 +339,13 @@ def _open_models(
     return depth, seg
 
 
+def _placeholder_depth(height: int, width: int) -> np.ndarray:
+    """(H, W) float32 depth in metres, 5-10 m varying along x, that passes ``check_sequence_start``'s depth checks:
+    what it probes when there is no depth model (the labels alone are checked; one value everywhere, as before, was
+    refused as a sensor's saturated depth files and ended every ``perceive --seg-model`` alone)."""
+    return np.broadcast_to(np.linspace(5.0, 10.0, width, dtype=np.float32), (height, width))
+
+
 def _check_outputs(sequence, depth: DepthModel | None, seg: SegmentationModel | None) -> None:
     """The models' outputs on a few frames spread over the sequence, checked as ``run`` checks them (some valid
     depth, not constant) before the whole sequence is computed: a useless model is refused, not written out.
@@ -350,7 +357,7 @@ def _check_outputs(sequence, depth: DepthModel | None, seg: SegmentationModel | 
 
     def predict(frame):
         h, w = frame.image_rgb.shape[:2]
-        d = depth.predict(frame.image_rgb, sequence.intrinsics) if depth else np.ones((h, w), np.float32)
+        d = depth.predict(frame.image_rgb, sequence.intrinsics) if depth else _placeholder_depth(h, w)
         return d, seg.predict(frame.image_rgb) if seg else None
 
     check_sequence_start(sequence.name, sequence, predict, depth_model=depth.model_path if depth else None,

@@ -203,6 +203,13 @@ def check_model(
         kwargs["intrinsics"] = intrinsics
     timings = measure_overhead(model, image, repeats=runs, **kwargs)
     result = model.predict(image, **kwargs)
+    if isinstance(model, SegmentationModel) and model.last_unlisted[1] > 0:
+        largest, share = model.last_unlisted
+        notes.append(
+            f"{100 * share:.1f} % of the pixels have class indices up to {largest}, beyond the "
+            f"{model.class_to_train_id.size} classes the card lists (output.classes); they read as ignore: list "
+            "every model class in output order"
+        )
     report = _describe(
         model,
         result,

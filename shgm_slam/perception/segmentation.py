@@ -51,6 +51,10 @@ class SegmentationModel(OnnxModel):
 
     task = TaskKind.SEGMENTATION
     card: SegmentationCard
+    last_unlisted: tuple[int, float] = (0, 0.0)
+    """The latest call's largest label-map class index beyond ``output.classes`` and the share of pixels with one
+    (255, a common ignore value, and negative indices not counted; (0, 0.0) when none): they read as ignore, and
+    mean the card lists fewer classes than the model has (``check-model`` says so)."""
 
     @property
     def output_layout(self) -> Layout:
@@ -72,6 +76,10 @@ class SegmentationModel(OnnxModel):
                     f"{where}: logits must be rank 4 ({self.output_layout.value}); set output.kind: "
                     "label_map if the model outputs class indices, or output.name to the logits output"
                 )
+            if output.type not in _FLOAT_TYPES:  # before the class count: an integer (N, 1, H, W) is a label map
+                raise ModelError(
+                    f"{where}: logits are {output.type}; expected float (or output.kind: label_map)"
+                )
             c_axis = 1 if self.output_layout is Layout.NCHW else 3
             count = output.shape[c_axis]
             if isinstance(count, int) and count != len(classes):
@@ -79,12 +87,8 @@ class SegmentationModel(OnnxModel):
                     f"{where}: {count} classes on axis {c_axis} but the card lists {len(classes)} in "
                     "output.classes: list every model class in output order (or fix output.layout)"
                 )
-            if output.type not in _FLOAT_TYPES:
-                raise ModelError(
-                    f"{where}: logits are {output.type}; expected float (or output.kind: label_map)"
-                )
-        elif len(output.shape) not in (3, 4):
-            raise ModelError(f"{where}: a label map must be (N, H, W), (N, 1, H, W) or (N, H, W, 1)")
+        elif len(output.shape) not in (2, 3, 4):  # (H, W): no output batch axis, fed one image per call
+            raise ModelError(f"{where}: a label map must be (N, H, W), (N, 1, H, W), (N, H, W, 1) or (H, W)")
         elif len(output.shape) == 4 and all(isinstance(d, int) and d > 1 for d in (output.shape[1], output.shape[3])):
             raise ModelError(
                 f"{where}: output.kind is label_map but no axis of size 1 holds the labels (per-class scores?); "
@@ -106,6 +110,7 @@ class SegmentationModel(OnnxModel):
         """Labels of several images in one session run; list of (H, W) uint8 train ids."""
         out, plans, pre_ms, inf_ms = self._run(images_rgb)
         t0 = time.perf_counter()
+        self.last_unlisted = (0, 0.0)
         labels = [self._postprocess(out[i], plan) for i, plan in enumerate(plans)]
         self.last_timings = PerceptionTimings(pre_ms, inf_ms, (time.perf_counter() - t0) * 1e3)
         return labels
@@ -114,6 +119,7 @@ class SegmentationModel(OnnxModel):
         """One image's output (C, h, w) / (h, w, C) logits or (h, w) label map -> (H, W) train ids."""
         if self.card.output.kind is SegOutputKind.LOGITS:
             nchw = self.output_layout is Layout.NCHW
+            self._check_class_count(raw.shape[0 if nchw else 2], 1 if nchw else 3)
             h, w = raw.shape[1:3] if nchw else raw.shape[0:2]
             bx0, by0, bx1, by1 = plan.output_box((w, h))
             region = raw[:, by0:by1, bx0:bx1] if nchw else raw[by0:by1, bx0:bx1]
@@ -122,8 +128,32 @@ class SegmentationModel(OnnxModel):
             label_map = self._label_map(raw)
             bx0, by0, bx1, by1 = plan.output_box((label_map.shape[1], label_map.shape[0]))
             class_idx = label_map[by0:by1, bx0:bx1]
+            self._count_unlisted(class_idx)
         ids = self.map_classes(class_idx)
         return paste_back(ids, plan, IGNORE_ID, cv2.INTER_NEAREST)
+
+    def _check_class_count(self, count: int, axis: int) -> None:
+        """Logits with another number of classes than the card lists (a class axis the model left dynamic) gave
+        out-of-range indices read as ignore, or the argmax of another axis.
+
+        Raises:
+            ModelError: ``count`` differs from the card's class count.
+        """
+        listed = self.class_to_train_id.size
+        if count != listed:
+            raise ModelError(
+                f"{self.where}: output '{self.output_spec.name}' has {count} classes on axis {axis} but the card lists "
+                f"{listed} in output.classes: list every model class in output order (or fix output.layout)"
+            )
+
+    def _count_unlisted(self, class_idx: np.ndarray) -> None:
+        """Update ``last_unlisted`` with one image's (h, w) label-map class indices."""
+        listed = self.class_to_train_id.size
+        unlisted = (class_idx >= listed) & (class_idx != IGNORE_ID)
+        count = int(np.count_nonzero(unlisted))
+        if count:
+            largest = max(self.last_unlisted[0], int(np.max(class_idx[unlisted])))
+            self.last_unlisted = (largest, max(self.last_unlisted[1], count / class_idx.size))
 
     def _label_map(self, raw: np.ndarray) -> np.ndarray:
         """One image's (h, w), (1, h, w) or (h, w, 1) label map as (h, w).
