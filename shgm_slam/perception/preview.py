@@ -210,6 +210,8 @@ def check_model(
             f"{model.class_to_train_id.size} classes the card lists (output.classes); they read as ignore: list "
             "every model class in output order"
         )
+    if isinstance(model, DepthModel) and (clamped := clamp_note(result, model.card.output)) is not None:
+        notes.append(clamped)
     report = _describe(
         model,
         result,
@@ -223,6 +225,27 @@ def check_model(
         labels = result if isinstance(model, SegmentationModel) else None
         report.preview_path = write_png(preview_path, render_preview(image, depth, labels))
     return report
+
+
+CLAMPED_SHARE = 0.5
+"""``check-model`` notes a depth output whose valid pixels sit at the card's ``min_depth_m`` or ``max_depth_m`` for
+more than this share: clamped, not measured (a wrong output kind or scale; inverse depth declared metric reads
+0.1-0.15 m, every pixel at the lower bound)."""
+
+
+def clamp_note(depth_m: np.ndarray, output) -> str | None:
+    """A note when most valid (> 0) pixels of ``depth_m`` (H, W, metres) sit at a bound of ``output`` (the card's
+    depth output: ``min_depth_m``, ``max_depth_m``), else None."""
+    values = depth_m[depth_m > 0]
+    if not values.size:
+        return None
+    for bound, what in ((output.min_depth_m, "min_depth_m"), (output.max_depth_m, "max_depth_m")):
+        share = float(np.mean(np.isclose(values, bound, rtol=1e-5, atol=1e-6)))
+        if share > CLAMPED_SHARE:
+            return (f"{100 * share:.0f} % of the valid depth sits at the card's {what} ({bound:g} m): clamped, not "
+                    "measured; check output.kind and its scale (an inverse or disparity output declared metric, or "
+                    "the reverse?) with --preview on a frame whose distances you know")
+    return None
 
 
 def _describe(

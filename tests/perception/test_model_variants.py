@@ -295,3 +295,15 @@ def test_cli_check_model_float16_runs_and_a_failing_model_exits_2(tmp_path: Path
     result = CliRunner().invoke(app, ["check-model", str(path), "--runs", "1", "--threads", "1"])
     assert result.exit_code == 2 and "Traceback" not in result.output
     assert "fails.onnx failed on an input of shape [1, 3, 15, 20]" in " ".join(result.output.split())
+
+
+def test_check_model_notes_depth_that_sits_at_the_card_s_clamp(tmp_path: Path) -> None:
+    """A wrong output kind whose values all fall outside the card's range (inverse depth declared metric reads
+    0.1-0.15 m) showed only as a narrow value range in ``check-model``; most valid pixels at a bound now get a note."""
+    path = red_model(tmp_path / "m.onnx")
+    write_card(path.with_suffix(".yaml"), DEPTH_CARD)
+    bright = write_png(tmp_path / "bright.png", image(red=200))  # 200 "m" in the model's units: all at 80 m
+    report = check_model(path, image_path=bright, runs=1, threads=1)
+    assert any("sits at the card's max_depth_m (80 m)" in n for n in report.notes)
+    fine = write_png(tmp_path / "fine.png", image(red=40))
+    assert not any("sits at the card" in n for n in check_model(path, image_path=fine, runs=1, threads=1).notes)
