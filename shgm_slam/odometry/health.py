@@ -193,7 +193,7 @@ class OdometryHealthMonitor:
         """
         lim = self.limits
         gap = self._check_gap(frame_index, timestamp_s)
-        if gap is not None:
+        if gap is not None and self._last is not None:  # (a segment's first pose bridges nothing: no gap)
             return gap
         T = np.asarray(T_odom_cam, dtype=np.float64)
         if not np.isfinite(T).all():
@@ -241,8 +241,10 @@ class OdometryHealthMonitor:
         return failure
 
     def _check_gap(self, frame_index: int, t: float) -> OdometryFailure | None:
-        """The frame gap check (module docstring) of a frame at ``t`` seconds; a frame checked again (after a
-        re-initialisation) is no gap."""
+        """The frame gap check (module docstring) of a frame at time ``t`` (seconds) against the last frame checked,
+        of any segment; a frame checked again (after a re-initialisation) is no gap, and ``check`` passes one that
+        comes before the segment's first measured pose (the frames a re-initialisation waited through are not
+        checked)."""
         last, self._last_time_s = self._last_time_s, t
         if last is None or not t > last:
             return None

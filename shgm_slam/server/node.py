@@ -149,7 +149,7 @@ class ServerNode:
         self.connect_wait_s = connect_wait_s
         self.order_keyframes = order_keyframes
         self._order = KeyframeOrder()  # keyframes that arrived, waiting for their turn
-        self._hellos: dict[str, bytes] = {}  # robot -> its latest live hello (payload)
+        self._hellos: dict[str, bytes] = {}  # robot -> its current session's latest hello (payload; live or kept)
         self._hellos_kept: set[tuple[str, str]] = set()  # (robot, session) whose hello ``queued.bin`` holds
         self.session = uuid.uuid4().hex[:16]
         self.map: MapServer | None = None
@@ -328,8 +328,9 @@ class ServerNode:
             log.info("%s connected (session %s)%s", msg.robot, msg.session, ref)
         self._refused.pop(msg.robot, None)
         rs.start_s = msg.start_s
-        if live:
-            self._hellos[msg.robot] = payload  # (its first frame's time, for the keyframes ``queued.bin`` keeps)
+        # its first frame's time, for the keyframes ``queued.bin`` keeps (also a replayed one: after a restart a
+        # keyframe may come before the robot's next hello, and a snapshot keeps no start_s)
+        self._hellos[msg.robot] = payload
         if live and msg.progress_s is not None and msg.server_session == self.session:  # (not a dead server's)
             rs.progress_s = max(msg.progress_s, rs.progress_s or 0.0)
         self._heard(rs, now)
@@ -478,7 +479,7 @@ class ServerNode:
             if isinstance(msg, HelloMessage):
                 rs = self.robots.get(msg.robot)
                 if rs is not None and rs.session == msg.session and rs.start_s is None:
-                    rs.start_s = msg.start_s
+                    rs.start_s, self._hellos[msg.robot] = msg.start_s, payload  # (kept again with its keyframes)
                 continue
             if not isinstance(msg, KeyframeMessage):
                 continue

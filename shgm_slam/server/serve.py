@@ -177,7 +177,7 @@ def serve(
     viz = viz or NullLogger()
     viz.setup({})
     t0 = time.perf_counter()
-    interrupted = False
+    interrupted, linger = False, True
     with make_transport(NodeRole.SERVER, listen) as transport:
         node = ServerNode(cfg, transport, out_dir, reference=reference, expect=expect, stale_after_s=stale_after_s)
         node.writer.write_text("config.yaml", cfg.to_yaml())
@@ -201,28 +201,30 @@ def serve(
             interrupted = True
             node.interrupted = True  # server.json says so: the folder is not a finished run's
             log.warning("stopping: matching whole graphs once more and writing the results")
-            _finish_stopped(node, view)
+            linger = _finish_stopped(node, view)
         except Exception as exc:  # re-raised: the folder's files are a checkpoint, not the results
             node.writer.mark_failed(exc, RESUME_ADVICE)  # eval refuses the folder until a server finishes it
             raise
         summary = node.summary()  # as server.json says it (what comes while it lingers changes nothing)
-        if not _linger(node, LINGER_S) and not interrupted:
+        if linger and not _linger(node, LINGER_S) and not interrupted:
             raise KeyboardInterrupt  # a stop after the results were written ends the command as before (130)
     viz.close()
     return ServeSummary(Path(out_dir), summary, interrupted, time.perf_counter() - t0)
 
 
-def _finish_stopped(node: ServerNode, view: ServerView) -> None:
+def _finish_stopped(node: ServerNode, view: ServerView) -> bool:
     """Finish a server stopped by Ctrl-C / SIGTERM: match whole graphs once more and write the results. A second
     stop meanwhile (an impatient Ctrl-C) waits until they are written, then only cuts short the linger (it used
-    to end the process in the middle of the final matching, with the folder a checkpoint and one word said)."""
+    to end the process in the middle of the final matching, with the folder a checkpoint and one word said).
+    Returns whether to linger (False after a second stop)."""
     try:
         with stops_deferred():
             records = node.finish()
     except KeyboardInterrupt:
         log.warning("stopped again: the results are written; not waiting for the robots' final corrections")
-        return
+        return False
     view.update(node, records)
+    return True
 
 
 def _linger(node: ServerNode, seconds: float) -> bool:

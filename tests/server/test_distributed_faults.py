@@ -246,21 +246,26 @@ def test_a_finished_servers_folder_is_refused_and_a_stopped_ones_resumed(robots,
     assert _serve(cfg, tmp_path / "stopped").interrupted  # resumed (and stopped again)
 
 
-def test_a_second_stop_while_a_stopped_server_writes_its_results_waits_for_them(cfg, tmp_path, monkeypatch) -> None:
+def test_a_second_stop_while_a_stopped_server_writes_its_results_waits_for_them(cfg, tmp_path, monkeypatch,
+                                                                                python_ctrl_c) -> None:  # fmt: skip
     """An impatient second Ctrl-C landed in the final matching of a stopped server: the process ended with one
-    word ("interrupted"), the folder a checkpoint (server.json: not finished) and no summary."""
+    word ("interrupted"), the folder a checkpoint (server.json: not finished) and no summary. Then, said "not
+    waiting for the robots' final corrections", it lingered for them all the same."""
     _in_process(monkeypatch)
     _stop_at_once(monkeypatch)
     original = ServerNode.finish
+    lingered: list[float] = []
 
     def finish_stopped_again(self, *, match: bool = True):
         signal.raise_signal(signal.SIGINT)  # the second Ctrl-C, while it matches and writes
         return original(self, match=match)
 
     monkeypatch.setattr(ServerNode, "finish", finish_stopped_again)
+    monkeypatch.setattr(serve_module, "_linger", lambda node, seconds: lingered.append(seconds) or True)
     result = _serve(cfg, tmp_path, reference="car1")  # the second stop waited for the results
     assert result.interrupted
     assert json.loads((tmp_path / "server.json").read_text())["finished"] is True
+    assert lingered == []
 
 
 def test_an_empty_endpoint_is_refused_not_taken_for_the_default() -> None:
