@@ -36,7 +36,7 @@ from shgm_slam.errors import ShgmError
 from shgm_slam.io.trajectories import read_tum
 from shgm_slam.metrics import ate
 from shgm_slam.runner import open_robots
-from shgm_slam.server.node import ServerNode
+from shgm_slam.server.node import QUEUED_FILE, ServerNode
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 
 CLI = [sys.executable, "-m", "shgm_slam"]
@@ -129,7 +129,9 @@ def _journal_grew(out: Path, nbytes: int, server: subprocess.Popen, timeout_s: f
 
 
 def _recovery_files(folder: Path) -> list[Path]:
-    return [folder / "journal.bin", *sorted(folder.glob("snapshot-*.bin"))]
+    """What a restarted map server recovers from: its journal, snapshots and the keyframes still queued."""
+    queued = folder / QUEUED_FILE
+    return [folder / "journal.bin", *sorted(folder.glob("snapshot-*.bin")), *([queued] if queued.is_file() else [])]
 
 
 def time_recovery(folder: Path, cfg: ShgmConfig, reference: str, label: str) -> RecoveryTiming:

@@ -79,12 +79,18 @@ def slice_range(key: slice, n: int, name: str) -> tuple[int, int]:
     start, end, step = key.indices(n)
     if step != 1:
         raise DataError(
-            f"{name}[{key.start}:{key.stop}:{key.step}]: only consecutive frames can be taken (step 1); "
+            f"{name}[{_shown(key)}]: only consecutive frames can be taken (step 1); "
             "to run at a lower frame rate, write the frames you want into a folder of their own"
         )
     if start >= end:
-        raise DataError(f"{name}[{key.start}:{key.stop}] takes no frame of its {n}; need start < end")
+        raise DataError(f"{name}[{_shown(key)}] takes no frame of its {n}; need start < end")
     return start, end
+
+
+def _shown(key: slice) -> str:
+    """``key`` as written in Python (``a:b``, ``:b``, ``a::2``)."""
+    parts = ["" if v is None else str(v) for v in (key.start, key.stop, key.step)]
+    return ":".join(parts if key.step is not None else parts[:2])
 
 
 def sliced(sequence: Sequence, key: slice) -> SequenceView:

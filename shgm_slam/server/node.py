@@ -444,6 +444,10 @@ class ServerNode:
             self._broadcast_status()
         return False
 
+    def queued_keyframes(self, robot: str) -> int:
+        """Keyframes of ``robot`` waiting for their turn in the time order (``ordering``)."""
+        return self._order.queued(robot)
+
     @property
     def dropped_segments(self) -> dict[str, str]:
         """Agents whose keyframes were dropped (no room in the pose graph) -> why."""

@@ -42,6 +42,10 @@ class KeyframeOrder:
         """Keyframes of ``agent`` queued (not released yet)."""
         return self._held.get(agent, 0)
 
+    def queued(self, robot: str) -> int:
+        """Keyframes of ``robot`` (all its agents) queued."""
+        return len(self._queues.get(robot, ()))
+
     def agents(self) -> list[str]:
         """Agents with keyframes queued."""
         return [a for a, n in self._held.items() if n]

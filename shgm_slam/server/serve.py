@@ -83,7 +83,9 @@ class ServerView:
         for name, rs in node.robots.items():
             self._states[name], self._sessions[name] = rs.state.value, rs.session
             held = sum(node.map.received(a) for a in rs.kf_frames) if node.map is not None else 0
-            line = f"{name}: recovered from the journal ({held} keyframes{'; it had sent its last' if rs.done else ''})"
+            queued = f", {q} more queued for their turn" if (q := node.queued_keyframes(name)) else ""
+            last = "; it had sent its last" if rs.done else ""
+            line = f"{name}: recovered from the journal ({held} keyframes{queued}{last})"
             self.viz.log_text(line, "INFO")
             if self.say is not None:
                 self.say(line)

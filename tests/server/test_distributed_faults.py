@@ -149,6 +149,10 @@ def test_a_killed_server_queues_again_the_keyframes_that_waited_for_their_turn(r
     assert not _warnings(caplog, "start robot car1 again")
     assert restarted.robots["car1"].done is not None and restarted.map.received("car1") == 0
     assert restarted.robots["car1"].complete(restarted.map, restarted._order.held)  # all of it queued again
+    said: list[str] = []
+    ServerView(RecordingViz(), say=said.append).recovered(restarted)
+    assert said == [f"car1: recovered from the journal (0 keyframes, {made} more queued for their turn; it had sent "
+                    "its last)"]  # fmt: skip
     car2 = fresh(robots, cfg, bus, clock, names=("car2",))
     drive(restarted, car2, {"car2": range(len(robots["car2"]))}, clock)
     finish(restarted, car2, clock)
