@@ -37,10 +37,13 @@ class Journal:
         path: the journal file.
         sync_every: ``fsync`` after this many appends (flushes to the OS after every append anyway,
             which survives a killed process; fsync is for power loss).
+        damaged_advice: what to do about a corrupt record that is not the tail, when not the journal's (restore,
+            cut, or start afresh): ``queued.bin``'s (the server's queue) is to delete the file.
     """
 
-    def __init__(self, path: Path, *, sync_every: int = 50) -> None:
+    def __init__(self, path: Path, *, sync_every: int = 50, damaged_advice: str | None = None) -> None:
         self.path = Path(path)
+        self.damaged_advice = damaged_advice
         self.sync_every = max(1, sync_every)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -101,11 +104,13 @@ class Journal:
         if length <= MAX_RECORD_BYTES and start + _HEADER.size + length >= size:
             return  # the last record, cut short or garbled by the kill
         if not self._zeros_from(f, start):
-            raise DataError(
-                f"journal {self.path}: record {self.records} at byte {start} is corrupt and {size - start} bytes "
-                f"of records follow it (not a record cut short by a kill); the journal is left as it is. Restore "
-                f"it from a backup, or cut it there to resume from the {self.records} records before it "
+            advice = self.damaged_advice or (
+                f"Restore it from a backup, or cut it there to resume from the {self.records} records before it "
                 f"(truncate -s {start} {self.path}; the later ones are lost), or start afresh with --overwrite"
+            )
+            raise DataError(
+                f"{self.path}: record {self.records} at byte {start} is corrupt and {size - start} bytes of records "
+                f"follow it (not a record cut short by a kill); the file is left as it is. {advice}"
             )
 
     @staticmethod

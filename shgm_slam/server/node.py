@@ -171,7 +171,9 @@ class ServerNode:
         for key in (ALL_HELLO, ALL_KEYFRAMES, ALL_DONE):
             transport.subscribe(key, self._inbox)
         self.journal = Journal(Path(out_dir) / "journal.bin") if journal else None
-        self.queued = Journal(Path(out_dir) / QUEUED_FILE) if journal and order_keyframes else None
+        self.queued = Journal(Path(out_dir) / QUEUED_FILE, damaged_advice=(
+            f"Delete {QUEUED_FILE} to resume: the keyframes it kept that the map does not hold are then lost, and the "
+            "robots still running send theirs again")) if journal and order_keyframes else None  # fmt: skip
         every = cfg.server.snapshot_every_messages
         self.snapshots = SnapshotStore(out_dir, keep=cfg.server.snapshots_kept) if journal and every else None
         self.recovery = self._recover() if self.journal is not None else RecoveryReport()

@@ -60,6 +60,8 @@ def test_corrupt_record_with_records_after_it_is_refused_and_kept(tmp_path: Path
     with pytest.raises(DataError, match=r"record 1 at byte 13 is corrupt.*truncate -s 13"):
         list(Journal(path).replay())
     assert path.read_bytes() == bytes(data)
+    with pytest.raises(DataError, match=r"record 1 at byte 13 is corrupt.*Delete it to resume$"):  # another file's
+        list(Journal(path, damaged_advice="Delete it to resume").replay())  # advice (the queue's: delete it)
 
 
 def test_zero_filled_tail_is_dropped_not_replayed_as_empty_records(tmp_path: Path) -> None:
