@@ -18,6 +18,7 @@ from shgm_slam.cli.signals import stop_signals_as_interrupt
 from shgm_slam.config import OdometryKind
 from shgm_slam.interrupts import INTERRUPTED_EXIT_CODE
 from shgm_slam.io.json_text import to_json_text
+from shgm_slam.transport.keys import DEFAULT_ENDPOINT
 
 
 @contextlib.contextmanager
@@ -176,7 +177,7 @@ def server_command(
                                       help="results folder (a journal there is replayed: restart)")],
     listen: Annotated[
         str | None, typer.Option(help="Zenoh endpoint(s) to listen on, comma-separated",
-                                  show_default="tcp/127.0.0.1:7447")
+                                  show_default=DEFAULT_ENDPOINT)
     ] = None,
     reference: Annotated[
         str | None, typer.Option(help="robot whose frame is the shared frame",
@@ -217,7 +218,7 @@ def server_command(
         with stop_signals_as_interrupt():
             result = serve(cfg, out, listen=listen, reference=reference, expect=expect, viz=viz,
                            stale_after_s=stale_after, started=lambda resumed: console.print(
-                               f"map server listening on {lit(listen or 'tcp/127.0.0.1:7447')}"
+                               f"map server listening on {lit(listen or DEFAULT_ENDPOINT)}"
                                + (f", expecting {expect} robots" if expect else "; Ctrl-C to finish")
                                + (f"; {resumed}" if resumed else "")),
                            say=lambda line: console.print(f"  {lit(line)}"))  # fmt: skip
@@ -244,7 +245,7 @@ def robot_command(
     robot: Annotated[str, typer.Argument(help="NAME=PATH[:start-end] (frames start..end-1)")],
     connect: Annotated[
         str | None, typer.Option(help="map server's Zenoh endpoint(s), comma-separated",
-                                  show_default="tcp/127.0.0.1:7447")
+                                  show_default=DEFAULT_ENDPOINT)
     ] = None,
     odometry: Annotated[
         str | None, typer.Option(help="auto | kiss-icp | visual | hybrid | gt | a KITTI/TUM poses file (as for run)")
@@ -303,7 +304,7 @@ def _unacknowledged_text(s, connect: str | None, wait: float, out: Path | None) 
     server ever answered at ``connect``, or that the one it had stopped or was lost, with what to do."""
     kept = f"; this robot's own trajectories are in {lit(out)}" if out else ""
     if not any(s.bytes_received.values()):
-        endpoint = lit(connect or "tcp/127.0.0.1:7447")
+        endpoint = lit(connect or DEFAULT_ENDPOINT)
         return (f"[red]no map server answered at {endpoint}[/red] (is it running there? see --connect): it holds none "
                 f"of this robot's keyframes{kept}")  # fmt: skip
     return (f"[red]the map server did not acknowledge every keyframe within --wait {wait:g} s[/red]: it stopped or "

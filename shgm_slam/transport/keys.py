@@ -21,6 +21,10 @@ from functools import lru_cache
 
 from shgm_slam.errors import ConfigError
 
+DEFAULT_PORT = 7447
+DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
+"""Where the map server listens and robots connect when no endpoint is given (peer mode on loopback)."""
+
 PREFIX = "shgm"
 SERVER_NAME = "server"
 STATUS_KEY = f"{PREFIX}/{SERVER_NAME}/status"

@@ -58,10 +58,7 @@ import zenoh
 
 from shgm_slam.errors import ConfigError, TransportError
 from shgm_slam.transport.base import Inbox
-from shgm_slam.transport.keys import validate_key_expr
-
-DEFAULT_PORT = 7447
-DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
+from shgm_slam.transport.keys import DEFAULT_ENDPOINT, validate_key_expr
 
 _ENDPOINT = re.compile(r"[a-z][a-z0-9-]*/[^\s,]+")
 _HOST_PORT = re.compile(r"(?:\[[0-9A-Fa-f:.]+\]|[^:\[\]/?#]+):(\d+)(?:[?#].*)?")
