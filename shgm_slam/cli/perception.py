@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -12,6 +12,9 @@ from shgm_slam.cli.options import nonempty_path
 from shgm_slam.cli.render import console, lit
 from shgm_slam.cli.signals import stop_signals_as_interrupt
 from shgm_slam.interrupts import INTERRUPTED_EXIT_CODE
+
+if TYPE_CHECKING:  # the models load only when a command runs
+    from shgm_slam.perception.perceive import BatchUsed
 
 CONSTANT_OUTPUT_SPAN = 1e-6
 """Largest spread of ``check-model``'s valid output values, relative to their largest (at least 1), that is still
@@ -113,7 +116,8 @@ def perceive_command(
     providers = ", ".join(f"{k} {v[0].removesuffix('ExecutionProvider')}" for k, v in result.providers.items())
     speed = ", ".join(f"{k} {v:.1f}" for k, v in result.inference_ms_per_frame.items())
     console.print(f"{lit(result.source)}: {result.computed} frame(s) computed, {result.reused} reused of "
-                  f"{result.frames} in {result.wall_s:.1f} s ({providers}" + (f"; ms/frame {speed})" if speed else ")"))
+                  f"{result.frames} in {result.wall_s:.1f} s ({providers}" + (f"; ms/frame {speed}" if speed else "")
+                  + f"; {lit(batch_text(result.batch_size, result.batch_used))})")  # fmt: skip
     for note in result.notes:
         console.print(f"[yellow]note[/]: {lit(note)}")
     if result.unreadable:
@@ -127,3 +131,12 @@ def perceive_command(
     console.print(f"wrote [bold]{lit(out)}[/]; use it with: shgm-slam run --robot NAME={lit(out)}"
                   + (" --odometry visual (predicted depth)" if result.providers.get("depth") else ""))
 
+
+def batch_text(asked: int, used: dict[str, BatchUsed]) -> str:
+    """``batch 8`` when every model was fed the batch asked for, else each model's with why (``used``: model ->
+    what it was fed): ``batch depth 8, segmentation 1 (asked 8; segmentation: it failed on ...)``."""
+    if all(b.size == asked for b in used.values()):
+        return f"batch {asked}"
+    sizes = ", ".join(f"{k} {b.size}" for k, b in used.items())
+    whys = "; ".join(f"{k}: {b.why}" for k, b in used.items() if b.why)
+    return f"batch {sizes} (asked {asked}; {whys})"

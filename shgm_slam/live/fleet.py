@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
+from collections import Counter
 from collections.abc import Mapping
 from pathlib import Path
 from types import TracebackType
@@ -17,6 +18,7 @@ from shgm_slam.config import ShgmConfig
 from shgm_slam.data.stream import FrameStream
 from shgm_slam.errors import ConfigError, DataError
 from shgm_slam.live.frames import LivePose, Warmup, live_config, pose_of
+from shgm_slam.scene_scale import SAMPLE_SPAN_FRAMES
 from shgm_slam.types import DepthOrigin, Intrinsics
 
 if TYPE_CHECKING:  # the viewer, the pose graph and the models load only when a run starts
@@ -25,6 +27,15 @@ if TYPE_CHECKING:  # the viewer, the pose graph and the models load only when a 
     from shgm_slam.viz.rerun_logger import RerunMode
 
 log = logging.getLogger(__name__)
+
+FIRST_CAMERA_WAIT_FRAMES = 2 * SAMPLE_SPAN_FRAMES
+"""Frames a warm robot holds, at most, while the run waits for a first camera that has sent no frame (200: 20 s at
+10 fps). The run then starts without it, with the robots that are warm (the first of them, in the cameras' order,
+takes the shared frame); the first camera joins once its first frames are in, as a camera that starts late does, and
+robots still warming join once warm. Held frames are whole images and depth maps, so waiting without a bound ran out
+of memory where the first camera was unplugged (four cameras at 10 fps held 36,000 frames an hour each). Twice the
+most frames a warm-up reads (``scene_scale.SAMPLE_SPAN_FRAMES``): a first camera that starts sending before this
+(at the others' frame rate) keeps the run as it was, which its own warm-up then holds for at most that span more."""
 
 
 class LiveRun:
@@ -101,7 +112,8 @@ class LiveRun:
 
     @property
     def started(self) -> bool:
-        """The run has started (the first robot's first frames and those of every robot that had sent any were in)."""
+        """The run has started (the first robot's first frames and those of every robot that had sent any were in;
+        or, the first camera having sent none, a warm robot held ``FIRST_CAMERA_WAIT_FRAMES``)."""
         return self._fleet is not None
 
     @property
@@ -340,19 +352,12 @@ class LiveRun:
             if not sent:
                 raise DataError(f"no frames were given to any of the cameras ({', '.join(self.streams)}); "
                                 "nothing to run")  # fmt: skip
-            reference = next(iter(self.streams))
-            if not final and not (reference in sent and all(self._warmups[r].ready for r in sent)):
-                if reference not in sent and all(self._warmups[r].ready for r in sent) and not self._said_waiting:
-                    self._said_waiting = True  # (once: every later frame is held the same way)
-                    why = (f"{', '.join(sent)} ready, but the run starts with the first camera, {reference} (the "
-                           f"shared frame), which has sent no frame: their frames are held ({len(self._held)} so "
-                           "far) until it does, or until finish() starts the run without it")  # fmt: skip
-                    log.warning(why)
-                    self._viz.log_text(why, "WARN")
+            start = self._start(sent, final)
+            if start is None:
                 return []
-            # at the end, a first camera that never sent a frame leaves the shared frame to the next one
-            robots = {r: self.streams[r] for r in (sent if final else self.streams)}
-            fronts = {r: self._warmups[r].frontend(self._share) for r in sent}
+            order, first = start
+            robots = {r: self.streams[r] for r in order}
+            fronts = {r: self._warmups[r].frontend(self._share) for r in first}
             self._fleet = FleetRun(robots, self.cfg, self.out_dir, fronts, viz=self._viz,
                                    gt_shared_frame=self.gt_shared_frame, predicted=self._predicted)  # fmt: skip
         fleet = self._fleet
@@ -363,6 +368,42 @@ class LiveRun:
                 log.info("%s: joined the running system (its first frames set its settings)", r)
         now = [(r, i) for r, i in self._held if r in fleet.fronts]
         return [self._step(r, i, held=True) for r, i in now]
+
+    def _start(self, sent: list[str], final: bool) -> tuple[list[str], list[str]] | None:
+        """Whether the run starts now, with which robots: ``(the fleet's robots in order, those among them that run
+        from the start)`` (the first of both is the shared frame's robot), or None while it waits (a warning, once,
+        when it waits for a first camera that has sent nothing).
+
+        It starts once the first camera and every robot in ``sent`` (those that have sent frames) are warm; at
+        ``finish`` (``final``) with the robots in ``sent`` (a first camera that sent no frame leaves the shared frame
+        to the next); while the first camera has sent no frame, once a warm robot holds ``FIRST_CAMERA_WAIT_FRAMES``,
+        with the warm robots (the first camera and those still warming join later)."""
+        reference = next(iter(self.streams))
+        ready = [r for r in sent if self._warmups[r].ready]
+        if final:
+            return sent, sent
+        if reference in sent:
+            return (list(self.streams), sent) if ready == sent else None
+        held = Counter(r for r, _ in self._held)
+        longest = max(ready, key=lambda r: held[r], default=None)
+        if longest is not None and held[longest] >= FIRST_CAMERA_WAIT_FRAMES:
+            why = (f"the first camera, {reference}, has sent no frame while {longest} holds {held[longest]} frames "
+                   f"(live.fleet.FIRST_CAMERA_WAIT_FRAMES): the run starts without it, with {', '.join(ready)}, and "
+                   f"{ready[0]}'s first camera frame is the shared frame; {reference} joins once its first frames "
+                   "are in, as a camera that starts late (check its camera; to keep it the shared frame, start its "
+                   "camera before the others)")  # fmt: skip
+            log.warning(why)
+            self._viz.log_text(why, "WARN")
+            return ready + [r for r in self.streams if r not in ready], ready
+        if ready == sent and not self._said_waiting:
+            self._said_waiting = True  # (once: every later frame is held the same way)
+            why = (f"{', '.join(sent)} ready, but the run starts with the first camera, {reference} (the shared "
+                   f"frame), which has sent no frame: their frames are held ({len(self._held)} so far) until it "
+                   f"does, until one of them holds {FIRST_CAMERA_WAIT_FRAMES} (the run then starts without it), or "
+                   "until finish() starts the run without it")  # fmt: skip
+            log.warning(why)
+            self._viz.log_text(why, "WARN")
+        return None
 
     def _step(self, robot: str, index: int, *, held: bool = False) -> LivePose:
         """Run frame ``index`` of ``robot`` (``held``: one of ``_held``, which it leaves as it runs: a Ctrl-C

@@ -230,6 +230,9 @@ class OnnxModel:
     Attributes:
         last_timings: ``PerceptionTimings`` of the latest call.
         input_spec / output_spec: the model's tensors as the session reports them (after pinning).
+        batch_size: images per session call (a fixed batch axis, one for an output without a batch axis or a
+            model that failed on a batch), or None: every image of a ``predict_batch`` in one call.
+        batch_why: why ``batch_size`` is set (for people: ``perceive`` reports it), or None.
     """
 
     task: ClassVar[TaskKind]
@@ -265,8 +268,12 @@ class OnnxModel:
         self.providers: list[str] = session.get_providers()
         batch = self.input_spec.shape[0]
         self.batch_size: int | None = batch if isinstance(batch, int) and batch > 0 else None
+        self.batch_why: str | None = None
+        if self.batch_size is not None:
+            self.batch_why = f"its input '{self.input_spec.name}' has a fixed batch axis of {self.batch_size}"
         self._output_batched = len(self.output_spec.shape) != 2
         if not self._output_batched:  # an (H, W) map: one image per session call
+            self.batch_why = f"its output '{self.output_spec.name}' has no batch axis"
             if self.batch_size not in (None, 1):
                 raise ModelError(
                     f"{self.where}: output '{self.output_spec.name}' (shape {list(self.output_spec.shape)}) has no "
@@ -484,6 +491,8 @@ class OnnxModel:
                 log.warning("%s fails on a batch of %d images but runs one image: fed one image per call from now on",
                             self.where, chunk.shape[0])  # fmt: skip
                 self.batch_size = 1
+                self.batch_why = (f"it failed on a batch of {chunk.shape[0]} images (a batch axis dynamic in name "
+                                  "only) but runs one image")  # fmt: skip
                 return self._infer(blob)
             if out.ndim == 0 or out.shape[0] != chunk.shape[0]:
                 raise ModelError(

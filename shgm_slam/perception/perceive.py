@@ -82,6 +82,30 @@ class ImageMode(str, Enum):
     COPY = "copy"
 
 
+@dataclass(frozen=True)
+class BatchUsed:
+    """The images one session call of a model was fed, against the ``batch_size`` asked for.
+
+    Attributes:
+        size: images per session call (fewer in a sequence's last batch).
+        why: why it differs from the batch size asked for (a model that failed on a batch and runs one image, a
+            fixed batch axis, an output without a batch axis), or None when it is the one asked for.
+    """
+
+    size: int
+    why: str | None = None
+
+    def to_json_dict(self) -> dict:
+        return {"size": self.size, "why": self.why}
+
+
+def batch_used(model: OnnxModel, asked: int) -> BatchUsed:
+    """What ``model`` was fed per session call when given batches of ``asked`` images (``OnnxModel.batch_size``,
+    which a batch the model fails on but one image runs sets to 1)."""
+    size = model.batch_size or asked
+    return BatchUsed(size, None if size == asked else model.batch_why)
+
+
 @dataclass
 class PerceiveResult:
     """What ``perceive`` did. Frames are counted in the output sequence (0 = the range's first)."""
@@ -99,6 +123,9 @@ class PerceiveResult:
     notes: list[str] = field(default_factory=list)
     unreadable: dict[int, str] = field(default_factory=dict)
     """Frames whose source image could not be read -> why (placeholder outputs were written)."""
+    batch_used: dict[str, BatchUsed] = field(default_factory=dict)
+    """Model (``depth``, ``segmentation``) -> the images it was fed per session call, and why where that is not
+    ``batch_size`` (the ``last_run`` of ``perceive.json`` holds it; ``perceive``'s summary line says it)."""
 
     @property
     def complete(self) -> bool:
@@ -111,6 +138,7 @@ class PerceiveResult:
             "wall_s": self.wall_s, "inference_ms_per_frame": self.inference_ms_per_frame,
             "interrupted": self.interrupted, "complete": self.complete, "notes": self.notes,
             "unreadable": {str(i): why for i, why in sorted(self.unreadable.items())},
+            "batch_used": {k: b.to_json_dict() for k, b in self.batch_used.items()},
         }  # fmt: skip
 
 
@@ -574,6 +602,8 @@ def _perceive(
     inferred = result.computed - len(result.unreadable)
     result.inference_ms_per_frame = {k: v / inferred for k, v in inference_ms.items() if inferred and k in providers}
     result.wall_s = time.perf_counter() - t_start
+    models = (("depth", depth), ("segmentation", seg))
+    result.batch_used = {k: batch_used(m, batch_size) for k, m in models if m is not None}
     if result.unreadable:
         manifest["unreadable"] = sorted(result.unreadable)
     if result.complete:

@@ -7,6 +7,7 @@ models all feed the same graph extraction. Logits are reduced by argmax over the
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Sequence
 
@@ -32,6 +33,14 @@ MAX_FRACTIONAL_LABELS = 0.01
 """Share of a float label map's values allowed off whole numbers (resampling inside a model can blend a few
 borders) before the output is taken for scores, not class indices."""
 
+MAX_UNLISTED_SHARE = 0.5
+"""Share of one image's label-map pixels allowed to hold class indices beyond the card's ``output.classes`` (255 and
+negative indices, common ignore values, not counted). Up to it they read as ignore, with a warning once per model
+(a model with a few classes the card left out); beyond it the card does not describe the model's output (another
+label space: a 150-class ADE20K model under the 19-class default) and the image is refused with a ``ModelError``."""
+
+log = logging.getLogger(__name__)
+
 
 class SegmentationModel(OnnxModel):
     """A semantic segmentation network behind its card.
@@ -54,7 +63,9 @@ class SegmentationModel(OnnxModel):
     last_unlisted: tuple[int, float] = (0, 0.0)
     """The latest call's largest label-map class index beyond ``output.classes`` and the share of pixels with one
     (255, a common ignore value, and negative indices not counted; (0, 0.0) when none): they read as ignore, and
-    mean the card lists fewer classes than the model has (``check-model`` says so)."""
+    mean the card lists fewer classes than the model has (``check-model`` says so; the first such image is a
+    logged warning, and one where most pixels have one a ``ModelError``: ``MAX_UNLISTED_SHARE``)."""
+    _said_unlisted = False  # the warning about class indices beyond the card was given (once per model)
 
     @property
     def output_layout(self) -> Layout:
@@ -147,13 +158,35 @@ class SegmentationModel(OnnxModel):
             )
 
     def _count_unlisted(self, class_idx: np.ndarray) -> None:
-        """Update ``last_unlisted`` with one image's (h, w) label-map class indices."""
+        """Update ``last_unlisted`` with one image's (h, w) label-map class indices, and say it: a warning at the
+        first image with indices beyond the card's classes.
+
+        Raises:
+            ModelError: more than ``MAX_UNLISTED_SHARE`` of the pixels have such indices.
+        """
         listed = self.class_to_train_id.size
         unlisted = (class_idx >= listed) & (class_idx != IGNORE_ID)
         count = int(np.count_nonzero(unlisted))
-        if count:
-            largest = max(self.last_unlisted[0], int(np.max(class_idx[unlisted])))
-            self.last_unlisted = (largest, max(self.last_unlisted[1], count / class_idx.size))
+        if not count:
+            return
+        values = np.unique(class_idx[unlisted])
+        share = count / class_idx.size
+        finite = values[np.isfinite(values)]
+        largest = max(self.last_unlisted[0], int(finite.max()) if finite.size else listed)
+        self.last_unlisted = (largest, max(self.last_unlisted[1], share))
+        shown = ", ".join(f"{v:g}" for v in values[:8].tolist()) + (", ..." if values.size > 8 else "")
+        seen = (f"{100 * share:.1f} % of an image's pixels have class indices ({shown}) beyond the {listed} classes "
+                "its card lists in output.classes")  # fmt: skip
+        if share > MAX_UNLISTED_SHARE:
+            raise ModelError(f"{self.where}: {seen}: the card does not describe this model's output (another "
+                             "label space?); list every class the model outputs, in output order, under "
+                             "output.classes (or name its label space, e.g. output.classes: ade20k) and map those "
+                             "that are no Cityscapes class under output.mapping")  # fmt: skip
+        if not self._said_unlisted:
+            self._said_unlisted = True
+            log.warning("%s: %s; they are read as ignore (255). List every class the model outputs, in output "
+                        "order, under output.classes of its card and map them under output.mapping (said once for "
+                        "this model)", self.where, seen)  # fmt: skip
 
     def _label_map(self, raw: np.ndarray) -> np.ndarray:
         """One image's (h, w), (1, h, w) or (h, w, 1) label map as (h, w).
