@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shgm_slam.data.base import open_sequence
+from shgm_slam.data.base import open_sequence, parse_sequence_spec
 from shgm_slam.errors import ConfigError, DataError, parse_failure
 from shgm_slam.io.trajectories import associate, read_comments, read_tum
 from shgm_slam.metrics import AlignMode, ate, joint_ate
@@ -93,6 +93,10 @@ def open_ground_truth(args: list[str]) -> dict[str, Sequence]:
             raise ConfigError(f"--gt {arg!r}: expected NAME=PATH[:start-end], the robot's --robot argument of the run")
         if name in sequences:
             raise ConfigError(f"--gt names robot {name!r} twice")
+        folder = parse_sequence_spec(spec)[0]
+        if folder.is_file():  # (open_sequence called it a folder that does not exist)
+            raise DataError(f"--gt {arg!r}: {folder} is a file; --gt takes the robot's sequence folder (its images, "
+                            "times.txt and poses.txt), as the run's --robot did")  # fmt: skip
         sequences[name] = open_sequence(spec)
     return sequences
 
@@ -227,6 +231,23 @@ def check_fused_rows(results_dir: Path, robot: str, rows: int) -> None:
         )
 
 
+def check_gt_rows(results_dir: Path, robot: str, rows: int) -> None:
+    """Refuse a ``<robot>_gt_tum.txt`` whose row count differs from the robot's frames in the run (``metrics.json``'s
+    ``frames``): the run writes one ground-truth pose per frame of its sequence. A cut file still associates with
+    some fused poses and gave an ATE over those alone (3 of 47 poses, exit 0).
+
+    Raises:
+        DataError: the file was cut, emptied or extended after the run.
+    """
+    expected = run_robot_counts(results_dir).get(robot)
+    if expected is not None and expected != rows:
+        raise DataError(
+            f"{results_dir / f'{robot}_gt_tum.txt'} holds {rows} poses but the run had {expected} frames for {robot} "
+            f"({results_dir / 'metrics.json'}): the file was cut or edited; delete it and write it again with eval "
+            f"--gt {robot}=PATH[:start-end] (the run's --robot argument for it)"
+        )
+
+
 SAME_SEQUENCE = "give the sequence and frame range the run had for it (its --robot NAME=PATH[:start-end])"
 """How ground truth for evaluation is made to fit the run (the end of its errors)."""
 
@@ -234,6 +255,29 @@ SAME_SEQUENCE = "give the sequence and frame range the run had for it (its --rob
 def _given(robot: str) -> str:
     """How an error names the ground truth given for ``robot``, from the CLI or from Python."""
     return f"the ground truth given for {robot} (eval --gt {robot}=..., or evaluate's sequences)"
+
+
+def check_sequence_truth(sequences: dict[str, Sequence]) -> None:
+    """Refuse a sequence whose timestamps are not (N,) finite, increasing seconds, one per frame, or whose ground
+    truth is not (N, 4, 4) finite rigid transforms in metres (``data.memory.checked_poses``,
+    ``data.kitti.check_pose_units``). Folders and ``ArraySequence`` check that as they open; any other object of
+    the ``Sequence`` protocol comes here unchecked: (N, 16) poses ended in an IndexError, poses in millimetres gave
+    an ATE of 67 km without a word, too few poses an error about a temporary file.
+
+    Raises:
+        DataError: naming the robot and what is wrong.
+    """
+    from shgm_slam.data.kitti import check_pose_units
+    from shgm_slam.data.memory import checked_numbers, checked_poses
+
+    for name, seq in sequences.items():
+        times = checked_numbers(seq.timestamps_s, "timestamps_s", name)
+        if times.shape != (len(seq),) or not np.isfinite(times).all() or (np.diff(times) <= 0).any():
+            raise DataError(f"{_given(name)}: its timestamps_s (shape {times.shape}) are not {len(seq)} finite, "
+                            "increasing times in seconds, one per frame")  # fmt: skip
+        if seq.gt_poses is not None:
+            poses = checked_poses(seq.gt_poses, len(seq), name, "gt_poses")
+            check_pose_units(poses, times, _given(name), "the ground truth")
 
 
 def check_frame_counts(results_dir: Path, sequences: dict[str, Sequence]) -> None:
@@ -295,6 +339,14 @@ def is_provisional(fused_file: Path) -> bool:
     return any(c.startswith(PROVISIONAL_COMMENT) for c in read_comments(fused_file))
 
 
+def _no_truth_note(robot: str, sequences: dict[str, Sequence] | None) -> str:
+    """Why ``robot`` has no ground truth in an evaluation: its sequence (given in ``sequences``) has none, none was
+    given for it, or (``sequences`` None: from the results folder) the folder has no ``<robot>_gt_tum.txt``."""
+    if not sequences:
+        return f"no ground truth ({robot}_gt_tum.txt is not in the results folder; eval --gt gives it)"
+    return "no ground truth: its sequence has none" if robot in sequences else "no ground truth given"
+
+
 GT_AGREEMENT_M = 0.01
 """Largest position difference (metres) between ``--gt``'s ground truth and the ``<robot>_gt_tum.txt`` the run
 wrote for the two to be the same ground truth (the file keeps positions to 0.1 mm)."""
@@ -343,7 +395,8 @@ def evaluate_results(
     Raises:
         DataError: not a results folder (or one of a run that failed, was killed or is still running:
             ``check_results_finished``), unknown robot names, a sequence with
-            another frame count than the run's, or no ground truth anywhere.
+            another frame count than the run's or malformed times or ground truth (``check_sequence_truth``), a
+            ``<robot>_gt_tum.txt`` cut or edited after the run (``check_gt_rows``), or no ground truth anywhere.
     """
     from shgm_slam.io.export import ResultsWriter
 
@@ -367,6 +420,7 @@ def evaluate_results(
                 f"the ground truth given (eval --gt, evaluate's sequences) must include {order[0]}: the first robot "
                 "of the run defines the shared frame"
             )
+        check_sequence_truth(sequences)
         check_frame_counts(root, sequences)
         ordered = {r: sequences[r] for r in order if r in sequences}
         poses = shared_frame_ground_truth(ordered, gt_shared_frame)
@@ -384,8 +438,9 @@ def evaluate_results(
     else:
         for r in order:
             path = root / f"{r}_gt_tum.txt"
-            if path.is_file():
+            if path.exists():  # (read_tum refuses a folder of that name: not "no ground truth")
                 truth[r] = read_tum(path)
+                check_gt_rows(root, r, len(truth[r][0]))
         if not truth:
             raise DataError(
                 f"{root} has no <robot>_gt_tum.txt files: pass the run's sequences, e.g. "
@@ -410,7 +465,8 @@ def evaluate_results(
             if count:
                 check_fused_rows(root, r, count)
             provisional = count > 0 and is_provisional(fused)
-            result.robots.append(RobotEvaluation(r, count, 0, note="no ground truth given", provisional=provisional))
+            note = _no_truth_note(r, sequences)
+            result.robots.append(RobotEvaluation(r, count, 0, note=note, provisional=provisional))
     segments, placed = run_robot_counts(root, "segments"), run_robot_counts(root, "segments_placed")
     for rep in result.robots:
         if rep.fused_poses and rep.name in placed and placed[rep.name] < segments.get(rep.name, 0):

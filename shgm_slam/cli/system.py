@@ -361,7 +361,7 @@ def viewer_command() -> str:
 @app.command("eval")
 @handle_errors
 def eval_command(
-    results: Annotated[Path, typer.Argument(help="results folder of run or demo")],
+    results: Annotated[Path, typer.Argument(parser=nonempty_path, help="results folder of run or demo")],
     gt: Annotated[
         list[str] | None,
         typer.Option("--gt", help="NAME=PATH[:start-end] as in the run (half-open range: frames start..end-1); "

@@ -105,7 +105,10 @@ def _read_text(path: Path | str) -> tuple[Path, str]:
         raise DataError(f"pose file {path} {what}; check the path")
     try:
         return path, path.read_text()
-    except (OSError, UnicodeDecodeError) as e:
+    except UnicodeDecodeError as e:  # (Python's text named a codec and a byte position, not the problem)
+        raise DataError(f"pose file {path} is not UTF-8 text (byte {e.start}): a binary file, or another encoding? "
+                        "give KITTI or TUM rows of numbers as plain text") from None  # fmt: skip
+    except OSError as e:
         raise DataError(f"cannot read pose file {path}: {e}") from e
 
 
