@@ -13,10 +13,11 @@ from shgm_slam.cli.options import (
     MAX_FRAMES,
     NumberRange,
     bounded,
+    distinct,
     float_in,
     int_list,
-    nonempty_path,
     number_range,
+    out_file,
     results_folder,
     world_seeds,
 )
@@ -29,7 +30,7 @@ from shgm_slam.interrupts import INTERRUPTED_EXIT_CODE
 @handle_errors
 @stops_like_ctrl_c
 def bench_simulate(
-    out: Annotated[Path, typer.Option("--out", "-o", parser=nonempty_path,
+    out: Annotated[Path, typer.Option("--out", "-o", parser=out_file,
                                       help="results JSON")] = Path("results/bench_sim.json"),
     resolution: Annotated[str, typer.Option(help="image size WIDTHxHEIGHT")] = "640x192",
     short_frames: Annotated[int, typer.Option(min=1, max=MAX_FRAMES, help="frames per robot, speed run")] = 40,
@@ -234,13 +235,17 @@ def bench_distributed(
     """The demo world in one process and as server + robot processes over Zenoh (with faults): placement,
     fused ATE, bytes per keyframe, KB/s per robot."""
     from shgm_slam.bench.distributed import Fault, distributed_markdown, run_distributed_benchmark
+    from shgm_slam.config import load_config
     from shgm_slam.demo import prepare_world
     from shgm_slam.errors import ConfigError
 
     try:
-        modes = [Fault(f.strip()) for f in faults.split(",") if f.strip()]
+        modes = list(distinct("--faults", (Fault(f.strip()) for f in faults.split(",") if f.strip())))
     except ValueError:
-        raise ConfigError(f"--faults {faults!r}: comma-separated none, robot, server") from None
+        modes = []
+    if not modes:
+        raise ConfigError(f"--faults {faults!r}: comma-separated none, robot, server")
+    load_config(config)  # refused before the demo world is rendered (the runs read the file themselves)
     world, _ = prepare_world(cache, seed, lambda folder: simulate_with_progress("airsim-like", folder, seed,
                                                                                    cached=True))
     with console.status("starting") as status:
@@ -271,13 +276,14 @@ def bench_live(
     from shgm_slam.demo import prepare_world
     from shgm_slam.runner import open_robots
 
+    cfg = load_config(config)  # refused before the demo world is rendered
     if not robot:
         world, kinds = prepare_world(cache, seed, lambda folder: simulate_with_progress("airsim-like", folder, seed,
                                                                                            cached=True))
         robot = [f"{name}={world / name}" for name in kinds]
     robots = open_robots(robot)
     with console.status("starting") as status:
-        results = run_live_benchmark(robots, out, config=load_config(config), progress=lambda msg: status.update(msg))
+        results = run_live_benchmark(robots, out, config=cfg, progress=lambda msg: status.update(msg))
     print_report(live_markdown(results))
     console.print(f"wrote {lit(out / 'live.json')} and {lit(out / 'live.md')}")
 
@@ -330,13 +336,16 @@ def bench_heldout(
     altitude = parse_altitude(uav_altitude) if uav_altitude is not None else None
     if altitude is not None:
         check_uav_altitude("airsim-like", altitude, heldout.MAX_DEPTH_M)
-    for s in scenario or ():
+    for s in distinct("--scenario", scenario or ()):
         if s not in heldout.SCENARIOS:
             raise ConfigError(f"--scenario {s!r}: choose from {', '.join(heldout.SCENARIOS)}")
-    try:
-        modes = tuple(InputMode(m) for m in (mode or [m.value for m in InputMode]))
-    except ValueError:
-        raise ConfigError(f"--mode {mode}: choose files or rgb") from None
+    for given in distinct("--mode", mode or ()):
+        if given not in {m.value for m in InputMode}:
+            raise ConfigError(f"--mode {given!r}: choose files or rgb")
+    modes = tuple(InputMode(m) for m in (mode or [m.value for m in InputMode]))
+    if replay_from is not None and replay_from.resolve() == out.resolve():
+        raise ConfigError(f"--replay-from {replay_from} is the --out folder: its runs would be taken as done, not "
+                          "replayed; give another --out")  # fmt: skip
     options = heldout.HeldoutOptions(scenarios=tuple(scenario or heldout.SCENARIOS), seeds=seed_list, modes=modes,
                                      max_frames=max_frames, cache=cache, replay_from=replay_from, resolution=size,
                                      supersample=supersample, uav_altitude_m=altitude,
@@ -395,10 +404,10 @@ def bench_depth_quality(
     from shgm_slam.config import OdometryKind
     from shgm_slam.errors import ConfigError
 
-    for s in scenario or ():
+    for s in distinct("--scenario", scenario or ()):
         if s not in heldout.SCENARIOS:
             raise ConfigError(f"--scenario {s!r}: choose from {', '.join(heldout.SCENARIOS)}")
-    levels = dq.LEVELS if not level else tuple(dq.parse_level(x) for x in level)
+    levels = dq.LEVELS if not level else distinct("--level", (dq.parse_level(x) for x in level), lambda v: v.name)
     studied = (OdometryKind.KISS_ICP, OdometryKind.VISUAL, OdometryKind.HYBRID)
 
     def kinds(option: str, text: str) -> tuple[OdometryKind, ...]:
@@ -410,7 +419,7 @@ def bench_depth_quality(
             chosen = ()
         if not chosen or any(k not in studied for k in chosen):
             raise ConfigError(f"--{option} {text!r}: comma-separated kiss-icp, visual, hybrid (or none)")
-        return chosen
+        return distinct(f"--{option}", chosen)
 
     options = dq.DepthQualityOptions(
         scenarios=tuple(scenario or dq.DepthQualityOptions.scenarios), seeds=world_seeds(seeds), levels=levels,
@@ -464,7 +473,7 @@ def bench_table3(
     except ValueError:
         raise ConfigError(f"--mode {mode!r}: choose robust or paper") from None
     options = table3.Table3Options(
-        seeds=table3.parse_seeds(seeds), runs=runs, kinds=tuple(descriptor or DescriptorKind),
+        seeds=table3.parse_seeds(seeds), runs=runs, kinds=distinct("--descriptor", descriptor or DescriptorKind),
         splits=tuple(split or (s.name for s in table3.SPLITS)), resolution=parse_resolution(resolution),
         max_frames=max_frames, mode=bench_mode, depth_noise=depth_noise, label_noise=label_noise, cache=cache,
     )  # fmt: skip

@@ -4,12 +4,16 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable
+import tempfile
+from collections import Counter
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 
 import typer
+
+T = TypeVar("T")
 
 
 def nonempty_path(text: str) -> Path:
@@ -19,11 +23,37 @@ def nonempty_path(text: str) -> Path:
     return Path(text)
 
 
+def writable_place(folder: Path) -> None:
+    """Refuse (``typer.BadParameter``) a ``folder`` that cannot be created or written in: its nearest existing
+    folder is probed with a temporary folder, removed at once (nothing is left behind, nothing is created
+    where the command is refused). Benchmarks write their results at the end: a folder under a file or in
+    /proc stopped them there with a traceback, after all their work."""
+    base = next((p for p in (folder, *folder.parents) if p.exists()), Path("."))
+    if not base.is_dir():
+        raise typer.BadParameter(f"{base} is a file, not a folder; give a path that is not under a file")
+    try:
+        tempfile.TemporaryDirectory(dir=base, prefix=".shgm-probe-").cleanup()
+    except OSError as exc:
+        raise typer.BadParameter(f"cannot write in {base} ({exc.strerror or exc}); give a writable folder") from None
+
+
 def out_folder(text: str) -> Path:
-    """An output folder from the command line: not empty (``nonempty_path``) and not an existing file."""
+    """An output folder from the command line: not empty (``nonempty_path``), not an existing file, and one
+    that can be created and written in (``writable_place``)."""
     path = nonempty_path(text)
     if path.exists() and not path.is_dir():
         raise typer.BadParameter(f"{text} is a file; give a folder (it is created if missing)")
+    writable_place(path)
+    return path
+
+
+def out_file(text: str) -> Path:
+    """An output file from the command line: not empty (``nonempty_path``), not an existing folder, in a folder
+    that can be created and written in (``writable_place``); an existing file is written over."""
+    path = nonempty_path(text)
+    if path.is_dir():
+        raise typer.BadParameter(f"{text} is a folder; give the file to write, e.g. {path / 'results.json'}")
+    writable_place(path.parent)
     return path
 
 
@@ -95,7 +125,7 @@ JobsOption = Annotated[
 
 
 def int_list(text: str, option: str) -> tuple[int, ...]:
-    """Comma-separated integers of ``option`` (e.g. ``--fleets 1,2,4``)."""
+    """Comma-separated distinct integers of ``option`` (e.g. ``--fleets 1,2,4``; ``distinct``)."""
     from shgm_slam.errors import ConfigError
 
     try:
@@ -104,6 +134,28 @@ def int_list(text: str, option: str) -> tuple[int, ...]:
         raise ConfigError(f"{option} {text!r}: write comma-separated whole numbers, e.g. 1,2,4,8") from None
     if not values:
         raise ConfigError(f"{option} {text!r} names no value")
+    return distinct(option, values)
+
+
+def _value_text(value: Any) -> str:
+    """A value as the command line writes it: an enum member by its value."""
+    return str(getattr(value, "value", value))
+
+
+def distinct(option: str, values: Iterable[T], label: Callable[[T], str] = _value_text) -> tuple[T, ...]:
+    """``values`` of a repeatable or comma-separated ``option`` as a tuple, each given once (``label``: how one
+    is named in the message).
+
+    Raises:
+        ConfigError: a value given twice: its runs would be run and counted twice in the results.
+    """
+    from shgm_slam.errors import ConfigError
+
+    values = tuple(values)
+    twice = [v for v, n in Counter(values).items() if n > 1]
+    if twice:
+        raise ConfigError(f"{option} {label(twice[0])} is given more than once (its runs would count twice); "
+                          "give each once")  # fmt: skip
     return values
 
 

@@ -39,6 +39,9 @@ _DRIVE_RE = re.compile(r"^(?P<seq>\d{1,2})(?::(?P<start>\d+)-(?P<end>\d*))?$")
 
 MIN_DRIVE_FRAMES = 3
 """Fewest frames of a drive: its path's direction of travel (a numerical gradient) needs three."""
+MAX_FRAME_DIGITS = 9
+"""Most digits of a drive's frame number: KITTI's longest sequence has 4,661 frames; a number of thousands of
+digits stopped Python's ``int`` with a traceback."""
 
 
 @dataclass(frozen=True)
@@ -72,7 +75,7 @@ class KittiDrive:
         m = _DRIVE_RE.match(spec.strip())
         if not m:
             raise ConfigError(
-                f"bad KITTI drive {spec!r}; write SEQ:START-END (half-open: frames START..END-1), "
+                f"bad KITTI drive {spec!r} (--kitti-drive); write SEQ:START-END (half-open: frames START..END-1), "
                 "e.g. 07:0-350, or SEQ alone for the whole sequence"
             )
         seq = m["seq"].zfill(2)
@@ -80,6 +83,12 @@ class KittiDrive:
             raise ConfigError(f"unknown KITTI sequence {seq!r} in {spec!r}; KITTI odometry has sequences 00-21")
         if m["start"] is None:
             return KittiDrive(seq)
+        if max(len(m["start"]), len(m["end"])) > MAX_FRAME_DIGITS:
+            shown = spec if len(spec) <= 30 else f"{spec[:24]}..."
+            raise ConfigError(
+                f"KITTI drive {shown!r}: a frame number of more than {MAX_FRAME_DIGITS} digits; KITTI's "
+                "sequences have at most 4661 frames (--kitti-drive SEQ:START-END, e.g. 07:0-350)"
+            )
         start = int(m["start"])
         end = int(m["end"]) if m["end"] else None
         if end is not None and end <= start:
@@ -158,7 +167,7 @@ def drive_frames(drive: KittiDrive, num_poses: int) -> tuple[int, int]:
     if drive.start >= num_poses or end > num_poses:
         raise DataError(
             f"KITTI {drive.seq} has {num_poses} poses (frames 0-{num_poses}, half-open); frame range "
-            f"{drive.spec} is outside it"
+            f"{drive.spec} is outside it: give START below {num_poses} and END at most {num_poses} (--kitti-drive)"
         )
     if end - drive.start < MIN_DRIVE_FRAMES:
         raise ConfigError(
