@@ -357,7 +357,8 @@ def ground_truth_sequences(sequences: Mapping[str, Sequence | Path | str] | None
     frames but the run had 60"), a ``Path`` or a list ended in Python's TypeError or ValueError.
 
     Raises:
-        DataError: no mapping (nor pairs), a value that is neither a sequence nor a path, a path that opens no sequence.
+        DataError: no mapping (nor pairs), a value that is neither a sequence nor a path, a path that opens no sequence
+            (a file, such as the sequence's poses.txt, given for its folder; the robot named).
     """
     from shgm_slam.data.base import open_sequence
 
@@ -371,7 +372,10 @@ def ground_truth_sequences(sequences: Mapping[str, Sequence | Path | str] | None
     opened: dict[str, Sequence] = {}
     for name, sequence in pairs.items():
         if isinstance(sequence, str | os.PathLike):
-            sequence = open_sequence(sequence)
+            try:
+                sequence = open_sequence(sequence)
+            except DataError as exc:  # (which robot's: the message names only the path)
+                raise DataError(f"sequences[{name!r}]: {exc}") from None
         elif not isinstance(sequence, Sequence):
             raise DataError(f"sequences[{name!r}]: {type(sequence).__name__} is not a sequence; give the sequence "
                             "the robot ran on (open_sequence(), an ArraySequence) or its path[:start-end]")  # fmt: skip

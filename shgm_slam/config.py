@@ -746,21 +746,39 @@ def _yaml_problem(exc: yaml.MarkedYAMLError) -> str:
     return where + " ".join(str(exc.problem or exc.context or exc).split())
 
 
+def _read_config_text(path: Path) -> str:
+    """The text of config file ``path``.
+
+    Raises:
+        ConfigError: ``path`` is a folder, does not exist, or cannot be read (no permission, an I/O error: a
+            traceback before, e.g. ``/proc/self/mem``'s EIO); the OS error is named.
+        UnicodeDecodeError: the file is not UTF-8 text (``load_config`` says so).
+    """
+    try:  # (is_dir and is_file raise too: a name too long, a parent folder without permission)
+        if path.is_dir():
+            raise ConfigError(f"config file {path} is a folder; give a YAML file "
+                              "(`shgm-slam dump-config > config.yaml`)")  # fmt: skip
+        if not path.is_file():
+            raise ConfigError(f"config file {path} does not exist (write one with `shgm-slam dump-config > {path}`)")
+        return path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"config file {path} cannot be read: {exc.strerror or exc}; give a readable YAML file "
+                          "(`shgm-slam dump-config > config.yaml`)") from None  # fmt: skip
+
+
 def load_config(path: Path | str | None) -> ShgmConfig:
     """Load a YAML config (partial configs fill in defaults); ``None`` gives the defaults.
 
     Raises:
-        ConfigError: the file is missing, is not YAML, or holds unknown or invalid fields.
+        ConfigError: the file is missing, cannot be read (the OS error named), is not YAML, or holds unknown or
+            invalid fields.
     """
     if path is None:
         return ShgmConfig()
     path = Path(path)
-    if path.is_dir():
-        raise ConfigError(f"config file {path} is a folder; give a YAML file (`shgm-slam dump-config > config.yaml`)")
-    if not path.is_file():
-        raise ConfigError(f"config file {path} does not exist (write one with `shgm-slam dump-config > {path}`)")
     try:
-        data = yaml.load(path.read_text(), Loader=_UniqueKeyLoader) or {}
+        text = _read_config_text(path)
+        data = yaml.load(text, Loader=_UniqueKeyLoader) or {}
     except yaml.MarkedYAMLError as exc:
         raise ConfigError(f"config file {path} is not valid YAML: {_yaml_problem(exc)}") from None
     except (yaml.YAMLError, UnicodeDecodeError) as exc:

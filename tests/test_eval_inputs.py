@@ -169,7 +169,7 @@ def test_gt_given_a_poses_file_says_it_needs_the_sequence_folder(world, tmp_path
     _results(world, tmp_path)
     for spec in (f"{world / 'car1' / 'poses.txt'}", f"{world / 'car1' / 'poses.txt'}:0-5"):
         code, out = _eval(str(tmp_path), "--gt", f"car1={spec}")
-        assert code == 2 and "is a file; --gt takes the robot's sequence folder" in out
+        assert code == 2 and "is a file; give the robot's sequence folder" in out and "--gt" in out
 
 
 def test_a_binary_pose_file_is_said_to_be_no_text(tmp_path):

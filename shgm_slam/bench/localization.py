@@ -66,6 +66,7 @@ from shgm_slam.config import (
 )
 from shgm_slam.descriptors import NodeDescriptors, compute_descriptors, similarity
 from shgm_slam.environment import environment
+from shgm_slam.errors import SimulationError
 from shgm_slam.graph.extraction import ObjectObservations, extract_objects
 from shgm_slam.labels import Label
 from shgm_slam.matching import match_graphs, select_candidates
@@ -649,6 +650,20 @@ def _targets(results: dict) -> dict:
     return out
 
 
+def check_cache_dir(cache_dir: Path) -> None:
+    """Refuse a ``--cache`` that is a file, or lies under one (an ``[Errno 20] Not a directory`` once the first
+    scene was rendered, before).
+
+    Raises:
+        SimulationError: it is, naming the file.
+    """
+    path = Path(cache_dir)
+    file = next((p for p in (path, *path.parents) if p.exists() and not p.is_dir()), None)
+    if file is not None:
+        where = "is a file" if file == path else f"lies under {file}, a file"
+        raise SimulationError(f"--cache {path} {where}; give a folder for the rendered keyframes (created if missing)")
+
+
 def run_localization_benchmark(
     out_dir: Path | None = None,
     options: BenchOptions | None = None,
@@ -659,11 +674,13 @@ def run_localization_benchmark(
     tables ``localization.md`` and ``pr_curve.png``) into ``out_dir`` when given.
 
     Raises:
-        SimulationError: a scenario cannot be rendered or the cache folder cannot be written.
+        SimulationError: a scenario cannot be rendered or the cache folder cannot be written (a file given for it:
+            ``check_cache_dir``, before any work).
     """
     from shgm_slam.bench.localization_report import localization_markdown, plot_pr_curves
 
     options = options or BenchOptions()
+    check_cache_dir(options.cache_dir)
     cfg = cfg or ShgmConfig()
     ctx = _Context(options, cfg, progress or (lambda _msg: None))
     load = os.getloadavg()

@@ -199,8 +199,9 @@ def run_robots_benchmark(
     """
     bad = [n for n in fleets if not 1 <= n <= STRETCHES]
     if bad or not fleets:
-        raise ConfigError(f"fleet sizes must lie in 1..{STRETCHES} (the sequence is cut into {STRETCHES} robots), "
-                          f"got {bad}")  # fmt: skip
+        given = f"{','.join(map(str, fleets))}: {', '.join(map(str, bad))} outside" if fleets else "names no size in"
+        raise ConfigError(f"--fleets {given} 1..{STRETCHES} (the sequence is cut into {STRETCHES} robots); give "
+                          "comma-separated fleet sizes in that range, e.g. 1,2,4,8")  # fmt: skip
     if sequence not in {f"{k:02d}" for k in range(11)}:
         raise ConfigError(f"--sequence {sequence!r}: choose a KITTI odometry sequence with ground truth, 00-10")
     progress = progress or (lambda _msg: None)

@@ -21,7 +21,7 @@ from shgm_slam.cli.options import (
     results_folder,
     world_seeds,
 )
-from shgm_slam.cli.render import console, err_console, lit, print_report
+from shgm_slam.cli.render import console, err_console, lit, print_report, warn_unused
 from shgm_slam.config import DescriptorKind, OdometryKind
 from shgm_slam.interrupts import INTERRUPTED_EXIT_CODE
 
@@ -353,6 +353,8 @@ def bench_heldout(
                                      kitti_root=kitti_root, front_end_jobs=None if jobs == 1 else 1)  # fmt: skip
     if replay_from is not None and not (replay_from / "runs").is_dir():
         raise ConfigError(f"--replay-from {replay_from}: no runs/ folder there (a `bench heldout` results folder)")
+    if kitti_root is not None and "kitti-paths" not in options.scenarios:
+        warn_unused("--kitti-root", kitti_root, "no kitti-paths world is selected (--scenario)")
     with console.status("starting") as status:
         results = heldout.run_heldout_benchmark(out, options, progress=lambda msg: status.update(msg), jobs=jobs)
     print_report(heldout_markdown(results))

@@ -9,7 +9,7 @@ import typer
 
 from shgm_slam.cli.app import app, handle_errors
 from shgm_slam.cli.options import MAX_FRAMES, bounded, nonempty_path
-from shgm_slam.cli.render import console, err_console, lit, render_match
+from shgm_slam.cli.render import console, err_console, lit, render_match, warn_unused
 from shgm_slam.cli.signals import stop_signals_as_interrupt
 from shgm_slam.config import DescriptorKind, Dof, OutlierMode
 from shgm_slam.io.json_text import to_json_text
@@ -47,6 +47,35 @@ def simulate_with_progress(scenario: str, out: Path, seed: int = 0, *, cached: b
         return (simulate_cached if cached else simulate)(scenario, out, seed=seed, progress=progress, **kwargs)
 
 
+def other_results(out: Path) -> str | None:
+    """What another command wrote into folder ``out``, said for an error ("a run's or map server's results
+    (metrics.json, ...)"), or None: none, or ``out`` holds a scenario (``scenario.json``: simulating there again
+    is ``simulate``'s to judge) or is no folder. Recognised: a run's, demo's or map server's files
+    (``io.export.run_output_files``), a benchmark's report (``<stem>.json`` beside ``<stem>.md``,
+    ``bench.report.write_report``) and a sequence (``io.export.SEQUENCE_MARKERS``).
+
+    Raises:
+        SimulationError: ``out`` cannot be read.
+    """
+    from shgm_slam.errors import SimulationError
+    from shgm_slam.io.export import SEQUENCE_MARKERS, run_output_files
+
+    try:
+        if not out.is_dir() or (out / "scenario.json").exists():
+            return None
+        run_files = [p.name for p in run_output_files(out)]
+        reports = sorted(p.stem for p in out.glob("*.json") if p.is_file() and p.with_suffix(".md").is_file())
+    except OSError as exc:
+        raise SimulationError(f"cannot read {out}: {exc.strerror or exc}; choose another folder (--out)") from None
+    if run_files:
+        return f"a run's or map server's results ({', '.join(run_files[:3])}{', ...' if len(run_files) > 3 else ''})"
+    if reports:
+        return f"a benchmark's report ({reports[0]}.json, {reports[0]}.md)"
+    if all((out / name).is_file() for name in SEQUENCE_MARKERS):
+        return f"a sequence ({', '.join(SEQUENCE_MARKERS)})"
+    return None
+
+
 @app.command("simulate")
 @handle_errors
 def simulate_command(
@@ -79,12 +108,17 @@ def simulate_command(
     """Render a synthetic multi-robot scenario (RGB, depth, labels, GT poses) into sequence folders."""
     from rich.table import Table
 
+    from shgm_slam.errors import SimulationError
     from shgm_slam.sim.corruption import CorruptionLevels
     from shgm_slam.sim.simulate import parse_altitude, parse_resolution
 
     size = parse_resolution(resolution)
     altitude = parse_altitude(uav_altitude) if uav_altitude is not None else None
     corruption = CorruptionLevels.from_levels(depth_noise=depth_noise, label_noise=label_noise)
+    if (found := other_results(out)) is not None:  # the scenario's folders and files would mix with them
+        raise SimulationError(f"--out {out} holds {found}, not a scenario; give another folder for the scenario")
+    if kitti_root is not None and scenario != "kitti-paths":
+        warn_unused("--kitti-root", kitti_root, f"only the kitti-paths scenario reads KITTI poses, not {scenario}")
     with stop_signals_as_interrupt():  # SIGTERM/SIGHUP stop it like Ctrl-C: "interrupted", exit 130
         result = simulate_with_progress(
             scenario, out, seed, resolution=size, fps=fps, max_frames=max_frames, corruption=corruption,

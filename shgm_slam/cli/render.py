@@ -77,6 +77,11 @@ def match_evidence(result, false_alarm_rate: float, pieces_to_place: int) -> str
     )
 
 
+def warn_unused(option: str, value: object, why: str) -> None:
+    """One yellow line on stderr: ``option value`` was given but is not used (``why``); the command goes on."""
+    err_console.print(f"[yellow]warning:[/] {option} {lit(value)} is not used: {why}", soft_wrap=True)
+
+
 def metres(value: float) -> str:
     """A distance in metres for an 80-column table: 2 decimals below 100 m, whole metres above, '-' for NaN."""
     if value != value:
@@ -225,12 +230,20 @@ def eval_table(result):
         table.add_row(lit(r.name), f"{r.evaluated_poses}/{r.fused_poses}", metres(r.ate_fused_m),
                       metres(r.ate_fused_aligned_m), metres(r.ate_fused_joint_m), metres(r.max_error_m),
                       lit(r.note))  # fmt: skip
-    table.caption = (
-        f"ground truth from the {result.gt_source}; aligned = SE(3)-aligned per robot; joint = one SE(3) fit "
-        f"of all {result.joint_robots} placed robots together ({metres(result.ate_joint_m)} m over all their "
-        "poses): how well they agree, without the first robot's own drift"
-    )
+    table.caption = f"ground truth from the {result.gt_source}; aligned = SE(3)-aligned per robot{joint_text(result)}"
     return table
+
+
+def joint_text(result) -> str:
+    """The eval caption's words on the joint column, by how many robots its one fit holds: none for none (it
+    said "all 0 placed robots together (- m ...)"), and for one that its fit is its own alignment."""
+    if result.joint_robots == 1:
+        return "; joint = aligned (one robot placed: one SE(3) fit of it alone is its own alignment)"
+    if result.joint_robots < 2:
+        return ""
+    return (f"; joint = one SE(3) fit of all {result.joint_robots} placed robots together "
+            f"({metres(result.ate_joint_m)} m over all their poses): how well they agree, without the first "
+            "robot's own drift")  # fmt: skip
 
 
 def markdown_tables(text: str, width: int):

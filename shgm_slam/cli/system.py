@@ -391,6 +391,7 @@ def eval_command(
         console.print("[yellow]this run was interrupted[/]: its trajectories end where it was stopped "
                       "(metrics.json: interrupted)")  # fmt: skip
     if result.gt_files_written:
-        console.print(f"wrote {len(result.gt_files_written) // 2} ground-truth trajectories; e.g. evo_ape tum "
+        n = len(result.gt_files_written) // 2
+        console.print(f"wrote {n} ground-truth {'trajectory' if n == 1 else 'trajectories'}; e.g. evo_ape tum "
                       f"{lit(result.gt_files_written[0])} {lit(results / (result.reference_robot + '_fused_tum.txt'))}")
 

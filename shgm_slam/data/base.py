@@ -13,7 +13,7 @@ import re
 from enum import Enum
 from pathlib import Path
 
-from shgm_slam.data.kitti import KittiSequence
+from shgm_slam.data.kitti import KittiSequence, sequence_folder_problem
 from shgm_slam.data.sequence import DEPTH_DIR, LABEL_DIR, ShgmSequence
 from shgm_slam.data.view import SequenceView
 from shgm_slam.errors import ConfigError, DataError
@@ -97,14 +97,15 @@ def open_sequence(spec: str | Path, layout: SequenceLayout | None = None) -> Seq
     Returns the whole sequence, or a ``SequenceView`` of it when a range is given.
 
     Raises:
-        DataError: a spec that is no path (Python's AttributeError before), a missing folder, a bad range or
-            sequence. ConfigError: a ``layout`` that is none of ``SequenceLayout`` (a KeyError before).
+        DataError: a spec that is no path (Python's AttributeError before), a missing folder or a file given for
+            one (``kitti.sequence_folder_problem``), a bad range or sequence. ConfigError: a ``layout`` that is
+            none of ``SequenceLayout`` (a KeyError before).
     """
     if not isinstance(spec, str | os.PathLike):
         raise DataError(f"sequence spec {spec!r} is no path; give 'path[:start-end]' (a str) or a Path")
     root, start, end = parse_sequence_spec(spec if isinstance(spec, str) else Path(spec))
-    if not root.is_dir():
-        raise DataError(f"sequence folder {root} does not exist; check the path (spec '{spec}')")
+    if (problem := sequence_folder_problem(root)) is not None:
+        raise DataError(f"{problem} (spec '{spec}')")
     sequence: Sequence = SEQUENCE_READERS[layout_of(layout) or detect_layout(root)](root)
     if start == 0 and end is None:
         return sequence

@@ -232,12 +232,32 @@ def check_pose_units(T_x_cam: np.ndarray, timestamps_s: np.ndarray, where: str, 
                         "centimetres? divide them by 1000 or 100)")  # fmt: skip
 
 
+def sequence_folder_problem(root: Path) -> str | None:
+    """Why ``root`` is no sequence folder (what ``open_sequence``, ``KittiSequence`` and ``evaluate``'s sequences
+    say), or None when it is a folder: a file given where its folder is meant (a sequence's ``poses.txt``, said
+    to be "a folder that does not exist" before), or nothing there."""
+    if root.is_dir():
+        return None
+    if root.exists():
+        return (f"{root} is a file; give the robot's sequence folder (its images, times.txt and poses.txt), "
+                "not a file in it")  # fmt: skip
+    return f"sequence folder {root} does not exist; check the path"
+
+
 def find_gt_file(root: Path) -> Path | None:
-    """``root/poses.txt``, else ``<kitti>/poses/<seq>.txt`` when ``root`` is ``<kitti>/sequences/<seq>``."""
-    if (root / "poses.txt").is_file():
-        return root / "poses.txt"
+    """``root/poses.txt``, else ``<kitti>/poses/<seq>.txt`` when ``root`` is ``<kitti>/sequences/<seq>``.
+
+    Raises:
+        DataError: the one found is a folder (the sequence read as having no ground truth before).
+    """
     kitti_file = root.parent.parent / "poses" / f"{root.name}.txt"
-    return kitti_file if root.parent.name == "sequences" and kitti_file.is_file() else None
+    for path in (root / "poses.txt", *([kitti_file] if root.parent.name == "sequences" else [])):
+        if path.is_dir():
+            raise DataError(f"{path} is a folder where the sequence's pose file should be (KITTI rows of "
+                            "T_world_cam0, one per image); move that folder away")  # fmt: skip
+        if path.is_file():
+            return path
+    return None
 
 
 def fit_count(values: np.ndarray, count: int, path: Path, allow_extra: bool) -> np.ndarray:
@@ -261,8 +281,8 @@ class KittiSequence(IndexedFrames):
 
     def __init__(self, root: Path | str) -> None:
         self.root = Path(root).absolute()
-        if not self.root.is_dir():
-            raise DataError(f"sequence folder {self.root} does not exist; check the path")
+        if (problem := sequence_folder_problem(self.root)) is not None:
+            raise DataError(problem)
         source = next((s for s in IMAGE_SOURCES if (self.root / s.folder).is_dir()), None)
         if source is None:
             raise DataError(

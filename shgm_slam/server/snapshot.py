@@ -24,6 +24,8 @@ import zlib
 from collections.abc import Callable
 from pathlib import Path
 
+import pydantic_core
+
 from shgm_slam.config import ShgmConfig
 from shgm_slam.errors import ShgmError
 from shgm_slam.io.export import ResultsWriter
@@ -47,9 +49,13 @@ _NAME = re.compile(r"snapshot-(\d{9,})\.bin")
 
 
 def config_digest(cfg: ShgmConfig) -> str:
-    """SHA-256 of everything in ``cfg`` but the ``server`` stage (which does not change what the map holds)."""
-    data = cfg.model_dump_json(exclude={"server"})
-    return hashlib.sha256(data.encode()).hexdigest()
+    """SHA-256 of everything in ``cfg`` but the ``server`` stage (which does not change what the map holds).
+
+    Dumped to plain values first, then to JSON (the same text ``model_dump_json`` gives): pydantic's JSON
+    serializer wraps a KeyboardInterrupt raised in Python code it calls (a Ctrl-C landing as it reads an enum's
+    value) into a ``PydanticSerializationError``, a traceback instead of the command's "interrupted"."""
+    data = pydantic_core.to_json(cfg.model_dump(mode="json", exclude={"server"}))
+    return hashlib.sha256(data).hexdigest()
 
 
 class SnapshotStore:

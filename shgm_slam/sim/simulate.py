@@ -103,13 +103,16 @@ class ScenarioResult:
 
 
 def parse_resolution(text: str) -> tuple[int, int]:
-    """``"640x192"`` -> (640, 192); raises ``SimulationError`` on anything else."""
+    """``"640x192"`` (``--resolution``) -> (640, 192); raises ``SimulationError`` on anything else."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise SimulationError(f"bad resolution {text!r}; write WIDTHxHEIGHT, e.g. 640x192") from None
+        raise SimulationError(
+            f"--resolution {text!r}: write the image size as WIDTHxHEIGHT pixels, e.g. 640x192"
+        ) from None
     if w < 8 or h < 8 or w > 8192 or h > 8192:
-        raise SimulationError(f"resolution {w}x{h} is out of range; use 8..8192 pixels per side")
+        raise SimulationError(f"--resolution {w}x{h} is out of range: give WIDTHxHEIGHT with 8..8192 pixels per "
+                              "side, e.g. 640x192")  # fmt: skip
     return w, h
 
 
