@@ -1,8 +1,10 @@
 """What ``run`` sends the viewer: each frame and match as it comes, and at each keyframe only the stretches of the
 map that changed.
 
-``log_frame`` sends a processed frame (pose, image; depth and cloud at keyframes only) and, through ``log_matches``,
-the matches its server poll tried; ``last_healthy_position`` is where the viewer marks an odometry failure.
+``log_frame`` sends a processed frame (pose, image; depth and cloud at keyframes only; for a robot placed in the
+shared frame whose sequence has ground truth, the drawn camera's distance from it, ``RunView.truth``) and, through
+``log_matches``, the matches its server poll tried; ``last_healthy_position`` is where the viewer marks an odometry
+failure.
 
 Trajectories are drawn in stretches of ``TRAJECTORY_CHUNK_FRAMES`` frames and graphs in parts of the
 nodes anchored to ``GRAPH_CHUNK_KEYFRAMES`` consecutive keyframes (``Viz.log_trajectories`` /
@@ -31,6 +33,7 @@ from shgm_slam.arrays import thinning_stride
 from shgm_slam.geometry import se3
 from shgm_slam.robot.frontend import FrameResult, RobotFrontend
 from shgm_slam.server.map_server import MapServer
+from shgm_slam.shared_frame import SharedTruth
 from shgm_slam.types import GraphArrays
 from shgm_slam.viz.map_positions import anchored_positions, node_positions, odometry_start
 from shgm_slam.viz.rerun_logger import Viz
@@ -73,10 +76,17 @@ def fused_positions(front: RobotFrontend, server: MapServer, frames: np.ndarray)
 
 
 class RunView:
-    """Sends each robot's trajectory and graph to a viewer in changed chunks (module docstring)."""
+    """Sends each robot's trajectory and graph to a viewer in changed chunks (module docstring).
 
-    def __init__(self, viz: Viz) -> None:
+    Args:
+        viz: the viewer.
+        truth: the run's ground truth in the shared frame (``log_frame`` draws each placed robot's distance from
+            it), or None.
+    """
+
+    def __init__(self, viz: Viz, truth: SharedTruth | None = None) -> None:
         self.viz = viz
+        self.truth = truth
         self._robots: dict[str, _RobotState] = {}
         self.points_sent = 0  # trajectory positions and graph nodes sent so far (for tests and benchmarks)
 
@@ -97,7 +107,8 @@ class RunView:
 
     def finish(self, server: MapServer, fronts: Iterable[RobotFrontend]) -> None:
         """Send each robot's whole trajectory (up to its last frame with a pose) and graph once more, at its
-        last frame's time: after the final matching and convergence, the state the results files hold."""
+        last frame's time: after the final matching and convergence, the state the results files hold (and, with
+        ground truth, the last frame's error there)."""
         for front in fronts:
             st = self._robots.get(front.name)
             if st is None:
@@ -111,6 +122,10 @@ class RunView:
             self.viz.set_time(front.name, last, float(front.sequence.timestamps_s[last]))
             self._trajectory(server, front, 0, last)
             self._graph(server, front.name, front.segment.agent, None)
+            truth = None if self.truth is None else self.truth.position(front.name, last)
+            fused = fused_positions(front, server, np.array([last]))[0]
+            if truth is not None and np.isfinite(fused).all():  # the error series ends on the results files' pose
+                self.viz.log_error(front.name, float(np.linalg.norm(fused - truth)))
 
     def _trajectory(self, server: MapServer, front: RobotFrontend, since: int, upto: int) -> None:
         seg = front.segment
@@ -174,6 +189,9 @@ def log_frame(viz: Viz, view: RunView, server: MapServer, front: RobotFrontend, 
         pts = se3.transform_points(T_view, res.points_cam[::step])
         labels = None if res.point_labels is None else res.point_labels[::step]
     viz.log_frame(r, T_view, res.frame.image_rgb, res.depth_m if key else None, res.label_ids, pts, labels)
+    truth = None if T_shared_odom is None or view.truth is None else view.truth.position(r, res.frame.index)
+    if truth is not None:  # placed: how far the camera drawn in the shared frame is from where it was
+        viz.log_error(r, float(np.linalg.norm(T_view[:3, 3] - truth)))
     viz.log_timings(r, res.timings_ms)
     if res.message is not None:
         view.keyframe(server, front, res)  # only the trajectory stretches and graph parts that changed

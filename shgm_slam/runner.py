@@ -43,6 +43,7 @@ from shgm_slam.server.map_server import MapServer
 from shgm_slam.server.node import ServerNode
 from shgm_slam.server.placement import PlacementWatch
 from shgm_slam.server.records import pair_matches
+from shgm_slam.shared_frame import SharedTruth
 from shgm_slam.transport.inprocess import InProcessBus, InProcessTransport
 from shgm_slam.transport.keys import validate_robot_name
 from shgm_slam.types import Sequence
@@ -317,7 +318,7 @@ class FleetRun:
         self.server_node.poll()
         self.server = self.server_node.map
         viz.setup({r: seq.intrinsics for r, seq in robots.items()})
-        self.view = RunView(viz)
+        self.view = RunView(viz, SharedTruth(self.robots, gt_shared_frame))
         self._write_config()
         self.timings = StageTimings()
         self.skipped: list[str] = []
@@ -351,6 +352,7 @@ class FleetRun:
                               "no sequence (or is in it and was given another)")  # fmt: skip
         if sequence is not None:
             self.robots = {**self.robots, robot: sequence}
+            self.view.truth = SharedTruth(self.robots, self.gt_shared_frame)
             self.processed[robot] = self.reached[robot] = 0
             self.image_change[robot] = ImageChange()
             self.viz.setup({robot: sequence.intrinsics})

@@ -9,6 +9,8 @@ measures its ATE::
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
 from shgm_slam.geometry import se3
@@ -33,3 +35,39 @@ def shared_frame_ground_truth(robots: dict[str, Sequence], gt_shared_frame: bool
     T_shared_world = se3.inverse(np.asarray(robots[names[0]].gt_poses)[0])
     placed = names if gt_shared_frame else names[:1]
     return {r: T_shared_world @ np.asarray(robots[r].gt_poses) for r in placed if robots[r].gt_poses is not None}
+
+
+class SharedTruth:
+    """Ground-truth camera positions in a run's shared frame, one frame at a time (the viewer's error series).
+
+    As ``shared_frame_ground_truth``, but per frame and without copying whole trajectories: a live run's
+    ground truth grows frame by frame, and the viewer asks at every frame.
+
+    Args:
+        robots: robot name -> sequence, in run order (the first robot defines the shared frame); read at each
+            call, so sequences that grow (``data.stream.FrameStream``) are followed.
+        gt_shared_frame: the sequences' ground truths share one world frame (as ``shared_frame_ground_truth``);
+            when False only the first robot's frames have a position.
+    """
+
+    def __init__(self, robots: Mapping[str, Sequence], gt_shared_frame: bool = True) -> None:
+        self.robots = robots
+        self.gt_shared_frame = gt_shared_frame
+        self._T_shared_world: np.ndarray | None = None
+
+    def position(self, robot: str, index: int) -> np.ndarray | None:
+        """(3,) ground-truth position of ``robot``'s camera at frame ``index`` in the shared frame, metres, or None
+        (no ground truth for that frame, or none that the shared frame can hold)."""
+        names = list(self.robots)
+        if robot not in self.robots or not names or (robot != names[0] and not self.gt_shared_frame):
+            return None
+        gt = self.robots[robot].gt_poses
+        if gt is None or not 0 <= index < len(gt):
+            return None
+        if self._T_shared_world is None:
+            first = self.robots[names[0]].gt_poses
+            if first is None or not len(first):
+                return None
+            self._T_shared_world = se3.inverse(np.asarray(first[0], dtype=np.float64))
+        T = self._T_shared_world
+        return T[:3, :3] @ np.asarray(gt[index][:3, 3], dtype=np.float64) + T[:3, 3]

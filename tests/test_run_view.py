@@ -12,6 +12,7 @@ from shgm_slam.config import OdometryKind, ShgmConfig
 from shgm_slam.run_report import fused_poses
 from shgm_slam.run_view import TRAJECTORY_CHUNK_FRAMES, RunView
 from shgm_slam.runner import open_robots, run_slam
+from shgm_slam.shared_frame import shared_frame_ground_truth
 from shgm_slam.viz.rerun_logger import NullLogger
 
 
@@ -111,6 +112,23 @@ class FinalViz(ChunkViz):
         self.node_xyz: dict[tuple[str, int], dict[int, np.ndarray]] = {}
         self.matches: list[tuple] = []  # (robot_a, robot_b, positions_a, positions_b, accepted, each one's map then)
         self.server = None  # the run's map server, once it exists
+        self.frame: dict[str, int] = {}  # robot -> the frame its time was last set to
+        self.drawn: dict[tuple[str, int], np.ndarray] = {}  # (robot, frame) -> the camera position drawn
+        self.errors: dict[tuple[str, int], float] = {}  # (robot, frame) -> the error series' value
+        self.final_error: dict[str, float] = {}  # robot -> the error series' value at the end (``RunView.finish``)
+        self.finishing = False  # ``RunView.finish`` runs
+
+    def set_time(self, robot, frame_index, timestamp_s):
+        self.frame[robot] = frame_index
+
+    def log_frame(self, robot, T_shared_cam, image_rgb, depth_m, label_ids, points_shared=None, point_labels=None):
+        self.drawn[(robot, self.frame[robot])] = np.asarray(T_shared_cam)[:3, 3].copy()
+
+    def log_error(self, robot, error_m):
+        if self.finishing:
+            self.final_error[robot] = error_m
+        else:
+            self.errors[(robot, self.frame[robot])] = error_m
 
     def log_trajectories(self, robot, odometry_xyz, fused_xyz, chunk=0):
         super().log_trajectories(robot, odometry_xyz, fused_xyz, chunk)
@@ -149,6 +167,7 @@ def odometry_run(tiny_scenario: Path, tmp_path_factory):
     def spy_finish(self, server, fronts):
         fronts = list(fronts)
         captured.update(view=self, server=server, fronts={f.name: f for f in fronts})
+        viz.finishing = True
         original_finish(self, server, fronts)
 
     viz = FinalViz()
@@ -208,3 +227,32 @@ def test_a_robot_that_lost_its_place_keeps_no_fused_line(odometry_run, monkeypat
     monkeypatch.setattr(server, "is_placed", lambda agent: False)
     view.finish(server, fronts.values())
     assert not [k for k in viz.fused if k[0] in placed]
+
+
+def test_the_error_series_is_each_placed_robots_distance_from_its_ground_truth(odometry_run, tiny_scenario) -> None:
+    """The viewer's metrics panel stayed empty: nothing logged to it. Every frame of a robot drawn in the shared
+    frame now gives its distance from the ground truth there; frames of a robot not placed yet give none."""
+    viz, _, server, fronts = odometry_run
+    truth = shared_frame_ground_truth(open_robots([f"{r}={tiny_scenario / r}" for r in fronts]))
+    assert viz.errors
+    for (robot, frame), error in viz.errors.items():
+        assert error == pytest.approx(np.linalg.norm(viz.drawn[(robot, frame)] - truth[robot][frame, :3, 3]))
+    reference = next(iter(fronts))
+    assert viz.errors[(reference, 0)] < 1e-6  # its first camera frame is the shared frame
+    for name in fronts:
+        frames = sorted(f for r, f in viz.drawn if r == name)
+        measured = [f for f in frames if (name, f) in viz.errors]
+        if name == reference:
+            assert measured == frames
+            continue
+        # the others from the frame they were first drawn in the shared frame on (placed), or not at all
+        assert measured == frames[len(frames) - len(measured):]
+    # the run ends on the error of the results files' last pose (after the final matching and convergence)
+    for name, front in fronts.items():
+        fused = fused_poses(front, server)
+        last = int(np.flatnonzero(np.isfinite(fused[:, 0, 3]))[-1]) if fused is not None else -1
+        if last >= 0:
+            expected = np.linalg.norm(fused[last, :3, 3] - truth[name][last, :3, 3])
+            assert viz.final_error[name] == pytest.approx(expected, abs=1e-6)
+        else:
+            assert name not in viz.final_error

@@ -11,6 +11,8 @@ Entity tree (all 3D data in the SHARED world frame = robot 0's odometry frame, c
 /world/matches/<a>__<b>/{accepted,rejected}
 /log                                    TextLog
 /timings/<robot>/<stage>                per-stage milliseconds
+/metrics/error_m/<robot>                distance of the drawn camera from its ground truth in the shared frame,
+                                        metres (robots placed in it whose sequence has ground truth)
 /metrics/...                            any other scalar
 ```
 """
@@ -43,6 +45,11 @@ def timings_path(robot: str, stage: str) -> str:
     return f"{TIMINGS}/{rr.escape_entity_path_part(robot)}/{rr.escape_entity_path_part(stage)}"
 
 
+def error_path(robot: str) -> str:
+    """``/metrics/error_m/<robot>``: the robot's distance from its ground truth in the shared frame, metres."""
+    return f"{METRICS}/error_m/{rr.escape_entity_path_part(robot)}"
+
+
 def matches_path(robot_a: str, robot_b: str) -> str:
     """``/world/matches/<a>__<b>``: the latest match attempt between two robots."""
     return f"{MATCHES}/{rr.escape_entity_path_part(f'{robot_a}__{robot_b}')}"
@@ -65,7 +72,8 @@ def default_blueprint(robots: list[str]) -> rrb.Blueprint:
 
     Left: one 3D view of the shared world (trajectories, clouds, graphs, matches, camera frusta; the
     raw camera images are excluded there because they clutter it). Right: per robot, the RGB image with
-    the segmentation overlaid and the depth image. Bottom: per-stage timings, metrics and the text log.
+    the segmentation overlaid and the depth image. Bottom: per-stage timings, each placed robot's distance from its
+    ground truth in the shared frame (runs whose sequences have ground truth) and the text log.
     """
     excluded = [f"- {camera_path(r)}/{kind}" for r in robots for kind in CAMERA_IMAGES]
     world = rrb.Spatial3DView(origin=WORLD, contents=[f"+ {WORLD}/**", *excluded], name="shared world")
@@ -75,7 +83,7 @@ def default_blueprint(robots: list[str]) -> rrb.Blueprint:
     top = rrb.Horizontal(world, cameras, column_shares=[3, 2])
     bottom = rrb.Horizontal(
         rrb.TimeSeriesView(origin=TIMINGS, name="timings [ms]"),
-        rrb.TimeSeriesView(origin=METRICS, name="metrics"),
+        rrb.TimeSeriesView(origin=METRICS, name="error in the shared frame [m] (ground truth)"),
         rrb.TextLogView(origin=LOG, name="log"),
         column_shares=[2, 1, 2],
     )

@@ -36,6 +36,7 @@ from shgm_slam.viz.blueprint import (
     WORLD,
     camera_path,
     default_blueprint,
+    error_path,
     matches_path,
     robot_path,
     timings_path,
@@ -217,6 +218,8 @@ class Viz(Protocol):
 
     def log_scalar(self, path: str, value: float) -> None: ...
 
+    def log_error(self, robot: str, error_m: float) -> None: ...
+
     def close(self) -> None: ...
 
 
@@ -279,6 +282,9 @@ class NullLogger:
         pass
 
     def log_scalar(self, path: str, value: float) -> None:
+        pass
+
+    def log_error(self, robot: str, error_m: float) -> None:
         pass
 
     def close(self) -> None:
@@ -580,6 +586,16 @@ class RerunLogger:
         """A scalar series; a relative ``path`` goes under ``/metrics`` (``"ate_m"``: ``/metrics/ate_m``)."""
         full = path if path.startswith("/") else f"{METRICS}/{path}"
         self.rec.log(full, rr.Scalars(float(value)))
+
+    def log_error(self, robot: str, error_m: float) -> None:
+        """The distance (metres) of ``robot``'s drawn camera from its ground truth in the shared frame, as the
+        series ``/metrics/error_m/<robot>`` in the robot's colour (``run_view.log_frame``: placed robots whose
+        sequence has ground truth)."""
+        path = error_path(robot)
+        if path not in self._styled_series:
+            self.rec.log(path, rr.SeriesLines(names=robot, colors=self.robot_color(robot), widths=2.0), static=True)
+            self._styled_series.add(path)
+        self.rec.log(path, rr.Scalars(float(error_m)))
 
     def close(self) -> None:
         """Flush everything to the sink and disconnect (the stream accepts no more data).

@@ -70,6 +70,7 @@ def _log_everything(viz: Viz, num_frames: int = 3, num_points: int = 500) -> dic
             viz.log_frame(robot, T, rgb, depth, labels, pts, pts_labels)
             viz.log_frame(robot, T, None, None, None)  # everything optional
             viz.log_timings(robot, {"odometry": 10.0 + k, "graph": 2.0})
+            viz.log_error(robot, 0.5 * k + i)
             traj = rng.normal(size=(k + 2, 3))
             viz.log_trajectories(robot, traj, traj + 0.1)
             graph = _graph(rng)
@@ -187,6 +188,9 @@ def test_text_and_series(recording):
     assert _column(log, "TextLog:level") == [["INFO"], ["WARN"]]
     values = _column(entities["/timings/robot_a/odometry"], "Scalars:scalars")
     assert values == [[10.0], [11.0], [12.0]]  # one value per frame, robots do not collide
+    assert _column(entities["/metrics/error_m/robot_b"], "Scalars:scalars") == [[1.0], [1.5], [2.0]]
+    names = _column(entities["/metrics/error_m/robot_a"], "SeriesLines:names")
+    assert names == [["robot_a"]]  # the series is named after its robot (and drawn in its colour)
 
 
 def _floats(array) -> np.ndarray:
@@ -239,7 +243,7 @@ def test_null_logger_accepts_every_call_and_creates_nothing(tmp_path):
 def test_both_loggers_implement_the_whole_protocol():
     protocol = {n for n, _ in inspect.getmembers(Viz, inspect.isfunction) if not n.startswith("_")}
     assert {"setup", "set_time", "log_frame", "log_trajectories", "log_graph", "log_matches", "log_text",
-            "log_timings", "log_scalar", "close"} <= protocol  # fmt: skip
+            "log_timings", "log_scalar", "log_error", "close"} <= protocol  # fmt: skip
     for cls in (RerunLogger, NullLogger):
         for name in protocol:
             assert (
