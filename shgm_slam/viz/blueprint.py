@@ -8,7 +8,7 @@ Entity tree (all 3D data in the SHARED world frame = robot 0's odometry frame, c
 /world/<robot>/cloud                    current frame's point cloud (class ids)
 /world/<robot>/trajectory/{odometry,fused}/<chunk>   trajectory, in stretches (``run_view``)
 /world/<robot>/graph/{nodes,edges}/<chunk>           semantic graph, in parts (``run_view``)
-/world/matches/<a>__<b>/{accepted,rejected}
+/world/matches/<a>__<b>/{accepted,rejected}   one per robot pair, a before b in display order
 /log                                    TextLog
 /timings/<robot>/<stage>                per-stage milliseconds
 /metrics/error_m/<robot>                distance of the drawn camera from its ground truth in the shared frame,

@@ -511,14 +511,19 @@ class RerunLogger:
         """The latest match attempt between two robots: lines between matched node positions (shared frame).
 
         ``positions_a``/``positions_b`` are (K, 3) paired positions; ``num_inliers``/``score`` only
-        annotate. Accepted attempts are drawn green at ``.../accepted`` and stay until the next accepted
-        one; rejected attempts are drawn red at ``.../rejected`` and are cleared by the next accepted
-        attempt of the pair. The matched nodes are also drawn as dots (``.../nodes``) so that matches
-        stay visible when both ends coincide (after the robots are aligned).
+        annotate. A pair is one entity whichever robot's query matched (``matches_path`` of the two in display
+        order): one label per pair, where both directions' labels stood on top of each other. Accepted attempts
+        are drawn green at ``.../accepted`` and stay until the next accepted one; rejected attempts are drawn red
+        at ``.../rejected`` and are cleared by the next accepted attempt of the pair. The matched nodes are also
+        drawn as dots (``.../nodes``) so that matches stay visible when both ends coincide (after the robots are
+        aligned).
         """
         pa, pb = _xyz("positions_a", positions_a), _xyz("positions_b", positions_b)
         if pa.shape != pb.shape:
             raise DataError(f"viz: positions_a {pa.shape} and positions_b {pb.shape} must pair up")
+        self.robot_color(robot_a), self.robot_color(robot_b)  # (robots not given at construction join the order)
+        if self.robots.index(robot_b) < self.robots.index(robot_a):
+            robot_a, robot_b, pa, pb = robot_b, robot_a, pb, pa
         base = matches_path(robot_a, robot_b)
         parts = [f"{robot_a} ↔ {robot_b}", "accepted" if accepted else "rejected"]
         if num_inliers is not None:

@@ -123,7 +123,7 @@ def test_recording_has_the_documented_entity_tree(recording):
     entities, _, path = recording
     recs = RrdReader(path).recordings()
     assert [(r.application_id, r.recording_id) for r in recs] == [("shgm_slam", "test-run")]
-    ok, bad = "/world/matches/robot_a__robot_b/accepted", "/world/matches/robot_b__robot_a/rejected"
+    ok, bad = "/world/matches/robot_a__robot_b/accepted", "/world/matches/robot_a__robot_b/rejected"
     expected = {"/world", "/log", "/metrics/closures_accepted", "/metrics/ate_m",
                 ok, f"{ok}/nodes", bad, f"{bad}/nodes"}  # fmt: skip
     for r in ROBOTS:
@@ -173,7 +173,7 @@ def _rgba(packed: int) -> tuple[int, int, int]:
 def test_matches_are_green_when_accepted_and_red_when_rejected(recording):
     entities, _, _ = recording
     ok = entities["/world/matches/robot_a__robot_b/accepted"]
-    bad = entities["/world/matches/robot_b__robot_a/rejected"]
+    bad = entities["/world/matches/robot_a__robot_b/rejected"]  # robot_b's query: the pair's one entity
     assert _rgba(_last(ok, "LineStrips3D:colors")[0]) == MATCH_ACCEPTED_RGB
     assert _rgba(_last(bad, "LineStrips3D:colors")[0]) == MATCH_REJECTED_RGB
     assert len(_last(ok, "LineStrips3D:strips")) == 4
@@ -215,7 +215,7 @@ def test_no_logged_value_is_nan_or_infinite(recording):
             for name in rb.schema.names:
                 values = _floats(rb.column(name))
                 assert np.isfinite(values).all(), (entity, name)
-    rejected = entities["/world/matches/robot_b__robot_a/rejected"]
+    rejected = entities["/world/matches/robot_a__robot_b/rejected"]
     assert not any(_column(rejected, "score")) and _column(rejected, "num_inliers") == [[1]]  # no score: none stored
 
 
@@ -277,6 +277,24 @@ def test_make_viz_mode_errors(tmp_path, monkeypatch):
     with pytest.raises(ValueError):
         RerunMode("sideways")
     assert RerunMode("save") is RerunMode.SAVE
+
+
+def test_both_robots_queries_draw_one_pair_with_one_label(tmp_path):
+    """car2's query against car1 and car1's against car2 were two entities with their labels on top of each other
+    (three robots: six labels where three pairs meet); now one per pair, named in the robots' display order."""
+    path = tmp_path / "pairs.rrd"
+    viz = make_viz(RerunMode.SAVE, robots=["car1", "car2"], save_path=path)
+    pa, pb = np.zeros((2, 3)), np.ones((2, 3))
+    viz.log_matches("car2", "car1", pb, pa, True, 2)
+    viz.log_matches("car1", "car2", pa, pb, True, 3)
+    viz.log_matches("uav", "car1", pb, pa, False, 1)  # a robot the logger did not know joins the order after them
+    viz.close()
+    matches = {e for e in _read(path) if e.startswith("/world/matches/")}
+    assert matches == {"/world/matches/car1__car2/accepted", "/world/matches/car1__car2/accepted/nodes",
+                       "/world/matches/car1__car2/rejected", "/world/matches/car1__uav/rejected",
+                       "/world/matches/car1__uav/rejected/nodes"}  # fmt: skip
+    labels = _column(_read(path)["/world/matches/car1__car2/accepted"], "LineStrips3D:labels")
+    assert labels == [["car1 ↔ car2, accepted, 2 inliers"], ["car1 ↔ car2, accepted, 3 inliers"]]
 
 
 def test_robot_names_are_escaped_into_one_path_part(tmp_path):
