@@ -107,8 +107,9 @@ class RunView:
 
     def finish(self, server: MapServer, fronts: Iterable[RobotFrontend]) -> None:
         """Send each robot's whole trajectory (up to its last frame with a pose) and graph once more, at its
-        last frame's time: after the final matching and convergence, the state the results files hold (and, with
-        ground truth, the last frame's error there)."""
+        last frame's time: after the final matching and convergence, the state the results files hold (the error
+        series stays the live estimate's: a last value at the end of the timeline drew a straight line across the
+        other robots' frames)."""
         for front in fronts:
             st = self._robots.get(front.name)
             if st is None:
@@ -122,10 +123,6 @@ class RunView:
             self.viz.set_time(front.name, last, float(front.sequence.timestamps_s[last]))
             self._trajectory(server, front, 0, last)
             self._graph(server, front.name, front.segment.agent, None)
-            truth = None if self.truth is None else self.truth.position(front.name, last)
-            fused = fused_positions(front, server, np.array([last]))[0]
-            if truth is not None and np.isfinite(fused).all():  # the error series ends on the results files' pose
-                self.viz.log_error(front.name, float(np.linalg.norm(fused - truth)))
 
     def _trajectory(self, server: MapServer, front: RobotFrontend, since: int, upto: int) -> None:
         seg = front.segment

@@ -87,6 +87,14 @@ def test_a_results_folder_that_cannot_be_created_is_refused_before_the_benchmark
     _refused(["bench", "simulate", "-o", "/proc/no-such/sim.json"], "cannot write in /proc")
 
 
+@pytest.mark.parametrize("bench, out", [(["sparse", "--seeds", "1"], "out"), (["simulate"], "sim.json"),
+                                        (["simulate"], ""), (["robots"], "")])  # fmt: skip
+def test_an_output_path_the_os_cannot_look_at_is_refused(tmp_path, no_benchmark, bench, out):
+    # a name longer than the file system allows: the checks of --out raised OSError (File name too long), a traceback
+    too_long = tmp_path / ("a" * 300)
+    _refused(["bench", *bench, "-o", str(too_long / out if out else too_long)], "cannot be looked at")
+
+
 def test_bench_simulate_refuses_a_folder_as_its_results_file(tmp_path, no_benchmark):
     # the whole benchmark ran, then writing the JSON over the folder raised IsADirectoryError
     _refused(["bench", "simulate", "-o", str(tmp_path)], "is a folder; give the file to write")

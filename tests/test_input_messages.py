@@ -175,6 +175,18 @@ def test_evaluate_given_a_pose_file_says_it_is_a_file_not_its_sequence_folder(tm
         shgm_slam.evaluate(tmp_path, {"car1": tmp_path / "nowhere"})  # a missing folder: said as before
 
 
+def test_a_sequence_path_the_os_cannot_look_at_is_a_data_error(tmp_path):
+    """A name longer than the file system allows: ``open_sequence``, ``evaluate`` and ``run --robot`` raised Python's
+    OSError (File name too long), a traceback, from the check of the sequence folder."""
+    too_long = tmp_path / ("a" * 300)
+    with pytest.raises(DataError, match=r"sequence folder .* cannot be looked at \(File name too long\)"):
+        shgm_slam.open_sequence(too_long)
+    with pytest.raises(DataError, match=r"sequences\['car1'\]: sequence folder .* cannot be looked at"):
+        shgm_slam.evaluate(tmp_path, {"car1": too_long})
+    code, out = _invoke(["run", "--robot", f"car1={too_long}", "--out", str(tmp_path / "out")])
+    assert code == 2 and "cannot be looked at (File name too long)" in out, out
+
+
 def test_a_folder_named_poses_txt_is_said_to_be_where_the_pose_file_should_be(tmp_path):
     """It read as a sequence without ground truth ("has no ground truth (poses.txt ...)")."""
     root = _kitti_sequence(tmp_path / "car1")
@@ -212,9 +224,26 @@ def test_the_eval_caption_leaves_the_joint_fit_out_without_two_placed_robots():
     none, one, two = _caption(0), _caption(1), _caption(2)
     assert "ground truth from the results folder; aligned = SE(3)-aligned per robot" in none
     assert "joint =" not in none and "0 placed robots" not in none
-    assert "joint = aligned (one robot placed: one SE(3) fit of it alone is its own alignment)" in one
+    assert ("joint = aligned (one placed robot has ground truth in the shared frame: one SE(3) fit of it alone is "
+            "its own alignment)") in one  # fmt: skip
     assert "1 placed robots" not in one
-    assert "joint = one SE(3) fit of all 2 placed robots together (0.30 m over all their poses)" in two
+    assert ("joint = one SE(3) fit of the 2 placed robots with ground truth in the shared frame together (0.30 m over "
+            "all their poses)") in two  # fmt: skip
+
+
+def test_the_eval_caption_does_not_count_placed_robots_without_ground_truth_out():
+    """Both robots placed, car2 without ground truth (its sequence has none, or the run's ground truths share no
+    frame): the joint fit holds car1 alone, and the caption said "one robot placed"."""
+    from shgm_slam.cli.render import eval_table
+    from shgm_slam.evaluation import EvaluationResult, RobotEvaluation
+
+    robots = [RobotEvaluation("car1", 10, 10, 0.5, 0.2, 0.9, ate_fused_joint_m=0.2),
+              RobotEvaluation("car2", 10, 0, note="no ground truth given")]  # fmt: skip
+    result = EvaluationResult(Path("results"), "car1", "results folder", robots, joint_robots=1, ate_joint_m=0.2)
+    console = Console(width=200, record=True)
+    console.print(eval_table(result))
+    text = " ".join(console.export_text().split())
+    assert "robot placed" not in text and "one placed robot has ground truth in the shared frame" in text
 
 
 def test_the_joint_fit_of_one_robot_is_its_own_se3_aligned_ate():

@@ -23,13 +23,24 @@ def nonempty_path(text: str) -> Path:
     return Path(text)
 
 
+def unusable_path(path: Path, exc: OSError) -> typer.BadParameter:
+    """The refusal of an output ``path`` the OS cannot even look at (``exc``: a name too long, a parent folder
+    without permission), which escaped as an OSError traceback from ``out_folder``, ``out_file`` and
+    ``writable_place``."""
+    return typer.BadParameter(f"{path} cannot be looked at ({exc.strerror or exc}); give another path")
+
+
 def writable_place(folder: Path) -> None:
     """Refuse (``typer.BadParameter``) a ``folder`` that cannot be created or written in: its nearest existing
     folder is probed with a temporary folder, removed at once (nothing is left behind, nothing is created
     where the command is refused). Benchmarks write their results at the end: a folder under a file or in
     /proc stopped them there with a traceback, after all their work."""
-    base = next((p for p in (folder, *folder.parents) if p.exists()), Path("."))
-    if not base.is_dir():
+    try:
+        base = next((p for p in (folder, *folder.parents) if p.exists()), Path("."))
+        is_folder = base.is_dir()
+    except OSError as exc:
+        raise unusable_path(folder, exc) from None
+    if not is_folder:
         raise typer.BadParameter(f"{base} is a file, not a folder; give a path that is not under a file")
     try:
         tempfile.TemporaryDirectory(dir=base, prefix=".shgm-probe-").cleanup()
@@ -41,7 +52,11 @@ def out_folder(text: str) -> Path:
     """An output folder from the command line: not empty (``nonempty_path``), not an existing file, and one
     that can be created and written in (``writable_place``)."""
     path = nonempty_path(text)
-    if path.exists() and not path.is_dir():
+    try:
+        is_file = path.exists() and not path.is_dir()
+    except OSError as exc:
+        raise unusable_path(path, exc) from None
+    if is_file:
         raise typer.BadParameter(f"{text} is a file; give a folder (it is created if missing)")
     writable_place(path)
     return path
@@ -51,7 +66,11 @@ def out_file(text: str) -> Path:
     """An output file from the command line: not empty (``nonempty_path``), not an existing folder, in a folder
     that can be created and written in (``writable_place``); an existing file is written over."""
     path = nonempty_path(text)
-    if path.is_dir():
+    try:
+        is_folder = path.is_dir()
+    except OSError as exc:
+        raise unusable_path(path, exc) from None
+    if is_folder:
         raise typer.BadParameter(f"{text} is a folder; give the file to write, e.g. {path / 'results.json'}")
     writable_place(path.parent)
     return path

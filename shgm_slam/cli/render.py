@@ -235,13 +235,16 @@ def eval_table(result):
 
 
 def joint_text(result) -> str:
-    """The eval caption's words on the joint column, by how many robots its one fit holds: none for none (it
-    said "all 0 placed robots together (- m ...)"), and for one that its fit is its own alignment."""
+    """The eval caption's words on the joint column, by how many robots its one fit holds (placed robots with
+    ground truth in the shared frame; others may be placed without it): none for none (it said "all 0 placed
+    robots together (- m ...)"), and for one that its fit is its own alignment."""
     if result.joint_robots == 1:
-        return "; joint = aligned (one robot placed: one SE(3) fit of it alone is its own alignment)"
+        return ("; joint = aligned (one placed robot has ground truth in the shared frame: one SE(3) fit of it alone "
+                "is its own alignment)")  # fmt: skip
     if result.joint_robots < 2:
         return ""
-    return (f"; joint = one SE(3) fit of all {result.joint_robots} placed robots together "
+    return (f"; joint = one SE(3) fit of the {result.joint_robots} placed robots with ground truth in the shared "
+            "frame together "
             f"({metres(result.ate_joint_m)} m over all their poses): how well they agree, without the first "
             "robot's own drift")  # fmt: skip
 

@@ -235,12 +235,16 @@ def check_pose_units(T_x_cam: np.ndarray, timestamps_s: np.ndarray, where: str, 
 def sequence_folder_problem(root: Path) -> str | None:
     """Why ``root`` is no sequence folder (what ``open_sequence``, ``KittiSequence`` and ``evaluate``'s sequences
     say), or None when it is a folder: a file given where its folder is meant (a sequence's ``poses.txt``, said
-    to be "a folder that does not exist" before), or nothing there."""
-    if root.is_dir():
-        return None
-    if root.exists():
-        return (f"{root} is a file; give the robot's sequence folder (its images, times.txt and poses.txt), "
-                "not a file in it")  # fmt: skip
+    to be "a folder that does not exist" before), nothing there, or a path that cannot be looked at (a name too
+    long, a parent folder without permission: an OSError traceback before)."""
+    try:
+        if root.is_dir():
+            return None
+        if root.exists():
+            return (f"{root} is a file; give the robot's sequence folder (its images, times.txt and poses.txt), "
+                    "not a file in it")  # fmt: skip
+    except OSError as exc:
+        return f"sequence folder {root} cannot be looked at ({exc.strerror or exc}); check the path"
     return f"sequence folder {root} does not exist; check the path"
 
 
