@@ -25,8 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shgm_slam.data.base import open_sequence, parse_sequence_spec
-from shgm_slam.data.kitti import sequence_folder_problem
+from shgm_slam.data.base import open_sequence
 from shgm_slam.errors import ConfigError, DataError, parse_failure
 from shgm_slam.io.trajectories import associate, read_comments, read_tum
 from shgm_slam.metrics import AlignMode, ate, joint_ate
@@ -94,10 +93,10 @@ def open_ground_truth(args: list[str]) -> dict[str, Sequence]:
             raise ConfigError(f"--gt {arg!r}: expected NAME=PATH[:start-end], the robot's --robot argument of the run")
         if name in sequences:
             raise ConfigError(f"--gt names robot {name!r} twice")
-        problem = sequence_folder_problem(parse_sequence_spec(spec)[0])
-        if problem:
-            raise DataError(f"--gt {arg!r}: {problem}")
-        sequences[name] = open_sequence(spec)
+        try:
+            sequences[name] = open_sequence(spec)
+        except DataError as exc:  # (what is wrong with the folder, and which --gt said it)
+            raise DataError(f"--gt {arg!r}: {exc}") from None
     return sequences
 
 

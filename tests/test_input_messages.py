@@ -179,8 +179,9 @@ def test_a_sequence_path_the_os_cannot_look_at_is_a_data_error(tmp_path):
     """A name longer than the file system allows: ``open_sequence``, ``evaluate`` and ``run --robot`` raised Python's
     OSError (File name too long), a traceback, from the check of the sequence folder."""
     too_long = tmp_path / ("a" * 300)
-    with pytest.raises(DataError, match=r"sequence folder .* cannot be looked at \(File name too long\)"):
-        shgm_slam.open_sequence(too_long)
+    for spec in (too_long, f"{too_long}:0-5"):
+        with pytest.raises(DataError, match=r"sequence folder .* cannot be looked at \(File name too long\)"):
+            shgm_slam.open_sequence(spec)
     with pytest.raises(DataError, match=r"sequences\['car1'\]: sequence folder .* cannot be looked at"):
         shgm_slam.evaluate(tmp_path, {"car1": too_long})
     code, out = _invoke(["run", "--robot", f"car1={too_long}", "--out", str(tmp_path / "out")])

@@ -45,7 +45,11 @@ def parse_sequence_spec(spec: str | Path) -> tuple[Path, int, int | None]:
     if isinstance(spec, Path):
         return spec, 0, None
     head, sep, tail = spec.rpartition(":")
-    if not sep or Path(spec).exists():
+    try:
+        whole = bool(sep) and Path(spec).exists()
+    except OSError:  # (a name too long: an OSError traceback before; ``open_sequence`` says what is wrong)
+        whole = False
+    if not sep or whole:
         return Path(spec), 0, None
     if not head:
         raise DataError(f"sequence spec '{spec}' has no folder before ':'; use path:start-end")

@@ -8,7 +8,7 @@ ground shows from the start, at most ``SAMPLE_SPAN_FRAMES``). The run starts onc
 frame's) and every other robot that has sent frames are that far; a robot whose camera starts later (named at the
 start, or added with ``add_camera``) joins the running system once its own first frames are in. While the first
 robot has sent no frame, the others' frames are held for it until one that is that far holds
-``fleet.FIRST_CAMERA_WAIT_FRAMES``: the run then starts with those that are that far (the first of them takes the
+``fleet.START_WAIT_FRAMES``: the run then starts with those that are that far (the first of them takes the
 shared frame), and the first robot joins when its frames come, as a late camera (a warning says so). Held frames run
 in the order they came, and from then on every ``add_frame`` of a running robot runs its frame at once and returns
 its pose. Frames given in the order ``run`` would take them (``data.interleave``: by time) give the same results as

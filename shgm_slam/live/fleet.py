@@ -28,14 +28,15 @@ if TYPE_CHECKING:  # the viewer, the pose graph and the models load only when a 
 
 log = logging.getLogger(__name__)
 
-FIRST_CAMERA_WAIT_FRAMES = 2 * SAMPLE_SPAN_FRAMES
-"""Frames a warm robot holds, at most, while the run waits for a first camera that has sent no frame (200: 20 s at
-10 fps). The run then starts without it, with the robots that are warm (the first of them, in the cameras' order,
-takes the shared frame); the first camera joins once its first frames are in, as a camera that starts late does, and
-robots still warming join once warm. Held frames are whole images and depth maps, so waiting without a bound ran out
-of memory where the first camera was unplugged (four cameras at 10 fps held 36,000 frames an hour each). Twice the
-most frames a warm-up reads (``scene_scale.SAMPLE_SPAN_FRAMES``): a first camera that starts sending before this
-(at the others' frame rate) keeps the run as it was, which its own warm-up then holds for at most that span more."""
+START_WAIT_FRAMES = 2 * SAMPLE_SPAN_FRAMES
+"""Frames a warm robot holds, at most, while the run waits to start: for a first camera that has sent no frame, or
+for a robot that has sent some and is not warm yet (a camera unplugged after its first frames) (200: 20 s at 10 fps).
+The run then starts with the robots that are warm (the first camera stays the shared frame's when it is warm, else
+the first of them, in the cameras' order, takes it); the others join once their first frames are in, as a camera
+that starts late does. Held frames are whole images and depth maps, so waiting without a bound ran out of memory
+where a camera was unplugged (four cameras at 10 fps held 36,000 frames an hour each). Twice the most frames a
+warm-up reads (``scene_scale.SAMPLE_SPAN_FRAMES``): cameras at one frame rate never reach it before they are warm,
+and a first camera that starts sending before it keeps the run as it was."""
 
 
 class LiveRun:
@@ -113,7 +114,7 @@ class LiveRun:
     @property
     def started(self) -> bool:
         """The run has started (the first robot's first frames and those of every robot that had sent any were in;
-        or, the first camera having sent none, a warm robot held ``FIRST_CAMERA_WAIT_FRAMES``)."""
+        or a warm robot held ``START_WAIT_FRAMES`` while the run waited for the others)."""
         return self._fleet is not None
 
     @property
@@ -376,30 +377,34 @@ class LiveRun:
 
         It starts once the first camera and every robot in ``sent`` (those that have sent frames) are warm; at
         ``finish`` (``final``) with the robots in ``sent`` (a first camera that sent no frame leaves the shared frame
-        to the next); while the first camera has sent no frame, once a warm robot holds ``FIRST_CAMERA_WAIT_FRAMES``,
-        with the warm robots (the first camera and those still warming join later)."""
+        to the next); before that, once a warm robot holds ``START_WAIT_FRAMES``, with the warm robots (the first
+        camera, if it has sent nothing or is not warm, and those still warming join later)."""
         reference = next(iter(self.streams))
         ready = [r for r in sent if self._warmups[r].ready]
         if final:
             return sent, sent
-        if reference in sent:
-            return (list(self.streams), sent) if ready == sent else None
+        if reference in sent and ready == sent:
+            return list(self.streams), sent
         held = Counter(r for r, _ in self._held)
         longest = max(ready, key=lambda r: held[r], default=None)
-        if longest is not None and held[longest] >= FIRST_CAMERA_WAIT_FRAMES:
-            why = (f"the first camera, {reference}, has sent no frame while {longest} holds {held[longest]} frames "
-                   f"(live.fleet.FIRST_CAMERA_WAIT_FRAMES): the run starts without it, with {', '.join(ready)}, and "
-                   f"{ready[0]}'s first camera frame is the shared frame; {reference} joins once its first frames "
-                   "are in, as a camera that starts late (check its camera; to keep it the shared frame, start its "
-                   "camera before the others)")  # fmt: skip
+        if longest is not None and held[longest] >= START_WAIT_FRAMES:
+            waiting = [r for r in self.streams if r not in ready]
+            said = [f"{r} has sent no frame" if r not in sent else
+                    f"{r} has sent {len(self.streams[r])} frames and is not warm (its first frames stopped?)"
+                    for r in waiting if r in sent or r == reference]  # fmt: skip
+            why = (f"{'; '.join(said)}, while {longest} holds {held[longest]} frames (live.fleet.START_WAIT_FRAMES): "
+                   f"the run starts with {', '.join(ready)}, and {ready[0]}'s first camera frame is the shared frame; "
+                   "the others join once their first frames are in, as cameras that start late (check their cameras"
+                   + (f"; to keep {reference} the shared frame, start its camera before the others)" if ready[0] !=
+                      reference else ")"))  # fmt: skip
             log.warning(why)
             self._viz.log_text(why, "WARN")
-            return ready + [r for r in self.streams if r not in ready], ready
+            return ready + waiting, ready
         if ready == sent and not self._said_waiting:
             self._said_waiting = True  # (once: every later frame is held the same way)
             why = (f"{', '.join(sent)} ready, but the run starts with the first camera, {reference} (the shared "
                    f"frame), which has sent no frame: their frames are held ({len(self._held)} so far) until it "
-                   f"does, until one of them holds {FIRST_CAMERA_WAIT_FRAMES} (the run then starts without it), or "
+                   f"does, until one of them holds {START_WAIT_FRAMES} (the run then starts without it), or "
                    "until finish() starts the run without it")  # fmt: skip
             log.warning(why)
             self._viz.log_text(why, "WARN")

@@ -31,7 +31,7 @@ class LivePose:
         T_odom_cam: (4, 4) camera -> the robot's odometry frame (of ``agent``, its current trajectory segment);
             NaN when the frame belongs to no segment (after an odometry failure, before it measures again).
         T_shared_cam: (4, 4) camera -> the shared frame (the first robot's first camera; where the run started
-            without a first camera that sent nothing, the first robot it started with: ``FIRST_CAMERA_WAIT_FRAMES``)
+            without a first camera that sent nothing, the first robot it started with: ``START_WAIT_FRAMES``)
             as the map server has placed the segment so far, or None while it is not placed.
         keyframe: the frame became a keyframe (its objects went into the semantic graph).
         agent: the trajectory segment it belongs to (``car1``, ``car1~1`` after a failure); "" when skipped.

@@ -64,8 +64,9 @@ class SegmentationModel(OnnxModel):
     """The latest call's largest label-map class index beyond ``output.classes`` and the share of pixels with one
     (255, a common ignore value, and negative indices not counted; (0, 0.0) when none): they read as ignore, and
     mean the card lists fewer classes than the model has (``check-model`` says so; the first such image is a
-    logged warning, and one where most pixels have one a ``ModelError``: ``MAX_UNLISTED_SHARE``)."""
+    logged warning, and a first image where most pixels have one a ``ModelError``: ``MAX_UNLISTED_SHARE``)."""
     _said_unlisted = False  # the warning about class indices beyond the card was given (once per model)
+    _label_maps_seen = 0  # label-map images checked so far (``_count_unlisted``)
 
     @property
     def output_layout(self) -> Layout:
@@ -162,8 +163,13 @@ class SegmentationModel(OnnxModel):
         first image with indices beyond the card's classes.
 
         Raises:
-            ModelError: more than ``MAX_UNLISTED_SHARE`` of the pixels have such indices.
+            ModelError: more than ``MAX_UNLISTED_SHARE`` of the first image's pixels have such indices (the card
+                does not describe the model). Later images only warn: one frame full of a class the card left out
+                (a wall filling the view) must not end a run hours in, where the first frame is checked before any
+                work (``run`` and ``perceive`` start with it).
         """
+        first = self._label_maps_seen == 0
+        self._label_maps_seen += 1
         listed = self.class_to_train_id.size
         unlisted = (class_idx >= listed) & (class_idx != IGNORE_ID)
         count = int(np.count_nonzero(unlisted))
@@ -177,7 +183,7 @@ class SegmentationModel(OnnxModel):
         shown = ", ".join(f"{v:g}" for v in values[:8].tolist()) + (", ..." if values.size > 8 else "")
         seen = (f"{100 * share:.1f} % of an image's pixels have class indices ({shown}) beyond the {listed} classes "
                 "its card lists in output.classes")  # fmt: skip
-        if share > MAX_UNLISTED_SHARE:
+        if share > MAX_UNLISTED_SHARE and first:
             raise ModelError(f"{self.where}: {seen}: the card does not describe this model's output (another "
                              "label space?); list every class the model outputs, in output order, under "
                              "output.classes (or name its label space, e.g. output.classes: ade20k) and map those "

@@ -54,7 +54,7 @@ def config_digest(cfg: ShgmConfig) -> str:
     Dumped to plain values first, then to JSON (the same text ``model_dump_json`` gives): pydantic's JSON
     serializer wraps a KeyboardInterrupt raised in Python code it calls (a Ctrl-C landing as it reads an enum's
     value) into a ``PydanticSerializationError``, a traceback instead of the command's "interrupted"."""
-    data = pydantic_core.to_json(cfg.model_dump(mode="json", exclude={"server"}))
+    data = pydantic_core.to_json(cfg.model_dump(mode="json", exclude={"server"}), inf_nan_mode="null")
     return hashlib.sha256(data).hexdigest()
 
 

@@ -83,7 +83,7 @@ def default_blueprint(robots: list[str]) -> rrb.Blueprint:
     top = rrb.Horizontal(world, cameras, column_shares=[3, 2])
     bottom = rrb.Horizontal(
         rrb.TimeSeriesView(origin=TIMINGS, name="timings [ms]"),
-        rrb.TimeSeriesView(origin=METRICS, name="error in the shared frame [m] (ground truth)"),
+        rrb.TimeSeriesView(origin=f"{METRICS}/error_m", name="error in the shared frame [m] (ground truth)"),
         rrb.TextLogView(origin=LOG, name="log"),
         column_shares=[2, 1, 2],
     )
