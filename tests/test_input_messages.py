@@ -140,6 +140,7 @@ def test_simulate_still_judges_a_folder_of_a_scenario_or_of_other_files_itself(t
     notes.mkdir()
     (notes / "README.md").write_text("my notes\n")
     (notes / "settings.json").write_text("{}\n")  # a JSON without its markdown is no benchmark report
+    (notes / "config.yaml").write_text("matching: {}\n")  # a user's own config is no run's results
     for out in (scenario, notes, tmp_path / "new"):
         code, text = _invoke(["simulate", "-s", "synthia-like", "-o", str(out)])
         assert code == 2 and "simulate was called" in text, text

@@ -51,8 +51,9 @@ def other_results(out: Path) -> str | None:
     """What another command wrote into folder ``out``, said for an error ("a run's or map server's results
     (metrics.json, ...)"), or None: none, or ``out`` holds a scenario (``scenario.json``: simulating there again
     is ``simulate``'s to judge) or is no folder. Recognised: a run's, demo's or map server's files
-    (``io.export.run_output_files``), a benchmark's report (``<stem>.json`` beside ``<stem>.md``,
-    ``bench.report.write_report``) and a sequence (``io.export.SEQUENCE_MARKERS``).
+    (``io.export.run_output_files``, but for ``config.yaml`` alone: a user keeps theirs anywhere), a benchmark's
+    report (``<stem>.json`` beside ``<stem>.md``, ``bench.report.write_report``) and a sequence
+    (``io.export.SEQUENCE_MARKERS``).
 
     Raises:
         SimulationError: ``out`` cannot be read.
@@ -63,7 +64,7 @@ def other_results(out: Path) -> str | None:
     try:
         if not out.is_dir() or (out / "scenario.json").exists():
             return None
-        run_files = [p.name for p in run_output_files(out)]
+        run_files = [p.name for p in run_output_files(out) if p.name != "config.yaml"]  # (a user's own config too)
         reports = sorted(p.stem for p in out.glob("*.json") if p.is_file() and p.with_suffix(".md").is_file())
     except OSError as exc:
         raise SimulationError(f"cannot read {out}: {exc.strerror or exc}; choose another folder (--out)") from None
