@@ -17,6 +17,12 @@ from shgm_slam.geometry import se3
 from shgm_slam.types import Sequence
 
 
+def shared_from_world(first_gt_poses: np.ndarray) -> np.ndarray:
+    """(4, 4) ``T_shared_world``: the inverse of the first robot's first ground-truth pose, from its (N, 4, 4)
+    ``T_world_cam`` (N >= 1)."""
+    return se3.inverse(np.asarray(first_gt_poses[0], dtype=np.float64))
+
+
 def shared_frame_ground_truth(robots: dict[str, Sequence], gt_shared_frame: bool = True) -> dict[str, np.ndarray]:
     """Each robot's ground truth ``T_shared_cam`` (N, 4, 4) in the run's shared frame.
 
@@ -32,7 +38,7 @@ def shared_frame_ground_truth(robots: dict[str, Sequence], gt_shared_frame: bool
     names = list(robots)
     if not names or robots[names[0]].gt_poses is None:
         return {}
-    T_shared_world = se3.inverse(np.asarray(robots[names[0]].gt_poses)[0])
+    T_shared_world = shared_from_world(robots[names[0]].gt_poses)
     placed = names if gt_shared_frame else names[:1]
     return {r: T_shared_world @ np.asarray(robots[r].gt_poses) for r in placed if robots[r].gt_poses is not None}
 
@@ -68,6 +74,6 @@ class SharedTruth:
             first = self.robots[names[0]].gt_poses
             if first is None or not len(first):
                 return None
-            self._T_shared_world = se3.inverse(np.asarray(first[0], dtype=np.float64))
+            self._T_shared_world = shared_from_world(first)
         T = self._T_shared_world
         return T[:3, :3] @ np.asarray(gt[index][:3, 3], dtype=np.float64) + T[:3, 3]

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from shgm_slam.geometry.se3 import make_pose, rot_y, rot_z
-from shgm_slam.shared_frame import shared_frame_ground_truth
+from shgm_slam.shared_frame import SharedTruth, shared_frame_ground_truth
 
 
 @dataclass
@@ -38,3 +38,17 @@ def test_truth_that_cannot_be_placed_is_left_out() -> None:
     assert shared_frame_ground_truth({"car1": _Truth(None), "car2": b}) == {}  # the reference has none
     assert list(shared_frame_ground_truth({"car1": a, "car2": _Truth(None)})) == ["car1"]
     assert shared_frame_ground_truth({}) == {}
+
+
+def test_frame_by_frame_truth_is_the_whole_truths_rows_and_none_where_it_has_none() -> None:
+    a = _Truth(_drive(make_pose(rot_z(0.7), [500.0, -200.0, 30.0])))
+    b = _Truth(_drive(make_pose(rot_z(-1.2), [620.0, -150.0, 31.0]), n=3))  # shorter than its frames could be
+    robots = {"car1": a, "car2": b}
+    whole, each = shared_frame_ground_truth(robots), SharedTruth(robots)
+    for name, poses in whole.items():
+        for i, T in enumerate(poses):
+            np.testing.assert_allclose(each.position(name, i), T[:3, 3], atol=1e-9)
+    assert each.position("car2", 3) is None and each.position("car2", -1) is None and each.position("uav", 0) is None
+    assert SharedTruth(robots, gt_shared_frame=False).position("car2", 0) is None  # other worlds: not placed
+    assert SharedTruth({"car1": _Truth(None), "car2": b}).position("car2", 0) is None  # the reference has none
+    assert SharedTruth({}).position("car1", 0) is None
