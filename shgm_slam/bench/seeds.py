@@ -35,9 +35,9 @@ def parse_seeds(text: str, named: Mapping[str, tuple[int, ...]] | None = None) -
             seeds = tuple(range(lo, hi + 1))
         else:
             seeds = tuple(int(x) for x in text.split(","))
+            _check_count(text, len(seeds))
     except ValueError:
         raise ConfigError(f"--seeds {text!r}: write {forms} with seeds 0-{MAX_SEED}, e.g. 10-14") from None
-    _check_count(text, len(seeds))
     if min(seeds) < 0 or max(seeds) > MAX_SEED:
         raise ConfigError(f"--seeds {text!r}: seeds lie in 0-{MAX_SEED}")
     repeated = sorted(s for s, n in Counter(seeds).items() if n > 1)

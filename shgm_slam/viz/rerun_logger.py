@@ -521,7 +521,8 @@ class RerunLogger:
         pa, pb = _xyz("positions_a", positions_a), _xyz("positions_b", positions_b)
         if pa.shape != pb.shape:
             raise DataError(f"viz: positions_a {pa.shape} and positions_b {pb.shape} must pair up")
-        self.robot_color(robot_a), self.robot_color(robot_b)  # (robots not given at construction join the order)
+        for robot in (robot_a, robot_b):  # robots not given at construction join the display order
+            self.robot_color(robot)
         if self.robots.index(robot_b) < self.robots.index(robot_a):
             robot_a, robot_b, pa, pb = robot_b, robot_a, pb, pa
         base = matches_path(robot_a, robot_b)
