@@ -122,7 +122,7 @@ class Split:
     compact: bool = False
     supersample: int = 1
     kitti_robots: tuple[str, ...] | None = None
-    frame_stride: int = 1  # kitti-paths follows KITTI's 10 Hz poses whatever ``fps`` says: keep every n-th frame
+    frame_stride: int = 1  # keep every n-th rendered frame (kitti-paths: KITTI's own 10 Hz frames, every 5th)
 
     @property
     def key(self) -> str:
@@ -165,7 +165,7 @@ def train_splits(
     the models' held-out 100-101). ``airsim_fps``: frames per second of the airsim-like cities (not the compact
     ones)."""
     cycle = _ss_cycle(supersample)
-    kitti = tuple(Split("kitti-paths", s, kitti_robots=d, frame_stride=5)
+    kitti = tuple(Split("kitti-paths", s, fps=10.0, kitti_robots=d, frame_stride=5)
                   for s, d in zip(range(1, 4), KITTI_TRAIN_DRIVES, strict=True)) if kitti_paths else ()
     extra = range(EXTRA_SEED0, EXTRA_SEED0 + extra_seeds)
     splits = (

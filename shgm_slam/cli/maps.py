@@ -86,7 +86,8 @@ def simulate_command(
                                       help="output folder (one sequence per robot)")],
     seed: Annotated[int, typer.Option(min=0, max=2**31 - 1, help="world and trajectory seed")] = 0,
     resolution: Annotated[str, typer.Option(help="image size WIDTHxHEIGHT")] = "640x192",
-    fps: Annotated[float, bounded(0.1, 100.0, help="frame rate, Hz")] = 10.0,
+    fps: Annotated[float, bounded(0.1, 100.0, help="frame rate, Hz (kitti-paths: KITTI's 10 Hz poses sampled at "
+                                  "this rate: 5 = every 2nd frame)")] = 10.0,
     max_frames: Annotated[int | None, typer.Option(min=1, max=MAX_FRAMES, help="cut every robot's sequence")] = None,
     depth_noise: Annotated[float, bounded(0.0, 1.0, help="relative depth error std (0.05 = 5 %)")] = 0.0,
     label_noise: Annotated[float, bounded(0.0, 1.0, help="segment confusion probability "

@@ -27,6 +27,9 @@ from shgm_slam.sim.trajectories import CAR_CAMERA_HEIGHT_M, RobotKind, Trajector
 DEFAULT_KITTI_ROOT = Path(__file__).resolve().parents[3] / "shared" / "data" / "kitti"
 """``../shared/data/kitti`` next to the repository (real data is never part of the repository)."""
 DEFAULT_KITTI_ROBOTS = ("00:2600-2901", "07:0-351")
+
+KITTI_FPS = 10.0
+"""Frame rate of KITTI's odometry sequences (their poses files have one row per frame)."""
 """The default pair: 00 frames 2600-2900 and 07 frames 0-350 (half-open ranges, ends excluded)."""
 KITTI_GT_SEQUENCES = tuple(f"{k:02d}" for k in range(11))
 """KITTI odometry publishes ground-truth poses for sequences 00-10 only (11-21 are its test set)."""
@@ -274,8 +277,8 @@ def kitti_trajectories(
     Each further sequence is aligned onto the drives placed so far (all of its drives together, by one
     transform, so drives of one sequence always share that sequence's frame). Robot names: ``drive_names``.
 
-    Returns the trajectories (KITTI's 10 Hz frames, timestamps ``k / fps``) and per-robot notes (frames,
-    sequence, and for aligned sequences the alignment stats).
+    Returns the trajectories (KITTI's 10 Hz frames sampled at ``fps``: ``at_frame_rate``) and per-robot notes
+    (frames, sequence, and for aligned sequences the alignment stats).
 
     Raises:
         ConfigError: no drives, or a malformed/unknown/empty drive spec.
@@ -307,7 +310,26 @@ def kitti_trajectories(
             poses[k] = T @ poses[k]
             notes[names[k]] = {**stats, "sequence": seq, "frames": list(frames[k])}
         placed += mine
-    robots = [
-        Trajectory(name, RobotKind.CAR, T, np.arange(len(T)) / fps) for name, T in zip(names, poses, strict=True)
-    ]
+    robots = [Trajectory(name, RobotKind.CAR, *at_frame_rate(T, fps)) for name, T in zip(names, poses, strict=True)]
     return robots, notes
+
+
+def at_frame_rate(T_world_cam: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """A drive's (N, 4, 4) poses, one per KITTI frame (``KITTI_FPS``), sampled at ``fps`` frames/s: positions
+    interpolated linearly, rotations spherically, from the drive's first frame to its last.
+
+    Returns ((M, 4, 4) poses, (M,) timestamps ``j / fps`` seconds). At ``KITTI_FPS`` the very poses; at 5 every
+    second one, at 10/3 every third (what users do to KITTI to run faster), above 10 poses between frames.
+    """
+    if fps == KITTI_FPS:
+        return T_world_cam, np.arange(len(T_world_cam)) / fps
+    from scipy.spatial.transform import Rotation, Slerp
+
+    t_kitti = np.arange(len(T_world_cam)) / KITTI_FPS
+    count = int(np.floor(t_kitti[-1] * fps + 1e-9)) + 1
+    t = np.minimum(np.arange(count) / fps, t_kitti[-1])
+    out = np.tile(np.eye(4), (count, 1, 1))
+    out[:, :3, :3] = Slerp(t_kitti, Rotation.from_matrix(T_world_cam[:, :3, :3]))(t).as_matrix()
+    for axis in range(3):
+        out[:, axis, 3] = np.interp(t, t_kitti, T_world_cam[:, axis, 3])
+    return out, np.arange(count) / fps

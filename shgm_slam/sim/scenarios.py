@@ -51,7 +51,7 @@ class ScenarioOptions:
 
     Attributes:
         seed: everything random derives from it.
-        fps: frame rate of the trajectories (kitti-paths keeps KITTI's 10 Hz poses and only relabels time).
+        fps: frame rate of the trajectories (kitti-paths samples KITTI's 10 Hz poses at this rate).
         world_size_m: side of the square city (None: the scenario's default, at least 1 km).
         max_depth_m: depth range of the cameras (``disjoint`` keeps its robots 2x this apart).
         car_speed_mps, uav_speed_mps: cruise speeds.

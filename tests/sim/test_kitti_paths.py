@@ -172,3 +172,28 @@ def test_real_kitti_whole_sequences(shared_data):
     robots, notes = kitti_trajectories(shared_data / "kitti", ("09", "10"))
     assert [(r.name, len(r)) for r in robots] == [("kitti09", 1591), ("kitti10", 1201)]
     assert notes["kitti10"]["overlap_length_m"] > 150.0 and notes["kitti10"]["rmse_m"] < 2.0
+
+
+@pytest.mark.parametrize(("fps", "step"), [(5.0, 2), (10.0 / 3.0, 3)])
+def test_a_lower_frame_rate_takes_every_nth_kitti_frame(tmp_path, fps, step):
+    """``--fps 5`` is KITTI's every 2nd frame at 0.2 s, 3.3 its every 3rd (what users do to run faster), not
+    KITTI's frames slowed down; at 10 Hz the very poses."""
+    root = _fake_root(tmp_path)
+    (full,), _ = kitti_trajectories(root, ("03:10-60",))
+    (sub,), _ = kitti_trajectories(root, ("03:10-60",), fps=fps)
+    np.testing.assert_allclose(sub.T_world_cam, full.T_world_cam[::step], atol=1e-9)
+    np.testing.assert_allclose(sub.timestamps_s, np.arange(len(sub)) / fps)
+    assert len(sub) == len(range(0, 50, step))
+    assert full.timestamps_s[1] == pytest.approx(0.1)
+
+
+def test_a_higher_frame_rate_interpolates_between_kitti_frames(tmp_path):
+    root = _fake_root(tmp_path)
+    (full,), _ = kitti_trajectories(root, ("03:10-60",))
+    (fast,), _ = kitti_trajectories(root, ("03:10-60",), fps=20.0)
+    assert len(fast) == 2 * len(full) - 1
+    np.testing.assert_allclose(fast.T_world_cam[::2], full.T_world_cam, atol=1e-9)
+    mid = fast.T_world_cam[1::2, :3, 3]
+    np.testing.assert_allclose(mid, 0.5 * (full.T_world_cam[:-1, :3, 3] + full.T_world_cam[1:, :3, 3]), atol=1e-9)
+    R = fast.T_world_cam[:, :3, :3]
+    np.testing.assert_allclose(np.einsum("nij,nkj->nik", R, R), np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
