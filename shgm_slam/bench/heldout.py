@@ -30,6 +30,7 @@ resumes where it stopped. Nothing here prints; the CLI renders the returned dict
 from __future__ import annotations
 
 import json
+import math
 import multiprocessing
 import shutil
 import time
@@ -65,6 +66,10 @@ REPORT_SEEDS = tuple(range(210, 220))
 """World seeds the README reports; never looked at while tuning."""
 RESOLUTION = (320, 96)
 """Render size: the demo models' input size, and fast enough for ~80 runs in an hour on 2 cores."""
+FPS = 10.0
+"""Frame rate the worlds are rendered at, Hz (the simulator's default, KITTI's rate; every default was tuned at it)."""
+MAX_FPS = 100.0
+"""Highest frame rate a benchmark may ask for, Hz (as ``simulate --fps``)."""
 MAX_DEPTH_M = DEFAULT_MAX_DEPTH_M
 """Depth range the worlds are rendered with (the simulator's; a UAV's altitude must keep its ground within it)."""
 KITTI_DRIVE_PAIRS = (
@@ -115,22 +120,42 @@ class HeldoutOptions:
     front_end_jobs: int | None = 1
     """Worker processes for each run's robot front ends (``run_slam(jobs=...)``; None: one per robot up to the
     cores, ``remote.default_jobs``): the same results, sooner when the worlds run one at a time."""
+    fps: float = FPS
+    """Frame rate the worlds are rendered at, Hz (other rates are cached apart): every default was tuned at 10 Hz;
+    this asks how they hold on KITTI subsampled to every 2nd or 3rd frame (5, 3.3 Hz), as kitti-paths worlds then
+    are (``sim.kitti_paths.at_frame_rate``)."""
+
+    def __post_init__(self) -> None:
+        """Raises ConfigError: ``fps`` not a finite rate above 0 and at most ``MAX_FPS`` (the simulator would refuse
+        every world, and each would be skipped as one that cannot be built)."""
+        if not (math.isfinite(self.fps) and 0.0 < self.fps <= MAX_FPS):
+            raise ConfigError(f"frame rate {self.fps} Hz: give a finite rate above 0 and at most {MAX_FPS:g} (--fps)")
 
 
 def world_folder(
     cache: Path, scenario: str, seed: int, resolution: tuple[int, int], supersample: int = 1,
     uav_altitude_m: tuple[float, float] | None = None, corruption: CorruptionLevels | None = None,
+    fps: float = FPS,
 ) -> Path:  # fmt: skip
     """Where the world ``scenario``/``seed`` is cached: ``cache/<scenario>-s<seed>-<W>x<H>`` (``-ss<S>`` added
     for S x S rays per pixel, ``-uav<LO>-<HI>`` for an airsim-like UAV at another altitude, ``-d<D>-l<L>`` for
-    frames corrupted by ``CorruptionLevels.from_levels(D, L)``)."""
+    frames corrupted by ``CorruptionLevels.from_levels(D, L)``, ``-fps<F>`` for frames at F Hz other than
+    ``FPS``: ``-fps5``, ``-fps3.3``)."""
     tail = f"-ss{supersample}" if supersample > 1 else ""
     altitude = _uav_altitude(scenario, uav_altitude_m)
     if altitude is not None:
         tail += f"-uav{altitude[0]:g}-{altitude[1]:g}"
     if corruption is not None and corruption.active:
         tail += f"-d{corruption.depth_noise:g}-l{corruption.label_confusion:g}"
+    if fps != FPS:
+        tail += f"-fps{_compact(fps)}"
     return Path(cache) / f"{scenario}-s{seed}-{resolution[0]}x{resolution[1]}{tail}"
+
+
+def _compact(value: float) -> str:
+    """``value`` written short and exactly (``5``, ``3.3``, ``3.3333333333333335``): two values never share a
+    text (``:g`` keeps six digits), and no exponent for the frame rates asked (0.1-100)."""
+    return repr(float(value)).removesuffix(".0")
 
 
 def _uav_altitude(scenario: str, uav_altitude_m: tuple[float, float] | None) -> tuple[float, float] | None:
@@ -141,16 +166,17 @@ def _uav_altitude(scenario: str, uav_altitude_m: tuple[float, float] | None) -> 
 def ensure_world(
     cache: Path, scenario: str, seed: int, resolution: tuple[int, int], progress: Progress, supersample: int = 1,
     uav_altitude_m: tuple[float, float] | None = None, corruption: CorruptionLevels | None = None,
-    kitti_root: Path | None = None,
+    kitti_root: Path | None = None, fps: float = FPS,
 ) -> Path:  # fmt: skip
-    """Render the world once (cached; ``kitti_root``: the KITTI poses of kitti-paths worlds); returns its folder."""
-    folder = world_folder(cache, scenario, seed, resolution, supersample, uav_altitude_m, corruption)
+    """Render the world once (cached; ``kitti_root``: the KITTI poses of kitti-paths worlds; ``fps``: frames per
+    second, Hz); returns its folder."""
+    folder = world_folder(cache, scenario, seed, resolution, supersample, uav_altitude_m, corruption, fps)
     if not (folder / "scenario.json").is_file():
         progress(f"rendering {scenario} seed {seed} into {folder}")
         pair = KITTI_DRIVE_PAIRS[seed % len(KITTI_DRIVE_PAIRS)] if scenario == "kitti-paths" else None
         simulate_cached(scenario, folder, seed=seed, resolution=resolution, kitti_robots=pair,
                         supersample=supersample, uav_altitude_m=_uav_altitude(scenario, uav_altitude_m),
-                        max_depth_m=MAX_DEPTH_M, corruption=corruption,
+                        max_depth_m=MAX_DEPTH_M, corruption=corruption, fps=fps,
                         **({} if kitti_root is None else {"kitti_root": kitti_root}))  # fmt: skip
     return folder
 
@@ -241,7 +267,7 @@ def _world_runs(scenario: str, seed: int, options: HeldoutOptions, out: Path, pr
     city's roofs): the other worlds' runs and the summary are kept, and the report lists the world skipped."""
     try:
         world = ensure_world(options.cache, scenario, seed, options.resolution, progress, options.supersample,
-                             options.uav_altitude_m, options.corruption, options.kitti_root)
+                             options.uav_altitude_m, options.corruption, options.kitti_root, options.fps)
     except SimulationError as exc:
         progress(f"skipping {scenario} seed {seed}: {exc}")
         return [{"scenario": scenario, "seed": seed, "skipped": str(exc)}]
@@ -299,7 +325,7 @@ def check_kitti_poses(options: HeldoutOptions) -> None:
     sequences = set()
     for seed in options.seeds:
         folder = world_folder(options.cache, "kitti-paths", seed, options.resolution, options.supersample,
-                              options.uav_altitude_m, options.corruption)  # fmt: skip
+                              options.uav_altitude_m, options.corruption, options.fps)  # fmt: skip
         if not (folder / "scenario.json").is_file():
             sequences.update(d.split(":")[0] for d in KITTI_DRIVE_PAIRS[seed % len(KITTI_DRIVE_PAIRS)])
     for seq in sorted(sequences):
@@ -308,13 +334,25 @@ def check_kitti_poses(options: HeldoutOptions) -> None:
 
 def run_options(options: HeldoutOptions) -> dict:
     """What a run's results depend on beyond its world seed, scenario and mode (recorded with each cached run):
-    the rendering (size, rays per pixel, UAV altitude, corruption) and the frames run."""
+    the rendering (size, rays per pixel, UAV altitude, corruption, frame rate) and the frames run."""
     return {
         "resolution": list(options.resolution), "supersample": options.supersample,
         "uav_altitude_m": list(options.uav_altitude_m) if options.uav_altitude_m else None,
         "depth_noise": options.corruption.depth_noise, "label_noise": options.corruption.label_confusion,
-        "max_frames": options.max_frames,
+        "fps": options.fps, "max_frames": options.max_frames,
     }  # fmt: skip
+
+
+RENDER_FLAGS = {"resolution": "--resolution", "supersample": "--supersample", "uav_altitude_m": "--uav-altitude",
+                "depth_noise": "--depth-noise", "label_noise": "--label-noise", "fps": "--fps"}  # fmt: skip
+"""The ``run_options`` of the rendering, each with the ``bench heldout`` option that sets it."""
+
+
+def _recorded_options(verdicts: Path) -> dict | None:
+    """The ``run_options`` a cached run was made with (``verdicts.json``'s ``asked``), None for a run cached before
+    they were recorded; a run recorded before the frame rate was had it at ``FPS``."""
+    made = json.loads(verdicts.read_text()).get("asked")
+    return None if made is None else {"fps": FPS, **made}
 
 
 def check_resumable(out: Path, options: HeldoutOptions) -> None:
@@ -323,7 +361,8 @@ def check_resumable(out: Path, options: HeldoutOptions) -> None:
 
     Raises:
         ConfigError: a run of the worlds asked for was made with another resolution, rays per pixel, UAV
-            altitude, corruption or frame cut (runs cached before these were recorded are taken as they are).
+            altitude, corruption, frame rate or frame cut (runs cached before these were recorded are taken as they
+            are).
     """
     asked = run_options(options)
     for scenario in options.scenarios:
@@ -332,7 +371,7 @@ def check_resumable(out: Path, options: HeldoutOptions) -> None:
                 cached = Path(out) / "runs" / f"{scenario}-s{seed}-{mode.value}" / "verdicts.json"
                 if not cached.is_file():
                     continue
-                made = json.loads(cached.read_text()).get("asked")
+                made = _recorded_options(cached)
                 if made is None or made == asked:
                     continue
                 differ = ", ".join(f"{k} {made.get(k)} (asked: {v})" for k, v in asked.items() if made.get(k) != v)
@@ -340,6 +379,35 @@ def check_resumable(out: Path, options: HeldoutOptions) -> None:
                     f"{out} holds runs made with other options ({cached.parent.name}: {differ}); a resume would "
                     "report them as this benchmark's: choose another --out, or delete that folder's runs/"
                 )
+
+
+def check_replayable(options: HeldoutOptions) -> None:
+    """Refuse to replay (``replay_from``) runs recorded on worlds rendered otherwise than asked: their keyframes
+    would be judged against the asked worlds' ground truth (at another frame rate, other poses at other times) and
+    reported under the asked options.
+
+    Raises:
+        ConfigError: a recorded run of the worlds asked for was made with another resolution, rays per pixel, UAV
+            altitude, corruption or frame rate (runs recorded before these were recorded are taken as they are;
+            ones recorded before the frame rate was, as at ``FPS``).
+    """
+    if options.replay_from is None:
+        return
+    asked = {k: v for k, v in run_options(options).items() if k in RENDER_FLAGS}
+    for scenario in options.scenarios:
+        for seed in options.seeds:
+            for mode in options.modes:
+                name = f"{scenario}-s{seed}-{mode.value}"
+                cached = Path(options.replay_from) / "runs" / name / "verdicts.json"
+                made = _recorded_options(cached) if cached.is_file() else None
+                differ = [k for k, v in asked.items() if made is not None and made.get(k) != v]
+                if differ:
+                    raise ConfigError(
+                        f"--replay-from {options.replay_from} holds runs made with other options ({name}: "
+                        + ", ".join(f"{k} {made.get(k)} (asked: {asked[k]})" for k in differ)
+                        + "); a replay would judge their keyframes against worlds rendered as asked: give the "
+                        "recorded benchmark's " + ", ".join(RENDER_FLAGS[k] for k in differ)
+                    )
 
 
 def _quiet(_msg: str) -> None:
@@ -367,6 +435,7 @@ def run_heldout_benchmark(
     progress = progress or _quiet
     out = Path(out)
     check_resumable(out, options)
+    check_replayable(options)
     check_kitti_poses(options)
     t0 = time.perf_counter()
     worlds = [(sc, seed) for sc in options.scenarios for seed in options.seeds]

@@ -118,6 +118,7 @@ def heldout_markdown(results: dict) -> str:
         stopped + f"Seeds {o['seeds'][0]}-{o['seeds'][-1]} ({len(o['seeds'])} worlds per scenario), "
         f"{o['resolution'][0]}x{o['resolution'][1]}"
         + (f" ({o['supersample']}x{o['supersample']} rays per pixel)" if o.get("supersample", 1) > 1 else "")
+        + (f" at {o['fps']:g} Hz" if o.get("fps", 10.0) != 10.0 else "")
         + (
             f", airsim-like UAVs at {o['uav_altitude_m'][0]:g}-{o['uav_altitude_m'][1]:g} m"
             if o.get("uav_altitude_m")

@@ -299,7 +299,9 @@ def bench_heldout(
     scenario: Annotated[list[str] | None, typer.Option(help="scenario (repeatable)", show_default="all four")] = None,
     mode: Annotated[list[str] | None, typer.Option(help="files | rgb (repeatable)", show_default="both")] = None,
     max_frames: Annotated[
-        int | None, typer.Option(min=10, max=MAX_FRAMES, help="cut every robot's sequence (quick looks)")
+        int | None, typer.Option(min=10, max=MAX_FRAMES, help="cut every robot's sequence to its first N frames "
+                                 "(quick looks; at a lower --fps the same drive has fewer frames, so N cover more "
+                                 "of it)")
     ] = None,
     cache: Annotated[Path, typer.Option(help="rendered worlds are cached here")] = Path("cache/heldout"),
     resolution: Annotated[str, typer.Option(help="render size WIDTHxHEIGHT (every default was chosen at 320x96; "
@@ -320,6 +322,9 @@ def bench_heldout(
                      "(matching and back-end changes; no rendering, perception or odometry)"),
     ] = None,
     kitti_root: Annotated[Path | None, typer.Option(help="KITTI folder with poses/ (kitti-paths worlds)")] = None,
+    fps: Annotated[float, bounded(0.1, 100.0, help="frame rate of the rendered worlds, Hz (every default was "
+                                  "chosen at 10; KITTI subsampled to every 2nd or 3rd frame is 5 or 3.3, which "
+                                  "kitti-paths worlds then are; cached apart)")] = 10.0,
 ) -> None:
     """The system with the default configuration on many unseen worlds: placed right, false merges,
     not placed, odometry failures (ground truth and detected), accepted matches and placements judged
@@ -350,7 +355,8 @@ def bench_heldout(
                                      max_frames=max_frames, cache=cache, replay_from=replay_from, resolution=size,
                                      supersample=supersample, uav_altitude_m=altitude,
                                      corruption=CorruptionLevels.from_levels(depth_noise, label_noise),
-                                     kitti_root=kitti_root, front_end_jobs=None if jobs == 1 else 1)  # fmt: skip
+                                     kitti_root=kitti_root, front_end_jobs=None if jobs == 1 else 1,
+                                     fps=fps)  # fmt: skip
     if replay_from is not None and not (replay_from / "runs").is_dir():
         raise ConfigError(f"--replay-from {replay_from}: no runs/ folder there (a `bench heldout` results folder)")
     if kitti_root is not None and "kitti-paths" not in options.scenarios:
