@@ -189,6 +189,7 @@ class KissOdometry:
         self._no_stamps = np.array([])  # KISS-ICP needs an array; empty = no deskew
         self.num_frames = 0
         self._seed_delta: np.ndarray | None = None  # ``reset``'s motion, taken once the first frame is in
+        self._aligning: Callable[[np.ndarray], np.ndarray] | None = None  # ``realign`` during ``_register_fused``
 
     def reset(self, motion: np.ndarray | None = None) -> None:
         """Start afresh: empty map; the next frame defines a new odometry frame.
@@ -285,12 +286,20 @@ class KissOdometry:
         source, frame_downsample = icp.voxelize(frame)
         sigma = icp.adaptive_threshold.get_threshold()
         initial_guess = icp.last_pose @ icp.last_delta
-        new_pose = icp.registration.align_points_to_map(
-            points=source, voxel_map=icp.local_map, initial_guess=initial_guess,
-            max_correspondance_distance=3 * sigma, kernel=sigma,
-        )  # fmt: skip
+
+        def align(guess_pose: np.ndarray) -> np.ndarray:  # the pose ICP reaches from ``guess_pose``
+            return icp.registration.align_points_to_map(
+                points=source, voxel_map=icp.local_map, initial_guess=guess_pose,
+                max_correspondance_distance=3 * sigma, kernel=sigma,
+            )  # fmt: skip
+
+        new_pose = align(initial_guess)
         icp_step = np.linalg.inv(icp.last_pose) @ new_pose
-        step = fuse_step(icp_step)
+        self._aligning = lambda guess_step: np.linalg.inv(icp.last_pose) @ align(icp.last_pose @ guess_step)
+        try:
+            step = fuse_step(icp_step)
+        finally:
+            self._aligning = None
         relocation = step if isinstance(step, Relocation) else None
         if relocation is not None:
             step = relocation.step
@@ -303,6 +312,14 @@ class KissOdometry:
         icp.local_map.update(frame_downsample, new_pose)
         icp.last_delta = step if relocation is None else np.asarray(relocation.velocity, dtype=np.float64)
         icp.last_pose = new_pose
+
+    def realign(self, guess_step: np.ndarray) -> np.ndarray:
+        """ICP of the frame being registered, again, from another initial step (``guess_step`` (4, 4): this frame's
+        camera in the previous one), against the same local map with the same threshold; returns the step it
+        reaches (4, 4). Only inside a ``register`` call's ``fuse_step`` (the map is not touched)."""
+        if self._aligning is None:
+            raise RuntimeError("KissOdometry.realign is only valid inside register()'s fuse_step")
+        return self._aligning(np.asarray(guess_step, dtype=np.float64))
 
     def _coast(self) -> np.ndarray:
         """Advance the pose by the last frame-to-frame motion without touching the map."""

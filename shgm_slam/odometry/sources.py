@@ -111,7 +111,7 @@ class KissIcpSource:
             self.image_yaw.update(frame.image_rgb, frame.intrinsics.fx)  # the first frame: reference only
         T_prev = self.odometry.T_odom_cam
         prior = None if yaw_img is None else yaw_prior(self.odometry.predicted_delta, yaw_img, self.prior_min_rad)
-        tracks = None
+        tracks, guess = None, None
         if self.flow is not None and frame.image_rgb is not None and depth_m is not None:
             unknown = self.odometry.num_frames == 1  # the first step: the odometry assumes rest
             guess = self._guess_step()
@@ -124,7 +124,7 @@ class KissIcpSource:
         relocated: list[bool] = []
 
         def keep_step(icp_step: np.ndarray) -> np.ndarray | Relocation:
-            step, replaced = choose_step(icp_step, tracks)
+            step, replaced = choose_step(icp_step, tracks, guess, self.odometry.realign)
             slipped.append(replaced)
             motion = None if T_anchor is None else window_correction(window, inverse(T_anchor) @ T_prev @ step)
             relocated.append(motion is not None)
@@ -139,7 +139,10 @@ class KissIcpSource:
         note = "" if reg.ok else f"frame {frame.index}: {reg.describe()}"
         image_step = any(slipped)
         if image_step:
-            note = f"frame {frame.index}: ICP slipped against the image motion; the step from the image tracks kept"
+            note = (
+                f"frame {frame.index}: ICP slipped against the image motion; the step the image tracks support kept "
+                "(PnP's, or ICP's again from the image's turn)"
+            )
         image_window = any(relocated)
         if image_window:
             note = (

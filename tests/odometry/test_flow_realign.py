@@ -1,0 +1,140 @@
+"""ICP run again from the image's turn where PnP cannot decide (``choose_step``'s second chance) and
+``KissOdometry.realign``, the ICP it runs: a sharp turn at a low frame rate leaves too few tracks for PnP,
+ICP from the constant-velocity prediction misses the turn, and ICP from the image's guess finds it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shgm_slam.geometry.se3 import inverse, make_pose
+from shgm_slam.odometry.flow_check import MIN_TRACKS, Tracks, choose_step, flow_residual_rad, pnp_step
+from shgm_slam.odometry.image_rotation import rot_y, yaw_of
+from shgm_slam.odometry.kiss import KissOdometry
+from shgm_slam.types import Intrinsics
+
+K = Intrinsics(fx=184.0, fy=184.0, cx=159.5, cy=47.5, width=320, height=96)
+TURN_DEG = 16.8  # one frame of a car's turn at an intersection, seen at 3 frames/s
+
+
+def _true_step() -> np.ndarray:
+    return make_pose(rot_y(np.radians(TURN_DEG)), np.array([0.3, 0.0, 3.0]))
+
+
+def _tracks(step: np.ndarray, count: int) -> Tracks:
+    """``count`` points 8-30 m ahead of the previous camera, seen where ``step`` (this camera in the previous
+    one) puts them: right tracks, too few for PnP when ``count`` < ``MIN_TRACKS``."""
+    rng = np.random.default_rng(3)
+    points = np.column_stack([rng.uniform(-6, 6, count), rng.uniform(-2, 1, count), rng.uniform(8, 30, count)])
+    T_cur_prev = inverse(step)
+    cur = points @ T_cur_prev[:3, :3].T + T_cur_prev[:3, 3]
+    uv = np.column_stack([K.fx * cur[:, 0] / cur[:, 2] + K.cx, K.fy * cur[:, 1] / cur[:, 2] + K.cy])
+    return Tracks(points, uv, K)
+
+
+class _Realign:
+    """A stand-in for ``KissOdometry.realign``: returns ``answer`` and records the guesses it was given."""
+
+    def __init__(self, answer: np.ndarray) -> None:
+        self.answer = answer
+        self.guesses: list[np.ndarray] = []
+
+    def __call__(self, guess_step: np.ndarray) -> np.ndarray:
+        self.guesses.append(guess_step)
+        return self.answer
+
+
+def test_without_pnp_icp_from_the_images_turn_replaces_a_missed_turn() -> None:
+    truth = _true_step()
+    tracks = _tracks(truth, MIN_TRACKS - 10)
+    assert pnp_step(tracks) is None  # too few tracks: PnP cannot decide
+    missed = make_pose(rot_y(np.radians(1.7)), np.array([0.0, 0.0, 3.0]))  # ICP from constant velocity
+    guess = make_pose(rot_y(np.radians(TURN_DEG - 0.2)), np.array([0.0, 0.0, 3.0]))  # the image's turn
+    assert flow_residual_rad(tracks, missed) > 10 * flow_residual_rad(tracks, guess)
+    found = _Realign(truth)
+    step, replaced = choose_step(missed, tracks, guess, found)
+    assert replaced and step is truth
+    assert len(found.guesses) == 1 and found.guesses[0] is guess
+    # without the second chance (no guess or no ICP to run again) ICP's step stays, as before
+    assert choose_step(missed, tracks) == (missed, False)
+    assert choose_step(missed, tracks, guess, None) == (missed, False)
+
+
+def test_icp_from_the_turn_must_agree_with_the_images_too() -> None:
+    truth = _true_step()
+    tracks = _tracks(truth, MIN_TRACKS - 10)
+    missed = make_pose(rot_y(np.radians(1.7)), np.array([0.0, 0.0, 3.0]))
+    guess = make_pose(rot_y(np.radians(TURN_DEG)), np.array([0.0, 0.0, 3.0]))
+    back = _Realign(missed)  # the depth pulls ICP back to its own step: the images alone do not decide
+    step, replaced = choose_step(missed, tracks, guess, back)
+    assert not replaced and step is missed and len(back.guesses) == 1
+
+
+def test_a_guess_no_better_than_icp_is_not_tried() -> None:
+    truth = _true_step()
+    tracks = _tracks(truth, MIN_TRACKS - 10)
+    missed = make_pose(rot_y(np.radians(1.7)), np.array([0.0, 0.0, 3.0]))
+    wrong_guess = make_pose(rot_y(np.radians(-12.0)), np.array([0.0, 0.0, 3.0]))  # the other way
+    never = _Realign(truth)
+    step, replaced = choose_step(missed, tracks, wrong_guess, never)
+    assert not replaced and step is missed and never.guesses == []
+    right = make_pose(rot_y(np.radians(TURN_DEG)), np.array([0.3, 0.0, 3.0]))
+    assert choose_step(right, tracks, right, never) == (right, False)  # ICP right: nothing to try
+    assert never.guesses == []
+
+
+def _scene() -> np.ndarray:
+    """(N, 3) points of a street corner in the first camera's frame: two facades, a wall ahead and the
+    ground (x right, y down, z forward), ~0.25 m apart."""
+    s = np.arange(-20.0, 40.0, 0.25)
+    h = np.arange(-6.0, 1.5, 0.25)
+    S, H = np.meshgrid(s, h)
+    left = np.column_stack([np.full(S.size, -8.0), H.ravel(), S.ravel()])
+    right = np.column_stack([np.full(S.size, 9.0), H.ravel(), S.ravel()])
+    X, Hw = np.meshgrid(np.arange(-8.0, 9.0, 0.25), h)
+    ahead = np.column_stack([X.ravel(), Hw.ravel(), np.full(X.size, 40.0)])
+    Xg, Zg = np.meshgrid(np.arange(-8.0, 9.0, 0.5), np.arange(-20.0, 40.0, 0.5))
+    ground = np.column_stack([Xg.ravel(), np.full(Xg.size, 1.5), Zg.ravel()])
+    bumps = np.column_stack([np.full(40, -7.5), np.linspace(-5, 1, 40), np.linspace(2, 35, 40)])  # a row of posts
+    return np.vstack([left, right, ahead, ground, bumps])
+
+
+def _seen_from(points_world: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
+    """The scene's points within 30 m in the camera ``T_world_cam``'s frame (every direction: a clean cloud)."""
+    T = inverse(T_world_cam)
+    cam = points_world @ T[:3, :3].T + T[:3, 3]
+    return cam[np.linalg.norm(cam, axis=1) < 30.0]
+
+
+def test_kiss_realign_runs_icp_again_without_touching_the_map() -> None:
+    scene = _scene()
+    small_turn = make_pose(rot_y(np.radians(3.0)), np.array([0.0, 0.0, 1.0]))
+
+    def odometry_after_two() -> KissOdometry:
+        odo = KissOdometry(voxel_size_m=0.5, max_range_m=30.0)
+        odo.register(_seen_from(scene, np.eye(4)))
+        odo.register(_seen_from(scene, small_turn))
+        return odo
+
+    with pytest.raises(RuntimeError, match="only valid inside"):
+        odometry_after_two().realign(np.eye(4))
+    T_world_2 = small_turn @ make_pose(rot_y(np.radians(8.0)), np.array([0.2, 0.0, 1.5]))
+    cloud = _seen_from(scene, T_world_2)
+    plain, probed = odometry_after_two(), odometry_after_two()
+    plain.register(cloud, fuse_step=lambda icp_step: icp_step)
+    true_step = inverse(small_turn) @ T_world_2
+    realigned: list[np.ndarray] = []
+
+    def probe(icp_step: np.ndarray) -> np.ndarray:
+        realigned.append(probed.realign(true_step))
+        realigned.append(probed.realign(probed.predicted_delta))  # KISS-ICP's own start again
+        return icp_step
+
+    T_odom_prev = probed.T_odom_cam
+    probed.register(cloud, fuse_step=probe)
+    np.testing.assert_array_equal(probed.T_odom_cam, plain.T_odom_cam)  # nothing of it was kept
+    np.testing.assert_allclose(plain.local_map_points(), probed.local_map_points())
+    from_truth, own = realigned
+    np.testing.assert_allclose(from_truth[:3, 3], true_step[:3, 3], atol=0.05)
+    assert np.degrees(yaw_of(from_truth)) == pytest.approx(np.degrees(yaw_of(true_step)), abs=0.2)
+    np.testing.assert_allclose(probed.T_odom_cam, T_odom_prev @ own, atol=1e-9)  # the same ICP, the same step
