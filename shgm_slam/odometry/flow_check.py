@@ -71,6 +71,20 @@ airsim-like car2s 6.8 / 4.2 / 6.7 -> 0.7 / 0.5 / 0.4 m, the worst UAV 2.2 -> 1.1
 worse; at 10 Hz the same to 0.02 m. From 3 px the UAVs' small image motion was seeded too and three UAVs
 ended 0.1-0.3 m worse at 10 Hz; 10 px leaves them as they were."""
 
+MISFIT_RATIO = 1.5
+"""A step from the images replaces ICP's only if the frame's cloud fits the local map about as well under it: its
+``KissOdometry.map_misfits`` (point to plane, judged on what the previous camera saw under both steps) at most this
+many times ICP's, plus ``MISFIT_SLACK``. Where ICP slipped along a plane (a UAV over flat ground, a corridor) the
+two fit alike, and where ICP missed a turn the image's step fits better; where the tracks agreed on a wrong
+motion (pixels left behind that agree on none while a car drives 2.8 m per frame, at 3 frames/s) it fits worse.
+Airsim-like and synthia-like tuning seeds 10-13 at 3.3 frames/s (every replacement the tracks proposed, against
+the truth): the 33 nearer the truth than ICP's step fitted at most 0.56 times ICP's misfit, 15 of the 19 farther
+(2.4-3.1 m off) 1.9-137 times and were refused, and 4 passed (1.58 times, or within the slack)."""
+
+MISFIT_SLACK = 0.01
+"""... plus this much (misfits are shares of the gate squared): on flat walls and ground the map's samples make a
+step along them fit up to ~0.01 worse than ICP's own (the corridor of ``tests/odometry/test_hybrid.py``)."""
+
 ORB_FEATURES = 1000
 """Features detected per image for ``feature_step``."""
 
@@ -103,10 +117,29 @@ class FlowTracks:
         self.max_depth_m = max_depth_m
         self._prev: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # grey, points, uv
         self._prev_depth: np.ndarray | None = None
+        self._pair: tuple[np.ndarray, np.ndarray, np.ndarray, Intrinsics] | None = None  # ``matched``'s frames
+        self._matched: Tracks | None = None
+        self._matched_done = False
 
     def reset(self) -> None:
         self._prev = None
         self._prev_depth = None
+        self._pair, self._matched, self._matched_done = None, None, False
+
+    @property
+    def pairable(self) -> bool:
+        """Whether the last ``update`` had a previous frame of the same size with depth (``matched`` can try)."""
+        return self._pair is not None
+
+    def matched(self) -> Tracks | None:
+        """Tracks of matched ORB features (``matched_tracks``) between the last two frames ``update`` saw, or
+        None (no such pair, or too few agree). Computed on the first call for a pair (~30 ms at 320x96), so only
+        where Lucas-Kanade's tracks cannot decide a step: a turn of ~30 deg in one frame (a car at an intersection
+        at 3 frames/s) moves the image by a third of its width, beyond Lucas-Kanade even from a guess."""
+        if not self._matched_done and self._pair is not None:
+            self._matched = matched_tracks(*self._pair, self.max_depth_m)
+        self._matched_done = True
+        return self._matched
 
     def update(
         self,
@@ -134,13 +167,16 @@ class FlowTracks:
         grey = cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2GRAY)
         prev, self._prev = self._prev, self._grid(grey, depth_m, intrinsics)
         depth_prev, self._prev_depth = self._prev_depth, np.asarray(depth_m)
+        pairable = prev is not None and depth_prev is not None and prev[0].shape == grey.shape == depth_prev.shape
+        self._pair = (prev[0], depth_prev, grey, intrinsics) if pairable else None
+        self._matched, self._matched_done = None, False
         if prev is None or prev[0].shape != grey.shape or len(prev[2]) < MIN_TRACKS:
             return None
         grey_prev, points, uv = prev
         options: list[Tracks] = []  # the tracks to choose from (by PnP inliers)
         seed_min_px = SEED_MIN_PX
         if motion_unknown and depth_prev is not None and depth_prev.shape == grey.shape:
-            matched = matched_tracks(grey_prev, depth_prev, grey, intrinsics, self.max_depth_m)
+            matched = self.matched()
             if matched is not None:  # a measured guess: always worth a try
                 options.append(matched)
                 guess_step, seed_min_px = pnp_step(matched), 0.0
@@ -269,32 +305,63 @@ def choose_step(
     tracks: Tracks | None,
     guess_step: np.ndarray | None = None,
     realign: Callable[[np.ndarray], np.ndarray] | None = None,
+    matched: Callable[[], Tracks | None] | None = None,
+    misfits: Callable[..., tuple[float, ...]] | None = None,
 ) -> tuple[np.ndarray, bool]:
     """(step to keep, whether ICP's step was replaced): PnP's (``pnp_step``, solved only when ICP's residual is
     above ``SLIP_FLOOR_RAD``) where ICP's residual is also above ``SLIP_RATIO`` times PnP's (module
     docstring); ICP's very array otherwise, without tracks or when PnP fails.
 
-    Where PnP cannot decide (too few inliers: a turn so sharp that few tracks survive, measured at 3 frames/s,
-    below), ``guess_step`` (4, 4: the step the images suggest, ``FlowTracks.update``'s guess) and ``realign``
-    (ICP again from a given step, e.g. ``KissOdometry.realign``) give a second chance: when the guess explains
-    the tracks ``SLIP_RATIO`` times better than ICP's step, ICP runs again from the guess, and its step is kept
-    if it explains them ``SLIP_RATIO`` times better too (the depth, not only the images, agrees with the turn).
+    Where the tracks cannot decide (none, or too few agreeing on one motion for PnP: a turn so sharp that
+    Lucas-Kanade loses most pixels, measured at 3 frames/s, below), two more chances, in turn:
+
+    - ``matched`` (``FlowTracks.matched``: matched ORB features, which follow a turn of ~30 deg in one frame) is
+      asked for other tracks, and they are judged as above: ICP's step kept when they agree with it, PnP's step
+      from them where ICP slipped by the same rule;
+    - ``guess_step`` (4, 4: the step the images suggest, ``FlowTracks.update``'s guess) and ``realign`` (ICP
+      again from a given step, e.g. ``KissOdometry.realign``): when the guess explains the tracks ``SLIP_RATIO``
+      times better than ICP's step, ICP runs again from the guess, and its step is kept if it explains them
+      ``SLIP_RATIO`` times better too (the depth, not only the images, agrees with the turn).
+
+    ``misfits`` (steps -> how badly the frame's cloud then fits the map, e.g. ``KissOdometry.map_misfits``) vetoes
+    any replacement that fits more than ``MISFIT_RATIO`` times worse than ICP's step.
+
     Airsim-like tuning seed 21 at 3 frames/s: a car turned 16.8 deg in one frame, ICP from the constant-velocity
     prediction registered 1.7 deg (a residual of 0.35 rad), the seeded tracks kept 44 pixels of which PnP
     found 17 inliers (fewer than ``MIN_TRACKS``), and the bent trajectory ended 34 m off."""
-    if tracks is None:
-        return icp_step, False
-    r_icp = flow_residual_rad(tracks, icp_step)
-    if r_icp <= SLIP_FLOOR_RAD:
-        return icp_step, False
-    pnp = pnp_step(tracks)
-    if pnp is not None:
-        if r_icp <= SLIP_RATIO * flow_residual_rad(tracks, pnp):
+    r_icp = None if tracks is None else flow_residual_rad(tracks, icp_step)
+    if r_icp is not None:
+        if r_icp <= SLIP_FLOOR_RAD:
             return icp_step, False
-        return pnp, True
-    if guess_step is None or realign is None or r_icp <= SLIP_RATIO * flow_residual_rad(tracks, guess_step):
+        pnp = pnp_step(tracks)
+        if pnp is not None:
+            if r_icp <= SLIP_RATIO * flow_residual_rad(tracks, pnp):
+                return icp_step, False
+            return _unless_worse_fit(icp_step, pnp, misfits)
+    other = None if matched is None else matched()
+    if other is not None:
+        r_other = flow_residual_rad(other, icp_step)
+        pnp = pnp_step(other)
+        if r_other <= SLIP_FLOOR_RAD or pnp is None or r_other <= SLIP_RATIO * flow_residual_rad(other, pnp):
+            return icp_step, False
+        return _unless_worse_fit(icp_step, pnp, misfits)
+    if r_icp is None or guess_step is None or realign is None:
+        return icp_step, False
+    if r_icp <= SLIP_RATIO * flow_residual_rad(tracks, guess_step):
         return icp_step, False
     again = realign(guess_step)
     if r_icp <= SLIP_RATIO * flow_residual_rad(tracks, again):
         return icp_step, False
-    return again, True
+    return _unless_worse_fit(icp_step, again, misfits)
+
+
+def _unless_worse_fit(
+    icp_step: np.ndarray, step: np.ndarray, misfits: Callable[..., tuple[float, ...]] | None
+) -> tuple[np.ndarray, bool]:
+    """(``step``, True), or (``icp_step``, False) where the cloud fits the map ``MISFIT_RATIO`` times worse under it
+    (and ``MISFIT_SLACK`` more)."""
+    if misfits is not None:
+        of_icp, of_step = misfits(icp_step, step)
+        if of_step > MISFIT_RATIO * of_icp + MISFIT_SLACK:
+            return icp_step, False
+    return step, True

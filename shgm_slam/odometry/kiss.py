@@ -190,6 +190,7 @@ class KissOdometry:
         self.num_frames = 0
         self._seed_delta: np.ndarray | None = None  # ``reset``'s motion, taken once the first frame is in
         self._aligning: Callable[[np.ndarray], np.ndarray] | None = None  # ``realign`` during ``_register_fused``
+        self._fitting: _MapFit | None = None  # ``map_misfits`` during ``_register_fused``
 
     def reset(self, motion: np.ndarray | None = None) -> None:
         """Start afresh: empty map; the next frame defines a new odometry frame.
@@ -296,10 +297,12 @@ class KissOdometry:
         new_pose = align(initial_guess)
         icp_step = np.linalg.inv(icp.last_pose) @ new_pose
         self._aligning = lambda guess_step: np.linalg.inv(icp.last_pose) @ align(icp.last_pose @ guess_step)
+        self._fitting = _MapFit(icp.local_map, source, icp.last_pose, 3 * sigma, self.max_range_m)
         try:
             step = fuse_step(icp_step)
         finally:
             self._aligning = None
+            self._fitting = None
         relocation = step if isinstance(step, Relocation) else None
         if relocation is not None:
             step = relocation.step
@@ -313,6 +316,18 @@ class KissOdometry:
         icp.last_delta = step if relocation is None else np.asarray(relocation.velocity, dtype=np.float64)
         icp.last_pose = new_pose
 
+    def map_misfits(self, *steps: np.ndarray) -> tuple[float, ...]:
+        """How badly the frame being registered fits the local map if this frame's camera is each of ``steps``
+        ((4, 4) each: the camera in the previous one): for each, the mean of min(d, g)^2 / g^2 over the frame's
+        source points, d the distance to the plane through the nearest map points (point to plane: a step along a
+        wall or the ground, which the map's samples cannot tell apart, costs nothing) and g ICP's correspondence
+        gate (3 sigma); 0 when every point lies on the map, 1 when none lies within the gate. All steps are judged
+        on the same points: those the previous camera saw too under every one of them (``_seen_before``). Only
+        inside a ``register`` call's ``fuse_step``."""
+        if self._fitting is None:
+            raise RuntimeError("KissOdometry.map_misfits is only valid inside register()'s fuse_step")
+        return self._fitting([np.asarray(s, dtype=np.float64) for s in steps])
+
     def realign(self, guess_step: np.ndarray) -> np.ndarray:
         """ICP of the frame being registered, again, from another initial step (``guess_step`` (4, 4): this frame's
         camera in the previous one), against the same local map with the same threshold; returns the step it
@@ -325,6 +340,65 @@ class KissOdometry:
         """Advance the pose by the last frame-to-frame motion without touching the map."""
         self._icp.last_pose = self._icp.last_pose @ self._icp.last_delta
         return self._icp.last_pose.copy()
+
+
+def _seen_before(points_cam: np.ndarray, steps: list[np.ndarray], max_range_m: float) -> np.ndarray:
+    """(N,) bool: the points of this frame's cloud ((N, 3), its camera frame) that the previous camera saw too under
+    every one of ``steps`` (each this camera in the previous one): in front of it, within the range and within the
+    cloud's own span of bearings (its field of view). A right step into a turn or down the road sees an edge of
+    the world the map does not hold yet; judged only on what every step puts where the map was made, it does
+    not pay for that edge."""
+    z = np.maximum(points_cam[:, 2], 1e-9)
+    span_x, span_y = points_cam[:, 0] / z, points_cam[:, 1] / z
+    keep = points_cam[:, 2] > 0
+    lo_x, hi_x, lo_y, hi_y = span_x[keep].min(), span_x[keep].max(), span_y[keep].min(), span_y[keep].max()
+    for step in steps:
+        prev = points_cam @ step[:3, :3].T + step[:3, 3]
+        zp = np.maximum(prev[:, 2], 1e-9)
+        x, y = prev[:, 0] / zp, prev[:, 1] / zp
+        keep &= (prev[:, 2] > 0) & (np.linalg.norm(prev, axis=1) < max_range_m)
+        keep &= (x >= lo_x) & (x <= hi_x) & (y >= lo_y) & (y <= hi_y)
+    return keep
+
+
+PLANE_NEIGHBOURS = 6
+"""Map points a point's local plane is fitted to (``KissOdometry.map_misfits``)."""
+
+
+class _MapFit:
+    """``KissOdometry.map_misfits`` of one frame: the local map's points in a KD-tree, built on the first call."""
+
+    def __init__(
+        self, local_map, source_xyz: np.ndarray, T_odom_prev: np.ndarray, gate_m: float, max_range_m: float
+    ) -> None:
+        self._map, self._source, self._T_prev = local_map, np.asarray(source_xyz), T_odom_prev
+        self._gate, self._max_range = gate_m, max_range_m
+        self._tree = None
+
+    def __call__(self, steps: list[np.ndarray]) -> tuple[float, ...]:
+        from scipy.spatial import cKDTree
+
+        source = self._source[_seen_before(self._source, steps, self._max_range)]
+        if self._tree is None:
+            points = self._map.point_cloud()
+            self._tree = cKDTree(points) if len(points) else None
+        if self._tree is None or len(source) == 0:
+            return tuple(1.0 for _ in steps)
+        return tuple(self._misfit(source @ (self._T_prev @ s)[:3, :3].T + (self._T_prev @ s)[:3, 3]) for s in steps)
+
+    def _misfit(self, points_xyz: np.ndarray) -> float:
+        """Mean of min(r, g)^2 / g^2 over (N, 3) points in the odometry frame, r the distance to the plane through
+        the nearest map points (``PLANE_NEIGHBOURS`` within the gate g; a point with fewer is r = g): sliding
+        along a wall or the ground, which the map's samples cannot tell apart, costs nothing."""
+        d, idx = self._tree.query(points_xyz, k=PLANE_NEIGHBOURS, distance_upper_bound=self._gate)
+        full = np.isfinite(d).all(axis=1)
+        r = np.full(len(points_xyz), self._gate)
+        if full.any():
+            near = self._tree.data[idx[full]]  # (M, k, 3)
+            centred = near - near.mean(axis=1, keepdims=True)
+            normals = np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))[1][:, :, 0]  # least spread
+            r[full] = np.abs(np.einsum("mi,mi->m", points_xyz[full] - near.mean(axis=1), normals))
+        return float(np.mean(np.minimum(r, self._gate) ** 2) / self._gate**2)
 
 
 def too_few_source_voxels(points_xyz: np.ndarray, voxel_size_m: float, minimum: int) -> int | None:

@@ -120,11 +120,13 @@ class KissIcpSource:
         if self.window is not None and frame.image_rgb is not None and depth_m is not None:
             window = self.window.update(frame.image_rgb, depth_m, frame.intrinsics, frame.timestamp_s)
         T_anchor = self._T_odom_anchor if window is not None else None
+        matched = None if self.flow is None else self.flow.matched
         slipped: list[bool] = []
         relocated: list[bool] = []
 
         def keep_step(icp_step: np.ndarray) -> np.ndarray | Relocation:
-            step, replaced = choose_step(icp_step, tracks, guess, self.odometry.realign)
+            odo = self.odometry
+            step, replaced = choose_step(icp_step, tracks, guess, odo.realign, matched, odo.map_misfits)
             slipped.append(replaced)
             motion = None if T_anchor is None else window_correction(window, inverse(T_anchor) @ T_prev @ step)
             relocated.append(motion is not None)
@@ -132,7 +134,8 @@ class KissIcpSource:
                 return step
             return Relocation(inverse(T_prev) @ T_anchor @ motion, mean_step(motion, window.frames, step))
 
-        checked = (tracks is not None or T_anchor is not None) and self.odometry.num_frames > 0
+        pairable = self.flow is not None and self.flow.pairable
+        checked = (tracks is not None or pairable or T_anchor is not None) and self.odometry.num_frames > 0
         reg = self.odometry.register(points_cam, prior, keep_step if checked else None)
         if self.window is not None and self.window.anchored_now:
             self._T_odom_anchor = reg.T_odom_cam

@@ -194,3 +194,47 @@ def test_a_fast_first_step_is_found_by_matched_features() -> None:
     step, replaced = choose_step(np.eye(4), tracks)  # ICP that stayed at rest
     assert replaced
     np.testing.assert_allclose(step[:3, 3], [0.0, 0.0, 5.0], atol=0.2)
+
+
+def test_a_turn_beyond_lucas_kanade_is_decided_by_matched_features() -> None:
+    # 30 deg in one frame (a car at an intersection at 3 frames/s) moves the image by ~95 px, a third of its
+    # width: Lucas-Kanade keeps too few tracks to decide, with no guess or a guess that missed the turn; the
+    # matched ORB features of the same two frames follow it, and their PnP step replaces ICP's missed turn.
+    panorama = _panorama(3)
+    turn = np.radians(30.0)
+    flow = FlowTracks()
+    flow.update(*_cylinder_view(panorama, 0.0), K)
+    tracks = flow.update(*_cylinder_view(panorama, turn), K, guess_step=np.eye(4))
+    assert tracks is None or pnp_step(tracks) is None
+    step, replaced = choose_step(np.eye(4), tracks)  # the tracks alone cannot decide: ICP's step stays
+    assert not replaced
+    step, replaced = choose_step(np.eye(4), tracks, matched=flow.matched)
+    assert replaced and np.degrees(yaw_of(step)) == pytest.approx(30.0, abs=1.0)
+    assert flow.matched() is flow.matched()  # matched once per pair of frames
+    right = make_pose(rot_y(turn), np.zeros(3))
+    assert choose_step(right, tracks, matched=flow.matched) == (right, False)  # ICP that made the turn: kept
+    flow.reset()
+    assert not flow.pairable and flow.matched() is None
+
+
+def test_the_source_asks_for_matched_features_where_lucas_kanade_lost_the_image(monkeypatch) -> None:
+    # A 30 deg turn after the first step: Lucas-Kanade keeps too few tracks, yet the step is still checked,
+    # against matched features of the same two frames (inside a cylinder ICP cannot tell turns apart, and its
+    # cloud fits the part of the wall it mapped best without the turn: the map's fit then keeps ICP's step).
+    import shgm_slam.odometry.sources as sources
+
+    asked = []
+
+    def spy(icp_step, tracks, guess_step=None, realign=None, matched=None, misfits=None):
+        other = None if matched is None else matched()
+        asked.append((tracks is None, other is not None))
+        return choose_step(icp_step, tracks, guess_step, realign, matched, misfits)
+
+    monkeypatch.setattr(sources, "choose_step", spy)
+    panorama = _panorama(3)
+    source = KissIcpSource(KissOdometry(voxel_size_m=0.5, max_range_m=30.0), flow=FlowTracks())
+    for k, yaw_deg in enumerate((0.0, 1.0, 31.0)):  # the turn after the first step (that one is always matched)
+        image, depth = _cylinder_view(panorama, np.radians(yaw_deg))
+        points, _ = backproject(depth, K, stride=2)
+        source.update(Frame(k, 0.3 * k, K, image_rgb=image), points, depth)
+    assert asked[-1] == (True, True)

@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 
 from shgm_slam.geometry.se3 import inverse, make_pose
-from shgm_slam.odometry.flow_check import MIN_TRACKS, Tracks, choose_step, flow_residual_rad, pnp_step
+from shgm_slam.odometry.flow_check import (
+    MIN_TRACKS,
+    MISFIT_RATIO,
+    MISFIT_SLACK,
+    Tracks,
+    choose_step,
+    flow_residual_rad,
+    pnp_step,
+)
 from shgm_slam.odometry.image_rotation import rot_y, yaw_of
 from shgm_slam.odometry.kiss import KissOdometry
 from shgm_slam.types import Intrinsics
@@ -138,3 +146,50 @@ def test_kiss_realign_runs_icp_again_without_touching_the_map() -> None:
     np.testing.assert_allclose(from_truth[:3, 3], true_step[:3, 3], atol=0.05)
     assert np.degrees(yaw_of(from_truth)) == pytest.approx(np.degrees(yaw_of(true_step)), abs=0.2)
     np.testing.assert_allclose(probed.T_odom_cam, T_odom_prev @ own, atol=1e-9)  # the same ICP, the same step
+
+
+def test_a_replacement_that_fits_the_map_worse_is_vetoed() -> None:
+    # The tracks agree on a wrong motion (pixels left behind agree on none while the car drove 2.8 m): ICP's
+    # cloud fits the map, the image's step does not, and ICP's step stays.
+    truth = _true_step()
+    tracks = _tracks(truth, MIN_TRACKS + 40)  # enough for PnP, which here finds the truth
+    missed = make_pose(np.eye(3), np.zeros(3))
+    worse = MISFIT_RATIO * 0.10 + MISFIT_SLACK + 0.01
+    assert choose_step(missed, tracks, misfits=lambda icp, step: (0.10, worse)) == (missed, False)
+    alike = MISFIT_RATIO * 0.10 + MISFIT_SLACK - 0.01  # a plane: every step along it fits alike
+    step, replaced = choose_step(missed, tracks, misfits=lambda icp, step: (0.10, alike))
+    assert replaced and np.degrees(yaw_of(step)) == pytest.approx(TURN_DEG, abs=0.5)
+    # ICP on the samples themselves: a step along the plane fits to their spacing
+    assert choose_step(missed, tracks, misfits=lambda icp, step: (0.0, 2e-4))[1]
+
+
+def _walled_street() -> np.ndarray:
+    """(N, 3) a street (x right, y down, z forward) between garden walls that run across it from the curbs
+    outwards at uneven gaps (0.2 m apart on each wall), over the ground: the walls tell positions along it apart."""
+    rng = np.random.default_rng(5)
+    W, H = np.meshgrid(np.arange(0.0, 5.0, 0.2), np.arange(-2.5, 1.5, 0.2))
+    walls = [np.column_stack([side * (3.0 + W.ravel()), H.ravel(), np.full(W.size, z)])
+             for side in (-1.0, 1.0) for z in np.cumsum(rng.uniform(5.0, 9.0, 9)) - 15.0]  # fmt: skip
+    Xg, Zg = np.meshgrid(np.arange(-8.0, 9.0, 0.5), np.arange(-20.0, 60.0, 0.5))
+    ground = np.column_stack([Xg.ravel(), np.full(Xg.size, 1.5), Zg.ravel()])
+    return np.vstack([*walls, ground])
+
+
+def test_kiss_map_misfit_tells_a_right_step_from_a_wrong_one() -> None:
+    scene = _walled_street()
+    odo = KissOdometry(voxel_size_m=0.5, max_range_m=30.0)
+    odo.reset(make_pose(np.eye(3), np.array([0.0, 0.0, 2.8])))  # started at its speed (from rest ICP stalls here)
+    for k in range(8):  # driving 2.8 m per frame (a car at 3 frames/s)
+        odo.register(_seen_from(scene, make_pose(np.eye(3), np.array([0.0, 0.0, 2.8 * k]))))
+    with pytest.raises(RuntimeError, match="only valid inside"):
+        odo.map_misfits(np.eye(4))
+    seen: dict[str, float] = {}
+
+    def probe(icp_step: np.ndarray) -> np.ndarray:
+        seen["icp"], seen["stalled"] = odo.map_misfits(icp_step, np.eye(4))  # stalled: as tracks left behind say
+        return icp_step
+
+    odo.register(_seen_from(scene, make_pose(np.eye(3), np.array([0.0, 0.0, 2.8 * 8]))), fuse_step=probe)
+    np.testing.assert_allclose(odo.T_odom_cam[:3, 3], [0.0, 0.0, 2.8 * 8], atol=0.1)
+    assert 0.0 <= seen["icp"] < 0.05
+    assert seen["stalled"] > MISFIT_RATIO * seen["icp"] + MISFIT_SLACK
