@@ -328,6 +328,14 @@ class KissOdometry:
             raise RuntimeError("KissOdometry.map_misfits is only valid inside register()'s fuse_step")
         return self._fitting([np.asarray(s, dtype=np.float64) for s in steps])
 
+    def map_judged(self, *steps: np.ndarray) -> int:
+        """How many of the frame's source points ``map_misfits`` judges ``steps`` on (those the previous camera saw
+        under every one of them): two steps far apart share few, and misfits on a few points say little. Only
+        inside a ``register`` call's ``fuse_step``."""
+        if self._fitting is None:
+            raise RuntimeError("KissOdometry.map_judged is only valid inside register()'s fuse_step")
+        return self._fitting.judged([np.asarray(s, dtype=np.float64) for s in steps])
+
     def realign(self, guess_step: np.ndarray) -> np.ndarray:
         """ICP of the frame being registered, again, from another initial step (``guess_step`` (4, 4): this frame's
         camera in the previous one), against the same local map with the same threshold; returns the step it
@@ -385,6 +393,10 @@ class _MapFit:
         if self._tree is None or len(source) == 0:
             return tuple(1.0 for _ in steps)
         return tuple(self._misfit(source @ (self._T_prev @ s)[:3, :3].T + (self._T_prev @ s)[:3, 3]) for s in steps)
+
+    def judged(self, steps: list[np.ndarray]) -> int:
+        """The source points ``__call__`` judges ``steps`` on."""
+        return int(_seen_before(self._source, steps, self._max_range).sum())
 
     def _misfit(self, points_xyz: np.ndarray) -> float:
         """Mean of min(r, g)^2 / g^2 over (N, 3) points in the odometry frame, r the distance to the plane through

@@ -225,10 +225,10 @@ def test_the_source_asks_for_matched_features_where_lucas_kanade_lost_the_image(
 
     asked = []
 
-    def spy(icp_step, tracks, guess_step=None, realign=None, matched=None, misfits=None):
+    def spy(icp_step, tracks, guess_step=None, realign=None, matched=None, misfits=None, judged=None):
         other = None if matched is None else matched()
         asked.append((tracks is None, other is not None))
-        return choose_step(icp_step, tracks, guess_step, realign, matched, misfits)
+        return choose_step(icp_step, tracks, guess_step, realign, matched, misfits, judged)
 
     monkeypatch.setattr(sources, "choose_step", spy)
     panorama = _panorama(3)

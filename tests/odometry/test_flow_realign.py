@@ -4,6 +4,8 @@ ICP from the constant-velocity prediction misses the turn, and ICP from the imag
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
@@ -12,10 +14,12 @@ from shgm_slam.odometry.flow_check import (
     MIN_TRACKS,
     MISFIT_RATIO,
     MISFIT_SLACK,
+    TURN_SEARCH_DEG,
     Tracks,
     choose_step,
     flow_residual_rad,
     pnp_step,
+    turn_search,
 )
 from shgm_slam.odometry.image_rotation import rot_y, yaw_of
 from shgm_slam.odometry.kiss import KissOdometry
@@ -89,6 +93,29 @@ def test_a_guess_no_better_than_icp_is_not_tried() -> None:
     right = make_pose(rot_y(np.radians(TURN_DEG)), np.array([0.3, 0.0, 3.0]))
     assert choose_step(right, tracks, right, never) == (right, False)  # ICP right: nothing to try
     assert never.guesses == []
+
+
+def test_matched_features_too_few_for_pnp_judge_icp_from_a_rough_guess() -> None:
+    # Lucas-Kanade lost the turn (no tracks), the matched features are too few for PnP, and the images' guess
+    # is rough (half the turn, only ~2.5 times better than ICP's step): ICP runs again from it anyway, and what it
+    # reaches is kept where the matched features agree with it (and the map does not fit it worse).
+    truth = make_pose(rot_y(np.radians(26.0)), np.array([0.6, 0.0, 2.7]))
+    matched = _tracks(truth, MIN_TRACKS - 4)
+    assert pnp_step(matched) is None
+    missed = make_pose(rot_y(np.radians(1.2)), np.array([0.0, 0.0, 1.3]))
+    rough = make_pose(rot_y(np.radians(17.0)), np.array([0.0, 0.0, 2.7]))
+    assert flow_residual_rad(matched, missed) < 3 * flow_residual_rad(matched, rough)  # LK's gate would not try it
+    found = _Realign(truth)
+    step, replaced = choose_step(missed, None, rough, found, lambda: matched)
+    assert replaced and step is truth and found.guesses == [rough]
+    # the map vetoes it like any replacement
+    vetoed = choose_step(missed, None, rough, _Realign(truth), lambda: matched, lambda icp, step: (0.001, 0.05))
+    assert vetoed == (missed, False)
+    # what ICP reaches must explain the matched features: pulled back to its own step, nothing is replaced
+    assert choose_step(missed, None, rough, _Realign(missed), lambda: matched) == (missed, False)
+    # matched features that agree with ICP's step: nothing is run again
+    never = _Realign(truth)
+    assert choose_step(truth, None, rough, never, lambda: matched) == (truth, False) and never.guesses == []
 
 
 def _scene() -> np.ndarray:
@@ -193,3 +220,98 @@ def test_kiss_map_misfit_tells_a_right_step_from_a_wrong_one() -> None:
     np.testing.assert_allclose(odo.T_odom_cam[:3, 3], [0.0, 0.0, 2.8 * 8], atol=0.1)
     assert 0.0 <= seen["icp"] < 0.05
     assert seen["stalled"] > MISFIT_RATIO * seen["icp"] + MISFIT_SLACK
+
+
+def _in_view(points_world: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
+    """The scene's points a camera ``T_world_cam`` with a 90 deg field of view sees within 30 m (its frame)."""
+    T = inverse(T_world_cam)
+    cam = points_world @ T[:3, :3].T + T[:3, 3]
+    ahead = (cam[:, 2] > 0.5) & (np.abs(np.arctan2(cam[:, 0], cam[:, 2])) < np.radians(45.0))
+    return cam[ahead & (np.linalg.norm(cam, axis=1) < 30.0)]
+
+
+def test_without_tracks_icp_from_further_round_the_turn_finds_a_missed_turn() -> None:
+    # A car at 3.3 frames/s turns 26 deg in one frame; nothing in the images judges the step (no tracks, no
+    # matched features). ICP from the constant-velocity prediction stays straight, its cloud fits the map
+    # badly, and ICP again from its own step turned further finds the turn.
+    scene = _walled_street()
+    poses = [make_pose(np.eye(3), np.array([0.0, 0.0, 2.8 * k])) for k in range(6)]
+    turn = make_pose(rot_y(np.radians(26.0)), np.array([0.6, 0.0, 2.7]))
+    odo = KissOdometry(voxel_size_m=0.5, max_range_m=30.0)
+    odo.reset(make_pose(np.eye(3), np.array([0.0, 0.0, 2.8])))
+    for T in poses:
+        odo.register(_in_view(scene, T))
+    seen: dict[str, object] = {}
+
+    def check(icp_step: np.ndarray) -> np.ndarray:
+        seen["icp"] = icp_step
+        with pytest.raises(RuntimeError, match="only valid inside"):
+            KissOdometry().map_judged(icp_step)
+        step, seen["replaced"] = choose_step(icp_step, None, None, odo.realign, lambda: None, odo.map_misfits,
+                                             odo.map_judged)  # fmt: skip
+        return step
+
+    odo.register(_in_view(scene, poses[-1] @ turn), fuse_step=check)
+    assert abs(np.degrees(yaw_of(seen["icp"]))) < 5.0  # ICP missed the turn
+    assert seen["replaced"]
+    kept = inverse(poses[-1]) @ odo.T_odom_cam
+    assert np.degrees(yaw_of(kept)) == pytest.approx(26.0, abs=1.0)
+
+
+class _Fits:
+    """Stand-ins for ``KissOdometry.map_misfits`` and ``map_judged``: a step's misfit and judged points follow its
+    yaw (``misfit_of`` and ``judged_of``: degrees -> value); the pair's judged points are the fewer of the two."""
+
+    def __init__(
+        self, misfit_of: Callable[[float], float], judged_of: Callable[[float], int] = lambda deg: 1000
+    ) -> None:
+        self.misfit_of, self.judged_of = misfit_of, judged_of
+
+    def misfits(self, *steps: np.ndarray) -> tuple[float, ...]:
+        return tuple(self.misfit_of(np.degrees(yaw_of(s))) for s in steps)
+
+    def judged(self, *steps: np.ndarray) -> int:
+        return min(self.judged_of(np.degrees(yaw_of(s))) for s in steps)
+
+
+def _snap_to(deg: float, basin_deg: float = 8.0) -> Callable[[np.ndarray], np.ndarray]:
+    """A stand-in ICP: from a start within ``basin_deg`` of ``deg`` it reaches the turn ``deg``; else it stays."""
+
+    def realign(start: np.ndarray) -> np.ndarray:
+        if abs(np.degrees(yaw_of(start)) - deg) <= basin_deg:
+            return make_pose(rot_y(np.radians(deg)), start[:3, 3])
+        return start
+
+    return realign
+
+
+def test_turn_search_runs_only_where_icp_fits_badly_and_keeps_the_best_fit() -> None:
+    icp = make_pose(rot_y(np.radians(2.0)), np.array([0.0, 0.0, 3.0]))
+    calls: list[np.ndarray] = []
+
+    def counted(start: np.ndarray) -> np.ndarray:
+        calls.append(start)
+        return _snap_to(24.0)(start)
+
+    healthy = _Fits(lambda deg: 0.001 if abs(deg - 2.0) < 0.5 else 0.2)  # ICP's step fits: nothing runs again
+    assert turn_search(icp, counted, healthy.misfits, healthy.judged) == (icp, False) and calls == []
+    bad = _Fits(lambda deg: 0.002 if abs(deg - 24.0) < 0.5 else 0.3)
+    step, replaced = turn_search(icp, counted, bad.misfits, bad.judged)
+    assert replaced and np.degrees(yaw_of(step)) == pytest.approx(24.0)
+    assert len(calls) == 2 * len(TURN_SEARCH_DEG)
+    # nothing fits clearly better (a plane: every step alike): ICP's step stays
+    flat = _Fits(lambda deg: 0.05 if abs(deg - 24.0) < 0.5 else 0.06)
+    assert turn_search(icp, _snap_to(24.0), flat.misfits, flat.judged) == (icp, False)
+    # without the map's judgement nothing is replaced
+    assert turn_search(icp, _snap_to(24.0), None, None) == (icp, False)
+
+
+def test_turn_search_refuses_a_step_judged_on_a_sliver_of_the_view() -> None:
+    # ICP again reaches a turn 40 deg the other way, which fits better only on the few points both steps put
+    # where the previous camera saw: refused.
+    icp = make_pose(rot_y(np.radians(-6.0)), np.array([0.0, 0.0, 3.0]))
+    sliver = _Fits(lambda deg: 0.002 if deg < -30.0 else 0.3, lambda deg: 200 if deg < -30.0 else 1000)
+    assert turn_search(icp, _snap_to(-45.0, basin_deg=20.0), sliver.misfits, sliver.judged) == (icp, False)
+    shared = _Fits(sliver.misfit_of)  # the same fit on most of the view: kept
+    step, replaced = turn_search(icp, _snap_to(-45.0, basin_deg=20.0), shared.misfits, shared.judged)
+    assert replaced and np.degrees(yaw_of(step)) == pytest.approx(-45.0)
