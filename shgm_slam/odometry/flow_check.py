@@ -351,24 +351,12 @@ def choose_step(
     guess, 16.9 deg, explained them 2.5 times better (0.18 rad) and ICP again from it reached 25.6 deg (0.007 rad;
     its cloud's misfit against the map 0.001, ICP's 0.047)."""
     r_icp = None if tracks is None else flow_residual_rad(tracks, icp_step)
-    if r_icp is not None:
-        if r_icp <= SLIP_FLOOR_RAD:
-            return icp_step, False
-        pnp = pnp_step(tracks)
-        if pnp is not None:
-            if r_icp <= SLIP_RATIO * flow_residual_rad(tracks, pnp):
-                return icp_step, False
-            return _unless_worse_fit(icp_step, pnp, misfits)
+    if tracks is not None and (verdict := _pnp_verdict(icp_step, tracks, r_icp, misfits)) is not None:
+        return verdict
     other = None if matched is None else matched()
-    if other is not None:
-        r_other = flow_residual_rad(other, icp_step)
-        if r_other <= SLIP_FLOOR_RAD:
-            return icp_step, False
-        pnp = pnp_step(other)
-        if pnp is not None:
-            if r_other <= SLIP_RATIO * flow_residual_rad(other, pnp):
-                return icp_step, False
-            return _unless_worse_fit(icp_step, pnp, misfits)
+    r_other = None if other is None else flow_residual_rad(other, icp_step)
+    if other is not None and (verdict := _pnp_verdict(icp_step, other, r_other, misfits)) is not None:
+        return verdict
     rough_guess = tracks is None and other is not None  # judged by matched features too few for PnP
     if rough_guess:
         tracks, r_icp = other, r_other
@@ -382,6 +370,22 @@ def choose_step(
     if r_icp <= SLIP_RATIO * flow_residual_rad(tracks, again):
         return icp_step, False
     return _unless_worse_fit(icp_step, again, misfits)
+
+
+def _pnp_verdict(
+    icp_step: np.ndarray, tracks: Tracks, r_icp: float, misfits: Callable[..., tuple[float, ...]] | None
+) -> tuple[np.ndarray, bool] | None:
+    """``choose_step``'s first rule on one set of tracks (``r_icp``: ICP's residual on them): ICP's step where its
+    residual is within ``SLIP_FLOOR_RAD`` or ``SLIP_RATIO`` times PnP's, PnP's where ICP slipped (unless it fits the
+    map worse), None where PnP cannot decide."""
+    if r_icp <= SLIP_FLOOR_RAD:
+        return icp_step, False
+    pnp = pnp_step(tracks)
+    if pnp is None:
+        return None
+    if r_icp <= SLIP_RATIO * flow_residual_rad(tracks, pnp):
+        return icp_step, False
+    return _unless_worse_fit(icp_step, pnp, misfits)
 
 
 def turn_search(
