@@ -358,16 +358,15 @@ def choose_step(
     if other is not None and (verdict := _pnp_verdict(icp_step, other, r_other, misfits)) is not None:
         return verdict
     rough_guess = tracks is None and other is not None  # judged by matched features too few for PnP
-    if rough_guess:
-        tracks, r_icp = other, r_other
-    if r_icp is None:
+    judge, r_judge = (other, r_other) if rough_guess else (tracks, r_icp)
+    if judge is None:
         return turn_search(icp_step, realign, misfits, judged)
     if guess_step is None or realign is None:
         return icp_step, False
-    if not rough_guess and r_icp <= SLIP_RATIO * flow_residual_rad(tracks, guess_step):
+    if not rough_guess and r_judge <= SLIP_RATIO * flow_residual_rad(judge, guess_step):
         return icp_step, False
     again = realign(guess_step)
-    if r_icp <= SLIP_RATIO * flow_residual_rad(tracks, again):
+    if r_judge <= SLIP_RATIO * flow_residual_rad(judge, again):
         return icp_step, False
     return _unless_worse_fit(icp_step, again, misfits)
 

@@ -143,8 +143,8 @@ class KissIcpSource:
         image_step = any(slipped)
         if image_step:
             note = (
-                f"frame {frame.index}: ICP slipped against the image motion; the step the image tracks support kept "
-                "(PnP's, or ICP's again from the image's turn)"
+                f"frame {frame.index}: ICP's step replaced (it slipped against the image motion, or without image "
+                "tracks fitted the map badly): PnP's, or ICP's again from the image's turn or a wider one"
             )
         image_window = any(relocated)
         if image_window:

@@ -27,10 +27,9 @@ from shgm_slam.sim.trajectories import CAR_CAMERA_HEIGHT_M, RobotKind, Trajector
 DEFAULT_KITTI_ROOT = Path(__file__).resolve().parents[3] / "shared" / "data" / "kitti"
 """``../shared/data/kitti`` next to the repository (real data is never part of the repository)."""
 DEFAULT_KITTI_ROBOTS = ("00:2600-2901", "07:0-351")
-
+"""The default pair: 00 frames 2600-2900 and 07 frames 0-350 (half-open ranges, ends excluded)."""
 KITTI_FPS = 10.0
 """Frame rate of KITTI's odometry sequences (their poses files have one row per frame)."""
-"""The default pair: 00 frames 2600-2900 and 07 frames 0-350 (half-open ranges, ends excluded)."""
 KITTI_GT_SEQUENCES = tuple(f"{k:02d}" for k in range(11))
 """KITTI odometry publishes ground-truth poses for sequences 00-10 only (11-21 are its test set)."""
 
@@ -321,7 +320,7 @@ def at_frame_rate(T_world_cam: np.ndarray, fps: float) -> tuple[np.ndarray, np.n
     Returns ((M, 4, 4) poses, (M,) timestamps ``j / fps`` seconds). At ``KITTI_FPS`` the very poses; at 5 every
     second one, at 10/3 every third (what users do to KITTI to run faster), above 10 poses between frames.
     """
-    if fps == KITTI_FPS:
+    if fps == KITTI_FPS or len(T_world_cam) < 2:  # a single pose has nothing to sample between
         return T_world_cam, np.arange(len(T_world_cam)) / fps
     from scipy.spatial.transform import Rotation, Slerp
 

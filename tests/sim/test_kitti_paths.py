@@ -12,6 +12,7 @@ from shgm_slam.io.trajectories import read_kitti_poses, write_kitti_poses
 from shgm_slam.sim.kitti_paths import (
     CAR_CAMERA_HEIGHT_M,
     KittiDrive,
+    at_frame_rate,
     drive_names,
     kitti_trajectories,
 )
@@ -197,3 +198,12 @@ def test_a_higher_frame_rate_interpolates_between_kitti_frames(tmp_path):
     np.testing.assert_allclose(mid, 0.5 * (full.T_world_cam[:-1, :3, 3] + full.T_world_cam[1:, :3, 3]), atol=1e-9)
     R = fast.T_world_cam[:, :3, :3]
     np.testing.assert_allclose(np.einsum("nij,nkj->nik", R, R), np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
+
+
+@pytest.mark.parametrize("fps", [5.0, 20.0])
+def test_a_single_pose_is_kept_at_any_frame_rate(fps):
+    pose = np.eye(4)[None].copy()
+    pose[0, :3, 3] = [1.0, 2.0, 3.0]
+    T, t = at_frame_rate(pose, fps)
+    np.testing.assert_array_equal(T, pose)
+    np.testing.assert_array_equal(t, [0.0])
