@@ -126,7 +126,10 @@ class KissIcpSource:
 
         def keep_step(icp_step: np.ndarray) -> np.ndarray | Relocation:
             odo = self.odometry
-            step, replaced = choose_step(icp_step, tracks, guess, odo.realign, matched, odo.map_misfits, odo.map_judged)
+            rival = None if self.flow is None else self.flow.rival
+            step, replaced = choose_step(
+                icp_step, tracks, guess, odo.realign, matched, odo.map_misfits, odo.map_judged, rival
+            )
             slipped.append(replaced)
             motion = None if T_anchor is None else window_correction(window, inverse(T_anchor) @ T_prev @ step)
             relocated.append(motion is not None)

@@ -167,6 +167,24 @@ def test_a_sharp_turn_is_tracked_from_the_turn_guess_and_solved_by_pnp() -> None
     assert tiny is None or len(tiny.uv_cur) < 100
 
 
+def test_the_tracking_not_chosen_is_kept_as_the_rival() -> None:
+    # A 7 deg turn (21 px): Lucas-Kanade follows it from rest and from the guess alike; one tracking is chosen,
+    # the other kept for choose_step, and both agree on the turn.
+    panorama = _panorama(2)
+    turn = np.radians(7.0)
+    frames = [_cylinder_view(panorama, yaw) for yaw in (0.0, turn)]
+    flow = FlowTracks()
+    assert flow.update(*frames[0], K) is None and flow.rival is None
+    chosen = flow.update(*frames[1], K, guess_step=make_pose(rot_y(turn), np.zeros(3)))
+    assert chosen is not None and flow.rival is not None and flow.rival is not chosen
+    for tracks in (chosen, flow.rival):
+        assert np.degrees(yaw_of(pnp_step(tracks))) == pytest.approx(7.0, abs=0.3)
+    flow.update(*frames[0], K)  # no guess: one tracking, no rival
+    assert flow.rival is None
+    flow.reset()
+    assert flow.rival is None
+
+
 def test_the_yaw_estimator_keeps_a_weak_peak_as_a_candidate_only() -> None:
     panorama = _panorama(2)
     estimator = ImageYawEstimator(min_response=0.99)  # no real peak is this strong
@@ -225,10 +243,10 @@ def test_the_source_asks_for_matched_features_where_lucas_kanade_lost_the_image(
 
     asked = []
 
-    def spy(icp_step, tracks, guess_step=None, realign=None, matched=None, misfits=None, judged=None):
+    def spy(icp_step, tracks, guess_step=None, realign=None, matched=None, misfits=None, judged=None, rival=None):
         other = None if matched is None else matched()
         asked.append((tracks is None, other is not None))
-        return choose_step(icp_step, tracks, guess_step, realign, matched, misfits, judged)
+        return choose_step(icp_step, tracks, guess_step, realign, matched, misfits, judged, rival)
 
     monkeypatch.setattr(sources, "choose_step", spy)
     panorama = _panorama(3)

@@ -14,6 +14,7 @@ from shgm_slam.odometry.flow_check import (
     MIN_TRACKS,
     MISFIT_RATIO,
     MISFIT_SLACK,
+    MISFIT_SLACK_FLOOR,
     TURN_SEARCH_DEG,
     Tracks,
     choose_step,
@@ -188,6 +189,45 @@ def test_a_replacement_that_fits_the_map_worse_is_vetoed() -> None:
     assert replaced and np.degrees(yaw_of(step)) == pytest.approx(TURN_DEG, abs=0.5)
     # ICP on the samples themselves: a step along the plane fits to their spacing
     assert choose_step(missed, tracks, misfits=lambda icp, step: (0.0, 2e-4))[1]
+
+
+def test_where_icp_fits_the_map_closely_a_step_many_times_worse_is_vetoed() -> None:
+    # The map's sampling lets a slide along a surface fit worse by a few times ICP's own misfit: where ICP's cloud
+    # fits to 3e-4, a step fitting 0.0065 (within the fixed slack) is a wrong one; at the level of the map's
+    # sampling noise (below MISFIT_SLACK_FLOOR) steps still fit alike.
+    truth = _true_step()
+    tracks = _tracks(truth, MIN_TRACKS + 40)
+    missed = make_pose(np.eye(3), np.zeros(3))
+    assert 0.0065 < MISFIT_RATIO * 3e-4 + MISFIT_SLACK
+    assert choose_step(missed, tracks, misfits=lambda icp, step: (3e-4, 0.0065)) == (missed, False)
+    assert choose_step(missed, tracks, misfits=lambda icp, step: (1e-4, 4e-4))[1]
+    assert choose_step(missed, tracks, misfits=lambda icp, step: (0.0058, 0.0178))[1]  # the corridor's walls
+    assert choose_step(missed, tracks, misfits=lambda icp, step: (0.0, MISFIT_SLACK_FLOOR * 1.01)) == (missed, False)
+
+
+def test_a_rival_tracking_that_backs_icp_keeps_its_step() -> None:
+    # Lucas-Kanade from rest: pixels left behind agree on a short step; from the guess: the truth, which ICP found.
+    truth = make_pose(np.eye(3), np.array([0.0, 0.0, 2.8]))
+    left_behind = _tracks(make_pose(np.eye(3), np.array([0.0, 0.0, 0.5])), MIN_TRACKS + 40)
+    from_guess = _tracks(truth, MIN_TRACKS + 10)
+    step, replaced = choose_step(truth, left_behind)
+    assert replaced and step[2, 3] == pytest.approx(0.5, abs=0.05)  # alone, the short step would win
+    assert choose_step(truth, left_behind, rival=from_guess) == (truth, False)
+    fits = lambda icp_fit, step_fit: lambda icp, step: (icp_fit, step_fit)  # noqa: E731
+    assert choose_step(truth, left_behind, misfits=fits(2e-4, 3e-4), rival=from_guess) == (truth, False)
+    # ICP stalled where the pixels stayed put (a start from rest): the rival agrees with ICP's stall, the map
+    # prefers the tracks' step
+    stalled = make_pose(np.eye(3), np.array([0.0, 0.0, 0.1]))
+    at_rest = _tracks(stalled, MIN_TRACKS + 10)
+    moving = _tracks(truth, MIN_TRACKS + 40)
+    step, replaced = choose_step(stalled, moving, misfits=fits(0.05, 0.01), rival=at_rest)
+    assert replaced and step[2, 3] == pytest.approx(2.8, abs=0.05)
+    assert choose_step(stalled, moving, misfits=fits(0.01, 0.012), rival=at_rest) == (stalled, False)
+    # a rival that backs neither ICP's step nor the tracks' does not stop a replacement of a slipped step
+    slipped = make_pose(np.eye(3), np.array([0.0, 0.0, 1.5]))
+    elsewhere = _tracks(make_pose(rot_y(np.radians(5.0)), np.array([0.5, 0.0, 2.0])), MIN_TRACKS + 10)
+    step, replaced = choose_step(slipped, left_behind, rival=elsewhere)
+    assert replaced and step[2, 3] == pytest.approx(0.5, abs=0.05)
 
 
 def _walled_street() -> np.ndarray:
