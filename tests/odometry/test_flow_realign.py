@@ -15,6 +15,8 @@ from shgm_slam.odometry.flow_check import (
     MISFIT_RATIO,
     MISFIT_SLACK,
     MISFIT_SLACK_FLOOR,
+    SIDEWAYS_SEARCH,
+    SLIP_RATIO,
     TURN_SEARCH_DEG,
     Tracks,
     choose_step,
@@ -338,12 +340,43 @@ def test_turn_search_runs_only_where_icp_fits_badly_and_keeps_the_best_fit() -> 
     bad = _Fits(lambda deg: 0.002 if abs(deg - 24.0) < 0.5 else 0.3)
     step, replaced = turn_search(icp, counted, bad.misfits, bad.judged)
     assert replaced and np.degrees(yaw_of(step)) == pytest.approx(24.0)
-    assert len(calls) == 2 * len(TURN_SEARCH_DEG)
+    assert len(calls) == 2 * len(TURN_SEARCH_DEG) + 2 * len(SIDEWAYS_SEARCH)  # the turns, then sideways
     # nothing fits clearly better (a plane: every step alike): ICP's step stays
     flat = _Fits(lambda deg: 0.05 if abs(deg - 24.0) < 0.5 else 0.06)
     assert turn_search(icp, _snap_to(24.0), flat.misfits, flat.judged) == (icp, False)
     # without the map's judgement nothing is replaced
     assert turn_search(icp, _snap_to(24.0), None, None) == (icp, False)
+
+
+def test_icp_that_found_the_turn_but_stopped_to_the_side_is_moved_by_the_sideways_search() -> None:
+    # A 31 deg turn in one frame (3.3 frames/s): ICP again from the images' guess reaches the turn but stops 3.5 m
+    # to the left of the truth, where the map fits 8 times worse than at the truth; from 3 m to the right (one
+    # step's length) it reaches the truth.
+    truth = make_pose(rot_y(np.radians(31.0)), np.array([0.85, 0.0, 3.05]))
+    aside = make_pose(rot_y(np.radians(31.0)), np.array([-2.7, 0.0, 2.7]))
+
+    def icp(start: np.ndarray) -> np.ndarray:  # the truth's basin: within 2.5 m of it, else the side minimum
+        return truth if np.linalg.norm(start[:3, 3] - truth[:3, 3]) < 2.5 else aside
+
+    def misfits(*steps: np.ndarray) -> tuple[float, ...]:
+        return tuple(0.003 if np.allclose(s, truth) else 0.023 if np.allclose(s, aside) else 0.2 for s in steps)
+
+    def judged(*steps: np.ndarray) -> int:
+        return 500
+
+    tracks = _tracks(truth, MIN_TRACKS - 10)  # too few for PnP: ICP runs again from the guess
+    guess = make_pose(rot_y(np.radians(29.0)), np.array([-2.0, 0.0, 3.0]))  # ICP from it stops aside
+    missed = make_pose(rot_y(np.radians(-10.0)), np.array([-0.4, 0.0, 1.35]))
+    for step in (guess, aside):
+        assert flow_residual_rad(tracks, missed) > SLIP_RATIO * flow_residual_rad(tracks, step)
+    step, replaced = choose_step(missed, tracks, guess, icp, misfits=misfits, judged=judged)
+    assert replaced and step is truth
+    # the same where no tracks judge the step: the turn search, then sideways
+    step, replaced = turn_search(make_pose(rot_y(np.radians(25.0)), np.array([-0.4, 0.0, 1.35])), icp, misfits, judged)
+    assert replaced and step is truth
+    # where the side minimum fits as well, nothing moves
+    alike = lambda *steps: tuple(0.01 for _ in steps)  # noqa: E731
+    assert choose_step(missed, tracks, guess, icp, misfits=alike, judged=judged) == (aside, True)
 
 
 def test_turn_search_refuses_a_step_judged_on_a_sliver_of_the_view() -> None:
