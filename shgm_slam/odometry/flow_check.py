@@ -393,7 +393,7 @@ def choose_step(
     its cloud's misfit against the map 0.001, ICP's 0.047)."""
     r_icp = None if tracks is None else flow_residual_rad(tracks, icp_step)
     if tracks is not None and (verdict := _pnp_verdict(icp_step, tracks, r_icp, misfits)) is not None:
-        if verdict[1] and rival is not None and _backs(icp_step, rival) and not _backs(verdict[0], rival):
+        if verdict[1] and rival is not None and _backing(rival, icp_step, verdict[0]) == (True, False):
             if not _fits_better(icp_step, verdict[0], misfits):
                 return icp_step, False
         return verdict
@@ -434,10 +434,16 @@ def _pnp_verdict(
     return _unless_worse_fit(icp_step, pnp, misfits)
 
 
-def _backs(icp_step: np.ndarray, tracks: Tracks) -> bool:
-    """Whether ``tracks`` agree with ``icp_step`` by ``choose_step``'s first rule (PnP on them keeps ICP's step)."""
-    verdict = _pnp_verdict(icp_step, tracks, flow_residual_rad(tracks, icp_step), None)
-    return verdict is not None and not verdict[1]
+def _backing(tracks: Tracks, *steps: np.ndarray) -> tuple[bool, ...]:
+    """Whether ``tracks`` agree with each of ``steps`` (4, 4) by ``choose_step``'s first rule, as if it were ICP's
+    (its residual within ``SLIP_FLOOR_RAD``, or within ``SLIP_RATIO`` times that of the step PnP solves from them,
+    solved once)."""
+    residuals = [flow_residual_rad(tracks, step) for step in steps]
+    if all(r <= SLIP_FLOOR_RAD for r in residuals):
+        return tuple(True for _ in steps)
+    pnp = pnp_step(tracks)
+    r_pnp = None if pnp is None else flow_residual_rad(tracks, pnp)
+    return tuple(r <= SLIP_FLOOR_RAD or (r_pnp is not None and r <= SLIP_RATIO * r_pnp) for r in residuals)
 
 
 def _fits_better(icp_step: np.ndarray, step: np.ndarray, misfits: Callable[..., tuple[float, ...]] | None) -> bool:
