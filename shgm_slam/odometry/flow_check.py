@@ -105,7 +105,11 @@ TURN_SEARCH_DEG = (10.0, 20.0)
 """Where no image tracks judge a step and the frame's cloud fits the map badly under ICP's (``turn_search``), ICP runs
 again from its own step turned by each of these angles, either way about the camera's vertical axis: at 3.3
 frames/s a car turns up to ~32 deg in one frame, ICP from the constant-velocity prediction stopped 7-21 deg short
-(synthia-like tuning seeds 10-13), and from 10 or 20 deg further it reached the true turn within 0.5 deg."""
+(synthia-like tuning seeds 10-13), and from 10 or 20 deg further it reached the true turn within 0.5 deg. Where ICP
+also stalled short of the step's length, each turned start is tried once more at the predicted translation carried
+round the turn (``_on_arc``): airsim-like tuning seed 15's car2, a 30.3 deg turn at 3 m per frame, ICP at 6.7 deg
+and 1.0 m ahead; from its own step turned 20 deg further it reached 31.9 deg but 2.8 m off, from that start at the
+predicted 3.07 m on the arc 30.2 deg and 0.03 m off (misfit 0.11 against ICP's 0.69)."""
 
 SIDEWAYS_SEARCH = (0.5, 1.0)
 """Where ICP ran again from a turn (the images' guess or ``turn_search``), it runs once more from the step it reached
@@ -379,7 +383,15 @@ def choose_step(
       images, agrees with the turn). Judged by matched features, ICP runs again from the guess however well the
       guess itself explains them: Lucas-Kanade lost the turn, and the images' global shift is then rough;
     - with no tracks at all, the depth alone: ``turn_search`` (with ``realign``, ``misfits`` and ``judged``, the
-      points two steps are judged on, e.g. ``KissOdometry.map_judged``).
+      points two steps are judged on, e.g. ``KissOdometry.map_judged``; ``guess_step``'s translation is the
+      predicted one, ``_on_arc``);
+    - where tracks (or matched features) exist but could not decide and ICP from the guess did not explain them,
+      the same search, its step kept only where they explain it ``SLIP_RATIO`` times better than ICP's
+      (``_judged_search``). Synthia-like tuning seed 15 at 3.3 frames/s: a backward camera's car turned 31.9 deg in
+      one frame, Lucas-Kanade kept no tracks, 32 matched features (24 PnP inliers, fewer than ``MIN_TRACKS``)
+      agreed with the truth, the images' guess turned -6.8 deg, and ICP registered 18.4 deg (misfit 0.36 against
+      the truth's 0.001); ICP from its own step turned 10 deg further reached 32.0 deg, and the drive's ATE fell
+      from 14.0 to 1.2 m.
 
     ``misfits`` (steps -> how badly the frame's cloud then fits the map, e.g. ``KissOdometry.map_misfits``) vetoes
     any replacement that fits more than ``MISFIT_RATIO`` times worse than ICP's step.
@@ -404,14 +416,14 @@ def choose_step(
     rough_guess = tracks is None and other is not None  # judged by matched features too few for PnP
     judge, r_judge = (other, r_other) if rough_guess else (tracks, r_icp)
     if judge is None:
-        return turn_search(icp_step, realign, misfits, judged)
+        return turn_search(icp_step, realign, misfits, judged, guess_step)
     if guess_step is None or realign is None:
         return icp_step, False
     if not rough_guess and r_judge <= SLIP_RATIO * flow_residual_rad(judge, guess_step):
-        return icp_step, False
+        return _judged_search(icp_step, judge, r_judge, realign, misfits, judged, guess_step)
     again = realign(guess_step)
     if r_judge <= SLIP_RATIO * flow_residual_rad(judge, again):
-        return icp_step, False
+        return _judged_search(icp_step, judge, r_judge, realign, misfits, judged, guess_step)
     step, replaced = _unless_worse_fit(icp_step, again, misfits)
     if replaced and misfits is not None and judged is not None:
         step = _best_start(step, _sideways(step), realign, misfits, judged)
@@ -455,24 +467,46 @@ def _fits_better(icp_step: np.ndarray, step: np.ndarray, misfits: Callable[..., 
     return of_step < of_icp
 
 
+def _judged_search(
+    icp_step: np.ndarray,
+    tracks: Tracks,
+    r_icp: float,
+    realign: Callable[[np.ndarray], np.ndarray] | None,
+    misfits: Callable[..., tuple[float, ...]] | None,
+    judged: Callable[..., int] | None,
+    prediction: np.ndarray | None,
+) -> tuple[np.ndarray, bool]:
+    """``turn_search`` where image tracks exist but could not decide (too few agreeing for PnP, and the images' guess
+    did not explain them): its step is kept only where ``tracks`` explain it ``SLIP_RATIO`` times better than ICP's
+    (``r_icp``: ICP's residual on them), so the depth and the images agree on the turn."""
+    step, replaced = turn_search(icp_step, realign, misfits, judged, prediction)
+    if replaced and r_icp <= SLIP_RATIO * flow_residual_rad(tracks, step):
+        return icp_step, False
+    return step, replaced
+
+
 def turn_search(
     icp_step: np.ndarray,
     realign: Callable[[np.ndarray], np.ndarray] | None,
     misfits: Callable[..., tuple[float, ...]] | None,
     judged: Callable[..., int] | None,
+    prediction: np.ndarray | None = None,
 ) -> tuple[np.ndarray, bool]:
     """(step to keep, whether ICP's step was replaced) where no image tracks judge ``icp_step`` (4, 4: this camera in
     the previous one): only where the frame's cloud fits the map badly under it (``misfits`` above
     ``MISFIT_SLACK``; a healthy step's is ~1e-3), ICP runs again (``realign``) from ICP's step turned by each of
-    ``TURN_SEARCH_DEG`` either way, and the step it reaches replaces ICP's where the cloud fits the map clearly
+    ``TURN_SEARCH_DEG`` either way (and, given ``prediction`` (4, 4: the constant-velocity step), from each turned
+    start at the predicted translation carried round the turn, ``_on_arc``), and the step it reaches replaces ICP's
+    where the cloud fits the map clearly
     better under it, by the rule that vetoes image steps the other way round (ICP's misfit above ``MISFIT_RATIO``
     times the new step's plus ``MISFIT_SLACK``), both judged on at least ``MIN_JUDGED_SHARE`` of the points ICP's
     step alone is judged on; of several, the one with the lowest misfit relative to ICP's (``_best_start``). Then the
     same from that step (ICP's own where no turn won) moved sideways (``SIDEWAYS_SEARCH``). ICP's very array
     without ``realign``, ``misfits`` or ``judged``.
 
-    The images' own guess is not among the starts: at the sharp turns where Lucas-Kanade and matched features both
-    failed (synthia-like tuning seeds 10-13 at 3.3 frames/s), the global shift pointed the wrong way in 4 of 5."""
+    The images' own guess is not among the starts (only its translation, the prediction's): at the sharp turns where
+    Lucas-Kanade and matched features both failed (synthia-like tuning seeds 10-13 at 3.3 frames/s), the global
+    shift pointed the wrong way in 4 of 5."""
     if realign is None or misfits is None or judged is None or misfits(icp_step)[0] <= MISFIT_SLACK:
         return icp_step, False
     turned = []
@@ -481,9 +515,21 @@ def turn_search(
             start = np.array(icp_step, dtype=np.float64, copy=True)
             start[:3, :3] = rot_y(np.radians(sign * deg)) @ start[:3, :3]
             turned.append(start)
+            if prediction is not None and np.linalg.norm(prediction[:3, 3]) > 0.0:
+                turned.append(_on_arc(start, prediction))
     best = _best_start(icp_step, turned, realign, misfits, judged)
     best = _best_start(best, _sideways(best), realign, misfits, judged)
     return best, best is not icp_step
+
+
+def _on_arc(start: np.ndarray, prediction: np.ndarray) -> np.ndarray:
+    """(4, 4) ``start``'s rotation with ``prediction``'s translation turned by half of ``start``'s yaw (about the
+    camera's vertical axis): where the robot goes on at the predicted speed through a turn of that yaw (the chord of
+    the arc), not where ICP stalled."""
+    yaw = float(np.arctan2(start[0, 2], start[2, 2]))
+    on_arc = np.array(start, dtype=np.float64, copy=True)
+    on_arc[:3, 3] = rot_y(0.5 * yaw) @ prediction[:3, 3]
+    return on_arc
 
 
 def _sideways(step: np.ndarray) -> list[np.ndarray]:

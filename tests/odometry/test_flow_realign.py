@@ -388,3 +388,53 @@ def test_turn_search_refuses_a_step_judged_on_a_sliver_of_the_view() -> None:
     shared = _Fits(sliver.misfit_of)  # the same fit on most of the view: kept
     step, replaced = turn_search(icp, _snap_to(-45.0, basin_deg=20.0), shared.misfits, shared.judged)
     assert replaced and np.degrees(yaw_of(step)) == pytest.approx(-45.0)
+
+
+def test_turn_search_from_the_predicted_speed_on_the_arc_finds_a_turn_icp_stalled_in() -> None:
+    # A car at 3.3 frames/s turns 30 deg in one frame at 3 m per frame; ICP registered 7 deg and stalled 1 m ahead
+    # (no tracks, the map fits badly). ICP finds the truth only from a start near it in both yaw and place: its own
+    # step turned further is 2 m short; the predicted step (3 m) on the arc of the turned heading is near.
+    truth = make_pose(rot_y(np.radians(30.0)), np.array([0.78, 0.0, 2.9]))
+    stalled = make_pose(rot_y(np.radians(7.0)), np.array([-0.37, 0.0, 1.03]))
+    prediction = make_pose(rot_y(np.radians(5.0)), np.array([0.0, 0.0, 3.0]))  # the last step, at constant velocity
+
+    def icp(start: np.ndarray) -> np.ndarray:  # the truth's basin: within 8 deg and 1 m of it
+        near = abs(np.degrees(yaw_of(start)) - 30.0) <= 8.0 and np.linalg.norm(start[:3, 3] - truth[:3, 3]) < 1.0
+        return truth if near else start
+
+    fits = _Fits(lambda deg: 0.1 if abs(deg - 30.0) < 0.5 else 0.7)
+    assert turn_search(stalled, icp, fits.misfits, fits.judged) == (stalled, False)  # its own step turned: short
+    step, replaced = turn_search(stalled, icp, fits.misfits, fits.judged, prediction)
+    assert replaced and step is truth
+    # a backward-looking camera (moving along -z): the arc turns its own direction of travel
+    back_truth = make_pose(rot_y(np.radians(30.0)), np.array([-0.78, 0.0, -2.9]))
+    back_stalled = make_pose(rot_y(np.radians(7.0)), np.array([0.37, 0.0, -1.03]))
+    back_prediction = make_pose(np.eye(3), np.array([0.0, 0.0, -3.0]))
+
+    def back_icp(start: np.ndarray) -> np.ndarray:
+        near = abs(np.degrees(yaw_of(start)) - 30.0) <= 8.0 and np.linalg.norm(start[:3, 3] - back_truth[:3, 3]) < 1.0
+        return back_truth if near else start
+
+    step, replaced = turn_search(back_stalled, back_icp, fits.misfits, fits.judged, back_prediction)
+    assert replaced and step is back_truth
+
+
+def test_where_matched_features_cannot_decide_and_the_guess_is_wrong_the_turn_search_runs_judged_by_them() -> None:
+    # Lucas-Kanade lost a 32 deg turn, the matched features are too few for PnP and the images' guess turns the
+    # wrong way (ICP from it explains them worse than ICP's own step): the depth's turn search runs, and its step is
+    # kept where the matched features explain it SLIP_RATIO times better than ICP's.
+    truth = make_pose(rot_y(np.radians(32.0)), np.array([0.9, 0.0, 3.1]))
+    missed = make_pose(rot_y(np.radians(18.0)), np.array([0.5, 0.0, 3.2]))
+    wrong_guess = make_pose(rot_y(np.radians(-7.0)), np.array([0.0, 0.0, 3.2]))
+    matched = _tracks(truth, MIN_TRACKS - 6)
+    assert pnp_step(matched) is None
+    fits = _Fits(lambda deg: 0.001 if abs(deg - 32.0) < 0.5 else 0.37)
+    step, replaced = choose_step(missed, None, wrong_guess, _snap_to(32.0), lambda: matched, fits.misfits, fits.judged)
+    assert replaced and np.degrees(yaw_of(step)) == pytest.approx(32.0)
+    # matched features of a motion between the two (no better explained by the search's step than by ICP's): the
+    # map's preference alone does not replace ICP's step
+    between = _tracks(make_pose(rot_y(np.radians(25.0)), np.array([0.7, 0.0, 3.15])), MIN_TRACKS - 6)
+    r_icp, r_found = flow_residual_rad(between, missed), flow_residual_rad(between, step)
+    assert r_icp > 3e-3 and r_icp < SLIP_RATIO * r_found
+    kept = choose_step(missed, None, wrong_guess, _snap_to(32.0), lambda: between, fits.misfits, fits.judged)
+    assert kept == (missed, False)
