@@ -35,7 +35,7 @@ import numpy as np
 
 from shgm_slam.geometry.camera import backproject, project
 from shgm_slam.geometry.se3 import inverse, make_pose
-from shgm_slam.odometry.image_rotation import rot_y
+from shgm_slam.odometry.image_rotation import rot_y, yaw_of
 from shgm_slam.types import Intrinsics
 
 TARGET_TRACKS = 400
@@ -492,17 +492,16 @@ def turn_search(
     judged: Callable[..., int] | None,
     prediction: np.ndarray | None = None,
 ) -> tuple[np.ndarray, bool]:
-    """(step to keep, whether ICP's step was replaced) where no image tracks judge ``icp_step`` (4, 4: this camera in
-    the previous one): only where the frame's cloud fits the map badly under it (``misfits`` above
+    """(step to keep, whether ICP's step was replaced) where no image tracks judge ``icp_step`` (4, 4: this camera
+    in the previous one): only where the frame's cloud fits the map badly under it (``misfits`` above
     ``MISFIT_SLACK``; a healthy step's is ~1e-3), ICP runs again (``realign``) from ICP's step turned by each of
     ``TURN_SEARCH_DEG`` either way (and, given ``prediction`` (4, 4: the constant-velocity step), from each turned
     start at the predicted translation carried round the turn, ``_on_arc``), and the step it reaches replaces ICP's
-    where the cloud fits the map clearly
-    better under it, by the rule that vetoes image steps the other way round (ICP's misfit above ``MISFIT_RATIO``
-    times the new step's plus ``MISFIT_SLACK``), both judged on at least ``MIN_JUDGED_SHARE`` of the points ICP's
-    step alone is judged on; of several, the one with the lowest misfit relative to ICP's (``_best_start``). Then the
-    same from that step (ICP's own where no turn won) moved sideways (``SIDEWAYS_SEARCH``). ICP's very array
-    without ``realign``, ``misfits`` or ``judged``.
+    where the cloud fits the map clearly better under it, by the rule that vetoes image steps the other way round
+    (ICP's misfit above ``MISFIT_RATIO`` times the new step's plus ``MISFIT_SLACK``), both judged on at least
+    ``MIN_JUDGED_SHARE`` of the points ICP's step alone is judged on; of several, the one with the lowest misfit
+    relative to ICP's (``_best_start``). Then the same from that step (ICP's own where no turn won) moved sideways
+    (``SIDEWAYS_SEARCH``). ICP's very array without ``realign``, ``misfits`` or ``judged``.
 
     The images' own guess is not among the starts (only its translation, the prediction's): at the sharp turns where
     Lucas-Kanade and matched features both failed (synthia-like tuning seeds 10-13 at 3.3 frames/s), the global
@@ -526,9 +525,8 @@ def _on_arc(start: np.ndarray, prediction: np.ndarray) -> np.ndarray:
     """(4, 4) ``start``'s rotation with ``prediction``'s translation turned by half of ``start``'s yaw (about the
     camera's vertical axis): where the robot goes on at the predicted speed through a turn of that yaw (the chord of
     the arc), not where ICP stalled."""
-    yaw = float(np.arctan2(start[0, 2], start[2, 2]))
     on_arc = np.array(start, dtype=np.float64, copy=True)
-    on_arc[:3, 3] = rot_y(0.5 * yaw) @ prediction[:3, 3]
+    on_arc[:3, 3] = rot_y(0.5 * yaw_of(start)) @ prediction[:3, 3]
     return on_arc
 
 
