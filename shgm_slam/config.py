@@ -273,7 +273,7 @@ class OdometryConfig(_Stage):
 
     FLEET: ClassVar[dict[str, float | bool]] = {
         "voxel_size_m": 1.0, "max_range_m": 100.0, "shuffle_points": False, "visual_max_depth_m": 40.0,
-        "cloud_stride": 2, "depth_noise_rel": 0.0, "visual_ground_attitude": False,
+        "cloud_stride": 2, "depth_noise_rel": 0.0, "visual_ground_attitude": False, "image_step_blend": False,
     }
 
     kind: OdometryKind = OdometryKind.AUTO
@@ -366,6 +366,12 @@ class OdometryConfig(_Stage):
         True, description="KISS-ICP: check each step against the image motion (the previous frame's depth pixels "
         "tracked into this image); where ICP slipped (a plane-like cloud, e.g. a UAV over flat ground), keep the step "
         "solved from the tracks (odometry/flow_check.py)"
+    )
+    image_step_blend: bool | None = Field(
+        None, description="KISS-ICP: blend each kept step with the one solved from the image tracks (PnP), by how "
+        "noisy each one's turns have recently been (three-cornered hat with the images' own turn; "
+        "odometry/step_fusion.py); needs image_flow_check and image_rotation. None: on where the depth's measured noise "
+        "(depth_noise_rel) is not 0: ICP's steps suffer from noisy depth, the tracks' bearings do not"
     )
     image_window_check: bool = Field(
         True, description="KISS-ICP: check its motion over every second against pixels tracked through it, where "

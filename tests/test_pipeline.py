@@ -696,8 +696,10 @@ def test_a_noisy_depth_sensor_is_measured_and_kiss_icp_sized_to_it(tiny_scenario
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["robots"][0]["depth_noise_rel"] == report.depth_noise_rel
     assert f"depth_noise_rel: {report.depth_noise_rel}" in (tmp_path / "out" / "config.yaml").read_text()
+    assert "image_step_blend: true" in (tmp_path / "out" / "config.yaml").read_text()  # ICP blended with the tracks
     (clean_report,) = run_slam(clean, cfg, tmp_path / "clean").robots
     assert clean_report.depth_noise_rel == 0.0 and clean_report.voxel_size_m == 1.0
+    assert "image_step_blend: false" in (tmp_path / "clean" / "config.yaml").read_text()
 
 
 def test_the_log_panel_gives_each_accepted_match_its_predicted_precision(early_stop) -> None:

@@ -183,6 +183,12 @@ def test_noisy_depth_gets_a_coarser_odometry_voxel_and_noise_free_depth_keeps_it
     assert voxel > OdometryConfig.FLEET["voxel_size_m"]
     spacing = resolve_robot_config(ShgmConfig(), noisy).odometry.max_spacing_m
     assert spacing == pytest.approx(SPACING_PER_VOXEL * voxel, rel=0.01)  # the spacing filter follows
+    # ICP's steps are blended with the image tracks' on the noisy depth only; a config's value wins
+    assert derived_values(noisy)["odometry"]["image_step_blend"] is True
+    assert derived_values(clean)["odometry"]["image_step_blend"] is False
+    assert derived_values(None)["odometry"]["image_step_blend"] is False
+    off = ShgmConfig.model_validate({"odometry": {"image_step_blend": False}})
+    assert resolve_robot_config(off, noisy).odometry.image_step_blend is False
 
 
 def test_config_values_win_over_derived_ones():

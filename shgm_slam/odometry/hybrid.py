@@ -31,15 +31,12 @@ from shgm_slam.odometry.clouds import depth_to_cloud, trusted_depth
 from shgm_slam.odometry.estimate import OdometryEstimate, image_gray, keep_well_sampled, yaw_disagreement_deg
 from shgm_slam.odometry.image_rotation import ImageYawEstimator
 from shgm_slam.odometry.kiss import KissOdometry
-from shgm_slam.odometry.step_fusion import YawNoiseTracker, fuse_steps, step_yaw
+from shgm_slam.odometry.step_fusion import MIN_WEIGHT_SAMPLES, YawNoiseTracker, fuse_steps, step_yaw
 from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus
 from shgm_slam.types import Frame
 
 EDGE_MARGIN_PER_PX = 1.0 / 320.0
 """Pixels dropped around a depth edge per pixel of image width (1 at 320 px, the demo models' size)."""
-
-MIN_WEIGHT_SAMPLES = 10
-"""Steps with an image yaw before ICP gets any weight (the variances need a few samples)."""
 
 
 class HybridOdometrySource:

@@ -22,9 +22,10 @@ from shgm_slam.odometry.estimate import (
     keep_well_sampled,
     yaw_disagreement_deg,
 )
-from shgm_slam.odometry.flow_check import FlowTracks, choose_step
+from shgm_slam.odometry.flow_check import FlowTracks, choose_step, pnp_step
 from shgm_slam.odometry.image_rotation import ImageYawEstimator, rot_y, yaw_of
 from shgm_slam.odometry.kiss import KissOdometry, Relocation
+from shgm_slam.odometry.step_fusion import ImageStepBlend
 from shgm_slam.odometry.visual import DepthVisualOdometry, VisualStatus
 from shgm_slam.odometry.window_check import WindowTracks, mean_step, window_correction
 from shgm_slam.types import Frame
@@ -52,7 +53,8 @@ class KissIcpSource:
     With ``flow`` each step is checked against the image motion between consecutive frames
     (``flow_check``), with ``window`` the motion of every second against the image motion over it
     (``window_check``): where ICP slid, the motion solved from the image tracks is kept and the
-    constant-velocity model restarts from it.
+    constant-velocity model restarts from it. With ``blend`` (noisy depth) every step ICP kept is blended with the
+    one PnP solves from those tracks, by how noisy each one's turns are (``step_fusion.ImageStepBlend``).
     """
 
     def __init__(
@@ -68,6 +70,7 @@ class KissIcpSource:
         prior_min_deg: float = YAW_PRIOR_MIN_DEG,
         flow: FlowTracks | None = None,
         window: WindowTracks | None = None,
+        blend: ImageStepBlend | None = None,
     ) -> None:
         if max_spacing_m is not None and max_spacing_m <= 0:
             raise ConfigError(f"odometry max_spacing_m must be > 0 or None, got {max_spacing_m}")
@@ -81,6 +84,7 @@ class KissIcpSource:
         self.prior_min_rad = float(np.radians(prior_min_deg))
         self.flow = flow
         self.window = window
+        self.blend = blend
         self._T_odom_anchor: np.ndarray | None = None  # pose of the window's anchor frame
 
     def reset(self, motion: np.ndarray | None = None) -> None:
@@ -94,6 +98,8 @@ class KissIcpSource:
             self.image_yaw.reset()
         if self.flow is not None:
             self.flow.reset()
+        if self.blend is not None:
+            self.blend.reset()
 
     def update(
         self, frame: Frame, points_cam: np.ndarray, depth_m: np.ndarray | None = None,
@@ -131,6 +137,8 @@ class KissIcpSource:
                 icp_step, tracks, guess, odo.realign, matched, odo.map_misfits, odo.map_judged, rival
             )
             slipped.append(replaced)
+            if self.blend is not None and tracks is not None and not replaced:
+                step = self.blend(step, pnp_step(tracks), yaw_img)
             motion = None if T_anchor is None else window_correction(window, inverse(T_anchor) @ T_prev @ step)
             relocated.append(motion is not None)
             if motion is None:
@@ -387,6 +395,7 @@ def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
         image_yaw=ImageYawEstimator() if cfg.image_rotation else None,
         flow=FlowTracks() if cfg.image_flow_check else None,
         window=WindowTracks(cfg.max_range_m) if cfg.image_window_check else None,
+        blend=ImageStepBlend() if cfg.image_step_blend and cfg.image_flow_check and cfg.image_rotation else None,
     )
 
 

@@ -232,3 +232,12 @@ def test_the_measured_noise_reaches_kiss_icp_and_the_hybrid():
     assert make_odometry(cfg.model_copy(update={"kind": OdometryKind.KISS_ICP}), 1).depth_noise_rel == 0.04
     assert make_odometry(cfg.model_copy(update={"kind": OdometryKind.HYBRID}), 1).depth_noise_rel == 0.04
     assert OdometryConfig().filled().depth_noise_rel == 0.0  # nothing measured: noise-free
+
+
+def test_the_image_step_blend_is_built_where_it_is_on_and_the_image_checks_are_too():
+    on = OdometryConfig(kind=OdometryKind.KISS_ICP, image_step_blend=True).filled()
+    assert make_odometry(on, 1).blend is not None
+    assert make_odometry(on.model_copy(update={"image_step_blend": False}), 1).blend is None
+    assert OdometryConfig().filled().image_step_blend is False  # nothing measured: noise-free, ICP's steps
+    for needed in ("image_flow_check", "image_rotation"):  # no tracks or no image turn to weigh them by
+        assert make_odometry(on.model_copy(update={needed: False}), 1).blend is None
