@@ -371,7 +371,9 @@ class OdometryConfig(_Stage):
         None, description="KISS-ICP: blend each kept step with the one solved from the image tracks (PnP), by how "
         "noisy each one's turns have recently been (three-cornered hat with the images' own turn; "
         "odometry/step_fusion.py); needs image_flow_check and image_rotation. None: on where the depth's measured "
-        "noise (depth_noise_rel) is not 0: ICP's steps suffer from noisy depth, the tracks' bearings do not"
+        "noise (depth_noise_rel) is not 0 and the horizon is in view: ICP's steps suffer from noisy depth, the "
+        "tracks' bearings do not; a camera that sees only the ground keeps ICP's (PnP on one distant plane trades "
+        "pitch for sideways motion)"
     )
     image_window_check: bool = Field(
         True, description="KISS-ICP: check its motion over every second against pixels tracked through it, where "

@@ -314,9 +314,10 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
       it, in ``resolve_robot_config``);
     * ``depth_noise_rel``: the measured noise to 0.1 % (``relative_depth_noise``, ``NOISE_DECIMALS``; the spacing
       filter's allowance);
-    * ``image_step_blend``: the measured noise (as ``depth_noise_rel`` holds it) is not 0: on noisy depth KISS-ICP's
-      steps are blended with the image tracks' (``odometry.step_fusion``); perfect renders, on which ICP alone
-      is best, keep ICP's;
+    * ``image_step_blend``: the measured noise (as ``depth_noise_rel`` holds it) is not 0 and the horizon is in
+      view: on noisy depth KISS-ICP's steps are blended with the image tracks' (``odometry.step_fusion``);
+      perfect renders, on which ICP alone is best, keep ICP's, and so does a camera that sees only the ground
+      (a narrow view of one distant plane, where PnP trades pitch for sideways motion);
     * ``shuffle_points`` and ``visual_ground_attitude``: the horizon is out of view;
     * ``max_range_m = max(100, 1.1 x min(farthest ground range, 1.5 x farthest depth range))`` (100 when the
       horizon is in view; ``OBSERVED_RANGE_FACTOR``: a very wide camera's corner meets the ground kilometres away);
@@ -339,7 +340,7 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
         "visual_ground_attitude": not scale.horizon_in_view,
         "visual_max_depth_m": od["visual_max_depth_m"] * ratio,
         "depth_noise_rel": round(scale.depth_noise_rel, NOISE_DECIMALS),
-        "image_step_blend": round(scale.depth_noise_rel, NOISE_DECIMALS) > 0,
+        "image_step_blend": round(scale.depth_noise_rel, NOISE_DECIMALS) > 0 and scale.horizon_in_view,
     }
     out = {k: _rounded(v) for k, v in out_od.items()}
     out["cloud_stride"] = cloud_stride_for(scale.image_px) if min(scale.image_px) > 0 else od["cloud_stride"]

@@ -189,6 +189,11 @@ def test_noisy_depth_gets_a_coarser_odometry_voxel_and_noise_free_depth_keeps_it
     assert derived_values(None)["odometry"]["image_step_blend"] is False
     off = ShgmConfig.model_validate({"odometry": {"image_step_blend": False}})
     assert resolve_robot_config(off, noisy).odometry.image_step_blend is False
+    down = [ground_view(50.0, 60.0) for _ in range(3)]  # a UAV: the ground only, the horizon out of view
+    uav = measure_scene_scale([_relative_noise(d, 0.05, 4.0, i) for i, (d, _) in enumerate(down)],
+                              [lab for _, lab in down], INTR)  # fmt: skip
+    assert not uav.horizon_in_view and uav.depth_noise_rel > 0.01
+    assert derived_values(uav)["odometry"]["image_step_blend"] is False  # PnP on one distant plane: ICP's steps
 
 
 def test_config_values_win_over_derived_ones():
