@@ -129,6 +129,9 @@ def make_frontend(
     rcfg = _road_at_camera_height(rcfg, perception)
     choice = choose_odometry(rcfg.odometry.kind, depth_from_model=predicted, odometry_given=given_odometry(sequence))
     log.info("%s: odometry %s (%s)", name, choice.kind.value, choice.reason)
+    if choice.kind is OdometryKind.KISS_ICP and rcfg.odometry.image_step_blend:
+        log.info("%s: noisy depth (%.1f %%): KISS-ICP's steps are blended with the ones the image tracks give "
+                 "(odometry.image_step_blend)", name, 100.0 * (rcfg.odometry.depth_noise_rel or 0.0))  # fmt: skip
     odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence),
                              timestamps_s=sequence.timestamps_s)  # fmt: skip
     return RobotFrontend(name, sequence, rcfg, perception, odometry, choice, depth_predicted=predicted,
