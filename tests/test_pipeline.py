@@ -697,9 +697,12 @@ def test_a_noisy_depth_sensor_is_measured_and_kiss_icp_sized_to_it(tiny_scenario
     assert metrics["robots"][0]["depth_noise_rel"] == report.depth_noise_rel
     assert f"depth_noise_rel: {report.depth_noise_rel}" in (tmp_path / "out" / "config.yaml").read_text()
     assert "image_step_blend: true" in (tmp_path / "out" / "config.yaml").read_text()  # ICP blended with the tracks
+    assert "blended with the one the image tracks give" in metrics["robots"][0]["odometry_reason"]
     (clean_report,) = run_slam(clean, cfg, tmp_path / "clean").robots
     assert clean_report.depth_noise_rel == 0.0 and clean_report.voxel_size_m == 1.0
     assert "image_step_blend: false" in (tmp_path / "clean" / "config.yaml").read_text()
+    clean_metrics = json.loads((tmp_path / "clean" / "metrics.json").read_text())
+    assert "blended" not in clean_metrics["robots"][0]["odometry_reason"]
 
 
 def test_the_log_panel_gives_each_accepted_match_its_predicted_precision(early_stop) -> None:

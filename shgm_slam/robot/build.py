@@ -7,7 +7,7 @@ importing the map server, the pose graph and the viewer (~100 MB less per worker
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -128,10 +128,11 @@ def make_frontend(
     rcfg = _window_on_image(name, rcfg, sequence, perception, written_by)
     rcfg = _road_at_camera_height(rcfg, perception)
     choice = choose_odometry(rcfg.odometry.kind, depth_from_model=predicted, odometry_given=given_odometry(sequence))
-    log.info("%s: odometry %s (%s)", name, choice.kind.value, choice.reason)
     if choice.kind is OdometryKind.KISS_ICP and rcfg.odometry.image_step_blend:
-        log.info("%s: noisy depth (%.1f %%): KISS-ICP's steps are blended with the ones the image tracks give "
-                 "(odometry.image_step_blend)", name, 100.0 * (rcfg.odometry.depth_noise_rel or 0.0))  # fmt: skip
+        noise = 100.0 * (rcfg.odometry.depth_noise_rel or 0.0)
+        choice = replace(choice, reason=f"{choice.reason}; its depth is noisy ({noise:.1f} %), so each step is "
+                         "blended with the one the image tracks give (odometry.image_step_blend)")  # fmt: skip
+    log.info("%s: odometry %s (%s)", name, choice.kind.value, choice.reason)
     odometry = make_odometry(rcfg.odometry.model_copy(update={"kind": choice.kind}), len(sequence),
                              timestamps_s=sequence.timestamps_s)  # fmt: skip
     return RobotFrontend(name, sequence, rcfg, perception, odometry, choice, depth_predicted=predicted,
