@@ -331,6 +331,7 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
     ratio = max_depth_m / ex["max_depth_m"]
     out_ex = {"max_depth_m": max_depth_m, "min_blob_fraction": ex["min_blob_fraction"] / ratio**BLOB_RANGE_EXPONENT}
     far = min(scale.farthest_ground_range_m, OBSERVED_RANGE_FACTOR * scale.farthest_depth_range_m)
+    noise_rel = round(scale.depth_noise_rel, NOISE_DECIMALS)
     out_od = {
         "voxel_size_m": max(od["voxel_size_m"], VOXEL_PER_MEDIAN_DEPTH * scale.depth_percentiles_m[1],
                             NOISE_VOXEL_SIGMAS * scale.depth_noise_rel * scale.depth_percentiles_m[1]),
@@ -339,8 +340,8 @@ def derived_values(scale: SceneScale | None) -> dict[str, dict[str, float | bool
         "shuffle_points": not scale.horizon_in_view,
         "visual_ground_attitude": not scale.horizon_in_view,
         "visual_max_depth_m": od["visual_max_depth_m"] * ratio,
-        "depth_noise_rel": round(scale.depth_noise_rel, NOISE_DECIMALS),
-        "image_step_blend": round(scale.depth_noise_rel, NOISE_DECIMALS) > 0 and scale.horizon_in_view,
+        "depth_noise_rel": noise_rel,
+        "image_step_blend": noise_rel > 0 and scale.horizon_in_view,
     }
     out = {k: _rounded(v) for k, v in out_od.items()}
     out["cloud_stride"] = cloud_stride_for(scale.image_px) if min(scale.image_px) > 0 else od["cloud_stride"]
