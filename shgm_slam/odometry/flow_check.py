@@ -29,6 +29,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -142,6 +143,17 @@ class Tracks:
     points_prev_cam: np.ndarray
     uv_cur: np.ndarray
     intrinsics: Intrinsics
+
+    @cached_property
+    def pnp(self) -> tuple[np.ndarray | None, np.ndarray]:
+        """``solve_pnp``'s answer, solved once per set of tracks (the slip check, the choice between trackings,
+        the rival's backing and the noisy-depth blend all ask for it; RANSAC is seeded, so asking again would
+        give the same answer). Read-only arrays."""
+        step, inliers = _solve_pnp(self)
+        for a in (step, inliers):
+            if a is not None:
+                a.flags.writeable = False
+        return step, inliers
 
 
 class FlowTracks:
@@ -332,7 +344,13 @@ def pnp_step(tracks: Tracks) -> np.ndarray | None:
 
 
 def solve_pnp(tracks: Tracks) -> tuple[np.ndarray | None, np.ndarray]:
-    """(``pnp_step``'s pose or None, (K,) indices of its RANSAC inliers: empty when PnP failed)."""
+    """(``pnp_step``'s pose or None, (K,) indices of its RANSAC inliers: empty when PnP failed); fresh arrays
+    (``Tracks.pnp`` holds the answer)."""
+    step, inliers = tracks.pnp
+    return (None if step is None else step.copy()), inliers.copy()
+
+
+def _solve_pnp(tracks: Tracks) -> tuple[np.ndarray | None, np.ndarray]:
     cv2.setRNGSeed(PNP_SEED)
     ok, rvec, tvec, inliers = cv2.solvePnPRansac(
         tracks.points_prev_cam.astype(np.float64), tracks.uv_cur.astype(np.float64), tracks.intrinsics.K, None,

@@ -9,6 +9,7 @@ import pytest
 
 from shgm_slam.geometry.camera import backproject
 from shgm_slam.geometry.se3 import make_pose
+from shgm_slam.odometry import flow_check
 from shgm_slam.odometry.flow_check import (
     SLIP_FLOOR_RAD,
     FlowTracks,
@@ -75,6 +76,24 @@ def test_a_slipped_step_is_replaced_and_a_right_one_kept(ground_texture) -> None
     step, replaced = choose_step(near, tracks)
     assert not replaced and step is near
     assert choose_step(stalled, None) == (stalled, False)  # nothing to check against: ICP's
+
+
+def test_pnp_is_solved_once_per_set_of_tracks_and_callers_get_their_own_arrays(ground_texture, monkeypatch) -> None:
+    flow = FlowTracks()
+    flow.update(_view(ground_texture, 0), _depth(), K)
+    tracks = flow.update(_view(ground_texture, 1), _depth(), K)
+    calls = []
+    solve = flow_check._solve_pnp
+    monkeypatch.setattr(flow_check, "_solve_pnp", lambda t: calls.append(t) or solve(t))
+    first = pnp_step(tracks)
+    first[:3, 3] = 99.0  # a caller's own copy: the answer asked for next is untouched
+    second = pnp_step(tracks)
+    step, inliers = flow_check.solve_pnp(tracks)
+    assert len(calls) == 1
+    np.testing.assert_allclose(second[:3, 3], [STEP_M, 0.0, 0.0], atol=0.02)
+    np.testing.assert_array_equal(step, second)
+    assert len(inliers) >= flow_check.MIN_TRACKS
+    assert solve(tracks)[0] is not None and np.array_equal(solve(tracks)[0], second)  # the same answer solved anew
 
 
 def test_images_that_do_not_move_together_give_no_tracks(ground_texture) -> None:
