@@ -374,19 +374,30 @@ def choose_step(
     misfits: Callable[..., tuple[float, ...]] | None = None,
     judged: Callable[..., int] | None = None,
     rival: Tracks | None = None,
+    distinct: Callable[[np.ndarray, np.ndarray], bool] | None = None,
 ) -> tuple[np.ndarray, bool]:
     """(step to keep, whether ICP's step was replaced): PnP's (``pnp_step``, solved only when ICP's residual is
-    above ``SLIP_FLOOR_RAD``) where ICP's residual is also above ``SLIP_RATIO`` times PnP's (module
-    docstring); ICP's very array otherwise, without tracks or when PnP fails, and where ``rival``, the other
-    tracking of the same pixels (``FlowTracks.rival``), agrees with ICP's step by that rule but not with PnP's, and
-    PnP's step does not fit the map better than ICP's (``misfits``): the two trackings then contradict each other,
-    and the depth's own step is kept. (Where the rival agrees with both, ICP's step was a few centimetres off and
-    PnP's correction stands: the demo world at 640x192, 10 Hz, cars' steps 4-6 cm off, the rival backing both.)
-    Synthia-like tuning seed 13 at 3.3 frames/s, a straight road at 2.8 m per frame: Lucas-Kanade from rest kept
-    105 tracks, 53 of them agreeing on 0.55 m (pixels left behind), from the guess 100, 32 agreeing on 2.89 m (the
-    truth 2.88, ICP's 2.83, fitting the map 25 times better than PnP's). The other way round at a start from rest
-    (airsim-like tuning seed 11): ICP stalled at 0.10 m, the tracks from rest agreed with it, and PnP's step from
-    the tracks chosen (2.95 m, the truth 2.99) fitted the map 5 times better and was kept.
+    above ``SLIP_FLOOR_RAD``) where ICP's residual is also above ``SLIP_RATIO`` times PnP's (module docstring), or,
+    where the tracks cannot decide between the two (below that ratio), where the depth does: the cloud fits the map
+    so much better under PnP's step than under ICP's own that the rule which refuses an image step that fits worse
+    (``MISFIT_RATIO`` and ``misfit_slack``) refuses ICP's (``_fits_far_better``; ICP then stopped short of its own
+    best fit; asked only where ``distinct``, e.g. ``KissOdometry.beyond_threshold``, says the two steps differ by
+    more than ICP's own threshold: building the map's search tree costs ~10 ms, and at 10 Hz the tracks are above
+    the floor in most frames while PnP's step and ICP's are one motion). Airsim-like tuning seed 25 at 3.3 frames/s:
+    a car already driving 3.2 m per frame at its first frame; ICP from rest registered no motion for seven frames,
+    the tracks from rest, mostly pixels left behind, explained no motion nearly as well as any (0.014-0.025 rad
+    against PnP's 0.009-0.018), and PnP's step, right in three of those frames, fitted the map 7-10 times better
+    (0.015-0.035 against 0.15-0.28); kept from the first of them, KISS-ICP alone ended 0.64 m off instead of 3.28.
+    ICP's very array otherwise, without tracks or when PnP fails, and where ``rival``, the other tracking of the
+    same pixels (``FlowTracks.rival``), agrees with ICP's step by that rule but not with PnP's, and PnP's step does
+    not fit the map better than ICP's (``misfits``): the two trackings then contradict each other, and the depth's
+    own step is kept. (Where the rival agrees with both, ICP's step was a few centimetres off and PnP's correction
+    stands: the demo world at 640x192, 10 Hz, cars' steps 4-6 cm off, the rival backing both.) Synthia-like tuning
+    seed 13 at 3.3 frames/s, a straight road at 2.8 m per frame: Lucas-Kanade from rest kept 105 tracks, 53 of them
+    agreeing on 0.55 m (pixels left behind), from the guess 100, 32 agreeing on 2.89 m (the truth 2.88, ICP's 2.83,
+    fitting the map 25 times better than PnP's). The other way round at a start from rest (airsim-like tuning seed
+    11): ICP stalled at 0.10 m, the tracks from rest agreed with it, and PnP's step from the tracks chosen (2.95 m,
+    the truth 2.99) fitted the map 5 times better and was kept.
 
     Where the tracks cannot decide (none, or too few agreeing on one motion for PnP: a turn so sharp that
     Lucas-Kanade loses most pixels, measured at 3 frames/s, below), more chances, in turn:
@@ -422,14 +433,14 @@ def choose_step(
     guess, 16.9 deg, explained them 2.5 times better (0.18 rad) and ICP again from it reached 25.6 deg (0.007 rad;
     its cloud's misfit against the map 0.001, ICP's 0.047)."""
     r_icp = None if tracks is None else flow_residual_rad(tracks, icp_step)
-    if tracks is not None and (verdict := _pnp_verdict(icp_step, tracks, r_icp, misfits)) is not None:
+    if tracks is not None and (verdict := _pnp_verdict(icp_step, tracks, r_icp, misfits, distinct)) is not None:
         if verdict[1] and rival is not None and _backing(rival, icp_step, verdict[0]) == (True, False):
             if not _fits_better(icp_step, verdict[0], misfits):
                 return icp_step, False
         return verdict
     other = None if matched is None else matched()
     r_other = None if other is None else flow_residual_rad(other, icp_step)
-    if other is not None and (verdict := _pnp_verdict(icp_step, other, r_other, misfits)) is not None:
+    if other is not None and (verdict := _pnp_verdict(icp_step, other, r_other, misfits, distinct)) is not None:
         return verdict
     rough_guess = tracks is None and other is not None  # judged by matched features too few for PnP
     judge, r_judge = (other, r_other) if rough_guess else (tracks, r_icp)
@@ -449,17 +460,25 @@ def choose_step(
 
 
 def _pnp_verdict(
-    icp_step: np.ndarray, tracks: Tracks, r_icp: float, misfits: Callable[..., tuple[float, ...]] | None
+    icp_step: np.ndarray,
+    tracks: Tracks,
+    r_icp: float,
+    misfits: Callable[..., tuple[float, ...]] | None,
+    distinct: Callable[[np.ndarray, np.ndarray], bool] | None = None,
 ) -> tuple[np.ndarray, bool] | None:
     """``choose_step``'s first rule on one set of tracks (``r_icp``: ICP's residual on them): ICP's step where its
-    residual is within ``SLIP_FLOOR_RAD`` or ``SLIP_RATIO`` times PnP's, PnP's where ICP slipped (unless it fits the
-    map worse), None where PnP cannot decide."""
+    residual is within ``SLIP_FLOOR_RAD`` or ``SLIP_RATIO`` times PnP's (unless the depth refuses ICP's step:
+    ``_fits_far_better``, asked where ``distinct``), PnP's where ICP slipped (unless it fits the map worse), None
+    where PnP cannot decide."""
     if r_icp <= SLIP_FLOOR_RAD:
         return icp_step, False
     pnp = pnp_step(tracks)
     if pnp is None:
         return None
-    if r_icp <= SLIP_RATIO * flow_residual_rad(tracks, pnp):
+    r_pnp = flow_residual_rad(tracks, pnp)
+    if r_icp <= SLIP_RATIO * r_pnp:
+        if (distinct is None or distinct(icp_step, pnp)) and _fits_far_better(pnp, icp_step, misfits):
+            return pnp, True  # the depth refuses ICP's step for the images' own
         return icp_step, False
     return _unless_worse_fit(icp_step, pnp, misfits)
 
@@ -594,6 +613,17 @@ def _unless_worse_fit(
         if of_step > MISFIT_RATIO * of_icp + misfit_slack(of_icp):
             return icp_step, False
     return step, True
+
+
+def _fits_far_better(step: np.ndarray, icp_step: np.ndarray, misfits: Callable[..., tuple[float, ...]] | None) -> bool:
+    """Whether the cloud fits the map so much better under ``step`` than under ICP's own that ``_unless_worse_fit``,
+    the roles swapped, would refuse ICP's step (``MISFIT_RATIO`` times and ``misfit_slack`` more): ICP stopped
+    short of the depth's own best fit, as it does from a constant-velocity prediction of rest while the robot
+    already drives (False without ``misfits``)."""
+    if misfits is None:
+        return False
+    of_step, of_icp = misfits(step, icp_step)
+    return of_icp > MISFIT_RATIO * of_step + misfit_slack(of_step)
 
 
 def misfit_slack(of_icp: float) -> float:

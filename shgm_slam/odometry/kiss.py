@@ -210,6 +210,15 @@ class KissOdometry:
         """KISS-ICP's adaptive threshold σ, metres (correspondences are searched within 3σ)."""
         return float(self._icp.adaptive_threshold.get_threshold())
 
+    def beyond_threshold(self, step_a: np.ndarray, step_b: np.ndarray) -> bool:
+        """Whether two steps of the frame being registered ((4, 4) each: the camera in the previous one) move its
+        source points apart by more than KISS-ICP's adaptive threshold σ (``threshold_m``; the median point's
+        displacement, metres): within σ the two are one motion to ICP's kernel. Only inside a ``register`` call's
+        ``fuse_step``."""
+        if self._fitting is None:
+            raise RuntimeError("KissOdometry.beyond_threshold is only valid inside register()'s fuse_step")
+        return self._fitting.displacement_m(step_a, step_b) > self.threshold_m
+
     @property
     def predicted_delta(self) -> np.ndarray:
         """(4, 4) copy of the constant-velocity prediction of the next frame-to-frame motion."""
@@ -393,6 +402,14 @@ class _MapFit:
         if self._tree is None or len(source) == 0:
             return tuple(1.0 for _ in steps)
         return tuple(self._misfit(source @ (self._T_prev @ s)[:3, :3].T + (self._T_prev @ s)[:3, 3]) for s in steps)
+
+    def displacement_m(self, step_a: np.ndarray, step_b: np.ndarray) -> float:
+        """Median distance, metres, between where the two steps ((4, 4) each) put the frame's source points."""
+        if len(self._source) == 0:
+            return 0.0
+        a, b = np.asarray(step_a, dtype=np.float64), np.asarray(step_b, dtype=np.float64)
+        moved = self._source @ (a[:3, :3] - b[:3, :3]).T + (a[:3, 3] - b[:3, 3])
+        return float(np.median(np.linalg.norm(moved, axis=1)))
 
     def judged(self, steps: list[np.ndarray]) -> int:
         """The source points ``__call__`` judges ``steps`` on."""

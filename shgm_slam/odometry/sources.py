@@ -134,8 +134,9 @@ class KissIcpSource:
             odo = self.odometry
             rival = None if self.flow is None else self.flow.rival
             step, replaced = choose_step(
-                icp_step, tracks, guess, odo.realign, matched, odo.map_misfits, odo.map_judged, rival
-            )
+                icp_step, tracks, guess, odo.realign, matched, odo.map_misfits, odo.map_judged, rival,
+                odo.beyond_threshold,
+            )  # fmt: skip
             slipped.append(replaced)
             if self.blend is not None and tracks is not None and not replaced:
                 step = self.blend(step, pnp_step(tracks), yaw_img)

@@ -12,7 +12,9 @@ from shgm_slam.geometry.se3 import make_pose
 from shgm_slam.odometry import flow_check
 from shgm_slam.odometry.flow_check import (
     SLIP_FLOOR_RAD,
+    SLIP_RATIO,
     FlowTracks,
+    Tracks,
     choose_step,
     flow_residual_rad,
     pnp_step,
@@ -94,6 +96,45 @@ def test_pnp_is_solved_once_per_set_of_tracks_and_callers_get_their_own_arrays(g
     np.testing.assert_array_equal(step, second)
     assert len(inliers) >= flow_check.MIN_TRACKS
     assert solve(tracks)[0] is not None and np.array_equal(solve(tracks)[0], second)  # the same answer solved anew
+
+
+def _noisy_tracks(ground_texture, noise_px: float) -> Tracks:
+    """Frame 1's tracks with their image positions jittered by ``noise_px`` (px std): tracks that no step explains
+    well, so that a stalled step's residual stays below ``SLIP_RATIO`` times PnP's."""
+    flow = FlowTracks()
+    flow.update(_view(ground_texture, 0), _depth(), K)
+    tracks = flow.update(_view(ground_texture, 1), _depth(), K)
+    rng = np.random.default_rng(3)
+    return Tracks(tracks.points_prev_cam, tracks.uv_cur + rng.normal(0.0, noise_px, tracks.uv_cur.shape), K)
+
+
+def test_a_step_the_images_cannot_decide_is_replaced_where_the_depth_refuses_icps(ground_texture) -> None:
+    tracks = _noisy_tracks(ground_texture, 1.0)
+    short = make_pose(np.eye(3), np.array([0.2 * STEP_M, 0.0, 0.0]))  # ICP stopped short (as from rest)
+    pnp = pnp_step(tracks)
+    r_icp, r_pnp = flow_residual_rad(tracks, short), flow_residual_rad(tracks, pnp)
+    assert SLIP_FLOOR_RAD < r_icp < SLIP_RATIO * r_pnp  # above the floor, but the images alone cannot decide
+
+    def misfit_by_error(*steps: np.ndarray) -> tuple[float, ...]:  # the depth: worse the farther from the truth
+        return tuple(0.002 + 0.5 * float(np.linalg.norm(s[:3, 3] - [STEP_M, 0.0, 0.0])) for s in steps)
+
+    step, replaced = choose_step(short, tracks, misfits=misfit_by_error)
+    assert replaced
+    np.testing.assert_allclose(step, pnp)
+    assert choose_step(short, tracks) == (short, False)  # without the depth's word: ICP's
+    alike = choose_step(short, tracks, misfits=lambda *steps: tuple(0.01 for _ in steps))
+    assert alike[0] is short and not alike[1]  # both fit the map alike (a slide along a plane): ICP's
+    worse = choose_step(short, tracks, misfits=lambda *steps: tuple(0.02 if s is pnp else 0.01 for s in steps))
+    assert not worse[1]
+    asked = []
+
+    def one_motion(a: np.ndarray, b: np.ndarray) -> bool:  # ICP's threshold: the two steps are one motion
+        asked.append((a, b))
+        return False
+
+    same = choose_step(short, tracks, misfits=misfit_by_error, distinct=one_motion)
+    assert same == (short, False) and len(asked) == 1  # the depth is not asked
+    assert choose_step(short, tracks, misfits=misfit_by_error, distinct=lambda a, b: True)[1]
 
 
 def test_images_that_do_not_move_together_give_no_tracks(ground_texture) -> None:
@@ -262,10 +303,10 @@ def test_the_source_asks_for_matched_features_where_lucas_kanade_lost_the_image(
 
     asked = []
 
-    def spy(icp_step, tracks, guess_step=None, realign=None, matched=None, misfits=None, judged=None, rival=None):
+    def spy(icp_step, tracks, guess_step=None, realign=None, matched=None, misfits=None, judged=None, *rest):
         other = None if matched is None else matched()
         asked.append((tracks is None, other is not None))
-        return choose_step(icp_step, tracks, guess_step, realign, matched, misfits, judged, rival)
+        return choose_step(icp_step, tracks, guess_step, realign, matched, misfits, judged, *rest)
 
     monkeypatch.setattr(sources, "choose_step", spy)
     panorama = _panorama(3)

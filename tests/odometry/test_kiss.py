@@ -220,3 +220,29 @@ def test_a_reset_with_motion_starts_at_the_origin_and_predicts_that_motion():
         np.testing.assert_allclose(odo.predicted_delta, expected, atol=1e-12)
         coasted = odo.register(np.zeros((0, 3)))  # no cloud: the prediction is the pose
         np.testing.assert_allclose(coasted.T_odom_cam, expected, atol=1e-12)
+
+
+def test_two_steps_are_distinct_where_they_move_the_cloud_apart_by_more_than_the_threshold():
+    _, clouds = _street_clouds(8, 6)
+    odo = KissOdometry()
+    for c in clouds[:6]:
+        odo.register(c)
+    seen = {}
+
+    def probe(icp_step: np.ndarray) -> np.ndarray:
+        sigma = odo.threshold_m
+        ranges = np.linalg.norm(odo._fitting._source, axis=1)  # the source points the displacement is measured on
+        r_median = float(np.median(ranges))
+        shift = lambda m: icp_step @ make_pose(np.eye(3), [m, 0.0, 0.0])  # noqa: E731
+        turn = lambda m: icp_step @ make_pose(rot_y(2.0 * np.arcsin(m / (2.0 * r_median))), [0.0, 0.0, 0.0])  # noqa: E731
+        seen["shift"] = (odo.beyond_threshold(icp_step, shift(0.9 * sigma)),
+                         odo.beyond_threshold(icp_step, shift(1.1 * sigma)))  # fmt: skip
+        seen["turn"] = (odo.beyond_threshold(icp_step, turn(0.8 * sigma)),
+                        odo.beyond_threshold(icp_step, turn(1.25 * sigma)))  # fmt: skip
+        seen["same"] = odo.beyond_threshold(icp_step, icp_step.copy())
+        return icp_step
+
+    odo.register(clouds[6], fuse_step=probe)
+    assert seen == {"shift": (False, True), "turn": (False, True), "same": False}
+    with pytest.raises(RuntimeError):
+        odo.beyond_threshold(np.eye(4), np.eye(4))  # only while a frame is being registered
