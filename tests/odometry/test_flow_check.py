@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from shgm_slam.geometry.camera import backproject
+from shgm_slam.geometry.camera import backproject, project
 from shgm_slam.geometry.se3 import make_pose
 from shgm_slam.odometry import flow_check
 from shgm_slam.odometry.flow_check import (
@@ -316,3 +316,39 @@ def test_the_source_asks_for_matched_features_where_lucas_kanade_lost_the_image(
         points, _ = backproject(depth, K, stride=2)
         source.update(Frame(k, 0.3 * k, K, image_rgb=image), points, depth)
     assert asked[-1] == (True, True)
+
+
+def _forward_tracks(step_m: float, noise_px: float = 0.3) -> Tracks:
+    """Tracks of points 6-40 m ahead of a camera that moved ``step_m`` along its optical axis."""
+    rng = np.random.default_rng(5)
+    n = 80
+    points = np.column_stack([rng.uniform(-8, 8, n), rng.uniform(-2, 1.5, n), rng.uniform(6, 40, n)])
+    uv, _ = project(points - [0.0, 0.0, step_m], K)
+    return Tracks(points, uv + rng.normal(0.0, noise_px, uv.shape), K)
+
+
+def test_a_robot_already_at_speed_is_found_along_the_camera_axis_where_pnp_cannot_solve() -> None:
+    tracks = _forward_tracks(3.0)
+    rest = np.eye(4)
+    start = flow_check._along_axis(rest, tracks)
+    assert start is not None and abs(start[2, 3] - 3.0) < 0.2  # within the search's spacing (12 m / 64)
+    assert flow_check._along_axis(make_pose(np.eye(3), [0.0, 0.0, 3.0]), tracks) is None  # nothing explains them better
+
+    def misfit_by_error(*steps: np.ndarray) -> tuple[float, ...]:
+        return tuple(0.002 + 0.05 * float(np.linalg.norm(s[:3, 3] - [0.0, 0.0, 3.0])) for s in steps)
+
+    realigned = []
+
+    def realign(guess: np.ndarray) -> np.ndarray:  # ICP from the start converges to the truth near it
+        realigned.append(guess)
+        return make_pose(np.eye(3), [0.0, 0.0, 3.0]) if abs(guess[2, 3] - 3.0) < 0.5 else guess
+
+    r_rest = flow_residual_rad(tracks, rest)
+    step, replaced = flow_check._judged_search(rest, tracks, r_rest, realign, misfit_by_error, lambda *s: 100, None)
+    assert replaced
+    np.testing.assert_allclose(step[:3, 3], [0.0, 0.0, 3.0])
+    # tracks of a camera at rest back ICP's standstill: nothing along the axis explains them better
+    still = _forward_tracks(0.0)
+    step, replaced = flow_check._judged_search(rest, still, flow_residual_rad(still, rest), realign, misfit_by_error,
+                                               lambda *s: 100, None)  # fmt: skip
+    assert not replaced and step is rest
