@@ -384,7 +384,7 @@ def choose_step(
     above ``SLIP_FLOOR_RAD``) where ICP's residual is also above ``SLIP_RATIO`` times PnP's (module docstring), or,
     where the tracks cannot decide between the two (below that ratio), where the depth does: the cloud fits the map
     so much better under PnP's step than under ICP's own that the rule which refuses an image step that fits worse
-    (``MISFIT_RATIO`` and ``misfit_slack``) refuses ICP's (``_fits_far_better``; ICP then stopped short of its own
+    (``MISFIT_RATIO`` and ``misfit_slack``) refuses ICP's (``_fits_far_worse``; ICP then stopped short of its own
     best fit; asked only where ``distinct``, e.g. ``KissOdometry.beyond_threshold``, says the two steps differ by
     more than ICP's own threshold: building the map's search tree costs ~10 ms, and at 10 Hz the tracks are above
     the floor in most frames while PnP's step and ICP's are one motion). Airsim-like tuning seed 25 at 3.3 frames/s:
@@ -472,7 +472,7 @@ def _pnp_verdict(
 ) -> tuple[np.ndarray, bool] | None:
     """``choose_step``'s first rule on one set of tracks (``r_icp``: ICP's residual on them): ICP's step where its
     residual is within ``SLIP_FLOOR_RAD`` or ``SLIP_RATIO`` times PnP's (unless the depth refuses ICP's step:
-    ``_fits_far_better``, asked where ``distinct``), PnP's where ICP slipped (unless it fits the map worse), None
+    ``_fits_far_worse``, asked where ``distinct``), PnP's where ICP slipped (unless it fits the map worse), None
     where PnP cannot decide."""
     if r_icp <= SLIP_FLOOR_RAD:
         return icp_step, False
@@ -481,7 +481,7 @@ def _pnp_verdict(
         return None
     r_pnp = flow_residual_rad(tracks, pnp)
     if r_icp <= SLIP_RATIO * r_pnp:
-        if (distinct is None or distinct(icp_step, pnp)) and _fits_far_better(pnp, icp_step, misfits):
+        if (distinct is None or distinct(icp_step, pnp)) and _fits_far_worse(icp_step, pnp, misfits):
             return pnp, True  # the depth refuses ICP's step for the images' own
         return icp_step, False
     return _unless_worse_fit(icp_step, pnp, misfits)
@@ -646,23 +646,21 @@ def _unless_worse_fit(
     icp_step: np.ndarray, step: np.ndarray, misfits: Callable[..., tuple[float, ...]] | None
 ) -> tuple[np.ndarray, bool]:
     """(``step``, True), or (``icp_step``, False) where the cloud fits the map ``MISFIT_RATIO`` times worse under it
-    (and ``misfit_slack`` more)."""
-    if misfits is not None:
-        of_icp, of_step = misfits(icp_step, step)
-        if of_step > MISFIT_RATIO * of_icp + misfit_slack(of_icp):
-            return icp_step, False
+    (and ``misfit_slack`` more: ``_fits_far_worse``)."""
+    if _fits_far_worse(step, icp_step, misfits):
+        return icp_step, False
     return step, True
 
 
-def _fits_far_better(step: np.ndarray, icp_step: np.ndarray, misfits: Callable[..., tuple[float, ...]] | None) -> bool:
-    """Whether the cloud fits the map so much better under ``step`` than under ICP's own that ``_unless_worse_fit``,
-    the roles swapped, would refuse ICP's step (``MISFIT_RATIO`` times and ``misfit_slack`` more): ICP stopped
+def _fits_far_worse(step: np.ndarray, than: np.ndarray, misfits: Callable[..., tuple[float, ...]] | None) -> bool:
+    """Whether the cloud fits the map more than ``MISFIT_RATIO`` times worse under ``step`` than under ``than``, and
+    ``misfit_slack`` more (False without ``misfits``). With ``than`` an image step and ``step`` ICP's own: ICP stopped
     short of the depth's own best fit, as it does from a constant-velocity prediction of rest while the robot
-    already drives (False without ``misfits``)."""
+    already drives."""
     if misfits is None:
         return False
-    of_step, of_icp = misfits(step, icp_step)
-    return of_icp > MISFIT_RATIO * of_step + misfit_slack(of_step)
+    of_than, of_step = misfits(than, step)
+    return of_step > MISFIT_RATIO * of_than + misfit_slack(of_than)
 
 
 def misfit_slack(of_icp: float) -> float:
