@@ -379,6 +379,16 @@ def test_icp_that_found_the_turn_but_stopped_to_the_side_is_moved_by_the_sideway
     assert choose_step(missed, tracks, guess, icp, misfits=alike, judged=judged) == (aside, True)
 
 
+def test_turn_search_reaches_a_turn_beyond_twenty_degrees_from_icps_step() -> None:
+    # Airsim-like tuning seed 27's car2 at 3.3 frames/s: a 25.9 deg turn in one frame, ICP registered -0.5 deg, and
+    # ICP reached the turn only from starts 21.5-29.5 deg (from 19.5 it stalled at 19.8): a basin narrower than the
+    # search's spacing. From ICP's step turned 30 deg further the turn is found.
+    icp = make_pose(rot_y(np.radians(-0.5)), np.array([0.2, -0.2, 2.9]))
+    fits = _Fits(lambda deg: 0.055 if abs(deg - 26.0) < 0.5 else 0.72)
+    step, replaced = turn_search(icp, _snap_to(26.0, basin_deg=5.0), fits.misfits, fits.judged)
+    assert replaced and np.degrees(yaw_of(step)) == pytest.approx(26.0)
+
+
 def test_turn_search_refuses_a_step_judged_on_a_sliver_of_the_view() -> None:
     # ICP again reaches a turn 40 deg the other way, which fits better only on the few points both steps put
     # where the previous camera saw: refused.
