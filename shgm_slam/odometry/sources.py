@@ -388,6 +388,7 @@ def _kiss(cfg: OdometryConfig, num_frames: int) -> OdometrySource:
             max_icp_iterations=cfg.max_icp_iterations,
             convergence_criterion=cfg.icp_convergence,
             max_threads=cfg.icp_threads,
+            register_seen_only=not cfg.depth_noise_rel,  # noise-free depth only (kiss._registrable)
         ),
         cloud_stride=cfg.cloud_stride,
         max_spacing_m=cfg.max_spacing_m,

@@ -241,3 +241,9 @@ def test_the_image_step_blend_is_built_where_it_is_on_and_the_image_checks_are_t
     assert OdometryConfig().filled().image_step_blend is False  # nothing measured: noise-free, ICP's steps
     for needed in ("image_flow_check", "image_rotation"):  # no tracks or no image turn to weigh them by
         assert make_odometry(on.model_copy(update={needed: False}), 1).blend is None
+
+
+@pytest.mark.parametrize(("noise", "seen_only"), [(0.0, True), (None, True), (0.02, False)])
+def test_kiss_icp_registers_on_what_the_previous_camera_saw_only_on_noise_free_depth(noise, seen_only):
+    src = make_odometry(OdometryConfig(kind=OdometryKind.KISS_ICP, depth_noise_rel=noise), 3)
+    assert isinstance(src, KissIcpSource) and src.odometry.register_seen_only is seen_only
