@@ -34,7 +34,8 @@ class OdometryEstimate:
     of the last second solved from image tracks (KISS-ICP, ``window_check``: the step then holds that
     correction, not one frame's motion); ``new_reference`` whether the frame became the visual odometry's
     tracking reference, ``levelled`` whether that reference's tilt was turned towards level (the ground in
-    view: a UAV's camera).
+    view: a UAV's camera); ``map_misfit`` how badly the frame's cloud fits the source's local map under the step
+    kept, where the source measured it (KISS-ICP on noise-free depth: ``Registration.map_misfit``).
     """
 
     T_odom_cam: np.ndarray
@@ -48,6 +49,7 @@ class OdometryEstimate:
     image_window: bool = False
     new_reference: bool = False
     levelled: bool = False
+    map_misfit: float | None = None
 
 
 @runtime_checkable

@@ -75,12 +75,16 @@ class Registration:
         num_points: points of the input cloud inside the range limits.
         source_voxels: KISS-ICP source voxels those points fill, where that made the cloud degenerate
             (``MIN_SOURCE_VOXELS``); None otherwise (not counted in full).
+        map_misfit: how badly the cloud fits the local map under the step kept (``map_misfits``), where a
+            ``fuse_step`` measured the map's fit in this frame (a search ran); None otherwise (not measured:
+            measuring costs 10-20 ms).
     """
 
     T_odom_cam: np.ndarray
     status: OdometryStatus
     num_points: int
     source_voxels: int | None = None
+    map_misfit: float | None = None
 
     def describe(self) -> str:
         """``status (N points in range[, V source voxels])``, for logs."""
@@ -193,6 +197,7 @@ class KissOdometry:
         self._no_stamps = np.array([])  # KISS-ICP needs an array; empty = no deskew
         self.num_frames = 0
         self._seed_delta: np.ndarray | None = None  # ``reset``'s motion, taken once the first frame is in
+        self._seeded_step = False  # the next registered step is predicted with ``reset``'s motion
         self._aligning: Callable[[np.ndarray], np.ndarray] | None = None  # ``realign`` during ``_register_fused``
         self._fitting: _MapFit | None = None  # ``map_misfits`` during ``_register_fused``
 
@@ -202,12 +207,19 @@ class KissOdometry:
         Args:
             motion: optional (4, 4) frame-to-frame motion (a frame's camera in the previous one) the
                 constant-velocity model predicts the second frame with; None: zero velocity (KISS-ICP's start).
+                Where the second frame's step lies beyond ICP's gate from it (``model_error_m`` over 3 x the
+                threshold), that gap is not counted in KISS-ICP's adaptive threshold: it measures the seed (a motion
+                remembered across a re-initialisation, from before a turn began), not the constant-velocity model's
+                error, and as the threshold's only sample it would rule it alone (airsim-like tuning 26's car2,
+                restarted in a 27 deg turn with the 0.5 deg step before it, registered the turn right and its
+                threshold jumped to 34 m, which the health check took for two more failures).
         """
         from kiss_icp.kiss_icp import KissICP
 
         self._icp = KissICP(self.config)
         self.num_frames = 0
         self._seed_delta = None if motion is None else np.asarray(motion, dtype=np.float64).copy()
+        self._seeded_step = False
 
     @property
     def threshold_m(self) -> float:
@@ -278,20 +290,24 @@ class KissOdometry:
             return Registration(self._coast(), OdometryStatus.DEGENERATE_CLOUD, num_in_range, voxels)
 
         last_pose, last_delta = self._icp.last_pose.copy(), self._icp.last_delta.copy()
-        self._register_fused(np.ascontiguousarray(pts), _own_step if fuse_step is None else fuse_step)
+        misfit = self._register_fused(np.ascontiguousarray(pts), _own_step if fuse_step is None else fuse_step)
         if self._seed_delta is not None:  # the first frame is in (at the origin): predict on at the seeded motion
             self._icp.last_delta, self._seed_delta = self._seed_delta, None
+            self._seeded_step = True
         if not np.isfinite(self._icp.last_pose).all():
             # the map may now hold points placed with a non-finite pose: restart it from the next frame
             self._icp.local_map.clear()
             self._icp.last_pose, self._icp.last_delta = last_pose, last_delta
             return Registration(self._coast(), OdometryStatus.ICP_FAILED, num_in_range)
-        return Registration(self._icp.last_pose.copy(), OdometryStatus.OK, num_in_range)
+        return Registration(self._icp.last_pose.copy(), OdometryStatus.OK, num_in_range, map_misfit=misfit)
 
-    def _register_fused(self, pts: np.ndarray, fuse_step: Callable[[np.ndarray], np.ndarray | Relocation]) -> None:
+    def _register_fused(
+        self, pts: np.ndarray, fuse_step: Callable[[np.ndarray], np.ndarray | Relocation]
+    ) -> float | None:
         """``KissICP.register_frame`` with ICP's step passed through ``fuse_step`` before the update of
         the threshold, the map and the pose (the same steps, in KISS-ICP's order; ``Relocation``: its
-        docstring), and ICP run on the points the map can hold (``_registrable``)."""
+        docstring), and ICP run on the points the map can hold (``_registrable``). Returns the map misfit of the
+        step kept where ``fuse_step`` measured the map's fit (``Registration.map_misfit``), else None."""
         icp = self._icp
         frame = icp.preprocessor.preprocess(pts, self._no_stamps, icp.last_delta)
         source, frame_downsample = icp.voxelize(frame)
@@ -314,6 +330,8 @@ class KissOdometry:
         self._fitting = _MapFit(icp.local_map, source, icp.last_pose, 3 * sigma, self.max_range_m)
         try:
             step = fuse_step(icp_step)
+            fitted = self._fitting.measured and not isinstance(step, Relocation)
+            misfit = self._fitting([np.asarray(step, dtype=np.float64)])[0] if fitted else None
         finally:
             self._aligning = None
             self._fitting = None
@@ -324,11 +342,15 @@ class KissOdometry:
         if step is not icp_step:  # a step of its own: the pose follows it (ICP's own: exactly KISS-ICP's update)
             step = np.asarray(step, dtype=np.float64)
             new_pose = icp.last_pose @ step
-        if relocation is None:  # a correction is not the motion model's error
-            icp.adaptive_threshold.update_model_deviation(np.linalg.inv(initial_guess) @ new_pose)
+        deviation = np.linalg.inv(initial_guess) @ new_pose
+        seeded, self._seeded_step = self._seeded_step, False
+        wrong_seed = seeded and model_error_m(deviation, self.max_range_m) > 3 * sigma  # ``reset``
+        if relocation is None and not wrong_seed:  # a correction is not the motion model's error, nor a wrong seed's
+            icp.adaptive_threshold.update_model_deviation(deviation)
         icp.local_map.update(frame_downsample, new_pose)
         icp.last_delta = step if relocation is None else np.asarray(relocation.velocity, dtype=np.float64)
         icp.last_pose = new_pose
+        return misfit
 
     def map_misfits(self, *steps: np.ndarray) -> tuple[float, ...]:
         """How badly the frame being registered fits the local map if this frame's camera is each of ``steps``
@@ -362,6 +384,13 @@ class KissOdometry:
         """Advance the pose by the last frame-to-frame motion without touching the map."""
         self._icp.last_pose = self._icp.last_pose @ self._icp.last_delta
         return self._icp.last_pose.copy()
+
+
+def model_error_m(deviation: np.ndarray, max_range_m: float) -> float:
+    """KISS-ICP's measure of a (4, 4) deviation from its prediction, metres (its adaptive threshold's sample): the
+    translation's length plus how far the rotation moves a point at ``max_range_m`` (2 r sin(angle / 2))."""
+    cos = np.clip((np.trace(deviation[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.linalg.norm(deviation[:3, 3]) + 2.0 * max_range_m * np.sin(np.arccos(cos) / 2.0))
 
 
 def _own_step(icp_step: np.ndarray) -> np.ndarray:
@@ -428,6 +457,11 @@ class _MapFit:
         self._map, self._source, self._T_prev = local_map, np.asarray(source_xyz), T_odom_prev
         self._gate, self._max_range = gate_m, max_range_m
         self._tree = None
+
+    @property
+    def measured(self) -> bool:
+        """Whether the map's search tree was built (a misfit was asked for): another one then costs little."""
+        return self._tree is not None
 
     def __call__(self, steps: list[np.ndarray]) -> tuple[float, ...]:
         from scipy.spatial import cKDTree

@@ -22,7 +22,7 @@ from shgm_slam.odometry.estimate import (
     keep_well_sampled,
     yaw_disagreement_deg,
 )
-from shgm_slam.odometry.flow_check import FlowTracks, choose_step, pnp_step
+from shgm_slam.odometry.flow_check import FlowTracks, choose_step, pnp_step, speed_search
 from shgm_slam.odometry.image_rotation import ImageYawEstimator, rot_y, yaw_of
 from shgm_slam.odometry.kiss import KissOdometry, Relocation
 from shgm_slam.odometry.step_fusion import ImageStepBlend
@@ -130,14 +130,20 @@ class KissIcpSource:
         slipped: list[bool] = []
         relocated: list[bool] = []
 
+        from_rest = self.odometry.num_frames == 1 and np.array_equal(self.odometry.predicted_delta, np.eye(4))
+
         def keep_step(icp_step: np.ndarray) -> np.ndarray | Relocation:
             odo = self.odometry
+            searched = False
+            if from_rest:  # the first step, nothing predicts it: ICP may have stayed at rest (``speed_search``)
+                icp_step, searched = speed_search(icp_step, odo.realign, odo.map_misfits, odo.map_judged,
+                                                   odo.beyond_threshold)  # fmt: skip
             rival = None if self.flow is None else self.flow.rival
             step, replaced = choose_step(
                 icp_step, tracks, guess, odo.realign, matched, odo.map_misfits, odo.map_judged, rival,
                 odo.beyond_threshold,
             )  # fmt: skip
-            slipped.append(replaced)
+            slipped.append(replaced or searched)
             if self.blend is not None and tracks is not None and not replaced:
                 step = self.blend(step, pnp_step(tracks), yaw_img)
             motion = None if T_anchor is None else window_correction(window, inverse(T_anchor) @ T_prev @ step)
@@ -168,6 +174,7 @@ class KissIcpSource:
         return OdometryEstimate(
             reg.T_odom_cam, reg.ok, note, self.odometry.threshold_m, disagreement, image_step=image_step,
             image_window=image_window,
+            map_misfit=None if self.depth_noise_rel else reg.map_misfit,  # noisy depth: health.py's map misfit
         )  # fmt: skip
 
     def _guess_step(self) -> np.ndarray:

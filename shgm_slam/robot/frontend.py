@@ -361,7 +361,7 @@ class RobotFrontend:
         return self.health.check(
             index, timestamp_s, est.T_odom_cam, measured=est.ok,
             registration_threshold_m=est.threshold_m, rotation_disagreement_deg=disagreement,
-            rebased=est.image_window,
+            rebased=est.image_window, map_misfit=est.map_misfit,
         )  # fmt: skip
 
     def _keyframe(self, seg, index, frame, perceived, T_odom_cam, points_cam, point_labels, timings) -> KeyframeMessage:

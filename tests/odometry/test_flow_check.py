@@ -352,3 +352,28 @@ def test_a_robot_already_at_speed_is_found_along_the_camera_axis_where_pnp_canno
     step, replaced = flow_check._judged_search(rest, still, flow_residual_rad(still, rest), realign, misfit_by_error,
                                                lambda *s: 100, None)  # fmt: skip
     assert not replaced and step is rest
+
+
+def test_the_source_searches_for_the_speed_only_at_the_first_step_from_rest(monkeypatch) -> None:
+    """Only the first step of an odometry started from rest has nothing to predict it; after a restart that remembers
+    the motion before it (``reset(motion)``), and at every later step, the prediction stands."""
+    import shgm_slam.odometry.sources as sources
+
+    calls: list[int] = []
+
+    def spy(icp_step, *rest):
+        calls.append(len(frames_seen))
+        return icp_step, False
+
+    monkeypatch.setattr(sources, "speed_search", spy)
+    panorama = _panorama(3)
+    source = KissIcpSource(KissOdometry(voxel_size_m=0.5, max_range_m=30.0), flow=FlowTracks())
+    frames_seen: list[int] = []
+    for start in (None, make_pose(rot_y(np.radians(1.0)), np.zeros(3))):
+        source.reset(start)
+        for k, yaw_deg in enumerate((0.0, 1.0, 2.0, 3.0)):
+            image, depth = _cylinder_view(panorama, np.radians(yaw_deg))
+            points, _ = backproject(depth, K, stride=2)
+            frames_seen.append(k)
+            source.update(Frame(k, 0.3 * k, K, image_rgb=image), points, depth)
+    assert calls == [2]  # the second frame of the start from rest only

@@ -22,6 +22,7 @@ from shgm_slam.odometry.flow_check import (
     choose_step,
     flow_residual_rad,
     pnp_step,
+    speed_search,
     turn_search,
 )
 from shgm_slam.odometry.image_rotation import rot_y, yaw_of
@@ -448,3 +449,93 @@ def test_where_matched_features_cannot_decide_and_the_guess_is_wrong_the_turn_se
     assert r_icp > 3e-3 and r_icp < SLIP_RATIO * r_found
     kept = choose_step(missed, None, wrong_guess, _snap_to(32.0), lambda: between, fits.misfits, fits.judged)
     assert kept == (missed, False)
+
+
+class _Along:
+    """Stand-ins for ICP (``realign``), ``map_misfits``, ``map_judged`` and ``beyond_threshold`` along the camera's
+    axis: ICP from a start within 2 m of one of ``places`` (z, metres) reaches it, else stays; a step's misfit is
+    ``places``' value there (0.3 elsewhere); two steps are distinct more than 2 m apart."""
+
+    def __init__(self, places: dict[float, float]) -> None:
+        self.places, self.tried = places, 0
+
+    def realign(self, start: np.ndarray) -> np.ndarray:
+        self.tried += 1
+        near = [z for z in self.places if abs(start[2, 3] - z) <= 2.0 and np.allclose(start[:2, 3], 0.0)]
+        return make_pose(np.eye(3), [0.0, 0.0, min(near, key=lambda z: abs(start[2, 3] - z))]) if near else start
+
+    def misfits(self, *steps: np.ndarray) -> tuple[float, ...]:
+        return tuple(self.places.get(round(float(s[2, 3]), 6), 0.3) if np.allclose(s[:2, 3], 0.0) else 0.3
+                     for s in steps)  # fmt: skip
+
+    def judged(self, *steps: np.ndarray) -> int:
+        return 1000
+
+    def distinct(self, a: np.ndarray, b: np.ndarray) -> bool:
+        return bool(np.linalg.norm(a[:3, 3] - b[:3, 3]) > 2.0)
+
+    def search(self, icp_z: float) -> tuple[np.ndarray, bool]:
+        return speed_search(make_pose(np.eye(3), [0.0, 0.0, icp_z]), self.realign, self.misfits, self.judged,
+                            self.distinct)  # fmt: skip
+
+
+def test_speed_search_keeps_the_one_place_that_fits_clearly_best() -> None:
+    # airsim-like report world 725's car1 at its first step: ICP from rest 0.01 m (misfit 0.076), from ahead 2.95 m
+    # (0.019), from behind stuck behind (0.16-0.32)
+    along = _Along({0.0: 0.076, 2.95: 0.019, -1.5: 0.16, -3.0: 0.27, -6.0: 0.32})
+    step, replaced = along.search(0.0)
+    assert replaced and step[2, 3] == pytest.approx(2.95)
+
+
+def test_speed_search_takes_neither_of_two_places_that_fit_alike() -> None:
+    along = _Along({0.0: 0.076, 2.95: 0.019, -6.0: 0.022})  # a regular street: 9 m back fits about as well
+    step, replaced = along.search(0.0)
+    assert not replaced and step[2, 3] == 0.0
+    along = _Along({0.0: 0.076, 2.95: 0.019, -6.0: 1.5 * 0.019 + MISFIT_SLACK + 1e-3})  # clearly worse: no rival
+    assert along.search(0.0)[1]
+
+
+def test_speed_search_runs_only_where_icps_first_step_fits_badly() -> None:
+    along = _Along({0.0: MISFIT_SLACK, 2.95: 0.0})
+    assert along.search(0.0)[1] is False and along.tried == 0
+
+
+@pytest.mark.parametrize("step_m", [-2.8])
+def test_a_first_step_icp_registered_at_rest_is_found_again_from_further_along(step_m: float) -> None:
+    """A camera looking back from a car already driving at its first frame (3.3 frames/s), with KISS-ICP: ICP from rest
+    stalls, its cloud fits the map badly, and from further along the camera's axis it reaches the step. (Looking
+    ahead on this street of lattice walls, other places fit about as well as the true one, and nothing is taken.)"""
+    scene = _walled_street()
+    odo = KissOdometry(voxel_size_m=0.5, max_range_m=30.0)
+    odo.register(_seen_from(scene, np.eye(4)))
+    seen: dict[str, object] = {}
+
+    def search(icp_step: np.ndarray) -> np.ndarray:
+        seen["icp"] = icp_step
+        step, seen["replaced"] = speed_search(icp_step, odo.realign, odo.map_misfits, odo.map_judged,
+                                              odo.beyond_threshold)  # fmt: skip
+        return step
+
+    odo.register(_seen_from(scene, make_pose(np.eye(3), [0.0, 0.0, step_m])), fuse_step=search)
+    assert abs(seen["icp"][2, 3]) < 0.5 * abs(step_m)  # ICP from rest stalled
+    assert seen["replaced"]
+    np.testing.assert_allclose(odo.T_odom_cam[:3, 3], [0.0, 0.0, step_m], atol=0.15)
+
+
+def test_a_robot_at_rest_is_not_searched() -> None:
+    scene = _walled_street()
+    odo = KissOdometry(voxel_size_m=0.5, max_range_m=30.0)
+    odo.register(_seen_from(scene, np.eye(4)))
+    tried: list[np.ndarray] = []
+
+    def realign(start: np.ndarray) -> np.ndarray:
+        tried.append(start)
+        return odo.realign(start)
+
+    def search(icp_step: np.ndarray) -> np.ndarray:
+        step, replaced = speed_search(icp_step, realign, odo.map_misfits, odo.map_judged, odo.beyond_threshold)
+        assert not replaced and step is icp_step
+        return step
+
+    odo.register(_seen_from(scene, np.eye(4)), fuse_step=search)
+    assert not tried

@@ -189,6 +189,20 @@ def test_turn_rate_and_registration_threshold_limits() -> None:
     assert failure is not None and failure.reason is FailureReason.REGISTRATION_THRESHOLD
 
 
+def test_a_cloud_that_fits_the_map_badly_under_the_step_kept_is_a_failure_at_that_frame() -> None:
+    """A turn ICP registered the wrong way keeps a plausible motion; the map's fit, where measured, does not."""
+    v, w = city_drive()
+    poses = drive(v, w, 0.1)
+    misfit = [None] * len(poses)
+    misfit[120], misfit[121] = 0.26, 0.76  # the highest healthy searched frame of the tuning drives; the turn missed
+    failure = run(OdometryHealthMonitor(LIMITS), poses, 0.1, map_misfit=misfit)
+    assert failure is not None and failure.reason is FailureReason.MAP_MISFIT
+    assert (failure.onset_frame, failure.detected_frame) == (121, 121)
+    rebased = np.zeros(len(poses), dtype=bool)
+    rebased[121] = True  # a step re-measured from the images: the local map restarts, its old fit says nothing
+    assert run(OdometryHealthMonitor(LIMITS), poses, 0.1, map_misfit=misfit, rebased=rebased) is None
+
+
 def test_reset_starts_a_new_history() -> None:
     monitor = OdometryHealthMonitor(LIMITS)
     assert monitor.check(0, 0.0, np.eye(4)) is None

@@ -307,3 +307,52 @@ def test_registering_on_everything_where_asked_gives_kiss_icps_own_trajectory():
     gt, est = _backward_drive(3.0, 25, 3, seen_only=False)
     err_m, err_deg = pose_error(est, inverse(gt[0]) @ gt)
     assert err_m[-1] > 2.5 and err_deg[-1] > 3.0
+
+
+def test_the_map_misfit_of_the_step_kept_is_reported_where_a_search_measured_it():
+    """Measuring the map's fit builds a search tree (10-20 ms): reported only where ``fuse_step`` asked for it, then
+    for the step kept (here a step 2 m aside, which fits far worse than ICP's own)."""
+    _, clouds = _street_clouds(9, 6)
+    odo = KissOdometry()
+    for c in clouds[:6]:
+        assert odo.register(c).map_misfit is None  # nothing asked
+    asked = {}
+
+    def aside(icp_step: np.ndarray) -> np.ndarray:
+        moved = icp_step @ make_pose(np.eye(3), [2.0, 0.0, 0.0])
+        asked["icp"], asked["aside"] = odo.map_misfits(icp_step)[0], odo.map_misfits(moved)[0]
+        return moved
+
+    reg = odo.register(clouds[6], fuse_step=aside)
+    assert reg.map_misfit == pytest.approx(asked["aside"]) and asked["aside"] > 5 * asked["icp"]
+    assert odo.register(clouds[7], fuse_step=lambda step: step).map_misfit is None  # a fuse_step that did not ask
+
+
+def test_the_seeded_first_step_is_not_counted_in_the_adaptive_threshold():
+    """A restart's seed (the motion before a failure) may be far from the next step (a turn): beyond ICP's gate its
+    error is the seed's, and as the threshold's only sample it would set the threshold alone (8 deg at 100 m: 14 m)."""
+    gt, clouds = _street_clouds(4, 7)
+    seed = make_pose(rot_y(np.radians(8.0)), [0.0, 0.0, 0.5])  # the true steps turn 0.23 deg
+    odo = KissOdometry(max_range_m=100.0)
+    odo.reset(seed)
+    odo.register(clouds[0])
+    reg = odo.register(clouds[1])
+    err_m, err_deg = pose_error(reg.T_odom_cam[None], (inverse(gt[0]) @ gt[1])[None])
+    assert err_m[0] < 0.3 and err_deg[0] < 1.0, (err_m, err_deg)  # ICP came back from the 8 deg seed
+    assert odo.threshold_m == pytest.approx(2.0)  # KISS-ICP's initial threshold: no sample yet
+    unseeded = KissOdometry(max_range_m=100.0)
+    for c in clouds[:2]:
+        unseeded.register(c)
+    assert unseeded.threshold_m != pytest.approx(2.0)  # from rest (KISS-ICP's start): counted
+
+
+def test_model_error_is_kiss_icps():
+    from kiss_icp.pybind import kiss_icp_pybind
+
+    from shgm_slam.odometry.kiss import model_error_m
+
+    for deviation in (make_pose(rot_y(0.3), [1.0, -2.0, 0.5]), make_pose(np.eye(3), [0.05, 0.0, 0.0])):
+        theirs = kiss_icp_pybind._AdaptiveThreshold(initial_threshold=2.0, min_motion_th=0.0, max_range=100.0)
+        theirs._update_model_deviation(model_deviation=deviation)
+        mine = np.hypot(2.0, model_error_m(deviation, 100.0)) / np.sqrt(2.0)  # KISS-ICP 1.x: the initial one counts
+        assert mine == pytest.approx(theirs._compute_threshold())

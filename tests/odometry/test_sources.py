@@ -247,3 +247,16 @@ def test_the_image_step_blend_is_built_where_it_is_on_and_the_image_checks_are_t
 def test_kiss_icp_registers_on_what_the_previous_camera_saw_only_on_noise_free_depth(noise, seen_only):
     src = make_odometry(OdometryConfig(kind=OdometryKind.KISS_ICP, depth_noise_rel=noise), 3)
     assert isinstance(src, KissIcpSource) and src.odometry.register_seen_only is seen_only
+
+
+@pytest.mark.parametrize(("noise", "reported"), [(0.0, 0.7), (0.02, None)])
+def test_the_map_misfit_reaches_the_health_check_only_on_noise_free_depth(monkeypatch, noise, reported):
+    """On 2 % noisy depth healthy frames of a UAV fit the map with misfits up to 0.71 (health.py): not reported."""
+    from shgm_slam.odometry.kiss import OdometryStatus, Registration
+
+    src = make_odometry(OdometryConfig(kind=OdometryKind.KISS_ICP, depth_noise_rel=noise, image_flow_check=False,
+                                       image_rotation=False), 3)  # fmt: skip
+    monkeypatch.setattr(src.odometry, "register",
+                        lambda *a, **k: Registration(np.eye(4), OdometryStatus.OK, 5000, map_misfit=0.7))  # fmt: skip
+    points = np.random.default_rng(0).uniform(-5, 5, (5000, 3)) + np.array([0.0, 0.0, 10.0])
+    assert src.update(Frame(0, 0.0, INTR), points).map_misfit == reported
