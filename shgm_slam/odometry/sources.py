@@ -141,7 +141,7 @@ class KissIcpSource:
             rival = None if self.flow is None else self.flow.rival
             step, replaced = choose_step(
                 icp_step, tracks, guess, odo.realign, matched, odo.map_misfits, odo.map_judged, rival,
-                odo.beyond_threshold,
+                odo.beyond_threshold, motion_prior=None if self.depth_noise_rel else guess,
             )  # fmt: skip
             slipped.append(replaced or searched)
             if self.blend is not None and tracks is not None and not replaced:

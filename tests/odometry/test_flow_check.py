@@ -137,6 +137,35 @@ def test_a_step_the_images_cannot_decide_is_replaced_where_the_depth_refuses_icp
     assert choose_step(short, tracks, misfits=misfit_by_error, distinct=lambda a, b: True)[1]
 
 
+def test_tracks_left_behind_do_not_replace_a_step_the_prediction_and_the_depth_agree_on(ground_texture) -> None:
+    """Tracks that agree on a quarter of the motion (pixels Lucas-Kanade left behind) against ICP's step, which
+    kept pace with the constant-velocity prediction: refused where the cloud fits the map worse under the tracks'
+    step, however little; kept where it fits better, where no prior is given (noisy depth) or nothing was predicted,
+    or where the prior is as short as the tracks' step."""
+    flow = FlowTracks()
+    flow.update(_view(ground_texture, 0), _depth(), K)
+    behind = flow.update(np.ascontiguousarray(ground_texture[:, 1 : 1 + K.width]), _depth(), K)  # 1 px: 0.125 m
+    pnp = pnp_step(behind)
+    assert pnp is not None and abs(pnp[0, 3] - STEP_M / 4) < 0.02
+    icp = _true_step()  # ICP's step, the truth: 4 px, which the tracks do not explain
+    assert flow_residual_rad(behind, icp) > SLIP_RATIO * flow_residual_rad(behind, pnp)
+    predicted = make_pose(np.eye(3), np.array([0.95 * STEP_M, 0.0, 0.0]))
+
+    def slightly_worse(*steps: np.ndarray) -> tuple[float, ...]:  # well within MISFIT_RATIO and the slack
+        return tuple(0.012 if s is pnp or np.allclose(s, pnp) else 0.01 for s in steps)
+
+    assert choose_step(icp, behind, misfits=slightly_worse, motion_prior=predicted) == (icp, False)
+    step, replaced = choose_step(icp, behind, predicted, misfits=slightly_worse)  # no prior (noisy depth): replaced
+    assert replaced and np.allclose(step, pnp)
+    assert choose_step(icp, behind, misfits=slightly_worse, motion_prior=np.eye(4))[1]  # predicted rest
+    short = make_pose(np.eye(3), np.array([STEP_M / 4, 0.0, 0.0]))
+    assert choose_step(icp, behind, misfits=slightly_worse, motion_prior=short)[1]  # a prior as short as the tracks
+    better = choose_step(
+        icp, behind, misfits=lambda *steps: tuple(reversed(slightly_worse(*steps))), motion_prior=predicted
+    )
+    assert better[1] and np.allclose(better[0], pnp)  # the depth sides with the tracks
+
+
 def test_images_that_do_not_move_together_give_no_tracks(ground_texture) -> None:
     flow = FlowTracks()
     flow.update(_view(ground_texture, 0), _depth(), K)
@@ -303,10 +332,10 @@ def test_the_source_asks_for_matched_features_where_lucas_kanade_lost_the_image(
 
     asked = []
 
-    def spy(icp_step, tracks, guess_step=None, realign=None, matched=None, misfits=None, judged=None, *rest):
+    def spy(icp_step, tracks, guess_step=None, realign=None, matched=None, misfits=None, judged=None, *rest, **kw):
         other = None if matched is None else matched()
         asked.append((tracks is None, other is not None))
-        return choose_step(icp_step, tracks, guess_step, realign, matched, misfits, judged, *rest)
+        return choose_step(icp_step, tracks, guess_step, realign, matched, misfits, judged, *rest, **kw)
 
     monkeypatch.setattr(sources, "choose_step", spy)
     panorama = _panorama(3)
@@ -361,7 +390,7 @@ def test_the_source_searches_for_the_speed_only_at_the_first_step_from_rest(monk
 
     calls: list[int] = []
 
-    def spy(icp_step, *rest):
+    def spy(icp_step, *rest, **kw):
         calls.append(len(frames_seen))
         return icp_step, False
 
@@ -377,3 +406,27 @@ def test_the_source_searches_for_the_speed_only_at_the_first_step_from_rest(monk
             frames_seen.append(k)
             source.update(Frame(k, 0.3 * k, K, image_rgb=image), points, depth)
     assert calls == [2]  # the second frame of the start from rest only
+
+
+@pytest.mark.parametrize(("noise", "prior_given"), [(0.0, True), (0.02, False)])
+def test_the_source_gives_its_motion_prior_to_the_step_choice_only_on_noise_free_depth(
+    monkeypatch, noise, prior_given
+) -> None:
+    """On noisy depth two steps' misfits differ by the noise: the left-behind rule (``_left_behind``) is not asked."""
+    import shgm_slam.odometry.sources as sources
+
+    priors: list[np.ndarray | None] = []
+
+    def spy(icp_step, *rest, motion_prior=None, **kw):
+        priors.append(motion_prior)
+        return icp_step, False
+
+    monkeypatch.setattr(sources, "choose_step", spy)
+    panorama = _panorama(3)
+    source = KissIcpSource(KissOdometry(voxel_size_m=0.5, max_range_m=30.0), flow=FlowTracks(), depth_noise_rel=noise)
+    for k, yaw_deg in enumerate((0.0, 1.0, 2.0)):
+        image, depth = _cylinder_view(panorama, np.radians(yaw_deg))
+        points, _ = backproject(depth, K, stride=2)
+        source.update(Frame(k, 0.3 * k, K, image_rgb=image), points, depth)
+    assert len(priors) == 2
+    assert all((p is not None) == prior_given for p in priors)

@@ -349,6 +349,22 @@ def test_turn_search_runs_only_where_icp_fits_badly_and_keeps_the_best_fit() -> 
     assert turn_search(icp, _snap_to(24.0), None, None) == (icp, False)
 
 
+def test_turn_search_replaces_a_missed_turn_that_fits_the_map_only_slightly_badly() -> None:
+    """A backward camera's missed turn (synthia-like tuning seed 10): ICP's step fits the map with a misfit below
+    ``MISFIT_SLACK`` yet far above a step that fits as closely as the map's sampling allows; the search runs and the
+    turn wins. Where the turn fits no clearly better, or ICP's own misfit is the sampling's floor, ICP's stays."""
+    icp = make_pose(rot_y(np.radians(22.0)), np.array([0.0, 0.0, 3.0]))
+    slight = _Fits(lambda deg: 0.0001 if abs(deg - 32.0) < 0.5 else 0.008)
+    step, replaced = turn_search(icp, _snap_to(32.0), slight.misfits, slight.judged)
+    assert replaced and np.degrees(yaw_of(step)) == pytest.approx(32.0)
+    alike = _Fits(lambda deg: 0.004 if abs(deg - 32.0) < 0.5 else 0.008)  # within MISFIT_RATIO plus the slack
+    assert turn_search(icp, _snap_to(32.0), alike.misfits, alike.judged) == (icp, False)
+    calls: list[np.ndarray] = []
+    floor = _Fits(lambda deg: 0.0 if abs(deg - 32.0) < 0.5 else MISFIT_SLACK_FLOOR)
+    assert turn_search(icp, lambda start: calls.append(start) or start, floor.misfits, floor.judged) == (icp, False)
+    assert calls == []  # nothing can fit clearly better than the floor: nothing runs again
+
+
 def test_icp_that_found_the_turn_but_stopped_to_the_side_is_moved_by_the_sideways_search() -> None:
     # A 31 deg turn in one frame (3.3 frames/s): ICP again from the images' guess reaches the turn but stops 3.5 m
     # to the left of the truth, where the map fits 8 times worse than at the truth; from 3 m to the right (one
