@@ -545,8 +545,7 @@ def _left_behind(
     kept_pace_m = min(float(np.linalg.norm(icp_step[:3, 3])), predicted_m)
     if predicted_m <= 0.0 or kept_pace_m - float(np.linalg.norm(step[:3, 3])) <= PREDICTION_SHARE * predicted_m:
         return False
-    of_icp, of_step = misfits(icp_step, step)
-    return of_step > of_icp
+    return _fits_better(step, icp_step, misfits)  # ICP's step fits better than the tracks' (roles swapped)
 
 
 def _backing(tracks: Tracks, *steps: np.ndarray) -> tuple[bool, ...]:
@@ -638,10 +637,9 @@ def turn_search(
     reaches replaces ICP's where the cloud fits the map clearly better under it, by the rule that vetoes image steps
     the other way round (ICP's misfit above ``MISFIT_RATIO`` times the new step's plus ``misfit_slack`` of it: a
     step that fits the map as closely as sampling allows may beat a misfit below ``MISFIT_SLACK``), both judged on at
-    least
-    ``MIN_JUDGED_SHARE`` of the points ICP's step alone is judged on; of several, the one with the lowest misfit
-    relative to ICP's (``_best_start``). Then the same from that step (ICP's own where no turn won) moved sideways
-    (``SIDEWAYS_SEARCH``). ICP's very array without ``realign``, ``misfits`` or ``judged``.
+    least ``MIN_JUDGED_SHARE`` of the points ICP's step alone is judged on; of several, the one with the lowest
+    misfit relative to ICP's (``_best_start``). Then the same from that step (ICP's own where no turn won) moved
+    sideways (``SIDEWAYS_SEARCH``). ICP's very array without ``realign``, ``misfits`` or ``judged``.
 
     The images' own guess is not among the starts (only its translation, the prediction's): at the sharp turns where
     Lucas-Kanade and matched features both failed (synthia-like tuning seeds 10-13 at 3.3 frames/s), the global
